@@ -1,0 +1,1 @@
+"""Users, roles (client, monitor, operator, admin) and login."""

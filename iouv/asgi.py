@@ -1,0 +1,47 @@
+"""ASGI entry point: HTTP through Django, WebSockets through Channels.
+
+Browser sockets sit behind ``AllowedHostsOriginValidator`` and session authentication.
+The agent uplink does not: agents are not browsers, send no Origin header and
+authenticate with their own vehicle credential inside the socket, so no cookie can
+be abused cross-site there.
+"""
+
+import os
+
+from django.core.asgi import get_asgi_application
+
+os.environ.setdefault("DJANGO_SETTINGS_MODULE", "iouv.settings")
+django_asgi_app = get_asgi_application()
+
+# Imported after Django is set up: consumers import models.
+from channels.auth import AuthMiddlewareStack  # noqa: E402
+from channels.routing import ProtocolTypeRouter, URLRouter  # noqa: E402
+from channels.security.websocket import AllowedHostsOriginValidator  # noqa: E402
+from django.conf import settings  # noqa: E402
+from django.urls import re_path  # noqa: E402
+
+from iouv.routing import agent_websocket_urlpatterns, browser_websocket_urlpatterns  # noqa: E402
+
+http_app = django_asgi_app
+if settings.SERVE_STATIC:
+    from django.contrib.staticfiles.handlers import ASGIStaticFilesHandler
+
+    http_app = ASGIStaticFilesHandler(django_asgi_app)
+
+application = ProtocolTypeRouter(
+    {
+        "http": http_app,
+        "websocket": URLRouter(
+            [
+                *agent_websocket_urlpatterns,
+                # Everything else is opened by browsers: origin-checked, cookie-authenticated.
+                re_path(
+                    r"^",
+                    AllowedHostsOriginValidator(
+                        AuthMiddlewareStack(URLRouter(browser_websocket_urlpatterns))
+                    ),
+                ),
+            ]
+        ),
+    }
+)
