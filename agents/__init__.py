@@ -1,0 +1,1 @@
+"""IoUV vehicle agent: protocol, runtime, control server, adapters and simulators."""

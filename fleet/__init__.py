@@ -1,0 +1,1 @@
+"""Stations, vehicle types, declared attributes, vehicles, credentials and live status."""

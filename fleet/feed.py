@@ -1,0 +1,30 @@
+"""Pushes fleet changes to the monitors' live feed over the channel layer."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+from asgiref.sync import async_to_sync
+from channels.layers import get_channel_layer
+from django.db import transaction
+
+FLEET_GROUP = "fleet"
+
+
+def fleet_notify(vehicle_ids: Iterable[Any]) -> None:
+    """After the current transaction commits, tell the feed which vehicles changed.
+
+    Only ids travel: each feed consumer reads the committed rows itself, so a rolled
+    back change is never shown.
+    """
+    ids = [str(pk) for pk in vehicle_ids]
+    if not ids:
+        return
+
+    def send() -> None:
+        layer = get_channel_layer()
+        if layer is not None:
+            async_to_sync(layer.group_send)(FLEET_GROUP, {"type": "fleet.changed", "ids": ids})
+
+    transaction.on_commit(send)

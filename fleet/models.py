@@ -1,0 +1,139 @@
+"""Fleet rows: stations, vehicle types and vehicles."""
+
+from __future__ import annotations
+
+import uuid
+
+from django.core.exceptions import ValidationError
+from django.core.validators import MaxValueValidator, MinValueValidator
+from django.db import models
+
+from fleet.attributes import ENVIRONMENTS, ChoiceListValidator, attributes_clean
+
+
+class Station(models.Model):
+    """A base where vehicles are kept, launched and returned."""
+
+    name = models.CharField(max_length=100, unique=True)
+    lat = models.FloatField(validators=[MinValueValidator(-90), MaxValueValidator(90)])
+    lon = models.FloatField(validators=[MinValueValidator(-180), MaxValueValidator(180)])
+    environments = models.JSONField(
+        default=list,
+        validators=[ChoiceListValidator("environments", ENVIRONMENTS)],
+        help_text="Any of land, sea, air.",
+    )
+    rescue_team_name = models.CharField(max_length=100, blank=True)
+    rescue_team_email = models.EmailField(blank=True)
+    rescue_team_phone = models.CharField(max_length=40, blank=True)
+    rescue_team_webhook = models.URLField(blank=True)
+
+    class Meta:
+        ordering = ["name"]
+
+    def __str__(self) -> str:
+        return self.name
+
+
+class VehicleType(models.Model):
+    """A model of vehicle: its kind, the adapter that drives it and its commands."""
+
+    class Kind(models.TextChoices):
+        GROUND = "ground"
+        AERIAL = "aerial"
+        AQUATIC = "aquatic"
+        HYBRID = "hybrid"
+
+    class Adapter(models.TextChoices):
+        CAR = "car", "Raspberry Pi car (gpiozero)"
+        MAVLINK = "mavlink", "MAVLink autopilot (pymavlink)"
+        SPEKTRUM = "spektrum", "Spektrum receiver (serial)"
+
+    name = models.CharField(max_length=100, unique=True)
+    kind = models.CharField(max_length=10, choices=Kind.choices)
+    adapter = models.CharField(max_length=10, choices=Adapter.choices)
+    description = models.TextField(blank=True)
+    commands = models.JSONField(
+        default=list,
+        blank=True,
+        help_text="Declared command vocabulary; the agent reports the authoritative one.",
+    )
+
+    class Meta:
+        ordering = ["name"]
+
+    def __str__(self) -> str:
+        return self.name
+
+
+class Vehicle(models.Model):
+    """One vehicle, its declared attributes and what its agent last reported."""
+
+    class Status(models.TextChoices):
+        OFFLINE = "offline"
+        IDLE = "idle"
+        RESERVED = "reserved"
+        IN_SERVICE = "in_service", "in service"
+        RETURNING = "returning"
+        FAILSAFE = "failsafe"
+        MAINTENANCE = "maintenance"
+
+    id = models.UUIDField(primary_key=True, default=uuid.uuid4, editable=False)
+    name = models.CharField(max_length=100, unique=True)
+    vehicle_type = models.ForeignKey(VehicleType, on_delete=models.PROTECT, related_name="vehicles")
+    station = models.ForeignKey(Station, on_delete=models.PROTECT, related_name="vehicles")
+    attributes = models.JSONField(
+        default=dict,
+        help_text="Declared attributes with units (see fleet.attributes), and features.",
+    )
+
+    # Enrolment: the agent's credential, kept as a SHA-256 digest (see fleet.credentials).
+    credential_hash = models.CharField(max_length=64, blank=True, editable=False)
+    credential_issued_at = models.DateTimeField(null=True, blank=True, editable=False)
+
+    # Live state, written by the uplink.
+    status = models.CharField(max_length=12, choices=Status.choices, default=Status.OFFLINE)
+    maintenance = models.BooleanField(
+        default=False, help_text="Out of service: never assigned, whatever the agent says."
+    )
+    last_seen = models.DateTimeField(null=True, blank=True)
+    control_url = models.CharField(max_length=300, blank=True)
+    profile = models.JSONField(default=dict, blank=True, editable=False)
+    lat = models.FloatField(null=True, blank=True)
+    lon = models.FloatField(null=True, blank=True)
+    alt = models.FloatField(null=True, blank=True)
+    battery = models.FloatField(
+        null=True, blank=True, validators=[MinValueValidator(0), MaxValueValidator(100)]
+    )
+
+    class Meta:
+        ordering = ["station__name", "name"]
+        indexes = [models.Index(fields=["status"])]
+        permissions = [
+            ("view_fleet", "Can watch the live fleet"),
+            ("set_maintenance", "Can put vehicles in and out of service"),
+            ("issue_credential", "Can issue a vehicle's agent credential"),
+        ]
+
+    def __str__(self) -> str:
+        return self.name
+
+    def clean(self) -> None:
+        try:
+            self.attributes = attributes_clean(self.attributes)
+        except ValidationError as exc:
+            raise ValidationError({"attributes": exc.messages}) from None
+
+    @property
+    def cameras(self) -> list[str]:
+        return list(self.attributes.get("cameras", []))
+
+    @property
+    def features(self) -> list[str]:
+        return list(self.attributes.get("features", []))
+
+    @property
+    def position(self) -> tuple[float, float]:
+        """Where the vehicle is: its reported position, else its station's."""
+        if self.lat is not None and self.lon is not None:
+            return (self.lat, self.lon)
+        return (self.station.lat, self.station.lon)

@@ -1,0 +1,1 @@
+"""Service definitions, grants, matching and assignment, sessions and their log."""

@@ -1,0 +1,284 @@
+"""Matching vehicles to a service's roles, and reserving them atomically.
+
+For each role, the online idle vehicles go through the role's requirements in a fixed
+order; the first requirement that leaves no vehicle is the one named in the refusal.
+The survivors are ranked (nearest, or first to arrive, then fullest battery) and the
+best is reserved with a conditional UPDATE ... WHERE status = 'idle': of two requests
+racing for one vehicle, the database lets exactly one update succeed, and a partial
+unique index on active assignments backs that up. No table lock is held, so requests
+for different vehicles do not wait on each other.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import Any
+
+from django.contrib.auth.models import AbstractBaseUser
+from django.db import IntegrityError, transaction
+
+from agents.geo import distance_m
+from fleet.feed import fleet_notify
+from fleet.models import Vehicle
+from fleet.status import vehicles_online
+from services.eventlog import event_append
+from services.grants import user_can_use
+from services.models import Assignment, Service, ServiceRole, Session
+from services.sessions import session_transition
+
+
+class AssignmentError(Exception):
+    """The request cannot be met; ``str(exc)`` names the unmet requirement.
+
+    ``session`` is the failed session recorded for it (None when refused before one
+    was created, e.g. for a missing grant).
+    """
+
+    def __init__(self, message: str, *, session: Session | None = None, role: str = "") -> None:
+        super().__init__(message)
+        self.session = session
+        self.role = role
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """An eligible vehicle and why it ranks where it does."""
+
+    vehicle: Vehicle
+    distance_m: float  # vehicle to target (0 without a target)
+    trip_m: float  # vehicle to target, the extra work, and back to its station
+    eta_s: float  # distance over top speed
+
+    def rank(self, selection: str) -> tuple[float, float]:
+        first = self.eta_s if selection == ServiceRole.Selection.FASTEST else self.distance_m
+        return (first, -(self.vehicle.battery or 0.0))
+
+
+@dataclass
+class Match:
+    """The outcome of matching one role: ranked candidates, or the requirement that failed."""
+
+    role: ServiceRole
+    candidates: list[Candidate] = field(default_factory=list)
+    unmet: str = ""
+
+
+def _attr(vehicle: Vehicle, name: str) -> Any:
+    return vehicle.attributes.get(name)
+
+
+def _trip(vehicle: Vehicle, target: tuple[float, float] | None, extra_m: float) -> Candidate:
+    here = vehicle.position
+    home = (vehicle.station.lat, vehicle.station.lon)
+    out = distance_m(here, target) if target else 0.0
+    back = distance_m(target, home) if target else 0.0
+    trip = out + extra_m + back
+    speed = _attr(vehicle, "max_speed_mps") or 0.0
+    eta = out / speed if speed > 0 else float("inf")
+    return Candidate(vehicle=vehicle, distance_m=out, trip_m=trip, eta_s=eta)
+
+
+def _range_ok(c: Candidate) -> bool:
+    """The trip fits in what the battery has left of the declared range and endurance."""
+    v = c.vehicle
+    charge = (v.battery if v.battery is not None else 100.0) / 100.0
+    if c.trip_m > (_attr(v, "max_range_m") or 0.0) * charge:
+        return False
+    speed = _attr(v, "max_speed_mps") or 0.0
+    if c.trip_m == 0:
+        return True
+    if speed <= 0:
+        return False
+    return c.trip_m / speed <= (_attr(v, "endurance_min") or 0.0) * 60 * charge
+
+
+def _requirements(role: ServiceRole) -> list[tuple[str, Callable[[Vehicle], bool]]]:
+    """(description, test) pairs, checked in order; descriptions are user-facing."""
+    checks: list[tuple[str, Callable[[Vehicle], bool]]] = []
+    if role.kinds:
+        checks.append(
+            (f"kind {' or '.join(role.kinds)}", lambda v: v.vehicle_type.kind in role.kinds)
+        )
+    if role.adapters:
+        checks.append(
+            (
+                f"adapter {' or '.join(role.adapters)}",
+                lambda v: v.vehicle_type.adapter in role.adapters,
+            )
+        )
+    if role.environments:
+        checks.append(
+            (
+                f"operates in {' or '.join(role.environments)}",
+                lambda v: bool(set(role.environments) & set(_attr(v, "environments") or [])),
+            )
+        )
+    if role.cameras:
+        checks.append(
+            (
+                f"cameras {' + '.join(role.cameras)}",
+                lambda v: set(role.cameras) <= set(v.cameras),
+            )
+        )
+    if role.features:
+        checks.append(
+            (
+                f"features {', '.join(role.features)}",
+                lambda v: set(role.features) <= set(v.features),
+            )
+        )
+    for name, minimum in sorted(role.min_attributes.items()):
+        checks.append(
+            (
+                f"{name} ≥ {minimum:g}",
+                lambda v, n=name, m=minimum: (_attr(v, n) or 0.0) >= m,
+            )
+        )
+    checks.append(
+        (
+            f"battery ≥ {role.min_battery:g}%",
+            lambda v: v.battery is not None and v.battery >= role.min_battery,
+        )
+    )
+    return checks
+
+
+def role_match(
+    *,
+    role: ServiceRole,
+    target: tuple[float, float] | None = None,
+    extra_distance_m: float = 0.0,
+    exclude: Iterable[Any] = (),
+    now: datetime | None = None,
+) -> Match:
+    """Rank the vehicles that can fill ``role`` now; nothing is written.
+
+    ``extra_distance_m`` is work done at the target (a search pattern, say) that must
+    fit in the vehicle's range too. On no match, ``unmet`` names the requirement.
+    """
+    pool = list(
+        vehicles_online(now)
+        .filter(status=Vehicle.Status.IDLE)
+        .exclude(pk__in=list(exclude))
+        .select_related("vehicle_type", "station")
+    )
+    if not pool:
+        return Match(role, unmet="no vehicle is online and idle")
+    for description, test in _requirements(role):
+        pool = [v for v in pool if test(v)]
+        if not pool:
+            return Match(role, unmet=f"no idle vehicle has {description}")
+    trips = [_trip(v, target, extra_distance_m) for v in pool]
+    reachable = [c for c in trips if _range_ok(c)]
+    if not reachable:
+        return Match(role, unmet="no idle vehicle can reach the target and return within its range")
+    reachable.sort(key=lambda c: c.rank(role.selection))
+    return Match(role, candidates=reachable)
+
+
+def _reserve_first(*, session: Session, match: Match) -> Assignment | None:
+    """Reserve the best candidate still free; None when every one was taken meanwhile."""
+    for candidate in match.candidates:
+        vehicle = candidate.vehicle
+        try:
+            # One savepoint for both writes: if the insert fails, the status goes back too.
+            with transaction.atomic():
+                taken = Vehicle.objects.filter(
+                    pk=vehicle.pk, status=Vehicle.Status.IDLE, maintenance=False
+                ).update(status=Vehicle.Status.RESERVED)
+                if not taken:
+                    continue  # another request got it first
+                assignment = Assignment.objects.create(
+                    session=session,
+                    role=match.role.name,
+                    vehicle=vehicle,
+                    distance_m=round(candidate.distance_m, 1),
+                )
+        except IntegrityError:
+            continue  # held by another session's active assignment
+        fleet_notify([vehicle.pk])
+        return assignment
+    return None
+
+
+def role_assign(
+    *,
+    session: Session,
+    role: ServiceRole,
+    target: tuple[float, float] | None = None,
+    extra_distance_m: float = 0.0,
+    exclude: Iterable[Any] = (),
+) -> Assignment:
+    """Reserve the best vehicle for ``role`` in ``session``.
+
+    Raises AssignmentError naming the unmet requirement, or saying that every matching
+    vehicle was just taken.
+    """
+    match = role_match(role=role, target=target, extra_distance_m=extra_distance_m, exclude=exclude)
+    if match.unmet:
+        raise AssignmentError(f"{role.name}: {match.unmet}", session=session, role=role.name)
+    with transaction.atomic():
+        assignment = _reserve_first(session=session, match=match)
+    if assignment is None:
+        raise AssignmentError(
+            f"{role.name}: every matching vehicle was just taken by other requests",
+            session=session,
+            role=role.name,
+        )
+    event_append(
+        session=session,
+        kind="assigned",
+        data={
+            "role": role.name,
+            "vehicle": str(assignment.vehicle_id),
+            "vehicle_name": assignment.vehicle.name,
+            "distance_m": assignment.distance_m,
+        },
+    )
+    return assignment
+
+
+def session_request(
+    *,
+    user: AbstractBaseUser,
+    service: Service,
+    target: tuple[float, float] | None = None,
+    params: dict[str, Any] | None = None,
+    relay: bool = False,
+) -> Session:
+    """Open a session of ``service`` for ``user`` and reserve its required roles.
+
+    Returns the session in state ``assigned``. Raises AssignmentError when the user
+    has no grant (no session is recorded) or a role cannot be filled (the session is
+    recorded as failed with the reason, and no vehicle stays reserved).
+    """
+    if not service.is_active or not user_can_use(user, service):
+        raise AssignmentError(f"you may not use the service {service.name!r}")
+    session = Session.objects.create(
+        service=service,
+        user=user,
+        target_lat=target[0] if target else None,
+        target_lon=target[1] if target else None,
+        params=params or {},
+        relay=relay,
+    )
+    event_append(
+        session=session,
+        kind="requested",
+        data={"user": user.get_username(), "target": target, "relay": relay},
+    )
+    try:
+        # All roles or none: a failure on the second role frees the first.
+        with transaction.atomic():
+            taken: list[Any] = []
+            for role in service.roles.filter(required=True):
+                assignment = role_assign(session=session, role=role, target=target, exclude=taken)
+                taken.append(assignment.vehicle_id)
+    except AssignmentError as exc:
+        session_transition(session=session, to=Session.State.FAILED, reason=str(exc))
+        raise AssignmentError(str(exc), session=session, role=exc.role) from None
+    return session_transition(
+        session=session, to=Session.State.ASSIGNED, reason="vehicles reserved"
+    )

@@ -1,0 +1,587 @@
+"""The demo world: the paper's fleet near Aveiro, its services and one user per role.
+
+``demo_seed`` is idempotent: every row is keyed by its name, slug or username and
+updated in place, so running it again changes nothing structurally. Live vehicle state
+(status, position, battery) is left alone on a re-run, so seeding while the simulated
+fleet is connected does not knock it offline.
+
+Positions: the land station is on the university campus; the coastal station is on
+Costa Nova beach, with the sea to its WEST (east of it is the lagoon and land).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from django.contrib.auth import get_user_model
+from django.contrib.auth.models import Group
+from django.db import transaction
+
+from accounts.roles import ADMIN, CLIENT, MONITOR, OPERATOR, roles_ensure, user_set_roles
+from fleet.attributes import attributes_clean
+from fleet.credentials import vehicle_issue_credential
+from fleet.models import Station, Vehicle, VehicleType
+from services.models import Service, ServiceGrant, ServiceRole
+
+DEFAULT_PLATFORM_URL = "ws://127.0.0.1:8000"
+LOGIN_URL = "http://127.0.0.1:8000/accounts/login/"
+ADMIN_URL = "http://127.0.0.1:8000/admin/"
+
+# --------------------------------------------------------------------------------------
+# Stations
+# --------------------------------------------------------------------------------------
+
+CAMPUS = "Campus station"
+COSTA_NOVA = "Costa Nova station"
+
+STATIONS: dict[str, dict[str, Any]] = {
+    CAMPUS: {"lat": 40.6306, "lon": -8.6588, "environments": ["land", "air"]},
+    COSTA_NOVA: {
+        "lat": 40.6443,
+        "lon": -8.7455,
+        "environments": ["sea", "air"],
+        # Fictitious contact details: the demo must never page a real team.
+        "rescue_team_name": "Costa Nova lifeguards",
+        "rescue_team_email": "lifeguards@costanova.example",
+        "rescue_team_phone": "+351 234 000 000",
+        "rescue_team_webhook": "",
+    },
+}
+
+# --------------------------------------------------------------------------------------
+# Command vocabularies (the wire protocol's declaration format, see agents.protocol)
+# --------------------------------------------------------------------------------------
+
+
+def _number(low: float, high: float, unit: str, default: float | None = None) -> dict[str, Any]:
+    spec: dict[str, Any] = {"type": "number", "min": low, "max": high, "unit": unit}
+    if default is not None:
+        spec["default"] = default
+    return spec
+
+
+def _command(
+    name: str, description: str, group: str, args: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
+    return {"name": name, "args": dict(args or {}), "description": description, "group": group}
+
+
+_CAR_SPEED = {"speed": _number(0, 1, "fraction of full speed", 0.5)}
+_CAMERA_STEP = {"step_deg": _number(1, 90, "deg", 10)}
+
+CAR_COMMANDS: list[dict[str, Any]] = [
+    _command("forward", "Drive forward", "movement", _CAR_SPEED),
+    _command("backward", "Drive backward", "movement", _CAR_SPEED),
+    _command("left", "Turn left", "movement", _CAR_SPEED),
+    _command("right", "Turn right", "movement", _CAR_SPEED),
+    _command("stop", "Stop the motors", "movement"),
+    _command("camera_up", "Tilt the camera up", "camera", _CAMERA_STEP),
+    _command("camera_down", "Tilt the camera down", "camera", _CAMERA_STEP),
+    _command("camera_left", "Pan the camera left", "camera", _CAMERA_STEP),
+    _command("camera_right", "Pan the camera right", "camera", _CAMERA_STEP),
+]
+
+_DRONE_SPEED = {"speed_mps": _number(0.1, 10, "m/s", 1)}
+_DRONE_ANGLE = {"angle_deg": _number(1, 180, "deg", 15)}
+
+QUADCOPTER_COMMANDS: list[dict[str, Any]] = [
+    _command("arm", "Arm the motors", "setup"),
+    _command("disarm", "Disarm the motors", "setup"),
+    _command("take_off", "Take off and hover", "setup", {"altitude_m": _number(1, 120, "m", 5)}),
+    _command("up", "Climb", "left", _DRONE_SPEED),
+    _command("down", "Descend", "left", _DRONE_SPEED),
+    _command("rotate_left", "Yaw left", "left", _DRONE_ANGLE),
+    _command("rotate_right", "Yaw right", "left", _DRONE_ANGLE),
+    _command("front", "Fly forward", "right", _DRONE_SPEED),
+    _command("back", "Fly backward", "right", _DRONE_SPEED),
+    _command("left", "Fly left", "right", _DRONE_SPEED),
+    _command("right", "Fly right", "right", _DRONE_SPEED),
+    _command("land", "Land where it is", "middle"),
+    _command("return_to_home", "Fly back to the station and land", "middle"),
+    _command(
+        "go_to_waypoint",
+        "Fly to a position",
+        "mission",
+        {
+            "lat": _number(-90, 90, "deg"),
+            "lon": _number(-180, 180, "deg"),
+            "alt_m": _number(1, 120, "m"),
+        },
+    ),
+]
+
+VTOL_COMMANDS: list[dict[str, Any]] = [
+    _command("arm", "Arm the motors", "setup"),
+    _command("disarm", "Disarm the motors", "setup"),
+    _command("throttle_up", "More throttle", "left"),
+    _command("throttle_down", "Less throttle", "left"),
+    _command("yaw_left", "Yaw left", "left"),
+    _command("yaw_right", "Yaw right", "left"),
+    _command("pitch_up", "Pitch up", "right"),
+    _command("pitch_down", "Pitch down", "right"),
+    _command("roll_left", "Roll left", "right"),
+    _command("roll_right", "Roll right", "right"),
+    _command("change_to_vtol_mode", "Hover like a multicopter", "mode"),
+    _command("change_to_aircraft_mode", "Fly like a plane", "mode"),
+]
+
+RESCUE_DRONE_COMMANDS: list[dict[str, Any]] = [
+    *QUADCOPTER_COMMANDS,
+    _command("release_payload", "Drop the rescue buoy", "mission"),
+]
+
+
+def command_names(commands: list[dict[str, Any]]) -> list[str]:
+    """The names in a command vocabulary, in declaration order."""
+    return [c["name"] for c in commands]
+
+
+# --------------------------------------------------------------------------------------
+# Vehicle types and vehicles
+# --------------------------------------------------------------------------------------
+
+CAR = "Raspberry Pi car"
+QUADCOPTER = "MAVLink quadcopter"
+VTOL = "Spektrum VTOL plane"
+RESCUE_DRONE = "Rescue payload drone"
+
+K = VehicleType.Kind
+A = VehicleType.Adapter
+
+VEHICLE_TYPES: dict[str, dict[str, Any]] = {
+    CAR: {
+        "kind": K.GROUND,
+        "adapter": A.CAR,
+        "description": "Raspberry Pi robot car with a pan/tilt camera, driven through gpiozero.",
+        "commands": CAR_COMMANDS,
+    },
+    QUADCOPTER: {
+        "kind": K.AERIAL,
+        "adapter": A.MAVLINK,
+        "description": "Multicopter with a MAVLink autopilot (ArduPilot/PX4).",
+        "commands": QUADCOPTER_COMMANDS,
+    },
+    VTOL: {
+        "kind": K.HYBRID,
+        "adapter": A.SPEKTRUM,
+        "description": "VTOL plane flown through a Spektrum receiver on a serial port.",
+        "commands": VTOL_COMMANDS,
+    },
+    RESCUE_DRONE: {
+        "kind": K.AERIAL,
+        "adapter": A.MAVLINK,
+        "description": "MAVLink multicopter carrying a releasable rescue buoy.",
+        "commands": RESCUE_DRONE_COMMANDS,
+    },
+}
+
+
+def _car(features: list[str]) -> dict[str, Any]:
+    return {
+        "vehicle_type": CAR,
+        "station": CAMPUS,
+        "attributes": {
+            "endurance_min": 60,
+            "max_range_m": 2000,
+            "max_altitude_m": 0,
+            "max_speed_mps": 1.5,
+            "max_payload_kg": 0.5,
+            "cameras": ["rgb"],
+            "camera_range_m": 20,
+            "environments": ["land"],
+            "features": features,
+        },
+    }
+
+
+VEHICLES: dict[str, dict[str, Any]] = {
+    "car-1": _car(["camera_arm", "obstacle_sensor"]),
+    "car-2": _car([]),
+    "car-3": _car([]),
+    "car-4": _car([]),
+    "quad-1": {
+        "vehicle_type": QUADCOPTER,
+        "station": CAMPUS,
+        "attributes": {
+            "endurance_min": 20,
+            "max_range_m": 5000,
+            "max_altitude_m": 120,
+            "max_speed_mps": 12,
+            "max_payload_kg": 0.5,
+            "cameras": ["rgb"],
+            "camera_range_m": 100,
+            "environments": ["air", "land"],
+            "features": ["gps"],
+        },
+    },
+    "vtol-1": {
+        "vehicle_type": VTOL,
+        "station": CAMPUS,
+        "attributes": {
+            "endurance_min": 30,
+            "max_range_m": 20000,
+            "max_altitude_m": 120,
+            "max_speed_mps": 20,
+            "max_payload_kg": 0,
+            "cameras": ["rgb"],
+            "camera_range_m": 100,
+            "environments": ["air", "land", "sea"],
+            "features": ["gps"],
+        },
+    },
+    "search-1": {
+        "vehicle_type": QUADCOPTER,
+        "station": COSTA_NOVA,
+        "attributes": {
+            "endurance_min": 30,
+            "max_range_m": 8000,
+            "max_altitude_m": 120,
+            "max_speed_mps": 15,
+            "max_payload_kg": 0.5,
+            "cameras": ["rgb", "thermal"],
+            "camera_range_m": 120,
+            "environments": ["air", "sea", "land"],
+            "features": ["gps"],
+        },
+    },
+    "lifeguard-1": {
+        "vehicle_type": RESCUE_DRONE,
+        "station": COSTA_NOVA,
+        "attributes": {
+            "endurance_min": 25,
+            "max_range_m": 6000,
+            "max_altitude_m": 120,
+            "max_speed_mps": 15,
+            "max_payload_kg": 2.0,
+            "cameras": ["rgb"],
+            "camera_range_m": 100,
+            "environments": ["air", "sea"],
+            "features": ["payload_release", "gps"],
+        },
+    },
+}
+
+# --------------------------------------------------------------------------------------
+# Services
+# --------------------------------------------------------------------------------------
+
+_MANUAL: dict[str, Any] = {
+    "mode": Service.Mode.SYNCHRONOUS,
+    "workflow": "manual_control",
+    "link_loss_timeout_ms": 500,
+    "latency_soft_ms": 150,
+    "latency_hard_ms": 400,
+}
+
+# Each service: its fields, and its roles as (name, fields) pairs.
+SERVICES: dict[str, dict[str, Any]] = {
+    "drive-car": {
+        "fields": {
+            **_MANUAL,
+            "name": "Manual control of a car",
+            "description": "Drive a robot car on campus from the browser, with live video.",
+            "allowed_commands": command_names(CAR_COMMANDS),
+            "failsafe_action": Service.Failsafe.STOP,
+            "session_time_limit_s": 900,
+            "max_speed_mps": 1.5,
+        },
+        "roles": {
+            "vehicle": {"kinds": [K.GROUND], "adapters": [A.CAR], "cameras": ["rgb"]},
+        },
+    },
+    "fly-drone": {
+        "fields": {
+            **_MANUAL,
+            "name": "Manual control of a drone",
+            "description": "Fly a quadcopter inside a geofence around its station.",
+            # Listed explicitly so a payload drone matched by this role cannot drop
+            # its buoy during a joyride.
+            "allowed_commands": command_names(QUADCOPTER_COMMANDS),
+            "failsafe_action": Service.Failsafe.RETURN_TO_HOME,
+            "session_time_limit_s": 600,
+            "max_altitude_m": 30,
+            "geofence_radius_m": 200,
+        },
+        "roles": {
+            "vehicle": {"kinds": [K.AERIAL], "adapters": [A.MAVLINK], "cameras": ["rgb"]},
+        },
+    },
+    "fly-vtol": {
+        "fields": {
+            **_MANUAL,
+            "name": "Manual control of the VTOL",
+            "description": "Fly the VTOL plane with two virtual sticks.",
+            "allowed_commands": command_names(VTOL_COMMANDS),
+            "failsafe_action": Service.Failsafe.LAND,
+            "session_time_limit_s": 600,
+            "max_altitude_m": 60,
+            "geofence_radius_m": 500,
+        },
+        "roles": {
+            "vehicle": {"kinds": [K.HYBRID], "adapters": [A.SPEKTRUM], "cameras": ["rgb"]},
+        },
+    },
+    "spectate": {
+        "fields": {
+            "name": "Spectate a vehicle",
+            "description": "Watch a vehicle's camera; no control.",
+            "mode": Service.Mode.SYNCHRONOUS,
+            "workflow": "spectate",
+            # View only: the spectate workflow grants the viewer role, never control.
+            "allowed_commands": [],
+            "failsafe_action": Service.Failsafe.STOP,
+            "link_loss_timeout_ms": 500,
+            "session_time_limit_s": 600,
+        },
+        "roles": {"vehicle": {"cameras": ["rgb"], "min_battery": 0}},
+    },
+    "rescue-at-sea": {
+        "fields": {
+            "name": "Person rescue at sea",
+            "description": (
+                "Report a person in the water: a thermal-camera drone searches the area, "
+                "then a payload drone drops a buoy and the rescue team is alerted."
+            ),
+            "mode": Service.Mode.ASYNCHRONOUS,
+            "workflow": "rescue_at_sea",
+            "allowed_commands": [],
+            "failsafe_action": Service.Failsafe.RETURN_TO_HOME,
+            "link_loss_timeout_ms": 500,
+            "session_time_limit_s": 1800,
+        },
+        "roles": {
+            "search": {
+                "kinds": [K.AERIAL, K.HYBRID],
+                "cameras": ["rgb", "thermal"],
+                "environments": ["sea"],
+                "selection": ServiceRole.Selection.FASTEST,
+                "required": True,
+            },
+            "delivery": {
+                "kinds": [K.AERIAL, K.AQUATIC],
+                "environments": ["sea"],
+                "features": ["payload_release"],
+                "min_attributes": {"max_payload_kg": 1.0},
+                "selection": ServiceRole.Selection.FASTEST,
+                # Assigned by the workflow once the person has been found.
+                "required": False,
+            },
+        },
+    },
+}
+
+# Role fields reset to their defaults when a demo role does not mention them, so an
+# edit made in the admin does not survive a re-seed half-applied.
+_ROLE_DEFAULTS: dict[str, Any] = {
+    "kinds": [],
+    "adapters": [],
+    "cameras": [],
+    "environments": [],
+    "features": [],
+    "min_attributes": {},
+    "min_battery": 30,
+    "selection": ServiceRole.Selection.NEAREST,
+    "required": True,
+}
+_SERVICE_DEFAULTS: dict[str, Any] = {
+    "is_active": True,
+    "max_altitude_m": None,
+    "geofence_radius_m": None,
+    "max_speed_mps": None,
+    "session_time_limit_s": None,
+    "latency_soft_ms": None,
+    "latency_hard_ms": None,
+}
+
+# --------------------------------------------------------------------------------------
+# Users
+# --------------------------------------------------------------------------------------
+
+USERS: dict[str, tuple[str, ...]] = {
+    "client": (CLIENT,),
+    "monitor": (MONITOR,),
+    "operator": (OPERATOR,),
+    "admin": (ADMIN,),
+}
+
+# --------------------------------------------------------------------------------------
+# Seeding
+# --------------------------------------------------------------------------------------
+
+
+@dataclass
+class DemoSeed:
+    """What a seed run produced: the users' passwords and the agent configs written."""
+
+    passwords: dict[str, str] = field(default_factory=dict)
+    roles: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    config_paths: list[Path] = field(default_factory=list)
+
+
+def stations_seed() -> dict[str, Station]:
+    """Create or update the demo stations, by name."""
+    return {
+        name: Station.objects.update_or_create(name=name, defaults=values)[0]
+        for name, values in STATIONS.items()
+    }
+
+
+def vehicle_types_seed() -> dict[str, VehicleType]:
+    """Create or update the demo vehicle types and their command vocabularies, by name."""
+    return {
+        name: VehicleType.objects.update_or_create(name=name, defaults=values)[0]
+        for name, values in VEHICLE_TYPES.items()
+    }
+
+
+def vehicles_seed(
+    *, stations: Mapping[str, Station], types: Mapping[str, VehicleType]
+) -> dict[str, Vehicle]:
+    """Create or update the demo vehicles, by name.
+
+    Only declared fields are written: status, position and battery belong to the
+    uplink, and a new vehicle starts offline until its agent connects.
+    """
+    vehicles = {}
+    for name, spec in VEHICLES.items():
+        vehicle, _ = Vehicle.objects.update_or_create(
+            name=name,
+            defaults={
+                "vehicle_type": types[spec["vehicle_type"]],
+                "station": stations[spec["station"]],
+                # Fails loudly if the demo data itself is wrong.
+                "attributes": attributes_clean(spec["attributes"]),
+            },
+        )
+        vehicles[name] = vehicle
+    return vehicles
+
+
+def services_seed(*, client_group: Group) -> dict[str, Service]:
+    """Create or update the demo services, their roles and their grant to ``client_group``.
+
+    The demo services are owned by the seed: roles not in the definition are removed.
+    """
+    services = {}
+    for slug, spec in SERVICES.items():
+        service, _ = Service.objects.update_or_create(
+            slug=slug, defaults={**_SERVICE_DEFAULTS, **spec["fields"]}
+        )
+        for role_name, role_fields in spec["roles"].items():
+            ServiceRole.objects.update_or_create(
+                service=service, name=role_name, defaults={**_ROLE_DEFAULTS, **role_fields}
+            )
+        service.roles.exclude(name__in=list(spec["roles"])).delete()
+        ServiceGrant.objects.get_or_create(service=service, group=client_group)
+        services[slug] = service
+    return services
+
+
+def users_seed(*, password: str | None = None) -> dict[str, str]:
+    """Create or update one user per role; returns username -> the password just set.
+
+    Without ``password`` each user gets a fresh random one on every run, so no demo
+    password is ever fixed in the code.
+    """
+    User = get_user_model()
+    passwords = {}
+    for username, roles in USERS.items():
+        user, _ = User.objects.get_or_create(username=username)
+        secret = password if password is not None else secrets.token_urlsafe(9)
+        user.set_password(secret)
+        user.save(update_fields=["password"])
+        user_set_roles(user=user, roles=roles)
+        passwords[username] = secret
+    return passwords
+
+
+def vehicle_agent_config(
+    *, vehicle: Vehicle, credential: str, platform_url: str = DEFAULT_PLATFORM_URL
+) -> dict[str, str]:
+    """The JSON config a vehicle agent starts from."""
+    return {
+        "platform_url": platform_url,
+        "vehicle_id": str(vehicle.pk),
+        "vehicle_name": vehicle.name,
+        "credential": credential,
+        "adapter": vehicle.vehicle_type.adapter,
+        "vehicle_type": vehicle.vehicle_type.name,
+    }
+
+
+def _write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` readable by the owner only, replacing it atomically.
+
+    The file is created 0600 from the start (never world-readable, not even briefly)
+    and renamed into place, so an agent never reads a half-written credential.
+    """
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        os.fchmod(fd, 0o600)
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def agent_configs_write(
+    *, vehicles: Mapping[str, Vehicle], directory: Path, platform_url: str = DEFAULT_PLATFORM_URL
+) -> list[Path]:
+    """Issue a fresh credential for each vehicle and write ``<name>.json`` into ``directory``.
+
+    Each vehicle's previous credential stops working. Returns the paths written.
+    """
+    if not platform_url.startswith(("ws://", "wss://")):
+        raise ValueError(f"platform_url must be a ws:// or wss:// URL, got {platform_url!r}")
+    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+    paths = []
+    for name, vehicle in vehicles.items():
+        credential = vehicle_issue_credential(vehicle=vehicle)
+        config = vehicle_agent_config(
+            vehicle=vehicle, credential=credential, platform_url=platform_url
+        )
+        path = directory / f"{name}.json"
+        _write_private(path, json.dumps(config, indent=2) + "\n")
+        paths.append(path)
+    return paths
+
+
+def demo_seed(
+    *,
+    password: str | None = None,
+    credentials_dir: Path | None = None,
+    platform_url: str = DEFAULT_PLATFORM_URL,
+) -> DemoSeed:
+    """Create or update the whole demo world; see the module docstring.
+
+    ``password`` sets every demo user's password (else each gets a random one).
+    ``credentials_dir`` also issues a fresh credential to every demo vehicle and writes
+    its agent config there; without it existing credentials are left alone.
+    """
+    if credentials_dir is not None and not platform_url.startswith(("ws://", "wss://")):
+        # Checked before anything is written.
+        raise ValueError(f"platform_url must be a ws:// or wss:// URL, got {platform_url!r}")
+    with transaction.atomic():
+        groups = roles_ensure()
+        stations = stations_seed()
+        types = vehicle_types_seed()
+        vehicles = vehicles_seed(stations=stations, types=types)
+        services_seed(client_group=groups[CLIENT])
+        passwords = users_seed(password=password)
+    result = DemoSeed(passwords=passwords, roles=dict(USERS))
+    if credentials_dir is not None:
+        # After the commit: a config file must never hold a credential whose digest was
+        # rolled back.
+        result.config_paths = agent_configs_write(
+            vehicles=vehicles, directory=Path(credentials_dir), platform_url=platform_url
+        )
+    return result

@@ -1,0 +1,288 @@
+"""Service definitions and requirements, grants, sessions, assignments, session log."""
+
+from __future__ import annotations
+
+import uuid
+from typing import Any
+
+from django.conf import settings
+from django.contrib.auth.models import Group
+from django.core.exceptions import ValidationError
+from django.core.validators import MaxValueValidator, MinValueValidator
+from django.db import models
+from django.db.models import Q
+
+from fleet.attributes import (
+    ATTRIBUTES,
+    CAMERAS,
+    ENVIRONMENTS,
+    FEATURES,
+    ChoiceListValidator,
+    NumberAttribute,
+)
+from fleet.models import Vehicle, VehicleType
+
+
+class Service(models.Model):
+    """Something a user can ask the fleet to do, and the rules it runs under."""
+
+    class Mode(models.TextChoices):
+        SYNCHRONOUS = "sync", "synchronous (user controls live)"
+        ASYNCHRONOUS = "async", "asynchronous (autonomous workflow)"
+
+    class Failsafe(models.TextChoices):
+        STOP = "stop"
+        LAND = "land"
+        RETURN_TO_HOME = "return_to_home", "return to home"
+
+    slug = models.SlugField(unique=True)
+    name = models.CharField(max_length=100)
+    description = models.TextField(blank=True)
+    mode = models.CharField(max_length=5, choices=Mode.choices, default=Mode.SYNCHRONOUS)
+    workflow = models.CharField(
+        max_length=40,
+        default="manual_control",
+        help_text="What runs the session: manual_control, spectate or rescue_at_sea.",
+    )
+    is_active = models.BooleanField(default=True)
+    allowed_commands = models.JSONField(
+        default=list,
+        blank=True,
+        help_text="Command names the user may send; empty = none (view only).",
+    )
+    # Limits signed into every vehicle task of this service.
+    max_altitude_m = models.FloatField(null=True, blank=True, validators=[MinValueValidator(0)])
+    geofence_radius_m = models.FloatField(null=True, blank=True, validators=[MinValueValidator(1)])
+    max_speed_mps = models.FloatField(null=True, blank=True, validators=[MinValueValidator(0)])
+    link_loss_timeout_ms = models.PositiveIntegerField(
+        default=500, validators=[MinValueValidator(50), MaxValueValidator(60_000)]
+    )
+    failsafe_action = models.CharField(
+        max_length=20, choices=Failsafe.choices, default=Failsafe.STOP
+    )
+    session_time_limit_s = models.PositiveIntegerField(null=True, blank=True)
+    latency_soft_ms = models.PositiveIntegerField(
+        null=True, blank=True, help_text="Round trip above which the agent lowers the speed."
+    )
+    latency_hard_ms = models.PositiveIntegerField(
+        null=True, blank=True, help_text="Round trip above which only stop/land/RTL pass."
+    )
+
+    class Meta:
+        ordering = ["name"]
+
+    def __str__(self) -> str:
+        return self.name
+
+    def clean(self) -> None:
+        if (
+            self.latency_soft_ms is not None
+            and self.latency_hard_ms is not None
+            and self.latency_soft_ms >= self.latency_hard_ms
+        ):
+            raise ValidationError({"latency_hard_ms": "must be above latency_soft_ms"})
+        if not isinstance(self.allowed_commands, list) or not all(
+            isinstance(c, str) for c in self.allowed_commands
+        ):
+            raise ValidationError({"allowed_commands": "must be a list of command names"})
+
+
+def _min_attributes_clean(value: Any) -> None:
+    if not isinstance(value, dict):
+        raise ValidationError("min_attributes: must be an object of attribute: minimum")
+    for name, minimum in value.items():
+        spec = ATTRIBUTES.get(name)
+        if not isinstance(spec, NumberAttribute):
+            raise ValidationError(f"min_attributes: {name} is not a numeric attribute")
+        spec.clean(minimum)
+
+
+class ServiceRole(models.Model):
+    """One vehicle a service needs, and the constraints that vehicle must meet."""
+
+    class Selection(models.TextChoices):
+        NEAREST = "nearest", "nearest first"
+        FASTEST = "fastest", "first to arrive (distance over speed)"
+
+    service = models.ForeignKey(Service, on_delete=models.CASCADE, related_name="roles")
+    name = models.SlugField(max_length=40, help_text="e.g. vehicle, search, delivery")
+    kinds = models.JSONField(
+        default=list,
+        blank=True,
+        validators=[ChoiceListValidator("kinds", tuple(VehicleType.Kind.values))],
+        help_text="Acceptable kinds; empty = any.",
+    )
+    adapters = models.JSONField(
+        default=list,
+        blank=True,
+        validators=[ChoiceListValidator("adapters", tuple(VehicleType.Adapter.values))],
+        help_text="Acceptable adapters; empty = any.",
+    )
+    cameras = models.JSONField(
+        default=list,
+        blank=True,
+        validators=[ChoiceListValidator("cameras", CAMERAS)],
+        help_text="Cameras the vehicle must all have.",
+    )
+    environments = models.JSONField(
+        default=list,
+        blank=True,
+        validators=[ChoiceListValidator("environments", ENVIRONMENTS)],
+        help_text="The vehicle must operate in at least one of these; empty = any.",
+    )
+    features = models.JSONField(
+        default=list, blank=True, validators=[ChoiceListValidator("features", FEATURES)]
+    )
+    min_attributes = models.JSONField(
+        default=dict,
+        blank=True,
+        validators=[_min_attributes_clean],
+        help_text='Minimums, e.g. {"max_payload_kg": 1.5, "endurance_min": 20}.',
+    )
+    min_battery = models.FloatField(
+        default=30, validators=[MinValueValidator(0), MaxValueValidator(100)]
+    )
+    selection = models.CharField(
+        max_length=10, choices=Selection.choices, default=Selection.NEAREST
+    )
+    required = models.BooleanField(
+        default=True,
+        help_text="Assigned when the session is requested. Unrequired roles are assigned "
+        "later by the workflow (e.g. the rescue's delivery vehicle).",
+    )
+
+    class Meta:
+        constraints = [
+            models.UniqueConstraint(fields=["service", "name"], name="unique_role_per_service")
+        ]
+        ordering = ["service", "pk"]
+
+    def __str__(self) -> str:
+        return f"{self.service.slug}:{self.name}"
+
+
+class ServiceGrant(models.Model):
+    """Who may use a service: one user or one group (roles are groups)."""
+
+    service = models.ForeignKey(Service, on_delete=models.CASCADE, related_name="grants")
+    user = models.ForeignKey(
+        settings.AUTH_USER_MODEL, null=True, blank=True, on_delete=models.CASCADE
+    )
+    group = models.ForeignKey(Group, null=True, blank=True, on_delete=models.CASCADE)
+
+    class Meta:
+        constraints = [
+            models.CheckConstraint(
+                condition=(Q(user__isnull=False) & Q(group__isnull=True))
+                | (Q(user__isnull=True) & Q(group__isnull=False)),
+                name="grant_to_user_xor_group",
+            ),
+            models.UniqueConstraint(fields=["service", "user"], name="unique_user_grant"),
+            models.UniqueConstraint(fields=["service", "group"], name="unique_group_grant"),
+        ]
+
+    def __str__(self) -> str:
+        return f"{self.service.slug} → {self.user or self.group}"
+
+
+class Session(models.Model):
+    """One use of a service by one user; see services.sessions for the state machine."""
+
+    class State(models.TextChoices):
+        REQUESTED = "requested"
+        ASSIGNED = "assigned"
+        ACTIVE = "active"
+        ENDED = "ended"
+        FAILED = "failed"
+        ABORTED = "aborted"
+
+    id = models.UUIDField(primary_key=True, default=uuid.uuid4, editable=False)
+    service = models.ForeignKey(Service, on_delete=models.PROTECT, related_name="sessions")
+    user = models.ForeignKey(
+        settings.AUTH_USER_MODEL, on_delete=models.PROTECT, related_name="iouv_sessions"
+    )
+    state = models.CharField(max_length=10, choices=State.choices, default=State.REQUESTED)
+    reason = models.CharField(max_length=300, blank=True)
+    target_lat = models.FloatField(
+        null=True, blank=True, validators=[MinValueValidator(-90), MaxValueValidator(90)]
+    )
+    target_lon = models.FloatField(
+        null=True, blank=True, validators=[MinValueValidator(-180), MaxValueValidator(180)]
+    )
+    params = models.JSONField(default=dict, blank=True)
+    relay = models.BooleanField(
+        default=False, help_text="Control goes through the platform instead of point-to-point."
+    )
+    created_at = models.DateTimeField(auto_now_add=True)
+    assigned_at = models.DateTimeField(null=True, blank=True)
+    started_at = models.DateTimeField(null=True, blank=True)
+    ended_at = models.DateTimeField(null=True, blank=True)
+
+    class Meta:
+        ordering = ["-created_at"]
+        indexes = [models.Index(fields=["state"])]
+        permissions = [
+            ("use_services", "Can request services"),
+            ("stop_session", "Can stop any session"),
+        ]
+
+    def __str__(self) -> str:
+        return f"{self.service.slug} for {self.user} ({self.state})"
+
+    @property
+    def target(self) -> tuple[float, float] | None:
+        if self.target_lat is None or self.target_lon is None:
+            return None
+        return (self.target_lat, self.target_lon)
+
+
+class Assignment(models.Model):
+    """A vehicle holding a role in a session. At most one active row per vehicle,
+    enforced by the database, so no vehicle is ever held twice."""
+
+    session = models.ForeignKey(Session, on_delete=models.CASCADE, related_name="assignments")
+    role = models.CharField(max_length=40)
+    vehicle = models.ForeignKey(Vehicle, on_delete=models.PROTECT, related_name="assignments")
+    active = models.BooleanField(default=True)
+    distance_m = models.FloatField(help_text="From the vehicle to the target when assigned.")
+    created_at = models.DateTimeField(auto_now_add=True)
+    released_at = models.DateTimeField(null=True, blank=True)
+
+    class Meta:
+        constraints = [
+            models.UniqueConstraint(
+                fields=["vehicle"], condition=Q(active=True), name="one_active_assignment"
+            ),
+        ]
+        ordering = ["created_at"]
+
+    def __str__(self) -> str:
+        return f"{self.vehicle} as {self.role}"
+
+
+class SessionEvent(models.Model):
+    """Append-only, hash-chained session log (see services.eventlog)."""
+
+    session = models.ForeignKey(Session, on_delete=models.PROTECT, related_name="events")
+    seq = models.PositiveIntegerField()
+    kind = models.CharField(max_length=40)
+    data = models.JSONField(default=dict, blank=True)
+    created_at = models.DateTimeField()
+    prev_hash = models.CharField(max_length=64)
+    hash = models.CharField(max_length=64)
+
+    class Meta:
+        constraints = [models.UniqueConstraint(fields=["session", "seq"], name="unique_event_seq")]
+        ordering = ["session", "seq"]
+
+    def __str__(self) -> str:
+        return f"#{self.seq} {self.kind}"
+
+    def save(self, *args: Any, **kwargs: Any) -> None:
+        # The log is append-only: refuse to rewrite a stored event through the ORM.
+        if not self._state.adding:
+            raise ValidationError("session events are append-only")
+        super().save(*args, **kwargs)
+
+    def delete(self, *args: Any, **kwargs: Any) -> Any:
+        raise ValidationError("session events are append-only")

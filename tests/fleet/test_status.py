@@ -1,0 +1,47 @@
+"""Live status: silent vehicles go offline; maintenance in and out."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+
+import pytest
+from django.utils import timezone
+
+from fleet.models import Vehicle
+from fleet.status import FleetError, vehicle_set_maintenance, vehicles_online
+from fleet.tasks import fleet_sweep_offline
+from tests import factories as f
+
+pytestmark = pytest.mark.django_db
+
+
+def test_sweep_marks_only_silent_vehicles_offline(settings):
+    settings.IOUV_OFFLINE_AFTER_S = 5
+    st, vt = f.station(), f.vehicle_type()
+    alive = f.vehicle(station=st, vtype=vt, name="alive")
+    silent = f.vehicle(station=st, vtype=vt, name="silent")
+    Vehicle.objects.filter(pk=silent.pk).update(last_seen=timezone.now() - timedelta(seconds=6))
+
+    assert fleet_sweep_offline.apply().get() == 1
+    assert Vehicle.objects.get(pk=silent.pk).status == Vehicle.Status.OFFLINE
+    assert Vehicle.objects.get(pk=alive.pk).status == Vehicle.Status.IDLE
+    assert list(vehicles_online()) == [alive]
+
+
+def test_maintenance_in_and_out():
+    v = f.vehicle(station=f.station(), vtype=f.vehicle_type())
+    vehicle_set_maintenance(vehicle=v, on=True)
+    v.refresh_from_db()
+    assert v.status == Vehicle.Status.MAINTENANCE and v.maintenance
+    assert not vehicles_online().exists()
+    vehicle_set_maintenance(vehicle=v, on=False)
+    v.refresh_from_db()
+    assert v.status == Vehicle.Status.IDLE and not v.maintenance
+
+
+def test_maintenance_refused_for_a_vehicle_in_a_session():
+    v = f.vehicle(station=f.station(), vtype=f.vehicle_type(), status=Vehicle.Status.IN_SERVICE)
+    with pytest.raises(FleetError, match="end its session first"):
+        vehicle_set_maintenance(vehicle=v, on=True)
+    v.refresh_from_db()
+    assert not v.maintenance

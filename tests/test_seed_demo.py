@@ -1,0 +1,198 @@
+"""The demo seed: idempotent, valid data, grants, passwords and agent configs."""
+
+from __future__ import annotations
+
+import json
+import stat
+from io import StringIO
+from pathlib import Path
+from typing import Any
+
+import pytest
+from django.contrib.auth import authenticate, get_user_model
+from django.core.management import call_command
+from django.core.management.base import CommandError
+
+from accounts.roles import user_roles
+from fleet.attributes import attributes_clean
+from fleet.credentials import vehicle_authenticate
+from fleet.forms import commands_validate
+from fleet.models import Station, Vehicle, VehicleType
+from services.demo import SERVICES, VEHICLE_TYPES, VEHICLES, demo_seed
+from services.grants import services_for_user
+from services.models import Service, ServiceGrant, ServiceRole
+
+pytestmark = pytest.mark.django_db
+
+DEMO_SLUGS = {"drive-car", "fly-drone", "fly-vtol", "spectate", "rescue-at-sea"}
+
+
+@pytest.fixture(autouse=True)
+def _fast_hasher(settings: Any) -> None:
+    # Four users per seed: the default PBKDF2 would dominate the run time.
+    settings.PASSWORD_HASHERS = ["django.contrib.auth.hashers.MD5PasswordHasher"]
+
+
+def _counts() -> dict[str, int]:
+    return {
+        "stations": Station.objects.count(),
+        "types": VehicleType.objects.count(),
+        "vehicles": Vehicle.objects.count(),
+        "services": Service.objects.count(),
+        "roles": ServiceRole.objects.count(),
+        "grants": ServiceGrant.objects.count(),
+        "users": get_user_model().objects.count(),
+    }
+
+
+def test_seed_twice_changes_nothing_structurally() -> None:
+    demo_seed(password="pw-one")
+    first = _counts()
+    demo_seed(password="pw-two")
+    assert _counts() == first
+    assert first == {
+        "stations": 2,
+        "types": 4,
+        "vehicles": 8,
+        "services": 5,
+        "roles": 6,
+        "grants": 5,
+        "users": 4,
+    }
+
+
+def test_seeded_rows_pass_model_validation() -> None:
+    demo_seed(password="pw")
+    for vehicle in Vehicle.objects.all():
+        assert attributes_clean(vehicle.attributes) == vehicle.attributes
+        vehicle.full_clean()
+    for model in (Station, VehicleType, Service, ServiceRole):
+        for row in model.objects.all():
+            row.full_clean()
+    assert set(Vehicle.objects.values_list("status", flat=True)) == {Vehicle.Status.OFFLINE}
+
+
+@pytest.mark.parametrize("type_name", list(VEHICLE_TYPES))
+def test_command_vocabularies_follow_the_protocol(type_name: str) -> None:
+    commands = VEHICLE_TYPES[type_name]["commands"]
+    commands_validate(commands)  # raises on a declaration the client would refuse
+    assert all(c.get("group") for c in commands)
+
+
+def test_manual_services_allow_only_their_vehicles_commands() -> None:
+    for slug, type_name in (
+        ("drive-car", "Raspberry Pi car"),
+        ("fly-drone", "MAVLink quadcopter"),
+        ("fly-vtol", "Spektrum VTOL plane"),
+    ):
+        declared = {c["name"] for c in VEHICLE_TYPES[type_name]["commands"]}
+        assert set(SERVICES[slug]["fields"]["allowed_commands"]) == declared
+    assert "release_payload" not in SERVICES["fly-drone"]["fields"]["allowed_commands"]
+
+
+def test_client_sees_exactly_the_five_services_and_monitor_none() -> None:
+    demo_seed(password="pw")
+    User = get_user_model()
+    client = User.objects.get(username="client")
+    assert set(services_for_user(client).values_list("slug", flat=True)) == DEMO_SLUGS
+    assert not services_for_user(User.objects.get(username="monitor")).exists()
+
+
+def test_one_user_per_role() -> None:
+    seed = demo_seed(password="pw")
+    User = get_user_model()
+    for username in ("client", "monitor", "operator", "admin"):
+        assert user_roles(User.objects.get(username=username)) == {username}
+        assert seed.roles[username] == (username,)
+    assert User.objects.get(username="admin").is_superuser
+    assert not User.objects.get(username="client").is_staff
+    assert User.objects.get(username="operator").is_staff
+
+
+def test_rescue_roles() -> None:
+    demo_seed(password="pw")
+    roles = {r.name: r for r in Service.objects.get(slug="rescue-at-sea").roles.all()}
+    assert set(roles) == {"search", "delivery"}
+    assert roles["search"].required and not roles["delivery"].required
+    assert roles["delivery"].min_attributes == {"max_payload_kg": 1.0}
+    assert roles["delivery"].features == ["payload_release"]
+    # Only the coastal quadcopter has the thermal camera the search needs.
+    thermal = [v.name for v in Vehicle.objects.all() if "thermal" in v.cameras]
+    assert thermal == ["search-1"]
+
+
+def test_random_passwords_are_fresh_on_every_run() -> None:
+    first = demo_seed().passwords
+    second = demo_seed().passwords
+    assert set(first) == {"client", "monitor", "operator", "admin"}
+    assert len(set(second.values())) == 4
+    for username, secret in second.items():
+        assert first[username] != secret
+        assert authenticate(username=username, password=secret) is not None
+        assert authenticate(username=username, password=first[username]) is None
+
+
+def test_password_option_sets_every_user() -> None:
+    out = StringIO()
+    call_command("seed_demo", password="same-demo-pw", stdout=out, stderr=StringIO())
+    for username in ("client", "monitor", "operator", "admin"):
+        assert authenticate(username=username, password="same-demo-pw") is not None
+    text = out.getvalue()
+    assert "http://127.0.0.1:8000/accounts/login/" in text
+    assert "/admin/" in text
+    assert "operator" in text and "same-demo-pw" in text
+
+
+def test_credentials_dir_writes_working_private_configs(tmp_path: Path) -> None:
+    target = tmp_path / "agents"
+    call_command(
+        "seed_demo",
+        password="pw",
+        credentials_dir=target,
+        platform_url="wss://iouv.example",
+        stdout=StringIO(),
+        stderr=StringIO(),
+    )
+    paths = sorted(target.glob("*.json"))
+    assert {p.stem for p in paths} == set(VEHICLES)
+    for path in paths:
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600
+        config = json.loads(path.read_text())
+        assert set(config) == {
+            "platform_url",
+            "vehicle_id",
+            "vehicle_name",
+            "credential",
+            "adapter",
+            "vehicle_type",
+        }
+        assert config["platform_url"] == "wss://iouv.example"
+        vehicle = vehicle_authenticate(
+            vehicle_id=config["vehicle_id"], credential=config["credential"]
+        )
+        assert vehicle is not None and vehicle.name == config["vehicle_name"] == path.stem
+        assert config["adapter"] == vehicle.vehicle_type.adapter
+    # A run without the option leaves the credentials alone.
+    demo_seed(password="pw")
+    config = json.loads((target / "car-1.json").read_text())
+    assert vehicle_authenticate(vehicle_id=config["vehicle_id"], credential=config["credential"])
+
+
+def test_bad_platform_url_is_refused_before_anything_is_written(tmp_path: Path) -> None:
+    with pytest.raises(CommandError, match="ws://"):
+        call_command(
+            "seed_demo",
+            credentials_dir=tmp_path / "out",
+            platform_url="http://127.0.0.1:8000",
+            stdout=StringIO(),
+        )
+    assert not (tmp_path / "out").exists()
+    assert not Vehicle.objects.exists()
+
+
+def test_reseed_keeps_live_state() -> None:
+    demo_seed(password="pw")
+    Vehicle.objects.filter(name="car-1").update(status=Vehicle.Status.IDLE, battery=77)
+    demo_seed(password="pw")
+    car = Vehicle.objects.get(name="car-1")
+    assert car.status == Vehicle.Status.IDLE and car.battery == 77
