@@ -1,0 +1,23 @@
+"""Vehicle adapters behind one interface; see :mod:`agents.adapters.base`."""
+
+from agents.adapters.base import (
+    REGISTRY,
+    Adapter,
+    AdapterError,
+    CommandSpec,
+    Projection,
+    VehicleState,
+    adapter_create,
+    register,
+)
+
+__all__ = [
+    "REGISTRY",
+    "Adapter",
+    "AdapterError",
+    "CommandSpec",
+    "Projection",
+    "VehicleState",
+    "adapter_create",
+    "register",
+]

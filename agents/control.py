@@ -1,0 +1,651 @@
+"""Point-to-point control: users connect straight to the vehicle's agent.
+
+:class:`ControlHub` holds the vehicle's current task and its connected users, whatever
+carries their messages: a direct WebSocket (:class:`ControlServer`) or the platform's
+relay. It
+
+* admits a user only with a grant signed by the platform for this vehicle and the
+  current task's session, each grant once (replays refused);
+* gives control to one user at a time; the others watch. When control changes hands
+  the adapter's inputs are zeroed first;
+* runs every command through the :class:`~agents.safety.CommandGate` and answers each
+  with an ``ack`` carrying its ``seq`` once the adapter applied or refused it;
+* streams telemetry per subscription at the requested rate, and answers pings;
+* pings the controller to know the round trip (latency-aware limits) and watches its
+  inputs: nothing within the task's link-loss timeout, or its socket closing, triggers
+  the adapter's safe action and a ``failsafe`` event to the platform.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import time
+from collections.abc import Awaitable, Callable, Coroutine, Mapping
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Any, Protocol, Self
+
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.exceptions import ConnectionClosed
+
+from agents.adapters.base import SAFE_COMMANDS, Adapter, AdapterError
+from agents.protocol import (
+    MAX_MESSAGE_BYTES,
+    ProtocolError,
+    ReplayGuard,
+    UserGrant,
+    VehicleTask,
+    encode_message,
+    error_message,
+    parse_message,
+)
+from agents.safety import CommandGate, Refusal
+
+log = logging.getLogger(__name__)
+
+#: Close codes (4000-4999 are the application's).
+CLOSE_UNAUTHORIZED = 4401
+CLOSE_FORBIDDEN = 4403
+CLOSE_REPLACED = 4409
+CLOSE_FLOOD = 4429
+
+AUTH_TIMEOUT_S = 5.0
+COMMAND_TIMEOUT_S = 10.0  # the adapter's own timeouts are shorter; this is a backstop
+PING_INTERVAL_S = 0.5
+#: Per-client message budget: a steady rate and a burst. Above it frames are refused,
+#: and a client that keeps flooding is disconnected. Twice the paper's fastest control
+#: rate (a command every 10 ms) plus keepalives fits comfortably.
+RATE_PER_S = 200.0
+BURST = 400.0
+FLOOD_LIMIT = 300  # refused frames within FLOOD_WINDOW_S before disconnecting
+FLOOD_WINDOW_S = 5.0
+COMMAND_QUEUE = 16
+
+Reporter = Callable[[str, str | None, dict[str, Any]], None]
+
+
+class ClientLink(Protocol):
+    """One user's message channel: a WebSocket, or a relayed connection."""
+
+    id: str
+
+    async def send(self, message: Mapping[str, Any]) -> None:
+        """Send one control_to_client message; raises ConnectionError when gone."""
+
+    async def close(self, code: int, reason: str) -> None:
+        """Close the channel; idempotent."""
+
+
+@dataclass
+class _Client:
+    link: ClientLink
+    role: str = "pending"  # pending, controller, viewer
+    grant: UserGrant | None = None
+    rtt_ms: float | None = None
+    tokens: float = BURST
+    refill_at: float = field(default_factory=time.monotonic)
+    refused: list[float] = field(default_factory=list)
+    telemetry: asyncio.Task[None] | None = None
+    commands: asyncio.Queue[dict[str, Any]] = field(
+        default_factory=lambda: asyncio.Queue(COMMAND_QUEUE)
+    )
+    worker: asyncio.Task[None] | None = None
+
+    def allow(self) -> bool:
+        """Token bucket: True when this frame is within the client's budget."""
+        now = time.monotonic()
+        self.tokens = min(BURST, self.tokens + (now - self.refill_at) * RATE_PER_S)
+        self.refill_at = now
+        if self.tokens >= 1:
+            self.tokens -= 1
+            return True
+        self.refused = [t for t in self.refused if now - t < FLOOD_WINDOW_S]
+        self.refused.append(now)
+        return False
+
+    @property
+    def flooding(self) -> bool:
+        return len(self.refused) >= FLOOD_LIMIT
+
+
+class ControlHub:
+    """The vehicle side of every user session; see the module docstring."""
+
+    def __init__(
+        self,
+        *,
+        vehicle_id: str,
+        vehicle_name: str,
+        public_key: Ed25519PublicKey,
+        adapter: Adapter,
+        report: Reporter,
+        video: Any | None = None,
+    ) -> None:
+        self.vehicle_id = vehicle_id
+        self.vehicle_name = vehicle_name
+        self.public_key = public_key
+        self.adapter = adapter
+        self.report = report
+        self.video = video
+        self.task: VehicleTask | None = None
+        self.gate: CommandGate | None = None
+        self.clients: dict[str, _Client] = {}
+        self.controller: _Client | None = None
+        self.grants_seen = ReplayGuard()
+        self.stats: dict[str, int] = {"commands": 0, "refused": 0, "failsafes": 0}
+        # One command reaches the adapter at a time, and a fail-safe waits its turn.
+        self._exec = asyncio.Lock()
+        self._armed = False  # the watchdog runs once the controller has sent input
+        self._last_input = 0.0
+        self._watchdog: asyncio.Task[None] | None = None
+        self._time_limit: asyncio.Task[None] | None = None
+        self._pinger: asyncio.Task[None] | None = None
+        self._background: set[asyncio.Future[None]] = set()
+
+    # --- lifecycle ---------------------------------------------------------------------
+    async def start(self) -> None:
+        self._watchdog = asyncio.create_task(self._watch(), name="control-watchdog")
+        self._pinger = asyncio.create_task(self._ping_controller(), name="control-pinger")
+
+    async def close(self) -> None:
+        for client in list(self.clients.values()):
+            await self._drop(client, 1001, "agent shutting down")
+        if self._background:
+            await asyncio.wait(self._background, timeout=2)
+        for task in (self._watchdog, self._time_limit, self._pinger):
+            if task:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    # --- tasks from the platform -------------------------------------------------------
+    def task_accept(self, task: VehicleTask) -> None:
+        """Make ``task`` current. Raises Refusal("busy") while another session runs."""
+        if self.task is not None and self.task.session_id != task.session_id:
+            raise Refusal("busy", f"the vehicle is serving session {self.task.session_id}")
+        self.task = task
+        self.gate = CommandGate(self.adapter, allowed=task.allowed_commands, limits=task.limits)
+        if self._time_limit:
+            self._time_limit.cancel()
+        limit = task.limits.session_time_limit_s
+        if limit:
+            self._time_limit = asyncio.create_task(self._expire(task.session_id, limit))
+
+    async def task_end(self, session_id: str, *, reason: str, action: str | None) -> bool:
+        """End the current task if it is ``session_id``: users are told and dropped, the
+        vehicle performs ``action`` (default: the task's fail-safe). False if not current."""
+        task = self.task
+        if task is None or task.session_id != session_id:
+            return False
+        self.task = None
+        self.gate = None
+        self._armed = False
+        for client in list(self.clients.values()):
+            with contextlib.suppress(ConnectionError):
+                await client.link.send(
+                    {"type": "event", "event": "session_ended", "data": {"reason": reason}}
+                )
+            await self._drop(client, CLOSE_FORBIDDEN, reason[:120])
+        async with self._exec:
+            await self.adapter.safe_action(action or task.limits.failsafe_action)
+        self.report("task_ended", session_id, {"reason": reason})
+        return True
+
+    async def _expire(self, session_id: str, limit_s: float) -> None:
+        await asyncio.sleep(limit_s)
+        await self.task_end(session_id, reason="session time limit reached", action=None)
+
+    # --- connections -------------------------------------------------------------------
+    async def connected(self, link: ClientLink) -> None:
+        """A user's channel opened; it must authenticate within AUTH_TIMEOUT_S."""
+        client = _Client(link)
+        self.clients[link.id] = client
+        asyncio.get_running_loop().call_later(AUTH_TIMEOUT_S, self._auth_deadline, client)
+
+    def _auth_deadline(self, client: _Client) -> None:
+        if client.role == "pending" and self.clients.get(client.link.id) is client:
+            self._spawn(self._drop(client, CLOSE_UNAUTHORIZED, "no auth in time"))
+
+    async def disconnected(self, link: ClientLink) -> None:
+        """A user's channel closed (or was dropped)."""
+        client = self.clients.pop(link.id, None)
+        if client is None:
+            return
+        self._stop_client_tasks(client)
+        if self.video is not None:
+            with contextlib.suppress(Exception):
+                await self.video.close_peer(link.id)
+        if client.grant is not None and self.task is not None:
+            self.report(
+                "user_disconnected",
+                self.task.session_id,
+                {"user": client.grant.user, "role": client.role},
+            )
+        if client is self.controller:
+            self.controller = None
+            if self._armed:
+                # The controller's socket is gone: no need to wait for the timeout.
+                await self._failsafe("link_lost")
+
+    async def received(self, link: ClientLink, raw: str | bytes) -> None:
+        """Handle one frame from a user. Never raises for anything the user sent."""
+        client = self.clients.get(link.id)
+        if client is None:
+            return
+        if not client.allow():
+            if client.flooding:
+                await self._drop(client, CLOSE_FLOOD, "too many messages")
+            else:
+                await self._send(client, error_message("rate_limited", "slow down"))
+            return
+        try:
+            msg = parse_message(raw, channel="control_to_agent")
+        except ProtocolError as exc:
+            await self._send(client, error_message(exc.code, exc.message))
+            if client.role == "pending":
+                await self._drop(client, CLOSE_UNAUTHORIZED, "authenticate first")
+            return
+        kind = msg["type"]
+        if client.role == "pending":
+            if kind != "auth":
+                await self._send(client, error_message("unauthorized", "authenticate first"))
+                await self._drop(client, CLOSE_UNAUTHORIZED, "authenticate first")
+                return
+            await self._auth(client, msg["grant"])
+            return
+        handler = self._handlers.get(kind)
+        if handler is None:
+            await self._send(client, error_message("unexpected", f"{kind} is not expected now"))
+            return
+        with contextlib.suppress(ConnectionError):
+            await handler(self, client, msg)
+
+    # --- authentication and roles ------------------------------------------------------
+    async def _auth(self, client: _Client, token: str) -> None:
+        try:
+            grant = UserGrant.verify(
+                token, self.public_key, vehicle_id=self.vehicle_id, replay_guard=self.grants_seen
+            )
+        except ProtocolError as exc:
+            await self._send(client, error_message(exc.code, exc.message))
+            await self._drop(client, CLOSE_UNAUTHORIZED, exc.code)
+            return
+        task = self.task
+        if task is None or grant.session_id != task.session_id:
+            await self._send(
+                client, error_message("no_task", "this grant is not for the vehicle's current task")
+            )
+            await self._drop(client, CLOSE_FORBIDDEN, "no such session here")
+            return
+        client.grant = grant
+        wants_control = grant.role == "controller" and grant.user == task.user
+        if wants_control and self.controller is None:
+            await self._set_controller(client)
+        else:
+            client.role = "viewer"
+        await self._send(
+            client,
+            {
+                "type": "welcome",
+                "role": client.role,
+                "vehicle": {
+                    "id": self.vehicle_id,
+                    "name": self.vehicle_name,
+                    "adapter": self.adapter.name,
+                    "session_id": task.session_id,
+                    "link_loss_timeout_ms": task.limits.link_loss_timeout_ms,
+                    "video": self.video is not None,
+                },
+                "commands": [
+                    {
+                        **c.to_profile(),
+                        "allowed": c.name in task.allowed_commands or c.name in SAFE_COMMANDS,
+                    }
+                    for c in self.adapter.commands()
+                ],
+                "telemetry": self.adapter.telemetry_topics(),
+            },
+        )
+        self.report("user_connected", task.session_id, {"user": grant.user, "role": client.role})
+
+    async def _set_controller(self, client: _Client | None) -> None:
+        if self.controller is not None and self.controller is not client:
+            previous = self.controller
+            previous.role = "viewer"
+            with contextlib.suppress(ConnectionError):
+                await previous.link.send({"type": "role", "role": "viewer"})
+        # Whoever held the sticks, the new holder starts from neutral.
+        async with self._exec:
+            await self.adapter.neutral()
+        self._armed = False
+        self.controller = client
+        if client is not None:
+            client.role = "controller"
+            client.worker = asyncio.create_task(self._run_commands(client))
+
+    # --- message handlers --------------------------------------------------------------
+    async def _on_command(self, client: _Client, msg: dict[str, Any]) -> None:
+        if client is not self.controller:
+            await self._ack(client, msg["seq"], "view_only", "you are watching; take control first")
+            return
+        self._input()
+        try:
+            client.commands.put_nowait(msg)
+        except asyncio.QueueFull:
+            await self._ack(client, msg["seq"], "busy", "commands are arriving faster than applied")
+
+    async def _run_commands(self, client: _Client) -> None:
+        """Apply the controller's commands in order, one at a time."""
+        while True:
+            msg = await client.commands.get()
+            seq, name, args = msg["seq"], msg["name"], msg["args"]
+            if client is not self.controller or self.gate is None or self.task is None:
+                await self._ack(client, seq, "view_only", "you no longer hold control")
+                continue
+            try:
+                checked = self.gate.check(name, args, rtt_ms=client.rtt_ms)
+                async with self._exec:
+                    await asyncio.wait_for(
+                        self.adapter.execute(checked.name, checked.args), COMMAND_TIMEOUT_S
+                    )
+            except Refusal as exc:
+                self.stats["refused"] += 1
+                await self._ack(client, seq, exc.code, str(exc))
+                self.report(
+                    "command_refused",
+                    self.task.session_id if self.task else None,
+                    {"name": name, "code": exc.code, "reason": str(exc)},
+                )
+                continue
+            except AdapterError as exc:
+                self.stats["refused"] += 1
+                await self._ack(client, seq, exc.code, str(exc))
+                self.report(
+                    "command_refused",
+                    self.task.session_id if self.task else None,
+                    {"name": name, "code": exc.code, "reason": str(exc)},
+                )
+                continue
+            except TimeoutError:
+                await self._ack(client, seq, "timeout", f"{name} got no answer from the vehicle")
+                continue
+            self.stats["commands"] += 1
+            self._input()
+            with contextlib.suppress(ConnectionError):
+                await client.link.send({"type": "ack", "seq": seq, "ok": True, "error": None})
+
+    async def _on_keepalive(self, client: _Client, msg: dict[str, Any]) -> None:
+        if client is self.controller:
+            self._input()
+
+    async def _on_ping(self, client: _Client, msg: dict[str, Any]) -> None:
+        # Pings measure the link; only commands and keepalives show a user in control.
+        await self._send(client, {"type": "pong", "t": msg["t"], "server_t": time.time()})
+
+    async def _on_pong(self, client: _Client, msg: dict[str, Any]) -> None:
+        sent = float(msg["t"])
+        now = time.monotonic()
+        if 0 <= now - sent < 60:  # our own monotonic stamp echoed back
+            client.rtt_ms = (now - sent) * 1000.0
+
+    async def _on_subscribe(self, client: _Client, msg: dict[str, Any]) -> None:
+        topics = list(dict.fromkeys(msg["topics"]))
+        known = set(self.adapter.telemetry_topics())
+        unknown = [t for t in topics if t not in known]
+        if unknown:
+            await self._send(
+                client,
+                error_message("unknown_topic", f"unknown telemetry topic(s): {', '.join(unknown)}"),
+            )
+            return
+        if client.telemetry:
+            client.telemetry.cancel()
+        client.telemetry = asyncio.create_task(self._stream(client, topics, float(msg["rate_hz"])))
+
+    async def _on_unsubscribe(self, client: _Client, msg: dict[str, Any]) -> None:
+        if client.telemetry:
+            client.telemetry.cancel()
+            client.telemetry = None
+
+    async def _on_take_control(self, client: _Client, msg: dict[str, Any]) -> None:
+        task = self.task
+        if (
+            client.grant is None
+            or task is None
+            or client.grant.role != "controller"
+            or (client.grant.user != task.user)
+        ):
+            await self._send(client, error_message("view_only", "your grant is view-only"))
+            return
+        if client is not self.controller:
+            await self._set_controller(client)
+        await self._send(client, {"type": "role", "role": "controller"})
+
+    async def _on_release_control(self, client: _Client, msg: dict[str, Any]) -> None:
+        if client is self.controller:
+            await self._set_controller(None)
+            client.role = "viewer"
+        await self._send(client, {"type": "role", "role": client.role})
+
+    async def _on_webrtc_request(self, client: _Client, msg: dict[str, Any]) -> None:
+        if self.video is None:
+            await self._send(client, error_message("no_video", "this vehicle has no camera"))
+            return
+        try:
+            sdp = await self.video.offer(client.link.id)
+        except Exception as exc:  # any video failure is reported to the user, not fatal
+            await self._send(client, error_message("video", str(exc)))
+            return
+        await self._send(client, {"type": "webrtc_offer", "sdp": sdp})
+
+    async def _on_webrtc_answer(self, client: _Client, msg: dict[str, Any]) -> None:
+        if self.video is None:
+            await self._send(client, error_message("no_video", "this vehicle has no camera"))
+            return
+        try:
+            await self.video.answer(client.link.id, msg["sdp"])
+        except Exception as exc:  # as above
+            await self._send(client, error_message("video", str(exc)))
+
+    async def _on_webrtc_offer(self, client: _Client, msg: dict[str, Any]) -> None:
+        if self.video is None:
+            await self._send(client, error_message("no_video", "this vehicle has no camera"))
+            return
+        try:
+            sdp = await self.video.accept_offer(client.link.id, msg["sdp"])
+        except Exception as exc:  # as above
+            await self._send(client, error_message("video", str(exc)))
+            return
+        await self._send(client, {"type": "webrtc_answer", "sdp": sdp})
+
+    _handlers: dict[str, Callable[[ControlHub, _Client, dict[str, Any]], Awaitable[None]]] = {
+        "command": _on_command,
+        "keepalive": _on_keepalive,
+        "ping": _on_ping,
+        "pong": _on_pong,
+        "subscribe": _on_subscribe,
+        "unsubscribe": _on_unsubscribe,
+        "take_control": _on_take_control,
+        "release_control": _on_release_control,
+        "webrtc_request": _on_webrtc_request,
+        "webrtc_answer": _on_webrtc_answer,
+        "webrtc_offer": _on_webrtc_offer,
+    }
+
+    # --- background loops --------------------------------------------------------------
+    async def _stream(self, client: _Client, topics: list[str], rate_hz: float) -> None:
+        period = 1.0 / rate_hz
+        next_at = time.monotonic()
+        try:
+            while True:
+                values = self.adapter.telemetry()
+                await client.link.send(
+                    {
+                        "type": "telemetry",
+                        "t": time.time(),
+                        "data": {t: values.get(t) for t in topics},
+                    }
+                )
+                # Keep the rate even when a send was slow, without bursting to catch up.
+                next_at = max(next_at + period, time.monotonic())
+                await asyncio.sleep(next_at - time.monotonic())
+        except ConnectionError:
+            return
+
+    async def _ping_controller(self) -> None:
+        while True:
+            await asyncio.sleep(PING_INTERVAL_S)
+            client = self.controller
+            if client is not None:
+                with contextlib.suppress(ConnectionError):
+                    await client.link.send({"type": "ping", "t": time.monotonic()})
+
+    async def _watch(self) -> None:
+        while True:
+            timeout_s = (self.task.limits.link_loss_timeout_ms if self.task else 500) / 1000
+            await asyncio.sleep(min(0.05, timeout_s / 5))
+            if self._armed and time.monotonic() - self._last_input > timeout_s:
+                await self._failsafe("link_lost")
+
+    def _input(self) -> None:
+        self._last_input = time.monotonic()
+        self._armed = True
+
+    async def _failsafe(self, cause: str) -> None:
+        """The controller went quiet or away: make the vehicle safe and tell everyone."""
+        self._armed = False
+        task = self.task
+        action = task.limits.failsafe_action if task else "stop"
+        self.stats["failsafes"] += 1
+        async with self._exec:
+            await self.adapter.safe_action(action)
+        log.warning("fail-safe: %s -> %s", cause, action)
+        for client in list(self.clients.values()):
+            with contextlib.suppress(ConnectionError):
+                await client.link.send(
+                    {
+                        "type": "event",
+                        "event": "failsafe",
+                        "data": {"cause": cause, "action": action},
+                    }
+                )
+        self.report(
+            "failsafe", task.session_id if task else None, {"cause": cause, "action": action}
+        )
+
+    # --- helpers -----------------------------------------------------------------------
+    async def _ack(self, client: _Client, seq: int, code: str, error: str) -> None:
+        with contextlib.suppress(ConnectionError):
+            await client.link.send(
+                {"type": "ack", "seq": seq, "ok": False, "error": error, "code": code}
+            )
+
+    async def _send(self, client: _Client, message: Mapping[str, Any]) -> None:
+        with contextlib.suppress(ConnectionError):
+            await client.link.send(message)
+
+    def _stop_client_tasks(self, client: _Client) -> None:
+        for task in (client.telemetry, client.worker):
+            if task:
+                task.cancel()
+
+    async def _drop(self, client: _Client, code: int, reason: str) -> None:
+        self._stop_client_tasks(client)
+        # Close in the background: awaiting the closing handshake from inside the
+        # client's own reader would deadlock once its unread frames fill the queue.
+        self._spawn(client.link.close(code, reason))
+        await self.disconnected(client.link)
+
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        task = asyncio.ensure_future(coro)
+        self._background.add(task)
+        task.add_done_callback(self._background.discard)
+
+
+class _WebSocketLink:
+    """A ClientLink over a direct WebSocket."""
+
+    _ids = itertools.count(1)
+
+    def __init__(self, ws: ServerConnection) -> None:
+        self.ws = ws
+        self.id = f"ws-{next(self._ids)}"
+
+    async def send(self, message: Mapping[str, Any]) -> None:
+        try:
+            await self.ws.send(encode_message(message))
+        except ConnectionClosed as exc:
+            raise ConnectionError(str(exc)) from None
+
+    async def close(self, code: int, reason: str) -> None:
+        await self.ws.close(code, reason)
+
+
+class ControlServer:
+    """The agent's WebSocket endpoint for users (an async context manager).
+
+    ``port=0`` picks a free port; :attr:`port` tells which after start.
+    """
+
+    def __init__(self, hub: ControlHub, *, host: str = "127.0.0.1", port: int = 0) -> None:
+        self.hub = hub
+        self.host = host
+        self.port = port
+        self._server: Server | None = None
+
+    async def _handle(self, ws: ServerConnection) -> None:
+        link = _WebSocketLink(ws)
+        await self.hub.connected(link)
+        try:
+            async for raw in ws:
+                await self.hub.received(link, raw)
+        except ConnectionClosed:
+            pass  # an oversized frame or a dead peer: the socket is closed either way
+        finally:
+            await self.hub.disconnected(link)
+
+    async def start(self) -> None:
+        self._server = await serve(
+            self._handle,
+            self.host,
+            self.port,
+            max_size=MAX_MESSAGE_BYTES,
+            compression=None,  # latency over bandwidth: commands are tiny
+            ping_interval=5,
+            ping_timeout=5,
+        )
+        sock = next(iter(self._server.sockets))
+        self.port = sock.getsockname()[1]
+
+    async def close(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            await self._server.wait_closed()
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()

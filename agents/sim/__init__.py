@@ -1,0 +1,1 @@
+"""Simulators that stand in for vehicle hardware in tests and demos."""

@@ -1,0 +1,178 @@
+"""The agent's link to the platform: register, heartbeat, receive tasks, report.
+
+The uplink is not in the control path: when the platform is unreachable the vehicle
+keeps serving the user already connected to it (and its fail-safes keep working), and
+reports queue up in a bounded outbox to be sent after reconnecting. Reconnection
+uses exponential backoff with full jitter so a fleet does not reconnect in lockstep
+after a platform restart.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import random
+from collections import deque
+from collections.abc import Awaitable, Callable, Mapping
+from typing import Any
+
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
+
+from agents.protocol import (
+    MAX_MESSAGE_BYTES,
+    PROTOCOL_VERSION,
+    ProtocolError,
+    encode_message,
+    parse_message,
+)
+
+log = logging.getLogger(__name__)
+
+WELCOME_TIMEOUT_S = 10.0
+OUTBOX_SIZE = 1000
+
+
+def backoff_delay(attempt: int, *, base: float, cap: float) -> float:
+    """Seconds to wait before reconnect ``attempt`` (0-based): full jitter over an
+    exponentially growing window, never above ``cap``."""
+    return random.uniform(base / 2, min(cap, base * 2**attempt))
+
+
+class Uplink:
+    """Keeps one authenticated WebSocket to the platform, reconnecting forever.
+
+    ``on_message`` gets every validated platform message except ``welcome``;
+    ``profile()`` and ``heartbeat()`` build the messages sent on connect and at the
+    interval the platform asks for.
+    """
+
+    def __init__(
+        self,
+        *,
+        url: str,
+        vehicle_id: str,
+        credential: str,
+        on_message: Callable[[dict[str, Any]], Awaitable[None]],
+        profile: Callable[[], dict[str, Any]],
+        heartbeat: Callable[[], dict[str, Any]],
+        reconnect_min_s: float = 0.5,
+        reconnect_max_s: float = 30.0,
+    ) -> None:
+        self.url = url
+        self.vehicle_id = vehicle_id
+        self.credential = credential
+        self.on_message = on_message
+        self.profile = profile
+        self.heartbeat = heartbeat
+        self.reconnect_min_s = reconnect_min_s
+        self.reconnect_max_s = reconnect_max_s
+        self.heartbeat_interval_s = 2.0
+        self.connected = asyncio.Event()
+        self.connections = 0  # successful registrations, for tests and status
+        self._outbox: deque[str] = deque(maxlen=OUTBOX_SIZE)
+        self._wake = asyncio.Event()
+        self._hb_seq = 0
+
+    def send(self, message: Mapping[str, Any]) -> None:
+        """Queue a message for the platform (dropped oldest-first when the outbox is
+        full during a long outage)."""
+        self._outbox.append(encode_message(message))
+        self._wake.set()
+
+    async def run(self) -> None:
+        """Connect, serve, and reconnect until cancelled."""
+        attempt = 0
+        while True:
+            try:
+                async with connect(
+                    self.url,
+                    max_size=MAX_MESSAGE_BYTES,
+                    compression=None,
+                    proxy=None,
+                    open_timeout=10,
+                    ping_interval=10,
+                    ping_timeout=10,
+                ) as ws:
+                    await self._register(ws)
+                    attempt = 0
+                    await self._serve(ws)
+            except asyncio.CancelledError:
+                raise
+            except (OSError, ConnectionClosed, InvalidHandshake, InvalidURI, TimeoutError) as exc:
+                log.warning("uplink to %s lost: %s", self.url, exc)
+            except ProtocolError as exc:
+                log.error("platform sent something invalid: %s", exc)
+            finally:
+                self.connected.clear()
+            delay = backoff_delay(attempt, base=self.reconnect_min_s, cap=self.reconnect_max_s)
+            attempt += 1
+            await asyncio.sleep(delay)
+
+    async def _register(self, ws: ClientConnection) -> None:
+        await ws.send(
+            encode_message(
+                {
+                    "type": "hello",
+                    "v": PROTOCOL_VERSION,
+                    "vehicle_id": self.vehicle_id,
+                    "credential": self.credential,
+                }
+            )
+        )
+        raw = await asyncio.wait_for(ws.recv(), WELCOME_TIMEOUT_S)
+        msg = parse_message(raw, channel="uplink_to_agent")
+        if msg["type"] != "welcome":
+            # The platform refused us (bad credential, version): wait and retry.
+            raise ProtocolError("refused", f"platform answered {msg['type']}: {msg}")
+        self.heartbeat_interval_s = float(msg["heartbeat_interval_s"])
+        await ws.send(encode_message(self.profile()))
+        self.connections += 1
+        self.connected.set()
+        log.info("registered with %s", self.url)
+
+    async def _serve(self, ws: ClientConnection) -> None:
+        tasks = [
+            asyncio.create_task(self._receive(ws)),
+            asyncio.create_task(self._heartbeats(ws)),
+            asyncio.create_task(self._flush(ws)),
+        ]
+        try:
+            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+            for task in done:
+                task.result()  # re-raise what ended the connection
+        finally:
+            for task in tasks:
+                task.cancel()
+            for task in tasks:
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await task
+
+    async def _receive(self, ws: ClientConnection) -> None:
+        async for raw in ws:
+            try:
+                msg = parse_message(raw, channel="uplink_to_agent")
+            except ProtocolError as exc:
+                log.warning("ignored a bad message from the platform: %s", exc)
+                continue
+            try:
+                await self.on_message(msg)
+            except Exception:
+                # A bug handling one message must not take the vehicle off the platform.
+                log.exception("handling platform message %s failed", msg.get("type"))
+
+    async def _heartbeats(self, ws: ClientConnection) -> None:
+        while True:
+            self._hb_seq += 1
+            await ws.send(encode_message({**self.heartbeat(), "seq": self._hb_seq}))
+            await asyncio.sleep(self.heartbeat_interval_s)
+
+    async def _flush(self, ws: ClientConnection) -> None:
+        while True:
+            while self._outbox:
+                # Peek, send, then pop: a message is lost only if the send never happened.
+                await ws.send(self._outbox[0])
+                self._outbox.popleft()
+            self._wake.clear()
+            await self._wake.wait()

@@ -1,0 +1,1 @@
+"""Benchmarks of the IoUV platform and agents (``python -m benchmarks.<name>``)."""

@@ -1,0 +1,446 @@
+"""The agent's control server over real sockets, driving the simulated Pi car."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosed
+
+from agents.adapters.car import CarAdapter
+from agents.control import ControlHub, ControlServer
+from agents.protocol import (
+    Limits,
+    UserGrant,
+    VehicleTask,
+    generate_keypair,
+    load_private_key,
+    load_public_key,
+    new_nonce,
+)
+
+PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
+PRIVATE = load_private_key(PRIVATE_PEM)
+VEHICLE = "car-test-1"
+SESSION = "session-1"
+CAR_COMMANDS = (
+    "forward",
+    "backward",
+    "left",
+    "right",
+    "stop",
+    "camera_up",
+    "camera_down",
+    "camera_left",
+    "camera_right",
+)
+
+
+@dataclass
+class Rig:
+    hub: ControlHub
+    server: ControlServer
+    car: CarAdapter
+    reports: list[tuple[str, str | None, dict[str, Any]]] = field(default_factory=list)
+
+    @property
+    def url(self) -> str:
+        return f"ws://127.0.0.1:{self.server.port}/"
+
+    def events(self, name: str) -> list[dict[str, Any]]:
+        return [data for event, _, data in self.reports if event == name]
+
+
+def make_task(*, session: str = SESSION, user: str = "alice", **limits: Any) -> VehicleTask:
+    now = time.time()
+    return VehicleTask(
+        session_id=session,
+        vehicle_id=VEHICLE,
+        user=user,
+        allowed_commands=CAR_COMMANDS,
+        limits=Limits(**{"link_loss_timeout_ms": 500, "failsafe_action": "stop", **limits}),
+        issued_at=now,
+        expires_at=now + 60,
+        nonce=new_nonce(),
+    )
+
+
+def make_grant(
+    *,
+    session: str = SESSION,
+    user: str = "alice",
+    role: str = "controller",
+    vehicle: str = VEHICLE,
+    ttl: float = 60,
+    key: Any = PRIVATE,
+) -> str:
+    now = time.time()
+    return UserGrant(
+        session_id=session,
+        vehicle_id=vehicle,
+        user=user,
+        role=role,
+        allowed_commands=CAR_COMMANDS,
+        issued_at=min(now, now + ttl) - 1,
+        expires_at=now + ttl,
+        nonce=new_nonce(),
+    ).sign(key)
+
+
+@pytest.fixture
+async def rig() -> AsyncIterator[Rig]:
+    car = CarAdapter(
+        {"simulate": True, "camera_arm": True, "distance_sensor": True, "origin": [40.63, -8.65]}
+    )
+    reports: list[tuple[str, str | None, dict[str, Any]]] = []
+    async with car:
+        hub = ControlHub(
+            vehicle_id=VEHICLE,
+            vehicle_name="car-1",
+            public_key=load_public_key(PUBLIC_PEM),
+            adapter=car,
+            report=lambda e, s, d: reports.append((e, s, d)),
+        )
+        async with hub, ControlServer(hub) as server:
+            hub.task_accept(make_task())
+            yield Rig(hub, server, car, reports)
+
+
+async def recv(ws: ClientConnection, kind: str, within: float = 3.0) -> dict[str, Any]:
+    """The next message of type ``kind`` (skipping pings, telemetry, events)."""
+    deadline = time.monotonic() + within
+    while True:
+        msg = json.loads(await asyncio.wait_for(ws.recv(), deadline - time.monotonic()))
+        if msg["type"] == kind:
+            return msg
+        if msg["type"] == "ping":
+            await ws.send(json.dumps({"type": "pong", "t": msg["t"]}))
+
+
+async def join(rig: Rig, grant: str | None = None) -> tuple[ClientConnection, dict[str, Any]]:
+    ws = await connect(rig.url, compression=None, proxy=None)
+    await ws.send(json.dumps({"type": "auth", "grant": grant or make_grant()}))
+    return ws, await recv(ws, "welcome")
+
+
+async def command(ws: ClientConnection, seq: int, name: str, **args: Any) -> dict[str, Any]:
+    await ws.send(json.dumps({"type": "command", "seq": seq, "name": name, "args": args}))
+    return await recv(ws, "ack")
+
+
+async def close_code(ws: ClientConnection, within: float = 3.0) -> int | None:
+    try:
+        while True:
+            await asyncio.wait_for(ws.recv(), within)
+    except ConnectionClosed:
+        return ws.close_code
+
+
+async def keep_alive(ws: ClientConnection, seconds: float) -> float:
+    """Act as a live controller: a keepalive every 100 ms. Returns when the last went."""
+    end = time.monotonic() + seconds
+    last = time.monotonic()
+    while time.monotonic() < end:
+        await ws.send(json.dumps({"type": "keepalive"}))
+        last = time.monotonic()
+        await asyncio.sleep(0.1)
+    return last
+
+
+# --- driving -----------------------------------------------------------------------------
+
+
+async def test_controller_drives_the_car_and_acks_carry_seq(rig: Rig):
+    ws, welcome = await join(rig)
+    assert welcome["role"] == "controller"
+    assert {c["name"] for c in welcome["commands"]} >= set(CAR_COMMANDS)
+    start = rig.car.world.position
+
+    ack = await command(ws, 7, "forward", speed=1.0)
+    assert ack == {"type": "ack", "seq": 7, "ok": True, "error": None}
+    await keep_alive(ws, 1.0)
+    moved = rig.car.world.position
+    assert moved != start
+    heading_before = rig.car.world.heading_deg
+    assert (await command(ws, 8, "right", speed=1.0))["ok"]
+    await keep_alive(ws, 0.5)
+    assert rig.car.world.heading_deg != heading_before
+    assert (await command(ws, 9, "stop"))["ok"]
+
+    tilt = rig.car.telemetry()["camera_tilt"]
+    assert (await command(ws, 10, "camera_up", step_deg=30))["seq"] == 10
+    assert rig.car.telemetry()["camera_tilt"] != tilt
+    assert rig.events("user_connected")[0]["user"] == "alice"
+    await ws.close()
+
+
+async def test_telemetry_arrives_at_the_subscribed_rate(rig: Rig):
+    ws, _ = await join(rig)
+    await ws.send(
+        json.dumps({"type": "subscribe", "topics": ["battery_level", "location"], "rate_hz": 10})
+    )
+    first = await recv(ws, "telemetry")
+    assert set(first["data"]) == {"battery_level", "location"}
+    count, start = 0, time.monotonic()
+    while time.monotonic() - start < 2.0:
+        await recv(ws, "telemetry")
+        count += 1
+    assert 14 <= count <= 24  # 10 Hz for 2 s, loose for a busy machine
+    await ws.send(json.dumps({"type": "subscribe", "topics": ["warp_drive"], "rate_hz": 1}))
+    assert (await recv(ws, "error"))["code"] == "unknown_topic"
+    await ws.close()
+
+
+async def test_ping_is_answered_and_agent_measures_rtt(rig: Rig):
+    ws, _ = await join(rig)
+    await ws.send(json.dumps({"type": "ping", "t": 123.5}))
+    pong = await recv(ws, "pong")
+    assert pong["t"] == 123.5 and pong["server_t"] > 0
+    # Reading answers the agent's pings; after one, the agent knows the round trip.
+    with pytest.raises(TimeoutError):
+        await recv(ws, "nothing-else", within=1.2)
+    controller = rig.hub.controller
+    assert controller is not None and controller.rtt_ms is not None and controller.rtt_ms < 500
+    await ws.close()
+
+
+# --- who may connect ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("grant", "code"),
+    [
+        (lambda: make_grant(key=load_private_key(generate_keypair()[0])), "bad_signature"),
+        (lambda: make_grant(ttl=-10), "expired"),
+        (lambda: make_grant(vehicle="car-other"), "wrong_vehicle"),
+        (lambda: "not.a-token", "bad_token"),
+    ],
+)
+async def test_bad_grants_are_refused(rig: Rig, grant, code):
+    ws = await connect(rig.url, proxy=None)
+    await ws.send(json.dumps({"type": "auth", "grant": grant()}))
+    error = await recv(ws, "error")
+    assert error["code"] == code
+    assert await close_code(ws) == 4401
+    assert rig.hub.controller is None
+
+
+async def test_replayed_grant_is_refused(rig: Rig):
+    token = make_grant()
+    first, _ = await join(rig, token)
+    await first.close()
+    ws = await connect(rig.url, proxy=None)
+    await ws.send(json.dumps({"type": "auth", "grant": token}))
+    assert (await recv(ws, "error"))["code"] == "replayed"
+    assert await close_code(ws) == 4401
+
+
+async def test_grant_for_another_session_is_refused(rig: Rig):
+    ws = await connect(rig.url, proxy=None)
+    await ws.send(json.dumps({"type": "auth", "grant": make_grant(session="other")}))
+    assert (await recv(ws, "error"))["code"] == "no_task"
+    assert await close_code(ws) == 4403
+
+
+async def test_anything_before_auth_closes(rig: Rig):
+    ws = await connect(rig.url, proxy=None)
+    await ws.send(json.dumps({"type": "command", "seq": 1, "name": "forward"}))
+    assert (await recv(ws, "error"))["code"] == "unauthorized"
+    assert await close_code(ws) == 4401
+
+
+async def test_second_controller_cannot_steer_until_it_takes_control(rig: Rig):
+    first, _ = await join(rig)
+    second, welcome = await join(rig)
+    assert welcome["role"] == "viewer"
+    refused = await command(second, 1, "forward")
+    assert not refused["ok"] and refused["code"] == "view_only"
+    assert rig.car.world.efforts == (0.0, 0.0)
+
+    assert (await command(first, 1, "forward", speed=0.8))["ok"]
+    await asyncio.sleep(0.1)
+    assert rig.car.world.efforts != (0.0, 0.0)
+    # The other tab takes over: the car's inputs are zeroed before it may steer.
+    await second.send(json.dumps({"type": "take_control"}))
+    assert (await recv(second, "role"))["role"] == "controller"
+    assert (await recv(first, "role"))["role"] == "viewer"
+    await asyncio.sleep(0.1)
+    assert rig.car.world.efforts == (0.0, 0.0)
+    assert (await command(first, 2, "forward"))["code"] == "view_only"
+    assert (await command(second, 2, "backward"))["ok"]
+    await first.close()
+    await second.close()
+
+
+async def test_viewer_grant_never_controls(rig: Rig):
+    ws, welcome = await join(rig, make_grant(role="viewer", user="bob"))
+    assert welcome["role"] == "viewer"
+    await ws.send(json.dumps({"type": "take_control"}))
+    assert (await recv(ws, "error"))["code"] == "view_only"
+    await ws.close()
+
+
+# --- safety ------------------------------------------------------------------------------
+
+
+async def test_obstacle_stops_the_car_and_refuses_forward(rig: Rig):
+    ws, _ = await join(rig)
+    assert (await command(ws, 1, "forward", speed=0.5))["ok"]
+    rig.car.world.place_obstacle_ahead(0.15)
+    await keep_alive(ws, 0.3)
+    assert rig.car.world.speed_mps == pytest.approx(0.0, abs=1e-3)
+    refused = await command(ws, 2, "forward")
+    assert not refused["ok"] and refused["code"] == "obstacle"
+    assert (await command(ws, 3, "backward", speed=0.3))["ok"]
+    assert rig.events("command_refused")[0]["code"] == "obstacle"
+    await ws.close()
+
+
+async def test_killed_client_stops_the_car_and_platform_is_told(rig: Rig):
+    ws, _ = await join(rig)
+    assert (await command(ws, 1, "forward", speed=1.0))["ok"]
+    await asyncio.sleep(0.1)
+    assert rig.car.world.speed_mps > 0
+    killed_at = time.monotonic()
+    ws.transport.abort()  # as if the browser's process died: no close handshake
+    for _ in range(200):  # poll the simulated car for up to 2 s
+        if rig.car.world.speed_mps == 0:
+            break
+        await asyncio.sleep(0.01)
+    # The closed socket is noticed at once, well within the 500 ms link-loss timeout.
+    assert time.monotonic() - killed_at < 0.5
+    assert rig.events("failsafe") == [{"cause": "link_lost", "action": "stop"}]
+
+
+async def test_silent_controller_triggers_failsafe_after_timeout(rig: Rig):
+    ws, _ = await join(rig)
+    assert (await command(ws, 1, "forward", speed=1.0))["ok"]
+    silent_at = await keep_alive(ws, 0.8)
+    assert rig.car.world.speed_mps > 0  # keepalives hold the link
+    event = await recv(ws, "event", within=3)  # the agent tells the user why it stopped
+    assert event["event"] == "failsafe"
+    # Not before the 500 ms timeout; the upper bound is loose for a busy machine.
+    assert 0.45 <= time.monotonic() - silent_at <= 1.5
+    assert rig.car.telemetry()["motors"] == {"left": 0.0, "right": 0.0}
+    # The user is still connected and may drive again.
+    assert (await command(ws, 2, "forward"))["ok"]
+    await ws.close()
+
+
+async def test_geofence_refuses_leaving_but_allows_coming_back(rig: Rig):
+    here = rig.car.state().position
+    await rig.hub.task_end(SESSION, reason="next test", action="stop")
+    rig.hub.task_accept(make_task(session="fenced", geofence_center=here, geofence_radius_m=0.2))
+    ws, _ = await join(rig, make_grant(session="fenced"))
+    refused = await command(ws, 1, "forward", speed=1.0)
+    assert not refused["ok"] and refused["code"] == "geofence"
+    await ws.close()
+
+
+async def test_latency_past_hard_limit_only_stop_passes(rig: Rig):
+    await rig.hub.task_end(SESSION, reason="next test", action="stop")
+    rig.hub.task_accept(make_task(session="laggy", latency_soft_ms=1, latency_hard_ms=2))
+    ws, _ = await join(rig, make_grant(session="laggy"))
+    rig.hub.controller.rtt_ms = 50.0  # as measured on a slow link
+    refused = await command(ws, 1, "forward")
+    assert not refused["ok"] and refused["code"] == "latency"
+    assert (await command(ws, 2, "stop"))["ok"]
+    await ws.close()
+
+
+async def test_unknown_and_bad_commands_are_refused_with_reasons(rig: Rig):
+    ws, _ = await join(rig)
+    assert (await command(ws, 1, "fly"))["code"] == "unknown_command"
+    assert (await command(ws, 2, "forward", speed=7))["code"] == "bad_args"
+    assert (await command(ws, 3, "forward", warp=1))["code"] == "bad_args"
+    assert rig.hub.stats["refused"] == 3
+    await ws.close()
+
+
+async def test_revoked_task_drops_users_and_stops(rig: Rig):
+    ws, _ = await join(rig)
+    assert (await command(ws, 1, "forward"))["ok"]
+    assert await rig.hub.task_end(SESSION, reason="monitor stop", action="stop")
+    event = await recv(ws, "event")
+    assert event["event"] == "session_ended" and event["data"]["reason"] == "monitor stop"
+    assert await close_code(ws) == 4403
+    assert rig.car.telemetry()["motors"] == {"left": 0.0, "right": 0.0}
+    assert rig.events("task_ended") == [{"reason": "monitor stop"}]
+
+
+# --- bad input ---------------------------------------------------------------------------
+
+
+async def test_bad_frames_get_errors_and_the_session_continues(rig: Rig):
+    ws, _ = await join(rig)
+    for frame in [
+        "{",
+        "[]",
+        '{"type":"nope"}',
+        '{"type":"command","seq":-1,"name":"x"}',
+        b"\x00\xff binary",
+    ]:
+        await ws.send(frame)
+        assert (await recv(ws, "error"))["code"] in {"bad_json", "unknown_type", "bad_field"}
+    assert (await command(ws, 5, "stop"))["ok"]
+    await ws.close()
+
+
+async def test_oversized_frame_closes_only_that_client(rig: Rig):
+    other, _ = await join(rig, make_grant(role="viewer", user="bob"))
+    ws, _ = await join(rig)
+    await ws.send(json.dumps({"type": "keepalive", "pad": "x" * 100_000}))
+    assert await close_code(ws) == 1009
+    await other.send(json.dumps({"type": "ping", "t": 1}))
+    assert (await recv(other, "pong"))["t"] == 1
+    await other.close()
+
+
+async def test_flood_is_throttled_then_disconnected(rig: Rig):
+    ws, _ = await join(rig)
+    for _ in range(1500):
+        await ws.send('{"type":"keepalive"}')
+    codes = set()
+    try:
+        while True:
+            msg = json.loads(await asyncio.wait_for(ws.recv(), 3))
+            codes.add(msg.get("code"))
+    except ConnectionClosed:
+        pass
+    assert "rate_limited" in codes and ws.close_code == 4429
+    # Others are still served.
+    again, welcome = await join(rig)
+    assert welcome["role"] == "controller"
+    await again.close()
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
+@given(frames=st.lists(st.one_of(st.text(max_size=200), st.binary(max_size=200)), max_size=8))
+async def test_fuzzed_frames_never_break_the_agent(frames):
+    car = CarAdapter({"simulate": True})
+    reports: list[Any] = []
+    async with car:
+        hub = ControlHub(
+            vehicle_id=VEHICLE,
+            vehicle_name="car",
+            adapter=car,
+            public_key=load_public_key(PUBLIC_PEM),
+            report=lambda e, s, d: reports.append(e),
+        )
+        async with hub, ControlServer(hub) as server:
+            hub.task_accept(make_task())
+            rig = Rig(hub, server, car)
+            ws, _ = await join(rig)
+            for frame in frames:
+                await ws.send(frame)
+            # Every frame was answered or ignored; the agent still serves this client.
+            assert (await command(ws, 99, "stop"))["seq"] == 99
+            await ws.close()
