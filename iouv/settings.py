@@ -204,6 +204,17 @@ IOUV_OFFLINE_AFTER_S = env_float("IOUV_OFFLINE_AFTER_S", 6.0)
 IOUV_HEARTBEAT_INTERVAL_S = env_float("IOUV_HEARTBEAT_INTERVAL_S", 2.0)
 # How long a user grant stays valid; the platform issues a fresh one on reconnect.
 IOUV_GRANT_TTL_S = env_int("IOUV_GRANT_TTL_S", 300)
+# A vehicle task's delivery deadline (its ``exp``): the agent refuses it after this.
+IOUV_TASK_TTL_S = env_int("IOUV_TASK_TTL_S", 60)
+# An uplink that has not sent ``hello`` after this long is closed.
+IOUV_HELLO_TIMEOUT_S = env_float("IOUV_HELLO_TIMEOUT_S", 5.0)
+# After an agent reports a fail-safe, how long the user has to reconnect before the
+# session ends as an unintentional end.
+IOUV_RECONNECT_GRACE_S = env_int("IOUV_RECONNECT_GRACE_S", 30)
+# More than this many commands refused for safety reasons within the window revokes
+# the session.
+IOUV_UNSAFE_REFUSALS_MAX = env_int("IOUV_UNSAFE_REFUSALS_MAX", 5)
+IOUV_UNSAFE_REFUSALS_WINDOW_S = env_float("IOUV_UNSAFE_REFUSALS_WINDOW_S", 10.0)
 
 EMAIL_BACKEND = env_str("EMAIL_BACKEND", "django.core.mail.backends.console.EmailBackend")
 DEFAULT_FROM_EMAIL = env_str("DEFAULT_FROM_EMAIL", "iouv@localhost")

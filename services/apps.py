@@ -4,3 +4,23 @@ from django.apps import AppConfig
 class ServicesConfig(AppConfig):
     name = "services"
     verbose_name = "Services"
+
+    def ready(self) -> None:
+        # fleet never imports services: it publishes what agents say as signals, and
+        # the supervisor listens here.
+        from fleet.signals import agent_connected, agent_disconnected, agent_message, agent_welcome
+        from services import supervision
+
+        agent_message.connect(
+            supervision.receive_agent_message, dispatch_uid="services.supervision.message"
+        )
+        agent_connected.connect(
+            supervision.receive_agent_connected, dispatch_uid="services.supervision.connected"
+        )
+        agent_disconnected.connect(
+            supervision.receive_agent_disconnected,
+            dispatch_uid="services.supervision.disconnected",
+        )
+        agent_welcome.connect(
+            supervision.receive_agent_welcome, dispatch_uid="services.supervision.welcome"
+        )

@@ -25,10 +25,12 @@ from django.contrib.auth.models import Group
 from django.db import transaction
 
 from accounts.roles import ADMIN, CLIENT, MONITOR, OPERATOR, roles_ensure, user_set_roles
+from agents.geo import offset
 from fleet.attributes import attributes_clean
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Station, Vehicle, VehicleType
 from services.models import Service, ServiceGrant, ServiceRole
+from services.signing import platform_public_key_pem
 
 DEFAULT_PLATFORM_URL = "ws://127.0.0.1:8000"
 LOGIN_URL = "http://127.0.0.1:8000/accounts/login/"
@@ -504,14 +506,33 @@ def users_seed(*, password: str | None = None) -> dict[str, str]:
 
 def vehicle_agent_config(
     *, vehicle: Vehicle, credential: str, platform_url: str = DEFAULT_PLATFORM_URL
-) -> dict[str, str]:
-    """The JSON config a vehicle agent starts from."""
+) -> dict[str, Any]:
+    """The JSON config a vehicle agent starts from (see agents.config).
+
+    Holds the platform's public key, so the agent can check signed tasks and grants
+    offline, and adapter options derived from the declared attributes: the simulated
+    vehicle starts at its station, a few metres from its neighbours.
+    """
+    attrs = vehicle.attributes
+    index = sum(1 for _ in vehicle.station.vehicles.filter(name__lt=vehicle.name))
+    origin = offset((vehicle.station.lat, vehicle.station.lon), 0.0, 3.0 * index)
+    options: dict[str, Any] = {
+        "origin": [round(origin[0], 7), round(origin[1], 7)],
+        "vehicle_type": vehicle.vehicle_type.name,
+    }
+    if vehicle.vehicle_type.adapter == VehicleType.Adapter.CAR:
+        options["camera_arm"] = "camera_arm" in vehicle.features
+        options["distance_sensor"] = "obstacle_sensor" in vehicle.features
+        options["max_speed_mps"] = attrs.get("max_speed_mps", 0.5)
     return {
         "platform_url": platform_url,
+        "platform_public_key": platform_public_key_pem(),
         "vehicle_id": str(vehicle.pk),
         "vehicle_name": vehicle.name,
         "credential": credential,
         "adapter": vehicle.vehicle_type.adapter,
+        "adapter_options": options,
+        "video": {"source": "synthetic"} if vehicle.cameras else None,
         "vehicle_type": vehicle.vehicle_type.name,
     }
 

@@ -51,9 +51,12 @@ class Service(models.Model):
         help_text="Command names the user may send; empty = none (view only).",
     )
     # Limits signed into every vehicle task of this service.
-    max_altitude_m = models.FloatField(null=True, blank=True, validators=[MinValueValidator(0)])
+    # Limits are positive or absent (null: no limit): a zero limit cannot be signed.
+    max_altitude_m = models.FloatField(
+        null=True, blank=True, validators=[MinValueValidator(0.1)]
+    )
     geofence_radius_m = models.FloatField(null=True, blank=True, validators=[MinValueValidator(1)])
-    max_speed_mps = models.FloatField(null=True, blank=True, validators=[MinValueValidator(0)])
+    max_speed_mps = models.FloatField(null=True, blank=True, validators=[MinValueValidator(0.01)])
     link_loss_timeout_ms = models.PositiveIntegerField(
         default=500, validators=[MinValueValidator(50), MaxValueValidator(60_000)]
     )

@@ -14,6 +14,7 @@ from django.core.management import call_command
 from django.core.management.base import CommandError
 
 from accounts.roles import user_roles
+from agents.config import AgentConfig
 from fleet.attributes import attributes_clean
 from fleet.credentials import vehicle_authenticate
 from fleet.forms import commands_validate
@@ -21,6 +22,7 @@ from fleet.models import Station, Vehicle, VehicleType
 from services.demo import SERVICES, VEHICLE_TYPES, VEHICLES, demo_seed
 from services.grants import services_for_user
 from services.models import Service, ServiceGrant, ServiceRole
+from services.signing import platform_public_key_pem
 
 pytestmark = pytest.mark.django_db
 
@@ -158,15 +160,9 @@ def test_credentials_dir_writes_working_private_configs(tmp_path: Path) -> None:
     for path in paths:
         assert stat.S_IMODE(path.stat().st_mode) == 0o600
         config = json.loads(path.read_text())
-        assert set(config) == {
-            "platform_url",
-            "vehicle_id",
-            "vehicle_name",
-            "credential",
-            "adapter",
-            "vehicle_type",
-        }
-        assert config["platform_url"] == "wss://iouv.example"
+        agent = AgentConfig.from_mapping(config)  # what `python -m agents run` reads
+        assert agent.platform_public_key == platform_public_key_pem()
+        assert agent.uplink_url == "wss://iouv.example/ws/agent/"
         vehicle = vehicle_authenticate(
             vehicle_id=config["vehicle_id"], credential=config["credential"]
         )

@@ -1,0 +1,537 @@
+"""The agent uplink: the WebSocket every vehicle agent keeps open to the platform.
+
+Wire protocol: docs/protocol.md ("Uplink"). The consumer trusts nothing the agent sends:
+every frame goes through ``agents.protocol.parse_message`` first. It records what the
+fleet needs itself (profile, heartbeats, online/offline) and hands everything about
+sessions to other apps through the signals in ``fleet.signals``, because ``fleet``
+never imports ``services``.
+
+Close codes the platform uses on this socket:
+
+=====  ===============================================================
+4400   ``hello`` of another protocol version (error ``bad_version``)
+4401   bad credential, or anything but a valid ``hello`` first
+4408   no ``hello`` within ``IOUV_HELLO_TIMEOUT_S``
+4409   replaced: a newer uplink of the same vehicle took over
+4429   flood: too many refused frames in a short time
+1011   the platform failed before authentication finished (retry)
+=====  ===============================================================
+
+Messages to an agent travel on the channel layer to the group of its vehicle
+(:func:`vehicle_send`), so any platform process can reach an agent connected to another.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+import uuid
+from collections import deque
+from datetime import datetime
+from typing import Any
+
+from asgiref.sync import async_to_sync
+from channels.db import database_sync_to_async
+from channels.generic.websocket import AsyncWebsocketConsumer
+from channels.layers import get_channel_layer
+from django.conf import settings
+from django.db import transaction
+from django.dispatch import Signal
+from django.utils import timezone
+
+from agents.protocol import (
+    PROTOCOL_VERSION,
+    ProtocolError,
+    encode_message,
+    error_message,
+    parse_message,
+)
+from fleet.credentials import vehicle_authenticate
+from fleet.feed import fleet_notify
+from fleet.models import Vehicle
+from fleet.signals import agent_connected, agent_disconnected, agent_message, agent_welcome
+
+log = logging.getLogger(__name__)
+
+CLOSE_BAD_VERSION = 4400
+CLOSE_UNAUTHORIZED = 4401
+CLOSE_HELLO_TIMEOUT = 4408
+CLOSE_REPLACED = 4409
+CLOSE_FLOOD = 4429
+CLOSE_INTERNAL = 1011  # the standard "server error": the agent reconnects with backoff
+
+#: This many refused frames within BAD_FRAMES_WINDOW_S closes the uplink (4429).
+BAD_FRAMES_MAX = 20
+BAD_FRAMES_WINDOW_S = 10.0
+
+# Error texts echo parts of the agent's input; keep the replies small.
+_ERROR_TEXT_MAX = 300
+
+# Message types forwarded to other apps as fleet.signals.agent_message.
+_PUBLISHED = frozenset({"task_accepted", "task_refused", "event", "relay"})
+
+# Statuses the platform owns while a vehicle serves a session: what the agent says in
+# its profile or heartbeats never overrides them (services moves them on).
+_PLATFORM_HELD = frozenset(
+    {Vehicle.Status.RESERVED, Vehicle.Status.IN_SERVICE, Vehicle.Status.RETURNING}
+)
+
+
+# --------------------------------------------------------------------------------------
+# Sending to an agent
+# --------------------------------------------------------------------------------------
+
+
+def vehicle_group(vehicle_id: Any) -> str:
+    """The channel-layer group of a vehicle's uplink: ``vehicle-<uuid hex>``.
+
+    Raises ValueError when ``vehicle_id`` is not a UUID (group names must be plain ASCII).
+    """
+    return f"vehicle-{uuid.UUID(str(vehicle_id)).hex}"
+
+
+def _agent_event(vehicle_id: Any, message: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    # Validate here so a sender's bug surfaces at the caller, not silently in the consumer.
+    encode_message(message, channel="uplink_to_agent")
+    return vehicle_group(vehicle_id), {"type": "agent.send", "message": dict(message)}
+
+
+def vehicle_send(*, vehicle_id: Any, message: dict[str, Any]) -> None:
+    """Send ``message`` (an uplink_to_agent message) to the vehicle's agent.
+
+    Sent after the current transaction commits, so an agent never hears about a task or a
+    revocation that was rolled back; sent at once outside a transaction. Delivery is
+    best effort: no agent connected means nobody receives it (the caller's state, e.g. a
+    session, stays the source of truth). Raises ProtocolError if ``message`` is not a
+    valid uplink_to_agent message, ValueError if ``vehicle_id`` is not a UUID.
+    """
+    group, event = _agent_event(vehicle_id, message)
+
+    def send() -> None:
+        layer = get_channel_layer()
+        if layer is not None:
+            async_to_sync(layer.group_send)(group, event)
+
+    transaction.on_commit(send)
+
+
+async def avehicle_send(*, vehicle_id: Any, message: dict[str, Any]) -> None:
+    """Async :func:`vehicle_send` for async callers (consumers); sends at once.
+
+    Same errors as :func:`vehicle_send`. Do not call it from inside a transaction whose
+    outcome is not yet known: use :func:`vehicle_send` there.
+    """
+    group, event = _agent_event(vehicle_id, message)
+    layer = get_channel_layer()
+    if layer is not None:
+        await layer.group_send(group, event)
+
+
+# --------------------------------------------------------------------------------------
+# What the uplink writes
+# --------------------------------------------------------------------------------------
+
+
+def _status_after(
+    vehicle: Vehicle, *, reported: str | None, registered: bool, new_profile: bool = False
+) -> str:
+    """The status a live agent's report leads to.
+
+    Maintenance and the session statuses are the platform's to change. An agent in
+    fail-safe is not assignable; one that is heard from again after being offline (or
+    that says it is idle again after a fail-safe) is idle, but only once it has sent a
+    profile, since without one nobody could control it.
+    """
+    current = vehicle.status
+    if vehicle.maintenance or current == Vehicle.Status.MAINTENANCE or current in _PLATFORM_HELD:
+        return current
+    if reported == "failsafe":
+        return Vehicle.Status.FAILSAFE
+    if not registered:
+        return current
+    if current == Vehicle.Status.OFFLINE:
+        return Vehicle.Status.IDLE
+    # A fresh profile means a freshly (re)started agent: its fail-safe is over.
+    if current == Vehicle.Status.FAILSAFE and (new_profile or reported == "idle"):
+        return Vehicle.Status.IDLE
+    return current
+
+
+def _set_position(vehicle: Vehicle, position: dict[str, Any] | None) -> None:
+    if position is None:
+        vehicle.lat = vehicle.lon = vehicle.alt = None
+    else:
+        vehicle.lat, vehicle.lon = position["lat"], position["lon"]
+        alt = position.get("alt")
+        vehicle.alt = float(alt) if alt is not None else None
+
+
+def vehicle_record_hello(*, vehicle_id: Any, now: datetime) -> None:
+    """Note that ``vehicle_id``'s agent authenticated at ``now`` (last_seen only).
+
+    The status waits for the profile. Writing last_seen also marks the uplink that owns
+    the vehicle from now on (see :func:`vehicle_record_disconnect`).
+    """
+    with transaction.atomic():
+        Vehicle.objects.filter(pk=vehicle_id).update(last_seen=now)
+
+
+def vehicle_record_profile(*, vehicle_id: Any, profile: dict[str, Any], now: datetime) -> None:
+    """Store a validated ``profile`` message and make the vehicle available.
+
+    Stores the control URL, the reported vocabulary, telemetry topics, video, type,
+    adapter and attributes (as reported: the declared attributes used for matching
+    stay the admin's), position, battery and last_seen. An offline or fail-safe vehicle
+    becomes idle, unless in maintenance; reserved/in-service/returning are kept.
+    """
+    with transaction.atomic():
+        vehicle = Vehicle.objects.select_for_update().filter(pk=vehicle_id).first()
+        if vehicle is None:
+            return
+        vehicle.control_url = profile["control_url"]
+        vehicle.profile = {
+            key: profile[key]
+            for key in (
+                "vehicle_type",
+                "adapter",
+                "attributes",
+                "commands",
+                "telemetry",
+                "video",
+            )
+        }
+        _set_position(vehicle, profile["position"])
+        vehicle.battery = profile["battery"]
+        vehicle.last_seen = now
+        vehicle.status = _status_after(vehicle, reported=None, registered=True, new_profile=True)
+        vehicle.save(
+            update_fields=[
+                "control_url",
+                "profile",
+                "lat",
+                "lon",
+                "alt",
+                "battery",
+                "last_seen",
+                "status",
+            ]
+        )
+        fleet_notify([vehicle.pk])
+
+
+def vehicle_record_heartbeat(
+    *, vehicle_id: Any, heartbeat: dict[str, Any], now: datetime, registered: bool
+) -> None:
+    """Store a validated ``heartbeat``: last_seen, and position/battery/status if sent.
+
+    ``registered`` says whether this uplink has sent its profile; before that the
+    status is left alone. Absent optional fields keep their stored value; ``null``
+    means the agent does not know (e.g. no GPS fix) and is stored as unknown.
+    """
+    with transaction.atomic():
+        vehicle = Vehicle.objects.select_for_update().filter(pk=vehicle_id).first()
+        if vehicle is None:
+            return
+        fields = ["last_seen", "status"]
+        vehicle.last_seen = now
+        if "position" in heartbeat:
+            _set_position(vehicle, heartbeat["position"])
+            fields += ["lat", "lon", "alt"]
+        if "battery" in heartbeat:
+            vehicle.battery = heartbeat["battery"]
+            fields.append("battery")
+        vehicle.status = _status_after(
+            vehicle, reported=heartbeat.get("status"), registered=registered
+        )
+        vehicle.save(update_fields=fields)
+        fleet_notify([vehicle.pk])
+
+
+def vehicle_record_disconnect(*, vehicle_id: Any, last_seen: datetime | None) -> bool:
+    """Mark the vehicle offline (unless in maintenance) when its uplink closed.
+
+    ``last_seen`` is the last value this uplink wrote. If the stored one differs, a
+    newer uplink of the same vehicle has written since: the vehicle is not offline and
+    nothing changes. Returns True when this uplink was still the vehicle's.
+    """
+    with transaction.atomic():
+        vehicle = Vehicle.objects.select_for_update().filter(pk=vehicle_id).first()
+        if vehicle is None or vehicle.last_seen != last_seen:
+            return False
+        if not vehicle.maintenance and vehicle.status not in (
+            Vehicle.Status.OFFLINE,
+            Vehicle.Status.MAINTENANCE,
+        ):
+            vehicle.status = Vehicle.Status.OFFLINE
+            vehicle.save(update_fields=["status"])
+            fleet_notify([vehicle.pk])
+    return True
+
+
+def _signal_send(signal: Signal, **kwargs: Any) -> list[tuple[Any, Any]]:
+    """Send ``signal`` robustly: a failing receiver is logged, never raised here."""
+    responses = signal.send_robust(sender=AgentUplinkConsumer, **kwargs)
+    for receiver, result in responses:
+        if isinstance(result, Exception):
+            log.error(
+                "uplink: receiver %r of %s failed",
+                receiver,
+                kwargs.get("message", {}).get("type", "signal"),
+                exc_info=(type(result), result, result.__traceback__),
+            )
+    return responses
+
+
+def _welcome(vehicle_id: str) -> dict[str, Any]:
+    """The ``welcome`` message, with the optional fields other apps contribute."""
+    welcome: dict[str, Any] = {
+        "type": "welcome",
+        "v": PROTOCOL_VERSION,
+        "heartbeat_interval_s": settings.IOUV_HEARTBEAT_INTERVAL_S,
+    }
+    extras: dict[str, Any] = {}
+    for _receiver, result in _signal_send(agent_welcome, vehicle_id=vehicle_id):
+        if isinstance(result, dict):
+            extras.update(result)
+    # Extras may add fields, never replace the required ones.
+    full = {**extras, **welcome}
+    try:
+        encode_message(full, channel="uplink_to_agent")
+    except ProtocolError as exc:
+        log.error("uplink: dropping bad welcome extras %r: %s", sorted(extras), exc)
+        return welcome
+    return full
+
+
+# --------------------------------------------------------------------------------------
+# The consumer
+# --------------------------------------------------------------------------------------
+
+
+class AgentUplinkConsumer(AsyncWebsocketConsumer):
+    """One vehicle agent's uplink (``/ws/agent/``). See the module docstring.
+
+    Lifecycle: ``hello`` within the timeout (else 4408), authenticated by vehicle
+    credential (else 4401); ``welcome`` back; ``profile`` makes the vehicle available;
+    heartbeats keep it so. A refused frame after authentication gets an ``error`` reply
+    and the uplink stays open, unless frames keep being refused (4429). No exception
+    escapes: a failure is logged and answered with error ``internal``.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.vehicle_id: str | None = None
+        self._group: str | None = None
+        self._first_frame_seen = False
+        self._registered = False  # a profile was stored on this uplink
+        self._closed = False  # we closed (or were replaced): ignore what follows
+        self._replaced = False
+        self._last_seen: datetime | None = None  # the last last_seen this uplink wrote
+        self._next_heartbeat_write = 0.0
+        self._bad_frames: deque[float] = deque()
+        self._hello_timer: asyncio.Task[None] | None = None
+
+    # -- connection ---------------------------------------------------------------------
+
+    async def connect(self) -> None:
+        await self.accept()
+        self._hello_timer = asyncio.create_task(self._hello_deadline())
+
+    async def _hello_deadline(self) -> None:
+        timeout = float(settings.IOUV_HELLO_TIMEOUT_S)
+        await asyncio.sleep(timeout)
+        if not self._first_frame_seen:
+            try:
+                await self._refuse(
+                    "hello_timeout", f"no hello within {timeout:g} s", CLOSE_HELLO_TIMEOUT
+                )
+            except Exception:
+                log.exception("uplink: closing a silent connection failed")
+
+    async def disconnect(self, code: int) -> None:
+        try:
+            if self._hello_timer is not None:
+                self._hello_timer.cancel()
+            if self._group is not None:
+                await self.channel_layer.group_discard(self._group, self.channel_name)
+            if self.vehicle_id is None or self._replaced:
+                return
+            ours = await database_sync_to_async(vehicle_record_disconnect)(
+                vehicle_id=self.vehicle_id, last_seen=self._last_seen
+            )
+            if ours:
+                await database_sync_to_async(_signal_send)(
+                    agent_disconnected, vehicle_id=self.vehicle_id, code=code
+                )
+        except Exception:
+            log.exception("uplink %s: disconnect handling failed", self.vehicle_id)
+
+    # -- frames from the agent ----------------------------------------------------------
+
+    async def receive(self, text_data: str | None = None, bytes_data: bytes | None = None) -> None:
+        if self._closed:
+            return
+        raw: str | bytes | None = text_data if text_data is not None else bytes_data
+        try:
+            await self._receive(raw)
+        except Exception:
+            log.exception("uplink %s: unexpected error on a frame", self.vehicle_id)
+            with contextlib.suppress(Exception):
+                if self.vehicle_id is None:
+                    # Authentication did not finish: let the agent retry from hello.
+                    await self._refuse(
+                        "internal", "the platform could not handle this message", CLOSE_INTERNAL
+                    )
+                else:
+                    await self._send_error("internal", "the platform could not handle this message")
+
+    async def _receive(self, raw: str | bytes | None) -> None:
+        first = not self._first_frame_seen
+        self._first_frame_seen = True
+        if first and self._hello_timer is not None:
+            # The first frame settles authentication either way; the deadline is moot.
+            self._hello_timer.cancel()
+        try:
+            # A binary frame is read as UTF-8 JSON (docs/protocol.md, Transports).
+            msg = parse_message(raw, channel="uplink_to_platform")  # type: ignore[arg-type]
+        except ProtocolError as exc:
+            await self._bad_frame(exc.code, exc.message)
+            return
+        if self.vehicle_id is None:
+            if first:
+                await self._hello(msg)
+            return
+        kind = msg["type"]
+        if kind == "profile":
+            await self._profile(msg)
+        elif kind == "heartbeat":
+            await self._heartbeat(msg)
+        elif kind in _PUBLISHED:
+            await database_sync_to_async(_signal_send)(
+                agent_message, vehicle_id=self.vehicle_id, message=msg
+            )
+        else:  # hello again
+            await self._bad_frame("already_authenticated", "this uplink already said hello")
+
+    async def _bad_frame(self, code: str, message: str) -> None:
+        """Answer a refused frame; before authentication that ends the uplink."""
+        if self.vehicle_id is None:
+            if code == "bad_version":
+                await self._refuse(code, message, CLOSE_BAD_VERSION)
+            else:
+                await self._refuse(code, message, CLOSE_UNAUTHORIZED)
+            return
+        now = time.monotonic()
+        self._bad_frames.append(now)
+        while self._bad_frames and self._bad_frames[0] <= now - BAD_FRAMES_WINDOW_S:
+            self._bad_frames.popleft()
+        if len(self._bad_frames) >= BAD_FRAMES_MAX:
+            log.warning("uplink %s: closed for flooding refused frames", self.vehicle_id)
+            await self._refuse(
+                "flood",
+                f"{BAD_FRAMES_MAX} refused frames within {BAD_FRAMES_WINDOW_S:g} s",
+                CLOSE_FLOOD,
+            )
+            return
+        await self._send_error(code, message)
+
+    async def _hello(self, msg: dict[str, Any]) -> None:
+        if msg["type"] != "hello":
+            await self._refuse(
+                "not_authenticated", "the first message must be hello", CLOSE_UNAUTHORIZED
+            )
+            return
+        vehicle = await database_sync_to_async(vehicle_authenticate)(
+            vehicle_id=msg["vehicle_id"], credential=msg["credential"]
+        )
+        if vehicle is None:
+            log.warning("uplink: refused hello for vehicle id %.40r", msg["vehicle_id"])
+            await self._refuse(
+                "bad_credential", "unknown vehicle or wrong credential", CLOSE_UNAUTHORIZED
+            )
+            return
+        self.vehicle_id = str(vehicle.pk)
+        self._group = vehicle_group(vehicle.pk)
+        # A vehicle is one agent: tell an older uplink of this vehicle to go, before
+        # joining the group so this one does not hear its own notice.
+        await self.channel_layer.group_send(
+            self._group, {"type": "agent.replaced", "channel": self.channel_name}
+        )
+        await self.channel_layer.group_add(self._group, self.channel_name)
+        now = timezone.now()
+        await database_sync_to_async(vehicle_record_hello)(vehicle_id=self.vehicle_id, now=now)
+        self._last_seen = now
+        await self._send_message(await database_sync_to_async(_welcome)(self.vehicle_id))
+        log.info("uplink: vehicle %s (%s) connected", vehicle.name, self.vehicle_id)
+
+    async def _profile(self, msg: dict[str, Any]) -> None:
+        now = timezone.now()
+        await database_sync_to_async(vehicle_record_profile)(
+            vehicle_id=self.vehicle_id, profile=msg, now=now
+        )
+        self._last_seen = now
+        if not self._registered:
+            self._registered = True
+            await database_sync_to_async(_signal_send)(agent_connected, vehicle_id=self.vehicle_id)
+
+    async def _heartbeat(self, msg: dict[str, Any]) -> None:
+        # At most two writes per heartbeat interval: an agent that heartbeats too fast
+        # costs the database nothing more. A skipped heartbeat is superseded by the next.
+        mono = time.monotonic()
+        if mono < self._next_heartbeat_write:
+            return
+        self._next_heartbeat_write = mono + float(settings.IOUV_HEARTBEAT_INTERVAL_S) / 2
+        now = timezone.now()
+        await database_sync_to_async(vehicle_record_heartbeat)(
+            vehicle_id=self.vehicle_id, heartbeat=msg, now=now, registered=self._registered
+        )
+        self._last_seen = now
+
+    # -- messages from the platform (channel layer) -------------------------------------
+
+    async def agent_send(self, event: dict[str, Any]) -> None:
+        """Forward ``event["message"]`` (an uplink_to_agent message) to the agent."""
+        if self._closed or self.vehicle_id is None:
+            return
+        try:
+            text = encode_message(event["message"], channel="uplink_to_agent")
+        except (ProtocolError, KeyError) as exc:
+            log.error("uplink %s: not sending a bad message: %s", self.vehicle_id, exc)
+            return
+        try:
+            await self.send(text_data=text)
+        except Exception:
+            log.exception("uplink %s: sending to the agent failed", self.vehicle_id)
+
+    async def agent_replaced(self, event: dict[str, Any]) -> None:
+        """A newer uplink of this vehicle authenticated: this one closes (4409)."""
+        if event.get("channel") == self.channel_name or self._closed:
+            return
+        self._replaced = True
+        try:
+            if self._group is not None:
+                await self.channel_layer.group_discard(self._group, self.channel_name)
+            await self._refuse(
+                "replaced", "another uplink of this vehicle took over", CLOSE_REPLACED
+            )
+        except Exception:
+            log.exception("uplink %s: closing a replaced uplink failed", self.vehicle_id)
+
+    # -- helpers ------------------------------------------------------------------------
+
+    async def _send_message(self, msg: dict[str, Any]) -> None:
+        await self.send(text_data=encode_message(msg, channel="uplink_to_agent"))
+
+    async def _send_error(self, code: str, message: str) -> None:
+        await self._send_message(error_message(code, message[:_ERROR_TEXT_MAX]))
+
+    async def _refuse(self, code: str, message: str, close_code: int) -> None:
+        """Send ``error`` and close with ``close_code``; frames after it are ignored."""
+        if self._closed:
+            return
+        self._closed = True
+        with contextlib.suppress(Exception):
+            await self._send_error(code, message)
+        await self.close(code=close_code)

@@ -1,0 +1,327 @@
+"""Task deployment: signed vehicle tasks out on the uplink, user tasks to the browser.
+
+For a session whose vehicles are reserved, :func:`session_deploy` signs one vehicle task
+per assigned vehicle (session, user, allowed commands, the service's limits, a delivery
+deadline and a nonce) and pushes it to the agent, then returns the *user task*: what the
+controller page needs, with a short-lived signed grant the agent verifies offline.
+:func:`session_end` and :func:`session_revoke` close a session and tell the agents.
+
+Tokens are never logged: the session log keeps their nonces, which identify them.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from django.conf import settings
+from django.contrib.auth.models import AbstractBaseUser
+from django.db import transaction
+
+from agents.protocol import FAILSAFE_ACTIONS, Limits, ProtocolError, UserGrant, VehicleTask
+from fleet.feed import fleet_notify
+from fleet.models import Vehicle
+from fleet.uplink import vehicle_send
+from services.eventlog import event_append
+from services.grants import user_can_use
+from services.models import Assignment, Service, Session
+from services.sessions import FINAL, session_transition
+from services.signing import platform_private_key
+
+#: Session states in which grants can be issued and agents serve the session.
+LIVE = (Session.State.ASSIGNED, Session.State.ACTIVE)
+
+
+class DeploymentError(Exception):
+    """The session cannot be deployed or joined now; the message says why."""
+
+
+class InvalidTaskError(DeploymentError):
+    """The service's settings (limits, mission) cannot make a valid vehicle task."""
+
+
+@dataclass(frozen=True)
+class UserTask:
+    """What a browser needs to control (or watch) one vehicle of a session.
+
+    ``grant`` is the signed user grant to present in ``auth`` on ``control_url`` (or
+    through the platform's relay when ``relay`` is true); it must be used before
+    ``expires_at`` (Unix seconds). ``commands`` are the declarations of the commands this
+    grant allows, from the vehicle's reported vocabulary, for building the controls.
+    """
+
+    session_id: str
+    vehicle_id: str
+    vehicle_name: str
+    control_url: str
+    grant: str
+    role: str
+    expires_at: float
+    commands: tuple[dict[str, Any], ...]
+    telemetry: tuple[str, ...]
+    relay: bool
+
+
+def service_limits(*, service: Service, center: tuple[float, float] | None) -> Limits:
+    """The limits signed into the service's vehicle tasks.
+
+    ``center`` is the geofence centre, used only when the service sets a radius. Raises
+    InvalidTaskError when the service's values are not valid limits (for example a zero
+    speed or altitude ceiling, which the protocol cannot express).
+    """
+    fenced = service.geofence_radius_m is not None
+    try:
+        return Limits(
+            max_altitude_m=service.max_altitude_m,
+            geofence_center=center if fenced else None,
+            geofence_radius_m=service.geofence_radius_m if fenced else None,
+            max_speed_mps=service.max_speed_mps,
+            link_loss_timeout_ms=service.link_loss_timeout_ms,
+            failsafe_action=service.failsafe_action,
+            latency_soft_ms=service.latency_soft_ms,
+            latency_hard_ms=service.latency_hard_ms,
+            session_time_limit_s=service.session_time_limit_s,
+        )
+    except ProtocolError as exc:
+        raise InvalidTaskError(
+            f"service {service.slug} has invalid limits: {exc.message}"
+        ) from None
+
+
+def _active_assignments(session: Session) -> list[Assignment]:
+    return list(
+        Assignment.objects.filter(session=session, active=True).select_related(
+            "vehicle__vehicle_type", "vehicle__station"
+        )
+    )
+
+
+def _primary(assignments: list[Assignment]) -> Assignment:
+    """The assignment the user controls: role ``vehicle``, else the first."""
+    for assignment in assignments:
+        if assignment.role == "vehicle":
+            return assignment
+    return assignments[0]
+
+
+def vehicle_task_deploy(*, session: Session, assignment: Assignment) -> VehicleTask:
+    """Sign a fresh task for ``assignment``'s vehicle, push it and log it.
+
+    Every call makes a new nonce: a task is never re-sent (docs/protocol.md, "Replay
+    rule"). The push happens after the surrounding transaction commits. Raises
+    InvalidTaskError when the service's limits or the session's mission
+    (``params["mission"]``) cannot go into a task.
+    """
+    service = session.service
+    vehicle = assignment.vehicle
+    limits = service_limits(service=service, center=session.target or vehicle.position)
+    now = time.time()
+    try:
+        task = VehicleTask(
+            session_id=str(session.pk),
+            vehicle_id=str(vehicle.pk),
+            user=session.user.get_username(),
+            allowed_commands=tuple(service.allowed_commands),
+            limits=limits,
+            issued_at=now,
+            expires_at=now + settings.IOUV_TASK_TTL_S,
+            mission=session.params.get("mission") if isinstance(session.params, dict) else None,
+        )
+    except ProtocolError as exc:
+        raise InvalidTaskError(f"cannot make a vehicle task: {exc.message}") from None
+    token = task.sign(platform_private_key())
+    with transaction.atomic():
+        event_append(
+            session=session,
+            kind="task_deployed",
+            data={
+                "vehicle": str(vehicle.pk),
+                "vehicle_name": vehicle.name,
+                "role": assignment.role,
+                "nonce": task.nonce,
+                "exp": task.expires_at,
+            },
+        )
+        vehicle_send(vehicle_id=vehicle.pk, message={"type": "task", "token": token})
+    return task
+
+
+def _user_task(
+    *, session: Session, assignment: Assignment, user: AbstractBaseUser, role: str
+) -> UserTask:
+    vehicle: Vehicle = assignment.vehicle
+    allowed = tuple(session.service.allowed_commands) if role == "controller" else ()
+    now = time.time()
+    grant = UserGrant(
+        session_id=str(session.pk),
+        vehicle_id=str(vehicle.pk),
+        user=user.get_username(),
+        role=role,
+        allowed_commands=allowed,
+        issued_at=now,
+        expires_at=now + settings.IOUV_GRANT_TTL_S,
+    )
+    token = grant.sign(platform_private_key())
+    event_append(
+        session=session,
+        kind="grant_issued",
+        data={
+            "vehicle": str(vehicle.pk),
+            "user": grant.user,
+            "role": role,
+            "nonce": grant.nonce,
+            "exp": grant.expires_at,
+        },
+    )
+    declared = vehicle.profile.get("commands") or vehicle.vehicle_type.commands or []
+    return UserTask(
+        session_id=str(session.pk),
+        vehicle_id=str(vehicle.pk),
+        vehicle_name=vehicle.name,
+        control_url=vehicle.control_url,
+        grant=token,
+        role=role,
+        expires_at=grant.expires_at,
+        commands=tuple(
+            c for c in declared if isinstance(c, dict) and c.get("name") in set(allowed)
+        ),
+        telemetry=tuple(vehicle.profile.get("telemetry") or ()),
+        # Without a control URL the vehicle is reachable only through the platform.
+        relay=session.relay or not vehicle.control_url,
+    )
+
+
+def session_deploy(*, session: Session) -> UserTask:
+    """Deploy an ``assigned`` session: a signed task to every assigned vehicle, then the
+    user task (a controller grant) for the primary vehicle.
+
+    The session stays ``assigned``; it becomes ``active`` when the agent reports the
+    user connected (services.supervision). Raises DeploymentError when the session is
+    not ``assigned`` or has no vehicle; InvalidTaskError when the service's settings
+    cannot make a valid task, after failing the session with that reason (so its
+    vehicles are released) and sending nothing.
+    """
+    try:
+        with transaction.atomic():
+            locked = Session.objects.select_for_update().select_related("service", "user")
+            session = locked.get(pk=session.pk)
+            if session.state != Session.State.ASSIGNED:
+                raise DeploymentError(f"session {session.pk} is {session.state}, not assigned")
+            assignments = _active_assignments(session)
+            if not assignments:
+                raise DeploymentError(f"session {session.pk} has no assigned vehicle")
+            for assignment in assignments:
+                vehicle_task_deploy(session=session, assignment=assignment)
+            return _user_task(
+                session=session,
+                assignment=_primary(assignments),
+                user=session.user,
+                role="controller",
+            )
+    except InvalidTaskError as exc:
+        # The block above rolled back (no task went out); record why and free the vehicles.
+        session_transition(session=session, to=Session.State.FAILED, reason=str(exc))
+        raise
+
+
+def grant_issue(*, session: Session, user: AbstractBaseUser, role: str = "controller") -> UserTask:
+    """A fresh grant for ``user`` on ``session``'s primary vehicle (e.g. after a reload).
+
+    ``controller``: only the session's own user. ``viewer``: the session's user or anyone
+    allowed to use the service; a viewer's grant allows no command. Raises
+    DeploymentError when the session is final or not yet assigned, the user may not
+    have that role, or the role is unknown.
+    """
+    if role not in ("controller", "viewer"):
+        raise DeploymentError(f"unknown role {role!r}")
+    with transaction.atomic():
+        session = (
+            Session.objects.select_for_update().select_related("service", "user").get(pk=session.pk)
+        )
+        if session.state in FINAL:
+            raise DeploymentError(f"the session has {session.state}: {session.reason}")
+        if session.state not in LIVE:
+            raise DeploymentError("the session has no vehicle yet")
+        owner = user.pk == session.user_id
+        if role == "controller" and not owner:
+            raise DeploymentError("only the session's user may control its vehicle")
+        if role == "viewer" and not owner and not user_can_use(user, session.service):
+            raise DeploymentError(f"you may not use the service {session.service.name!r}")
+        assignments = _active_assignments(session)
+        if not assignments:
+            raise DeploymentError("the session has no vehicle")
+        return _user_task(session=session, assignment=_primary(assignments), user=user, role=role)
+
+
+def _close(
+    *, session: Session, to: str, reason: str, message: dict[str, Any], data: dict[str, Any]
+) -> Session:
+    with transaction.atomic():
+        locked = Session.objects.select_for_update().get(pk=session.pk)
+        vehicle_ids = [a.vehicle_id for a in Assignment.objects.filter(session=locked, active=True)]
+        # The transition validates the move first: nothing is sent for a refused one.
+        session_transition(session=locked, to=to, reason=reason, data=data)
+        # The release frees reserved and in-service vehicles; one the supervisor marked
+        # fail-safe is freed too: if its agent still is in fail-safe, its next heartbeat
+        # says so and marks it again.
+        if Vehicle.objects.filter(
+            pk__in=vehicle_ids, maintenance=False, status=Vehicle.Status.FAILSAFE
+        ).update(status=Vehicle.Status.IDLE):
+            fleet_notify(vehicle_ids)
+        for vehicle_id in vehicle_ids:
+            vehicle_send(vehicle_id=vehicle_id, message=message)
+    session.refresh_from_db()
+    return session
+
+
+def session_end(*, session: Session, reason: str, by_user: bool) -> Session:
+    """End ``session`` on purpose: its agents get ``end_task`` and its vehicles are
+    released. ``by_user`` records whether the user asked (else the platform did).
+
+    Raises services.sessions.SessionStateError when the session cannot end (already
+    final, or never assigned) or ``reason`` is empty.
+    """
+    return _close(
+        session=session,
+        to=Session.State.ENDED,
+        reason=reason,
+        message={"type": "end_task", "session_id": str(session.pk), "reason": reason},
+        data={"by_user": by_user},
+    )
+
+
+def session_revoke(*, session: Session, reason: str, action: str) -> Session:
+    """Stop ``session`` now (a supervisor rule or a monitor's kill switch): its agents
+    get ``revoke`` and perform ``action`` (stop, land or return_to_home); the session is
+    aborted with ``reason`` and its vehicles are released.
+
+    Raises SessionStateError as :func:`session_end`; ValueError for an unknown action.
+    """
+    if action not in FAILSAFE_ACTIONS:
+        raise ValueError(f"action must be one of {sorted(FAILSAFE_ACTIONS)}, not {action!r}")
+    return _close(
+        session=session,
+        to=Session.State.ABORTED,
+        reason=reason,
+        message={
+            "type": "revoke",
+            "session_id": str(session.pk),
+            "reason": reason,
+            "action": action,
+        },
+        data={"action": action},
+    )
+
+
+def session_fail(*, session: Session, reason: str) -> Session:
+    """Fail ``session`` (e.g. a vehicle refused its task): agents that did accept a
+    task get ``end_task``; the vehicles are released. Raises SessionStateError as
+    :func:`session_end`."""
+    return _close(
+        session=session,
+        to=Session.State.FAILED,
+        reason=reason,
+        message={"type": "end_task", "session_id": str(session.pk), "reason": reason},
+        data={},
+    )

@@ -1,0 +1,451 @@
+"""The platform task: supervising sessions from what their vehicles' agents report.
+
+The uplink (``fleet.uplink``) publishes agent messages as ``fleet.signals``; the
+receivers here (connected in ``services.apps``) log them in the session log and apply
+the rules:
+
+* ``task_refused``: the session fails with the agent's reason.
+* ``user_connected`` (a controller): an assigned session becomes active.
+* more than ``IOUV_UNSAFE_REFUSALS_MAX`` commands refused for safety
+  (:data:`UNSAFE_REFUSALS`) within ``IOUV_UNSAFE_REFUSALS_WINDOW_S``: revoked.
+* ``failsafe``: the user's link dropped and the vehicle acted on its own. Logged at once
+  as ``unintentional_end``; unless the controller reconnects within
+  ``IOUV_RECONNECT_GRACE_S``, :func:`sessions_expire_grace` ends the session.
+* ``session_time_limit_s`` of the service: :func:`sessions_expire_time_limit` revokes.
+
+* a vehicle that does not accept its task before the task's delivery deadline:
+  :func:`sessions_expire_undelivered` fails the session.
+
+The ``sessions_expire_*`` functions are meant to run periodically (Celery beat):
+their state is the session log, so a restarted worker loses nothing.
+
+Agents are authenticated, not trusted: an agent may only report on sessions its
+vehicle is (or was) assigned to; anything else is ignored with a warning.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import uuid
+from collections.abc import Iterable
+from datetime import datetime, timedelta
+from typing import Any
+
+from django.conf import settings
+from django.db import transaction
+from django.utils import timezone
+
+from agents.protocol import CLOCK_SKEW_S
+from fleet.feed import fleet_notify
+from fleet.models import Vehicle
+from fleet.uplink import vehicle_send
+from services.deployment import (
+    LIVE,
+    session_end,
+    session_fail,
+    session_revoke,
+    vehicle_task_deploy,
+)
+from services.eventlog import event_append
+from services.models import Assignment, Session, SessionEvent
+from services.sessions import SessionStateError, session_transition
+from services.signing import platform_public_key_pem
+
+log = logging.getLogger(__name__)
+
+#: command_refused codes that mean the user tried something unsafe (agents/safety.py).
+UNSAFE_REFUSALS = frozenset({"altitude_limit", "geofence", "latency", "obstacle"})
+
+#: At most one link_quality event per session in this many seconds reaches the log.
+LINK_QUALITY_EVERY_S = 10.0
+
+_REASON_MAX = 300
+
+
+def _assignment_for(*, vehicle_id: Any, session_id: Any) -> Assignment | None:
+    """The vehicle's assignment in the session, active first; None (logged) if it has
+    none, i.e. the agent talks about a session that is not its own or does not exist."""
+    try:
+        pk = uuid.UUID(str(session_id))
+    except ValueError:
+        log.warning("vehicle %s reported on a malformed session id %.40r", vehicle_id, session_id)
+        return None
+    assignment = (
+        Assignment.objects.filter(session_id=pk, vehicle_id=vehicle_id)
+        .select_related("session__service", "session__user", "vehicle")
+        .order_by("-active", "-created_at")
+        .first()
+    )
+    if assignment is None:
+        if Session.objects.filter(pk=pk).exists():
+            log.warning("vehicle %s reported on session %s it is not assigned to", vehicle_id, pk)
+        else:
+            log.warning("vehicle %s reported on unknown session %s", vehicle_id, pk)
+    return assignment
+
+
+def _serving(assignment: Assignment) -> bool:
+    """The vehicle still holds its role in a session that is still going."""
+    return assignment.active and assignment.session.state in LIVE
+
+
+# --------------------------------------------------------------------------------------
+# Agent messages
+# --------------------------------------------------------------------------------------
+
+
+def agent_message_handle(*, vehicle_id: Any, message: dict[str, Any]) -> None:
+    """Log and act on one ``task_accepted``, ``task_refused`` or ``event`` message.
+
+    ``message`` was validated by the uplink (parse_message). Other types (``relay``)
+    are not the supervisor's and are ignored.
+    """
+    kind = message.get("type")
+    if kind == "task_accepted":
+        _task_accepted(vehicle_id=vehicle_id, message=message)
+    elif kind == "task_refused":
+        _task_refused(vehicle_id=vehicle_id, message=message)
+    elif kind == "event":
+        _agent_event(vehicle_id=vehicle_id, message=message)
+
+
+def _task_accepted(*, vehicle_id: Any, message: dict[str, Any]) -> None:
+    assignment = _assignment_for(vehicle_id=vehicle_id, session_id=message["session_id"])
+    if assignment is None:
+        return
+    session = assignment.session
+    event_append(session=session, kind="task_accepted", data={"vehicle": str(vehicle_id)})
+    if not _serving(assignment):
+        # A late acceptance (e.g. delivered after the session ended): the agent must not
+        # keep serving a session that is over.
+        reason = session.reason or "this vehicle no longer serves the session"
+        vehicle_send(
+            vehicle_id=vehicle_id,
+            message={"type": "end_task", "session_id": str(session.pk), "reason": reason},
+        )
+
+
+def _task_refused(*, vehicle_id: Any, message: dict[str, Any]) -> None:
+    if message.get("session_id") is None:
+        log.warning(
+            "vehicle %s refused an unreadable task: %s (%s)",
+            vehicle_id,
+            message["reason"][:_REASON_MAX],
+            message["code"],
+        )
+        return
+    assignment = _assignment_for(vehicle_id=vehicle_id, session_id=message["session_id"])
+    if assignment is None:
+        return
+    session = assignment.session
+    event_append(
+        session=session,
+        kind="task_refused",
+        data={"vehicle": str(vehicle_id), "code": message["code"], "reason": message["reason"]},
+    )
+    if _serving(assignment):
+        reason = (
+            f"vehicle {assignment.vehicle.name} refused its task: "
+            f"{message['reason'] or 'no reason given'} ({message['code']})"
+        )
+        # Suppressed: someone else may have ended the session meanwhile.
+        with contextlib.suppress(SessionStateError):
+            session_fail(session=session, reason=reason[:_REASON_MAX])
+
+
+def _agent_event(*, vehicle_id: Any, message: dict[str, Any]) -> None:
+    name: str = message["event"]
+    data: dict[str, Any] = message["data"]
+    if message["session_id"] is None:
+        log.info("vehicle %s: %.40s outside a session", vehicle_id, name)
+        return
+    assignment = _assignment_for(vehicle_id=vehicle_id, session_id=message["session_id"])
+    if assignment is None:
+        return
+    handler = _EVENT_HANDLERS.get(name)
+    if handler is None:
+        event_append(
+            session=assignment.session,
+            kind="agent_event",
+            data={"vehicle": str(vehicle_id), "event": name, "data": data},
+        )
+        return
+    handler(assignment, data)
+
+
+def _log(assignment: Assignment, kind: str, data: dict[str, Any]) -> SessionEvent:
+    return event_append(
+        session=assignment.session,
+        kind=kind,
+        data={"vehicle": str(assignment.vehicle_id), **data},
+    )
+
+
+def _on_user_connected(assignment: Assignment, data: dict[str, Any]) -> None:
+    _log(assignment, "user_connected", data)
+    if data.get("role") == "viewer" or not _serving(assignment):
+        return
+    with transaction.atomic():
+        if assignment.session.state == Session.State.ASSIGNED:
+            try:
+                session_transition(
+                    session=assignment.session, to=Session.State.ACTIVE, reason="user connected"
+                )
+            except SessionStateError:
+                return  # ended meanwhile
+        # The vehicle is under the user's control (again, after a fail-safe).
+        changed = Vehicle.objects.filter(
+            pk=assignment.vehicle_id,
+            maintenance=False,
+            status__in=[Vehicle.Status.RESERVED, Vehicle.Status.FAILSAFE, Vehicle.Status.IDLE],
+        ).update(status=Vehicle.Status.IN_SERVICE)
+        if changed:
+            fleet_notify([assignment.vehicle_id])
+
+
+def _on_command_refused(assignment: Assignment, data: dict[str, Any]) -> None:
+    event = _log(assignment, "command_refused", data)
+    if data.get("code") not in UNSAFE_REFUSALS or not _serving(assignment):
+        return
+    since = event.created_at - timedelta(seconds=settings.IOUV_UNSAFE_REFUSALS_WINDOW_S)
+    recent = SessionEvent.objects.filter(
+        session=assignment.session,
+        kind="command_refused",
+        data__code__in=sorted(UNSAFE_REFUSALS),
+        created_at__gt=since,
+    ).count()
+    if recent > settings.IOUV_UNSAFE_REFUSALS_MAX:
+        session = assignment.session
+        # Suppressed: a concurrent refusal may have revoked it already.
+        with contextlib.suppress(SessionStateError):
+            session_revoke(
+                session=session,
+                reason="repeated unsafe commands",
+                action=session.service.failsafe_action,
+            )
+
+
+def _on_failsafe(assignment: Assignment, data: dict[str, Any]) -> None:
+    _log(
+        assignment,
+        "unintentional_end",
+        {"cause": str(data.get("cause", "unknown")), "action": str(data.get("action", "unknown"))},
+    )
+    if not _serving(assignment):
+        return
+    changed = Vehicle.objects.filter(pk=assignment.vehicle_id, maintenance=False).update(
+        status=Vehicle.Status.FAILSAFE
+    )
+    if changed:
+        fleet_notify([assignment.vehicle_id])
+
+
+def _on_link_quality(assignment: Assignment, data: dict[str, Any]) -> None:
+    # Agents report link quality often; the hash-chained log keeps a sample, not a flood.
+    last = (
+        SessionEvent.objects.filter(session=assignment.session, kind="link_quality")
+        .order_by("-seq")
+        .first()
+    )
+    if last is not None and last.created_at > timezone.now() - timedelta(
+        seconds=LINK_QUALITY_EVERY_S
+    ):
+        return
+    _log(assignment, "link_quality", data)
+
+
+def _logged_as(kind: str) -> Any:
+    def handler(assignment: Assignment, data: dict[str, Any]) -> None:
+        _log(assignment, kind, data)
+
+    return handler
+
+
+_EVENT_HANDLERS = {
+    "user_connected": _on_user_connected,
+    "user_disconnected": _logged_as("user_disconnected"),
+    "command_refused": _on_command_refused,
+    "failsafe": _on_failsafe,
+    "task_ended": _logged_as("task_ended"),
+    "link_quality": _on_link_quality,
+}
+
+
+# --------------------------------------------------------------------------------------
+# Agents coming and going
+# --------------------------------------------------------------------------------------
+
+
+def _serving_assignments(vehicle_id: Any) -> list[Assignment]:
+    return list(
+        Assignment.objects.filter(
+            vehicle_id=vehicle_id, active=True, session__state__in=LIVE
+        ).select_related("session__service", "session__user", "vehicle__station")
+    )
+
+
+def agent_connected_handle(*, vehicle_id: Any) -> None:
+    """A vehicle's agent registered (hello + profile). If the vehicle serves a session:
+    log ``vehicle_online``, give it back its session status (the uplink made it idle)
+    and, if it had been sent a task, send a fresh one: a restarted agent lost it, and
+    one that kept it answers ``task_accepted`` again (docs/protocol.md, Replay rule).
+    """
+    for assignment in _serving_assignments(vehicle_id):
+        session = assignment.session
+        with transaction.atomic():
+            _log(assignment, "vehicle_online", {})
+            held = (
+                Vehicle.Status.IN_SERVICE
+                if session.state == Session.State.ACTIVE
+                else Vehicle.Status.RESERVED
+            )
+            if Vehicle.objects.filter(
+                pk=vehicle_id, maintenance=False, status=Vehicle.Status.IDLE
+            ).update(status=held):
+                fleet_notify([vehicle_id])
+            deployed = session.events.filter(
+                kind="task_deployed", data__vehicle=str(vehicle_id)
+            ).exists()
+            if deployed:
+                vehicle_task_deploy(session=session, assignment=assignment)
+
+
+def agent_disconnected_handle(*, vehicle_id: Any, code: int | None = None) -> None:
+    """A vehicle's uplink closed: log ``vehicle_offline`` in the sessions it serves.
+
+    What that means for the session is decided by the agent's own reports (it keeps
+    serving a connected user point-to-point) and by the periodic rules.
+    """
+    for assignment in _serving_assignments(vehicle_id):
+        _log(assignment, "vehicle_offline", {"close_code": code})
+
+
+# --------------------------------------------------------------------------------------
+# Periodic rules (Celery beat)
+# --------------------------------------------------------------------------------------
+
+
+def sessions_expire_grace(
+    *, now: datetime | None = None, session_ids: Iterable[Any] | None = None
+) -> list[str]:
+    """End the live sessions whose last ``unintentional_end`` is older than
+    ``IOUV_RECONNECT_GRACE_S`` with no controller ``user_connected`` after it.
+
+    The reason says what happened: ``unintentional end: <cause>, vehicle performed
+    <action>``. ``session_ids`` limits the check (e.g. for a countdown task). Returns
+    the ids of the sessions ended.
+    """
+    now = now or timezone.now()
+    cutoff = now - timedelta(seconds=settings.IOUV_RECONNECT_GRACE_S)
+    candidates = Session.objects.filter(
+        state__in=LIVE, events__kind="unintentional_end", events__created_at__lte=cutoff
+    ).distinct()
+    if session_ids is not None:
+        candidates = candidates.filter(pk__in=list(session_ids))
+    ended: list[str] = []
+    for session in candidates:
+        last = session.events.filter(kind="unintentional_end").order_by("-seq").first()
+        if last is None or last.created_at > cutoff:
+            continue  # a newer fail-safe restarted the grace
+        later = session.events.filter(kind="user_connected", seq__gt=last.seq)
+        if any(e.data.get("role") != "viewer" for e in later):
+            continue  # the controller came back
+        reason = (
+            f"unintentional end: {last.data.get('cause', 'unknown')}, "
+            f"vehicle performed {last.data.get('action', 'unknown')}"
+        )
+        try:
+            session_end(session=session, reason=reason[:_REASON_MAX], by_user=False)
+        except SessionStateError:
+            continue  # ended meanwhile
+        ended.append(str(session.pk))
+    return ended
+
+
+def sessions_expire_undelivered(*, now: datetime | None = None) -> list[str]:
+    """Fail the ``assigned`` sessions with a vehicle that neither accepted its latest
+    task before that task's deadline (``exp`` plus the protocol's clock skew) nor
+    refused it in a way the platform could attribute (an agent that cannot read a task
+    refuses with a null session id). Their vehicles would otherwise stay reserved.
+
+    Returns the ids of the sessions failed.
+    """
+    now = now or timezone.now()
+    late = now.timestamp() - CLOCK_SKEW_S
+    failed: list[str] = []
+    assigned = Session.objects.filter(
+        state=Session.State.ASSIGNED, events__kind="task_deployed"
+    ).distinct()
+    for session in assigned:
+        for assignment in session.assignments.filter(active=True).select_related("vehicle"):
+            vehicle = str(assignment.vehicle_id)
+            deployed = (
+                session.events.filter(kind="task_deployed", data__vehicle=vehicle)
+                .order_by("-seq")
+                .first()
+            )
+            if deployed is None or deployed.data.get("exp", late) >= late:
+                continue
+            if session.events.filter(
+                kind="task_accepted", data__vehicle=vehicle, seq__gt=deployed.seq
+            ).exists():
+                continue
+            reason = f"vehicle {assignment.vehicle.name} did not accept its task in time"
+            try:
+                session_fail(session=session, reason=reason)
+            except SessionStateError:
+                break
+            failed.append(str(session.pk))
+            break
+    return failed
+
+
+def sessions_expire_time_limit(*, now: datetime | None = None) -> list[str]:
+    """Revoke the active sessions that ran past their service's ``session_time_limit_s``
+    (counted from activation), with reason ``time limit reached`` and the service's
+    fail-safe action. Returns the ids of the sessions revoked.
+    """
+    now = now or timezone.now()
+    revoked: list[str] = []
+    active = Session.objects.filter(
+        state=Session.State.ACTIVE,
+        service__session_time_limit_s__isnull=False,
+        started_at__isnull=False,
+    ).select_related("service")
+    for session in active:
+        deadline = session.started_at + timedelta(seconds=session.service.session_time_limit_s)
+        if deadline > now:
+            continue
+        try:
+            session_revoke(
+                session=session,
+                reason="time limit reached",
+                action=session.service.failsafe_action,
+            )
+        except SessionStateError:
+            continue
+        revoked.append(str(session.pk))
+    return revoked
+
+
+# --------------------------------------------------------------------------------------
+# Signal receivers (connected in services.apps)
+# --------------------------------------------------------------------------------------
+
+
+def receive_agent_message(sender: Any, *, vehicle_id: Any, message: Any, **kwargs: Any) -> None:
+    agent_message_handle(vehicle_id=vehicle_id, message=message)
+
+
+def receive_agent_connected(sender: Any, *, vehicle_id: Any, **kwargs: Any) -> None:
+    agent_connected_handle(vehicle_id=vehicle_id)
+
+
+def receive_agent_disconnected(sender: Any, *, vehicle_id: Any, **kwargs: Any) -> None:
+    agent_disconnected_handle(vehicle_id=vehicle_id, code=kwargs.get("code"))
+
+
+def receive_agent_welcome(sender: Any, **kwargs: Any) -> dict[str, Any]:
+    # Informational only: agents take the trusted key from their own configuration.
+    return {"platform_public_key": platform_public_key_pem()}

@@ -1,0 +1,534 @@
+"""The agent uplink, driven over the real wire protocol by a test 'agent'.
+
+The channel layer is Redis under bin/test and in-memory under plain pytest.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from typing import Any
+
+import pytest
+from channels.db import database_sync_to_async
+from channels.testing import WebsocketCommunicator
+from django.db import connections
+from hypothesis import HealthCheck, given
+from hypothesis import settings as hsettings
+from hypothesis import strategies as st
+
+from agents.protocol import MAX_MESSAGE_BYTES, MESSAGE_TYPES, ProtocolError
+from fleet import uplink
+from fleet.credentials import vehicle_issue_credential
+from fleet.models import Vehicle
+from fleet.signals import agent_connected, agent_disconnected, agent_message
+from fleet.uplink import avehicle_send, vehicle_record_disconnect, vehicle_send
+from iouv.asgi import application
+from services.signing import platform_public_key_pem
+from tests import factories as f
+
+pytestmark = pytest.mark.django_db(transaction=True)
+
+PROFILE: dict[str, Any] = {
+    "type": "profile",
+    "vehicle_type": "drone",
+    "adapter": "sim_drone",
+    "attributes": {"cameras": ["rgb"]},
+    "commands": [
+        {"name": "up", "args": {}},
+        {"name": "stop", "args": {}},
+    ],
+    "telemetry": ["position", "battery"],
+    "control_url": "ws://10.0.0.7:8765/control",
+    "video": True,
+    "position": {"lat": 40.63, "lon": -8.65, "alt": 12.5},
+    "battery": 88,
+}
+
+
+@pytest.fixture(autouse=True)
+async def _close_worker_connections():
+    # Sync ORM calls run on asgiref's shared worker thread, whose connection would
+    # otherwise outlive the test and block dropping the test database.
+    yield
+    await database_sync_to_async(connections.close_all)()
+
+
+@database_sync_to_async
+def _enrolled(**kw: Any) -> tuple[Vehicle, str]:
+    vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type(), online=False, **kw)
+    return vehicle, vehicle_issue_credential(vehicle=vehicle)
+
+
+@database_sync_to_async
+def _get(vehicle: Vehicle) -> Vehicle:
+    return Vehicle.objects.get(pk=vehicle.pk)
+
+
+@database_sync_to_async
+def _update(vehicle: Vehicle, **fields: Any) -> None:
+    Vehicle.objects.filter(pk=vehicle.pk).update(**fields)
+
+
+async def _open() -> WebsocketCommunicator:
+    comm = WebsocketCommunicator(application, "/ws/agent/")
+    connected, _ = await comm.connect()
+    assert connected
+    return comm
+
+
+async def _agent(vehicle: Vehicle, credential: str) -> tuple[WebsocketCommunicator, dict]:
+    """An authenticated uplink and the platform's welcome."""
+    comm = await _open()
+    await comm.send_json_to(
+        {"type": "hello", "v": 1, "vehicle_id": str(vehicle.pk), "credential": credential}
+    )
+    welcome = await comm.receive_json_from(timeout=5)
+    assert welcome["type"] == "welcome", welcome
+    return comm, welcome
+
+
+async def _closed(comm: WebsocketCommunicator) -> tuple[list[dict], int]:
+    """Everything sent until the platform closed the socket, and the close code."""
+    messages = []
+    while True:
+        out = await comm.receive_output(timeout=5)
+        if out["type"] == "websocket.close":
+            # As a server would: the client's close handshake ends the consumer cleanly.
+            await comm.disconnect()
+            return messages, out.get("code")
+        messages.append(json.loads(out["text"]))
+
+
+async def _eventually(check) -> None:
+    """Wait (up to 5 s) until ``check()``, run on the ORM thread, is true."""
+    deadline = time.monotonic() + 5.0
+    while not await database_sync_to_async(check)():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        await asyncio.sleep(0.02)
+
+
+def _collect(signal):
+    """Record a signal's kwargs; returns (list, disconnect)."""
+    seen: list[dict] = []
+
+    def receiver(sender, **kwargs):
+        kwargs.pop("signal", None)
+        seen.append(kwargs)
+
+    signal.connect(receiver, weak=False)
+    return seen, lambda: signal.disconnect(receiver)
+
+
+# --- authentication ---------------------------------------------------------------------
+
+
+async def test_good_hello_gets_welcome(settings):
+    vehicle, credential = await _enrolled()
+    comm, welcome = await _agent(vehicle, credential)
+    assert welcome["v"] == 1
+    assert welcome["heartbeat_interval_s"] == settings.IOUV_HEARTBEAT_INTERVAL_S
+    assert welcome["platform_public_key"] == await database_sync_to_async(platform_public_key_pem)()
+    assert (await _get(vehicle)).last_seen is not None
+    await comm.disconnect()
+
+
+@pytest.mark.parametrize("which", ["credential", "vehicle"])
+async def test_bad_credential_is_closed_4401(which):
+    vehicle, credential = await _enrolled()
+    comm = await _open()
+    hello = {"type": "hello", "v": 1, "vehicle_id": str(vehicle.pk), "credential": credential}
+    if which == "credential":
+        hello["credential"] = credential + "x"
+    else:
+        hello["vehicle_id"] = "00000000-0000-0000-0000-000000000000"
+    await comm.send_json_to(hello)
+    messages, code = await _closed(comm)
+    assert code == 4401
+    assert messages == [
+        {"type": "error", "code": "bad_credential", "message": messages[0]["message"]}
+    ]
+    assert (await _get(vehicle)).last_seen is None
+
+
+async def test_wrong_version_is_closed_4400():
+    vehicle, credential = await _enrolled()
+    comm = await _open()
+    await comm.send_json_to(
+        {"type": "hello", "v": 2, "vehicle_id": str(vehicle.pk), "credential": credential}
+    )
+    messages, code = await _closed(comm)
+    assert code == 4400 and messages[0]["code"] == "bad_version"
+
+
+@pytest.mark.parametrize(
+    "frame",
+    [
+        "not json",
+        json.dumps({"type": "heartbeat", "seq": 1}),
+        json.dumps({"type": "hello", "v": 1}),
+    ],
+    ids=["garbage", "heartbeat-first", "incomplete-hello"],
+)
+async def test_anything_but_a_valid_hello_first_is_closed_4401(frame):
+    comm = await _open()
+    await comm.send_to(text_data=frame)
+    messages, code = await _closed(comm)
+    assert code == 4401 and messages[0]["type"] == "error"
+
+
+async def test_silent_connection_is_closed(settings):
+    settings.IOUV_HELLO_TIMEOUT_S = 0.1
+    comm = await _open()
+    messages, code = await _closed(comm)
+    assert code == 4408 and messages[0]["code"] == "hello_timeout"
+
+
+# --- registration and heartbeats -------------------------------------------------------
+
+
+async def test_profile_makes_the_vehicle_idle_with_its_control_url():
+    vehicle, credential = await _enrolled()
+    connected, stop = _collect(agent_connected)
+    try:
+        comm, _ = await _agent(vehicle, credential)
+        assert (await _get(vehicle)).status == Vehicle.Status.OFFLINE  # hello alone is not enough
+        await comm.send_json_to(PROFILE)
+        await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+        stored = await _get(vehicle)
+        assert stored.control_url == PROFILE["control_url"]
+        assert stored.profile["commands"] == PROFILE["commands"]
+        assert stored.profile["telemetry"] == ["position", "battery"]
+        assert stored.profile["video"] is True and stored.profile["adapter"] == "sim_drone"
+        assert (stored.lat, stored.lon, stored.alt, stored.battery) == (40.63, -8.65, 12.5, 88)
+        assert connected == [{"vehicle_id": str(vehicle.pk)}]
+        await comm.disconnect()
+    finally:
+        stop()
+
+
+@pytest.mark.parametrize(
+    ("before", "maintenance", "after"),
+    [
+        ("failsafe", False, "idle"),
+        ("reserved", False, "reserved"),
+        ("in_service", False, "in_service"),
+        ("maintenance", True, "maintenance"),
+    ],
+)
+async def test_profile_keeps_platform_held_statuses(before, maintenance, after):
+    vehicle, credential = await _enrolled()
+    await _update(vehicle, status=before, maintenance=maintenance)
+    comm, _ = await _agent(vehicle, credential)
+    await comm.send_json_to(PROFILE)
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).control_url != "")
+    assert (await _get(vehicle)).status == after
+    await comm.disconnect()
+    # An uplink going away never takes a vehicle out of maintenance.
+    if maintenance:
+        assert (await _get(vehicle)).status == "maintenance"
+
+
+async def test_heartbeats_update_last_seen_battery_and_status(settings):
+    settings.IOUV_HEARTBEAT_INTERVAL_S = 0.2  # one write per 0.1 s at most
+    vehicle, credential = await _enrolled()
+    comm, _ = await _agent(vehicle, credential)
+    await comm.send_json_to(PROFILE)
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+    seen_at = (await _get(vehicle)).last_seen
+
+    await asyncio.sleep(0.15)
+    await comm.send_json_to(
+        {"type": "heartbeat", "seq": 1, "battery": 70, "position": {"lat": 40.7, "lon": -8.6}}
+    )
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 70)
+    stored = await _get(vehicle)
+    assert stored.last_seen > seen_at and (stored.lat, stored.lon, stored.alt) == (40.7, -8.6, None)
+
+    # Too soon after the last write: skipped, the next one carries fresher data anyway.
+    await comm.send_json_to({"type": "heartbeat", "seq": 2, "battery": 60})
+    await asyncio.sleep(0.15)
+    await comm.send_json_to({"type": "heartbeat", "seq": 3, "battery": 50, "status": "failsafe"})
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 50)
+    assert (await _get(vehicle)).status == "failsafe"
+
+    await asyncio.sleep(0.15)
+    await comm.send_json_to({"type": "heartbeat", "seq": 4, "status": "idle"})
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+    await comm.disconnect()
+
+
+async def test_heartbeat_flood_is_throttled(settings):
+    settings.IOUV_HEARTBEAT_INTERVAL_S = 60.0
+    vehicle, credential = await _enrolled()
+    comm, _ = await _agent(vehicle, credential)
+    await comm.send_json_to(PROFILE)
+    for seq in range(1, 30):
+        await comm.send_json_to({"type": "heartbeat", "seq": seq, "battery": seq})
+    await comm.send_to(text_data="sync")  # answered once everything before it was handled
+    assert (await comm.receive_json_from(timeout=5))["code"] == "bad_json"
+    assert (await _get(vehicle)).battery == 1  # only the first heartbeat was written
+    await comm.disconnect()
+
+
+async def test_disconnect_marks_offline_and_signals():
+    vehicle, credential = await _enrolled()
+    gone, stop = _collect(agent_disconnected)
+    try:
+        comm, _ = await _agent(vehicle, credential)
+        await comm.send_json_to(PROFILE)
+        await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+        await comm.disconnect(code=1001)
+        await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
+        assert gone == [{"vehicle_id": str(vehicle.pk), "code": 1001}]
+    finally:
+        stop()
+
+
+async def test_a_stale_uplink_does_not_mark_a_reconnected_vehicle_offline():
+    vehicle, _ = await _enrolled()
+    await _update(vehicle, status="idle")
+    stored = await _get(vehicle)
+    old = stored.last_seen
+    # A newer uplink wrote since: the old uplink's late disconnect changes nothing.
+    from django.utils import timezone
+
+    await _update(vehicle, last_seen=timezone.now())
+    assert not await database_sync_to_async(vehicle_record_disconnect)(
+        vehicle_id=vehicle.pk, last_seen=old
+    )
+    assert (await _get(vehicle)).status == "idle"
+
+
+# --- bad input after authentication -----------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("frame", "code"),
+    [
+        ({"text_data": "{not json"}, "bad_json"),
+        ({"text_data": "[1, 2]"}, "bad_json"),
+        ({"text_data": json.dumps({"type": "launch_missiles"})}, "unknown_type"),
+        ({"text_data": json.dumps({"type": "heartbeat", "seq": -1})}, "bad_field"),
+        ({"text_data": json.dumps({"type": "x", "pad": "a" * MAX_MESSAGE_BYTES})}, "too_large"),
+        ({"bytes_data": b"\xff\xfe\x00garbage"}, "bad_json"),
+        (
+            {
+                "text_data": json.dumps(
+                    {"type": "hello", "v": 1, "vehicle_id": "a", "credential": "b"}
+                )
+            },
+            "already_authenticated",
+        ),
+    ],
+    ids=["json", "not-object", "unknown-type", "bad-field", "oversized", "binary", "hello-again"],
+)
+async def test_bad_frame_gets_an_error_and_the_uplink_stays(frame, code):
+    vehicle, credential = await _enrolled()
+    comm, _ = await _agent(vehicle, credential)
+    await comm.send_to(**frame)
+    reply = await comm.receive_json_from(timeout=5)
+    assert reply["type"] == "error" and reply["code"] == code
+    assert len(reply["message"]) <= 300
+    # Still connected and still working: a valid heartbeat (binary, as the protocol
+    # allows) is stored.
+    await comm.send_to(
+        bytes_data=json.dumps({"type": "heartbeat", "seq": 1, "battery": 42}).encode()
+    )
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 42)
+    await comm.disconnect()
+
+
+async def test_flood_of_bad_frames_is_closed_4429():
+    vehicle, credential = await _enrolled()
+    comm, _ = await _agent(vehicle, credential)
+    for _ in range(uplink.BAD_FRAMES_MAX - 1):
+        await comm.send_to(text_data="nope")
+        assert (await comm.receive_json_from(timeout=5))["code"] == "bad_json"
+    await comm.send_to(text_data="nope")
+    messages, code = await _closed(comm)
+    assert code == 4429 and messages[0]["code"] == "flood"
+
+
+# --- one agent per vehicle --------------------------------------------------------------
+
+
+async def test_second_connection_replaces_the_first():
+    vehicle, credential = await _enrolled()
+    first, _ = await _agent(vehicle, credential)
+    await first.send_json_to(PROFILE)
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+
+    second, _ = await _agent(vehicle, credential)
+    messages, code = await _closed(first)
+    assert code == 4409 and messages[0]["code"] == "replaced"
+    await second.send_json_to(PROFILE)
+    await second.send_to(text_data="sync")
+    await second.receive_json_from(timeout=5)
+    # The replaced uplink's disconnect did not take the vehicle offline...
+    assert (await _get(vehicle)).status == "idle"
+    # ... and messages for the vehicle reach the new uplink only.
+    await avehicle_send(
+        vehicle_id=vehicle.pk, message={"type": "end_task", "session_id": "s-1", "reason": "done"}
+    )
+    assert (await second.receive_json_from(timeout=5))["type"] == "end_task"
+    await second.disconnect()
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
+
+
+# --- platform -> agent, agent -> platform ------------------------------------------------
+
+
+async def test_vehicle_send_reaches_the_agent():
+    vehicle, credential = await _enrolled()
+    comm, _ = await _agent(vehicle, credential)
+    revoke = {"type": "revoke", "session_id": "s-1", "reason": "kill switch", "action": "land"}
+    await database_sync_to_async(vehicle_send)(vehicle_id=vehicle.pk, message=revoke)
+    assert await comm.receive_json_from(timeout=5) == revoke
+    await comm.disconnect()
+
+
+def test_vehicle_send_refuses_a_bad_message():
+    with pytest.raises(ProtocolError):
+        vehicle_send(
+            vehicle_id="00000000-0000-0000-0000-000000000001",
+            message={"type": "revoke", "session_id": "s", "reason": "r", "action": "explode"},
+        )
+    with pytest.raises(ValueError):
+        vehicle_send(vehicle_id="not-a-uuid", message={"type": "task", "token": "t"})
+
+
+async def test_session_messages_are_published_as_signals():
+    vehicle, credential = await _enrolled()
+    said, stop = _collect(agent_message)
+    try:
+        comm, _ = await _agent(vehicle, credential)
+        sent = [
+            {"type": "task_accepted", "session_id": "s-1"},
+            {"type": "task_refused", "session_id": None, "code": "bad_signature", "reason": "x"},
+            {"type": "event", "session_id": None, "event": "boot", "data": {"extra": 1}},
+        ]
+        for msg in sent:
+            await comm.send_json_to(msg)
+        await comm.send_to(text_data="sync")
+        await comm.receive_json_from(timeout=5)
+        assert said == [{"vehicle_id": str(vehicle.pk), "message": msg} for msg in sent]
+        await comm.disconnect()
+    finally:
+        stop()
+
+
+async def test_a_failing_receiver_does_not_break_the_uplink():
+    vehicle, credential = await _enrolled()
+
+    def broken(sender, **kwargs):
+        raise RuntimeError("bug in a receiver")
+
+    agent_message.connect(broken, weak=False)
+    try:
+        comm, _ = await _agent(vehicle, credential)
+        await comm.send_json_to({"type": "task_accepted", "session_id": "s-1"})
+        await comm.send_json_to({"type": "heartbeat", "seq": 1, "battery": 33})
+        await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 33)
+        assert await comm.receive_nothing(timeout=0.1)
+        await comm.disconnect()
+    finally:
+        agent_message.disconnect(broken)
+
+
+async def test_a_platform_failure_is_answered_and_the_uplink_stays(monkeypatch):
+    vehicle, credential = await _enrolled()
+
+    def broken(**kwargs):
+        raise RuntimeError("database hiccup")
+
+    monkeypatch.setattr(uplink, "vehicle_record_profile", broken)
+    comm, _ = await _agent(vehicle, credential)
+    await comm.send_json_to(PROFILE)
+    assert (await comm.receive_json_from(timeout=5))["code"] == "internal"
+    await comm.send_json_to({"type": "heartbeat", "seq": 1, "battery": 21})
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 21)
+    await comm.disconnect()
+
+
+async def test_a_platform_failure_during_hello_closes_for_a_retry(monkeypatch):
+    vehicle, credential = await _enrolled()
+
+    def broken(**kwargs):
+        raise RuntimeError("database down")
+
+    monkeypatch.setattr(uplink, "vehicle_authenticate", broken)
+    comm = await _open()
+    await comm.send_json_to(
+        {"type": "hello", "v": 1, "vehicle_id": str(vehicle.pk), "credential": credential}
+    )
+    messages, code = await _closed(comm)
+    assert code == 1011 and messages[0]["code"] == "internal"
+
+
+# --- fuzz -------------------------------------------------------------------------------
+
+_json = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=20),
+    lambda inner: (
+        st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=10), inner, max_size=4)
+    ),
+    max_leaves=12,
+)
+_fields = sorted(
+    {"seq", "v", "vehicle_id", "credential", "session_id", "event", "data", "code", "reason"}
+    | {"position", "battery", "status", "commands", "control_url", "payload", "conn"}
+)
+_messages = st.fixed_dictionaries(
+    {"type": st.sampled_from([*sorted(MESSAGE_TYPES["uplink_to_platform"]), "nope"])},
+    optional={name: _json for name in _fields},
+)
+_frames = st.one_of(
+    st.text(max_size=200).map(lambda t: {"text_data": t}),
+    _json.map(lambda v: {"text_data": json.dumps(v)}),
+    _messages.map(lambda m: {"text_data": json.dumps(m)}),
+    st.binary(max_size=100).map(lambda b: {"bytes_data": b}),
+)
+
+
+@pytest.fixture
+async def fuzz_agent(monkeypatch):
+    monkeypatch.setattr(uplink, "BAD_FRAMES_MAX", 10_000)  # the fuzzer is not a flood
+    vehicle, credential = await _enrolled()
+    comm, _ = await _agent(vehicle, credential)
+    yield comm
+    await comm.disconnect()
+
+
+_probe = iter(range(10**9))
+
+
+@given(frame=_frames)
+@hsettings(
+    max_examples=50,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
+async def test_fuzzed_frames_are_answered_or_accepted_never_crash(fuzz_agent, frame):
+    comm = fuzz_agent
+    # send_input rather than send_to, which refuses empty frames.
+    if "text_data" in frame:
+        await comm.send_input({"type": "websocket.receive", "text": frame["text_data"]})
+    else:
+        await comm.send_input({"type": "websocket.receive", "bytes": frame["bytes_data"]})
+    # A probe the consumer must answer after handling the fuzzed frame (frames are
+    # handled in order): everything before its answer came from the fuzzed frame.
+    probe = f"probe-{next(_probe)}"
+    await comm.send_json_to({"type": probe})
+    replies = []
+    while True:
+        out = await comm.receive_output(timeout=5)
+        assert out["type"] == "websocket.send", f"uplink closed on {frame!r}: {out}"
+        reply = json.loads(out["text"])
+        if probe in reply.get("message", ""):
+            break
+        replies.append(reply)
+    assert len(replies) <= 1
+    for reply in replies:
+        assert reply["type"] == "error" and reply["code"] != "internal", reply

@@ -1,0 +1,322 @@
+"""Task deployment: signed vehicle tasks pushed on the uplink, user tasks, ending sessions.
+
+What an agent would receive is read from the channel layer (Redis under bin/test), from
+the same group the uplink consumer of the vehicle listens on.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+from asgiref.sync import async_to_sync
+from channels.layers import get_channel_layer
+from django.conf import settings
+from django.core.exceptions import ImproperlyConfigured
+
+from accounts.roles import MONITOR
+from agents.protocol import Limits, UserGrant, VehicleTask, generate_keypair
+from fleet.models import Vehicle
+from fleet.uplink import vehicle_group
+from services.assignment import session_request
+from services.deployment import (
+    DeploymentError,
+    InvalidTaskError,
+    grant_issue,
+    session_deploy,
+    session_end,
+    session_revoke,
+)
+from services.models import Session
+from services.sessions import SessionStateError
+from services.signing import platform_private_key, platform_public_key, platform_public_key_pem
+from tests import factories as f
+
+pytestmark = pytest.mark.django_db
+
+COMMANDS = [
+    {"name": "up", "args": {}},
+    {"name": "down", "args": {}},
+    {"name": "stop", "args": {}},
+]
+TARGET = (40.6310, -8.6590)
+LIMITS = {
+    "max_altitude_m": 50.0,
+    "geofence_radius_m": 300.0,
+    "max_speed_mps": 5.0,
+    "link_loss_timeout_ms": 800,
+    "failsafe_action": "land",
+    "latency_soft_ms": 150,
+    "latency_hard_ms": 400,
+    "session_time_limit_s": 600,
+}
+
+
+@pytest.fixture
+def inbox():
+    """``listen(vehicle)`` -> ``take(n)``: the next n messages sent to that vehicle's agent."""
+    layer = get_channel_layer()
+
+    def listen(vehicle):
+        name = async_to_sync(layer.new_channel)()
+        async_to_sync(layer.group_add)(vehicle_group(vehicle.pk), name)
+
+        def take(n=1):
+            async def receive():
+                return [await asyncio.wait_for(layer.receive(name), 5) for _ in range(n)]
+
+            events = async_to_sync(receive)()
+            assert all(e["type"] == "agent.send" for e in events)
+            return [e["message"] for e in events]
+
+        return take
+
+    return listen
+
+
+def _registered_vehicle(name="", at=None):
+    vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type(), name=name, at=at)
+    Vehicle.objects.filter(pk=vehicle.pk).update(
+        control_url="ws://10.0.0.7:8765/control",
+        profile={"commands": COMMANDS, "telemetry": ["position", "battery"], "video": True},
+    )
+    vehicle.refresh_from_db()
+    return vehicle
+
+
+def _service(**kw):
+    return f.service(allowed_commands=["up", "stop"], **{**LIMITS, **kw})
+
+
+@pytest.fixture
+def committing(django_capture_on_commit_callbacks):
+    """A block whose on-commit work (the pushes to agents) runs, as after a real commit:
+    the test itself runs inside a transaction that never commits."""
+    return lambda: django_capture_on_commit_callbacks(execute=True)
+
+
+@pytest.fixture
+def deployed(inbox, committing):
+    """(session, vehicle, user task, vehicle task) of a freshly deployed session."""
+    vehicle = _registered_vehicle()
+    take = inbox(vehicle)
+    session = session_request(user=f.user(username="alice"), service=_service(), target=TARGET)
+    with committing():
+        user_task = session_deploy(session=session)
+    (message,) = take()
+    assert message["type"] == "task"
+    task = VehicleTask.verify(message["token"], platform_public_key(), vehicle_id=str(vehicle.pk))
+    return session, vehicle, user_task, task, take
+
+
+def test_deploy_pushes_a_signed_task_with_the_service_limits(deployed):
+    session, vehicle, _, task, _ = deployed
+    assert task.session_id == str(session.pk) and task.vehicle_id == str(vehicle.pk)
+    assert task.user == "alice"
+    assert task.allowed_commands == ("up", "stop")
+    assert task.limits == Limits(geofence_center=TARGET, **LIMITS)
+    assert task.expires_at - task.issued_at == settings.IOUV_TASK_TTL_S
+    assert abs(task.issued_at - time.time()) < 5
+
+    session.refresh_from_db()
+    assert session.state == Session.State.ASSIGNED  # active once the user connects
+    logged = session.events.get(kind="task_deployed")
+    assert logged.data["vehicle"] == str(vehicle.pk) and logged.data["nonce"] == task.nonce
+
+
+def test_deploy_returns_a_user_task_with_a_controller_grant(deployed):
+    session, vehicle, user_task, _, _ = deployed
+    grant = UserGrant.verify(user_task.grant, platform_public_key(), vehicle_id=str(vehicle.pk))
+    assert (grant.session_id, grant.user, grant.role) == (str(session.pk), "alice", "controller")
+    assert grant.allowed_commands == ("up", "stop")
+    assert grant.expires_at - grant.issued_at == settings.IOUV_GRANT_TTL_S
+    assert user_task.expires_at == grant.expires_at
+    assert user_task.session_id == str(session.pk) and user_task.vehicle_id == str(vehicle.pk)
+    assert user_task.vehicle_name == vehicle.name
+    assert user_task.control_url == "ws://10.0.0.7:8765/control"
+    assert [c["name"] for c in user_task.commands] == ["up", "stop"]  # only what it may send
+    assert user_task.telemetry == ("position", "battery")
+    assert user_task.relay is False and user_task.role == "controller"
+
+
+def test_tokens_never_reach_the_log(deployed):
+    session, _, user_task, _, _ = deployed
+    logged = str(list(session.events.values_list("data", flat=True)))
+    assert user_task.grant not in logged
+    assert user_task.grant.split(".")[1] not in logged
+
+
+def test_geofence_is_centred_on_the_vehicle_without_a_target(inbox, committing):
+    vehicle = _registered_vehicle(at=(40.6320, -8.6570))
+    take = inbox(vehicle)
+    session = session_request(user=f.user(), service=_service())
+    with committing():
+        session_deploy(session=session)
+    (message,) = take()
+    task = VehicleTask.verify(message["token"], platform_public_key(), vehicle_id=str(vehicle.pk))
+    assert task.limits.geofence_center == (40.6320, -8.6570)
+
+
+def test_no_radius_means_no_geofence(inbox, committing):
+    vehicle = _registered_vehicle()
+    take = inbox(vehicle)
+    service = _service(geofence_radius_m=None, max_altitude_m=None)
+    with committing():
+        session_deploy(session=session_request(user=f.user(), service=service, target=TARGET))
+    (message,) = take()
+    task = VehicleTask.verify(message["token"], platform_public_key(), vehicle_id=str(vehicle.pk))
+    assert task.limits.geofence_center is None and task.limits.geofence_radius_m is None
+    assert task.limits.max_altitude_m is None
+
+
+def test_relay_only_vehicle_gives_a_relay_user_task():
+    vehicle = _registered_vehicle()
+    Vehicle.objects.filter(pk=vehicle.pk).update(control_url="")
+    user_task = session_deploy(session=session_request(user=f.user(), service=_service()))
+    assert user_task.relay is True
+
+
+def test_every_role_gets_a_task_and_the_user_controls_the_vehicle_role(inbox, committing):
+    searcher = _registered_vehicle(name="searcher")
+    main = _registered_vehicle(name="main")
+    takes = {v.name: inbox(v) for v in (searcher, main)}
+    service = _service(roles=[{"name": "search"}, {"name": "vehicle"}])
+    session = session_request(user=f.user(), service=service, target=TARGET)
+    with committing():
+        user_task = session_deploy(session=session)
+    for vehicle in (searcher, main):
+        (message,) = takes[vehicle.name]()
+        VehicleTask.verify(message["token"], platform_public_key(), vehicle_id=str(vehicle.pk))
+    held = {a.role: a.vehicle for a in session.assignments.all()}
+    assert user_task.vehicle_id == str(held["vehicle"].pk)
+
+
+def test_deploy_needs_an_assigned_session(deployed):
+    session, *_ = deployed
+    session_end(session=session, reason="user left", by_user=True)
+    with pytest.raises(DeploymentError, match="not assigned"):
+        session_deploy(session=session)
+
+
+def test_invalid_limits_fail_the_session_and_send_nothing():
+    vehicle = _registered_vehicle()
+    session = session_request(user=f.user(), service=_service(max_speed_mps=0))
+    with pytest.raises(InvalidTaskError, match="max_speed_mps"):
+        session_deploy(session=session)
+    session.refresh_from_db()
+    assert session.state == Session.State.FAILED and "max_speed_mps" in session.reason
+    assert not session.events.filter(kind="task_deployed").exists()
+    assert Vehicle.objects.get(pk=vehicle.pk).status == Vehicle.Status.IDLE
+
+
+# --- grants -----------------------------------------------------------------------------
+
+
+def test_grant_issue_gives_the_user_a_fresh_grant(deployed):
+    session, vehicle, first, _, _ = deployed
+    again = grant_issue(session=session, user=session.user)
+    assert again.grant != first.grant
+    grant = UserGrant.verify(again.grant, platform_public_key(), vehicle_id=str(vehicle.pk))
+    assert grant.role == "controller" and grant.user == "alice"
+
+
+def test_only_the_sessions_user_may_control(deployed):
+    session, *_ = deployed
+    with pytest.raises(DeploymentError, match="only the session's user"):
+        grant_issue(session=session, user=f.user())
+
+
+def test_viewers_may_watch_but_send_nothing(deployed):
+    session, vehicle, *_ = deployed
+    watcher = grant_issue(session=session, user=f.user(username="bob"), role="viewer")
+    grant = UserGrant.verify(watcher.grant, platform_public_key(), vehicle_id=str(vehicle.pk))
+    assert (grant.role, grant.user, grant.allowed_commands) == ("viewer", "bob", ())
+    assert watcher.commands == ()
+    with pytest.raises(DeploymentError, match="may not use"):
+        grant_issue(session=session, user=f.user(roles=(MONITOR,)), role="viewer")
+    with pytest.raises(DeploymentError, match="unknown role"):
+        grant_issue(session=session, user=session.user, role="pilot")
+
+
+def test_no_grant_for_a_final_session(deployed):
+    session, *_ = deployed
+    session_end(session=session, reason="user left", by_user=True)
+    with pytest.raises(DeploymentError, match="ended: user left"):
+        grant_issue(session=session, user=session.user)
+
+
+# --- ending -----------------------------------------------------------------------------
+
+
+def test_session_end_sends_end_task_and_frees_the_vehicle(deployed, committing):
+    session, vehicle, _, _, take = deployed
+    with committing():
+        session_end(session=session, reason="user ended the session", by_user=True)
+    assert take() == [
+        {"type": "end_task", "session_id": str(session.pk), "reason": "user ended the session"}
+    ]
+    session.refresh_from_db()
+    assert session.state == Session.State.ENDED and session.reason == "user ended the session"
+    assert session.events.filter(kind="state").last().data["by_user"] is True
+    assert Vehicle.objects.get(pk=vehicle.pk).status == Vehicle.Status.IDLE
+    assert not session.assignments.filter(active=True).exists()
+    with pytest.raises(SessionStateError):
+        session_end(session=session, reason="again", by_user=True)
+
+
+def test_session_revoke_sends_revoke_and_aborts(deployed, committing):
+    session, vehicle, _, _, take = deployed
+    with committing():
+        session_revoke(session=session, reason="kill switch", action="return_to_home")
+    assert take() == [
+        {
+            "type": "revoke",
+            "session_id": str(session.pk),
+            "reason": "kill switch",
+            "action": "return_to_home",
+        }
+    ]
+    session.refresh_from_db()
+    assert session.state == Session.State.ABORTED and session.reason == "kill switch"
+    assert Vehicle.objects.get(pk=vehicle.pk).status == Vehicle.Status.IDLE
+
+
+def test_session_revoke_refuses_an_unknown_action(deployed):
+    session, *_ = deployed
+    with pytest.raises(ValueError, match="action"):
+        session_revoke(session=session, reason="x", action="explode")
+    session.refresh_from_db()
+    assert session.state == Session.State.ASSIGNED
+
+
+# --- the signing key --------------------------------------------------------------------
+
+
+def test_a_dev_key_is_generated_once_with_mode_0600(settings, tmp_path):
+    settings.IOUV_SIGNING_KEY = ""
+    settings.DEV_SECRETS = True
+    settings.IOUV_SIGNING_KEY_PATH = tmp_path / "keys" / "signing.pem"
+    pem = platform_public_key_pem()
+    assert (settings.IOUV_SIGNING_KEY_PATH.stat().st_mode & 0o777) == 0o600
+    platform_private_key.cache_clear()
+    assert platform_public_key_pem() == pem  # read back, not regenerated
+
+
+def test_the_configured_key_wins(settings, tmp_path):
+    private_pem, public_pem = generate_keypair()
+    settings.IOUV_SIGNING_KEY = private_pem
+    settings.IOUV_SIGNING_KEY_PATH = tmp_path / "unused.pem"
+    assert platform_public_key_pem() == public_pem
+    assert not settings.IOUV_SIGNING_KEY_PATH.exists()
+
+
+def test_no_key_outside_dev_is_a_configuration_error(settings, tmp_path):
+    settings.IOUV_SIGNING_KEY = ""
+    settings.DEV_SECRETS = False
+    settings.IOUV_SIGNING_KEY_PATH = tmp_path / "signing.pem"
+    with pytest.raises(ImproperlyConfigured, match="IOUV_SIGNING_KEY"):
+        platform_private_key()
+    settings.IOUV_SIGNING_KEY = "not a pem"
+    with pytest.raises(ImproperlyConfigured, match="IOUV_SIGNING_KEY"):
+        platform_private_key()

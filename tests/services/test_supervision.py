@@ -1,0 +1,457 @@
+"""Supervision: what agents report on the uplink, and the rules applied to it.
+
+Most tests publish agent messages exactly as the uplink does (``fleet.signals`` with a
+message from ``parse_message``); the last one drives the whole flow through a real
+uplink socket.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import uuid
+from datetime import UTC, datetime, timedelta
+
+import pytest
+import time_machine
+from asgiref.sync import async_to_sync
+from channels.db import database_sync_to_async
+from channels.layers import get_channel_layer
+from channels.testing import WebsocketCommunicator
+from django.conf import settings
+from django.db import connections
+from django.utils import timezone
+
+from agents.protocol import VehicleTask, parse_message
+from fleet.credentials import vehicle_issue_credential
+from fleet.models import Vehicle
+from fleet.signals import agent_connected, agent_disconnected, agent_message
+from fleet.uplink import vehicle_group
+from iouv.asgi import application
+from services.assignment import session_request
+from services.deployment import session_deploy, session_end
+from services.models import Session
+from services.signing import platform_public_key
+from services.supervision import (
+    LINK_QUALITY_EVERY_S,
+    sessions_expire_grace,
+    sessions_expire_time_limit,
+    sessions_expire_undelivered,
+)
+from tests import factories as f
+
+pytestmark = pytest.mark.django_db
+
+
+@pytest.fixture
+def committing(django_capture_on_commit_callbacks):
+    """A block whose on-commit work (the pushes to agents) runs, as after a real commit."""
+    return lambda: django_capture_on_commit_callbacks(execute=True)
+
+
+@pytest.fixture
+def inbox():
+    """``listen(vehicle)`` -> ``take(n)``: the next n messages sent to that vehicle's agent."""
+    layer = get_channel_layer()
+
+    def listen(vehicle):
+        name = async_to_sync(layer.new_channel)()
+        async_to_sync(layer.group_add)(vehicle_group(vehicle.pk), name)
+
+        def take(n=1):
+            async def receive():
+                return [await asyncio.wait_for(layer.receive(name), 5) for _ in range(n)]
+
+            return [e["message"] for e in async_to_sync(receive)()]
+
+        return take
+
+    return listen
+
+
+@pytest.fixture
+def live(inbox, committing):
+    """(session, vehicle, take) for a deployed session of a service that lands on
+    fail-safe, with the vehicle's agent messages readable through ``take``."""
+    vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type())
+    take = inbox(vehicle)
+    service = f.service(allowed_commands=["up"], failsafe_action="land")
+    session = session_request(user=f.user(username="alice"), service=service)
+    with committing():
+        session_deploy(session=session)
+    assert take()[0]["type"] == "task"
+    return session, vehicle, take
+
+
+def say(vehicle, msg, *, signal=agent_message):
+    """Publish ``msg`` from ``vehicle``'s agent as the uplink does."""
+    message = parse_message(json.dumps(msg), channel="uplink_to_platform")
+    signal.send(sender=None, vehicle_id=str(vehicle.pk), message=message)
+
+
+def event(session, which, /, **data):
+    return {"type": "event", "session_id": str(session.pk), "event": which, "data": data}
+
+
+def kinds(session):
+    return list(session.events.order_by("seq").values_list("kind", flat=True))
+
+
+def state(session):
+    session.refresh_from_db()
+    return session.state
+
+
+def status(vehicle):
+    return Vehicle.objects.get(pk=vehicle.pk).status
+
+
+# --- tasks ------------------------------------------------------------------------------
+
+
+def test_task_accepted_is_logged(live):
+    session, vehicle, _ = live
+    say(vehicle, {"type": "task_accepted", "session_id": str(session.pk)})
+    assert session.events.get(kind="task_accepted").data == {"vehicle": str(vehicle.pk)}
+
+
+def test_task_refused_fails_the_session_with_the_agents_reason(live, committing):
+    session, vehicle, take = live
+    with committing():
+        say(
+            vehicle,
+            {
+                "type": "task_refused",
+                "session_id": str(session.pk),
+                "code": "expired",
+                "reason": "task arrived after its deadline",
+            },
+        )
+    assert state(session) == Session.State.FAILED
+    assert "task arrived after its deadline (expired)" in session.reason
+    assert take()[0]["type"] == "end_task"
+    assert status(vehicle) == Vehicle.Status.IDLE
+
+
+def test_late_task_accepted_for_an_ended_session_is_told_to_end(live, committing):
+    session, vehicle, take = live
+    with committing():
+        session_end(session=session, reason="user left", by_user=True)
+    take()
+    with committing():
+        say(vehicle, {"type": "task_accepted", "session_id": str(session.pk)})
+    assert take() == [{"type": "end_task", "session_id": str(session.pk), "reason": "user left"}]
+
+
+def test_a_task_never_accepted_fails_the_session_after_its_deadline(live):
+    session, vehicle, _ = live
+    deadline = session.events.get(kind="task_deployed").data["exp"]
+    at = datetime.fromtimestamp(deadline, tz=UTC)
+    assert sessions_expire_undelivered(now=at) == []  # not late yet
+    # The agent could not read it and refused with a null session id: nobody can tell.
+    say(
+        vehicle, {"type": "task_refused", "session_id": None, "code": "bad_signature", "reason": ""}
+    )
+    assert sessions_expire_undelivered(now=at + timedelta(seconds=5)) == [str(session.pk)]
+    assert state(session) == Session.State.FAILED
+    assert session.reason == f"vehicle {vehicle.name} did not accept its task in time"
+    assert status(vehicle) == Vehicle.Status.IDLE
+
+
+def test_an_accepted_task_is_not_undelivered(live):
+    session, vehicle, _ = live
+    say(vehicle, {"type": "task_accepted", "session_id": str(session.pk)})
+    later = timezone.now() + timedelta(days=1)
+    assert sessions_expire_undelivered(now=later) == []
+    assert state(session) == Session.State.ASSIGNED
+
+
+# --- users ------------------------------------------------------------------------------
+
+
+def test_user_connected_activates_the_session(live):
+    session, vehicle, _ = live
+    say(vehicle, event(session, "user_connected", user="alice", role="controller"))
+    assert state(session) == Session.State.ACTIVE and session.started_at
+    assert status(vehicle) == Vehicle.Status.IN_SERVICE
+    assert session.events.get(kind="user_connected").data["user"] == "alice"
+    say(vehicle, event(session, "user_disconnected", user="alice"))
+    assert kinds(session)[-1] == "user_disconnected"
+
+
+def test_a_viewer_connecting_does_not_activate(live):
+    session, vehicle, _ = live
+    say(vehicle, event(session, "user_connected", user="bob", role="viewer"))
+    assert state(session) == Session.State.ASSIGNED
+    assert "user_connected" in kinds(session)
+
+
+# --- unsafe behaviour -------------------------------------------------------------------
+
+
+def test_repeated_unsafe_refusals_revoke(live, committing):
+    session, vehicle, take = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    for code in ["not_allowed", "bad_args"] * 3:  # refused, but not unsafe
+        say(vehicle, event(session, "command_refused", name="up", code=code))
+    for code in ["altitude_limit", "geofence", "latency", "obstacle", "geofence"]:
+        say(vehicle, event(session, "command_refused", name="up", code=code))
+    assert state(session) == Session.State.ACTIVE  # five is the most tolerated
+    with committing():
+        say(vehicle, event(session, "command_refused", name="up", code="altitude_limit"))
+    assert state(session) == Session.State.ABORTED
+    assert session.reason == "repeated unsafe commands"
+    assert take() == [
+        {
+            "type": "revoke",
+            "session_id": str(session.pk),
+            "reason": "repeated unsafe commands",
+            "action": "land",
+        }
+    ]
+
+
+def test_unsafe_refusals_spread_out_are_tolerated(live):
+    session, vehicle, _ = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    start = timezone.now()
+    window = settings.IOUV_UNSAFE_REFUSALS_WINDOW_S
+    for i in range(12):
+        with time_machine.travel(start + timedelta(seconds=i * window / 4), tick=False):
+            say(vehicle, event(session, "command_refused", name="up", code="geofence"))
+    assert state(session) == Session.State.ACTIVE
+
+
+# --- fail-safe and the reconnection grace -----------------------------------------------
+
+
+def test_failsafe_logs_an_unintentional_end_then_the_grace_ends_the_session(live, committing):
+    session, vehicle, take = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    say(vehicle, event(session, "failsafe", cause="link_lost", action="land"))
+    logged = session.events.get(kind="unintentional_end")
+    assert logged.data == {"vehicle": str(vehicle.pk), "cause": "link_lost", "action": "land"}
+    assert status(vehicle) == Vehicle.Status.FAILSAFE
+    assert state(session) == Session.State.ACTIVE
+
+    grace = settings.IOUV_RECONNECT_GRACE_S
+    assert sessions_expire_grace(now=logged.created_at + timedelta(seconds=grace - 1)) == []
+    with committing():
+        ended = sessions_expire_grace(now=logged.created_at + timedelta(seconds=grace + 1))
+    assert ended == [str(session.pk)]
+    assert state(session) == Session.State.ENDED
+    assert session.reason == "unintentional end: link_lost, vehicle performed land"
+    assert take()[0]["type"] == "end_task"
+    assert status(vehicle) == Vehicle.Status.IDLE
+    assert sessions_expire_grace(now=logged.created_at + timedelta(seconds=grace + 99)) == []
+
+
+def test_reconnecting_within_the_grace_keeps_the_session(live):
+    session, vehicle, _ = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    say(vehicle, event(session, "failsafe", cause="link_lost", action="land"))
+    say(vehicle, event(session, "user_connected", role="controller"))
+    later = timezone.now() + timedelta(seconds=settings.IOUV_RECONNECT_GRACE_S + 60)
+    assert sessions_expire_grace(now=later) == []
+    assert state(session) == Session.State.ACTIVE
+    assert status(vehicle) == Vehicle.Status.IN_SERVICE
+
+
+def test_a_viewer_reconnecting_does_not_stop_the_grace(live):
+    session, vehicle, _ = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    say(vehicle, event(session, "failsafe", cause="link_lost", action="stop"))
+    say(vehicle, event(session, "user_connected", role="viewer"))
+    later = timezone.now() + timedelta(seconds=settings.IOUV_RECONNECT_GRACE_S + 1)
+    assert sessions_expire_grace(now=later) == [str(session.pk)]
+
+
+# --- time limit -------------------------------------------------------------------------
+
+
+def test_time_limit_revokes(inbox, committing):
+    vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type())
+    take = inbox(vehicle)
+    service = f.service(session_time_limit_s=60, failsafe_action="return_to_home")
+    session = session_request(user=f.user(), service=service)
+    with committing():
+        session_deploy(session=session)
+    take()
+    say(vehicle, event(session, "user_connected", role="controller"))
+    started = Session.objects.get(pk=session.pk).started_at
+    assert sessions_expire_time_limit(now=started + timedelta(seconds=59)) == []
+    with committing():
+        revoked = sessions_expire_time_limit(now=started + timedelta(seconds=61))
+    assert revoked == [str(session.pk)]
+    assert state(session) == Session.State.ABORTED and session.reason == "time limit reached"
+    assert take()[0] == {
+        "type": "revoke",
+        "session_id": str(session.pk),
+        "reason": "time limit reached",
+        "action": "return_to_home",
+    }
+
+
+def test_sessions_without_a_time_limit_run_on(live):
+    session, vehicle, _ = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    assert sessions_expire_time_limit(now=timezone.now() + timedelta(days=1)) == []
+
+
+# --- who may report what ----------------------------------------------------------------
+
+
+def test_reports_on_other_sessions_are_ignored(live, caplog):
+    session, vehicle, _ = live
+    stranger = f.vehicle(station=f.station(), vtype=f.vehicle_type())
+    before = kinds(session)
+    say(stranger, event(session, "user_connected", role="controller"))
+    say(stranger, event(session, "failsafe", cause="link_lost", action="land"))
+    say(
+        stranger,
+        {"type": "task_refused", "session_id": str(session.pk), "code": "busy", "reason": ""},
+    )
+    assert kinds(session) == before and state(session) == Session.State.ASSIGNED
+    assert status(stranger) == Vehicle.Status.IDLE
+    assert "not assigned to" in caplog.text
+
+    say(
+        vehicle,
+        event(session, "user_connected", role="controller") | {"session_id": str(uuid.uuid4())},
+    )
+    say(vehicle, event(session, "user_connected") | {"session_id": "not-a-uuid"})
+    say(vehicle, {"type": "event", "session_id": None, "event": "boot", "data": {}})
+    say(vehicle, {"type": "task_refused", "code": "bad_token", "reason": "unreadable"})
+    assert kinds(session) == before and state(session) == Session.State.ASSIGNED
+    assert "unknown session" in caplog.text
+
+
+def test_link_quality_is_sampled(live):
+    session, vehicle, _ = live
+    start = timezone.now()
+    for offset in (0, 1, 5, LINK_QUALITY_EVERY_S + 1):
+        with time_machine.travel(start + timedelta(seconds=offset), tick=False):
+            say(vehicle, event(session, "link_quality", rtt_ms=100 + offset))
+    logged = session.events.filter(kind="link_quality").order_by("seq")
+    assert [e.data["rtt_ms"] for e in logged] == [100, 100 + LINK_QUALITY_EVERY_S + 1]
+
+
+def test_other_events_are_logged(live):
+    session, vehicle, _ = live
+    say(vehicle, event(session, "task_ended", reason="revoked"))
+    say(vehicle, event(session, "speed_limited", factor=0.5))
+    assert kinds(session)[-2:] == ["task_ended", "agent_event"]
+    assert session.events.last().data == {
+        "vehicle": str(vehicle.pk),
+        "event": "speed_limited",
+        "data": {"factor": 0.5},
+    }
+
+
+# --- agents coming and going ------------------------------------------------------------
+
+
+def test_uplink_loss_and_return_during_a_session(live, committing):
+    session, vehicle, take = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.OFFLINE)
+    agent_disconnected.send(sender=None, vehicle_id=str(vehicle.pk), code=1006)
+    assert session.events.last().kind == "vehicle_offline"
+
+    # Back: the uplink's profile made it idle; supervision puts it back in service and
+    # sends a fresh task (new nonce), since a restarted agent lost the old one.
+    Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.IDLE)
+    with committing():
+        agent_connected.send(sender=None, vehicle_id=str(vehicle.pk))
+    assert "vehicle_online" in kinds(session)
+    assert status(vehicle) == Vehicle.Status.IN_SERVICE
+    (message,) = take()
+    task = VehicleTask.verify(message["token"], platform_public_key(), vehicle_id=str(vehicle.pk))
+    nonces = [e.data["nonce"] for e in session.events.filter(kind="task_deployed")]
+    assert len(nonces) == 2 and task.nonce == nonces[-1] != nonces[0]
+
+
+def test_an_idle_vehicle_coming_online_is_left_alone():
+    vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type())
+    agent_connected.send(sender=None, vehicle_id=str(vehicle.pk))
+    agent_disconnected.send(sender=None, vehicle_id=str(vehicle.pk), code=1000)
+    assert status(vehicle) == Vehicle.Status.IDLE
+
+
+# --- the whole flow over a real uplink --------------------------------------------------
+
+
+@pytest.fixture
+async def _close_worker_connections():
+    yield
+    await database_sync_to_async(connections.close_all)()
+
+
+@pytest.mark.django_db(transaction=True)
+async def test_agent_flow_over_the_uplink(_close_worker_connections):
+    @database_sync_to_async
+    def enrol():
+        vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type(), online=False)
+        return vehicle, vehicle_issue_credential(vehicle=vehicle)
+
+    vehicle, credential = await enrol()
+    agent = WebsocketCommunicator(application, "/ws/agent/")
+    assert (await agent.connect())[0]
+    await agent.send_json_to(
+        {"type": "hello", "v": 1, "vehicle_id": str(vehicle.pk), "credential": credential}
+    )
+    assert (await agent.receive_json_from(timeout=5))["type"] == "welcome"
+    await agent.send_json_to(
+        {
+            "type": "profile",
+            "vehicle_type": "drone",
+            "adapter": "sim",
+            "attributes": {},
+            "commands": [{"name": "up", "args": {}}],
+            "telemetry": ["battery"],
+            "control_url": "ws://127.0.0.1:9000/",
+            "video": False,
+            "position": None,
+            "battery": 95,
+        }
+    )
+    for _ in range(250):
+        if await database_sync_to_async(status)(vehicle) == Vehicle.Status.IDLE:
+            break
+        await asyncio.sleep(0.02)
+
+    @database_sync_to_async
+    def request():
+        service = f.service(allowed_commands=["up"])
+        session = session_request(user=f.user(username="carol"), service=service)
+        return session, session_deploy(session=session)
+
+    session, user_task = await request()
+    assert user_task.control_url == "ws://127.0.0.1:9000/"
+    message = await agent.receive_json_from(timeout=5)
+    task = VehicleTask.verify(message["token"], platform_public_key(), vehicle_id=str(vehicle.pk))
+    assert task.session_id == str(session.pk) and task.user == "carol"
+
+    await agent.send_json_to({"type": "task_accepted", "session_id": str(session.pk)})
+    await agent.send_json_to(event(session, "user_connected", user="carol", role="controller"))
+    for _ in range(250):
+        if await database_sync_to_async(state)(session) == Session.State.ACTIVE:
+            break
+        await asyncio.sleep(0.02)
+    assert await database_sync_to_async(status)(vehicle) == Vehicle.Status.IN_SERVICE
+
+    await database_sync_to_async(session_end)(session=session, reason="user left", by_user=True)
+    assert await agent.receive_json_from(timeout=5) == {
+        "type": "end_task",
+        "session_id": str(session.pk),
+        "reason": "user left",
+    }
+    await agent.send_json_to(event(session, "task_ended"))
+    await agent.disconnect()
+    for _ in range(250):
+        if await database_sync_to_async(status)(vehicle) == Vehicle.Status.OFFLINE:
+            break
+        await asyncio.sleep(0.02)
+    logged = await database_sync_to_async(kinds)(session)
+    assert "task_accepted" in logged and logged[-1] == "task_ended"
+    assert await database_sync_to_async(status)(vehicle) == Vehicle.Status.OFFLINE
