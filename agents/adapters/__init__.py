@@ -7,6 +7,7 @@ from agents.adapters.base import (
     CommandSpec,
     Projection,
     VehicleState,
+    adapter_class,
     adapter_create,
     register,
 )
@@ -18,6 +19,7 @@ __all__ = [
     "CommandSpec",
     "Projection",
     "VehicleState",
+    "adapter_class",
     "adapter_create",
     "register",
 ]

@@ -185,8 +185,8 @@ def register(cls: type[Adapter]) -> type[Adapter]:
     return cls
 
 
-def adapter_create(name: str, options: Mapping[str, Any]) -> Adapter:
-    """Instantiate the adapter registered as ``name``.
+def adapter_class(name: str) -> type[Adapter]:
+    """The adapter class registered as ``name``.
 
     Adapter modules are imported on demand so an agent only loads its own vehicle's
     libraries (no pymavlink on a car). Raises KeyError naming the known adapters.
@@ -201,4 +201,9 @@ def adapter_create(name: str, options: Mapping[str, Any]) -> Adapter:
                 raise
     if name not in REGISTRY:
         raise KeyError(f"unknown adapter {name!r}; known: {', '.join(sorted(REGISTRY))}")
-    return REGISTRY[name](options)
+    return REGISTRY[name]
+
+
+def adapter_create(name: str, options: Mapping[str, Any]) -> Adapter:
+    """Instantiate the adapter registered as ``name`` (see :func:`adapter_class`)."""
+    return adapter_class(name)(options)

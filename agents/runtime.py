@@ -1,0 +1,209 @@
+"""The agent program: one vehicle's adapter, control server, video and uplink."""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import contextlib
+import json
+import logging
+from typing import Any
+
+from agents.adapters.base import Adapter, adapter_create
+from agents.config import AgentConfig
+from agents.control import ControlHub, ControlServer
+from agents.protocol import (
+    ProtocolError,
+    ReplayGuard,
+    VehicleTask,
+    load_public_key,
+)
+from agents.safety import Refusal
+from agents.uplink import Uplink
+
+log = logging.getLogger(__name__)
+
+
+class Agent:
+    """Runs one vehicle until cancelled; see ``python -m agents run --help``.
+
+    After :meth:`run` has started, :attr:`ready` is set once the control server listens
+    (its URL in :attr:`control_url`); :attr:`uplink` tells whether the platform is
+    connected.
+    """
+
+    def __init__(self, config: AgentConfig, *, adapter: Adapter | None = None) -> None:
+        self.config = config
+        self.public_key = load_public_key(config.platform_public_key)
+        self.adapter = adapter or adapter_create(config.adapter, config.adapter_options)
+        self.tasks_seen = ReplayGuard()
+        self.ready = asyncio.Event()
+        self.control_url = ""
+        self.hub: ControlHub | None = None
+        self.uplink: Uplink | None = None
+        self.video: Any | None = None
+
+    async def run(self) -> None:
+        """Start everything, serve until cancelled, then leave the vehicle safe."""
+        async with contextlib.AsyncExitStack() as stack:
+            await stack.enter_async_context(self.adapter)
+            if self.config.video is not None:
+                self.video = await stack.enter_async_context(self._video_service())
+            hub = ControlHub(
+                vehicle_id=self.config.vehicle_id,
+                vehicle_name=self.config.name,
+                public_key=self.public_key,
+                adapter=self.adapter,
+                report=self.report,
+                video=self.video,
+            )
+            self.hub = await stack.enter_async_context(hub)
+            server = await stack.enter_async_context(
+                ControlServer(hub, host=self.config.control.host, port=self.config.control.port)
+            )
+            self.control_url = (
+                self.config.control.public_url or f"ws://{self.config.control.host}:{server.port}/"
+            )
+            self.uplink = Uplink(
+                url=self.config.uplink_url,
+                vehicle_id=self.config.vehicle_id,
+                credential=self.config.credential,
+                on_message=self.on_platform_message,
+                profile=self.profile,
+                heartbeat=self.heartbeat,
+                reconnect_min_s=self.config.reconnect_min_s,
+                reconnect_max_s=self.config.reconnect_max_s,
+            )
+            self.ready.set()
+            log.info(
+                "%s: control on %s", self.config.name or self.config.vehicle_id, self.control_url
+            )
+            await self.uplink.run()
+
+    def _video_service(self) -> Any:
+        # Imported here: aiortc and av are only loaded by agents with a camera.
+        from agents.video import video_service_create
+
+        return video_service_create(self.config.video or {}, pose=self._camera_pose)
+
+    def _camera_pose(self) -> dict[str, Any]:
+        """Where the camera is and looks, for the synthetic camera."""
+        state = self.adapter.state()
+        telemetry = self.adapter.telemetry()
+        return {
+            "lat": state.lat,
+            "lon": state.lon,
+            "alt": state.alt,
+            "heading_deg": state.heading_deg,
+            "pan_deg": telemetry.get("camera_pan"),
+            "tilt_deg": telemetry.get("camera_tilt"),
+        }
+
+    # --- what the platform hears ---------------------------------------------------------
+    def profile(self) -> dict[str, Any]:
+        state = self.adapter.state()
+        return {
+            "type": "profile",
+            "vehicle_type": str(self.config.adapter_options.get("vehicle_type", self.adapter.name)),
+            "adapter": self.adapter.name,
+            "attributes": dict(self.config.adapter_options.get("attributes", {})),
+            "commands": [c.to_profile() for c in self.adapter.commands()],
+            "telemetry": self.adapter.telemetry_topics(),
+            "control_url": self.control_url,
+            "video": self.video is not None,
+            "position": self._position(),
+            "battery": state.battery,
+        }
+
+    def heartbeat(self) -> dict[str, Any]:
+        hub = self.hub
+        status = "idle"
+        if hub is not None and hub.task is not None:
+            status = "in_service"
+        return {
+            "type": "heartbeat",
+            "position": self._position(),
+            "battery": self.adapter.state().battery,
+            "status": status,
+        }
+
+    def _position(self) -> dict[str, float] | None:
+        state = self.adapter.state()
+        if state.lat is None or state.lon is None:
+            return None
+        pos = {"lat": state.lat, "lon": state.lon}
+        if state.alt is not None:
+            pos["alt"] = state.alt
+        return pos
+
+    def report(self, event: str, session_id: str | None, data: dict[str, Any]) -> None:
+        """Tell the platform about a session event (queued while it is unreachable)."""
+        if self.uplink is not None:
+            self.uplink.send(
+                {"type": "event", "session_id": session_id, "event": event, "data": data}
+            )
+
+    # --- what the platform says ----------------------------------------------------------
+    async def on_platform_message(self, msg: dict[str, Any]) -> None:
+        kind = msg["type"]
+        hub = self.hub
+        assert hub is not None and self.uplink is not None
+        if kind == "task":
+            self._task(msg["token"])
+        elif kind == "revoke":
+            await hub.task_end(msg["session_id"], reason=msg["reason"], action=msg["action"])
+        elif kind == "end_task":
+            await hub.task_end(msg["session_id"], reason=msg["reason"], action=None)
+        elif kind == "error":
+            log.warning("platform error %s: %s", msg["code"], msg["message"])
+        else:
+            log.info("ignored platform message %s", kind)
+
+    def _task(self, token: str) -> None:
+        assert self.hub is not None and self.uplink is not None
+        try:
+            task = VehicleTask.verify(
+                token,
+                self.public_key,
+                vehicle_id=self.config.vehicle_id,
+                replay_guard=self.tasks_seen,
+            )
+            self.hub.task_accept(task)
+        except (ProtocolError, Refusal) as exc:
+            log.warning("refused a task: %s", exc)
+            self.uplink.send(
+                {
+                    "type": "task_refused",
+                    "session_id": _claimed_session(token),
+                    "code": getattr(exc, "code", "refused"),
+                    "reason": str(exc),
+                }
+            )
+            return
+        self.uplink.send({"type": "task_accepted", "session_id": task.session_id})
+
+
+def _claimed_session(token: str) -> str | None:
+    """The session a refused token claims to be for, so the platform can tell which
+    session failed. Unverified: used only to label the refusal."""
+    try:
+        payload = json.loads(base64.urlsafe_b64decode(token.split(".")[0] + "=="))
+        session = payload.get("session_id")
+    except (ValueError, AttributeError, TypeError):
+        return None
+    return session if isinstance(session, str) and 0 < len(session) <= 100 else None
+
+
+async def agent_run(config: AgentConfig) -> None:
+    """Run one agent until cancelled (Ctrl-C)."""
+    await Agent(config).run()
+
+
+def agents_run_forever(configs: list[AgentConfig]) -> None:
+    """Run several agents in one process (simulated fleets) until interrupted."""
+
+    async def main() -> None:
+        await asyncio.gather(*(Agent(c).run() for c in configs))
+
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(main())

@@ -1,0 +1,720 @@
+"""Behaviour tests for agents.video: sources, the shared encoder, WebRTC to aiortc peers
+and to headless Chromium, the MJPEG reader.
+
+Everything runs on 127.0.0.1: the VideoService and the test's peers offer only loopback
+ICE candidates, Chromium gets the loopback flags from tests/browser.py.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import json
+import statistics
+import time
+from collections.abc import AsyncIterator, Callable
+from fractions import Fraction
+from http import HTTPStatus
+from typing import Any
+
+import av
+import numpy as np
+import pytest
+from aiortc import RTCConfiguration, RTCPeerConnection, RTCRtpReceiver, RTCSessionDescription
+from aiortc.codecs import vpx
+
+from agents.video import (
+    CameraPose,
+    FrameCode,
+    MjpegCamera,
+    SyntheticCamera,
+    V4L2Camera,
+    VideoError,
+    VideoService,
+    read_frame_code,
+    restrict_ice_host_addresses,
+    stamp_frame_code,
+    video_service_create,
+    video_source_create,
+)
+from tests.browser import chromium_browser, needs_chromium
+
+LOOPBACK = ["127.0.0.1"]
+
+
+# --------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------
+
+
+class CountingSource:
+    """A SyntheticCamera that counts how often it is polled and closed."""
+
+    def __init__(self, fps: float = 30.0) -> None:
+        self.camera = SyntheticCamera(320, 240, fps=fps)
+        self.polls = 0
+        self.closes = 0
+
+    async def frame(self) -> av.VideoFrame:
+        self.polls += 1
+        return await self.camera.frame()
+
+    async def close(self) -> None:
+        self.closes += 1
+        await self.camera.close()
+
+
+class Viewer:
+    """An aiortc receiving peer, signalled by direct calls to a VideoService."""
+
+    def __init__(self, service: VideoService, peer_id: str) -> None:
+        self.service, self.peer_id = service, peer_id
+        self.pc = RTCPeerConnection(RTCConfiguration(iceServers=[]))
+        self._track: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+
+        @self.pc.on("track")
+        def on_track(track: Any) -> None:
+            if not self._track.done():
+                self._track.set_result(track)
+
+    async def connect(self, flow: str = "agent") -> None:
+        """Agent-offers flow (offer/answer) or browser-offers flow (accept_offer)."""
+        if flow == "agent":
+            offer = await self.service.offer(self.peer_id)
+            await self.pc.setRemoteDescription(RTCSessionDescription(offer, "offer"))
+            with restrict_ice_host_addresses(LOOPBACK):
+                await self.pc.setLocalDescription(await self.pc.createAnswer())
+            await self.service.answer(self.peer_id, self.pc.localDescription.sdp)
+        else:
+            self.pc.addTransceiver("video", direction="recvonly")
+            with restrict_ice_host_addresses(LOOPBACK):
+                await self.pc.setLocalDescription(await self.pc.createOffer())
+            answer = await self.service.accept_offer(self.peer_id, self.pc.localDescription.sdp)
+            await self.pc.setRemoteDescription(RTCSessionDescription(answer, "answer"))
+
+    async def codes(self, n: int, limit_s: float = 15.0) -> list[FrameCode]:
+        """Decode ``n`` frames and read their stamped codes (a frame whose code does not
+        survive the encoding fails the test)."""
+        track = await asyncio.wait_for(asyncio.shield(self._track), limit_s)
+        out = []
+        for _ in range(n):
+            frame = await asyncio.wait_for(track.recv(), limit_s)
+            code = read_frame_code(frame.to_ndarray(format="rgb24"))
+            assert code is not None, "frame code unreadable after VP8 round trip"
+            out.append(code)
+        return out
+
+    async def close(self) -> None:
+        await self.pc.close()
+
+
+@contextlib.asynccontextmanager
+async def viewer(service: VideoService, peer_id: str, flow: str = "agent") -> AsyncIterator[Viewer]:
+    v = Viewer(service, peer_id)
+    try:
+        await v.connect(flow)
+        yield v
+    finally:
+        await v.close()
+
+
+def service(**options: Any) -> VideoService:
+    """A loopback VideoService over a small, fast synthetic camera."""
+    return VideoService(SyntheticCamera(320, 240, fps=30), ice_host_addresses=LOOPBACK, **options)
+
+
+def increasing(counters: list[int]) -> bool:
+    return all(b > a for a, b in itertools.pairwise(counters))
+
+
+async def wait_until(cond: Callable[[], bool], limit_s: float = 5.0) -> None:
+    deadline = time.monotonic() + limit_s
+    while not cond():
+        assert time.monotonic() < deadline, "condition not met in time"
+        await asyncio.sleep(0.02)
+
+
+# --------------------------------------------------------------------------------------
+# frame code and synthetic scene
+# --------------------------------------------------------------------------------------
+
+
+def test_frame_code_round_trips_and_detects_damage() -> None:
+    img = np.full((240, 320, 3), 90, dtype=np.uint8)
+    stamp_frame_code(img, 123_456, 1_795_000_000_123)
+    assert read_frame_code(img) == FrameCode(123_456, 1_795_000_000_123)
+    img[2:4, :40] = 255 - img[2:4, :40]  # flip the first blocks' centres
+    assert read_frame_code(img) is None
+    assert read_frame_code(np.zeros((240, 320, 3), dtype=np.uint8)) is None
+
+
+def test_synthetic_camera_draws_in_under_10_ms() -> None:
+    cam = SyntheticCamera(640, 480)
+    pose = CameraPose(lat=43.7, lon=7.25, heading_deg=30, obstacles=[(43.70003, 7.25, 1, 2)])
+    times = []
+    for i in range(20):
+        t = time.perf_counter()
+        img = cam.render(pose, i, 1_795_000_000_000 + i)
+        times.append(time.perf_counter() - t)
+    assert img.shape == (480, 640, 3) and img.dtype == np.uint8
+    assert read_frame_code(img) == FrameCode(19, 1_795_000_000_019)
+    # The fastest run measures the code, not the machine's load; the median guards
+    # against something pathological.
+    assert min(times) < 0.010, f"render takes {min(times) * 1000:.1f} ms"
+    assert statistics.median(times) < 0.030
+
+
+def test_synthetic_scene_follows_heading_and_position() -> None:
+    cam = SyntheticCamera(320, 240)
+    base = CameraPose(lat=43.7, lon=7.25, heading_deg=0)
+    a = cam.render(base, 0, 0)
+    sky, ground = slice(20, 110), slice(140, 200)  # above/below the horizon at row 120
+    turned = cam.render(CameraPose(lat=43.7, lon=7.25, heading_deg=40), 0, 0)
+    moved = cam.render(CameraPose(lat=43.70001, lon=7.25, heading_deg=0), 0, 0)  # 1.1 m N
+    again = cam.render(base, 0, 0)
+    assert np.array_equal(a, again)
+    assert not np.array_equal(a[sky], turned[sky])  # mountains slide with heading
+    assert np.array_equal(a[sky], moved[sky])  # the sky does not move with position
+    assert not np.array_equal(a[ground], moved[ground])  # the grid does
+    looking_down = cam.render(CameraPose(lat=43.7, lon=7.25, tilt_deg=-20), 0, 0)
+    # looking down raises the horizon: more ground (green dominant) at row 100
+    assert looking_down[100, 100, 1] > looking_down[100, 100, 2]
+    assert a[100, 100, 2] > a[100, 100, 1]  # level: row 100 is sky (blue dominant)
+
+
+def test_camera_pose_accepts_mappings_and_state_objects() -> None:
+    class State:
+        lat, lon, alt, heading_deg = 1.0, 2.0, None, 90.0
+
+    assert CameraPose.coerce(State()) == CameraPose(lat=1.0, lon=2.0, heading_deg=90.0)
+    pose = CameraPose.coerce({"lat": 1, "heading": 10, "obstacles": [(1, 2, 3, 4)]})
+    assert pose.heading_deg == 10 and pose.obstacles == ((1.0, 2.0, 3.0, 4.0),)
+
+
+async def test_synthetic_camera_paces_at_fps() -> None:
+    cam = SyntheticCamera(320, 240, fps=20)
+    t = time.monotonic()
+    frames = [await cam.frame() for _ in range(11)]
+    elapsed = time.monotonic() - t
+    assert 0.45 < elapsed < 1.0  # 10 periods of 50 ms
+    assert [read_frame_code(f.to_ndarray(format="rgb24")).counter for f in frames] == list(  # type: ignore[union-attr]
+        range(11)
+    )
+
+
+def test_video_source_create() -> None:
+    assert isinstance(video_source_create({"source": "synthetic", "fps": 10}), SyntheticCamera)
+    v4l2 = video_source_create({"source": "v4l2", "device": "/dev/video9", "input_format": "mjpeg"})
+    assert isinstance(v4l2, V4L2Camera) and v4l2.options["input_format"] == "mjpeg"
+    mjpeg = video_source_create({"source": "mjpeg", "url": "http://192.168.4.1:81/stream"})
+    assert isinstance(mjpeg, MjpegCamera)
+    with pytest.raises(VideoError, match="unknown video source"):
+        video_source_create({"source": "kinect"})
+    with pytest.raises(VideoError, match="colour"):
+        video_source_create({"source": "synthetic", "colour": "red"})
+    with pytest.raises(VideoError, match="url"):
+        video_source_create({"source": "mjpeg"})
+    with pytest.raises(VideoError, match="fps"):
+        video_source_create({"source": "synthetic", "fps": 0})
+
+
+async def test_video_service_create_splits_source_and_service_options() -> None:
+    config = {
+        "source": "synthetic",
+        "fps": 10,
+        "ice_servers": "stun:stun.example.org:3478",  # a lone server is a list of one
+        "ice_host_addresses": ["127.0.0.1"],
+        "max_peers": 3,
+    }
+    assert isinstance(video_source_create(config), SyntheticCamera)
+    async with video_service_create(config) as svc:
+        assert svc.max_peers == 3
+        assert isinstance(svc.encoder.source, SyntheticCamera)
+        assert svc.encoder.source.fps == 10
+        assert [server.urls for server in svc.ice_servers] == ["stun:stun.example.org:3478"]
+    with pytest.raises(VideoError, match="urls"):
+        video_service_create({"ice_servers": [{"username": "u"}]})
+
+
+async def test_v4l2_camera_without_device_raises_video_error() -> None:
+    cam = V4L2Camera("/dev/iouv-no-such-camera")
+    with pytest.raises(VideoError, match="cannot open camera"):
+        await cam.frame()
+    await cam.close()
+
+
+# --------------------------------------------------------------------------------------
+# WebRTC to aiortc peers
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("flow", ["agent", "browser"])
+async def test_viewer_receives_frames_with_increasing_counter(flow: str) -> None:
+    async with service() as svc:
+        async with viewer(svc, "v1", flow) as v:
+            codes = await v.codes(10)
+        assert increasing([c.counter for c in codes])
+        assert all(abs(c.ts_ms - time.time() * 1000) < 10_000 for c in codes)
+        assert svc.peer_count == 1
+
+
+async def test_two_viewers_share_one_encoder(monkeypatch: pytest.MonkeyPatch) -> None:
+    # aiortc's own per-sender encoder must never run: the senders only packetise.
+    def per_sender_encode(*args: Any, **kwargs: Any) -> Any:
+        raise AssertionError("aiortc encoded a frame per viewer")
+
+    monkeypatch.setattr(vpx.Vp8Encoder, "encode", per_sender_encode)
+    async with service() as svc, viewer(svc, "a") as a, viewer(svc, "b") as b:
+        codes_a, codes_b = await asyncio.gather(a.codes(20), b.codes(20))
+        enc = svc.encoder
+        # Each source frame was encoded exactly once, for both viewers (one may be in
+        # the encoder right now).
+        assert enc.frames_captured - 1 <= enc.frames_encoded <= enc.frames_captured
+        seen = {c.counter for c in codes_a} & {c.counter for c in codes_b}
+        assert len(seen) >= 5  # the same frames reached both
+        assert increasing([c.counter for c in codes_a])
+        assert increasing([c.counter for c in codes_b])
+
+        # Hanging up one viewer leaves the other streaming.
+        await svc.close_peer("a")
+        assert svc.peer_count == 1
+        later = await b.codes(10)
+        assert later[0].counter > codes_b[-1].counter and increasing([c.counter for c in later])
+        assert enc.running
+
+
+async def test_picture_loss_from_a_viewer_forces_a_shared_keyframe() -> None:
+    async with service() as svc, viewer(svc, "a") as a:
+        await a.codes(3)
+        before = svc.encoder.keyframes
+        # What RTCRtpSender does on an RTCP PLI or FIR from this viewer:
+        (sender,) = svc._peers["a"].pc.getSenders()
+        sender._send_keyframe()
+        await a.codes(12)  # keyframes are at least 0.25 s apart; 12 frames is 0.4 s
+        assert svc.encoder.keyframes == before + 1
+
+
+async def test_no_viewer_means_no_capture() -> None:
+    source = CountingSource()
+    async with VideoService(source, ice_host_addresses=LOOPBACK) as svc:
+        await asyncio.sleep(0.3)
+        assert source.polls == 0
+        await svc.offer("pending")  # offered but never answered: still nothing to send
+        await asyncio.sleep(0.3)
+        assert source.polls == 0 and svc.peer_count == 1
+        await svc.close_peer("pending")
+
+        async with viewer(svc, "v") as v:
+            await v.codes(3)
+            assert source.polls >= 3
+            await svc.close_peer("v")
+        await wait_until(lambda: not svc.encoder.running)
+        polls = source.polls
+        assert source.closes >= 1  # the camera is released when the last viewer leaves
+        await asyncio.sleep(0.3)
+        assert source.polls == polls
+
+        # and capture starts again for the next viewer
+        async with viewer(svc, "w") as w:
+            assert increasing([c.counter for c in await w.codes(3)])
+
+
+async def test_bad_sdp_raises_video_error_and_others_keep_streaming() -> None:
+    async with service() as svc, viewer(svc, "good") as good:
+        await good.codes(2)
+        await svc.offer("bad")
+        with pytest.raises(VideoError, match="bad SDP answer"):
+            await svc.answer("bad", "garbage\r\nnot sdp at all")
+        assert svc.peer_count == 1  # the failed peer is dropped
+        with pytest.raises(VideoError, match="no video offer pending"):
+            await svc.answer("bad", "v=0")
+        with pytest.raises(VideoError, match="bad SDP offer"):
+            await svc.accept_offer("bad2", "garbage")
+        with pytest.raises(VideoError):
+            await svc.accept_offer("bad3", "")
+        assert svc.peer_count == 1
+        assert increasing([c.counter for c in await good.codes(5)])
+
+
+async def test_offer_without_vp8_is_refused() -> None:
+    async with VideoService(SyntheticCamera(320, 240), ice_host_addresses=LOOPBACK) as svc:
+        pc = RTCPeerConnection(RTCConfiguration(iceServers=[]))
+        try:
+            t = pc.addTransceiver("video", direction="recvonly")
+            h264 = [
+                c
+                for c in RTCRtpReceiver.getCapabilities("video").codecs
+                if c.mimeType == "video/H264"
+            ]
+            t.setCodecPreferences(h264)
+            with restrict_ice_host_addresses(LOOPBACK):
+                await pc.setLocalDescription(await pc.createOffer())
+            with pytest.raises(VideoError, match="VP8"):
+                await svc.accept_offer("h264-only", pc.localDescription.sdp)
+            assert svc.peer_count == 0
+        finally:
+            await pc.close()
+
+
+async def test_viewer_limit_and_replacing_a_peer() -> None:
+    async with VideoService(
+        SyntheticCamera(320, 240), max_peers=2, ice_host_addresses=LOOPBACK
+    ) as svc:
+        await svc.offer("a")
+        await svc.offer("b")
+        with pytest.raises(VideoError, match="too many"):
+            await svc.offer("c")
+        await svc.offer("a")  # the same viewer asking again replaces its connection
+        assert svc.peer_count == 2
+    assert svc.peer_count == 0
+    with pytest.raises(VideoError, match="closed"):
+        await svc.offer("late")
+
+
+async def test_unanswered_offer_is_dropped_after_timeout() -> None:
+    async with VideoService(
+        SyntheticCamera(320, 240), answer_timeout_s=0.2, ice_host_addresses=LOOPBACK
+    ) as svc:
+        await svc.offer("ghost")
+        await wait_until(lambda: svc.peer_count == 0, limit_s=3)
+
+
+async def test_offer_sdp_is_complete_vp8_and_loopback_only() -> None:
+    async with VideoService(SyntheticCamera(320, 240), ice_host_addresses=LOOPBACK) as svc:
+        sdp = await svc.offer("x")
+    assert "a=sendonly" in sdp and "VP8/90000" in sdp and "H264" not in sdp
+    candidates = [line for line in sdp.splitlines() if line.startswith("a=candidate")]
+    assert candidates and all(" 127.0.0.1 " in c for c in candidates)
+
+
+# --------------------------------------------------------------------------------------
+# headless Chromium
+# --------------------------------------------------------------------------------------
+
+PAGE = """<!doctype html>
+<html><head><meta charset="utf-8"><title>IoUV video test</title></head>
+<body>
+<video id="v" autoplay muted playsinline></video>
+<script>
+"use strict";
+const flow = new URLSearchParams(location.search).get("flow") || "agent";
+const result = window.result = {frames: 0, firstFrameMs: null, codes: [], latencies: [],
+                                width: 0, error: null};
+const video = document.getElementById("v");
+const pc = new RTCPeerConnection({iceServers: []});
+pc.ontrack = (ev) => { video.srcObject = new MediaStream([ev.track]); };
+const ws = new WebSocket(`ws://${location.host}/ws`);
+
+// Complete SDP (no trickle ICE), but never wait forever for gathering to finish.
+function gathered(ms) {
+  return new Promise((resolve) => {
+    if (pc.iceGatheringState === "complete") return resolve();
+    const timer = setTimeout(resolve, ms);
+    pc.addEventListener("icegatheringstatechange", () => {
+      if (pc.iceGatheringState === "complete") { clearTimeout(timer); resolve(); }
+    });
+  });
+}
+const send = (msg) => ws.send(JSON.stringify(msg));
+ws.onopen = async () => {
+  if (flow === "agent") { send({type: "webrtc_request"}); return; }
+  pc.addTransceiver("video", {direction: "recvonly"});
+  await pc.setLocalDescription(await pc.createOffer());
+  await gathered(2000);
+  send({type: "webrtc_offer", sdp: pc.localDescription.sdp});
+};
+ws.onmessage = async (ev) => {
+  const msg = JSON.parse(ev.data);
+  try {
+    if (msg.type === "webrtc_offer") {
+      await pc.setRemoteDescription({type: "offer", sdp: msg.sdp});
+      await pc.setLocalDescription(await pc.createAnswer());
+      await gathered(2000);
+      send({type: "webrtc_answer", sdp: pc.localDescription.sdp});
+    } else if (msg.type === "webrtc_answer") {
+      await pc.setRemoteDescription({type: "answer", sdp: msg.sdp});
+    } else if (msg.type === "error") {
+      result.error = msg.message;
+    }
+  } catch (e) { result.error = String(e); }
+};
+
+// The frame code (agents.video.stamp_frame_code): two rows of 48 blocks at the top.
+const CRC = new Uint32Array(256).map((_, n) => {
+  let c = n;
+  for (let k = 0; k < 8; k++) c = c & 1 ? 0xEDB88320 ^ (c >>> 1) : c >>> 1;
+  return c >>> 0;
+});
+function crc32(bytes) {
+  let c = 0xFFFFFFFF;
+  for (const b of bytes) c = CRC[(c ^ b) & 0xFF] ^ (c >>> 8);
+  return (c ^ 0xFFFFFFFF) >>> 0;
+}
+function readCode(data, width) {
+  const block = Math.floor(width / 48), x0 = Math.floor((width - block * 48) / 2);
+  const lo = Math.floor(block / 4), hi = block - Math.floor(block / 4);
+  const rows = [0, 1].map((r) => {
+    let value = 0;
+    for (let i = 0; i < 48; i++) {
+      let sum = 0, n = 0;
+      for (let y = r * block + lo; y < r * block + hi; y++)
+        for (let x = x0 + i * block + lo; x < x0 + i * block + hi; x++) {
+          const p = (y * width + x) * 4;
+          sum += data[p] + data[p + 1] + data[p + 2]; n += 3;
+        }
+      value = value * 2 + (sum / n > 127 ? 1 : 0);
+    }
+    return value;
+  });
+  const counter = Math.floor(rows[0] / 65536), check = rows[0] % 65536, ts = rows[1];
+  const bytes = [];
+  for (let i = 3; i >= 0; i--) bytes.push(Math.floor(counter / 2 ** (8 * i)) % 256);
+  for (let i = 5; i >= 0; i--) bytes.push(Math.floor(ts / 2 ** (8 * i)) % 256);
+  return (crc32(bytes) & 0xFFFF) === check ? {counter, ts} : null;
+}
+const canvas = document.createElement("canvas");
+const ctx = canvas.getContext("2d", {willReadFrequently: true});
+function onFrame() {
+  result.frames++;
+  if (result.firstFrameMs === null) result.firstFrameMs = performance.now();
+  const w = video.videoWidth, h = video.videoHeight;
+  result.width = w;
+  canvas.width = w; canvas.height = h;
+  ctx.drawImage(video, 0, 0);
+  const code = readCode(ctx.getImageData(0, 0, w, 2 * Math.floor(w / 48)).data, w);
+  if (code) { result.codes.push(code.counter); result.latencies.push(Date.now() - code.ts); }
+  video.requestVideoFrameCallback(onFrame);
+}
+video.requestVideoFrameCallback(onFrame);
+</script></body></html>
+"""
+
+
+@contextlib.asynccontextmanager
+async def signalling_server(svc: VideoService) -> AsyncIterator[str]:
+    """Serve PAGE at / and bridge /ws to ``svc`` with the control socket's messages;
+    yields the base URL. Stops the server and every connection on exit."""
+    from websockets.asyncio.server import ServerConnection, serve
+    from websockets.http11 import Request, Response
+
+    def process_request(conn: ServerConnection, request: Request) -> Response | None:
+        if request.path.startswith("/ws"):
+            return None  # go on with the WebSocket handshake
+        response = conn.respond(HTTPStatus.OK, PAGE)
+        response.headers["Content-Type"] = "text/html; charset=utf-8"
+        return response
+
+    async def handler(ws: ServerConnection) -> None:
+        peer_id = f"ws-{id(ws)}"
+        try:
+            async for raw in ws:
+                msg = json.loads(raw)
+                try:
+                    if msg["type"] == "webrtc_request":
+                        reply = {"type": "webrtc_offer", "sdp": await svc.offer(peer_id)}
+                    elif msg["type"] == "webrtc_answer":
+                        await svc.answer(peer_id, msg["sdp"])
+                        continue
+                    elif msg["type"] == "webrtc_offer":
+                        answer = await svc.accept_offer(peer_id, msg["sdp"])
+                        reply = {"type": "webrtc_answer", "sdp": answer}
+                    else:
+                        continue
+                except VideoError as exc:
+                    reply = {"type": "error", "code": "video", "message": str(exc)}
+                await ws.send(json.dumps(reply))
+        finally:
+            await svc.close_peer(peer_id)
+
+    async with serve(handler, "127.0.0.1", 0, process_request=process_request) as server:
+        port = next(iter(server.sockets)).getsockname()[1]
+        yield f"http://127.0.0.1:{port}"
+
+
+@needs_chromium
+@pytest.mark.parametrize("flow", ["agent", "browser"])
+async def test_headless_chromium_decodes_the_video(
+    flow: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    async with (
+        VideoService(SyntheticCamera(640, 480, fps=15), ice_host_addresses=LOOPBACK) as svc,
+        signalling_server(svc) as url,
+        chromium_browser(webrtc_loopback=True) as browser,
+    ):
+        page = await browser.new_page()
+        await page.goto(f"{url}/?flow={flow}")
+        await page.wait_for_function(
+            "() => window.result.codes.length >= 10 || window.result.error", timeout=20_000
+        )
+        result = await page.evaluate("window.result")
+        quality = await page.evaluate(
+            "document.getElementById('v').getVideoPlaybackQuality().totalVideoFrames"
+        )
+        assert result["error"] is None, result["error"]
+        assert result["width"] == 640
+        assert quality >= 10
+        codes = result["codes"]
+        assert codes[-1] > codes[0] and codes == sorted(codes)
+        enc = svc.encoder
+        assert enc.frames_captured - 1 <= enc.frames_encoded <= enc.frames_captured
+        first_ms = result["firstFrameMs"]  # since navigation start (performance.now())
+        latency = statistics.median(result["latencies"])
+        with capsys.disabled():
+            print(
+                f"\n[chromium {flow}-offers] first frame {first_ms:.0f} ms after page load "
+                f"started; capture-to-display latency median {latency:.0f} ms"
+            )
+        assert first_ms < 10_000
+        await page.close()
+    assert svc.peer_count == 0
+
+
+# --------------------------------------------------------------------------------------
+# MJPEG
+# --------------------------------------------------------------------------------------
+
+
+def make_jpeg(counter: int, encoder: av.VideoCodecContext) -> bytes:
+    img = np.full((240, 320, 3), 60, dtype=np.uint8)
+    img[120:, :, 1] = 160
+    stamp_frame_code(img, counter, 1_795_000_000_000 + counter)
+    frame = av.VideoFrame.from_ndarray(img, format="rgb24").reformat(format="yuvj420p")
+    return b"".join(bytes(p) for p in encoder.encode(frame))
+
+
+@contextlib.asynccontextmanager
+async def mjpeg_server(
+    *,
+    chunked: bool = True,
+    part_length: bool = True,
+    fps: float = 25.0,
+    frames_per_connection: int | None = None,
+) -> AsyncIterator[dict[str, Any]]:
+    """An ESP32-CAM-like MJPEG server on 127.0.0.1; yields {"url", "connections",
+    "served"}. The defaults are what the ESP32-CAM sketch sends: chunked transfer
+    coding, a Content-Length in each part's headers. ``frames_per_connection``: hang up
+    after that many frames."""
+    state: dict[str, Any] = {"connections": 0, "served": 0}
+    tasks: set[asyncio.Task[Any]] = set()
+    encoder = av.CodecContext.create("mjpeg", "w")
+    encoder.width, encoder.height, encoder.pix_fmt = 320, 240, "yuvj420p"
+    encoder.time_base = Fraction(1, 25)
+    boundary = "123456789000000000000987654321"
+
+    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        tasks.add(asyncio.current_task())  # type: ignore[arg-type]
+        state["connections"] += 1
+        try:
+            while (await reader.readline()) not in (b"\r\n", b""):
+                pass
+            head = (
+                "HTTP/1.1 200 OK\r\n"
+                f"Content-Type: multipart/x-mixed-replace;boundary={boundary}\r\n"
+                + ("Transfer-Encoding: chunked\r\n" if chunked else "")
+                + "\r\n"
+            )
+            writer.write(head.encode())
+            counter = 0
+            while frames_per_connection is None or counter < frames_per_connection:
+                jpeg = make_jpeg(counter, encoder)
+                part = (
+                    f"\r\n--{boundary}\r\nContent-Type: image/jpeg\r\n".encode()
+                    + (f"Content-Length: {len(jpeg)}\r\n".encode() if part_length else b"")
+                    + b"\r\n"
+                    + jpeg
+                )
+                if chunked:  # send it in two chunks, as a streaming server may
+                    for piece in (part[:700], part[700:]):
+                        writer.write(f"{len(piece):x}\r\n".encode() + piece + b"\r\n")
+                else:
+                    writer.write(part)
+                await writer.drain()
+                state["served"] += 1
+                counter += 1
+                await asyncio.sleep(1 / fps)
+        except (ConnectionError, asyncio.CancelledError):
+            pass
+        finally:
+            writer.close()
+
+    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    state["url"] = f"http://127.0.0.1:{port}/stream"
+    try:
+        yield state
+    finally:
+        server.close()
+        for task in list(tasks):
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        await server.wait_closed()
+
+
+@pytest.mark.parametrize(
+    ("chunked", "part_length"),
+    [(True, True), (True, False), (False, True), (False, False)],
+    ids=["esp32", "chunked-no-length", "identity-length", "identity-no-length"],
+)
+async def test_mjpeg_camera_reads_a_local_stream(chunked: bool, part_length: bool) -> None:
+    async with mjpeg_server(chunked=chunked, part_length=part_length) as server:
+        cam = MjpegCamera(server["url"])
+        try:
+            frames = [await asyncio.wait_for(cam.frame(), 5) for _ in range(6)]
+        finally:
+            await cam.close()
+        codes = [read_frame_code(f.to_ndarray(format="rgb24")) for f in frames]
+        assert all(c is not None for c in codes)
+        counters = [c.counter for c in codes if c is not None]
+        assert increasing(counters)
+        assert (frames[0].width, frames[0].height) == (320, 240)
+        # closing drops the connection; the next frame() reconnects
+        await wait_until(lambda: server["connections"] == 1)
+        try:
+            await asyncio.wait_for(cam.frame(), 5)
+        finally:
+            await cam.close()
+        assert server["connections"] == 2
+
+
+async def test_mjpeg_camera_reconnects_after_a_dropped_stream() -> None:
+    # The server hangs up after every 3 frames, as a flaky Wi-Fi camera might.
+    async with mjpeg_server(frames_per_connection=3) as server:
+        cam = MjpegCamera(server["url"], reconnect_s=0.05)
+        try:
+            frames = [await asyncio.wait_for(cam.frame(), 5) for _ in range(8)]
+        finally:
+            await cam.close()
+    assert server["connections"] >= 3
+    assert all(read_frame_code(f.to_ndarray(format="rgb24")) is not None for f in frames)
+
+
+async def test_mjpeg_camera_rejects_non_multipart_responses() -> None:
+    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        await reader.readline()
+        writer.write(b"HTTP/1.1 200 OK\r\nContent-Type: text/html\r\n\r\n<html></html>")
+        await writer.drain()
+        writer.close()
+
+    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    try:
+        cam = MjpegCamera(f"http://127.0.0.1:{port}/", reconnect_s=0.05)
+        with pytest.raises(VideoError, match="not an MJPEG stream"):
+            await cam._read_stream()
+        await cam.close()
+    finally:
+        server.close()
+        await server.wait_closed()
+    with pytest.raises(VideoError, match="http"):
+        MjpegCamera("rtsp://camera/stream")
+
+
+async def test_mjpeg_camera_through_video_service_to_a_viewer() -> None:
+    async with mjpeg_server(fps=20) as server:
+        cam = MjpegCamera(server["url"])
+        async with VideoService(cam, ice_host_addresses=LOOPBACK) as svc:
+            assert server["connections"] == 0  # nobody watching: camera not opened
+            async with viewer(svc, "v") as v:
+                codes = await v.codes(8)
+            assert increasing([c.counter for c in codes])
