@@ -533,8 +533,13 @@ class ControlHub:
         task = self.task
         action = task.limits.failsafe_action if task else "stop"
         self.stats["failsafes"] += 1
-        async with self._exec:
-            await self.adapter.safe_action(action)
+        try:
+            async with self._exec:
+                await self.adapter.safe_action(action)
+        except Exception:
+            # The watchdog must survive an adapter bug: report it and keep watching.
+            log.exception("fail-safe %s failed", action)
+            self.report("safe_action_failed", task.session_id if task else None, {"action": action})
         log.warning("fail-safe: %s -> %s", cause, action)
         for client in list(self.clients.values()):
             with contextlib.suppress(ConnectionError):

@@ -25,6 +25,7 @@ from django.contrib.auth.models import Group
 from django.db import transaction
 
 from accounts.roles import ADMIN, CLIENT, MONITOR, OPERATOR, roles_ensure, user_set_roles
+from agents.adapters.base import adapter_class
 from agents.geo import offset
 from fleet.attributes import attributes_clean
 from fleet.credentials import vehicle_issue_credential
@@ -62,82 +63,20 @@ STATIONS: dict[str, dict[str, Any]] = {
 # --------------------------------------------------------------------------------------
 
 
-def _number(low: float, high: float, unit: str, default: float | None = None) -> dict[str, Any]:
-    spec: dict[str, Any] = {"type": "number", "min": low, "max": high, "unit": unit}
-    if default is not None:
-        spec["default"] = default
-    return spec
+# The vocabularies are read from the adapters themselves, so the platform's declared
+# commands and the service grants always name what the agents really accept. Building
+# an adapter only checks its options; nothing is opened.
+PAYLOAD_OPTIONS: dict[str, Any] = {"payload": {"method": "gripper"}}
 
 
-def _command(
-    name: str, description: str, group: str, args: Mapping[str, Any] | None = None
-) -> dict[str, Any]:
-    return {"name": name, "args": dict(args or {}), "description": description, "group": group}
+def _declared(adapter: str, options: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
+    return [c.to_profile() for c in adapter_class(adapter)(dict(options or {})).commands()]
 
 
-_CAR_SPEED = {"speed": _number(0, 1, "fraction of full speed", 0.5)}
-_CAMERA_STEP = {"step_deg": _number(1, 90, "deg", 10)}
-
-CAR_COMMANDS: list[dict[str, Any]] = [
-    _command("forward", "Drive forward", "movement", _CAR_SPEED),
-    _command("backward", "Drive backward", "movement", _CAR_SPEED),
-    _command("left", "Turn left", "movement", _CAR_SPEED),
-    _command("right", "Turn right", "movement", _CAR_SPEED),
-    _command("stop", "Stop the motors", "movement"),
-    _command("camera_up", "Tilt the camera up", "camera", _CAMERA_STEP),
-    _command("camera_down", "Tilt the camera down", "camera", _CAMERA_STEP),
-    _command("camera_left", "Pan the camera left", "camera", _CAMERA_STEP),
-    _command("camera_right", "Pan the camera right", "camera", _CAMERA_STEP),
-]
-
-_DRONE_SPEED = {"speed_mps": _number(0.1, 10, "m/s", 1)}
-_DRONE_ANGLE = {"angle_deg": _number(1, 180, "deg", 15)}
-
-QUADCOPTER_COMMANDS: list[dict[str, Any]] = [
-    _command("arm", "Arm the motors", "setup"),
-    _command("disarm", "Disarm the motors", "setup"),
-    _command("take_off", "Take off and hover", "setup", {"altitude_m": _number(1, 120, "m", 5)}),
-    _command("up", "Climb", "left", _DRONE_SPEED),
-    _command("down", "Descend", "left", _DRONE_SPEED),
-    _command("rotate_left", "Yaw left", "left", _DRONE_ANGLE),
-    _command("rotate_right", "Yaw right", "left", _DRONE_ANGLE),
-    _command("front", "Fly forward", "right", _DRONE_SPEED),
-    _command("back", "Fly backward", "right", _DRONE_SPEED),
-    _command("left", "Fly left", "right", _DRONE_SPEED),
-    _command("right", "Fly right", "right", _DRONE_SPEED),
-    _command("land", "Land where it is", "middle"),
-    _command("return_to_home", "Fly back to the station and land", "middle"),
-    _command(
-        "go_to_waypoint",
-        "Fly to a position",
-        "mission",
-        {
-            "lat": _number(-90, 90, "deg"),
-            "lon": _number(-180, 180, "deg"),
-            "alt_m": _number(1, 120, "m"),
-        },
-    ),
-]
-
-VTOL_COMMANDS: list[dict[str, Any]] = [
-    _command("arm", "Arm the motors", "setup"),
-    _command("disarm", "Disarm the motors", "setup"),
-    _command("throttle_up", "More throttle", "left"),
-    _command("throttle_down", "Less throttle", "left"),
-    _command("yaw_left", "Yaw left", "left"),
-    _command("yaw_right", "Yaw right", "left"),
-    _command("pitch_up", "Pitch up", "right"),
-    _command("pitch_down", "Pitch down", "right"),
-    _command("roll_left", "Roll left", "right"),
-    _command("roll_right", "Roll right", "right"),
-    _command("change_to_vtol_mode", "Hover like a multicopter", "mode"),
-    _command("change_to_aircraft_mode", "Fly like a plane", "mode"),
-]
-
-RESCUE_DRONE_COMMANDS: list[dict[str, Any]] = [
-    *QUADCOPTER_COMMANDS,
-    _command("release_payload", "Drop the rescue buoy", "mission"),
-]
+CAR_COMMANDS = _declared("car", {"camera_arm": True, "distance_sensor": True})
+QUADCOPTER_COMMANDS = _declared("mavlink")
+VTOL_COMMANDS = _declared("spektrum")
+RESCUE_DRONE_COMMANDS = _declared("mavlink", PAYLOAD_OPTIONS)
 
 
 def command_names(commands: list[dict[str, Any]]) -> list[str]:
@@ -520,6 +459,11 @@ def vehicle_agent_config(
         "origin": [round(origin[0], 7), round(origin[1], 7)],
         "vehicle_type": vehicle.vehicle_type.name,
     }
+    if "payload_release" in vehicle.features:
+        options.update(PAYLOAD_OPTIONS)
+    if vehicle.vehicle_type.adapter == VehicleType.Adapter.MAVLINK:
+        options["max_speed_mps"] = attrs.get("max_speed_mps", 10)
+        options["max_takeoff_m"] = attrs.get("max_altitude_m", 120)
     if vehicle.vehicle_type.adapter == VehicleType.Adapter.CAR:
         options["camera_arm"] = "camera_arm" in vehicle.features
         options["distance_sensor"] = "obstacle_sensor" in vehicle.features

@@ -55,7 +55,7 @@ from services.signing import platform_public_key_pem
 log = logging.getLogger(__name__)
 
 #: command_refused codes that mean the user tried something unsafe (agents/safety.py).
-UNSAFE_REFUSALS = frozenset({"altitude_limit", "geofence", "latency", "obstacle"})
+UNSAFE_REFUSALS = frozenset({"altitude_limit", "geofence", "latency", "obstacle", "unsafe"})
 
 #: At most one link_quality event per session in this many seconds reaches the log.
 LINK_QUALITY_EVERY_S = 10.0

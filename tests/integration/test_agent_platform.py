@@ -61,8 +61,12 @@ def _fleet() -> tuple[Vehicle, str, Any]:
     station = f.station()
     car_type = f.vehicle_type("ground", "car", name="Raspberry Pi car")
     car = f.vehicle(
-        station=station, vtype=car_type, name="car-1", online=False,
-        environments=["land"], features=["camera_arm", "obstacle_sensor"],
+        station=station,
+        vtype=car_type,
+        name="car-1",
+        online=False,
+        environments=["land"],
+        features=["camera_arm", "obstacle_sensor"],
     )
     service = f.service(
         "drive-car",
@@ -84,8 +88,12 @@ async def running() -> AsyncIterator[tuple[str, Agent, Vehicle, Any]]:
             credential=credential,
             platform_public_key=await db(platform_public_key_pem),
             adapter="car",
-            adapter_options={"simulate": True, "camera_arm": True, "distance_sensor": True,
-                             "origin": [f.HOME[0], f.HOME[1]]},
+            adapter_options={
+                "simulate": True,
+                "camera_arm": True,
+                "distance_sensor": True,
+                "origin": [f.HOME[0], f.HOME[1]],
+            },
             control=ControlConfig(host="127.0.0.1", port=0),
             name="car-1",
         )
@@ -100,7 +108,7 @@ async def running() -> AsyncIterator[tuple[str, Agent, Vehicle, Any]]:
 
 
 async def test_register_deploy_drive_and_unintentional_end(running):
-    base, agent, car, service = running
+    _base, agent, car, service = running
 
     async def registered() -> bool:
         v = await db(Vehicle.objects.get, pk=car.pk)
@@ -135,7 +143,10 @@ async def test_register_deploy_drive_and_unintentional_end(running):
     world = agent.adapter.world
     start = world.position
     assert (await command(ws, 41, "forward", speed=1.0)) == {
-        "type": "ack", "seq": 41, "ok": True, "error": None,
+        "type": "ack",
+        "seq": 41,
+        "ok": True,
+        "error": None,
     }
     for _ in range(8):
         await ws.send(json.dumps({"type": "keepalive"}))

@@ -1,0 +1,577 @@
+"""The MAVLink quadcopter over real UDP: the agent's adapter flies the simulated
+ArduCopter (``python -m agents sim mavlink``, a separate process) through a ControlHub
+and its WebSocket server, as a browser would.
+
+Every rig runs the simulator with ``speedup`` so flights take seconds; assertions are
+about where the drone goes and what the user is told, with loose time bounds only.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import os
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+from websockets.asyncio.client import ClientConnection, connect
+
+from agents.adapters.base import AdapterError
+from agents.adapters.mavlink import MAV, MavlinkAdapter, MavlinkConfig, mavutil
+from agents.control import ControlHub, ControlServer
+from agents.geo import distance_m, local_offset_m
+from agents.protocol import (
+    Limits,
+    UserGrant,
+    VehicleTask,
+    generate_keypair,
+    load_private_key,
+    load_public_key,
+    new_nonce,
+)
+from agents.safety import CommandGate, Refusal
+from tests.agents.test_control import command, recv
+
+ROOT = Path(__file__).resolve().parents[2]
+PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
+PRIVATE = load_private_key(PRIVATE_PEM)
+VEHICLE = "quad-test-1"
+HOME = (40.6306, -8.6588)
+DRONE_COMMANDS = (
+    "arm",
+    "disarm",
+    "take_off",
+    "up",
+    "down",
+    "rotate_left",
+    "rotate_right",
+    "front",
+    "back",
+    "left",
+    "right",
+    "land",
+    "return_to_home",
+    "go_to_waypoint",
+)
+#: Fast flights: 4x flight time, RTL at 6 m with a short loiter above home.
+SIM = {"speedup": 4, "params": {"RTL_ALT": 600, "RTL_LOIT_TIME": 500}}
+
+
+@dataclass
+class Rig:
+    hub: ControlHub
+    server: ControlServer
+    drone: MavlinkAdapter
+    reports: list[tuple[str, str | None, dict[str, Any]]] = field(default_factory=list)
+    events: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
+
+    @property
+    def url(self) -> str:
+        return f"ws://127.0.0.1:{self.server.port}/"
+
+    def reported(self, name: str) -> list[dict[str, Any]]:
+        return [data for event, _, data in self.reports if event == name]
+
+    def event_names(self) -> list[str]:
+        return [name for name, _ in self.events]
+
+
+def make_task(**limits: Any) -> VehicleTask:
+    now = time.time()
+    return VehicleTask(
+        session_id="session-1",
+        vehicle_id=VEHICLE,
+        user="alice",
+        allowed_commands=DRONE_COMMANDS,
+        limits=Limits(
+            **{
+                "link_loss_timeout_ms": 500,
+                "failsafe_action": "return_to_home",
+                "max_altitude_m": 6,
+                **limits,
+            }
+        ),
+        issued_at=now,
+        expires_at=now + 120,
+        nonce=new_nonce(),
+    )
+
+
+def make_grant() -> str:
+    now = time.time()
+    return UserGrant(
+        session_id="session-1",
+        vehicle_id=VEHICLE,
+        user="alice",
+        role="controller",
+        allowed_commands=DRONE_COMMANDS,
+        issued_at=now - 1,
+        expires_at=now + 120,
+        nonce=new_nonce(),
+    ).sign(PRIVATE)
+
+
+def drone_options(**overrides: Any) -> dict[str, Any]:
+    return {
+        "simulate": True,
+        "origin": list(HOME),
+        "simulator": SIM,
+        "heartbeat_timeout_s": 1.5,
+        "command_timeout_s": 2.0,
+        **overrides,
+    }
+
+
+RigFactory = Callable[..., Awaitable[Rig]]
+
+
+@pytest.fixture
+async def make_rig() -> AsyncIterator[RigFactory]:
+    """Build rigs (drone + hub + server + task); everything is closed at the end."""
+    opened: list[tuple[ControlServer, ControlHub, MavlinkAdapter]] = []
+
+    async def build(task: VehicleTask | None = None, **options: Any) -> Rig:
+        drone = MavlinkAdapter(drone_options(**options))
+        events: list[tuple[str, dict[str, Any]]] = []
+        drone.on_event = lambda name, data: events.append((name, data))
+        await drone.start()
+        reports: list[tuple[str, str | None, dict[str, Any]]] = []
+        hub = ControlHub(
+            vehicle_id=VEHICLE,
+            vehicle_name="quad-1",
+            public_key=load_public_key(PUBLIC_PEM),
+            adapter=drone,
+            report=lambda e, s, d: reports.append((e, s, d)),
+        )
+        await hub.start()
+        server = ControlServer(hub)
+        await server.start()
+        opened.append((server, hub, drone))
+        hub.task_accept(task or make_task())
+        return Rig(hub, server, drone, reports, events)
+
+    try:
+        yield build
+    finally:
+        for server, hub, drone in reversed(opened):
+            await server.close()
+            await hub.close()
+            await drone.close()
+
+
+@pytest.fixture
+async def rig(make_rig: RigFactory) -> Rig:
+    return await make_rig()
+
+
+async def join(rig: Rig) -> ClientConnection:
+    ws = await connect(rig.url, compression=None, proxy=None)
+    await ws.send(json.dumps({"type": "auth", "grant": make_grant()}))
+    welcome = await recv(ws, "welcome")
+    assert welcome["role"] == "controller"
+    await ws.send(json.dumps({"type": "subscribe", "topics": TOPICS, "rate_hz": 10}))
+    return ws
+
+
+TOPICS = [
+    "altitude",
+    "location",
+    "heading",
+    "flight_mode",
+    "is_armed",
+    "autopilot_link",
+    "battery_level",
+    "number_of_gps_satellites",
+    "speed",
+]
+
+
+async def watch(
+    ws: ClientConnection, until: Callable[[dict[str, Any]], bool], within: float, what: str
+) -> dict[str, Any]:
+    """Read the telemetry stream (staying a live controller: keepalives, pongs) until
+    ``until(data)`` holds; returns that telemetry."""
+    deadline = time.monotonic() + within
+    last_keepalive = 0.0
+    data: dict[str, Any] = {}
+    while time.monotonic() < deadline:
+        if time.monotonic() - last_keepalive > 0.1:
+            await ws.send(json.dumps({"type": "keepalive"}))
+            last_keepalive = time.monotonic()
+        try:
+            msg = json.loads(await asyncio.wait_for(ws.recv(), 0.2))
+        except TimeoutError:
+            continue
+        if msg["type"] == "ping":
+            await ws.send(json.dumps({"type": "pong", "t": msg["t"]}))
+        elif msg["type"] == "telemetry":
+            data = msg["data"]
+            if until(data):
+                return data
+    raise AssertionError(f"timed out waiting for {what}; last telemetry {data}")
+
+
+async def hold(ws: ClientConnection, name: str, seconds: float, seq0: int, **args: Any) -> int:
+    """Hold a key: repeat ``name`` every 100 ms for ``seconds``, as the browser does;
+    every repeat must be acknowledged ok. Returns the next free seq."""
+    seq = seq0
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        ack = await command(ws, seq, name, **args)
+        assert ack["ok"], ack
+        seq += 1
+        await asyncio.sleep(0.1)
+    return seq
+
+
+async def poll(predicate: Callable[[], bool], within: float, what: str) -> None:
+    """Check ``predicate`` every 50 ms until it holds."""
+    for _ in range(int(within / 0.05)):
+        if predicate():
+            return
+        await asyncio.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def start_simulator(*args: str) -> subprocess.Popen[str]:
+    """``python -m agents sim mavlink ARGS`` with its stdout (the READY line) piped."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "agents", "sim", "mavlink", *args],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+
+
+def metres_from(origin: tuple[float, float], location: dict[str, float]) -> tuple[float, float]:
+    return local_offset_m(origin, (location["lat"], location["lon"]))
+
+
+# --- flying ---------------------------------------------------------------------------
+
+
+async def test_take_off_rotate_fly_east_ceiling_and_return_home(rig: Rig):
+    ws = await join(rig)
+    data = await watch(ws, lambda d: d["location"] is not None, 5, "a position fix")
+    assert data["autopilot_link"] == "ok" and data["is_armed"] is False
+    assert data["number_of_gps_satellites"] >= 6 and data["battery_level"] > 90
+    home = (data["location"]["lat"], data["location"]["lon"])
+    assert distance_m(home, HOME) < 1
+
+    started = time.monotonic()
+    ack = await command(ws, 1, "take_off", altitude_m=5)
+    assert ack == {"type": "ack", "seq": 1, "ok": True, "error": None}
+    rtt_ms = (time.monotonic() - started) * 1000  # GUIDED, arm, NAV_TAKEOFF: three ACKs
+    data = await watch(ws, lambda d: d["altitude"] > 4.8, 10, "5 m")
+    assert data["is_armed"] is True and data["flight_mode"] == "GUIDED"
+    assert data["altitude"] < 5.3
+    print(f"take_off (3 COMMAND_ACKs over UDP) acknowledged in {rtt_ms:.1f} ms")
+
+    assert (await command(ws, 2, "rotate_right", angle_deg=90))["ok"]
+    data = await watch(ws, lambda d: abs(d["heading"] - 90) < 2, 10, "heading 90")
+    before = metres_from(home, data["location"])
+
+    seq = await hold(ws, "front", 2.0, 3, speed_mps=2)
+    data = await watch(ws, lambda d: d["speed"] < 0.2, 10, "the drone to stop")
+    north, east = metres_from(home, data["location"])
+    assert east - before[1] > 4, (north, east)  # 2 s at 2 m/s (x4 flight time), braking
+    assert abs(north - before[0]) < 1.0, (north, east)  # east, not north: body frame
+    assert abs(data["heading"] - 90) < 2  # velocity setpoints hold the heading
+
+    refused = await command(ws, seq, "up", speed_mps=2)
+    assert refused["ok"] is False and refused["code"] == "altitude_limit"
+    assert "6 m limit" in refused["error"]
+
+    assert (await command(ws, seq + 1, "return_to_home"))["ok"]
+    data = await watch(ws, lambda d: d["flight_mode"] == "RTL", 3, "RTL")
+    data = await watch(ws, lambda d: d["is_armed"] is False, 30, "landed and disarmed")
+    assert data["altitude"] < 0.2
+    assert distance_m(home, (data["location"]["lat"], data["location"]["lon"])) < 2
+    assert rig.drone.stats["refusals"] == 0
+    await ws.close()
+
+
+async def test_killed_controller_triggers_return_home_and_landing(rig: Rig):
+    ws = await join(rig)
+    assert (await command(ws, 1, "take_off", altitude_m=4))["ok"]
+    await watch(ws, lambda d: (d["altitude"] or 0) > 3.8, 10, "4 m")
+    await hold(ws, "right", 1.0, 2, speed_mps=3)
+    data = await watch(ws, lambda d: True, 1, "telemetry")
+    assert distance_m(HOME, (data["location"]["lat"], data["location"]["lon"])) > 2
+
+    killed = time.monotonic()
+    ws.transport.abort()
+    for _ in range(100):
+        if rig.reported("failsafe"):
+            break
+        await asyncio.sleep(0.02)
+    assert rig.reported("failsafe") == [{"cause": "link_lost", "action": "return_to_home"}]
+    assert rig.drone.t.mode == 6  # RTL, acknowledged by the autopilot
+    await poll(lambda: rig.drone.t.armed is False, 30, "landing and disarming")
+    assert time.monotonic() - killed < 30
+    t = rig.drone.t
+    assert t.alt is not None and t.alt < 0.2
+    assert t.lat is not None and t.lon is not None and distance_m(HOME, (t.lat, t.lon)) < 2
+
+
+async def test_autopilot_refusal_reaches_the_user_in_its_words(make_rig: RigFactory):
+    rig = await make_rig(simulator={**SIM, "gps": "none"})
+    ws = await join(rig)
+    ack = await command(ws, 1, "arm")
+    assert ack["ok"] is False and ack["code"] == "autopilot_refused"
+    assert ack["error"].startswith("autopilot refused MAV_CMD_COMPONENT_ARM_DISARM: ")
+    assert "temporarily rejected" in ack["error"] and "PreArm: GPS: no 3D fix" in ack["error"]
+    ack = await command(ws, 2, "take_off", altitude_m=3)
+    assert ack["code"] == "autopilot_refused" and "GPS" in ack["error"]
+    # Moving needs a flying drone: refused by the agent, nothing sent.
+    ack = await command(ws, 3, "front")
+    assert ack["code"] == "not_flying" and "take off first" in ack["error"]
+    assert rig.reported("command_refused")[0]["code"] == "autopilot_refused"
+    assert ("autopilot_warning", {"severity": 2, "text": "PreArm: GPS: no 3D fix"}) in rig.events
+    await ws.close()
+
+
+async def test_unanswered_command_is_a_timeout(make_rig: RigFactory):
+    rig = await make_rig(heartbeat_timeout_s=5.0, command_timeout_s=1.0)
+    process = rig.drone.sim_process
+    assert process is not None
+    os.kill(process.pid, signal.SIGSTOP)  # silent for less than the heartbeat timeout
+    try:
+        started = time.monotonic()
+        with pytest.raises(AdapterError) as refused:
+            await rig.drone.execute("arm", {})
+        assert refused.value.code == "timeout"
+        assert "did not answer MAV_CMD_DO_SET_MODE (GUIDED) within 1 s" in str(refused.value)
+        assert 0.9 < time.monotonic() - started < 3
+    finally:
+        os.kill(process.pid, signal.SIGCONT)
+
+
+# --- bad input and silence --------------------------------------------------------------
+
+
+def _frame_v2(msg_id: int, payload: bytes, *, seq: int = 0, crc: int = 0) -> bytes:
+    header = struct.pack(
+        "<BBBBBBBHB", 0xFD, len(payload), 0, 0, seq, 1, 1, msg_id & 0xFFFF, msg_id >> 16
+    )
+    return header + payload + struct.pack("<H", crc)
+
+
+async def test_bad_bytes_from_the_autopilot_side_never_crash_the_agent(rig: Rig):
+    drone = rig.drone
+    port = drone.local_port()
+    assert port is not None
+    good = MAV.MAVLink_heartbeat_message(2, 3, 0, 0, 3, 3).pack(MAV.MAVLink(None, 1, 1))
+    bad_crc = bytearray(good)
+    bad_crc[-1] ^= 0xFF
+    garbage = [
+        os.urandom(300),
+        bytes(bad_crc),
+        _frame_v2(60_123, b"\x01\x02\x03", crc=0xBEEF),  # an id no dialect has
+        good[:7],  # truncated
+        b"\xfd" * 64,
+        b"",
+    ]
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for _ in range(20):
+            for chunk in garbage:
+                s.sendto(chunk, ("127.0.0.1", port))
+        await asyncio.sleep(0.5)
+    assert drone.bad_frames > 20
+    assert all(thread.is_alive() for thread in drone._threads)
+    assert drone.link_ok
+    # Still flying normally: commands are acknowledged, telemetry is fresh.
+    await drone.execute("arm", {})
+    assert drone.t.armed is True
+    await drone.execute("disarm", {})
+    assert time.monotonic() - drone.t.position_at < 1
+
+
+async def test_autopilot_silence_is_reported_and_refuses_commands(rig: Rig):
+    ws = await join(rig)
+    await watch(ws, lambda d: d["location"] is not None, 5, "a position")
+    process = rig.drone.sim_process
+    assert process is not None
+    os.kill(process.pid, signal.SIGSTOP)  # the autopilot goes silent
+    try:
+        data = await watch(ws, lambda d: d["autopilot_link"] == "lost", 5, "link lost")
+        assert "autopilot_link_lost" in rig.event_names()
+        ack = await command(ws, 1, "take_off", altitude_m=3)
+        assert ack["ok"] is False and ack["code"] == "autopilot_lost"
+        assert "no heartbeat from the autopilot" in ack["error"]
+        assert data["location"] is not None  # last known values stay visible
+    finally:
+        os.kill(process.pid, signal.SIGCONT)
+    await watch(ws, lambda d: d["autopilot_link"] == "ok", 5, "link back")
+    assert "autopilot_link_restored" in rig.event_names()
+    assert (await command(ws, 2, "arm"))["ok"]
+    await ws.close()
+
+
+# --- safety -----------------------------------------------------------------------------
+
+
+async def test_low_battery_returns_home_once_and_reports_it(make_rig: RigFactory):
+    # 27 % and 240 %/min of flight time at 4x: below 25 % about 0.1 s into the flight.
+    rig = await make_rig(
+        simulator={**SIM, "battery_pct": 27, "drain_pct_per_min": 240}, low_battery_pct=25
+    )
+    ws = await join(rig)
+    assert (await command(ws, 1, "take_off", altitude_m=4))["ok"]
+    await watch(ws, lambda d: d["flight_mode"] == "RTL", 10, "the low-battery RTL")
+    [data] = [d for n, d in rig.events if n == "low_battery"]
+    assert data["action"] == "return_to_home" and data["battery"] < 25
+    ack = await command(ws, 2, "front")
+    assert ack["code"] == "low_battery" and "returning home" in ack["error"]
+    ack = await command(ws, 3, "take_off", altitude_m=4)
+    assert ack["code"] == "in_air"
+    await watch(ws, lambda d: d["is_armed"] is False, 30, "landed")
+    assert rig.event_names().count("low_battery") == 1
+    await ws.close()
+
+
+async def test_failsafe_parameters_are_checked_against_the_task(make_rig: RigFactory):
+    rig = await make_rig()  # the spawned simulator has FS_GCS_ENABLE=1 (RTL)
+    drone = rig.drone
+    assert await drone.check_failsafe_params("return_to_home") == []
+    [problem] = await drone.check_failsafe_params("land")
+    assert "does RTL (FS_GCS_ENABLE=1) but the task expects land" in problem
+    [problem] = await drone.check_failsafe_params("return_to_home", max_altitude_m=4)
+    assert "RTL climbs to 6 m (RTL_ALT=600 cm), above the task's 4 m ceiling" in problem
+
+    stock = await make_rig(
+        simulator={"params": {"FS_GCS_ENABLE": 0, "SYSID_MYGCS": 250}}, command_timeout_s=1.0
+    )
+    problems = await stock.drone.check_failsafe_params("return_to_home")
+    assert len(problems) == 2
+    assert "GCS fail-safe is disabled (FS_GCS_ENABLE=0)" in problems[0]
+    assert "follows system 250 (SYSID_MYGCS) but the agent is system 255" in problems[1]
+
+
+async def test_movement_is_refused_before_take_off_and_the_gate_checks_projections(rig: Rig):
+    drone = rig.drone
+    with pytest.raises(AdapterError) as refused:
+        await drone.execute("up", {"speed_mps": 1})
+    assert refused.value.code == "not_flying"
+    gate = CommandGate(drone, allowed=DRONE_COMMANDS, limits=Limits(max_altitude_m=6))
+    with pytest.raises(Refusal) as too_high:
+        gate.check("take_off", {"altitude_m": 7})
+    assert too_high.value.code == "altitude_limit"
+    assert gate.check("take_off", {"altitude_m": 6}).args == {"altitude_m": 6}
+    far = Limits(geofence_center=HOME, geofence_radius_m=50)
+    with pytest.raises(Refusal) as fenced:
+        CommandGate(drone, allowed=DRONE_COMMANDS, limits=far).check(
+            "go_to_waypoint", {"lat": HOME[0] + 0.001, "lon": HOME[1], "alt_m": 5}
+        )
+    assert fenced.value.code == "geofence"
+
+
+def test_projection_turns_the_body_axes_by_the_heading():
+    drone = MavlinkAdapter({"connection": "udpin:127.0.0.1:0", "setpoint_hold_s": 1.0})
+    t = drone.t
+    t.lat, t.lon, t.alt, t.heading = HOME[0], HOME[1], 5.0, 90.0
+    front = drone.project("front", {"speed_mps": 2})
+    assert front is not None and front.lat is not None and front.lon is not None
+    north, east = local_offset_m(HOME, (front.lat, front.lon))
+    assert math.isclose(east, 2, abs_tol=0.01) and abs(north) < 0.01
+    left = drone.project("left", {"speed_mps": 1})
+    assert left is not None and left.lat is not None and left.lon is not None
+    north, east = local_offset_m(HOME, (left.lat, left.lon))
+    assert math.isclose(north, 1, abs_tol=0.01) and abs(east) < 0.01
+    up = drone.project("up", {"speed_mps": 1.5})
+    assert up is not None and up.alt == 6.5
+    assert drone.project("rotate_left", {"angle_deg": 10}) is None
+
+
+def test_options_are_checked():
+    assert MavlinkConfig.from_options({}).source_system == 255
+    for bad in (
+        {"simulate": "yes"},
+        {"velocity_frame": "local_ned"},
+        {"command_timeout_s": 0},
+        {"simulator": {"gps": "maybe"}},
+        {"origin": [91, 0]},
+        {"stream_rates_hz": {"NOT_A_MESSAGE": 1}},
+    ):
+        with pytest.raises(ValueError):
+            MavlinkConfig.from_options(bad)
+    names = [c.name for c in MavlinkAdapter({}).commands()]
+    assert set(DRONE_COMMANDS) <= set(names)
+    keys = {c.name: c.key for c in MavlinkAdapter({}).commands()}
+    assert keys["up"] == "w" and keys["rotate_right"] == "d" and keys["front"] == "ArrowUp"
+    assert keys["land"] == "l" and keys["return_to_home"] == "h"
+
+
+async def test_a_dead_agent_leaves_the_drone_to_the_autopilots_own_failsafe():
+    """A real deployment's path: the adapter reaches an autopilot it did not start
+    (``connection``). When the agent dies its heartbeats stop, and the autopilot's GCS
+    fail-safe (FS_GCS_ENABLE=1, after FS_GCS_TIMEOUT) brings the drone home."""
+    sim = start_simulator(
+        "--listen", "udpin:127.0.0.1:0", "--home", f"{HOME[0]},{HOME[1]}",
+        "--speedup", "4", "--param", "FS_GCS_ENABLE=1", "--param", "FS_GCS_TIMEOUT=1",
+    )  # fmt: skip
+    observer = None
+    try:
+        assert sim.stdout is not None
+        ready = sim.stdout.readline().split()
+        assert ready[0] == "READY", ready
+        address = ready[1].replace("udpin:", "udpout:")
+        drone = MavlinkAdapter({"connection": address, "close_action": "none"})
+        async with drone:
+            assert await drone.check_failsafe_params("return_to_home") == []
+            await drone.execute("take_off", {"altitude_m": 3})
+            await poll(lambda: (drone.t.alt or 0) > 2.5, 5, "3 m")
+            assert drone.t.mode == 4
+        # The agent is gone (close_action "none": like a crash). Listen as another GCS.
+        observer = mavutil.mavlink_connection(address, source_system=200)
+        deadline = time.monotonic() + 10
+        modes: list[int] = []
+        while time.monotonic() < deadline and 6 not in modes:
+            observer.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            beat = await asyncio.to_thread(
+                observer.recv_match, type="HEARTBEAT", blocking=True, timeout=0.5
+            )
+            if beat is not None:
+                modes.append(int(beat.custom_mode))
+        assert 6 in modes, f"no RTL after the agent died; modes seen {modes}"
+    finally:
+        if observer is not None:
+            observer.close()
+        sim.terminate()
+        sim.wait(5)
+
+
+async def test_held_rotate_key_stops_turning_on_release(rig: Rig):
+    ws = await join(rig)
+    assert (await command(ws, 1, "take_off", altitude_m=3))["ok"]
+    data = await watch(ws, lambda d: (d["altitude"] or 0) > 2.8, 10, "3 m")
+    start = data["heading"]
+    seq = await hold(ws, "rotate_right", 1.0, 2, angle_deg=15)
+    # The browser sends "stop" when the key is released: the turn ends there.
+    assert (await command(ws, seq, "stop"))["ok"]
+    released = (await watch(ws, lambda d: True, 1, "telemetry"))["heading"]
+    assert (released - start) % 360 > 30  # it did turn while the key was held
+    await asyncio.sleep(1.0)
+    after = (await watch(ws, lambda d: True, 1, "telemetry"))["heading"]
+    assert abs(((after - released) + 180) % 360 - 180) < 20, (start, released, after)
+    await ws.close()
+
+
+async def test_payload_release_is_acknowledged(make_rig: RigFactory):
+    rig = await make_rig(payload={"method": "gripper"})
+    names = [c.name for c in rig.drone.commands()]
+    assert "release_payload" in names
+    await rig.drone.execute("release_payload", {})
+    assert rig.drone.stats["acks"] > 0 and rig.drone.stats["refusals"] == 0
+    with pytest.raises(ValueError):
+        MavlinkConfig.from_options({"payload": {"method": "servo", "servo": 99, "pwm": 1900}})

@@ -1,0 +1,172 @@
+"""End to end with a MAVLink drone: platform (daphne, Postgres, Redis) + agent with the
+simulated ArduCopter (a separate process on UDP) + a user flying it point-to-point.
+
+The service's fail-safe is return_to_home: when the user's browser dies mid-flight,
+the agent sends the drone home (RTL), it lands and disarms, and the platform's session
+log records the unintentional end with the action taken.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import AsyncIterator
+from typing import Any
+
+import pytest
+from websockets.asyncio.client import connect
+
+from agents.config import AgentConfig, ControlConfig
+from agents.geo import distance_m
+from agents.runtime import Agent
+from fleet.credentials import vehicle_issue_credential
+from fleet.models import Vehicle
+from services.assignment import session_request
+from services.deployment import session_deploy
+from services.models import Session
+from services.signing import platform_public_key_pem
+from tests import factories as f
+from tests.agents.test_control import command, recv
+from tests.integration.test_agent_platform import db, until
+from tests.servers import platform_process
+
+pytestmark = [
+    pytest.mark.postgres,
+    pytest.mark.redis,
+    pytest.mark.django_db(transaction=True),
+]
+DRONE_COMMANDS = [
+    "arm",
+    "disarm",
+    "take_off",
+    "up",
+    "down",
+    "rotate_left",
+    "rotate_right",
+    "front",
+    "back",
+    "left",
+    "right",
+    "land",
+    "return_to_home",
+]
+
+
+def _fleet() -> tuple[Vehicle, str, Any]:
+    station = f.station()
+    quad_type = f.vehicle_type("aerial", "mavlink", name="MAVLink quadcopter")
+    quad = f.vehicle(
+        station=station, vtype=quad_type, name="quad-1", online=False, features=["gps"]
+    )
+    service = f.service(
+        "fly-drone",
+        roles=[{"name": "vehicle", "kinds": ["aerial"], "min_battery": 20}],
+        allowed_commands=DRONE_COMMANDS,
+        failsafe_action="return_to_home",
+        link_loss_timeout_ms=500,
+        max_altitude_m=30,
+    )
+    return quad, vehicle_issue_credential(vehicle=quad), service
+
+
+@pytest.fixture
+async def running() -> AsyncIterator[tuple[Agent, Vehicle, Any]]:
+    quad, credential, service = await db(_fleet)
+    with platform_process() as base:
+        config = AgentConfig(
+            platform_url=base.replace("http", "ws"),
+            vehicle_id=str(quad.pk),
+            credential=credential,
+            platform_public_key=await db(platform_public_key_pem),
+            adapter="mavlink",
+            adapter_options={
+                "simulate": True,
+                "origin": [f.HOME[0], f.HOME[1]],
+                "simulator": {"speedup": 4, "params": {"RTL_ALT": 800, "RTL_LOIT_TIME": 500}},
+            },
+            control=ControlConfig(host="127.0.0.1", port=0),
+            name="quad-1",
+        )
+        agent = Agent(config)
+        run = asyncio.create_task(agent.run())
+        try:
+            yield agent, quad, service
+        finally:
+            run.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await run
+    assert agent.adapter.sim_process is None  # the simulator was stopped with the agent
+
+
+async def test_fly_then_browser_dies_drone_returns_home_and_platform_records_it(running):
+    agent, quad, service = running
+
+    async def registered() -> bool:
+        v = await db(Vehicle.objects.get, pk=quad.pk)
+        return v.status == Vehicle.Status.IDLE and bool(v.control_url) and v.lat is not None
+
+    await until(registered, within=20, what="the drone's agent to register with a position")
+    vehicle = await db(Vehicle.objects.get, pk=quad.pk)
+    assert {c["name"] for c in vehicle.profile["commands"]} >= set(DRONE_COMMANDS)
+    assert "autopilot_link" in vehicle.profile["telemetry"]
+
+    user = await db(f.user, "alice")
+    session = await db(session_request, user=user, service=service, target=f.HOME)
+    user_task = await db(session_deploy, session=session)
+
+    async def task_arrived() -> bool:
+        return agent.hub is not None and agent.hub.task is not None
+
+    await until(task_arrived, what="the task to reach the agent")
+    assert agent.hub is not None and agent.hub.task is not None
+    assert agent.hub.task.limits.failsafe_action == "return_to_home"
+
+    ws = await connect(user_task.control_url, proxy=None, compression=None)
+    await ws.send(json.dumps({"type": "auth", "grant": user_task.grant}))
+    assert (await recv(ws, "welcome"))["role"] == "controller"
+    await ws.send(json.dumps({"type": "subscribe", "topics": ["altitude"], "rate_hz": 10}))
+
+    assert (await command(ws, 1, "take_off", altitude_m=5))["ok"]
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline:
+        data = (await recv(ws, "telemetry"))["data"]
+        await ws.send(json.dumps({"type": "keepalive"}))
+        if (data["altitude"] or 0) > 4.5:
+            break
+    else:
+        raise AssertionError("the drone did not reach 5 m")
+    for seq in range(2, 12):  # hold "front" for a second
+        assert (await command(ws, seq, "front", speed_mps=3))["ok"]
+        await asyncio.sleep(0.1)
+    drone = agent.adapter
+    assert drone.t.lat is not None and drone.t.lon is not None
+    assert distance_m(f.HOME, (drone.t.lat, drone.t.lon)) > 3
+
+    # The browser dies mid-flight.
+    killed = time.monotonic()
+    ws.transport.abort()
+
+    async def returning() -> bool:
+        return drone.t.mode == 6  # RTL
+
+    async def landed() -> bool:
+        return drone.t.armed is False
+
+    await until(returning, within=2, what="the agent to send the drone home (RTL)")
+    await until(landed, within=40, what="the drone to land and disarm")
+    assert time.monotonic() - killed < 40
+    assert drone.t.alt is not None and drone.t.alt < 0.3
+    assert distance_m(f.HOME, (drone.t.lat, drone.t.lon)) < 2
+
+    async def recorded() -> list[tuple[str, dict[str, Any]]]:
+        events = await db(
+            lambda: list(Session.objects.get(pk=session.pk).events.values_list("kind", "data"))
+        )
+        return events if any(kind == "unintentional_end" for kind, _ in events) else []
+
+    events = await until(recorded, what="the platform to record the unintentional end")
+    kinds = [kind for kind, _ in events]
+    assert kinds.index("task_deployed") < kinds.index("unintentional_end")
+    [end] = [data for kind, data in events if kind == "unintentional_end"]
+    assert end["cause"] == "link_lost" and end["action"] == "return_to_home"

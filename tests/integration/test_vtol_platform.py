@@ -1,0 +1,193 @@
+"""End to end over real sockets: platform (daphne, Postgres, Redis) + the simulated
+Spektrum VTOL's agent + a user.
+
+The agent registers on its uplink, the platform assigns the plane to a service whose
+fail-safe is "land" and deploys the signed task; the user flies it up point-to-point
+and their browser dies: the plane lands and disarms on its own, and the platform's
+session log records the fail-safe as an unintentional end.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import AsyncIterator
+from typing import Any
+
+import pytest
+from asgiref.sync import sync_to_async
+from django.db import connections
+from websockets.asyncio.client import connect
+
+from agents.adapters.spektrum import SpektrumAdapter
+from agents.config import AgentConfig, ControlConfig
+from agents.runtime import Agent
+from fleet.credentials import vehicle_issue_credential
+from fleet.models import Vehicle
+from services.assignment import session_request
+from services.deployment import session_deploy
+from services.models import Session
+from services.signing import platform_public_key_pem
+from tests import factories as f
+from tests.agents.test_spektrum import FAST, command, recv
+from tests.servers import platform_process
+
+pytestmark = [
+    pytest.mark.postgres,
+    pytest.mark.redis,
+    pytest.mark.django_db(transaction=True),
+]
+VTOL_COMMANDS = [
+    "arm",
+    "disarm",
+    "throttle_up",
+    "throttle_down",
+    "yaw_left",
+    "yaw_right",
+    "pitch_up",
+    "pitch_down",
+    "roll_left",
+    "roll_right",
+    "change_to_vtol_mode",
+    "change_to_aircraft_mode",
+]
+
+
+@sync_to_async
+def db(fn: Any, *args: Any, **kwargs: Any) -> Any:
+    """Run ORM code off the event loop; its connection closes after, so the test
+    database can be dropped at the end."""
+    try:
+        return fn(*args, **kwargs)
+    finally:
+        connections.close_all()
+
+
+async def until(predicate: Any, *, within: float = 10.0, what: str = "") -> Any:
+    """Poll ``predicate`` (a coroutine function) until it returns something truthy."""
+    for _ in range(int(within / 0.1)):
+        value = await predicate()
+        if value:
+            return value
+        await asyncio.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what or predicate}")
+
+
+def _fleet() -> tuple[Vehicle, str, Any]:
+    station = f.station()
+    vtol_type = f.vehicle_type("hybrid", "spektrum", name="Spektrum VTOL plane")
+    plane = f.vehicle(
+        station=station,
+        vtype=vtol_type,
+        name="vtol-1",
+        online=False,
+        environments=["air", "land"],
+        features=["gps"],
+    )
+    service = f.service(
+        "fly-vtol",
+        roles=[{"name": "vehicle", "kinds": ["hybrid"], "min_battery": 20}],
+        allowed_commands=VTOL_COMMANDS,
+        failsafe_action="land",
+        link_loss_timeout_ms=500,
+    )
+    return plane, vehicle_issue_credential(vehicle=plane), service
+
+
+@pytest.fixture
+async def running() -> AsyncIterator[tuple[Agent, Vehicle, Any]]:
+    plane, credential, service = await db(_fleet)
+    with platform_process() as base:
+        config = AgentConfig(
+            platform_url=base.replace("http", "ws"),
+            vehicle_id=str(plane.pk),
+            credential=credential,
+            platform_public_key=await db(platform_public_key_pem),
+            adapter="spektrum",
+            adapter_options={
+                "simulate": True,
+                "origin": [f.HOME[0], f.HOME[1]],
+                "vehicle_type": "Spektrum VTOL plane",
+                **FAST,
+            },
+            control=ControlConfig(host="127.0.0.1", port=0),
+            name="vtol-1",
+        )
+        agent = Agent(config)
+        run = asyncio.create_task(agent.run())
+        try:
+            yield agent, plane, service
+        finally:
+            run.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await run
+
+
+async def test_register_deploy_fly_and_link_loss_lands(running: Any) -> None:
+    agent, plane, service = running
+
+    async def registered() -> bool:
+        v = await db(Vehicle.objects.get, pk=plane.pk)
+        return v.status == Vehicle.Status.IDLE and bool(v.control_url)
+
+    await until(registered, what="the agent to register")
+    vehicle = await db(Vehicle.objects.get, pk=plane.pk)
+    assert vehicle.control_url == agent.control_url
+    assert {c["name"] for c in vehicle.profile["commands"]} >= set(VTOL_COMMANDS)
+    assert vehicle.profile["adapter"] == "spektrum"
+
+    client_user = await db(f.user, "alice")
+    session = await db(session_request, user=client_user, service=service, target=f.HOME)
+    user_task = await db(session_deploy, session=session)
+
+    async def task_arrived() -> bool:
+        return agent.hub is not None and agent.hub.task is not None
+
+    await until(task_arrived, what="the task to reach the agent")
+    ws = await connect(user_task.control_url, proxy=None, compression=None)
+    await ws.send(json.dumps({"type": "auth", "grant": user_task.grant}))
+    assert (await recv(ws, "welcome"))["role"] == "controller"
+
+    async def active() -> bool:
+        s = await db(Session.objects.get, pk=session.pk)
+        return s.state == Session.State.ACTIVE
+
+    await until(active, what="the platform to see the user connected")
+
+    adapter = agent.adapter
+    assert isinstance(adapter, SpektrumAdapter)
+    sim = adapter.simulator
+    assert (await command(ws, 1, "arm"))["ok"]
+    for seq in range(2, 10):  # 0.8: climbing
+        assert (await command(ws, seq, "throttle_up", step=0.1))["ok"]
+    await ws.send(json.dumps({"type": "subscribe", "topics": ["altitude"], "rate_hz": 10}))
+    for _ in range(60):
+        await ws.send(json.dumps({"type": "keepalive"}))  # a live controller
+        if (await recv(ws, "telemetry"))["data"]["altitude"] >= 3.0:
+            break
+    assert sim.snapshot()["alt"] >= 3.0 and sim.snapshot()["armed"]
+
+    # The browser dies in the air: the plane lands and disarms by itself.
+    ws.transport.abort()
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        state = sim.snapshot()
+        if state["on_ground"] and not state["armed"] and not adapter.controls.armed:
+            break
+        await asyncio.sleep(0.1)
+    state = sim.snapshot()
+    assert state["alt"] == 0.0 and not state["armed"] and state["hard_landings"] == 0
+    assert adapter.controls.landings == 1
+
+    async def recorded() -> list[tuple[str, dict[str, Any]]]:
+        events = await db(
+            lambda: list(Session.objects.get(pk=session.pk).events.values_list("kind", "data"))
+        )
+        return events if any(kind == "unintentional_end" for kind, _ in events) else []
+
+    events = await until(recorded, what="the platform to record the unintentional end")
+    kinds = [kind for kind, _ in events]
+    assert kinds.index("task_deployed") < kinds.index("unintentional_end")
+    end = next(data for kind, data in events if kind == "unintentional_end")
+    assert (end["cause"], end["action"]) == ("link_lost", "land")
