@@ -458,6 +458,8 @@ _SCHEMAS: Final[dict[str, dict[str, dict[str, str]]]] = {
         "task_refused": {"session_id": "id|null?", "code": "id", "reason": "str"},
         "event": {"session_id": "id|null", "event": "id", "data": "object"},
         "relay": {"session_id": "id", "conn": "id?", "payload": "relay_to_client"},
+        # The agent dropped a relayed client (bad grant, revoked, flooding).
+        "relay_close": {"session_id": "id", "conn": "id", "code": "uint?", "reason": "str?"},
     },
     "uplink_to_agent": {
         "welcome": {
@@ -469,6 +471,8 @@ _SCHEMAS: Final[dict[str, dict[str, dict[str, str]]]] = {
         "revoke": {"session_id": "id", "reason": "str", "action": "action"},
         "end_task": {"session_id": "id", "reason": "str"},
         "relay": {"session_id": "id", "conn": "id?", "payload": "relay_to_agent"},
+        # The relayed browser went away: for the agent, that client's socket closed.
+        "relay_close": {"session_id": "id", "conn": "id", "code": "uint?", "reason": "str?"},
         "error": {"code": "id", "message": "str"},
     },
     "control_to_agent": {

@@ -7,6 +7,7 @@ import base64
 import contextlib
 import json
 import logging
+from collections.abc import Mapping
 from typing import Any
 
 from agents.adapters.base import Adapter, adapter_create
@@ -16,12 +17,16 @@ from agents.protocol import (
     ProtocolError,
     ReplayGuard,
     VehicleTask,
+    encode_message,
     load_public_key,
 )
 from agents.safety import Refusal
 from agents.uplink import Uplink
 
 log = logging.getLogger(__name__)
+
+#: Relayed browsers one agent serves at once (each is a viewer or the controller).
+MAX_RELAYED = 64
 
 
 class Agent:
@@ -42,6 +47,16 @@ class Agent:
         self.hub: ControlHub | None = None
         self.uplink: Uplink | None = None
         self.video: Any | None = None
+        self.relay_links: dict[str, _RelayLink] = {}
+        self._checks: set[asyncio.Task[None]] = set()
+        if hasattr(self.adapter, "on_event"):
+            self.adapter.on_event = self._adapter_event
+
+    def _adapter_event(self, name: str, data: dict[str, Any]) -> None:
+        """Something the vehicle itself reported (autopilot link, low battery...):
+        the platform hears it, attached to the current session if there is one."""
+        task = self.hub.task if self.hub is not None else None
+        self.report(name, task.session_id if task else None, data)
 
     async def run(self) -> None:
         """Start everything, serve until cancelled, then leave the vehicle safe."""
@@ -154,10 +169,32 @@ class Agent:
             await hub.task_end(msg["session_id"], reason=msg["reason"], action=msg["action"])
         elif kind == "end_task":
             await hub.task_end(msg["session_id"], reason=msg["reason"], action=None)
+        elif kind == "relay":
+            await self._relayed(msg)
+        elif kind == "relay_close":
+            link = self.relay_links.pop(msg["conn"], None)
+            if link is not None:
+                await hub.disconnected(link)
         elif kind == "error":
             log.warning("platform error %s: %s", msg["code"], msg["message"])
         else:
             log.info("ignored platform message %s", kind)
+
+    async def _relayed(self, msg: dict[str, Any]) -> None:
+        """A control message from a browser relayed by the platform: same hub, same
+        checks as a direct socket, answers sent back over the uplink."""
+        assert self.hub is not None and self.uplink is not None
+        conn = msg.get("conn")
+        if not conn:
+            return
+        link = self.relay_links.get(conn)
+        if link is None:
+            if len(self.relay_links) >= MAX_RELAYED:
+                return
+            link = _RelayLink(self, msg["session_id"], conn)
+            self.relay_links[conn] = link
+            await self.hub.connected(link)
+        await self.hub.received(link, encode_message(msg["payload"]))
 
     def _task(self, token: str) -> None:
         assert self.hub is not None and self.uplink is not None
@@ -181,6 +218,60 @@ class Agent:
             )
             return
         self.uplink.send({"type": "task_accepted", "session_id": task.session_id})
+        check = getattr(self.adapter, "check_failsafe_params", None)
+        if check is not None:
+            job = asyncio.create_task(self._check_failsafe(task, check))
+            self._checks.add(job)
+            job.add_done_callback(self._checks.discard)
+
+    async def _check_failsafe(self, task: VehicleTask, check: Any) -> None:
+        """Does the autopilot's own fail-safe agree with the task? Report if not."""
+        try:
+            problems = await check(
+                task.limits.failsafe_action, max_altitude_m=task.limits.max_altitude_m
+            )
+        except Exception as exc:  # a parameter read failing is itself worth reporting
+            problems = [f"could not read the autopilot's fail-safe parameters: {exc}"]
+        if problems:
+            self.report("failsafe_mismatch", task.session_id, {"problems": list(problems)})
+
+
+class _RelayLink:
+    """A ClientLink for a browser the platform relays (see services.consumers)."""
+
+    def __init__(self, agent: Agent, session_id: str, conn: str) -> None:
+        self.agent = agent
+        self.session_id = session_id
+        self.conn = conn
+        self.id = f"relay-{conn}"
+
+    async def send(self, message: Mapping[str, Any]) -> None:
+        if self.agent.relay_links.get(self.conn) is not self or self.agent.uplink is None:
+            raise ConnectionError("relayed client is gone")
+        if not self.agent.uplink.connected.is_set():
+            # Relayed control needs the platform; without it this client is cut off.
+            raise ConnectionError("platform unreachable")
+        self.agent.uplink.send(
+            {
+                "type": "relay",
+                "session_id": self.session_id,
+                "conn": self.conn,
+                "payload": dict(message),
+            }
+        )
+
+    async def close(self, code: int, reason: str) -> None:
+        if self.agent.relay_links.pop(self.conn, None) is None or self.agent.uplink is None:
+            return
+        self.agent.uplink.send(
+            {
+                "type": "relay_close",
+                "session_id": self.session_id,
+                "conn": self.conn,
+                "code": code,
+                "reason": reason[:120],
+            }
+        )
 
 
 def _claimed_session(token: str) -> str | None:

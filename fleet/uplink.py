@@ -70,7 +70,10 @@ BAD_FRAMES_WINDOW_S = 10.0
 _ERROR_TEXT_MAX = 300
 
 # Message types forwarded to other apps as fleet.signals.agent_message.
-_PUBLISHED = frozenset({"task_accepted", "task_refused", "event", "relay"})
+_PUBLISHED = frozenset({"task_accepted", "task_refused", "event"})
+# Relay traffic goes straight to the relayed browser's group, not through signals:
+# it is on the control path and must not wait for a database thread.
+_RELAYED = frozenset({"relay", "relay_close"})
 
 # Statuses the platform owns while a vehicle serves a session: what the agent says in
 # its profile or heartbeats never overrides them (services moves them on).
@@ -90,6 +93,12 @@ def vehicle_group(vehicle_id: Any) -> str:
     Raises ValueError when ``vehicle_id`` is not a UUID (group names must be plain ASCII).
     """
     return f"vehicle-{uuid.UUID(str(vehicle_id)).hex}"
+
+
+def relay_group(conn: str) -> str:
+    """The channel-layer group of one relayed browser connection (``conn`` is the
+    random id the relay picked)."""
+    return f"relay-{conn}"
 
 
 def _agent_event(vehicle_id: Any, message: dict[str, Any]) -> tuple[str, dict[str, Any]]:
@@ -408,6 +417,16 @@ class AgentUplinkConsumer(AsyncWebsocketConsumer):
             await self._profile(msg)
         elif kind == "heartbeat":
             await self._heartbeat(msg)
+        elif kind in _RELAYED:
+            if not msg.get("conn"):
+                await self._bad_frame("bad_field", "a relayed message needs its conn")
+                return
+            # The relay checks the vehicle id, so an agent cannot talk into another
+            # vehicle's relayed session.
+            await self.channel_layer.group_send(
+                relay_group(msg["conn"]),
+                {"type": "relay.from_agent", "vehicle_id": self.vehicle_id, "message": msg},
+            )
         elif kind in _PUBLISHED:
             await database_sync_to_async(_signal_send)(
                 agent_message, vehicle_id=self.vehicle_id, message=msg

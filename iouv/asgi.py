@@ -20,7 +20,7 @@ from channels.security.websocket import AllowedHostsOriginValidator  # noqa: E40
 from django.conf import settings  # noqa: E402
 from django.urls import re_path  # noqa: E402
 
-from iouv.routing import agent_websocket_urlpatterns, browser_websocket_urlpatterns  # noqa: E402
+from iouv.routing import browser_websocket_urlpatterns, self_authenticating_websocket_urlpatterns  # noqa: E402
 
 http_app = django_asgi_app
 if settings.SERVE_STATIC:
@@ -33,7 +33,7 @@ application = ProtocolTypeRouter(
         "http": http_app,
         "websocket": URLRouter(
             [
-                *agent_websocket_urlpatterns,
+                *self_authenticating_websocket_urlpatterns,
                 # Everything else is opened by browsers: origin-checked, cookie-authenticated.
                 re_path(
                     r"^",

@@ -9,5 +9,6 @@ admin.site.site_title = "IoUV"
 urlpatterns = [
     path("admin/", admin.site.urls),
     path("accounts/", include("accounts.urls")),
+    path("api/", include("services.api_urls")),
     path("", include("services.urls")),
 ]

@@ -11,6 +11,7 @@ for different vehicles do not wait on each other.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -240,6 +241,15 @@ def role_assign(
     return assignment
 
 
+def role_tightened(role: ServiceRole, preferences: dict[str, Any]) -> ServiceRole:
+    """An unsaved copy of ``role`` with the user's wishes added: extra ``cameras`` and
+    a higher ``min_battery``. Preferences only ever narrow a service's requirements."""
+    tight = copy.copy(role)
+    tight.cameras = sorted(set(role.cameras) | set(preferences.get("cameras", [])))
+    tight.min_battery = max(role.min_battery, float(preferences.get("min_battery") or 0))
+    return tight
+
+
 def session_request(
     *,
     user: AbstractBaseUser,
@@ -247,8 +257,11 @@ def session_request(
     target: tuple[float, float] | None = None,
     params: dict[str, Any] | None = None,
     relay: bool = False,
+    preferences: dict[str, Any] | None = None,
 ) -> Session:
     """Open a session of ``service`` for ``user`` and reserve its required roles.
+
+    ``preferences`` (cameras, min_battery) tighten the requirements of every role.
 
     Returns the session in state ``assigned``. Raises AssignmentError when the user
     has no grant (no session is recorded) or a role cannot be filled (the session is
@@ -267,13 +280,20 @@ def session_request(
     event_append(
         session=session,
         kind="requested",
-        data={"user": user.get_username(), "target": target, "relay": relay},
+        data={
+            "user": user.get_username(),
+            "target": target,
+            "relay": relay,
+            "preferences": preferences or {},
+        },
     )
     try:
         # All roles or none: a failure on the second role frees the first.
         with transaction.atomic():
             taken: list[Any] = []
             for role in service.roles.filter(required=True):
+                if preferences:
+                    role = role_tightened(role, preferences)
                 assignment = role_assign(session=session, role=role, target=target, exclude=taken)
                 taken.append(assignment.vehicle_id)
     except AssignmentError as exc:

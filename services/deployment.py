@@ -11,6 +11,7 @@ Tokens are never logged: the session log keeps their nonces, which identify them
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -18,6 +19,7 @@ from typing import Any
 from django.conf import settings
 from django.contrib.auth.models import AbstractBaseUser
 from django.db import transaction
+from django.http import HttpRequest
 
 from agents.protocol import FAILSAFE_ACTIONS, Limits, ProtocolError, UserGrant, VehicleTask
 from fleet.feed import fleet_notify
@@ -225,11 +227,18 @@ def session_deploy(*, session: Session) -> UserTask:
         raise
 
 
-def grant_issue(*, session: Session, user: AbstractBaseUser, role: str = "controller") -> UserTask:
+def grant_issue(
+    *,
+    session: Session,
+    user: AbstractBaseUser,
+    role: str = "controller",
+    allowed_by: Service | None = None,
+) -> UserTask:
     """A fresh grant for ``user`` on ``session``'s primary vehicle (e.g. after a reload).
 
     ``controller``: only the session's own user. ``viewer``: the session's user or anyone
-    allowed to use the service; a viewer's grant allows no command. Raises
+    allowed to use the service (or ``allowed_by``, e.g. the spectate service); a viewer's
+    grant allows no command. Raises
     DeploymentError when the session is final or not yet assigned, the user may not
     have that role, or the role is unknown.
     """
@@ -246,8 +255,9 @@ def grant_issue(*, session: Session, user: AbstractBaseUser, role: str = "contro
         owner = user.pk == session.user_id
         if role == "controller" and not owner:
             raise DeploymentError("only the session's user may control its vehicle")
-        if role == "viewer" and not owner and not user_can_use(user, session.service):
-            raise DeploymentError(f"you may not use the service {session.service.name!r}")
+        permit = allowed_by or session.service
+        if role == "viewer" and not owner and not user_can_use(user, permit):
+            raise DeploymentError(f"you may not use the service {permit.name!r}")
         assignments = _active_assignments(session)
         if not assignments:
             raise DeploymentError("the session has no vehicle")
@@ -325,3 +335,13 @@ def session_fail(*, session: Session, reason: str) -> Session:
         message={"type": "end_task", "session_id": str(session.pk), "reason": reason},
         data={},
     )
+
+
+def user_task_json(task: UserTask, *, request: HttpRequest) -> dict[str, Any]:
+    """The user task as JSON for a page or an API client. A relayed session's
+    ``control_url`` is the platform's relay socket on the host the request came to."""
+    data = dataclasses.asdict(task)
+    if task.relay:
+        scheme = "wss" if request.is_secure() else "ws"
+        data["control_url"] = f"{scheme}://{request.get_host()}/ws/relay/{task.session_id}/"
+    return data

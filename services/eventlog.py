@@ -16,6 +16,7 @@ from django.core.serializers.json import DjangoJSONEncoder
 from django.db import transaction
 from django.utils import timezone
 
+from services.feed import session_notify
 from services.models import Session, SessionEvent
 
 GENESIS_HASH = "0" * 64
@@ -73,6 +74,10 @@ def event_append(
             ),
         )
         event.save()
+        session_notify(
+            session_id=session.pk,
+            event={"seq": seq, "kind": kind, "data": payload, "at": created_at.isoformat()},
+        )
     return event
 
 

@@ -52,9 +52,7 @@ class Service(models.Model):
     )
     # Limits signed into every vehicle task of this service.
     # Limits are positive or absent (null: no limit): a zero limit cannot be signed.
-    max_altitude_m = models.FloatField(
-        null=True, blank=True, validators=[MinValueValidator(0.1)]
-    )
+    max_altitude_m = models.FloatField(null=True, blank=True, validators=[MinValueValidator(0.1)])
     geofence_radius_m = models.FloatField(null=True, blank=True, validators=[MinValueValidator(1)])
     max_speed_mps = models.FloatField(null=True, blank=True, validators=[MinValueValidator(0.01)])
     link_loss_timeout_ms = models.PositiveIntegerField(

@@ -47,13 +47,26 @@ def platform_process(*, extra_env: dict[str, str] | None = None) -> Iterator[str
         "DATABASE_URL": _test_database_url(),
         "DB_CONN_MAX_AGE": "0",
         "PYTHONUNBUFFERED": "1",
+        # Users made by the test are hashed with tests/conftest.py's fast hasher.
+        "IOUV_FAST_PASSWORD_HASHER": "1",
         **(extra_env or {}),
     }
     log = open(settings.VAR_DIR / f"daphne-{port}.log", "w")  # noqa: SIM115 - closed below
     proc = subprocess.Popen(
-        [sys.executable, "-m", "daphne", "-b", "127.0.0.1", "-p", str(port),
-         "iouv.asgi:application"],
-        cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT,
+        [
+            sys.executable,
+            "-m",
+            "daphne",
+            "-b",
+            "127.0.0.1",
+            "-p",
+            str(port),
+            "iouv.asgi:application",
+        ],
+        cwd=ROOT,
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
     )
     base = f"http://127.0.0.1:{port}"
     try:

@@ -447,6 +447,7 @@ MINIMAL: dict[str, dict[str, dict[str, Any]]] = {
             "session_id": "s-1",
             "payload": {"type": "ack", "seq": 1, "ok": True, "error": None},
         },
+        "relay_close": {"session_id": "s", "conn": "c-1"},
     },
     "uplink_to_agent": {
         "welcome": {"v": 1, "heartbeat_interval_s": 5},
@@ -457,6 +458,7 @@ MINIMAL: dict[str, dict[str, dict[str, Any]]] = {
             "session_id": "s-1",
             "payload": {"type": "command", "seq": 1, "name": "stop"},
         },
+        "relay_close": {"session_id": "s", "conn": "c-1"},
         "error": {"code": "bad_credential", "message": "unknown vehicle"},
     },
     "control_to_agent": {

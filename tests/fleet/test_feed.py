@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 from channels.db import database_sync_to_async
+from channels.layers import get_channel_layer
 from channels.testing import WebsocketCommunicator
 from django.db import connections
 
@@ -21,6 +22,11 @@ async def _close_worker_connections():
     # otherwise outlive the test and block dropping the test database.
     yield
     await database_sync_to_async(connections.close_all)()
+    # The Redis layer keeps a blocking read per consumer; close its pools on this
+    # loop so closing the loop does not wait on them.
+    layer = get_channel_layer()
+    if hasattr(layer, "close_pools"):
+        await layer.close_pools()
 
 
 def _connect() -> WebsocketCommunicator:

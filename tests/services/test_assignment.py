@@ -174,3 +174,16 @@ def test_a_reserved_vehicle_is_not_offered_again(base):
     assert assigned(first) == ["a"] and assigned(second) == ["b"]
     with pytest.raises(AssignmentError, match="no vehicle is online and idle"):
         session_request(user=f.user(), service=svc, target=near(0))
+
+
+def test_user_preferences_only_narrow_the_choice(base):
+    st, drone = base
+    f.vehicle(station=st, vtype=drone, name="rgb-near", at=near(0.1))
+    f.vehicle(station=st, vtype=drone, name="thermal-far", at=near(1.0), cameras=["rgb", "thermal"])
+    svc = f.service()
+    chosen = session_request(
+        user=f.user(), service=svc, target=near(0), preferences={"cameras": ["thermal"]}
+    )
+    assert assigned(chosen) == ["thermal-far"]
+    with pytest.raises(AssignmentError, match="battery ≥ 95%"):
+        session_request(user=f.user(), service=svc, preferences={"min_battery": 95})

@@ -1,0 +1,237 @@
+"""WebSocket consumers of the services app: live session feeds."""
+
+from __future__ import annotations
+
+import secrets
+import time
+import uuid
+from typing import Any
+
+from channels.db import database_sync_to_async
+from channels.generic.websocket import AsyncJsonWebsocketConsumer, AsyncWebsocketConsumer
+
+from agents.protocol import (
+    ProtocolError,
+    UserGrant,
+    encode_message,
+    error_message,
+    parse_message,
+)
+from fleet.uplink import avehicle_send, relay_group
+from services.feed import SESSIONS_GROUP, session_group
+
+#: The relay's own budget per browser, on top of the agent's: it protects the platform.
+RELAY_RATE_PER_S = 200.0
+RELAY_BURST = 400.0
+CLOSED_BY_AGENT = 4000
+
+
+class SessionFeedConsumer(AsyncJsonWebsocketConsumer):
+    """One session's log as it grows, for its user and for monitors.
+
+    Sends ``{"type": "session", "session": {...}}`` on connect, then
+    ``{"type": "event", "event": {seq, kind, data, at}, "session": {...}}`` per logged
+    event. Others are refused (4403); an unknown session too (no existence leak).
+    """
+
+    async def connect(self) -> None:
+        self.session_id = self.scope["url_route"]["kwargs"]["session_id"]
+        summary = await _session_for(self.scope.get("user"), self.session_id)
+        if summary is None:
+            await self.close(code=4403)
+            return
+        await self.channel_layer.group_add(session_group(self.session_id), self.channel_name)
+        await self.accept()
+        await self.send_json({"type": "session", "session": summary})
+
+    async def disconnect(self, code: int) -> None:
+        if hasattr(self, "session_id"):
+            await self.channel_layer.group_discard(
+                session_group(self.session_id), self.channel_name
+            )
+
+    async def receive_json(self, content: Any, **kwargs: Any) -> None:
+        await self.send_json({"type": "error", "code": "read_only", "message": "feed is read-only"})
+
+    async def session_event(self, message: dict[str, Any]) -> None:
+        summary = await _session_for(self.scope.get("user"), self.session_id)
+        await self.send_json({"type": "event", "event": message["event"], "session": summary})
+
+
+class SessionsMonitorConsumer(AsyncJsonWebsocketConsumer):
+    """Every live session for monitors: a snapshot, then each logged event.
+
+    Requires ``services.view_session``; others are refused (4403).
+    """
+
+    async def connect(self) -> None:
+        user = self.scope.get("user")
+        if user is None or not await database_sync_to_async(user.has_perm)("services.view_session"):
+            await self.close(code=4403)
+            return
+        await self.channel_layer.group_add(SESSIONS_GROUP, self.channel_name)
+        await self.accept()
+        await self.send_json({"type": "sessions", "sessions": await _live_sessions()})
+
+    async def disconnect(self, code: int) -> None:
+        await self.channel_layer.group_discard(SESSIONS_GROUP, self.channel_name)
+
+    async def receive_json(self, content: Any, **kwargs: Any) -> None:
+        await self.send_json({"type": "error", "code": "read_only", "message": "feed is read-only"})
+
+    async def session_event(self, message: dict[str, Any]) -> None:
+        summary = await _session_for(None, message["session_id"], monitor=True)
+        await self.send_json({"type": "event", "event": message["event"], "session": summary})
+
+
+@database_sync_to_async
+def _session_for(user: Any, session_id: str, *, monitor: bool = False) -> dict[str, Any] | None:
+    from services.models import Session
+    from services.selectors import session_summary
+
+    try:
+        pk = uuid.UUID(str(session_id))
+    except ValueError:
+        return None
+    session = Session.objects.select_related("service", "user").filter(pk=pk).first()
+    if session is None:
+        return None
+    if not monitor and not (
+        user is not None
+        and user.is_authenticated
+        and (session.user_id == user.pk or user.has_perm("services.view_session"))
+    ):
+        return None
+    return session_summary(session)
+
+
+@database_sync_to_async
+def _live_sessions() -> list[dict[str, Any]]:
+    from services.models import Session
+    from services.selectors import session_summary
+    from services.sessions import FINAL
+
+    live = Session.objects.exclude(state__in=FINAL).select_related("service", "user")
+    return [session_summary(s) for s in live.order_by("-created_at")[:200]]
+
+
+class RelayConsumer(AsyncWebsocketConsumer):
+    """Control through the platform, for clients that cannot reach the vehicle.
+
+    The client speaks the same control protocol as on a direct socket. Its first frame
+    must be ``auth`` with a grant the platform signed for this session's vehicle: the
+    relay checks it (signature, expiry, session, vehicle) before forwarding anything,
+    so no login cookie is involved and any client holding a user task may use it
+    (browsers and API programs alike). Each frame is validated, wrapped in a ``relay``
+    message and sent to the vehicle's uplink over the channel layer; the agent's
+    answers come back through this connection's group. The agent checks the grant
+    again (and refuses a replay), so the relay adds transport, not trust.
+    """
+
+    async def connect(self) -> None:
+        self.session_id = str(self.scope["url_route"]["kwargs"]["session_id"])
+        self.vehicle_id: str | None = None
+        self.conn = secrets.token_hex(8)
+        self.tokens, self.refill_at = RELAY_BURST, time.monotonic()
+        await self.accept()
+
+    async def disconnect(self, code: int) -> None:
+        if self.vehicle_id is None:
+            return
+        await self.channel_layer.group_discard(relay_group(self.conn), self.channel_name)
+        if code != CLOSED_BY_AGENT:
+            await avehicle_send(
+                vehicle_id=self.vehicle_id,
+                message={
+                    "type": "relay_close",
+                    "session_id": self.session_id,
+                    "conn": self.conn,
+                    "reason": "client left",
+                },
+            )
+
+    async def receive(self, text_data: str | None = None, bytes_data: bytes | None = None) -> None:
+        raw = text_data if text_data is not None else bytes_data or b""
+        now = time.monotonic()
+        self.tokens = min(RELAY_BURST, self.tokens + (now - self.refill_at) * RELAY_RATE_PER_S)
+        self.refill_at = now
+        if self.tokens < 1:
+            await self._error("rate_limited", "slow down")
+            return
+        self.tokens -= 1
+        try:
+            payload = parse_message(raw, channel="control_to_agent")
+        except ProtocolError as exc:
+            await self._error(exc.code, exc.message)
+            if self.vehicle_id is None:
+                await self.close(code=4401)
+            return
+        if self.vehicle_id is None:
+            refusal = await self._admit(payload)
+            if refusal is not None:
+                await self._error(*refusal)
+                await self.close(code=4401)
+                return
+        assert self.vehicle_id is not None
+        await avehicle_send(
+            vehicle_id=self.vehicle_id,
+            message={
+                "type": "relay",
+                "session_id": self.session_id,
+                "conn": self.conn,
+                "payload": payload,
+            },
+        )
+
+    async def _admit(self, payload: dict[str, Any]) -> tuple[str, str] | None:
+        """Check the first frame's grant; on success join this connection's group.
+        Returns (code, message) when refused."""
+        if payload["type"] != "auth":
+            return ("unauthorized", "authenticate first")
+        vehicle_id = await _session_vehicle(self.session_id)
+        if vehicle_id is None:
+            return ("no_session", "this session is over or has no vehicle")
+        try:
+            grant = UserGrant.verify(payload["grant"], await _public_key(), vehicle_id=vehicle_id)
+        except ProtocolError as exc:
+            return (exc.code, exc.message)
+        if grant.session_id != self.session_id:
+            return ("wrong_session", "this grant is for another session")
+        self.vehicle_id = vehicle_id
+        await self.channel_layer.group_add(relay_group(self.conn), self.channel_name)
+        return None
+
+    async def relay_from_agent(self, event: dict[str, Any]) -> None:
+        if event["vehicle_id"] != self.vehicle_id:
+            return  # only the session's vehicle may answer on this connection
+        message = event["message"]
+        if message["type"] == "relay":
+            await self.send(text_data=encode_message(message["payload"]))
+        else:  # relay_close: the agent dropped this client
+            await self.close(code=message.get("code") or CLOSED_BY_AGENT)
+
+    async def _error(self, code: str, message: str) -> None:
+        await self.send(text_data=encode_message(error_message(code, message)))
+
+
+@database_sync_to_async
+def _session_vehicle(session_id: str) -> str | None:
+    """The primary vehicle of a live session, else None."""
+    from services.models import Session
+    from services.sessions import FINAL
+
+    try:
+        session = Session.objects.get(pk=uuid.UUID(session_id))
+    except (ValueError, Session.DoesNotExist):
+        return None
+    if session.state in FINAL:
+        return None
+    assignment = session.assignments.filter(active=True).order_by("created_at").first()
+    return str(assignment.vehicle_id) if assignment else None
+
+
+@database_sync_to_async
+def _public_key() -> Any:
+    from services.signing import platform_public_key
+
+    return platform_public_key()

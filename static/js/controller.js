@@ -1,0 +1,519 @@
+/* IoUV controller: the user task in the browser.
+ *
+ * Connects straight to the vehicle's agent (or to the platform's relay) with a signed
+ * grant, builds its controls from the vehicle's declared command vocabulary, and
+ * speaks the control protocol of docs/protocol.md:
+ *   - hold a key or button = the command repeats; release = it stops repeating (and
+ *     "stop" is sent when the vehicle has one);
+ *   - the repeat interval follows the measured round trip, with at most one command
+ *     of a kind in flight, so commands never queue up on a slow link;
+ *   - keepalives while in control, so the agent's link-loss watchdog stays quiet;
+ *   - telemetry by subscription, video over WebRTC, refusals and fail-safes shown.
+ * No build step: plain ES2017 in one file.
+ */
+(function () {
+  "use strict";
+
+  const MIN_INTERVAL_MS = 100;
+  const MAX_INTERVAL_MS = 1000;
+  const TELEMETRY_HZ = 4;
+  const KEY_ALIASES = { " ": "Space", Spacebar: "Space" };
+
+  function el(tag, attrs, ...children) {
+    const node = document.createElement(tag);
+    for (const [k, v] of Object.entries(attrs || {})) {
+      if (k === "class") node.className = v;
+      else if (k.startsWith("data-")) node.setAttribute(k, v);
+      else node[k] = v;
+    }
+    for (const child of children) node.append(child);
+    return node;
+  }
+
+  function keyName(key) {
+    const k = KEY_ALIASES[key] || key;
+    return k.length === 1 ? k.toLowerCase() : k;
+  }
+
+  function csrfToken() {
+    const m = document.cookie.match(/(?:^|; )csrftoken=([^;]+)/);
+    return m ? decodeURIComponent(m[1]) : "";
+  }
+
+  function formatValue(value) {
+    if (value === null || value === undefined) return "–";
+    if (typeof value === "number") return Number.isInteger(value) ? String(value) : value.toFixed(2);
+    if (typeof value === "boolean") return value ? "yes" : "no";
+    if (typeof value === "object") {
+      if ("lat" in value && "lon" in value) return `${value.lat.toFixed(6)}, ${value.lon.toFixed(6)}`;
+      return Object.entries(value).map(([k, v]) => `${k} ${formatValue(v)}`).join(" · ");
+    }
+    return String(value);
+  }
+
+  class Controller {
+    constructor(root, task, options) {
+      this.root = root;
+      this.task = task;
+      this.options = options;
+      this.ws = null;
+      this.seq = 0;
+      this.role = "pending";
+      this.commands = new Map(); // name -> spec
+      this.keys = new Map(); // key -> command name
+      this.held = new Map(); // name -> {lastSent, inFlight}
+      this.pending = new Map(); // seq -> {name, sentAt}
+      this.rtt = null; // smoothed round trip (ms)
+      this.rttDev = 0;
+      this.lastSent = 0;
+      this.over = false;
+      this.reconnects = 0;
+      this.stats = { acks: 0, refused: 0, telemetry: 0, framesDecoded: 0, failsafes: 0 };
+      this.lastRefusal = null;
+      this.pc = null;
+      this.timers = [];
+      this.ui = {
+        state: root.querySelector("[data-conn-state]"),
+        role: root.querySelector("[data-role]"),
+        rtt: root.querySelector("[data-rtt]"),
+        interval: root.querySelector("[data-interval]"),
+        telemetry: root.querySelector("[data-telemetry]"),
+        controls: root.querySelector("[data-controls]"),
+        banner: root.querySelector("[data-banner]"),
+        toast: root.querySelector("[data-toast]"),
+        video: root.querySelector("video"),
+        videoNote: root.querySelector("[data-video-note]"),
+        log: root.querySelector("[data-log]"),
+      };
+      window.iouvController = this; // for tests and the curious
+    }
+
+    // --- lifecycle -------------------------------------------------------------------
+    start() {
+      this.bindInputs();
+      this.connect();
+      this.watchSession();
+      this.timers.push(setInterval(() => this.tick(), 20));
+      this.timers.push(setInterval(() => this.ping(), 1000));
+      this.timers.push(setInterval(() => this.keepalive(), this.keepaliveMs()));
+    }
+
+    keepaliveMs() {
+      const timeout = (this.vehicle && this.vehicle.link_loss_timeout_ms) || 500;
+      return Math.max(50, Math.min(100, timeout / 4));
+    }
+
+    connect() {
+      this.setState("connecting");
+      const ws = new WebSocket(this.task.control_url);
+      this.ws = ws;
+      ws.onopen = () => {
+        this.send({ type: "auth", grant: this.task.grant });
+      };
+      ws.onmessage = (event) => {
+        let msg;
+        try { msg = JSON.parse(event.data); } catch (e) { return; }
+        this.handle(msg);
+      };
+      ws.onclose = (event) => {
+        if (this.ws !== ws) return;
+        this.ws = null;
+        this.role = "pending";
+        this.releaseAll(false);
+        this.closeVideo();
+        if (this.over) { this.setState("ended"); return; }
+        this.setState("disconnected");
+        const why = event.reason ? ` (${event.reason})` : "";
+        this.showBanner(`Connection to the vehicle lost${why}. Reconnecting…`, "warn");
+        this.reconnect();
+      };
+    }
+
+    async reconnect() {
+      // A grant is single-use: ask the platform for a fresh one, then connect again.
+      const delay = Math.min(5000, 500 * 2 ** Math.min(this.reconnects, 4)) * (0.5 + Math.random() / 2);
+      this.reconnects += 1;
+      await new Promise((r) => setTimeout(r, delay));
+      if (this.over) return;
+      try {
+        const response = await fetch(this.options.grantUrl, {
+          method: "POST",
+          headers: { "X-CSRFToken": csrfToken(), Accept: "application/json" },
+          credentials: "same-origin",
+        });
+        const body = await response.json();
+        if (!response.ok) {
+          this.endSession(body.error ? body.error.message : "the session is over");
+          return;
+        }
+        this.task = body;
+        this.connect();
+      } catch (e) {
+        this.reconnect();
+      }
+    }
+
+    send(message) {
+      if (!this.ws || this.ws.readyState !== WebSocket.OPEN) return false;
+      this.ws.send(JSON.stringify(message));
+      return true;
+    }
+
+    // --- protocol --------------------------------------------------------------------
+    handle(msg) {
+      switch (msg.type) {
+        case "welcome": return this.onWelcome(msg);
+        case "ack": return this.onAck(msg);
+        case "telemetry": return this.onTelemetry(msg);
+        case "pong": return this.onRtt(performance.now() - msg.t);
+        case "ping": return this.send({ type: "pong", t: msg.t });
+        case "role": return this.setRole(msg.role);
+        case "event": return this.onEvent(msg);
+        case "webrtc_offer": return this.onOffer(msg);
+        case "webrtc_answer": return this.pc && this.pc.setRemoteDescription({ type: "answer", sdp: msg.sdp });
+        case "error": return this.toast(`${msg.code}: ${msg.message}`, "bad");
+        default: return undefined;
+      }
+    }
+
+    onWelcome(msg) {
+      this.reconnects = 0;
+      this.vehicle = msg.vehicle;
+      this.setState("connected");
+      this.hideBanner();
+      this.setRole(msg.role);
+      this.buildControls(msg.commands);
+      if (msg.telemetry.length) {
+        this.send({ type: "subscribe", topics: msg.telemetry, rate_hz: TELEMETRY_HZ });
+      }
+      if (msg.vehicle.video) this.startVideo();
+      else if (this.ui.videoNote) this.ui.videoNote.textContent = "This vehicle has no camera.";
+    }
+
+    onAck(msg) {
+      const sent = this.pending.get(msg.seq);
+      this.pending.delete(msg.seq);
+      if (sent) {
+        this.onRtt(performance.now() - sent.sentAt);
+        const hold = this.held.get(sent.name);
+        if (hold) hold.inFlight = false;
+      }
+      if (msg.ok) { this.stats.acks += 1; return; }
+      this.stats.refused += 1;
+      this.lastRefusal = { name: sent ? sent.name : "?", code: msg.code, error: msg.error };
+      this.toast(`${sent ? sent.name : "command"} refused: ${msg.error}`, "bad");
+      if (sent) this.held.delete(sent.name); // don't keep hammering a refused command
+    }
+
+    onRtt(ms) {
+      // RFC 6298-style smoothing: the send interval follows the average plus deviation.
+      if (this.rtt === null) { this.rtt = ms; this.rttDev = ms / 2; }
+      else {
+        this.rttDev = 0.75 * this.rttDev + 0.25 * Math.abs(this.rtt - ms);
+        this.rtt = 0.875 * this.rtt + 0.125 * ms;
+      }
+      if (this.ui.rtt) this.ui.rtt.textContent = `${this.rtt.toFixed(1)} ms`;
+      if (this.ui.interval) this.ui.interval.textContent = `${this.interval().toFixed(0)} ms`;
+    }
+
+    interval() {
+      const wanted = this.rtt === null ? MIN_INTERVAL_MS : this.rtt + 2 * this.rttDev;
+      return Math.min(MAX_INTERVAL_MS, Math.max(MIN_INTERVAL_MS, wanted));
+    }
+
+    onTelemetry(msg) {
+      this.stats.telemetry += 1;
+      const box = this.ui.telemetry;
+      if (!box) return;
+      for (const [topic, value] of Object.entries(msg.data)) {
+        let row = box.querySelector(`[data-topic="${topic}"]`);
+        if (!row) {
+          row = el("div", { class: "telemetry-row", "data-topic": topic },
+            el("span", { class: "topic" }, topic.replace(/_/g, " ")), el("span", { class: "value" }));
+          box.append(row);
+        }
+        row.querySelector(".value").textContent = formatValue(value);
+      }
+    }
+
+    onEvent(msg) {
+      if (msg.event === "failsafe") {
+        this.stats.failsafes += 1;
+        this.releaseAll(false);
+        this.showBanner(`Fail-safe: ${msg.data.cause.replace(/_/g, " ")} — the vehicle will ${msg.data.action.replace(/_/g, " ")}.`, "bad");
+      } else if (msg.event === "session_ended") {
+        this.endSession(msg.data.reason);
+      }
+    }
+
+    setRole(role) {
+      this.role = role;
+      if (this.ui.role) this.ui.role.textContent = role === "controller" ? "in control" : "watching";
+      this.root.classList.toggle("viewer", role !== "controller");
+      const take = this.root.querySelector("[data-take-control]");
+      if (take) take.hidden = role === "controller" || this.options.spectating;
+    }
+
+    // --- controls --------------------------------------------------------------------
+    buildControls(commands) {
+      this.commands.clear();
+      this.keys.clear();
+      const box = this.ui.controls;
+      if (!box) return;
+      box.textContent = "";
+      if (this.options.spectating) return;
+      const groups = new Map();
+      for (const c of commands) {
+        if (!c.allowed) continue;
+        this.commands.set(c.name, c);
+        if (c.key) this.keys.set(keyName(c.key), c.name);
+        const g = c.group || "other";
+        if (!groups.has(g)) groups.set(g, []);
+        groups.get(g).push(c);
+      }
+      for (const [group, list] of groups) {
+        const pad = el("div", { class: `pad pad-${group}`, "data-group": group },
+          el("h4", {}, group.replace(/_/g, " ")));
+        for (const c of list) {
+          const label = c.name.replace(/_/g, " ");
+          const button = el("button", { type: "button", class: c.motion ? "cmd motion" : "cmd", "data-command": c.name, title: c.description || label },
+            label, c.key ? el("kbd", {}, c.key === " " ? "Space" : c.key) : "");
+          button.addEventListener("pointerdown", (e) => { e.preventDefault(); this.press(c.name); });
+          for (const ev of ["pointerup", "pointerleave", "pointercancel"]) {
+            button.addEventListener(ev, () => this.release(c.name));
+          }
+          pad.append(button);
+        }
+        box.append(pad);
+      }
+    }
+
+    bindInputs() {
+      window.addEventListener("keydown", (e) => {
+        if (e.target.closest && e.target.closest("input, textarea, select")) return;
+        const name = this.keys.get(keyName(e.key));
+        if (!name) return;
+        e.preventDefault();
+        if (!e.repeat) this.press(name);
+      });
+      window.addEventListener("keyup", (e) => {
+        const name = this.keys.get(keyName(e.key));
+        if (name) this.release(name);
+      });
+      // Losing focus loses key-up events: release everything rather than keep moving.
+      window.addEventListener("blur", () => this.releaseAll(true));
+      const take = this.root.querySelector("[data-take-control]");
+      if (take) take.addEventListener("click", () => this.send({ type: "take_control" }));
+      window.addEventListener("gamepadconnected", () => this.toast("Gamepad connected", "ok"));
+    }
+
+    press(name) {
+      const spec = this.commands.get(name);
+      if (!spec || this.role !== "controller") return;
+      this.highlight(name, true);
+      if (spec.motion) this.held.set(name, { lastSent: 0, inFlight: false });
+      else this.command(name);
+    }
+
+    release(name) {
+      this.highlight(name, false);
+      if (!this.held.delete(name)) return;
+      const stillMoving = [...this.held.keys()].some((n) => (this.commands.get(n) || {}).motion);
+      if (!stillMoving && this.commands.has("stop")) this.command("stop");
+    }
+
+    releaseAll(sendStop) {
+      const wasHeld = this.held.size > 0;
+      this.held.clear();
+      this.root.querySelectorAll(".cmd.active").forEach((b) => b.classList.remove("active"));
+      if (sendStop && wasHeld && this.commands.has("stop")) this.command("stop");
+    }
+
+    highlight(name, on) {
+      const button = this.root.querySelector(`[data-command="${name}"]`);
+      if (button) button.classList.toggle("active", on);
+    }
+
+    command(name, args) {
+      const seq = this.seq++;
+      if (!this.send({ type: "command", seq, name, args: args || {} })) return;
+      this.pending.set(seq, { name, sentAt: performance.now() });
+      this.lastSent = performance.now();
+      const hold = this.held.get(name);
+      if (hold) { hold.inFlight = true; hold.lastSent = this.lastSent; }
+    }
+
+    tick() {
+      this.pollGamepad();
+      if (this.role !== "controller") return;
+      const now = performance.now();
+      const every = this.interval();
+      for (const [name, hold] of this.held) {
+        // Repeat a held command once its last one was acknowledged and the interval
+        // passed: on a slow link the rate drops instead of commands piling up.
+        if (!hold.inFlight && now - hold.lastSent >= every) this.command(name);
+      }
+      // Forget acks that never came (a dropped relay frame) so holds can continue.
+      for (const [seq, sent] of this.pending) {
+        if (now - sent.sentAt > 3000) {
+          this.pending.delete(seq);
+          const hold = this.held.get(sent.name);
+          if (hold) hold.inFlight = false;
+        }
+      }
+    }
+
+    keepalive() {
+      if (this.role === "controller" && performance.now() - this.lastSent >= this.keepaliveMs()) {
+        this.send({ type: "keepalive" });
+      }
+    }
+
+    ping() {
+      this.send({ type: "ping", t: performance.now() });
+    }
+
+    // Gamepad: left stick = w/a/s/d, right stick and d-pad = arrows, A = Space.
+    pollGamepad() {
+      const pads = navigator.getGamepads ? navigator.getGamepads() : [];
+      const pad = pads && [...pads].find(Boolean);
+      if (!pad) return;
+      const dead = 0.5;
+      const want = new Set();
+      const [lx, ly, rx, ry] = pad.axes;
+      if (ly < -dead) want.add("w"); if (ly > dead) want.add("s");
+      if (lx < -dead) want.add("a"); if (lx > dead) want.add("d");
+      if (ry < -dead) want.add("ArrowUp"); if (ry > dead) want.add("ArrowDown");
+      if (rx < -dead) want.add("ArrowLeft"); if (rx > dead) want.add("ArrowRight");
+      const b = pad.buttons;
+      if (b[12] && b[12].pressed) want.add("ArrowUp");
+      if (b[13] && b[13].pressed) want.add("ArrowDown");
+      if (b[14] && b[14].pressed) want.add("ArrowLeft");
+      if (b[15] && b[15].pressed) want.add("ArrowRight");
+      if (b[0] && b[0].pressed) want.add("Space");
+      this.gamepadKeys = this.gamepadKeys || new Set();
+      for (const key of want) if (!this.gamepadKeys.has(key) && this.keys.has(key)) this.press(this.keys.get(key));
+      for (const key of this.gamepadKeys) if (!want.has(key) && this.keys.has(key)) this.release(this.keys.get(key));
+      this.gamepadKeys = want;
+    }
+
+    // --- video -----------------------------------------------------------------------
+    startVideo() {
+      if (!window.RTCPeerConnection || !this.ui.video) return;
+      this.closeVideo();
+      const pc = new RTCPeerConnection({ iceServers: this.options.iceServers || [] });
+      this.pc = pc;
+      pc.ontrack = (event) => {
+        this.ui.video.srcObject = event.streams[0] || new MediaStream([event.track]);
+        if (this.ui.videoNote) this.ui.videoNote.textContent = "";
+        const count = () => {
+          this.stats.framesDecoded += 1;
+          this.ui.video.requestVideoFrameCallback(count);
+        };
+        if (this.ui.video.requestVideoFrameCallback) this.ui.video.requestVideoFrameCallback(count);
+      };
+      if (this.ui.videoNote) this.ui.videoNote.textContent = "Starting video…";
+      this.send({ type: "webrtc_request" });
+    }
+
+    async onOffer(msg) {
+      const pc = this.pc;
+      if (!pc) return;
+      await pc.setRemoteDescription({ type: "offer", sdp: msg.sdp });
+      await pc.setLocalDescription(await pc.createAnswer());
+      // Wait for ICE candidates, but not forever (closed networks never "complete").
+      await new Promise((resolve) => {
+        if (pc.iceGatheringState === "complete") return resolve();
+        const done = () => { if (pc.iceGatheringState === "complete") resolve(); };
+        pc.addEventListener("icegatheringstatechange", done);
+        setTimeout(resolve, 1500);
+      });
+      this.send({ type: "webrtc_answer", sdp: pc.localDescription.sdp });
+    }
+
+    closeVideo() {
+      if (this.pc) { this.pc.close(); this.pc = null; }
+    }
+
+    // --- the session as the platform sees it ---------------------------------------------
+    watchSession() {
+      if (!this.options.feedUrl) return;
+      const connect = () => {
+        const feed = new WebSocket(this.options.feedUrl);
+        feed.onmessage = (event) => {
+          const msg = JSON.parse(event.data);
+          if (msg.type === "event") this.logEvent(msg.event);
+          const s = msg.session;
+          if (s && ["ended", "failed", "aborted"].includes(s.state)) this.endSession(s.reason);
+        };
+        feed.onclose = () => { if (!this.over) setTimeout(connect, 2000); };
+        this.feed = feed;
+      };
+      connect();
+    }
+
+    logEvent(event) {
+      if (!this.ui.log) return;
+      const detail = event.data && (event.data.reason || event.data.cause || event.data.to || "");
+      this.ui.log.prepend(el("li", {}, el("span", { class: "muted" }, new Date(event.at).toLocaleTimeString()),
+        " ", event.kind.replace(/_/g, " "), detail ? ` — ${detail}` : ""));
+    }
+
+    endSession(reason) {
+      if (this.over) return;
+      this.over = true;
+      this.releaseAll(false);
+      this.showBanner(`Session over: ${reason || "ended"}`, "info");
+      this.setState("ended");
+      this.root.classList.add("over");
+      if (this.ws) this.ws.close(1000, "session over");
+      this.closeVideo();
+    }
+
+    // --- UI helpers ------------------------------------------------------------------
+    setState(state) {
+      this.connState = state;
+      if (this.ui.state) {
+        this.ui.state.textContent = state;
+        this.ui.state.dataset.connState = state;
+      }
+    }
+
+    showBanner(text, kind) {
+      const b = this.ui.banner;
+      if (!b) return;
+      b.textContent = text;
+      b.className = `banner banner-${kind}`;
+      b.hidden = false;
+    }
+
+    hideBanner() {
+      if (this.ui.banner && !this.over) this.ui.banner.hidden = true;
+    }
+
+    toast(text, kind) {
+      const t = this.ui.toast;
+      if (!t) return;
+      t.textContent = text;
+      t.className = `toast toast-${kind}`;
+      t.hidden = false;
+      clearTimeout(this.toastTimer);
+      this.toastTimer = setTimeout(() => { t.hidden = true; }, 3500);
+    }
+  }
+
+  window.IoUV = { Controller };
+
+  document.addEventListener("DOMContentLoaded", () => {
+    const root = document.getElementById("controller");
+    const data = document.getElementById("user-task");
+    if (!root || !data) return;
+    const task = JSON.parse(data.textContent);
+    if (!task) return;
+    new Controller(root, task, {
+      grantUrl: root.dataset.grantUrl,
+      feedUrl: root.dataset.feedUrl,
+      spectating: root.dataset.spectating === "true",
+    }).start();
+  });
+})();
