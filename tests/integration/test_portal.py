@@ -1,0 +1,321 @@
+"""The portal as a person uses it: real Chromium, real platform, real agents.
+
+The demo world is seeded, the platform runs under daphne (Postgres, Redis), the
+simulated car's agent runs here, and Playwright drives Debian's Chromium.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import math
+import re
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from asgiref.sync import sync_to_async
+from django.db import connections
+from playwright.async_api import Browser, Page, expect
+
+from accounts.roles import CLIENT
+from agents.config import AgentConfig
+from agents.runtime import Agent
+from fleet.models import Vehicle
+from services.demo import demo_seed
+from services.models import Session
+from tests import factories as f
+from tests.browser import chromium_browser, needs_chromium
+from tests.servers import platform_process
+
+pytestmark = [
+    pytest.mark.postgres,
+    pytest.mark.redis,
+    pytest.mark.django_db(transaction=True),
+    needs_chromium,
+]
+PASSWORD = "demo-pass-for-tests"
+
+
+@sync_to_async
+def db(fn, *args: Any, **kwargs: Any) -> Any:
+    try:
+        return fn(*args, **kwargs)
+    finally:
+        connections.close_all()
+
+
+@dataclasses.dataclass
+class World:
+    base: str
+    browser: Browser
+    agents: dict[str, Agent]
+
+    async def login(self, username: str, password: str = PASSWORD) -> Page:
+        context = await self.browser.new_context()
+        page = await context.new_page()
+        await page.goto(f"{self.base}/accounts/login/")
+        await page.fill("#id_username", username)
+        await page.fill("#id_password", password)
+        await page.click("button[type=submit]")
+        await page.wait_for_url(f"{self.base}/")
+        return page
+
+
+async def _start_agent(path: Path, base: str) -> Agent:
+    config = AgentConfig.load(path)
+    config = dataclasses.replace(
+        config,
+        platform_url=base.replace("http://", "ws://"),
+        adapter_options={**config.adapter_options, "simulate": True},
+        # Loopback only: aioice would otherwise offer this machine's other addresses.
+        video={"source": "synthetic", "ice_host_addresses": ["127.0.0.1"]},
+        reconnect_min_s=0.2,
+    )
+    return Agent(config)
+
+
+@pytest.fixture
+async def world(tmp_path: Path) -> AsyncIterator[World]:
+    await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path)
+    with platform_process() as base:
+        agents = {
+            name: await _start_agent(tmp_path / f"{name}.json", base)
+            for name in ("car-1", "quad-1")
+        }
+        tasks = [asyncio.create_task(a.run()) for a in agents.values()]
+
+        async def online() -> bool:
+            return await db(lambda: Vehicle.objects.filter(name="car-1", status="idle").exists())
+
+        for _ in range(100):
+            if await online():
+                break
+            await asyncio.sleep(0.1)
+        async with chromium_browser(webrtc_loopback=True) as browser:
+            try:
+                yield World(base, browser, agents)
+            finally:
+                for task in tasks:
+                    task.cancel()
+                for task in tasks:
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await task
+
+
+async def controller(page: Page, expression: str) -> Any:
+    return await page.evaluate(f"() => {{ const c = window.iouvController; return {expression}; }}")
+
+
+async def wait_for(page: Page, expression: str, timeout_ms: int = 15000) -> None:
+    await page.wait_for_function(
+        f"() => {{ const c = window.iouvController; return c && ({expression}); }}",
+        timeout=timeout_ms,
+    )
+
+
+async def request_car(world: World, page: Page, *, relay: bool = False) -> str:
+    await page.click("[data-service=drive-car] a.button")
+    await page.select_option("#id_station", label="Campus station")
+    if relay:
+        await page.check("#id_relay")
+    await page.click("#request-button")
+    await page.wait_for_url("**/sessions/*/")
+    await wait_for(page, "c.role === 'controller'")
+    return page.url.rstrip("/").rsplit("/", 1)[-1]
+
+
+async def drive_forward(world: World, page: Page, seconds: float = 1.0) -> float:
+    """Hold ArrowUp; returns how far the simulated car moved (metres)."""
+    car = world.agents["car-1"].adapter.world
+    start = car.pose
+    await page.keyboard.down("ArrowUp")
+    await asyncio.sleep(seconds)
+    moved = math.hypot(car.pose.north_m - start.north_m, car.pose.east_m - start.east_m)
+    await page.keyboard.up("ArrowUp")
+    return moved
+
+
+async def hold(page: Page, key: str, seconds: float) -> None:
+    await page.keyboard.down(key)
+    await asyncio.sleep(seconds)
+    await page.keyboard.up(key)
+
+
+async def test_client_flies_the_drone_from_the_browser(world: World):
+    page = await world.login("client")
+    await page.click("[data-service=fly-drone] a.button")
+    await page.select_option("#id_station", label="Campus station")
+    await page.click("#request-button")
+    await page.wait_for_url("**/sessions/*/")
+    await wait_for(page, "c.role === 'controller' && c.stats.framesDecoded > 3")
+    drone = world.agents["quad-1"].adapter
+
+    await page.keyboard.press("t")  # take off to the default 5 m
+    await wait_for(page, "c.stats.acks >= 1")
+    for _ in range(150):
+        if (drone.telemetry().get("altitude") or 0) > 4.5:
+            break
+        await asyncio.sleep(0.1)
+    assert drone.telemetry()["altitude"] > 4.5
+    await expect(page.locator("[data-topic=altitude] .value")).not_to_have_text("\u2013")
+
+    before = drone.telemetry()["altitude"]
+    await hold(page, "w", 1.5)  # climb while held
+    assert drone.telemetry()["altitude"] > before + 0.5
+
+    start = drone.state().position
+    await hold(page, "ArrowUp", 2.0)  # forward while held
+    moved = drone.state().position
+    assert moved != start
+    # Released: "stop" went out and the drone brakes to a hover.
+    for _ in range(60):
+        if (drone.telemetry().get("speed") or 0) < 0.3:
+            break
+        await asyncio.sleep(0.1)
+    assert drone.telemetry()["speed"] < 0.3
+    await expect(page.locator("[data-rtt]")).to_have_text(re.compile(r"\d+\.\d ms"))
+    assert await controller(page, "c.stats.refused") == 0
+
+    await page.click("[data-end-session]")
+    await page.wait_for_url(f"{world.base}/")
+    quad = await db(Vehicle.objects.get, name="quad-1")
+    assert quad.status == Vehicle.Status.IDLE
+
+
+async def test_client_requests_drives_sees_video_and_ends(world: World):
+    page = await world.login("client")
+    session_id = await request_car(world, page)
+
+    await wait_for(page, "c.stats.framesDecoded > 5")
+    assert await page.locator("video").evaluate("v => v.videoWidth") == 640
+
+    moved = await drive_forward(world, page)
+    assert moved > 0.1
+    agent = world.agents["car-1"]
+    # Releasing the key stops the car ("stop" is sent on release).
+    await page.wait_for_timeout(300)
+    assert agent.adapter.telemetry()["motors"] == {"left": 0.0, "right": 0.0}
+
+    await expect(page.locator("[data-rtt]")).to_have_text(re.compile(r"\d+\.\d ms"))
+    await expect(page.locator("[data-topic=battery_level] .value")).not_to_have_text("\u2013")
+    assert await controller(page, "c.stats.refused") == 0
+
+    await page.click("[data-end-session]")
+    await page.wait_for_url(f"{world.base}/")
+    session = await db(Session.objects.get, pk=session_id)
+    assert session.state == Session.State.ENDED
+    car = await db(Vehicle.objects.get, name="car-1")
+    assert car.status == Vehicle.Status.IDLE
+
+
+async def test_second_user_spectates_but_cannot_steer(world: World):
+    driver = await world.login("client")
+    await request_car(world, driver)
+    await db(f.user, "viewer-vera", roles=(CLIENT,))
+    vera = await world.login("viewer-vera", "pw-for-tests")
+    await vera.goto(f"{world.base}/spectate/")
+    await vera.click("[data-spectate] a.button")
+    await wait_for(vera, "c.role === 'viewer' && c.stats.framesDecoded > 3")
+    assert await vera.locator("[data-controls]").count() == 0
+
+    car = world.agents["car-1"].adapter
+    await vera.keyboard.down("ArrowUp")
+    await asyncio.sleep(0.5)
+    await vera.keyboard.up("ArrowUp")
+    assert car.telemetry()["motors"] == {"left": 0.0, "right": 0.0}
+    # The driver still drives.
+    assert await drive_forward(world, driver, 0.6) > 0.05
+
+
+async def test_monitor_stops_a_running_session(world: World):
+    client = await world.login("client")
+    session_id = await request_car(world, client)
+    await client.keyboard.down("ArrowUp")
+
+    monitor = await world.login("monitor")
+    await monitor.goto(f"{world.base}/monitor/")
+    row = monitor.locator(f"[data-session='{session_id}']")
+    await expect(row).to_be_visible(timeout=10000)
+    await expect(monitor.locator("[data-vehicle=car-1]")).to_contain_text("in service")
+    await row.locator("[data-stop]").click()
+
+    await expect(client.locator("[data-banner]")).to_contain_text(
+        "stopped by monitor", timeout=10000
+    )
+    await client.keyboard.up("ArrowUp")
+    assert world.agents["car-1"].adapter.telemetry()["motors"] == {"left": 0.0, "right": 0.0}
+    session = await db(Session.objects.get, pk=session_id)
+    assert session.state == Session.State.ABORTED and "monitor" in session.reason
+    await expect(row).to_have_count(0, timeout=10000)
+
+
+async def test_closing_the_tab_triggers_failsafe_and_is_recorded(world: World):
+    page = await world.login("client")
+    session_id = await request_car(world, page)
+    await page.keyboard.down("ArrowUp")
+    await asyncio.sleep(0.3)
+    await page.close()  # the user closes the tab mid-drive
+
+    agent = world.agents["car-1"]
+    for _ in range(50):
+        if agent.adapter.telemetry()["motors"] == {"left": 0.0, "right": 0.0}:
+            break
+        await asyncio.sleep(0.02)
+    assert agent.adapter.telemetry()["motors"] == {"left": 0.0, "right": 0.0}
+
+    async def recorded() -> bool:
+        return await db(
+            lambda: (
+                Session.objects.get(pk=session_id).events.filter(kind="unintentional_end").exists()
+            )
+        )
+
+    for _ in range(100):
+        if await recorded():
+            break
+        await asyncio.sleep(0.1)
+    assert await recorded()
+
+
+async def test_the_same_drive_works_through_the_relay(world: World):
+    page = await world.login("client")
+    await request_car(world, page, relay=True)
+    assert "/ws/relay/" in await controller(page, "c.task.control_url")
+    await wait_for(page, "c.stats.framesDecoded > 3")
+    assert await drive_forward(world, page) > 0.1
+    await expect(page.locator("[data-rtt]")).to_contain_text("ms")
+
+
+async def test_clients_cannot_reach_what_is_not_theirs(world: World):
+    owner = await world.login("client")
+    session_id = await request_car(world, owner)
+    await db(f.user, "other-olga", roles=(CLIENT,))
+    olga = await world.login("other-olga", "pw-for-tests")
+    response = await olga.goto(f"{world.base}/sessions/{session_id}/")
+    assert response.status == 404
+    response = await olga.goto(f"{world.base}/admin/")
+    assert "/admin/login/" in olga.url
+    response = await olga.goto(f"{world.base}/monitor/")
+    assert response.status == 403
+    # A service without a grant for her: the fly-drone grant goes to clients, so make one.
+    hidden = await db(f.service, "secret-service", grant_clients=False)
+    response = await olga.goto(f"{world.base}/services/{hidden.slug}/")
+    assert response.status == 404
+    # The relay only carries messages: without a grant for this vehicle, the agent
+    # refuses her and the relay closes her socket.
+    outcome = await olga.evaluate(
+        """(url) => new Promise((resolve) => {
+             const ws = new WebSocket(url);
+             const seen = [];
+             ws.onopen = () => ws.send(JSON.stringify({type: "auth", grant: "forged.grant"}));
+             ws.onmessage = (e) => seen.push(JSON.parse(e.data));
+             ws.onclose = (e) => resolve({code: e.code, seen});
+             setTimeout(() => resolve({code: "still open", seen}), 8000);
+           })""",
+        f"{world.base.replace('http', 'ws')}/ws/relay/{session_id}/",
+    )
+    assert outcome["code"] == 4401
+    assert outcome["seen"][0]["type"] == "error"
