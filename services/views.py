@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from django.contrib import messages
 from django.contrib.auth.decorators import login_required, permission_required
 from django.db import connection
@@ -72,6 +74,18 @@ def service_request(request: HttpRequest, slug: str) -> HttpResponse:
     )
 
 
+def _log_lines(session: Session) -> list[dict[str, Any]]:
+    """The newest log events, as the session page lists them."""
+    lines = []
+    for event in session.events.order_by("-seq")[:30]:
+        data = event.data if isinstance(event.data, dict) else {}
+        detail = data.get("reason") or data.get("cause") or data.get("to") or ""
+        lines.append(
+            {"at": event.created_at, "label": event.kind.replace("_", " "), "detail": detail}
+        )
+    return lines
+
+
 def _own_session(request: HttpRequest, session_id: str) -> Session:
     session = get_object_or_404(Session.objects.select_related("service"), pk=session_id)
     if session.user_id != request.user.pk:
@@ -92,7 +106,12 @@ def session_page(request: HttpRequest, session_id: str) -> HttpResponse:
     return render(
         request,
         "services/session.html",
-        {"session": session, "summary": session_summary(session), "user_task": task},
+        {
+            "session": session,
+            "summary": session_summary(session),
+            "user_task": task,
+            "events": _log_lines(session),
+        },
     )
 
 
@@ -168,6 +187,7 @@ def spectate_session(request: HttpRequest, session_id: str) -> HttpResponse:
             "session": session,
             "summary": session_summary(session),
             "user_task": user_task_json(task, request=request),
+            "events": _log_lines(session),
             "spectating": True,
         },
     )

@@ -278,6 +278,24 @@
           const label = c.name.replace(/_/g, " ");
           const button = el("button", { type: "button", class: c.motion ? "cmd motion" : "cmd", "data-command": c.name, title: c.description || label },
             label, c.key ? el("kbd", {}, c.key === " " ? "Space" : c.key) : "");
+          const needed = Object.entries(c.args || {}).filter(([, spec]) => !("default" in spec));
+          if (needed.length) {
+            // Arguments without a default (a waypoint, say): ask for them beside the button.
+            const inputs = needed.map(([arg, spec]) => el("input", {
+              type: "number", step: "any", placeholder: `${arg}${spec.unit ? ` (${spec.unit})` : ""}`,
+              min: spec.min ?? "", max: spec.max ?? "", "data-arg": arg, required: true,
+            }));
+            button.addEventListener("click", () => {
+              const args = {};
+              for (const input of inputs) {
+                if (!input.reportValidity()) return;
+                args[input.dataset.arg] = Number(input.value);
+              }
+              if (this.role === "controller") this.command(c.name, args);
+            });
+            pad.append(el("span", { class: "args" }, button, ...inputs));
+            continue;
+          }
           button.addEventListener("pointerdown", (e) => { e.preventDefault(); this.press(c.name); });
           for (const ev of ["pointerup", "pointerleave", "pointercancel"]) {
             button.addEventListener(ev, () => this.release(c.name));
@@ -444,6 +462,8 @@
           const msg = JSON.parse(event.data);
           if (msg.type === "event") this.logEvent(msg.event);
           const s = msg.session;
+          const tag = this.root.querySelector("[data-session-state]");
+          if (s && tag) { tag.textContent = s.state; tag.className = `tag state-${s.state}`; }
           if (s && ["ended", "failed", "aborted"].includes(s.state)) this.endSession(s.reason);
         };
         feed.onclose = () => { if (!this.over) setTimeout(connect, 2000); };
