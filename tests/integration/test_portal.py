@@ -146,20 +146,7 @@ async def hold(page: Page, key: str, seconds: float) -> None:
 
 async def test_client_flies_the_drone_from_the_browser(world: World):
     page = await world.login("client")
-    await page.click("[data-service=fly-drone] a.button")
-    await page.select_option("#id_station", label="Campus station")
-    await page.click("#request-button")
-    await page.wait_for_url("**/sessions/*/")
-    await wait_for(page, "c.role === 'controller' && c.stats.framesDecoded > 3")
-    drone = world.agents["quad-1"].adapter
-
-    await page.keyboard.press("t")  # take off to the default 5 m
-    await wait_for(page, "c.stats.acks >= 1")
-    for _ in range(150):
-        if (drone.telemetry().get("altitude") or 0) > 4.5:
-            break
-        await asyncio.sleep(0.1)
-    assert drone.telemetry()["altitude"] > 4.5
+    drone = await request_drone(world, page)
     await expect(page.locator("[data-topic=altitude] .value")).not_to_have_text("\u2013")
 
     before = drone.telemetry()["altitude"]
@@ -211,23 +198,40 @@ async def test_client_requests_drives_sees_video_and_ends(world: World):
     assert car.status == Vehicle.Status.IDLE
 
 
-async def test_second_user_spectates_but_cannot_steer(world: World):
+async def request_drone(world: World, page: Page) -> Any:
+    """Request fly-drone from the catalog and take off; returns the drone's adapter."""
+    await page.click("[data-service=fly-drone] a.button")
+    await page.select_option("#id_station", label="Campus station")
+    await page.click("#request-button")
+    await page.wait_for_url("**/sessions/*/")
+    await wait_for(page, "c.role === 'controller' && c.stats.framesDecoded > 3")
+    drone = world.agents["quad-1"].adapter
+    await page.keyboard.press("t")  # take off to the default 5 m
+    for _ in range(150):
+        if (drone.telemetry().get("altitude") or 0) > 4.5:
+            break
+        await asyncio.sleep(0.1)
+    assert drone.telemetry()["altitude"] > 4.5
+    return drone
+
+
+async def test_second_user_spectates_the_drone_but_cannot_steer(world: World):
     driver = await world.login("client")
-    await request_car(world, driver)
+    drone = await request_drone(world, driver)
     await db(f.user, "viewer-vera", roles=(CLIENT,))
     vera = await world.login("viewer-vera", "pw-for-tests")
     await vera.goto(f"{world.base}/spectate/")
+    await expect(vera.locator("[data-spectate]")).to_contain_text("quad-1")
     await vera.click("[data-spectate] a.button")
     await wait_for(vera, "c.role === 'viewer' && c.stats.framesDecoded > 3")
+    await expect(vera.locator("[data-topic=altitude] .value")).not_to_have_text("\u2013")
     assert await vera.locator("[data-controls]").count() == 0
 
-    car = world.agents["car-1"].adapter
-    await vera.keyboard.down("ArrowUp")
-    await asyncio.sleep(0.5)
-    await vera.keyboard.up("ArrowUp")
-    assert car.telemetry()["motors"] == {"left": 0.0, "right": 0.0}
-    # The driver still drives.
-    assert await drive_forward(world, driver, 0.6) > 0.05
+    altitude = drone.telemetry()["altitude"]
+    await hold(vera, "w", 1.0)  # the viewer tries to climb: nothing happens
+    assert abs(drone.telemetry()["altitude"] - altitude) < 0.3
+    await hold(driver, "w", 1.0)  # the driver still flies
+    assert drone.telemetry()["altitude"] > altitude + 0.5
 
 
 async def test_monitor_stops_a_running_session(world: World):
