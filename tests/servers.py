@@ -7,6 +7,7 @@ the same ``var/`` folder, hence the same platform signing key.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import os
 import socket
@@ -16,8 +17,11 @@ import time
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
+from asgiref.sync import sync_to_async
 from django.conf import settings
+from django.db import connections
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -90,3 +94,23 @@ def platform_process(*, extra_env: dict[str, str] | None = None) -> Iterator[str
         except subprocess.TimeoutExpired:
             proc.kill()
         log.close()
+
+
+@sync_to_async
+def db(fn: Any, *args: Any, **kwargs: Any) -> Any:
+    """Run ORM code off the event loop; its connection closes after, so the test
+    database can be dropped at the end."""
+    try:
+        return fn(*args, **kwargs)
+    finally:
+        connections.close_all()
+
+
+async def until(predicate: Any, *, within: float = 10.0, what: str = "") -> Any:
+    """Poll ``predicate`` (a coroutine function) until it returns something truthy."""
+    for _ in range(int(within / 0.1)):
+        value = await predicate()
+        if value:
+            return value
+        await asyncio.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what or predicate}")

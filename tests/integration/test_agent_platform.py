@@ -13,8 +13,6 @@ from collections.abc import AsyncIterator
 from typing import Any
 
 import pytest
-from asgiref.sync import sync_to_async
-from django.db import connections
 from websockets.asyncio.client import connect
 
 from agents.config import AgentConfig, ControlConfig
@@ -27,7 +25,7 @@ from services.models import Session
 from services.signing import platform_public_key_pem
 from tests import factories as f
 from tests.agents.test_control import command, recv
-from tests.servers import platform_process
+from tests.servers import db, platform_process, until
 
 pytestmark = [
     pytest.mark.postgres,
@@ -35,26 +33,6 @@ pytestmark = [
     pytest.mark.django_db(transaction=True),
 ]
 CAR_COMMANDS = ["forward", "backward", "left", "right", "stop", "camera_up", "camera_down"]
-
-
-@sync_to_async
-def db(fn, *args: Any, **kwargs: Any) -> Any:
-    """Run ORM code off the event loop; its connection closes after, so the test
-    database can be dropped at the end."""
-    try:
-        return fn(*args, **kwargs)
-    finally:
-        connections.close_all()
-
-
-async def until(predicate, *, within: float = 10.0, what: str = "") -> Any:
-    """Poll ``predicate`` (a coroutine function) until it returns something truthy."""
-    for _ in range(int(within / 0.1)):
-        value = await predicate()
-        if value:
-            return value
-        await asyncio.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what or predicate}")
 
 
 def _fleet() -> tuple[Vehicle, str, Any]:

@@ -16,8 +16,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from asgiref.sync import sync_to_async
-from django.db import connections
 from playwright.async_api import Browser, Page, expect
 
 from accounts.roles import CLIENT
@@ -28,7 +26,7 @@ from services.demo import demo_seed
 from services.models import Session
 from tests import factories as f
 from tests.browser import chromium_browser, needs_chromium
-from tests.servers import platform_process
+from tests.servers import db, platform_process
 
 pytestmark = [
     pytest.mark.postgres,
@@ -37,14 +35,6 @@ pytestmark = [
     needs_chromium,
 ]
 PASSWORD = "demo-pass-for-tests"
-
-
-@sync_to_async
-def db(fn, *args: Any, **kwargs: Any) -> Any:
-    try:
-        return fn(*args, **kwargs)
-    finally:
-        connections.close_all()
 
 
 @dataclasses.dataclass

@@ -28,8 +28,7 @@ from services.models import Session
 from services.signing import platform_public_key_pem
 from tests import factories as f
 from tests.agents.test_control import command, recv
-from tests.integration.test_agent_platform import db, until
-from tests.servers import platform_process
+from tests.servers import db, platform_process, until
 
 pytestmark = [
     pytest.mark.postgres,

@@ -16,8 +16,6 @@ from collections.abc import AsyncIterator
 from typing import Any
 
 import pytest
-from asgiref.sync import sync_to_async
-from django.db import connections
 from websockets.asyncio.client import connect
 
 from agents.adapters.spektrum import SpektrumAdapter
@@ -31,7 +29,7 @@ from services.models import Session
 from services.signing import platform_public_key_pem
 from tests import factories as f
 from tests.agents.test_spektrum import FAST, command, recv
-from tests.servers import platform_process
+from tests.servers import db, platform_process, until
 
 pytestmark = [
     pytest.mark.postgres,
@@ -52,26 +50,6 @@ VTOL_COMMANDS = [
     "change_to_vtol_mode",
     "change_to_aircraft_mode",
 ]
-
-
-@sync_to_async
-def db(fn: Any, *args: Any, **kwargs: Any) -> Any:
-    """Run ORM code off the event loop; its connection closes after, so the test
-    database can be dropped at the end."""
-    try:
-        return fn(*args, **kwargs)
-    finally:
-        connections.close_all()
-
-
-async def until(predicate: Any, *, within: float = 10.0, what: str = "") -> Any:
-    """Poll ``predicate`` (a coroutine function) until it returns something truthy."""
-    for _ in range(int(within / 0.1)):
-        value = await predicate()
-        if value:
-            return value
-        await asyncio.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what or predicate}")
 
 
 def _fleet() -> tuple[Vehicle, str, Any]:
