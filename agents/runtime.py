@@ -135,12 +135,23 @@ class Agent:
         status = "idle"
         if hub is not None and hub.task is not None:
             status = "in_service"
+        elif self._airborne():
+            status = "returning"  # still flying home or landing on its own
         return {
             "type": "heartbeat",
             "position": self._position(),
             "battery": self.adapter.state().battery,
             "status": status,
         }
+
+    def _airborne(self) -> bool:
+        """True while the vehicle is still in the air (telemetry ``in_air`` or an
+        altitude above half a metre): it is not free for another session yet."""
+        telemetry = self.adapter.telemetry()
+        if telemetry.get("in_air"):
+            return True
+        altitude = telemetry.get("altitude")
+        return isinstance(altitude, int | float) and altitude > 0.5
 
     def _position(self) -> dict[str, float] | None:
         state = self.adapter.state()

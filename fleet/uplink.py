@@ -77,9 +77,7 @@ _RELAYED = frozenset({"relay", "relay_close"})
 
 # Statuses the platform owns while a vehicle serves a session: what the agent says in
 # its profile or heartbeats never overrides them (services moves them on).
-_PLATFORM_HELD = frozenset(
-    {Vehicle.Status.RESERVED, Vehicle.Status.IN_SERVICE, Vehicle.Status.RETURNING}
-)
+_PLATFORM_HELD = frozenset({Vehicle.Status.RESERVED, Vehicle.Status.IN_SERVICE})
 
 
 # --------------------------------------------------------------------------------------
@@ -160,6 +158,11 @@ def _status_after(
         return Vehicle.Status.FAILSAFE
     if not registered:
         return current
+    # Still flying home or landing after its session: not assignable until it says idle.
+    if reported == "returning" and current in (Vehicle.Status.IDLE, Vehicle.Status.OFFLINE):
+        return Vehicle.Status.RETURNING
+    if reported == "idle" and current == Vehicle.Status.RETURNING:
+        return Vehicle.Status.IDLE
     if current == Vehicle.Status.OFFLINE:
         return Vehicle.Status.IDLE
     # A fresh profile means a freshly (re)started agent: its fail-safe is over.
@@ -193,7 +196,7 @@ def vehicle_record_profile(*, vehicle_id: Any, profile: dict[str, Any], now: dat
     Stores the control URL, the reported vocabulary, telemetry topics, video, type,
     adapter and attributes (as reported: the declared attributes used for matching
     stay the admin's), position, battery and last_seen. An offline or fail-safe vehicle
-    becomes idle, unless in maintenance; reserved/in-service/returning are kept.
+    becomes idle, unless in maintenance; reserved/in-service are kept.
     """
     with transaction.atomic():
         vehicle = Vehicle.objects.select_for_update().filter(pk=vehicle_id).first()

@@ -45,3 +45,20 @@ def test_maintenance_refused_for_a_vehicle_in_a_session():
         vehicle_set_maintenance(vehicle=v, on=True)
     v.refresh_from_db()
     assert not v.maintenance
+
+
+def test_a_vehicle_still_flying_home_is_not_assignable_until_it_says_idle():
+    from fleet.uplink import vehicle_record_heartbeat
+
+    v = f.vehicle(station=f.station(), vtype=f.vehicle_type())
+    beat = {"type": "heartbeat", "seq": 1, "status": "returning"}
+    vehicle_record_heartbeat(vehicle_id=v.pk, heartbeat=beat, now=timezone.now(), registered=True)
+    v.refresh_from_db()
+    assert v.status == Vehicle.Status.RETURNING
+    assert not vehicles_online().filter(status=Vehicle.Status.IDLE).exists()
+
+    beat = {"type": "heartbeat", "seq": 2, "status": "idle"}
+    later = timezone.now() + timedelta(seconds=5)  # past the heartbeat write throttle
+    vehicle_record_heartbeat(vehicle_id=v.pk, heartbeat=beat, now=later, registered=True)
+    v.refresh_from_db()
+    assert v.status == Vehicle.Status.IDLE

@@ -26,7 +26,7 @@ from services.demo import demo_seed
 from services.models import Session
 from tests import factories as f
 from tests.browser import chromium_browser, needs_chromium
-from tests.servers import db, platform_process
+from tests.servers import db, platform_process, until
 
 pytestmark = [
     pytest.mark.postgres,
@@ -158,8 +158,17 @@ async def test_client_flies_the_drone_from_the_browser(world: World):
 
     await page.click("[data-end-session]")
     await page.wait_for_url(f"{world.base}/")
+    # Freed: no longer reserved. It flies home on its own and shows "returning" until
+    # it has landed, when its agent reports it idle again.
     quad = await db(Vehicle.objects.get, name="quad-1")
-    assert quad.status == Vehicle.Status.IDLE
+    assert quad.status in (Vehicle.Status.IDLE, Vehicle.Status.RETURNING)
+    assert not await db(lambda: quad.assignments.filter(active=True).exists())
+
+    async def returning() -> bool:
+        v = await db(Vehicle.objects.get, name="quad-1")
+        return v.status == Vehicle.Status.RETURNING
+
+    await until(returning, within=8, what="the drone to report it is flying home")
 
 
 async def test_client_requests_drives_sees_video_and_ends(world: World):
