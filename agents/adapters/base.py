@@ -13,7 +13,7 @@ Lifecycle: ``async with adapter_create(name, options) as adapter: ...`` calls
 from __future__ import annotations
 
 import abc
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, ClassVar, Self
@@ -174,6 +174,20 @@ class Adapter(abc.ABC):
     def video_source(self) -> Any | None:
         """A video source for WebRTC (see agents.video), or None without a camera."""
         return None
+
+
+def origin_option(options: Mapping[str, Any], adapter: str) -> tuple[float, float] | None:
+    """The ``origin`` option, ``[lat, lon]`` where a simulated vehicle starts (or a real
+    one without GPS counts from), or None. Raises ValueError naming the option."""
+    origin = options.get("origin")
+    if origin is None:
+        return None
+    if not isinstance(origin, Sequence) or isinstance(origin, str) or len(origin) != 2:
+        raise ValueError(f"{adapter} option origin: expected [lat, lon]")
+    lat, lon = float(origin[0]), float(origin[1])
+    if not (-90 <= lat <= 90 and -180 <= lon <= 180):
+        raise ValueError(f"{adapter} option origin: latitude or longitude out of range")
+    return (lat, lon)
 
 
 REGISTRY: dict[str, type[Adapter]] = {}

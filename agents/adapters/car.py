@@ -50,6 +50,7 @@ from agents.adapters.base import (
     CommandSpec,
     Projection,
     VehicleState,
+    origin_option,
     register,
 )
 from agents.geo import offset
@@ -206,14 +207,7 @@ class CarConfig:
         else:
             raise ValueError("car option motor_driver: expected 'dual' or 'phase_enable'")
 
-        origin = options.get("origin")
-        if origin is not None:
-            if not isinstance(origin, Sequence) or len(origin) != 2:
-                raise ValueError("car option origin: expected [lat, lon]")
-            lat, lon = float(origin[0]), float(origin[1])
-            if not (-90 <= lat <= 90 and -180 <= lon <= 180):
-                raise ValueError("car option origin: latitude or longitude out of range")
-            origin = (lat, lon)
+        origin = origin_option(options, "car")
 
         queue_len = options.get("distance_queue_len", 3)
         if isinstance(queue_len, bool) or not isinstance(queue_len, int) or queue_len < 1:

@@ -71,6 +71,7 @@ from agents.adapters.base import (
     CommandSpec,
     Projection,
     VehicleState,
+    origin_option,
     register,
 )
 from agents.geo import offset
@@ -273,14 +274,7 @@ class MavlinkConfig:
         if not isinstance(simulator, Mapping):
             raise ValueError("mavlink option simulator: expected an object")
         _check_simulator(simulator)
-        origin = options.get("origin")
-        if origin is not None:
-            if not isinstance(origin, Sequence) or isinstance(origin, str) or len(origin) != 2:
-                raise ValueError("mavlink option origin: expected [lat, lon]")
-            lat, lon = float(origin[0]), float(origin[1])
-            if not (-90 <= lat <= 90 and -180 <= lon <= 180):
-                raise ValueError("mavlink option origin: latitude or longitude out of range")
-            origin = (lat, lon)
+        origin = origin_option(options, "mavlink")
         source = _optional_id(options, "source_system")
         frame = options.get("velocity_frame", "body_offset_ned")
         if frame not in VELOCITY_FRAMES:

@@ -79,6 +79,7 @@ from agents.adapters.base import (
     CommandSpec,
     Projection,
     VehicleState,
+    origin_option,
     register,
 )
 from agents.geo import offset
@@ -549,14 +550,7 @@ class SpektrumConfig:
                     f"spektrum option reversed_channels: {name!r} is not one of "
                     f"{', '.join(CHANNEL_NAMES)}"
                 )
-        origin = options.get("origin")
-        if origin is not None:
-            if not isinstance(origin, Sequence) or isinstance(origin, str) or len(origin) != 2:
-                raise ValueError("spektrum option origin: expected [lat, lon]")
-            lat, lon = float(origin[0]), float(origin[1])
-            if not (-90 <= lat <= 90 and -180 <= lon <= 180):
-                raise ValueError("spektrum option origin: latitude or longitude out of range")
-            origin = (lat, lon)
+        origin = origin_option(options, "spektrum")
         sim = options.get("sim", {})
         if not isinstance(sim, Mapping):
             raise ValueError("spektrum option sim: an object of simulator parameters")
