@@ -15,13 +15,18 @@ import subprocess
 import sys
 import time
 import urllib.request
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
 
+import pytest
 from asgiref.sync import sync_to_async
 from django.conf import settings
 from django.db import connections
+
+from agents.config import AgentConfig, ControlConfig
+from agents.runtime import Agent
+from services.signing import platform_public_key_pem
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -114,3 +119,31 @@ async def until(predicate: Any, *, within: float = 10.0, what: str = "") -> Any:
             return value
         await asyncio.sleep(0.1)
     raise AssertionError(f"timed out waiting for {what or predicate}")
+
+
+@contextlib.asynccontextmanager
+async def agent_running(
+    *, base: str, vehicle: Any, credential: str, adapter: str, options: dict[str, Any]
+) -> AsyncIterator[Agent]:
+    """Run ``vehicle``'s agent, on its simulator, against the platform at ``base``.
+
+    The agent is cancelled on exit, and must end by that cancellation, not by an error.
+    """
+    config = AgentConfig(
+        platform_url=base.replace("http", "ws"),
+        vehicle_id=str(vehicle.pk),
+        credential=credential,
+        platform_public_key=await db(platform_public_key_pem),
+        adapter=adapter,
+        adapter_options={"simulate": True, **options},
+        control=ControlConfig(host="127.0.0.1", port=0),
+        name=vehicle.name,
+    )
+    agent = Agent(config)
+    run = asyncio.create_task(agent.run())
+    try:
+        yield agent
+    finally:
+        run.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await run

@@ -51,6 +51,7 @@ from agents.protocol import (
 )
 from agents.safety import CommandGate, Refusal
 from agents.sim.spektrum import FrameChecker, SimParams, VtolModel, cli
+from tests.agents.test_control import command, recv
 
 # --------------------------------------------------------------------------------------
 # The specification, independently of the adapter's code
@@ -339,8 +340,8 @@ async def test_every_command_decodes_to_the_expected_channels(line: LineRig, mod
         base["gear"] = HIGH
         await line.shows(base)
 
-    for command, channel, value in STICK_TABLE:
-        await plane.execute(command, {"amount": 0.5})
+    for name, channel, value in STICK_TABLE:
+        await plane.execute(name, {"amount": 0.5})
         await line.shows({**base, channel: value})
         # Released (no repeat): back to centre after the 250 ms hold time.
         await line.shows(base)
@@ -684,26 +685,11 @@ async def hub_rig(**options: Any) -> AsyncIterator[HubRig]:
             yield HubRig(hub, server, plane, reports)
 
 
-async def recv(ws: ClientConnection, kind: str, within: float = 3.0) -> dict[str, Any]:
-    deadline = time.monotonic() + within
-    while True:
-        msg = json.loads(await asyncio.wait_for(ws.recv(), deadline - time.monotonic()))
-        if msg["type"] == kind:
-            return msg
-        if msg["type"] == "ping":
-            await ws.send(json.dumps({"type": "pong", "t": msg["t"]}))
-
-
 async def join(rig: HubRig) -> ClientConnection:
     ws = await connect(rig.url, compression=None, proxy=None)
     await ws.send(json.dumps({"type": "auth", "grant": make_grant()}))
     assert (await recv(ws, "welcome"))["role"] == "controller"
     return ws
-
-
-async def command(ws: ClientConnection, seq: int, name: str, **args: Any) -> dict[str, Any]:
-    await ws.send(json.dumps({"type": "command", "seq": seq, "name": name, "args": args}))
-    return await recv(ws, "ack")
 
 
 async def climb_to(ws: ClientConnection, rig: HubRig, alt: float) -> None:

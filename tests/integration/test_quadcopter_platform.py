@@ -17,7 +17,6 @@ from typing import Any
 import pytest
 from websockets.asyncio.client import connect
 
-from agents.config import AgentConfig, ControlConfig
 from agents.geo import distance_m
 from agents.runtime import Agent
 from fleet.credentials import vehicle_issue_credential
@@ -25,10 +24,9 @@ from fleet.models import Vehicle
 from services.assignment import session_request
 from services.deployment import session_deploy
 from services.models import Session
-from services.signing import platform_public_key_pem
 from tests import factories as f
 from tests.agents.test_control import command, recv
-from tests.servers import db, platform_process, until
+from tests.servers import agent_running, db, platform_process, until
 
 pytestmark = [
     pytest.mark.postgres,
@@ -73,28 +71,17 @@ def _fleet() -> tuple[Vehicle, str, Any]:
 async def running() -> AsyncIterator[tuple[Agent, Vehicle, Any]]:
     quad, credential, service = await db(_fleet)
     with platform_process() as base:
-        config = AgentConfig(
-            platform_url=base.replace("http", "ws"),
-            vehicle_id=str(quad.pk),
+        async with agent_running(
+            base=base,
+            vehicle=quad,
             credential=credential,
-            platform_public_key=await db(platform_public_key_pem),
             adapter="mavlink",
-            adapter_options={
-                "simulate": True,
+            options={
                 "origin": [f.HOME[0], f.HOME[1]],
                 "simulator": {"speedup": 4, "params": {"RTL_ALT": 800, "RTL_LOIT_TIME": 500}},
             },
-            control=ControlConfig(host="127.0.0.1", port=0),
-            name="quad-1",
-        )
-        agent = Agent(config)
-        run = asyncio.create_task(agent.run())
-        try:
+        ) as agent:
             yield agent, quad, service
-        finally:
-            run.cancel()
-            with pytest.raises(asyncio.CancelledError):
-                await run
     assert agent.adapter.sim_process is None  # the simulator was stopped with the agent
 
 

@@ -19,17 +19,15 @@ import pytest
 from websockets.asyncio.client import connect
 
 from agents.adapters.spektrum import SpektrumAdapter
-from agents.config import AgentConfig, ControlConfig
 from agents.runtime import Agent
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
 from services.assignment import session_request
 from services.deployment import session_deploy
 from services.models import Session
-from services.signing import platform_public_key_pem
 from tests import factories as f
 from tests.agents.test_spektrum import FAST, command, recv
-from tests.servers import db, platform_process, until
+from tests.servers import agent_running, db, platform_process, until
 
 pytestmark = [
     pytest.mark.postgres,
@@ -77,29 +75,18 @@ def _fleet() -> tuple[Vehicle, str, Any]:
 async def running() -> AsyncIterator[tuple[Agent, Vehicle, Any]]:
     plane, credential, service = await db(_fleet)
     with platform_process() as base:
-        config = AgentConfig(
-            platform_url=base.replace("http", "ws"),
-            vehicle_id=str(plane.pk),
+        async with agent_running(
+            base=base,
+            vehicle=plane,
             credential=credential,
-            platform_public_key=await db(platform_public_key_pem),
             adapter="spektrum",
-            adapter_options={
-                "simulate": True,
+            options={
                 "origin": [f.HOME[0], f.HOME[1]],
                 "vehicle_type": "Spektrum VTOL plane",
                 **FAST,
             },
-            control=ControlConfig(host="127.0.0.1", port=0),
-            name="vtol-1",
-        )
-        agent = Agent(config)
-        run = asyncio.create_task(agent.run())
-        try:
+        ) as agent:
             yield agent, plane, service
-        finally:
-            run.cancel()
-            with pytest.raises(asyncio.CancelledError):
-                await run
 
 
 async def test_register_deploy_fly_and_link_loss_lands(running: Any) -> None:
