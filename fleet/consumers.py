@@ -8,6 +8,7 @@ from channels.db import database_sync_to_async
 from channels.generic.websocket import AsyncJsonWebsocketConsumer
 
 from fleet.feed import FLEET_GROUP
+from iouv.layer import relay_ensure
 
 
 class FleetFeedConsumer(AsyncJsonWebsocketConsumer):
@@ -18,6 +19,7 @@ class FleetFeedConsumer(AsyncJsonWebsocketConsumer):
     """
 
     async def connect(self) -> None:
+        relay_ensure()
         user = self.scope.get("user")
         if user is None or not await database_sync_to_async(user.has_perm)("fleet.view_fleet"):
             await self.close(code=4403)

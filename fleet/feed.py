@@ -5,9 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
-from asgiref.sync import async_to_sync
-from channels.layers import get_channel_layer
-from django.db import transaction
+from iouv.layer import group_send_after_commit
 
 FLEET_GROUP = "fleet"
 
@@ -22,9 +20,4 @@ def fleet_notify(vehicle_ids: Iterable[Any]) -> None:
     if not ids:
         return
 
-    def send() -> None:
-        layer = get_channel_layer()
-        if layer is not None:
-            async_to_sync(layer.group_send)(FLEET_GROUP, {"type": "fleet.changed", "ids": ids})
-
-    transaction.on_commit(send)
+    group_send_after_commit(FLEET_GROUP, {"type": "fleet.changed", "ids": ids})

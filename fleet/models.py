@@ -137,3 +137,18 @@ class Vehicle(models.Model):
         if self.lat is not None and self.lon is not None:
             return (self.lat, self.lon)
         return (self.station.lat, self.station.lon)
+
+
+class LayerMessage(models.Model):
+    """A channel-layer group message waiting for the ASGI process (embedded mode only,
+    see iouv.layer): written by a worker in its own transaction, relayed and deleted."""
+
+    group = models.CharField(max_length=100)
+    message = models.JSONField()
+    created_at = models.DateTimeField(auto_now_add=True)
+
+    class Meta:
+        ordering = ["pk"]
+
+    def __str__(self) -> str:
+        return f"{self.group}: {self.message.get('type', '?')}"

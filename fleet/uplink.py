@@ -32,7 +32,6 @@ from collections import deque
 from datetime import datetime
 from typing import Any
 
-from asgiref.sync import async_to_sync
 from channels.db import database_sync_to_async
 from channels.generic.websocket import AsyncWebsocketConsumer
 from channels.layers import get_channel_layer
@@ -52,6 +51,7 @@ from fleet.credentials import vehicle_authenticate
 from fleet.feed import fleet_notify
 from fleet.models import Vehicle
 from fleet.signals import agent_connected, agent_disconnected, agent_message, agent_welcome
+from iouv.layer import group_send_after_commit, relay_ensure
 
 log = logging.getLogger(__name__)
 
@@ -115,13 +115,7 @@ def vehicle_send(*, vehicle_id: Any, message: dict[str, Any]) -> None:
     valid uplink_to_agent message, ValueError if ``vehicle_id`` is not a UUID.
     """
     group, event = _agent_event(vehicle_id, message)
-
-    def send() -> None:
-        layer = get_channel_layer()
-        if layer is not None:
-            async_to_sync(layer.group_send)(group, event)
-
-    transaction.on_commit(send)
+    group_send_after_commit(group, event)
 
 
 async def avehicle_send(*, vehicle_id: Any, message: dict[str, Any]) -> None:
@@ -348,6 +342,7 @@ class AgentUplinkConsumer(AsyncWebsocketConsumer):
     # -- connection ---------------------------------------------------------------------
 
     async def connect(self) -> None:
+        relay_ensure()
         await self.accept()
         self._hello_timer = asyncio.create_task(self._hello_deadline())
 

@@ -181,7 +181,11 @@ if env_bool("BEHIND_PROXY", False):
 # --- Celery ----------------------------------------------------------------------------
 if REDIS_URL:
     CELERY_BROKER_URL = REDIS_URL
-    CELERY_BROKER_TRANSPORT_OPTIONS: dict[str, object] = {"visibility_timeout": 3600}
+    # A task whose worker died unacknowledged (acks_late) is delivered again after this
+    # long; workflow steps are idempotent, so a second run changes nothing.
+    CELERY_BROKER_TRANSPORT_OPTIONS: dict[str, object] = {
+        "visibility_timeout": env_int("CELERY_VISIBILITY_TIMEOUT_S", 3600)
+    }
 else:
     # kombu's filesystem transport: daphne and a separate worker process share a
     # queue through files, with no server to install.
@@ -227,7 +231,21 @@ IOUV_RECONNECT_GRACE_S = env_int("IOUV_RECONNECT_GRACE_S", 30)
 IOUV_UNSAFE_REFUSALS_MAX = env_int("IOUV_UNSAFE_REFUSALS_MAX", 5)
 IOUV_UNSAFE_REFUSALS_WINDOW_S = env_float("IOUV_UNSAFE_REFUSALS_WINDOW_S", 10.0)
 
+# Embedded mode: a worker process pushes through the database to the ASGI process.
+IOUV_LAYER_RELAY = env_bool("IOUV_LAYER_RELAY", True)
+
+# Rescue missions (services.rescue): how long a search may last, how long a search
+# vehicle may be silent before another takes over its remaining lines, the battery
+# level at which it is replaced, and how often the workflow's timer runs.
+IOUV_MISSION_SEARCH_TIMEOUT_S = env_int("IOUV_MISSION_SEARCH_TIMEOUT_S", 1200)
+IOUV_MISSION_OFFLINE_GRACE_S = env_float("IOUV_MISSION_OFFLINE_GRACE_S", 10.0)
+IOUV_MISSION_LOW_BATTERY_PCT = env_float("IOUV_MISSION_LOW_BATTERY_PCT", 25.0)
+IOUV_MISSION_TICK_S = env_float("IOUV_MISSION_TICK_S", 2.0)
+# Rescue team webhooks: how long one delivery attempt may take.
+IOUV_WEBHOOK_TIMEOUT_S = env_float("IOUV_WEBHOOK_TIMEOUT_S", 5.0)
+
 EMAIL_BACKEND = env_str("EMAIL_BACKEND", "django.core.mail.backends.console.EmailBackend")
+EMAIL_FILE_PATH = env_str("EMAIL_FILE_PATH", str(VAR_DIR / "mail"))
 DEFAULT_FROM_EMAIL = env_str("DEFAULT_FROM_EMAIL", "iouv@localhost")
 
 LOGGING = {

@@ -18,6 +18,7 @@ from agents.protocol import (
     parse_message,
 )
 from fleet.uplink import avehicle_send, relay_group
+from iouv.layer import relay_ensure
 from services.feed import SESSIONS_GROUP, session_group
 
 #: The relay's own budget per browser, on top of the agent's: it protects the platform.
@@ -35,6 +36,7 @@ class SessionFeedConsumer(AsyncJsonWebsocketConsumer):
     """
 
     async def connect(self) -> None:
+        relay_ensure()
         self.session_id = self.scope["url_route"]["kwargs"]["session_id"]
         summary = await _session_for(self.scope.get("user"), self.session_id)
         if summary is None:
@@ -65,6 +67,7 @@ class SessionsMonitorConsumer(AsyncJsonWebsocketConsumer):
     """
 
     async def connect(self) -> None:
+        relay_ensure()
         user = self.scope.get("user")
         if user is None or not await database_sync_to_async(user.has_perm)("services.view_session"):
             await self.close(code=4403)
@@ -129,6 +132,7 @@ class RelayConsumer(AsyncWebsocketConsumer):
     """
 
     async def connect(self) -> None:
+        relay_ensure()
         self.session_id = str(self.scope["url_route"]["kwargs"]["session_id"])
         self.vehicle_id: str | None = None
         self.conn = secrets.token_hex(8)

@@ -107,6 +107,16 @@ def _primary(assignments: list[Assignment]) -> Assignment:
     return assignments[0]
 
 
+def _mission_for(*, session: Session, assignment: Assignment) -> dict[str, Any] | None:
+    """The autonomous mission of this vehicle's task: the workflow's (one per vehicle,
+    from the mission's recorded state), else the session's ``params["mission"]``."""
+    if session.service.workflow == "rescue_at_sea":
+        from services.rescue import vehicle_mission  # the workflow builds on this module
+
+        return vehicle_mission(assignment=assignment)
+    return session.params.get("mission") if isinstance(session.params, dict) else None
+
+
 def vehicle_task_deploy(*, session: Session, assignment: Assignment) -> VehicleTask:
     """Sign a fresh task for ``assignment``'s vehicle, push it and log it.
 
@@ -128,7 +138,7 @@ def vehicle_task_deploy(*, session: Session, assignment: Assignment) -> VehicleT
             limits=limits,
             issued_at=now,
             expires_at=now + settings.IOUV_TASK_TTL_S,
-            mission=session.params.get("mission") if isinstance(session.params, dict) else None,
+            mission=_mission_for(session=session, assignment=assignment),
         )
     except ProtocolError as exc:
         raise InvalidTaskError(f"cannot make a vehicle task: {exc.message}") from None

@@ -49,6 +49,7 @@ from services.deployment import (
 )
 from services.eventlog import event_append
 from services.models import Assignment, Session, SessionEvent
+from services.rescue import MISSION_EVENTS, WORKFLOW, mission_event, mission_task_accepted
 from services.sessions import SessionStateError, session_transition
 from services.signing import platform_public_key_pem
 
@@ -116,6 +117,8 @@ def _task_accepted(*, vehicle_id: Any, message: dict[str, Any]) -> None:
         return
     session = assignment.session
     event_append(session=session, kind="task_accepted", data={"vehicle": str(vehicle_id)})
+    if session.service.workflow == WORKFLOW:
+        mission_task_accepted(assignment=assignment)
     if not _serving(assignment):
         # A late acceptance (e.g. delivered after the session ended): the agent must not
         # keep serving a session that is over.
@@ -270,6 +273,16 @@ _EVENT_HANDLERS = {
     "task_ended": _logged_as("task_ended"),
     "link_quality": _on_link_quality,
 }
+
+
+def _on_mission_event(name: str) -> Any:
+    def handler(assignment: Assignment, data: dict[str, Any]) -> None:
+        mission_event(assignment=assignment, name=name, data=data)
+
+    return handler
+
+
+_EVENT_HANDLERS.update({name: _on_mission_event(name) for name in MISSION_EVENTS})
 
 
 # --------------------------------------------------------------------------------------

@@ -7,8 +7,10 @@ loses nothing and running one twice changes nothing.
 from __future__ import annotations
 
 from celery import shared_task
+from django.conf import settings
 
 from iouv.celery import app
+from services.rescue import mission_advance, missions_tick
 from services.supervision import (
     sessions_expire_grace,
     sessions_expire_time_limit,
@@ -34,8 +36,23 @@ def services_expire_undelivered() -> int:
     return len(sessions_expire_undelivered())
 
 
+@shared_task(name="services.mission_step", acks_late=True)
+def mission_step(session_id: str) -> str | None:
+    """One step of a mission's workflow (idempotent: safe to run twice)."""
+    return mission_advance(session_id)
+
+
+@shared_task(name="services.missions_tick")
+def services_missions_tick() -> int:
+    """Re-run every unfinished mission: timers, waiting, lost messages."""
+    return missions_tick()
+
+
 @app.on_after_finalize.connect
 def _schedule(sender, **kwargs) -> None:  # type: ignore[no-untyped-def]
     sender.add_periodic_task(5.0, services_expire_grace.s(), name="end abandoned fail-safes")
     sender.add_periodic_task(5.0, services_expire_time_limit.s(), name="enforce time limits")
     sender.add_periodic_task(15.0, services_expire_undelivered.s(), name="fail undelivered tasks")
+    sender.add_periodic_task(
+        settings.IOUV_MISSION_TICK_S, services_missions_tick.s(), name="advance missions"
+    )

@@ -1,0 +1,95 @@
+"""Group messages on the channel layer, sent after the current transaction commits.
+
+Everything the platform pushes (tasks to agents, session and fleet feeds) goes through
+:func:`group_send_after_commit`. With Redis every process reaches every consumer. In
+embedded mode the in-memory layer only reaches consumers of its own process, so a Celery
+worker (another process) would push into the void: there, messages are written to the
+database instead (``fleet.LayerMessage``, in the sender's transaction) and the ASGI
+process relays them to its consumers (:func:`relay_run`). Nothing else changes between
+the two modes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import Any
+
+from asgiref.sync import async_to_sync
+from channels.db import database_sync_to_async
+from channels.layers import get_channel_layer
+from django.conf import settings
+from django.db import transaction
+
+log = logging.getLogger(__name__)
+
+#: Set in processes that are not the ASGI server (the Celery worker and beat) when the
+#: layer is in-memory: their group messages go through the database.
+CROSS_PROCESS = False
+
+#: How often the ASGI process looks for relayed messages (embedded mode only).
+RELAY_POLL_S = 0.25
+
+_relay_task: asyncio.Task[None] | None = None
+
+
+def in_memory() -> bool:
+    """True when the channel layer only reaches this process's consumers."""
+    backend = settings.CHANNEL_LAYERS.get("default", {}).get("BACKEND", "")
+    return backend.endswith("InMemoryChannelLayer")
+
+
+def group_send_after_commit(group: str, message: dict[str, Any]) -> None:
+    """Send ``message`` to ``group`` once the current transaction commits (at once
+    outside one); in a worker process of an embedded platform, relay it through the
+    database instead, written in the same transaction."""
+    if CROSS_PROCESS and in_memory():
+        from fleet.models import LayerMessage
+
+        LayerMessage.objects.create(group=group, message=message)
+        return
+
+    def send() -> None:
+        layer = get_channel_layer()
+        if layer is not None:
+            async_to_sync(layer.group_send)(group, message)
+
+    transaction.on_commit(send)
+
+
+def _take_relayed(limit: int = 200) -> list[tuple[str, dict[str, Any]]]:
+    from fleet.models import LayerMessage
+
+    with transaction.atomic():
+        rows = list(LayerMessage.objects.order_by("pk")[:limit])
+        if rows:
+            LayerMessage.objects.filter(pk__in=[r.pk for r in rows]).delete()
+    return [(r.group, r.message) for r in rows]
+
+
+async def relay_run() -> None:
+    """Deliver relayed messages to this process's consumers, forever."""
+    layer = get_channel_layer()
+    take = database_sync_to_async(_take_relayed)
+    while True:
+        try:
+            for group, message in await take():
+                await layer.group_send(group, message)
+        except asyncio.CancelledError:
+            raise
+        except Exception:  # a database hiccup must not end the relay
+            log.exception("layer relay: delivery failed, retrying")
+        await asyncio.sleep(RELAY_POLL_S)
+
+
+def relay_ensure() -> None:
+    """Start the relay in this (ASGI) process if the platform needs one; idempotent.
+
+    Called when consumers connect: the first browser or agent starts it.
+    """
+    global _relay_task
+    if not (settings.IOUV_LAYER_RELAY and in_memory()):
+        return
+    if _relay_task is not None and not _relay_task.done():
+        return
+    _relay_task = asyncio.get_running_loop().create_task(relay_run(), name="layer-relay")

@@ -1,0 +1,51 @@
+"""Embedded mode: a worker process's pushes reach the ASGI process's consumers."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+from channels.layers import get_channel_layer
+from django.test import override_settings
+
+from fleet.models import LayerMessage
+from iouv import layer
+
+IN_MEMORY = {"default": {"BACKEND": "channels.layers.InMemoryChannelLayer"}}
+
+
+@pytest.fixture
+def worker_process(monkeypatch):
+    monkeypatch.setattr(layer, "CROSS_PROCESS", True)
+
+
+@override_settings(CHANNEL_LAYERS=IN_MEMORY, IOUV_LAYER_RELAY=True)
+@pytest.mark.django_db(transaction=True)
+async def test_a_worker_message_reaches_a_consumer_of_the_server(worker_process) -> None:
+    from channels.db import database_sync_to_async
+
+    channel_layer = get_channel_layer()
+    channel = await channel_layer.new_channel()
+    await channel_layer.group_add("vehicle-x", channel)
+    # The worker side: the message is stored, not lost in the worker's own memory.
+    await database_sync_to_async(layer.group_send_after_commit)(
+        "vehicle-x", {"type": "agent.send", "message": {"type": "end_task"}}
+    )
+    assert await database_sync_to_async(LayerMessage.objects.count)() == 1
+    # The server side: the relay delivers it once and forgets it.
+    layer.CROSS_PROCESS = False
+    relay = asyncio.create_task(layer.relay_run())
+    try:
+        received = await asyncio.wait_for(channel_layer.receive(channel), 5)
+    finally:
+        relay.cancel()
+    assert received["message"] == {"type": "end_task"}
+    assert await database_sync_to_async(LayerMessage.objects.count)() == 0
+
+
+@override_settings(CHANNEL_LAYERS=IN_MEMORY)
+@pytest.mark.django_db
+def test_the_server_itself_sends_directly(django_capture_on_commit_callbacks) -> None:
+    with django_capture_on_commit_callbacks(execute=False) as callbacks:
+        layer.group_send_after_commit("fleet", {"type": "fleet.changed", "ids": []})
+    assert len(callbacks) == 1 and not LayerMessage.objects.exists()

@@ -1,0 +1,382 @@
+"""The rescue workflow's state machine, step by step, against the demo's sea fleet.
+
+Agents are played by publishing their reports exactly as the uplink does; each step is
+run directly (in production Celery runs it), so every test can also run it twice and
+check that nothing happens twice.
+"""
+
+from __future__ import annotations
+
+import http.server
+import json
+import threading
+from datetime import timedelta
+
+import pytest
+import time_machine
+from django.core import mail
+from django.utils import timezone
+
+from agents.geo import offset
+from agents.protocol import parse_message
+from fleet.models import Station, Vehicle
+from fleet.signals import agent_message
+from services.demo import demo_seed
+from services.models import Assignment, Mission, MissionNotification, Service, Session
+from services.rescue import (
+    RescueError,
+    mission_advance,
+    mission_json,
+    missions_tick,
+    notifications_send,
+    rescue_request,
+    vehicle_mission,
+)
+from tests import factories as f
+
+pytestmark = pytest.mark.django_db
+
+SEA = (40.6420, -8.7560)  # about 900 m west of Costa Nova station, over the water
+
+
+def area(width_m: float = 300, height_m: float = 200) -> list[list[float]]:
+    return [
+        list(SEA),
+        list(offset(SEA, 0, width_m)),
+        list(offset(SEA, height_m, width_m)),
+        list(offset(SEA, height_m, 0)),
+    ]
+
+
+def online(*names: str) -> None:
+    for vehicle in Vehicle.objects.filter(name__in=names).select_related("station"):
+        vehicle.status = Vehicle.Status.IDLE
+        vehicle.last_seen = timezone.now()
+        vehicle.lat, vehicle.lon, vehicle.alt = vehicle.station.lat, vehicle.station.lon, 0.0
+        vehicle.battery = 95.0
+        vehicle.save()
+
+
+def say(vehicle: Vehicle, msg: dict) -> None:
+    message = parse_message(json.dumps(msg), channel="uplink_to_platform")
+    agent_message.send(sender=None, vehicle_id=str(vehicle.pk), message=message)
+
+
+def report(session: Session, vehicle: Vehicle, name: str, **data) -> None:
+    say(vehicle, {"type": "event", "session_id": str(session.pk), "event": name, "data": data})
+
+
+def kinds(session: Session) -> list[str]:
+    return list(session.events.order_by("seq").values_list("kind", flat=True))
+
+
+def mission(session: Session) -> Mission:
+    return Mission.objects.get(pk=session.pk)
+
+
+def step(session: Session) -> str:
+    return mission_advance(session.pk)
+
+
+@pytest.fixture
+def world():
+    demo_seed(password="pw")
+    online("search-1", "lifeguard-1")
+    return Service.objects.get(slug="rescue-at-sea")
+
+
+@pytest.fixture
+def client_user():
+    return f.user(username="skipper")
+
+
+def vehicle(name: str) -> Vehicle:
+    return Vehicle.objects.get(name=name)
+
+
+def test_whole_rescue_from_area_to_completed(world, client_user, settings) -> None:
+    settings.EMAIL_BACKEND = "django.core.mail.backends.locmem.EmailBackend"
+    session = rescue_request(user=client_user, service=world, area=area())
+    m = mission(session)
+    assert m.state == Mission.State.WAITING_SEARCH
+    assert len(m.path) >= 4 and m.spacing_m == pytest.approx(34.8, abs=0.5)
+
+    # The fastest thermal drone is assigned and gets the search pattern to fly.
+    assert step(session) == Mission.State.SEARCHING
+    search = Assignment.objects.get(session=session, role="search")
+    assert search.vehicle.name == "search-1"
+    m = mission(session)
+    doc = vehicle_mission(assignment=search)
+    assert doc["kind"] == "search" and doc["start_index"] == 0 and doc["waypoints"] == m.path
+    # The first waypoint is the end of the pattern nearest the drone's station.
+    station = (search.vehicle.station.lat, search.vehicle.station.lon)
+    from agents.geo import distance_m
+
+    assert distance_m(station, tuple(m.path[0])) <= distance_m(station, tuple(m.path[-1]))
+    session.refresh_from_db()
+    assert session.state == Session.State.ASSIGNED
+    say(search.vehicle, {"type": "task_accepted", "session_id": str(session.pk)})
+    session.refresh_from_db()
+    assert session.state == Session.State.ACTIVE
+
+    report(
+        session,
+        search.vehicle,
+        "mission_progress",
+        mission=doc["id"],
+        phase="search",
+        waypoint=2,
+        of=len(m.path),
+    )
+    assert mission(session).progress == 2
+    # Progress never goes backwards, and nonsense is not recorded.
+    report(session, search.vehicle, "mission_progress", mission=doc["id"], waypoint=1)
+    report(session, search.vehicle, "mission_progress", mission=doc["id"], waypoint=999)
+    assert mission(session).progress == 2
+    assert step(session) == Mission.State.SEARCHING  # nothing new: nothing changes
+
+    person = offset(SEA, 120, 150)
+    report(
+        session,
+        search.vehicle,
+        "person_detected",
+        mission=doc["id"],
+        lat=person[0],
+        lon=person[1],
+        confidence=0.93,
+        temperature_c=33.5,
+        area_m2=0.3,
+    )
+    assert mission(session).detection["confidence"] == 0.93
+    assert step(session) == Mission.State.DELIVERING
+    delivery = Assignment.objects.get(session=session, role="delivery")
+    assert delivery.vehicle.name == "lifeguard-1"
+    doc = vehicle_mission(assignment=delivery)
+    assert doc["kind"] == "delivery" and doc["target"] == [person[0], person[1]]
+    # The rescue team heard once, by e-mail and on the dashboard, with the position.
+    assert len(mail.outbox) == 1
+    assert f"{person[0]:.5f}" in mail.outbox[0].subject
+    assert mail.outbox[0].to == ["lifeguards@costanova.example"]
+    assert mail.outbox[0].extra_headers["Message-ID"].startswith("<iouv-rescue-")
+    assert kinds(session).count("rescue_team_notified") == 2
+    deployed = kinds(session).count("task_deployed")
+    step(session)
+    step(session)
+    assert len(mail.outbox) == 1 and kinds(session).count("rescue_team_notified") == 2
+    assert Assignment.objects.filter(session=session, role="delivery").count() == 1
+    assert kinds(session).count("task_deployed") == deployed
+
+    say(delivery.vehicle, {"type": "task_accepted", "session_id": str(session.pk)})
+    report(
+        session,
+        delivery.vehicle,
+        "payload_released",
+        mission=doc["id"],
+        lat=person[0],
+        lon=person[1],
+    )
+    assert step(session) == Mission.State.RETURNING
+    session.refresh_from_db()
+    assert session.state == Session.State.ENDED
+    assert "delivered" in session.reason
+    # Both vehicles fly home; the mission completes once they have landed there.
+    Vehicle.objects.filter(pk=search.vehicle_id).update(status=Vehicle.Status.RETURNING, alt=40)
+    assert step(session) == Mission.State.RETURNING
+    online("search-1", "lifeguard-1")
+    assert step(session) == Mission.State.COMPLETED
+    final = session.events.filter(kind="mission_state").order_by("-seq").first()
+    assert set(final.data["timeline"]) == {
+        "requested",
+        "person_detected",
+        "payload_released",
+        "completed",
+    }
+    data = mission_json(mission(session))
+    assert data["final"] and data["detection"]["lat"] == person[0]
+    assert {v["role"] for v in data["vehicles"]} == {"search", "delivery"}
+
+
+def test_offline_search_drone_hands_its_remaining_lines_to_another(
+    world, client_user, settings
+) -> None:
+    spare = Vehicle.objects.get(name="search-1")
+    spare.pk, spare.name = None, "search-2"
+    spare.save()
+    online("search-2")
+    session = rescue_request(user=client_user, service=world, area=area())
+    step(session)
+    first = Assignment.objects.get(session=session, role="search", active=True)
+    report(session, first.vehicle, "mission_progress", waypoint=3)
+    # Heard from recently: not replaced yet.
+    Vehicle.objects.filter(pk=first.vehicle_id).update(status=Vehicle.Status.OFFLINE)
+    assert step(session) == Mission.State.SEARCHING
+    assert Assignment.objects.get(pk=first.pk).active
+    # Silent for longer than the grace: its remaining lines go to the other drone.
+    Vehicle.objects.filter(pk=first.vehicle_id).update(
+        last_seen=timezone.now() - timedelta(seconds=settings.IOUV_MISSION_OFFLINE_GRACE_S + 1)
+    )
+    assert step(session) == Mission.State.SEARCHING
+    assert not Assignment.objects.get(pk=first.pk).active
+    second = Assignment.objects.get(session=session, role="search", active=True)
+    assert second.vehicle_id != first.vehicle_id
+    doc = vehicle_mission(assignment=second)
+    assert doc["start_index"] == 3 and doc["waypoints"] == mission(session).path
+    released = session.events.get(kind="vehicle_released")
+    assert "went offline" in released.data["reason"] and released.data["progress"] == 3
+
+
+def test_low_battery_search_drone_is_replaced(world, client_user) -> None:
+    spare = Vehicle.objects.get(name="search-1")
+    spare.pk, spare.name = None, "search-2"
+    spare.save()
+    online("search-2")
+    session = rescue_request(user=client_user, service=world, area=area())
+    step(session)
+    first = Assignment.objects.get(session=session, role="search", active=True)
+    Vehicle.objects.filter(pk=first.vehicle_id).update(battery=12)
+    step(session)
+    assert "low on battery" in session.events.get(kind="vehicle_released").data["reason"]
+    assert (
+        Assignment.objects.filter(session=session, role="search", active=True)
+        .exclude(vehicle_id=first.vehicle_id)
+        .exists()
+    )
+
+
+def test_no_vehicle_the_mission_waits_and_says_so(world, client_user) -> None:
+    Vehicle.objects.update(status=Vehicle.Status.OFFLINE)
+    session = rescue_request(user=client_user, service=world, area=area())
+    assert step(session) == Mission.State.WAITING_SEARCH
+    assert "no vehicle is online" in mission(session).status_text
+    waits = kinds(session).count("mission_state")
+    step(session)
+    assert kinds(session).count("mission_state") == waits  # said once, not every tick
+    online("search-1", "lifeguard-1")
+    assert missions_tick() == 1
+    assert mission(session).state == Mission.State.SEARCHING
+
+
+def test_no_delivery_vehicle_waits_after_detection(world, client_user) -> None:
+    session = rescue_request(user=client_user, service=world, area=area())
+    step(session)
+    search = Assignment.objects.get(session=session, role="search")
+    Vehicle.objects.filter(name="lifeguard-1").update(status=Vehicle.Status.OFFLINE)
+    person = offset(SEA, 50, 50)
+    report(session, search.vehicle, "person_detected", lat=person[0], lon=person[1], confidence=0.9)
+    assert step(session) == Mission.State.WAITING_DELIVERY
+    assert "waiting for a delivery vehicle" in mission(session).status_text
+    online("lifeguard-1")
+    assert step(session) == Mission.State.DELIVERING
+
+
+def test_search_times_out_and_everyone_is_told(world, client_user, settings) -> None:
+    session = rescue_request(user=client_user, service=world, area=area())
+    step(session)
+    later = timezone.now() + timedelta(seconds=settings.IOUV_MISSION_SEARCH_TIMEOUT_S + 5)
+    with time_machine.travel(later):
+        online("search-1", "lifeguard-1")  # still heard from
+        assert step(session) == Mission.State.TIMED_OUT
+    session.refresh_from_db()
+    assert session.state == Session.State.ENDED and "timed out" in session.reason
+    assert not Assignment.objects.filter(session=session, active=True).exists()
+
+
+def test_whole_area_searched_without_finding(world, client_user) -> None:
+    session = rescue_request(user=client_user, service=world, area=area())
+    step(session)
+    search = Assignment.objects.get(session=session, role="search")
+    report(session, search.vehicle, "search_complete", waypoint=len(mission(session).path) - 1)
+    assert step(session) == Mission.State.NOT_FOUND
+    session.refresh_from_db()
+    assert session.state == Session.State.ENDED
+
+
+def test_monitor_stop_aborts_the_mission(world, client_user) -> None:
+    from services.deployment import session_revoke
+
+    session = rescue_request(user=client_user, service=world, area=area())
+    step(session)
+    session_revoke(session=session, reason="stopped by monitor", action="return_to_home")
+    assert step(session) == Mission.State.ABORTED
+
+
+def test_reports_from_strangers_and_nonsense_change_nothing(world, client_user) -> None:
+    session = rescue_request(user=client_user, service=world, area=area())
+    step(session)
+    search = Assignment.objects.get(session=session, role="search")
+    stranger = vehicle("lifeguard-1")
+    report(session, stranger, "person_detected", lat=40.64, lon=-8.75, confidence=1.0)
+    report(session, search.vehicle, "person_detected", lat="north", lon=-8.75, confidence=1.0)
+    report(session, search.vehicle, "person_detected", lat=95.0, lon=-8.75)
+    report(session, search.vehicle, "payload_released", lat=40.64, lon=-8.75)  # not its role
+    m = mission(session)
+    assert m.detection is None and m.released_at is None
+    assert step(session) == Mission.State.SEARCHING
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"area": [[1, 2]]}, "at least 3"),
+        ({"area": area(), "altitude_m": 5}, "altitude"),
+        ({"area": area(), "altitude_m": 500}, "altitude"),
+    ],
+)
+def test_bad_requests_are_refused_and_record_nothing(world, client_user, kwargs, message) -> None:
+    with pytest.raises(RescueError, match=message):
+        rescue_request(user=client_user, service=world, **kwargs)
+    assert not Session.objects.exists()
+
+
+def test_users_without_the_grant_and_other_services_are_refused(world) -> None:
+    with pytest.raises(RescueError, match="may not use"):
+        rescue_request(user=f.user(roles=()), service=world, area=area())
+    with pytest.raises(RescueError, match="not a rescue service"):
+        rescue_request(user=f.user(), service=Service.objects.get(slug="fly-drone"), area=area())
+
+
+class _Hook(http.server.BaseHTTPRequestHandler):
+    status = 200
+    seen: list[tuple[str, dict]] = []
+
+    def do_POST(self) -> None:  # noqa: N802 - the http.server API
+        body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
+        type(self).seen.append((self.headers["Idempotency-Key"], body))
+        self.send_response(type(self).status)
+        self.end_headers()
+
+    def log_message(self, *args) -> None:
+        pass
+
+
+def test_webhook_is_retried_until_it_succeeds_and_sent_once(world, client_user, settings) -> None:
+    settings.EMAIL_BACKEND = "django.core.mail.backends.locmem.EmailBackend"
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Hook)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    _Hook.seen, _Hook.status = [], 503
+    try:
+        Station.objects.filter(name="Costa Nova station").update(
+            rescue_team_webhook=f"http://127.0.0.1:{server.server_port}/alerts"
+        )
+        session = rescue_request(user=client_user, service=world, area=area())
+        step(session)
+        search = Assignment.objects.get(session=session, role="search")
+        person = offset(SEA, 60, 60)
+        report(
+            session, search.vehicle, "person_detected", lat=person[0], lon=person[1], confidence=0.8
+        )
+        step(session)  # the team's server is down: the notice waits
+        hook = MissionNotification.objects.get(channel="webhook")
+        assert hook.sent_at is None and hook.attempts == 1 and "503" in hook.last_error
+        _Hook.status = 200
+        missions_tick()
+        notifications_send(session.pk)
+        hook.refresh_from_db()
+        assert hook.sent_at is not None
+        keys = {key for key, _ in _Hook.seen}
+        assert len(keys) == 1 and len(_Hook.seen) == 2  # one retry, same key
+        body = _Hook.seen[-1][1]
+        assert body["lat"] == pytest.approx(person[0]) and body["event"] == "person_in_water"
+        assert len(mail.outbox) == 1
+    finally:
+        server.shutdown()
