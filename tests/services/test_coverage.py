@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import pytest
@@ -49,7 +50,9 @@ def test_every_point_of_a_rectangle_is_seen() -> None:
             assert nearest <= half, (north, east, nearest)
     # Lines run along the longest edge (east-west here): few turns.
     assert plan.lines == math.ceil(250 / plan.spacing_m)
-    assert plan.length_m == pytest.approx(plan.lines * 400 + (plan.lines - 1) * plan.spacing_m, rel=0.05)
+    assert plan.length_m == pytest.approx(
+        plan.lines * 400 + (plan.lines - 1) * plan.spacing_m, rel=0.05
+    )
 
 
 def test_path_alternates_direction_and_starts_near_the_vehicle() -> None:
@@ -59,7 +62,7 @@ def test_path_alternates_direction_and_starts_near_the_vehicle() -> None:
     assert distance_m(plan.waypoints[0], far_corner) < distance_m(plan.waypoints[-1], far_corner)
     east = [local_offset_m(ORIGIN, p)[1] for p in plan.waypoints]
     legs = [(east[i + 1] - east[i]) for i in range(0, len(east) - 1, 2)]
-    assert all(a * b < 0 for a, b in zip(legs, legs[1:], strict=False))
+    assert all(a * b < 0 for a, b in itertools.pairwise(legs))
 
 
 def test_concave_area_is_clipped_not_flown_over() -> None:

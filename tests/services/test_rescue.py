@@ -339,7 +339,7 @@ class _Hook(http.server.BaseHTTPRequestHandler):
     status = 200
     seen: list[tuple[str, dict]] = []
 
-    def do_POST(self) -> None:  # noqa: N802 - the http.server API
+    def do_POST(self) -> None:
         body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
         type(self).seen.append((self.headers["Idempotency-Key"], body))
         self.send_response(type(self).status)
