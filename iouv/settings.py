@@ -241,6 +241,9 @@ IOUV_MISSION_SEARCH_TIMEOUT_S = env_int("IOUV_MISSION_SEARCH_TIMEOUT_S", 1200)
 IOUV_MISSION_OFFLINE_GRACE_S = env_float("IOUV_MISSION_OFFLINE_GRACE_S", 10.0)
 IOUV_MISSION_LOW_BATTERY_PCT = env_float("IOUV_MISSION_LOW_BATTERY_PCT", 25.0)
 IOUV_MISSION_TICK_S = env_float("IOUV_MISSION_TICK_S", 2.0)
+# Map tiles for the mission map, e.g. "https://tile.openstreetmap.org/{z}/{x}/{y}.png"
+# (mind the tile server's usage policy). Empty: no tiles, the map draws a grid.
+IOUV_MAP_TILES_URL = env_str("IOUV_MAP_TILES_URL", "")
 # Rescue team webhooks: how long one delivery attempt may take.
 IOUV_WEBHOOK_TIMEOUT_S = env_float("IOUV_WEBHOOK_TIMEOUT_S", 5.0)
 

@@ -359,7 +359,8 @@ def _step(mission: Mission) -> None:
     mission.session = session
     if session.state in FINAL and mission.state != S.RETURNING:
         # Ended from outside: a monitor's stop, a refused task, the time limit.
-        to = S.ABORTED if session.state == Session.State.ABORTED else S.FAILED
+        failed = session.state == Session.State.FAILED
+        to = S.FAILED if failed else S.ABORTED
         _set(mission, to, f"the session {session.state}: {session.reason}")
         return
     if mission.state == S.WAITING_SEARCH:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from django.conf import settings
 from django.contrib import messages
 from django.contrib.auth.decorators import login_required, permission_required
 from django.db import connection
@@ -12,6 +13,7 @@ from django.shortcuts import get_object_or_404, redirect, render
 from django.views.decorators.http import require_POST
 
 from accounts.roles import user_roles
+from fleet.models import Station
 from services.assignment import AssignmentError, session_request
 from services.deployment import (
     DeploymentError,
@@ -21,9 +23,10 @@ from services.deployment import (
     session_revoke,
     user_task_json,
 )
-from services.forms import SessionRequestForm
+from services.forms import RescueRequestForm, SessionRequestForm
 from services.grants import services_for_user, user_can_use
-from services.models import Service, Session
+from services.models import Mission, Service, Session
+from services.rescue import RescueError, mission_json, rescue_request
 from services.selectors import service_vehicles_matching, session_summary, sessions_spectatable
 from services.sessions import FINAL
 
@@ -51,6 +54,8 @@ def service_request(request: HttpRequest, slug: str) -> HttpResponse:
         raise Http404("no such service for you")
     if service.workflow == "spectate":
         return redirect("spectate")
+    if service.workflow == "rescue_at_sea":
+        return _rescue_request(request, service)
     form = SessionRequestForm(request.POST or None)
     if request.method == "POST" and form.is_valid():
         try:
@@ -71,6 +76,41 @@ def service_request(request: HttpRequest, slug: str) -> HttpResponse:
         request,
         "services/request.html",
         {"service": service, "form": form, "available": service_vehicles_matching(service)},
+    )
+
+
+def _rescue_request(request: HttpRequest, service: Service) -> HttpResponse:
+    """The rescue's request page: draw the search area on the map."""
+    form = RescueRequestForm(request.POST or None)
+    if request.method == "POST" and form.is_valid():
+        try:
+            session = rescue_request(
+                user=request.user,
+                service=service,
+                area=form.cleaned_data["area"],
+                altitude_m=form.cleaned_data["altitude_m"],
+            )
+        except RescueError as exc:
+            form.add_error(None, str(exc))
+        else:
+            return redirect("session", session_id=session.pk)
+    available = service_vehicles_matching(service)
+    stations = {v.station for v in available} or set(Station.objects.all())
+    return render(
+        request,
+        "services/rescue_request.html",
+        {
+            "service": service,
+            "form": form,
+            "available": available,
+            "map": {
+                "stations": [
+                    {"name": s.name, "lat": s.lat, "lon": s.lon}
+                    for s in sorted(stations, key=lambda s: s.name)
+                ],
+                "tiles": settings.IOUV_MAP_TILES_URL,
+            },
+        },
     )
 
 
@@ -100,9 +140,27 @@ def session_page(request: HttpRequest, session_id: str) -> HttpResponse:
     task = None
     if session.state not in FINAL:
         try:
-            task = user_task_json(grant_issue(session=session, user=request.user), request=request)
+            task = user_task_json(
+                grant_issue(session=session, user=request.user, role=_role(session)),
+                request=request,
+            )
         except DeploymentError as exc:
-            messages.error(request, str(exc))
+            if session.service.mode == Service.Mode.SYNCHRONOUS:
+                messages.error(request, str(exc))
+    mission = Mission.objects.filter(pk=session.pk).first()
+    if mission is not None:
+        return render(
+            request,
+            "services/mission.html",
+            {
+                "session": session,
+                "summary": session_summary(session),
+                "user_task": task,
+                "mission": mission_json(mission),
+                "events": _log_lines(session),
+                "tiles": settings.IOUV_MAP_TILES_URL,
+            },
+        )
     return render(
         request,
         "services/session.html",
@@ -121,11 +179,26 @@ def session_grant(request: HttpRequest, session_id: str) -> JsonResponse:
     """A fresh grant to reconnect (JSON for the controller script)."""
     session = _own_session(request, session_id)
     try:
-        return JsonResponse(
-            user_task_json(grant_issue(session=session, user=request.user), request=request)
-        )
+        task = grant_issue(session=session, user=request.user, role=_role(session))
+        return JsonResponse(user_task_json(task, request=request))
     except DeploymentError as exc:
         return JsonResponse({"error": {"code": "session_over", "message": str(exc)}}, status=409)
+
+
+def _role(session: Session) -> str:
+    # An autonomous mission is watched, never steered: a viewer's link cannot arm
+    # the vehicle's link-loss fail-safe, so closing the page does not abort it.
+    return "viewer" if session.service.mode == Service.Mode.ASYNCHRONOUS else "controller"
+
+
+@login_required
+def session_mission(request: HttpRequest, session_id: str) -> JsonResponse:
+    """The mission's live state for the map (the session's user, or a monitor)."""
+    session = get_object_or_404(Session, pk=session_id)
+    if session.user_id != request.user.pk and not request.user.has_perm("fleet.view_fleet"):
+        raise Http404("no such session")
+    mission = get_object_or_404(Mission.objects.select_related("session"), pk=session_id)
+    return JsonResponse(mission_json(mission))
 
 
 @login_required

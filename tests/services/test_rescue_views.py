@@ -1,0 +1,75 @@
+"""The rescue's pages: request with a drawn area, the mission page and its JSON."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from django.urls import reverse
+
+from services.demo import demo_seed
+from services.models import Mission, Session
+from tests import factories as f
+from tests.services.test_rescue import area, online
+
+pytestmark = pytest.mark.django_db
+
+
+@pytest.fixture
+def skipper(client):
+    demo_seed(password="pw")
+    online("search-1", "lifeguard-1")
+    user = f.user(username="skipper")
+    client.force_login(user)
+    return user
+
+
+def test_request_page_shows_the_map_and_the_stations(client, skipper) -> None:
+    page = client.get(reverse("service_request", args=["rescue-at-sea"]))
+    assert page.status_code == 200
+    html = page.content.decode()
+    assert 'id="area-map"' in html and "vendor/leaflet/leaflet.js" in html
+    config = page.context["map"]
+    assert {"name": "Costa Nova station", "lat": 40.6443, "lon": -8.7455} in config["stations"]
+    assert config["tiles"] == ""  # no tile server unless configured
+
+
+def test_drawn_area_starts_the_mission_and_opens_its_page(client, skipper) -> None:
+    url = reverse("service_request", args=["rescue-at-sea"])
+    response = client.post(url, {"area": json.dumps(area()), "altitude_m": "35"})
+    session = Session.objects.get()
+    assert response.status_code == 302 and response.url == reverse("session", args=[session.pk])
+    mission = Mission.objects.get(pk=session.pk)
+    assert mission.altitude_m == 35 and mission.state == Mission.State.WAITING_SEARCH
+    page = client.get(response.url)
+    assert page.status_code == 200
+    assert 'id="mission-map"' in page.content.decode()
+    data = client.get(reverse("session_mission", args=[session.pk])).json()
+    assert data["state"] == "waiting_search" and len(data["area"]) == 4 and data["path"]
+
+
+@pytest.mark.parametrize(
+    ("area_field", "message"),
+    [
+        ("", "Draw the search area"),
+        ("[[40.6, -8.7]", "not valid JSON"),
+        (json.dumps([[40.6, -8.7], [40.61, -8.7]]), "at least 3"),
+    ],
+)
+def test_bad_areas_are_explained_and_nothing_starts(client, skipper, area_field, message) -> None:
+    url = reverse("service_request", args=["rescue-at-sea"])
+    page = client.post(url, {"area": area_field})
+    assert page.status_code == 200 and message in page.content.decode()
+    assert not Session.objects.exists()
+
+
+def test_the_mission_is_private_to_its_user_and_the_monitors(client, skipper) -> None:
+    url = reverse("service_request", args=["rescue-at-sea"])
+    client.post(url, {"area": json.dumps(area())})
+    session = Session.objects.get()
+    mission_url = reverse("session_mission", args=[session.pk])
+    client.force_login(f.user(username="stranger"))
+    assert client.get(mission_url).status_code == 404
+    assert client.get(reverse("session", args=[session.pk])).status_code == 404
+    client.force_login(f.user(username="watch", roles=("monitor",)))
+    assert client.get(mission_url).status_code == 200
