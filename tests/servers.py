@@ -101,6 +101,71 @@ def platform_process(*, extra_env: dict[str, str] | None = None) -> Iterator[str
         log.close()
 
 
+@contextlib.contextmanager
+def celery_worker_process(*, extra_env: dict[str, str] | None = None) -> Iterator[Any]:
+    """Run a Celery worker with its beat on the test database and Redis; yields a
+    handle whose ``kill()`` SIGKILLs the worker (as a crash would) and ``start()``
+    starts a fresh one."""
+    env = {
+        **os.environ,
+        "DATABASE_URL": _test_database_url(),
+        "DB_CONN_MAX_AGE": "0",
+        "PYTHONUNBUFFERED": "1",
+        **(extra_env or {}),
+    }
+    handle = _Worker(env)
+    handle.start()
+    try:
+        yield handle
+    finally:
+        handle.stop()
+
+
+class _Worker:
+    def __init__(self, env: dict[str, str]) -> None:
+        self.env = env
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.runs = 0
+
+    def start(self) -> None:
+        self.runs += 1
+        tag = f"{os.getpid()}-{self.runs}"
+        self.log = open(settings.VAR_DIR / f"celery-{tag}.log", "w")  # noqa: SIM115
+        self.proc = subprocess.Popen(
+            [
+                sys.executable, "-m", "celery", "-A", "iouv", "worker", "--beat",
+                "--loglevel", "INFO", "--concurrency", "2", "--without-gossip",
+                "--without-mingle", "--schedule", str(settings.VAR_DIR / f"beat-{tag}"),
+            ],
+            cwd=ROOT,
+            env=self.env,
+            stdout=self.log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,  # kill() takes the pool's children too
+        )  # fmt: skip
+
+    def kill(self) -> None:
+        """SIGKILL the worker and its pool: tasks in progress are never acknowledged."""
+        if self.proc is not None and self.proc.poll() is None:
+            os.killpg(self.proc.pid, 9)
+            self.proc.wait(timeout=10)
+        self.log.close()
+
+    def stop(self) -> None:
+        if self.proc is None or self.proc.poll() is not None:
+            return
+        os.killpg(self.proc.pid, 15)
+        try:
+            self.proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, 9)
+            self.proc.wait(timeout=10)
+        self.log.close()
+
+    def output(self) -> str:
+        return Path(self.log.name).read_text()[-4000:]
+
+
 @sync_to_async
 def db(fn: Any, *args: Any, **kwargs: Any) -> Any:
     """Run ORM code off the event loop; its connection closes after, so the test

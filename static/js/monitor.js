@@ -82,6 +82,25 @@
     };
   }
 
+  /* Rescue missions page the monitors: a person found, a search that timed out. */
+  function alert(session, event) {
+    const data = event.data || {};
+    let text = null;
+    if (event.kind === "rescue_team_notified" && data.channel === "dashboard") {
+      text = `PERSON IN THE WATER at ${Number(data.lat).toFixed(5)}, ${Number(data.lon).toFixed(5)}: ${data.message || ""}`;
+    } else if (event.kind === "mission_state" && ["timed_out", "not_found", "waiting_search", "waiting_delivery"].includes(data.to)) {
+      text = `${session.service}: ${data.text}`;
+    }
+    if (!text) return;
+    const box = root.querySelector("[data-alerts]");
+    const item = document.createElement("li");
+    item.className = event.kind === "rescue_team_notified" ? "alert-bad" : "alert-warn";
+    item.dataset.kind = event.kind;
+    item.textContent = `${new Date(event.at || Date.now()).toLocaleTimeString()} · ${text}`;
+    box.prepend(item);
+    box.hidden = false;
+  }
+
   feed("/ws/fleet/", (msg) => {
     if (msg.type !== "fleet") return;
     if (msg.full) vehicles.clear();
@@ -95,6 +114,7 @@
     } else if (msg.type === "event" && msg.session) {
       const kind = msg.event.kind.replace(/_/g, " ");
       sessions.set(msg.session.id, { ...msg.session, lastEvent: kind });
+      alert(msg.session, msg.event);
     }
     renderSessions();
   });
