@@ -13,6 +13,10 @@ Example::
       "video": {"source": "v4l2", "device": "/dev/video0"}
     }
 
+A search drone adds its thermal camera, ``"thermal": {"source": "v4l2", "device":
+"/dev/video1"}`` (see :func:`agents.thermal.thermal_source_create` and
+docs/rescue-agent.md), and ``"video": {"source": "thermal"}`` shows it to users.
+
 Relative paths are taken from the config file's folder.
 """
 
@@ -50,6 +54,7 @@ class AgentConfig:
     adapter_options: Mapping[str, Any] = field(default_factory=dict)
     control: ControlConfig = field(default_factory=ControlConfig)
     video: Mapping[str, Any] | None = None
+    thermal: Mapping[str, Any] | None = None
     name: str = ""
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 30.0
@@ -95,6 +100,19 @@ class AgentConfig:
         video = data.get("video")
         if video is not None and not isinstance(video, Mapping):
             raise ConfigError("video: must be an object or null")
+        thermal = data.get("thermal")
+        if thermal is not None:
+            if not isinstance(thermal, Mapping):
+                raise ConfigError("thermal: must be an object or null")
+            # Imported here: the numpy detector is only needed with a thermal camera.
+            from agents.thermal import thermal_config_check
+
+            try:
+                thermal_config_check(thermal)
+            except ValueError as exc:
+                raise ConfigError(str(exc)) from None
+        if video is not None and video.get("source") == "thermal" and thermal is None:
+            raise ConfigError("video: the thermal source needs a thermal section")
         return cls(
             platform_url=url,
             vehicle_id=text("vehicle_id"),
@@ -108,6 +126,7 @@ class AgentConfig:
                 public_url=control.get("public_url") or None,
             ),
             video=dict(video) if video is not None else None,
+            thermal=dict(thermal) if thermal is not None else None,
             name=str(data.get("vehicle_name") or data.get("name") or ""),
         )
 

@@ -13,7 +13,10 @@ relay. It
 * streams telemetry per subscription at the requested rate, and answers pings;
 * pings the controller to know the round trip (latency-aware limits) and watches its
   inputs: nothing within the task's link-loss timeout, or its socket closing, triggers
-  the adapter's safe action and a ``failsafe`` event to the platform.
+  the adapter's safe action and a ``failsafe`` event to the platform;
+* runs the commands of the task's autonomous mission (:mod:`agents.mission`) through
+  :meth:`ControlHub.mission_execute`, under the same lock, and counts the user
+  commands and fail-safes that take over from it (:attr:`ControlHub.overrides`).
 """
 
 from __future__ import annotations
@@ -66,6 +69,7 @@ FLOOD_WINDOW_S = 5.0
 COMMAND_QUEUE = 16
 
 Reporter = Callable[[str, str | None, dict[str, Any]], None]
+TaskEnded = Callable[[VehicleTask], None]
 
 
 class ClientLink(Protocol):
@@ -124,6 +128,7 @@ class ControlHub:
         adapter: Adapter,
         report: Reporter,
         video: Any | None = None,
+        on_task_end: TaskEnded | None = None,
     ) -> None:
         self.vehicle_id = vehicle_id
         self.vehicle_name = vehicle_name
@@ -145,6 +150,14 @@ class ControlHub:
         self._time_limit: asyncio.Task[None] | None = None
         self._pinger: asyncio.Task[None] | None = None
         self._background: set[asyncio.Future[None]] = set()
+        #: Called with the task as it ends, before the safe action (stops its mission).
+        self.on_task_end = on_task_end
+        #: True while an autonomous mission flies the vehicle (set by its runner).
+        self.autonomous = False
+        #: User commands and fail-safes executed so far: a mission started at another
+        #: count has been taken over (``override_reason`` says by what).
+        self.overrides = 0
+        self.override_reason = ""
 
     # --- lifecycle ---------------------------------------------------------------------
     async def start(self) -> None:
@@ -196,6 +209,11 @@ class ControlHub:
         self.task = None
         self.gate = None
         self._armed = False
+        if self.on_task_end is not None:
+            try:
+                self.on_task_end(task)
+            except Exception:  # the safe action below must happen whatever
+                log.exception("on_task_end failed")
         for client in list(self.clients.values()):
             with contextlib.suppress(ConnectionError):
                 await client.link.send(
@@ -210,6 +228,48 @@ class ControlHub:
     async def _expire(self, session_id: str, limit_s: float) -> None:
         await asyncio.sleep(limit_s)
         await self.task_end(session_id, reason="session time limit reached", action=None)
+
+    async def mission_execute(
+        self, session_id: str, name: str, args: Mapping[str, Any], *, epoch: int
+    ) -> None:
+        """Run one command of the current task's autonomous mission.
+
+        The mission is the platform's own signed plan, so the task's allowed commands
+        (what *users* may send) do not apply; everything else does: the vocabulary and
+        argument checks, the ceiling and the geofence. It runs under the same lock as
+        users' commands and fail-safes, and only if, once the lock is held,
+        ``session_id`` is still the current task and :attr:`overrides` still equals
+        ``epoch`` (the count the mission started from): a mission step queued behind a
+        fail-safe or the end-of-task safe action never undoes it.
+
+        Raises Refusal (``no_task``, ``overridden``, ``unknown_command``, ``bad_args``,
+        ``altitude_limit``, ``geofence``) or AdapterError (``timeout`` after
+        COMMAND_TIMEOUT_S, or the adapter's own).
+        """
+        async with self._exec:
+            task = self.task
+            if task is None or task.session_id != session_id:
+                raise Refusal("no_task", "the mission's session is not the vehicle's task now")
+            if self.overrides != epoch:
+                raise Refusal("overridden", self.override_reason or "someone else took over")
+            vocabulary = tuple(c.name for c in self.adapter.commands())
+            gate = CommandGate(self.adapter, allowed=vocabulary, limits=task.limits)
+            checked = gate.check(name, args)
+            try:
+                # Not asyncio.wait_for: on Python 3.11 it swallows a cancellation that
+                # arrives as the command completes, and a cancelled (replaced, ended)
+                # mission would then fly on.
+                async with asyncio.timeout(COMMAND_TIMEOUT_S):
+                    await self.adapter.execute(checked.name, checked.args)
+            except TimeoutError:
+                raise AdapterError(
+                    f"{name} got no answer from the vehicle", code="timeout"
+                ) from None
+
+    def _override(self, reason: str) -> None:
+        """A user command or a fail-safe acted on the vehicle: a mission must yield."""
+        self.overrides += 1
+        self.override_reason = reason
 
     # --- connections -------------------------------------------------------------------
     async def connected(self, link: ClientLink) -> None:
@@ -330,9 +390,12 @@ class ControlHub:
             previous.role = "viewer"
             with contextlib.suppress(ConnectionError):
                 await previous.link.send({"type": "role", "role": "viewer"})
-        # Whoever held the sticks, the new holder starts from neutral.
-        async with self._exec:
-            await self.adapter.neutral()
+        # Whoever held the sticks, the new holder starts from neutral; not while a
+        # mission flies: zeroing the inputs would stop it mid-leg (a rescue user's page
+        # joining as controller), and a user who really steers takes over anyway.
+        if not self.autonomous:
+            async with self._exec:
+                await self.adapter.neutral()
         self._armed = False
         self.controller = client
         if client is not None:
@@ -364,6 +427,9 @@ class ControlHub:
                     await asyncio.wait_for(
                         self.adapter.execute(checked.name, checked.args), COMMAND_TIMEOUT_S
                     )
+                    # Counted before the lock is free: a mission step waiting for it
+                    # sees that the user took over.
+                    self._override(f"the user sent {name}")
             except Refusal as exc:
                 self.stats["refused"] += 1
                 await self._ack(client, seq, exc.code, str(exc))
@@ -533,6 +599,7 @@ class ControlHub:
         task = self.task
         action = task.limits.failsafe_action if task else "stop"
         self.stats["failsafes"] += 1
+        self._override(f"the fail-safe ({cause}) performed {action}")
         try:
             async with self._exec:
                 await self.adapter.safe_action(action)

@@ -13,6 +13,7 @@ from typing import Any
 from agents.adapters.base import Adapter, adapter_create
 from agents.config import AgentConfig
 from agents.control import ControlHub, ControlServer
+from agents.mission import MissionControl
 from agents.protocol import (
     ProtocolError,
     ReplayGuard,
@@ -21,6 +22,7 @@ from agents.protocol import (
     load_public_key,
 )
 from agents.safety import Refusal
+from agents.thermal import ThermalFeed, thermal_feed_create
 from agents.uplink import Uplink
 
 log = logging.getLogger(__name__)
@@ -47,6 +49,8 @@ class Agent:
         self.hub: ControlHub | None = None
         self.uplink: Uplink | None = None
         self.video: Any | None = None
+        self.thermal: ThermalFeed | None = None
+        self.missions: MissionControl | None = None
         self.relay_links: dict[str, _RelayLink] = {}
         self._checks: set[asyncio.Task[None]] = set()
         if hasattr(self.adapter, "on_event"):
@@ -62,6 +66,8 @@ class Agent:
         """Start everything, serve until cancelled, then leave the vehicle safe."""
         async with contextlib.AsyncExitStack() as stack:
             await stack.enter_async_context(self.adapter)
+            if self.config.thermal is not None:
+                self.thermal = await stack.enter_async_context(self._thermal_feed())
             if self.config.video is not None:
                 self.video = await stack.enter_async_context(self._video_service())
             hub = ControlHub(
@@ -71,8 +77,14 @@ class Agent:
                 adapter=self.adapter,
                 report=self.report,
                 video=self.video,
+                on_task_end=self._task_ended,
             )
             self.hub = await stack.enter_async_context(hub)
+            self.missions = MissionControl(
+                hub=hub, adapter=self.adapter, report=self.report, thermal=self.thermal
+            )
+            # Closed before the hub and the adapter (exit order is reversed).
+            stack.push_async_callback(self.missions.close)
             server = await stack.enter_async_context(
                 ControlServer(hub, host=self.config.control.host, port=self.config.control.port)
             )
@@ -99,7 +111,12 @@ class Agent:
         # Imported here: aiortc and av are only loaded by agents with a camera.
         from agents.video import video_service_create
 
-        return video_service_create(self.config.video or {}, pose=self._camera_pose)
+        return video_service_create(
+            self.config.video or {}, pose=self._camera_pose, thermal=self.thermal
+        )
+
+    def _thermal_feed(self) -> ThermalFeed:
+        return thermal_feed_create(self.config.thermal or {}, pose=self._camera_pose)
 
     def _camera_pose(self) -> dict[str, Any]:
         """Where the camera is and looks, for the synthetic camera."""
@@ -229,11 +246,18 @@ class Agent:
             )
             return
         self.uplink.send({"type": "task_accepted", "session_id": task.session_id})
+        if self.missions is not None:
+            # After task_accepted: the platform hears the task before its mission events.
+            self.missions.task_accepted(task)
         check = getattr(self.adapter, "check_failsafe_params", None)
         if check is not None:
             job = asyncio.create_task(self._check_failsafe(task, check))
             self._checks.add(job)
             job.add_done_callback(self._checks.discard)
+
+    def _task_ended(self, task: VehicleTask) -> None:
+        if self.missions is not None:
+            self.missions.task_ended(task)
 
     async def _check_failsafe(self, task: VehicleTask, check: Any) -> None:
         """Does the autopilot's own fail-safe agree with the task? Report if not."""

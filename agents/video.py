@@ -20,8 +20,10 @@ owns everything after it:
 * Sources (:class:`VideoSource`): :class:`SyntheticCamera` draws a scene from the
   vehicle's pose with a frame counter and a timestamp readable from the pixels
   (:func:`read_frame_code`); :class:`V4L2Camera` reads a Linux camera (Raspberry Pi
-  camera, USB webcam); :class:`MjpegCamera` reads an HTTP MJPEG stream (ESP32-CAM).
-  :func:`video_source_create` builds one from the agent's configuration.
+  camera, USB webcam); :class:`MjpegCamera` reads an HTTP MJPEG stream (ESP32-CAM);
+  :class:`ThermalVideo` shows the agent's thermal camera (agents.thermal) in false
+  colour with its detections. :func:`video_source_create` builds one from the agent's
+  configuration.
 
 Nothing here imports Django: this runs on the vehicle's companion computer.
 """
@@ -68,6 +70,7 @@ from aiortc import (
 from aiortc.mediastreams import MediaStreamError
 
 from agents.geo import local_offset_m
+from agents.thermal import Blob, ThermalFeed, colour_range, false_colour
 
 __all__ = [
     "CODE_BITS",
@@ -77,6 +80,7 @@ __all__ = [
     "MjpegCamera",
     "SharedVp8Encoder",
     "SyntheticCamera",
+    "ThermalVideo",
     "V4L2Camera",
     "VideoError",
     "VideoService",
@@ -825,6 +829,70 @@ async def _multipart_jpegs(body: AsyncIterator[bytes], boundary: bytes) -> Async
                     yield part[start : stop + 2]
 
 
+class ThermalVideo:
+    """The agent's thermal camera as video: each frame of its
+    :class:`~agents.thermal.ThermalFeed` in an ironbow palette, upscaled to ``width`` x
+    ``height``, with a box and the confidence over each detection (green from
+    ``box_confidence``), and at the bottom the palette's temperature range.
+
+    It shares the feed with the search mission (one camera, each frame captured and
+    analysed once) and is paced by it. ``close()`` only forgets the position in the
+    feed: the camera belongs to the agent, which closes it on shutdown.
+    """
+
+    def __init__(
+        self,
+        feed: ThermalFeed,
+        *,
+        width: int = 640,
+        height: int = 480,
+        box_confidence: float = 0.6,
+    ) -> None:
+        if width % 2 or height % 2 or not (64 <= width <= 1920 and 64 <= height <= 1080):
+            raise ValueError("thermal video width and height must be even, 64..1920x1080")
+        self.feed = feed
+        self.width, self.height = width, height
+        self.box_confidence = box_confidence
+        self._seq = 0
+
+    async def frame(self) -> av.VideoFrame:
+        """The next thermal frame, drawn (in a worker thread)."""
+        thermal = await self.feed.frame(newer_than=self._seq)
+        self._seq = thermal.seq
+        img = await asyncio.to_thread(self.render, thermal.celsius, thermal.blobs)
+        return av.VideoFrame.from_ndarray(img, format="rgb24")
+
+    def render(self, celsius: npt.NDArray[np.float32], blobs: Sequence[Blob] = ()) -> RGB:
+        """One picture (H x W x 3 RGB) of a frame in degrees Celsius and its blobs."""
+        img = false_colour(
+            celsius,
+            blobs,
+            width=self.width,
+            height=self.height,
+            box_confidence=self.box_confidence,
+        )
+        sy, sx = self.height / celsius.shape[0], self.width / celsius.shape[1]
+        digit_h = max(14, self.height // 28)
+        for blob in blobs:
+            r0, c0, _, _ = blob.box
+            colour = (0, 255, 0) if blob.confidence >= self.box_confidence else (255, 220, 0)
+            y = max(0, int(r0 * sy) - digit_h - 8)
+            _draw_text(img, f"{blob.confidence:.2f}", int(c0 * sx), y, digit_h, colour)
+        # The palette's range: the temperatures of its two ends, in degC.
+        low, high = colour_range(celsius)
+        band = img[self.height - digit_h - 8 :]
+        np.right_shift(band, 1, out=band)  # darken behind the digits
+        y = self.height - digit_h - 4
+        _draw_text(img, f"{low:.1f}", 6, y, digit_h, (255, 255, 255))
+        text = f"{high:.1f}"
+        x = self.width - 6 - len(text) * (digit_h // 2 + 2 * max(2, digit_h // 8))
+        _draw_text(img, text, x, y, digit_h, (255, 255, 255))
+        return img
+
+    async def close(self) -> None:
+        self._seq = 0
+
+
 #: Keys of the agent's ``video`` configuration that configure :class:`VideoService`
 #: rather than the source; :func:`video_source_create` ignores them, so one mapping can
 #: hold both (see :func:`video_service_create`).
@@ -841,14 +909,19 @@ SERVICE_OPTIONS: Final = frozenset(
 
 
 def video_source_create(
-    config: Mapping[str, Any], *, pose: Callable[[], Any] | None = None
+    config: Mapping[str, Any],
+    *,
+    pose: Callable[[], Any] | None = None,
+    thermal: ThermalFeed | None = None,
 ) -> VideoSource:
     """Build the source an agent's configuration describes.
 
     ``{"source": "synthetic", "width": 640, "height": 480, "fps": 15}`` (``pose`` is the
     callable giving the vehicle's pose); ``{"source": "v4l2", "device": "/dev/video0",
     "width": 640, "height": 480, "fps": 15, "input_format": "mjpeg"}``;
-    ``{"source": "mjpeg", "url": "http://192.168.4.1:81/stream"}``. Keys in
+    ``{"source": "mjpeg", "url": "http://192.168.4.1:81/stream"}``; ``{"source":
+    "thermal", "width": 640, "height": 480, "box_confidence": 0.6}`` shows ``thermal``,
+    the agent's own thermal feed (never a second camera). Keys in
     :data:`SERVICE_OPTIONS` are ignored; other unknown keys, an unknown source or a bad
     value raise VideoError naming them. Nothing is opened until the first frame.
     """
@@ -858,6 +931,7 @@ def video_source_create(
         "synthetic": {"width", "height", "fps", "hfov_deg", "mount_height_m"},
         "v4l2": {"device", "width", "height", "fps", "input_format"},
         "mjpeg": {"url", "timeout_s", "reconnect_s"},
+        "thermal": {"width", "height", "box_confidence"},
     }
     if kind not in allowed:
         raise VideoError(f"unknown video source {kind!r} (one of: {', '.join(sorted(allowed))})")
@@ -869,6 +943,10 @@ def video_source_create(
             return SyntheticCamera(pose=pose, **options)
         if kind == "v4l2":
             return V4L2Camera(**options)
+        if kind == "thermal":
+            if thermal is None:
+                raise VideoError("thermal video needs the agent's thermal camera section")
+            return ThermalVideo(thermal, **options)
         if "url" not in options:
             raise VideoError("mjpeg video needs a 'url'")
         return MjpegCamera(**options)
@@ -877,12 +955,15 @@ def video_source_create(
 
 
 def video_service_create(
-    config: Mapping[str, Any], *, pose: Callable[[], Any] | None = None
+    config: Mapping[str, Any],
+    *,
+    pose: Callable[[], Any] | None = None,
+    thermal: ThermalFeed | None = None,
 ) -> VideoService:
     """The :class:`VideoService` for an agent's whole ``video`` configuration: the
     source from :func:`video_source_create`, the :data:`SERVICE_OPTIONS` for the
     service. Raises VideoError on a bad configuration."""
-    source = video_source_create(config, pose=pose)
+    source = video_source_create(config, pose=pose, thermal=thermal)
     options = {k: v for k, v in config.items() if k in SERVICE_OPTIONS}
     try:
         return VideoService(source, **options)

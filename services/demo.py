@@ -44,6 +44,10 @@ ADMIN_URL = "http://127.0.0.1:8000/admin/"
 CAMPUS = "Campus station"
 COSTA_NOVA = "Costa Nova station"
 
+#: Where the simulated person in the water is, about 900 m off Costa Nova's beach: a
+#: rescue whose area covers this point finds them (``bin/demo --rescue`` asks for one).
+CASTAWAY = (40.6441, -8.7561)
+
 STATIONS: dict[str, dict[str, Any]] = {
     CAMPUS: {"lat": 40.6306, "lon": -8.6588, "environments": ["land", "air"]},
     COSTA_NOVA: {
@@ -468,6 +472,13 @@ def vehicle_agent_config(
         options["camera_arm"] = "camera_arm" in vehicle.features
         options["distance_sensor"] = "obstacle_sensor" in vehicle.features
         options["max_speed_mps"] = attrs.get("max_speed_mps", 0.5)
+    thermal = None
+    video = {"source": "synthetic"} if vehicle.cameras else None
+    if "thermal" in vehicle.cameras:
+        # The simulated sea holds the demo's castaway, so a search over it finds them;
+        # the user watches the thermal view.
+        thermal = {"source": "synthetic", "hfov_deg": 57, "persons": [list(CASTAWAY)]}
+        video = {"source": "thermal"}
     return {
         "platform_url": platform_url,
         "platform_public_key": platform_public_key_pem(),
@@ -476,7 +487,8 @@ def vehicle_agent_config(
         "credential": credential,
         "adapter": vehicle.vehicle_type.adapter,
         "adapter_options": options,
-        "video": {"source": "synthetic"} if vehicle.cameras else None,
+        "video": video,
+        "thermal": thermal,
         "vehicle_type": vehicle.vehicle_type.name,
     }
 

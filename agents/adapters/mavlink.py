@@ -13,7 +13,7 @@ take_off(altitude_m)   GUIDED, arm if needed, MAV_CMD_NAV_TAKEOFF
 front/back/left/right  SET_POSITION_TARGET_LOCAL_NED, MAV_FRAME_BODY_OFFSET_NED,
 up/down(speed_mps)     velocity only, yaw rate 0 (hold the heading)
 rotate_left/right      MAV_CMD_CONDITION_YAW, relative, direction -1/+1
-go_to_waypoint         MAV_CMD_DO_REPOSITION (COMMAND_INT, relative altitude)
+go_to_waypoint         MAV_CMD_DO_REPOSITION (COMMAND_INT, relative altitude, speed_mps)
 land                   MAV_CMD_NAV_LAND
 return_to_home         MAV_CMD_NAV_RETURN_TO_LAUNCH
 stop                   zero velocity setpoint (hover) in GUIDED
@@ -1089,6 +1089,14 @@ class MavlinkAdapter(Adapter):
                     "lat": {"type": "number", "min": -90, "max": 90, "unit": "deg"},
                     "lon": {"type": "number", "min": -180, "max": 180, "unit": "deg"},
                     "alt_m": {"type": "number", "min": 1, "max": cfg.max_takeoff_m, "unit": "m"},
+                    # 0: the autopilot's own cruise speed (WPNAV_SPEED).
+                    "speed_mps": {
+                        "type": "number",
+                        "min": 0,
+                        "max": cfg.max_speed_mps,
+                        "default": 0,
+                        "unit": "m/s",
+                    },
                 },
             ),
         ]
@@ -1149,7 +1157,10 @@ class MavlinkAdapter(Adapter):
         elif name == "return_to_home":
             await self._land_or_return(MAV.MAV_CMD_NAV_RETURN_TO_LAUNCH, RTL, owner="user")
         elif name == "go_to_waypoint":
-            await self._go_to(float(args["lat"]), float(args["lon"]), float(args["alt_m"]))
+            speed = min(float(args.get("speed_mps") or 0), self.config.max_speed_mps)
+            await self._go_to(
+                float(args["lat"]), float(args["lon"]), float(args["alt_m"]), speed=speed or None
+            )
         elif name == "stop":
             # Stop moving and turning: yaw rate 0 also ends a rotation under way.
             self._moving_until = None
@@ -1289,13 +1300,16 @@ class MavlinkAdapter(Adapter):
             self._yaw_target = (heading + direction * angle) % 360.0
             self._yaw_deadline = time.monotonic() + angle / rate + 3.0
 
-    async def _go_to(self, lat: float, lon: float, alt: float) -> None:
+    async def _go_to(
+        self, lat: float, lon: float, alt: float, *, speed: float | None = None
+    ) -> None:
         await self._ensure_guided_flight("go_to_waypoint")
         try:
+            # Param 1 is the ground speed; -1 keeps the autopilot's default.
             await self._command_int(
                 MAV.MAV_CMD_DO_REPOSITION,
                 MAV.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-                (-1, MAV.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan),
+                (speed or -1, MAV.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan),
                 lat,
                 lon,
                 alt,

@@ -152,14 +152,16 @@
     const tiles = jsonScript("map-tiles");
     let mission = jsonScript("mission-data");
     const map = makeMap(node, tiles);
+    // The view first: Leaflet cannot draw a path on a map without one.
+    map.fitBounds(L.latLngBounds(mission.area).pad(0.6));
     const area = L.polygon(mission.area, {
       color: COLORS.area, weight: 2, fillOpacity: 0.12, className: "area-polygon",
     }).addTo(map);
-    map.fitBounds(area.getBounds().pad(0.6));
     const path = L.polyline(mission.path, {
       color: COLORS.path, weight: 2, dashArray: "4 6", className: "mission-path",
     }).addTo(map);
-    const done = L.polyline([], { color: COLORS.done, weight: 4, className: "mission-done" }).addTo(map);
+    // Added once there is progress: Leaflet cannot clip an empty polyline.
+    const done = L.polyline(mission.path.slice(0, 1), { color: COLORS.done, weight: 4, className: "mission-done" });
     const stations = new Map();
     const vehicles = new Map();
     let detection = null;
@@ -168,7 +170,12 @@
 
     function render() {
       path.setLatLngs(mission.path);
-      done.setLatLngs(mission.progress >= 0 ? mission.path.slice(0, mission.progress + 1) : []);
+      if (mission.progress >= 0) {
+        done.setLatLngs(mission.path.slice(0, mission.progress + 1));
+        if (!map.hasLayer(done)) done.addTo(map);
+      } else if (map.hasLayer(done)) {
+        map.removeLayer(done);
+      }
       for (const v of mission.vehicles) {
         const key = v.station.name;
         if (!stations.has(key)) {
@@ -207,7 +214,8 @@
       }
       if (!fitted && vehicles.size) {
         // Once the vehicles show, frame them with the area.
-        const bounds = area.getBounds();
+        const b = area.getBounds();
+        const bounds = L.latLngBounds(b.getSouthWest(), b.getNorthEast());
         for (const e of vehicles.values()) bounds.extend(e.dot.getLatLng());
         map.fitBounds(bounds.pad(0.15));
         fitted = true;

@@ -1,5 +1,6 @@
 """Start a person-rescue mission from the command line (the demo uses it).
 
+    python manage.py rescue_request --user client --demo
     python manage.py rescue_request --user client --around 40.6440,-8.7560 --size 300x200
     python manage.py rescue_request --user client --altitude 35 \
         --area '[[40.64,-8.76],[40.64,-8.75],[40.645,-8.75]]'
@@ -14,6 +15,7 @@ from django.contrib.auth import get_user_model
 from django.core.management.base import BaseCommand, CommandError, CommandParser
 
 from agents.geo import offset
+from services.demo import CASTAWAY
 from services.models import Service
 from services.rescue import WORKFLOW, RescueError, rescue_request
 
@@ -34,6 +36,11 @@ class Command(BaseCommand):
         where = parser.add_mutually_exclusive_group(required=True)
         where.add_argument("--area", help="the polygon as JSON [[lat, lon], ...]")
         where.add_argument("--around", help="LAT,LON: a rectangle centred here")
+        where.add_argument(
+            "--demo",
+            action="store_true",
+            help="an area around the demo's simulated castaway (not centred on them)",
+        )
         parser.add_argument("--size", default="300x200", help="WIDTHxHEIGHT in metres")
         parser.add_argument("--altitude", type=float, default=None, help="search altitude (m)")
         parser.add_argument("--service", default="", help="service slug (default: the rescue)")
@@ -54,7 +61,10 @@ class Command(BaseCommand):
             except ValueError:
                 raise CommandError("--area is not valid JSON") from None
         else:
-            lat, lon = _pair(options["around"], ",", "--around")
+            if options["demo"]:
+                lat, lon = offset(CASTAWAY, 40.0, -60.0)
+            else:
+                lat, lon = _pair(options["around"], ",", "--around")
             width, height = _pair(options["size"], "x", "--size")
             corner = offset((lat, lon), -height / 2, -width / 2)
             area = [

@@ -1,0 +1,388 @@
+"""Person rescue at sea, end to end: the platform under daphne, a real Celery worker
+(with beat) on Redis, Postgres, and the demo's sea fleet as real agents on their
+MAVLink simulators, with the search drone's thermal camera looking at a simulated sea
+that holds a person. Nothing is played by the test except the user's request (and, in
+one test, a crash of the worker or of a drone's agent).
+
+Flight runs at 10x in the simulators, at 15 m/s so a search takes seconds, not minutes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import http.server
+import json
+import threading
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from playwright.async_api import expect
+
+from agents.config import AgentConfig
+from agents.geo import distance_m, offset
+from agents.runtime import Agent
+from fleet.models import Station, Vehicle
+from services.demo import CASTAWAY, agent_configs_write, demo_seed
+from services.models import Assignment, Mission, MissionNotification, Service, Session
+from services.rescue import rescue_request
+from tests.browser import chromium_browser, needs_chromium
+from tests.servers import celery_worker_process, db, platform_process, until
+
+pytestmark = [
+    pytest.mark.postgres,
+    pytest.mark.redis,
+    pytest.mark.django_db(transaction=True),
+]
+PASSWORD = "demo-pass-for-tests"
+SIM = {"speedup": 10, "params": {"WPNAV_SPEED": 1500, "RTL_ALT": 2000}}
+#: A 200 x 120 m area with the castaway inside, off its centre.
+CENTER = offset(CASTAWAY, 25, -50)
+
+
+def search_area(width_m: float = 200, height_m: float = 120) -> list[list[float]]:
+    corner = offset(CENTER, -height_m / 2, -width_m / 2)
+    return [
+        list(corner),
+        list(offset(corner, 0, width_m)),
+        list(offset(corner, height_m, width_m)),
+        list(offset(corner, height_m, 0)),
+    ]
+
+
+@dataclasses.dataclass
+class Sea:
+    base: str
+    mail_dir: Path
+    worker: Any
+    agents: dict[str, Agent]
+    tasks: dict[str, asyncio.Task[None]]
+
+    async def stop_agent(self, name: str) -> None:
+        task = self.tasks.pop(name)
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
+def _agent(path: Path, base: str, *, video: bool = False) -> Agent:
+    config = AgentConfig.load(path)
+    config = dataclasses.replace(
+        config,
+        platform_url=base.replace("http://", "ws://"),
+        adapter_options={**config.adapter_options, "simulate": True, "simulator": SIM},
+        video=(
+            {**(config.video or {}), "ice_host_addresses": ["127.0.0.1"]}
+            if video and config.video
+            else None
+        ),
+        reconnect_min_s=0.2,
+    )
+    return Agent(config)
+
+
+def _spare_search_drone(directory: Path) -> None:
+    spare = Vehicle.objects.get(name="search-1")
+    spare.pk, spare.name, spare.credential_hash = None, "search-2", ""
+    spare.save()
+    agent_configs_write(
+        vehicles={"search-2": spare}, directory=directory, platform_url="ws://127.0.0.1:1"
+    )
+
+
+@contextlib.asynccontextmanager
+async def sea(
+    tmp_path: Path, names: tuple[str, ...], *, video: bool = False, spare: bool = False
+) -> AsyncIterator[Sea]:
+    await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path)
+    if spare:
+        await db(_spare_search_drone, tmp_path)
+    mail_dir = tmp_path / "mail"
+    env = {
+        "IOUV_MISSION_TICK_S": "1",
+        "IOUV_MISSION_OFFLINE_GRACE_S": "3",
+        "CELERY_VISIBILITY_TIMEOUT_S": "5",
+        "EMAIL_BACKEND": "django.core.mail.backends.filebased.EmailBackend",
+        "EMAIL_FILE_PATH": str(mail_dir),
+    }
+    with platform_process(extra_env=env) as base, celery_worker_process(extra_env=env) as worker:
+        agents = {name: _agent(tmp_path / f"{name}.json", base, video=video) for name in names}
+        tasks = {name: asyncio.create_task(a.run()) for name, a in agents.items()}
+
+        async def online() -> bool:
+            idle = Vehicle.objects.filter(name__in=names, status="idle")
+            return await db(idle.count) == len(names)
+
+        try:
+            await until(online, within=30, what="the sea fleet online")
+            yield Sea(base, mail_dir, worker, agents, tasks)
+        finally:
+            for task in tasks.values():
+                task.cancel()
+            for task in tasks.values():
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+
+
+def _request(area: list[list[float]], altitude: float = 30) -> Session:
+    from django.contrib.auth import get_user_model
+
+    client = get_user_model().objects.get(username="client")
+    service = Service.objects.get(slug="rescue-at-sea")
+    return rescue_request(user=client, service=service, area=area, altitude_m=altitude)
+
+
+def _mission(session_id: Any) -> Mission:
+    return Mission.objects.get(pk=session_id)
+
+
+def _kinds(session_id: Any) -> list[str]:
+    session = Session.objects.get(pk=session_id)
+    return list(session.events.order_by("seq").values_list("kind", flat=True))
+
+
+async def mission_reaches(session_id: Any, state: str, *, within: float) -> Mission:
+    async def reached() -> Mission | None:
+        mission = await db(_mission, session_id)
+        return mission if mission.state == state else None
+
+    try:
+        return await until(reached, within=within, what=f"mission {state}")
+    except AssertionError:
+        mission = await db(_mission, session_id)
+        kinds = await db(_kinds, session_id)
+        raise AssertionError(
+            f"mission stuck in {mission.state} ({mission.status_text}); log: {kinds}"
+        ) from None
+
+
+def _emails(mail_dir: Path) -> list[str]:
+    return [p.read_text() for p in sorted(mail_dir.glob("*.log"))] if mail_dir.exists() else []
+
+
+async def _assert_rescued_and_home(session_id: Any) -> None:
+    """The person was found where they are, the life jacket went to them, both
+    vehicles flew home and are free, and the session log keeps the timeline."""
+    done = await db(_mission, session_id)
+    found = (done.detection["lat"], done.detection["lon"])
+    assert distance_m(found, CASTAWAY) < 10, found
+    assert done.detection["confidence"] >= 0.6
+    kinds = await db(_kinds, session_id)
+    order = ["mission_planned", "assigned", "task_accepted", "person_detected"]
+    order += ["rescue_team_notified", "payload_released"]
+    positions = [kinds.index(k) for k in order]
+    positions.append(len(kinds) - 1 - kinds[::-1].index("mission_state"))  # completed
+    assert positions == sorted(positions), kinds
+    roles = await db(
+        lambda: sorted(
+            Assignment.objects.filter(session_id=session_id).values_list("role", "vehicle__name")
+        )
+    )
+    assert roles == [("delivery", "lifeguard-1"), ("search", "search-1")]
+    homes = await db(
+        lambda: {
+            v.name: (v.status, distance_m(v.position, (v.station.lat, v.station.lon)))
+            for v in Vehicle.objects.select_related("station").filter(
+                name__in=["search-1", "lifeguard-1"]
+            )
+        }
+    )
+    assert all(s == Vehicle.Status.IDLE and d < 30 for s, d in homes.values()), homes
+    final = await db(
+        lambda: (
+            Session.objects.get(pk=session_id)
+            .events.filter(kind="mission_state")
+            .order_by("-seq")
+            .first()
+            .data
+        )
+    )
+    assert final["to"] == "completed"
+    assert {"requested", "person_detected", "payload_released", "completed"} <= set(
+        final["timeline"]
+    )
+    session = await db(Session.objects.get, pk=session_id)
+    assert session.state == Session.State.ENDED
+
+
+class _SlowHook(http.server.BaseHTTPRequestHandler):
+    """The rescue team's webhook: the first call hangs until released."""
+
+    seen: list[str] = []
+    first_arrived = threading.Event()
+    release = threading.Event()
+
+    def do_POST(self) -> None:
+        self.rfile.read(int(self.headers["Content-Length"]))
+        type(self).seen.append(self.headers["Idempotency-Key"])
+        if len(type(self).seen) == 1:
+            type(self).first_arrived.set()
+            type(self).release.wait(30)
+        self.send_response(200)
+        self.end_headers()
+
+    def log_message(self, *args: Any) -> None:
+        pass
+
+
+async def test_worker_killed_mid_step_completes_without_duplicates(tmp_path: Path) -> None:
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _SlowHook)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    _SlowHook.seen = []
+    _SlowHook.first_arrived.clear()
+    _SlowHook.release.clear()
+    try:
+        async with sea(tmp_path, ("search-1", "lifeguard-1")) as world:
+            hook = f"http://127.0.0.1:{server.server_port}/alerts"
+            await db(
+                lambda: Station.objects.filter(name="Costa Nova station").update(
+                    rescue_team_webhook=hook
+                )
+            )
+            session = await db(_request, search_area())
+            # The worker is inside the step that alerts the team: kill it there.
+            arrived = await asyncio.to_thread(_SlowHook.first_arrived.wait, 120)
+            assert arrived, await db(_kinds, session.pk)
+            world.worker.kill()
+            _SlowHook.release.set()
+            world.worker.start()
+            await mission_reaches(session.pk, Mission.State.COMPLETED, within=150)
+
+            notices = await db(
+                lambda: list(MissionNotification.objects.values_list("channel", "sent_at"))
+            )
+            assert sorted(c for c, _ in notices) == ["dashboard", "email", "webhook"]
+            assert all(sent for _, sent in notices)
+            # The webhook was re-sent after the crash, with the same key: one alert.
+            assert len(set(_SlowHook.seen)) == 1 and len(_SlowHook.seen) >= 1
+            assert len(_emails(world.mail_dir)) == 1
+            kinds = await db(_kinds, session.pk)
+            assert kinds.count("payload_released") == 1
+            assert kinds.count("rescue_team_notified") == 3
+            deliveries = await db(
+                Assignment.objects.filter(session_id=session.pk, role="delivery").count
+            )
+            assert deliveries == 1
+            await _assert_rescued_and_home(session.pk)
+            lifeguard = world.agents["lifeguard-1"].adapter
+            released = sum(1 for *_, text in lifeguard._texts if text == "Gripper load released")
+            assert released == 1
+    finally:
+        _SlowHook.release.set()
+        server.shutdown()
+
+
+async def test_search_drone_offline_hands_its_remaining_lines_to_another(
+    tmp_path: Path,
+) -> None:
+    async with sea(tmp_path, ("search-1", "search-2", "lifeguard-1"), spare=True) as world:
+        # A wider area, so the first drone is still searching when it is lost.
+        session = await db(_request, search_area(260, 160))
+
+        async def first_waypoints() -> Any:
+            mission = await db(_mission, session.pk)
+            return mission if mission.progress >= 1 and mission.detection is None else None
+
+        mission = await until(first_waypoints, within=60, what="the search under way")
+        first = await db(
+            lambda: Assignment.objects.get(session_id=session.pk, role="search").vehicle.name
+        )
+        await world.stop_agent(first)
+
+        async def handed_over() -> Any:
+            return await db(
+                lambda: (
+                    Assignment.objects.filter(session_id=session.pk, role="search", active=True)
+                    .exclude(vehicle__name=first)
+                    .first()
+                )
+            )
+
+        second = await until(handed_over, within=30, what="a second search drone")
+        leg = await db(
+            lambda: (
+                Session.objects.get(pk=session.pk)
+                .events.filter(kind="search_leg")
+                .order_by("-seq")
+                .first()
+                .data
+            )
+        )
+        assert leg["start_index"] >= mission.progress >= 1
+        released = await db(
+            lambda: Session.objects.get(pk=session.pk).events.get(kind="vehicle_released").data
+        )
+        assert released["vehicle_name"] == first and "offline" in released["reason"]
+        done = await mission_reaches(session.pk, Mission.State.DELIVERING, within=120)
+        assert done.detection["vehicle"] == str(second.vehicle_id)
+
+
+@needs_chromium
+async def test_user_draws_the_area_and_watches_the_mission_on_the_map(tmp_path: Path) -> None:
+    async with (
+        sea(tmp_path, ("search-1", "lifeguard-1"), video=True) as world,
+        chromium_browser(webrtc_loopback=True) as browser,
+    ):
+        page = await (await browser.new_context()).new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(f"{exc} {exc.stack}"))
+        await page.goto(f"{world.base}/accounts/login/")
+        await page.fill("#id_username", "client")
+        await page.fill("#id_password", PASSWORD)
+        await page.click("button[type=submit]")
+        await page.wait_for_url(f"{world.base}/")
+        await page.goto(f"{world.base}/services/rescue-at-sea/")
+        await page.wait_for_function("() => window.iouvMap && window.iouvMap.map")
+        # Click the area's corners on the map, where those coordinates are drawn.
+        await page.evaluate(
+            "([lat, lon]) => window.iouvMap.map.setView([lat, lon], 17)", list(CENTER)
+        )
+        box = await page.locator("#area-map").bounding_box()
+        for lat, lon in search_area():
+            point = await page.evaluate(
+                "([lat, lon]) => window.iouvMap.map.latLngToContainerPoint([lat, lon])",
+                [lat, lon],
+            )
+            await page.mouse.click(box["x"] + point["x"], box["y"] + point["y"])
+        await expect(page.locator("[data-area-info]")).to_contain_text("4 points")
+        drawn = json.loads(await page.input_value("input[name=area]"))
+        assert len(drawn) == 4
+        assert all(
+            distance_m(tuple(p), tuple(q)) < 3 for p, q in zip(drawn, search_area(), strict=True)
+        )
+        await page.fill("#id_altitude_m", "30")
+        await page.click("#request-button")
+        await page.wait_for_url("**/sessions/*/")
+
+        # The map shows the planned path, the search drone moving, then the person.
+        await page.wait_for_load_state()
+        assert not errors, errors
+        await expect(page.locator("path.mission-path")).to_have_count(1)
+        marker = page.locator("path.vehicle-search")
+        await expect(marker).to_have_count(1, timeout=20000)
+        before = await marker.get_attribute("data-latlon")
+        await page.wait_for_function(
+            "(before) => { const m = document.querySelector('path.vehicle-search');"
+            " return m && m.getAttribute('data-latlon') !== before; }",
+            arg=before,
+            timeout=20000,
+        )
+        await expect(page.locator("path.detection-marker")).to_have_count(1, timeout=90000)
+        await expect(page.locator("[data-mission-detection]")).to_contain_text("confidence")
+        await expect(page.locator("path.vehicle-delivery")).to_have_count(1, timeout=30000)
+        await expect(
+            page.locator("[data-mission-timeline] li[data-kind=person_detected]")
+        ).to_have_count(1)
+        # The search drone's thermal video played in the page.
+        width = await page.evaluate("() => document.querySelector('video').videoWidth")
+        assert width > 0
+        await expect(page.locator("#mission-map")).to_have_attribute(
+            "data-mission-state", "completed", timeout=120000
+        )
+        session_id = page.url.rstrip("/").rsplit("/", 1)[-1]
+        await _assert_rescued_and_home(session_id)
+        emails = _emails(world.mail_dir)
+        assert len(emails) == 1 and "Person in the water" in emails[0]
