@@ -13,7 +13,8 @@ take_off(altitude_m)   GUIDED, arm if needed, MAV_CMD_NAV_TAKEOFF
 front/back/left/right  SET_POSITION_TARGET_LOCAL_NED, MAV_FRAME_BODY_OFFSET_NED,
 up/down(speed_mps)     velocity only, yaw rate 0 (hold the heading)
 rotate_left/right      MAV_CMD_CONDITION_YAW, relative, direction -1/+1
-go_to_waypoint         MAV_CMD_DO_REPOSITION (COMMAND_INT, relative altitude, speed_mps)
+go_to_waypoint         MAV_CMD_DO_CHANGE_SPEED if speed_mps, then MAV_CMD_DO_REPOSITION
+                       (COMMAND_INT, relative altitude)
 land                   MAV_CMD_NAV_LAND
 return_to_home         MAV_CMD_NAV_RETURN_TO_LAUNCH
 stop                   zero velocity setpoint (hover) in GUIDED
@@ -1304,8 +1305,11 @@ class MavlinkAdapter(Adapter):
         self, lat: float, lon: float, alt: float, *, speed: float | None = None
     ) -> None:
         await self._ensure_guided_flight("go_to_waypoint")
+        if speed:
+            # ArduCopter flies guided targets at WPNAV_SPEED and ignores DO_REPOSITION's
+            # speed field: DO_CHANGE_SPEED (ground speed) sets it for this and later legs.
+            await self._command_long(MAV.MAV_CMD_DO_CHANGE_SPEED, (1, speed, -1, 0))
         try:
-            # Param 1 is the ground speed; -1 keeps the autopilot's default.
             await self._command_int(
                 MAV.MAV_CMD_DO_REPOSITION,
                 MAV.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
