@@ -193,6 +193,8 @@ else:
     for _sub in ("processed", "control"):
         (_broker_dir / _sub).mkdir(parents=True, exist_ok=True)
     CELERY_BROKER_URL = "filesystem://"
+    # The stock transport can hand a worker a half-written message (iouv/broker.py).
+    CELERY_BROKER_TRANSPORT = "iouv.broker:Transport"
     CELERY_BROKER_TRANSPORT_OPTIONS = {
         "data_folder_in": str(_broker_dir),
         "data_folder_out": str(_broker_dir),
