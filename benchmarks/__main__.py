@@ -1,0 +1,98 @@
+"""Regenerate every benchmark report under docs/benchmarks/ with one command.
+
+    python -m benchmarks            # the full runs (see each module's --help for times)
+    python -m benchmarks --quick    # the smoke-test sizes, in a few minutes
+    python -m benchmarks --paper-args "--interval-s 0.2" --scale-args "--agents 1000"
+
+Runs, one after the other so neither disturbs the other's timings:
+
+* ``benchmarks.paper`` - the paper's response-time tests TC1-TC3, point-to-point vs
+  through the platform, over loopback and emulated remote and LTE links;
+* ``benchmarks.scale`` - 1,000 agents on one platform, assignment and deployment
+  throughput, fail-safe reaction times, one platform process vs two;
+
+then writes ``docs/benchmarks/README.md``: the machine, the commands, and links to the
+two reports.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "docs" / "benchmarks"
+
+
+def machine() -> list[str]:
+    """The lines of the report that say what it ran on."""
+    cpu = platform.processor() or "unknown CPU"
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.exists():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    mem = ""
+    meminfo = Path("/proc/meminfo")
+    if meminfo.exists():
+        kb = int(meminfo.read_text().split("MemTotal:")[1].split()[0])
+        mem = f", {kb / 1024 / 1024:.0f} GiB RAM"
+    return [
+        f"- CPU: {cpu}, {os.cpu_count()} logical cores{mem}",
+        f"- OS: {platform.platform()}",
+        f"- Python: {platform.python_version()}",
+        f"- Date: {datetime.datetime.now(datetime.UTC).strftime('%Y-%m-%d %H:%M UTC')}",
+    ]
+
+
+def run(module: str, quick: bool, extra: str) -> float:
+    command = [sys.executable, "-m", module, "--out", str(OUT / module.rsplit(".", 1)[1])]
+    if quick:
+        command.append("--quick")
+    command += shlex.split(extra)
+    print("==", " ".join(command[1:]), flush=True)
+    started = time.monotonic()
+    subprocess.run(command, cwd=ROOT, check=True)
+    return time.monotonic() - started
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="smoke-test sizes")
+    parser.add_argument("--paper-args", default="", help="more options for benchmarks.paper")
+    parser.add_argument("--scale-args", default="", help="more options for benchmarks.scale")
+    args = parser.parse_args()
+    extra = {"paper": args.paper_args, "scale": args.scale_args}
+    took = {name: run(f"benchmarks.{name}", args.quick, extra[name]) for name in extra}
+    mode = "quick" if args.quick else "full"
+    lines = [
+        "# Benchmarks",
+        "",
+        f"Regenerated with `{shlex.join(['python', '-m', 'benchmarks', *sys.argv[1:]])}`"
+        f" ({mode} mode):",
+        "",
+        *machine(),
+        "",
+        f"- [The paper's response-time tests, point-to-point vs relay](paper/report.md)"
+        f" ({took['paper'] / 60:.1f} min)",
+        f"- [Platform scale: 1,000 agents, throughput, fail-safe reaction, two processes]"
+        f"(scale/report.md) ({took['scale'] / 60:.1f} min)",
+        "",
+        "Timings come from one run on a shared machine: compare the columns of one report",
+        "(they were measured together) rather than figures across reports or machines.",
+        "",
+    ]
+    (OUT / "README.md").write_text("\n".join(lines))
+    print(f"wrote {OUT / 'README.md'}")
+
+
+if __name__ == "__main__":
+    main()
