@@ -352,6 +352,9 @@ class MissionNotification(models.Model):
     created_at = models.DateTimeField(auto_now_add=True)
     sent_at = models.DateTimeField(null=True, blank=True)
     attempts = models.PositiveIntegerField(default=0)
+    #: A worker sending this notice holds it until then; after that (the worker died
+    #: mid-send), another may send it again, with the same idempotency key.
+    claimed_until = models.DateTimeField(null=True, blank=True)
     last_error = models.CharField(max_length=300, blank=True)
 
     class Meta:

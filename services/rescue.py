@@ -41,6 +41,7 @@ from django.conf import settings
 from django.contrib.auth.models import AbstractBaseUser
 from django.core.mail import EmailMessage
 from django.db import transaction
+from django.db.models import F, Q
 from django.utils import timezone
 
 from agents.geo import distance_m
@@ -716,33 +717,41 @@ def _notices_create(mission: Mission) -> None:
 
 
 def notifications_send(session_id: Any) -> int:
-    """Send the mission's pending notices, each in its own transaction; returns how
-    many were sent now. A notice locked by another worker is skipped, not waited for."""
+    """Send the mission's pending notices; returns how many were sent now.
+
+    Each notice is claimed first with a conditional UPDATE (only one worker can win it,
+    on any database) for a lease longer than one delivery attempt; the claim and the
+    attempt count are committed before sending, so a worker killed while sending
+    leaves a trace and, once the lease lapses, the notice is sent again with the same
+    idempotency key. A failed attempt releases the claim for the timer's retry.
+    """
     sent = 0
     pending = MissionNotification.objects.filter(
         mission_id=session_id, sent_at__isnull=True, attempts__lt=NOTIFY_ATTEMPTS_MAX
     ).values_list("pk", flat=True)
+    lease = timedelta(seconds=2 * settings.IOUV_WEBHOOK_TIMEOUT_S + 5)
     for pk in list(pending):
-        with transaction.atomic():
-            notice = (
-                MissionNotification.objects.select_for_update(skip_locked=True)
-                .select_related("mission__session")
-                .filter(pk=pk, sent_at__isnull=True)
-                .first()
-            )
-            if notice is None:
-                continue
-            # The attempt is counted first, in its own commit: a worker killed while
-            # sending leaves a trace, and the retry reuses the same idempotency key.
-            MissionNotification.objects.filter(pk=pk).update(attempts=notice.attempts + 1)
+        now = timezone.now()
+        claimed = (
+            MissionNotification.objects.filter(pk=pk, sent_at__isnull=True)
+            .filter(Q(claimed_until__isnull=True) | Q(claimed_until__lt=now))
+            .update(claimed_until=now + lease, attempts=F("attempts") + 1)
+        )
+        if not claimed:
+            continue  # sent, or another worker is sending it right now
+        notice = MissionNotification.objects.select_related("mission__session").get(pk=pk)
         try:
             _deliver(notice)
         except Exception as exc:
             log.warning("rescue notice %s (%s) failed: %s", notice.pk, notice.channel, exc)
-            MissionNotification.objects.filter(pk=pk).update(last_error=str(exc)[:300])
+            MissionNotification.objects.filter(pk=pk).update(
+                last_error=str(exc)[:300], claimed_until=None
+            )
             continue
         with transaction.atomic():
-            MissionNotification.objects.filter(pk=pk).update(sent_at=timezone.now(), last_error="")
+            MissionNotification.objects.filter(pk=pk).update(
+                sent_at=timezone.now(), last_error="", claimed_until=None
+            )
             event_append(
                 session=notice.mission.session,
                 kind="rescue_team_notified",

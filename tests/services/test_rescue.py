@@ -380,3 +380,34 @@ def test_webhook_is_retried_until_it_succeeds_and_sent_once(world, client_user, 
         assert len(mail.outbox) == 1
     finally:
         server.shutdown()
+
+
+def test_a_notice_being_sent_by_another_worker_is_not_sent_again(world, client_user, settings):
+    settings.EMAIL_BACKEND = "django.core.mail.backends.locmem.EmailBackend"
+    session = rescue_request(user=client_user, service=world, area=area())
+    step(session)
+    search = Assignment.objects.get(session=session, role="search")
+    person = offset(SEA, 60, 60)
+    # Another worker holds the e-mail (it is sending it right now).
+    report(session, search.vehicle, "person_detected", lat=person[0], lon=person[1])
+    with time_machine.travel(timezone.now()):
+        from services.rescue import _notices_create
+
+        m = mission(session)
+        m.session = session
+        _notices_create(m)
+    MissionNotification.objects.filter(channel="email").update(
+        claimed_until=timezone.now() + timedelta(seconds=30), attempts=1
+    )
+    notifications_send(session.pk)
+    step(session)
+    assert len(mail.outbox) == 0
+    email = MissionNotification.objects.get(channel="email")
+    assert email.sent_at is None and email.attempts == 1
+    # That worker died mid-send: once its claim lapses the notice goes out, once.
+    with time_machine.travel(timezone.now() + timedelta(seconds=31)):
+        notifications_send(session.pk)
+        notifications_send(session.pk)
+    assert len(mail.outbox) == 1
+    email.refresh_from_db()
+    assert email.sent_at is not None and email.attempts == 2
