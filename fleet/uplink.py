@@ -501,7 +501,10 @@ class AgentUplinkConsumer(AsyncWebsocketConsumer):
             return
         self._next_heartbeat_write = mono + float(settings.IOUV_HEARTBEAT_INTERVAL_S) / 2
         now = timezone.now()
-        await database_sync_to_async(vehicle_record_heartbeat)(
+        # Off the one thread channels runs database work on: with a thousand agents the
+        # heartbeats of different vehicles are written side by side (each agent's
+        # own heartbeats still one at a time, awaited here).
+        await database_sync_to_async(vehicle_record_heartbeat, thread_sensitive=False)(
             vehicle_id=self.vehicle_id, heartbeat=msg, now=now, registered=self._registered
         )
         self._last_seen = now
