@@ -1,0 +1,2455 @@
+"""Scale of the platform: a thousand agents, assignment and deployment throughput,
+link loss to safe action, and one daphne process against two.
+
+    python -m benchmarks.scale [--quick] [--agents 1000] [--out docs/benchmarks/scale]
+
+Everything on the platform side is real: daphne serving ``iouv.asgi`` on PostgreSQL and
+Redis (its own database, ``iouv_bench_scale`` unless ``--database-url`` says otherwise,
+created, migrated and emptied at the start; Redis from ``REDIS_URL``, else database 4,
+with its own ``CHANNELS_PREFIX``), the platform's own signing key, vehicles registered
+in the database with real credentials, API tokens, sessions assigned and deployed by
+the platform's code. What is light is the load:
+
+* **Light agents**: each is the real :class:`agents.uplink.Uplink` client (hello,
+  profile, heartbeats at the interval the platform's ``welcome`` asks for, websockets'
+  keepalive pings, reconnection with backoff). Tasks are verified with the platform's
+  public key and answered ``task_accepted``; ``end_task`` is answered ``task_ended``.
+  There is no adapter and no video behind them. Many run per process, in a few
+  ``--agent-worker`` processes, so the load generator is not the bottleneck (its CPU
+  is measured and reported).
+* **Cars**: two full agents (:class:`agents.runtime.Agent`, the car adapter on
+  gpiozero mock pins and its simulated world) in this process, for the link-loss
+  trials and the relayed control session.
+* **API clients**: threads in an ``--api-worker`` process, each with its own user and
+  bearer token, requesting a session (assignment, signed task deployed to a live
+  light agent) and ending it, in a closed loop.
+
+Phases (the report names them):
+
+1. one daphne process behind :mod:`benchmarks.front_proxy`; CPU and memory idle, then
+   with N agents connected and heartbeating (and whether all N are online in the DB);
+2. assignment + deployment throughput under that load, with a relayed control session
+   running beside it (command round trips through the platform);
+3. link loss to safe action, with the N agents still connected: a controller goes
+   silent (the agent's watchdog fires after the task's ``link_loss_timeout_ms``) or its
+   socket dies (closed abruptly, no WebSocket close handshake), directly and through
+   the relay;
+4. two daphne processes behind the same proxy (agents on one, users on the other,
+   sharing PostgreSQL and Redis): the agents reconnect through the restarted proxy,
+   then phases 2 and the relayed part of 3 run again.
+
+Outputs in ``--out``: ``resources.csv``, ``api_requests.csv``, ``task_delivery.csv``,
+``relay_rtt.csv``, ``reaction_trials.csv``, ``summary.json`` and ``report.md``.
+No timing is asserted anywhere; ``--quick`` is the smoke test the suite runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import csv
+import http.client
+import json
+import logging
+import math
+import os
+import platform
+import random
+import signal
+import socket
+import statistics
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from websockets.exceptions import ConnectionClosed, InvalidHandshake
+
+from agents.protocol import ProtocolError, ReplayGuard, VehicleTask, load_public_key
+from agents.uplink import Uplink
+from benchmarks.front_proxy import raise_open_files_limit
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_DATABASE_URL = "postgres://postgres@127.0.0.1:5432/iouv_bench_scale"
+DEFAULT_REDIS_URL = "redis://127.0.0.1:6379/4"
+HOME = (40.6306, -8.6588)  # the demo's campus station; vehicles are spread around it
+LIGHT_TYPE = "Bench light drone"
+CAR_TYPE = "Bench car"
+LIGHT_SERVICE = "bench-assign"
+CAR_SERVICE = "bench-drive"
+CAR_COMMANDS = ["forward", "backward", "left", "right", "stop"]
+MODES = ("direct_silent", "direct_closed", "relay_silent", "relay_closed")
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+#: A relayed command whose ack takes longer than this is counted as lost.
+LOST_AFTER_S = 30.0
+
+
+@dataclass(frozen=True)
+class Params:
+    """What one run does; :meth:`quick_mode` is the smoke test's small version."""
+
+    agents: int = 1000
+    agent_workers: int = 2  # processes running the light agents
+    ramp_per_s: float = 50.0  # new uplinks per second, all workers together
+    settle_s: float = 5.0  # quiet time before a measurement window
+    window_s: float = 15.0  # CPU and memory window
+    api_clients: int = 12
+    api_duration_s: float = 20.0
+    trials: int = 20  # per link-loss mode and topology
+    trial_budget_s: float = 120.0  # per mode: an overloaded platform gets fewer trials
+    link_loss_timeout_ms: int = 500
+    relay_hz: float = 10.0
+    cars: int = 2
+    drain_s: float = 2.5  # after the API load, for the last acceptances to arrive
+    start_delay_s: float = 2.0  # for the API worker and the relayed session to be ready
+    quick: bool = False
+
+    def stages(self) -> list[int]:
+        """Agent counts measured on the way up: a quarter, a half and all of them (only
+        all of them below 200), so the cost per agent shows before any saturation."""
+        if self.agents < 200:
+            return [self.agents]
+        return sorted({self.agents // 4, self.agents // 2, self.agents})
+
+    @classmethod
+    def quick_mode(cls, agents: int = 50) -> Params:
+        return cls(
+            agents=agents,
+            agent_workers=1,
+            ramp_per_s=500.0,
+            settle_s=0.5,
+            window_s=1.5,
+            api_clients=3,
+            api_duration_s=2.5,
+            trials=2,
+            link_loss_timeout_ms=300,
+            drain_s=0.5,
+            start_delay_s=1.0,
+            trial_budget_s=60.0,
+            quick=True,
+        )
+
+
+# ======================================================================================
+# Measuring processes and the machine
+# ======================================================================================
+
+
+def proc_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system, all threads) the process has used so far."""
+    with open(f"/proc/{pid}/stat") as f:
+        data = f.read()
+    # The command name may contain spaces and parentheses: split after the last ")".
+    fields = data[data.rindex(")") + 2 :].split()
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
+def thread_cpu_s(pid: int) -> dict[str, float]:
+    """CPU seconds per thread of the process (thread id -> seconds)."""
+    out = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        with contextlib.suppress(OSError), open(f"/proc/{pid}/task/{tid}/stat") as f:
+            data = f.read()
+            fields = data[data.rindex(")") + 2 :].split()
+            out[tid] = (int(fields[11]) + int(fields[12])) / CLK_TCK
+    return out
+
+
+def proc_rss_kb(pid: int) -> int:
+    """Resident memory of the process (VmRSS), in KiB."""
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    return 0
+
+
+def machine_busy_ticks() -> tuple[int, int]:
+    """(busy, total) CPU ticks of the whole machine since boot, from /proc/stat."""
+    with open("/proc/stat") as f:
+        values = [int(v) for v in f.readline().split()[1:]]
+    idle = values[3] + (values[4] if len(values) > 4 else 0)
+    total = sum(values[:8])
+    return total - idle, total
+
+
+def pids_named(name: str) -> list[int]:
+    """Pids of every process whose command name is ``name`` (e.g. the PostgreSQL
+    server's backends), visible to this user; empty if none."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        with contextlib.suppress(OSError), open(f"/proc/{entry}/comm") as f:
+            if f.read().strip() == name:
+                out.append(int(entry))
+    return out
+
+
+@dataclass
+class Usage:
+    """One process (or group of processes) over one window."""
+
+    phase: str
+    topology: str
+    process: str
+    window_s: float
+    cpu_pct: float  # percent of one core
+    rss_mb: float
+    threads: str = ""  # platform processes: their busiest threads' CPU, "46 % + 29 % (2)"
+
+
+class Window:
+    """CPU use of named processes between :meth:`start` and :meth:`stop`; RSS at stop.
+
+    A name may stand for several pids (the PostgreSQL backends, the agent workers);
+    processes that vanish meanwhile are counted up to their last reading.
+    """
+
+    def __init__(self, pids: dict[str, list[int]]) -> None:
+        self.pids = pids
+        self._cpu0: dict[int, float] = {}
+        self._threads0: dict[int, dict[str, float]] = {}
+        self._t0 = 0.0
+        self._machine0 = (0, 0)
+
+    def start(self) -> None:
+        self._t0 = time.monotonic()
+        self._machine0 = machine_busy_ticks()
+        for pids in self.pids.values():
+            for pid in pids:
+                with contextlib.suppress(OSError):
+                    self._cpu0[pid] = proc_cpu_s(pid)
+        for name, pids in self.pids.items():
+            if name.startswith("platform"):
+                for pid in pids:
+                    with contextlib.suppress(OSError):
+                        self._threads0[pid] = thread_cpu_s(pid)
+
+    def stop(self, *, phase: str, topology: str) -> list[Usage]:
+        elapsed = time.monotonic() - self._t0
+        busy1, total1 = machine_busy_ticks()
+        busy0, total0 = self._machine0
+        out = []
+        for name, pids in self.pids.items():
+            cpu = rss = 0.0
+            for pid in pids:
+                with contextlib.suppress(OSError):
+                    cpu += proc_cpu_s(pid) - self._cpu0.get(pid, 0.0)
+                    rss += proc_rss_kb(pid)
+            threads = ""
+            if name.startswith("platform") and len(pids) == 1 and pids[0] in self._threads0:
+                with contextlib.suppress(OSError):
+                    now, then = thread_cpu_s(pids[0]), self._threads0[pids[0]]
+                    busy = sorted(
+                        (100 * (v - then.get(tid, 0.0)) / elapsed for tid, v in now.items()),
+                        reverse=True,
+                    )
+                    threads = " + ".join(f"{b:.0f} %" for b in busy[:3]) + f" ({len(now)})"
+            out.append(
+                Usage(phase, topology, name, elapsed, 100 * cpu / elapsed, rss / 1024, threads)
+            )
+        cores = os.cpu_count() or 1
+        machine = 100 * cores * (busy1 - busy0) / max(1, total1 - total0)
+        out.append(Usage(phase, topology, "whole machine", elapsed, machine, 0.0))
+        return out
+
+
+def machine_info() -> dict[str, Any]:
+    """The machine the run is on: CPU model, cores, RAM, OS, Python, date."""
+    model = platform.processor() or platform.machine()
+    with contextlib.suppress(OSError), open("/proc/cpuinfo") as f:
+        for line in f:
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    ram_gb = 0.0
+    with contextlib.suppress(OSError), open("/proc/meminfo") as f:
+        for line in f:
+            if line.startswith("MemTotal:"):
+                ram_gb = int(line.split()[1]) / 1024 / 1024
+    return {
+        "cpu_model": model,
+        "cores": os.cpu_count(),
+        "ram_gb": round(ram_gb, 1),
+        "os": platform.platform(),
+        "python": platform.python_version(),
+        "date_utc": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        "load_average_at_start": [round(v, 2) for v in os.getloadavg()],
+        "open_files_limit": raise_open_files_limit(),
+    }
+
+
+def summary(values: Iterable[float]) -> dict[str, float]:
+    """n, min, p50, p95, max and mean (nearest-rank percentiles); zeros when empty."""
+    ordered = sorted(values)
+    if not ordered:
+        return {"n": 0, "min": 0.0, "p50": 0.0, "p95": 0.0, "max": 0.0, "mean": 0.0}
+
+    def rank(q: float) -> float:
+        return ordered[max(0, math.ceil(q * len(ordered)) - 1)]
+
+    return {
+        "n": len(ordered),
+        "min": ordered[0],
+        "p50": rank(0.50),
+        "p95": rank(0.95),
+        "max": ordered[-1],
+        "mean": statistics.fmean(ordered),
+    }
+
+
+# ======================================================================================
+# The world in the database (needs Django)
+# ======================================================================================
+
+
+@dataclass
+class AgentSpec:
+    """One registered vehicle and what its agent needs to connect."""
+
+    vehicle_id: str
+    credential: str
+    name: str
+    lat: float
+    lon: float
+
+
+@dataclass
+class World:
+    """Everything the load needs, as plain data (it travels to worker processes)."""
+
+    public_key: str
+    light: list[AgentSpec]
+    cars: list[AgentSpec]
+    client_tokens: list[str]
+    driver_token: str
+
+
+def world_build(*, light: int, cars: int, clients: int, link_loss_timeout_ms: int) -> World:
+    """Register ``light`` drones and ``cars`` cars with fresh credentials, the two
+    benchmark services, ``clients`` API users and a driver, each with a token.
+
+    Light drones are spread at random within 2 km of HOME, so concurrent requests for
+    the nearest vehicle do not all race for the same one.
+    """
+    from django.contrib.auth import get_user_model
+
+    from accounts.roles import CLIENT, roles_ensure, user_set_roles
+    from accounts.tokens import token_issue
+    from agents.geo import offset
+    from fleet.credentials import vehicle_issue_credential
+    from fleet.models import Station, Vehicle, VehicleType
+    from services.models import Service, ServiceGrant, ServiceRole
+    from services.signing import platform_public_key_pem
+
+    rng = random.Random(7)
+    groups = roles_ensure()
+    station = Station.objects.create(
+        name="Bench station", lat=HOME[0], lon=HOME[1], environments=["land", "air"]
+    )
+    drone_type = VehicleType.objects.create(name=LIGHT_TYPE, kind="aerial", adapter="mavlink")
+    car_type = VehicleType.objects.create(name=CAR_TYPE, kind="ground", adapter="car")
+    drone_attrs = {
+        "endurance_min": 30,
+        "max_range_m": 10000,
+        "max_altitude_m": 120,
+        "max_speed_mps": 12,
+        "max_payload_kg": 0.5,
+        "cameras": ["rgb"],
+        "camera_range_m": 100,
+        "environments": ["air", "land"],
+        "features": ["gps"],
+    }
+    car_attrs = {**drone_attrs, "max_altitude_m": 0, "max_speed_mps": 1.5, "environments": ["land"]}
+    rows = []
+    for i in range(light):
+        distance, bearing = 2000 * math.sqrt(rng.random()), rng.uniform(0, 2 * math.pi)
+        lat, lon = offset(HOME, distance * math.cos(bearing), distance * math.sin(bearing))
+        rows.append(
+            Vehicle(
+                name=f"bench-light-{i:04d}",
+                vehicle_type=drone_type,
+                station=station,
+                attributes=drone_attrs,
+                battery=90.0,
+                lat=lat,
+                lon=lon,
+            )
+        )
+    for i in range(cars):
+        rows.append(
+            Vehicle(
+                name=f"bench-car-{i}",
+                vehicle_type=car_type,
+                station=station,
+                attributes=car_attrs,
+                battery=90.0,
+                lat=HOME[0],
+                lon=HOME[1],
+            )
+        )
+    Vehicle.objects.bulk_create(rows, batch_size=500)
+    specs = [
+        AgentSpec(
+            str(v.pk), vehicle_issue_credential(vehicle=v), v.name, float(v.lat), float(v.lon)
+        )
+        for v in rows
+    ]
+    light_service = Service.objects.create(
+        slug=LIGHT_SERVICE, name="Bench assignment", allowed_commands=["stop"]
+    )
+    ServiceRole.objects.create(
+        service=light_service, name="vehicle", kinds=["aerial"], min_battery=20
+    )
+    car_service = Service.objects.create(
+        slug=CAR_SERVICE,
+        name="Bench drive",
+        allowed_commands=CAR_COMMANDS,
+        link_loss_timeout_ms=link_loss_timeout_ms,
+        failsafe_action="stop",
+    )
+    ServiceRole.objects.create(service=car_service, name="vehicle", kinds=["ground"])
+    for service in (light_service, car_service):
+        ServiceGrant.objects.create(service=service, group=groups[CLIENT])
+
+    def client(username: str) -> str:
+        user = get_user_model().objects.create_user(username=username, password=None)
+        user_set_roles(user=user, roles=[CLIENT])
+        return token_issue(user=user, name="benchmark")
+
+    return World(
+        public_key=platform_public_key_pem(),
+        light=specs[:light],
+        cars=specs[light:],
+        client_tokens=[client(f"bench-client-{i}") for i in range(clients)],
+        driver_token=client("bench-driver"),
+    )
+
+
+def fleet_check(names: Sequence[str]) -> dict[str, Any]:
+    """How many of the vehicles named ``names`` the platform counts online (heard from
+    within IOUV_OFFLINE_AFTER_S and not offline), how old their last heartbeat write
+    is (seconds), the database connections open to this database, and how many vehicle
+    rows PostgreSQL has updated so far (its statistics counter)."""
+    from django.db import connection
+    from django.utils import timezone
+
+    from fleet.models import Vehicle
+    from fleet.status import vehicles_online
+
+    now = timezone.now()
+    online = vehicles_online(now).filter(name__in=names).count()
+    ages = [
+        (now - seen).total_seconds()
+        for seen in Vehicle.objects.filter(name__in=names, last_seen__isnull=False).values_list(
+            "last_seen", flat=True
+        )
+    ]
+    with connection.cursor() as cursor:
+        cursor.execute(
+            "SELECT count(*) FILTER (WHERE datname = current_database()), count(*) "
+            "FROM pg_stat_activity WHERE backend_type = 'client backend'"
+        )
+        connections, all_connections = (int(v) for v in cursor.fetchone())
+        # Rows updated in the vehicle table so far: heartbeats, profiles, status changes.
+        cursor.execute(
+            "SELECT n_tup_upd FROM pg_stat_user_tables WHERE relname = %s",
+            [Vehicle._meta.db_table],
+        )
+        row = cursor.fetchone()
+    return {
+        "online": online,
+        "of": len(names),
+        "heartbeat_age_s": summary(ages),
+        "db_conns": connections,
+        "db_conns_all": all_connections,
+        "vehicle_updates": int(row[0]) if row else 0,
+    }
+
+
+def sessions_check(session_ids: Sequence[str]) -> dict[str, int]:
+    """Of ``session_ids``: how many had a task deployed, accepted by the agent (in the
+    session log), and are over."""
+    from services.models import Session, SessionEvent
+    from services.sessions import FINAL
+
+    events = SessionEvent.objects.filter(session_id__in=session_ids)
+    return {
+        "sessions": len(session_ids),
+        "task_deployed": events.filter(kind="task_deployed").values("session").distinct().count(),
+        "task_accepted": events.filter(kind="task_accepted").values("session").distinct().count(),
+        "final": Session.objects.filter(pk__in=session_ids, state__in=FINAL).count(),
+    }
+
+
+def session_log_kinds(session_id: str) -> list[str]:
+    from services.models import SessionEvent
+
+    return list(
+        SessionEvent.objects.filter(session_id=session_id)
+        .order_by("seq")
+        .values_list("kind", flat=True)
+    )
+
+
+async def orm(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    """Run ORM code in a thread; its connection closes after, so nothing lingers.
+
+    PostgreSQL is shared with other work on the machine and may refuse a connection
+    for a while ("too many clients"): such a call is retried for up to a minute.
+    """
+    from django.db import OperationalError
+
+    def call() -> Any:
+        from django.db import connections
+
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            connections.close_all()
+
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            return await asyncio.to_thread(call)
+        except OperationalError:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(1.0)
+
+
+# ======================================================================================
+# Child processes: daphne, the proxy, the workers
+# ======================================================================================
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class Child:
+    """A process this run started; :meth:`stop` ends it (SIGTERM, then SIGKILL)."""
+
+    name: str
+    proc: asyncio.subprocess.Process
+    port: int = 0
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    async def stop(self, grace_s: float = 10.0) -> None:
+        if self.proc.returncode is not None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            self.proc.terminate()
+        try:
+            await asyncio.wait_for(self.proc.wait(), grace_s)
+        except TimeoutError:
+            with contextlib.suppress(ProcessLookupError):
+                self.proc.kill()
+            await self.proc.wait()
+
+
+def _http_ok(url: str) -> bool:
+    try:
+        with urllib.request.urlopen(url, timeout=2) as response:
+            return bool(response.status == 200)
+    except (OSError, urllib.error.URLError):
+        return False
+
+
+async def daphne_start(name: str, *, env: dict[str, str], logs: Path) -> Child:
+    """Start ``daphne iouv.asgi:application`` on a free loopback port; returns once
+    ``/healthz`` answers. Raises RuntimeError (with the log's tail) if it does not."""
+    port = free_port()
+    log_path = logs / f"{name}.log"
+    with _open_log(log_path) as log_file:
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable,
+            "-m",
+            "daphne",
+            "-b",
+            "127.0.0.1",
+            "-p",
+            str(port),
+            "iouv.asgi:application",
+            cwd=ROOT,
+            env=env,
+            stdout=log_file,
+            stderr=asyncio.subprocess.STDOUT,
+        )
+    child = Child(name, proc, port)
+    deadline = time.monotonic() + 60
+    while not await asyncio.to_thread(_http_ok, f"http://127.0.0.1:{port}/healthz"):
+        if proc.returncode is not None or time.monotonic() > deadline:
+            await child.stop()
+            raise RuntimeError(f"{name} did not start: {log_path.read_text()[-2000:]}")
+        await asyncio.sleep(0.2)
+    return child
+
+
+async def proxy_start(
+    *, port: int, routes: dict[str, int], default: int, env: dict[str, str], logs: Path, tag: str
+) -> Child:
+    """Start :mod:`benchmarks.front_proxy` on ``port``; ``routes`` maps path prefixes
+    to backend ports."""
+    args = [sys.executable, "-m", "benchmarks.front_proxy", "--listen", f"127.0.0.1:{port}"]
+    for prefix, backend in routes.items():
+        args += ["--route", f"{prefix}=127.0.0.1:{backend}"]
+    args += ["--default", f"127.0.0.1:{default}"]
+    with _open_log(logs / f"proxy-{tag}.log") as log_file:
+        proc = await asyncio.create_subprocess_exec(
+            *args, cwd=ROOT, env=env, stdout=asyncio.subprocess.PIPE, stderr=log_file
+        )
+    assert proc.stdout is not None
+    line = await asyncio.wait_for(proc.stdout.readline(), 30)
+    if not line.startswith(b"listening on"):
+        raise RuntimeError(f"the front proxy did not start: {line!r}")
+    return Child("front proxy", proc, port)
+
+
+@dataclass
+class WorkerState:
+    """What an agent worker last reported."""
+
+    connected: int = 0
+    registrations: int = 0
+    tasks: dict[str, float] = field(default_factory=dict)  # session id -> wall time
+
+
+class AgentWorkers:
+    """The ``--agent-worker`` processes running the light agents."""
+
+    def __init__(self) -> None:
+        self.children: list[Child] = []
+        self.states: list[WorkerState] = []
+        self._readers: list[asyncio.Task[None]] = []
+
+    async def start(
+        self,
+        *,
+        specs: list[AgentSpec],
+        world: World,
+        url: str,
+        workers: int,
+        ramp_per_s: float,
+        env: dict[str, str],
+        logs: Path,
+    ) -> None:
+        """Start ``workers`` more processes sharing ``specs``, opening their uplinks at
+        ``ramp_per_s`` per second together."""
+        n = max(1, workers)
+        for offset in range(n):
+            mine = specs[offset::n]
+            index = len(self.children)
+            spec_path = logs / f"agent-worker-{index}.json"
+            spec_path.write_text(
+                json.dumps(
+                    {
+                        "url": url,
+                        "public_key": world.public_key,
+                        "agents": [asdict(s) for s in mine],
+                        "ramp_per_s": ramp_per_s / n,
+                    }
+                )
+            )
+            with _open_log(logs / f"agent-worker-{index}.log") as log_file:
+                proc = await asyncio.create_subprocess_exec(
+                    sys.executable,
+                    "-m",
+                    "benchmarks.scale",
+                    "--agent-worker",
+                    str(spec_path),
+                    cwd=ROOT,
+                    env=env,
+                    stdout=asyncio.subprocess.PIPE,
+                    stderr=log_file,
+                    limit=1 << 24,
+                )
+            state = WorkerState()
+            self.children.append(Child(f"agent worker {index}", proc))
+            self.states.append(state)
+            self._readers.append(asyncio.create_task(self._read(proc, state)))
+
+    @staticmethod
+    async def _read(proc: asyncio.subprocess.Process, state: WorkerState) -> None:
+        assert proc.stdout is not None
+        async for line in proc.stdout:
+            with contextlib.suppress(ValueError):
+                report = json.loads(line)
+                state.connected = report["connected"]
+                state.registrations = report["registrations"]
+                state.tasks.update({sid: t for sid, t in report["tasks"]})
+
+    @property
+    def connected(self) -> int:
+        return sum(s.connected for s in self.states)
+
+    @property
+    def registrations(self) -> int:
+        return sum(s.registrations for s in self.states)
+
+    def task_times(self) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for state in self.states:
+            out.update(state.tasks)
+        return out
+
+    async def stop(self) -> None:
+        for child in self.children:
+            await child.stop()
+        for reader in self._readers:
+            reader.cancel()
+
+
+# ======================================================================================
+# The light agent (worker processes; no Django here)
+# ======================================================================================
+
+LIGHT_COMMANDS = [{"name": "stop", "args": {}, "description": "Stop where you are"}]
+
+
+class LightAgent:
+    """A vehicle agent without a vehicle: the real uplink, tasks verified and accepted,
+    ``task_ended`` on ``end_task``/``revoke``. Heartbeats say ``in_service`` while a
+    task runs, like the real agent."""
+
+    def __init__(
+        self, spec: dict[str, Any], *, url: str, public_key: Any, tasks: list[Any]
+    ) -> None:
+        self.vehicle_id = spec["vehicle_id"]
+        self.position = {"lat": spec["lat"], "lon": spec["lon"]}
+        self.public_key = public_key
+        self.session: str | None = None
+        self.tasks = tasks
+        self.guard = ReplayGuard(max_entries=1000)
+        self.uplink = Uplink(
+            url=url.rstrip("/") + "/ws/agent/",
+            vehicle_id=self.vehicle_id,
+            credential=spec["credential"],
+            on_message=self.on_message,
+            profile=self.profile,
+            heartbeat=self.heartbeat,
+            reconnect_min_s=0.5,
+            reconnect_max_s=5.0,
+        )
+
+    def profile(self) -> dict[str, Any]:
+        return {
+            "type": "profile",
+            "vehicle_type": "drone",
+            "adapter": "light",
+            "attributes": {},
+            "commands": LIGHT_COMMANDS,
+            "telemetry": [],
+            "control_url": "",
+            "video": False,
+            "position": self.position,
+            "battery": 90.0,
+        }
+
+    def heartbeat(self) -> dict[str, Any]:
+        return {
+            "type": "heartbeat",
+            "position": self.position,
+            "battery": 90.0,
+            "status": "in_service" if self.session else "idle",
+        }
+
+    async def on_message(self, msg: dict[str, Any]) -> None:
+        kind = msg["type"]
+        if kind == "task":
+            try:
+                task = VehicleTask.verify(
+                    msg["token"],
+                    self.public_key,
+                    vehicle_id=self.vehicle_id,
+                    replay_guard=self.guard,
+                )
+            except ProtocolError as exc:
+                self.uplink.send(
+                    {
+                        "type": "task_refused",
+                        "session_id": None,
+                        "code": exc.code,
+                        "reason": str(exc),
+                    }
+                )
+                return
+            self.tasks.append((task.session_id, time.time()))
+            self.session = task.session_id
+            self.uplink.send({"type": "task_accepted", "session_id": task.session_id})
+        elif kind in ("end_task", "revoke") and msg["session_id"] == self.session:
+            self.session = None
+            self.uplink.send(
+                {
+                    "type": "event",
+                    "session_id": msg["session_id"],
+                    "event": "task_ended",
+                    "data": {"reason": msg["reason"]},
+                }
+            )
+
+
+async def agent_worker(spec: dict[str, Any]) -> None:
+    """Run the light agents of a worker spec; print a JSON status line every second
+    (connected uplinks, registrations so far, tasks received since the last line)."""
+    raise_open_files_limit()
+    key = load_public_key(spec["public_key"])
+    tasks: list[Any] = []
+    agents = [LightAgent(a, url=spec["url"], public_key=key, tasks=tasks) for a in spec["agents"]]
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+
+    async def report() -> None:
+        while True:
+            sent = tasks[:]
+            del tasks[: len(sent)]
+            line = {
+                "connected": sum(a.uplink.connected.is_set() for a in agents),
+                "registrations": sum(a.uplink.connections for a in agents),
+                "tasks": sent,
+            }
+            sys.stdout.write(json.dumps(line) + "\n")
+            sys.stdout.flush()
+            await asyncio.sleep(1.0)
+
+    runs = [asyncio.create_task(report())]
+    interval = 1.0 / max(1.0, float(spec["ramp_per_s"]))
+    for agent in agents:
+        if stop.is_set():
+            break
+        runs.append(asyncio.create_task(agent.uplink.run()))
+        await asyncio.sleep(interval)
+    await stop.wait()
+    # Exit without closing handshakes: a thousand of them would only slow the next phase,
+    # and the kernel closes every socket anyway.
+    sys.stdout.flush()
+    os._exit(0)
+
+
+# ======================================================================================
+# API load (worker process)
+# ======================================================================================
+
+
+class ApiClient:
+    """A keep-alive HTTP/1.1 client for the JSON API, one per thread."""
+
+    def __init__(self, base: str, token: str) -> None:
+        host, _, port = base.removeprefix("http://").partition(":")
+        self.host, self.port, self.token = host, int(port or 80), token
+        self.conn: http.client.HTTPConnection | None = None
+
+    def call(self, method: str, path: str, body: dict[str, Any] | None = None) -> tuple[int, Any]:
+        """(status, parsed JSON body); status 0 when the connection failed."""
+        payload = json.dumps(body or {}).encode()
+        headers = {
+            "Authorization": f"Bearer {self.token}",
+            "Content-Type": "application/json",
+            "Connection": "keep-alive",
+        }
+        for attempt in (0, 1):
+            if self.conn is None:
+                self.conn = http.client.HTTPConnection(self.host, self.port, timeout=60)
+            try:
+                self.conn.request(method, path, body=payload, headers=headers)
+                response = self.conn.getresponse()
+                raw = response.read()
+                if response.getheader("Connection", "").lower() == "close":
+                    self.conn.close()
+                    self.conn = None
+                return response.status, json.loads(raw) if raw else None
+            except (OSError, http.client.HTTPException, ValueError):
+                if self.conn is not None:
+                    self.conn.close()
+                self.conn = None
+                if attempt:
+                    return 0, None
+        return 0, None
+
+
+def api_worker(spec_path: str) -> None:
+    """Closed-loop API clients: each thread requests a session of the light service for
+    a random target, then ends it, until the duration is over. Writes one CSV row per
+    request to the spec's ``out``."""
+    with open(spec_path) as f:
+        spec = json.load(f)
+    from agents.geo import offset
+
+    deadline_wall = spec["start_wall"] + spec["duration_s"]
+    rows: list[tuple[Any, ...]] = []
+    lock = threading.Lock()
+
+    def client(index: int, token: str) -> None:
+        rng = random.Random(index)
+        api = ApiClient(spec["base"], token)
+        mine: list[tuple[Any, ...]] = []
+        # Every client starts at the same instant, when the parent's window opens.
+        time.sleep(max(0.0, spec["start_wall"] - time.time()))
+        while time.time() < deadline_wall:
+            distance, bearing = 1000 * math.sqrt(rng.random()), rng.uniform(0, 2 * math.pi)
+            lat, lon = offset(HOME, distance * math.cos(bearing), distance * math.sin(bearing))
+            started = time.time()
+            t0 = time.perf_counter()
+            status, body = api.call(
+                "POST",
+                "/api/v1/sessions",
+                {"service": spec["service"], "target": {"lat": lat, "lon": lon}},
+            )
+            ms = (time.perf_counter() - t0) * 1000
+            sid = ""
+            if status == 201:
+                sid = body["session"]["id"]
+            elif isinstance(body, dict) and "error" in body:
+                sid = body["error"].get("session_id", "")
+            mine.append((index, "request", started, ms, status, sid))
+            if status != 201:
+                time.sleep(0.05)
+                continue
+            started = time.time()
+            t0 = time.perf_counter()
+            status, _ = api.call("POST", f"/api/v1/sessions/{sid}/end", {})
+            mine.append((index, "end", started, (time.perf_counter() - t0) * 1000, status, sid))
+        with lock:
+            rows.extend(mine)
+
+    threads = [
+        threading.Thread(target=client, args=(i, token), daemon=True)
+        for i, token in enumerate(spec["tokens"])
+    ]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    with open(spec["out"], "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["client", "endpoint", "start_wall", "latency_ms", "status", "session_id"])
+        writer.writerows(rows)
+    print(json.dumps({"requests": len(rows)}), flush=True)
+
+
+# ======================================================================================
+# Cars, controllers and the relay (this process)
+# ======================================================================================
+
+
+class Probe:
+    """Timestamps, on the agent's side, what a link-loss trial needs: when a control
+    frame last arrived, when the hub saw the controller's link close, and when the
+    adapter was told to perform its safe action. All ``time.monotonic()``, the clock
+    the controller in this process uses too."""
+
+    def __init__(self, agent: Any) -> None:
+        self.agent = agent
+        self.last_rx = 0.0
+        self.lost_at = 0.0
+        self.safe_at = 0.0
+        self.fired = asyncio.Event()
+        hub, adapter = agent.hub, agent.adapter
+        received, disconnected, safe_action = hub.received, hub.disconnected, adapter.safe_action
+
+        async def timed_received(link: Any, raw: Any) -> None:
+            self.last_rx = time.monotonic()
+            await received(link, raw)
+
+        async def timed_disconnected(link: Any) -> None:
+            self.lost_at = time.monotonic()
+            await disconnected(link)
+
+        async def timed_safe_action(action: str) -> None:
+            if not self.fired.is_set():
+                self.safe_at = time.monotonic()
+                self.fired.set()
+            await safe_action(action)
+
+        # Instance attributes shadow the methods: the hub and the control server look
+        # them up on every call, so the wrappers see exactly what the agent does.
+        hub.received = timed_received
+        hub.disconnected = timed_disconnected
+        adapter.safe_action = timed_safe_action
+
+    def arm(self) -> None:
+        """Forget the last trial: the next safe action is this trial's."""
+        self.fired.clear()
+        self.lost_at = 0.0
+
+
+async def cars_start(
+    stack: contextlib.AsyncExitStack, *, world: World, url: str
+) -> dict[str, Probe]:
+    """Run the cars' full agents (car adapter on mock pins) in this process; they are
+    cancelled when ``stack`` closes. Returns a probe per vehicle id."""
+    from agents.config import AgentConfig, ControlConfig
+    from agents.runtime import Agent
+
+    probes = {}
+    for spec in world.cars:
+        config = AgentConfig(
+            platform_url=url,
+            vehicle_id=spec.vehicle_id,
+            credential=spec.credential,
+            platform_public_key=world.public_key,
+            adapter="car",
+            adapter_options={"simulate": True, "origin": [spec.lat, spec.lon]},
+            control=ControlConfig(host="127.0.0.1", port=0),
+            name=spec.name,
+            reconnect_max_s=5.0,
+        )
+        agent = Agent(config)
+        task = asyncio.create_task(agent.run())
+
+        async def cancel(task: asyncio.Task[None] = task) -> None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+        stack.push_async_callback(cancel)
+        await asyncio.wait_for(agent.ready.wait(), 30)
+        probes[spec.vehicle_id] = Probe(agent)
+    return probes
+
+
+class ApiRefused(RuntimeError):
+    """An API call answered with something else than 2xx."""
+
+    def __init__(self, status: int, data: Any, what: str) -> None:
+        super().__init__(f"{what}: {status} {data}")
+        self.status = status
+        error = data.get("error") if isinstance(data, dict) else None
+        self.message = str(error.get("message", "")) if isinstance(error, dict) else str(data)
+
+
+async def api(
+    base: str, token: str, method: str, path: str, body: dict[str, Any] | None = None
+) -> Any:
+    """One API call from this process; raises ApiRefused on anything but 2xx."""
+
+    def call() -> tuple[int, Any]:
+        return ApiClient(base, token).call(method, path, body)
+
+    status, data = await asyncio.to_thread(call)
+    if not 200 <= status < 300:
+        raise ApiRefused(status, data, f"{method} {path}")
+    return data
+
+
+async def car_session(
+    *, base: str, token: str, relay: bool, results: Results, what: str
+) -> dict[str, Any]:
+    """Request a session of the car service, retrying for up to a minute while no car
+    counts as online and idle (an overloaded platform may store a car's heartbeats too
+    late for assignment); each retry is noted in the results."""
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            return dict(
+                await api(
+                    base,
+                    token,
+                    "POST",
+                    "/api/v1/sessions",
+                    {"service": CAR_SERVICE, "relay": relay, "target": _home()},
+                )
+            )
+        except ApiRefused as exc:
+            if exc.status != 422 or time.monotonic() > deadline:
+                raise
+            results.notes.append(f"{what}: no car available yet, retried ({exc.message})")
+            await asyncio.sleep(1.0)
+
+
+def _home() -> dict[str, float]:
+    return {"lat": HOME[0], "lon": HOME[1]}
+
+
+async def task_arrived(probe: Probe, session_id: str) -> None:
+    """Wait until the car runs ``session_id``'s task. The API answers with the grant as
+    soon as the task is sent; a direct client that connects at once can beat the task to
+    the agent and be refused (``no_task``), so it waits as a careful client would.
+    Raises TimeoutError after 30 s."""
+    hub = probe.agent.hub
+    async with asyncio.timeout(30):
+        # The hub offers no event for "task accepted": poll it.
+        while hub.task is None or hub.task.session_id != session_id:  # noqa: ASYNC110
+            await asyncio.sleep(0.01)
+
+
+async def _recv(
+    ws: Any, kind: str, *, seq: int | None = None, within: float = 10.0
+) -> dict[str, Any]:
+    """The next message of ``kind`` (an ``ack`` with ``seq``), answering the agent's
+    pings on the way like a real client. Raises TimeoutError after ``within`` s."""
+    deadline = time.monotonic() + within
+    while True:
+        msg = json.loads(await asyncio.wait_for(ws.recv(), max(0.01, deadline - time.monotonic())))
+        if msg["type"] == "ping":
+            await ws.send(json.dumps({"type": "pong", "t": msg["t"]}))
+        elif msg["type"] == kind and (seq is None or msg.get("seq") == seq):
+            return dict(msg)
+        elif msg["type"] == "error":
+            raise RuntimeError(f"the agent refused: {msg}")
+
+
+async def _controller(task: dict[str, Any]) -> Any:
+    """Connect to the user task's control URL (the agent or the relay), authenticate,
+    and return the socket once the agent's ``welcome`` says controller."""
+    from websockets.asyncio.client import connect
+
+    ws = await connect(task["control_url"], proxy=None, compression=None, open_timeout=15)
+    await ws.send(json.dumps({"type": "auth", "grant": task["grant"]}))
+    welcome = await _recv(ws, "welcome", within=15)
+    if welcome["role"] != "controller":
+        raise RuntimeError(f"not the controller: {welcome}")
+    return ws
+
+
+@dataclass
+class Trial:
+    """One link-loss trial."""
+
+    topology: str
+    mode: str
+    trial: int
+    reaction_ms: float  # controller's last input (or its socket's death) -> safe action
+    agent_ms: float  # agent's view: last frame received (or link seen closed) -> safe action
+    platform_logged: bool = False
+
+
+_TRIAL_ERRORS = (
+    ApiRefused,
+    RuntimeError,
+    OSError,
+    TimeoutError,
+    ConnectionClosed,
+    InvalidHandshake,
+)
+
+
+async def _one_trial(
+    *, topology: str, mode: str, index: int, task: dict[str, Any], probe: Probe
+) -> Trial | None:
+    """Drive, then lose the link as ``mode`` says; the trial, or None when the car did
+    not perform its safe action within 10 s. Connection failures raise."""
+    closed = mode.endswith("closed")
+    ws = await _controller(task)
+    try:
+        forward = {"type": "command", "seq": 1, "name": "forward", "args": {"speed": 0.5}}
+        await ws.send(json.dumps(forward))
+        await _recv(ws, "ack", seq=1)
+        for _ in range(3):  # a user holding the key: input at a steady pace
+            await asyncio.sleep(0.05)
+            await ws.send(json.dumps({"type": "keepalive"}))
+        probe.arm()
+        last_input = time.monotonic()
+        if closed:
+            ws.transport.abort()
+        try:
+            await asyncio.wait_for(probe.fired.wait(), 10)
+        except TimeoutError:
+            return None
+    finally:
+        if not closed:
+            await ws.close()
+    seen = probe.lost_at if closed else probe.last_rx
+    return Trial(
+        topology,
+        mode,
+        index,
+        (probe.safe_at - last_input) * 1000,
+        (probe.safe_at - seen) * 1000,
+    )
+
+
+@dataclass
+class CarSession:
+    """A car's session opened for the trials and the relayed control session."""
+
+    session_id: str
+    relay: bool
+    probe: Probe
+
+
+async def car_sessions_open(
+    *, base: str, token: str, probes: dict[str, Probe], results: Results
+) -> dict[bool, CarSession]:
+    """One session per way of reaching a car (direct, relayed), each on its own car, and
+    opened before the fleet connects: assignment needs the car counted online, and an
+    overloaded platform stores the car's heartbeats too late for that. Grants for each
+    connection come from the API later, as a reconnecting user gets them."""
+    out = {}
+    for relay in (False, True):
+        created = await car_session(
+            base=base, token=token, relay=relay, results=results, what="opening the car sessions"
+        )
+        probe = probes[created["task"]["vehicle_id"]]
+        await task_arrived(probe, created["session"]["id"])
+        out[relay] = CarSession(created["session"]["id"], relay, probe)
+    return out
+
+
+async def _grant(base: str, token: str, session: CarSession) -> dict[str, Any]:
+    path = f"/api/v1/sessions/{session.session_id}/grant"
+    return dict((await api(base, token, "POST", path))["task"])
+
+
+async def reaction_trials(
+    *,
+    topology: str,
+    modes: Sequence[str],
+    n: int,
+    base: str,
+    token: str,
+    sessions: dict[bool, CarSession],
+    results: Results,
+    budget_s: float,
+) -> list[Trial]:
+    """Link loss to safe action, ``n`` times per mode (at most ``budget_s`` seconds per
+    mode), a fresh grant per trial as a reconnecting user gets.
+
+    ``*_silent``: the controller drives, then sends nothing more (a pulled cable looks
+    the same); the agent's watchdog fires after the task's link-loss timeout.
+    ``*_closed``: the controller's socket is closed abruptly (the transport aborted, no
+    WebSocket close handshake: what a crashed tab or browser process leaves).
+    ``direct_*`` talk to the agent's control socket; ``relay_*`` go through the
+    platform's relay, where a dead socket reaches the agent as ``relay_close``.
+    """
+    trials: list[Trial] = []
+    for mode in modes:
+        session = sessions[mode.startswith("relay")]
+        first = len(trials)
+        logged_before = await orm(_failsafes_logged, session.session_id)
+        budget_end = time.monotonic() + budget_s
+        for i in range(n):
+            if time.monotonic() > budget_end:
+                results.notes.append(
+                    f"{topology}/{mode}: stopped after {i} of {n} trials, the "
+                    f"{budget_s:g} s budget was spent (trials were slow to connect)"
+                )
+                break
+            for _attempt in range(3):
+                try:
+                    task = await _grant(base, token, session)
+                    trial = await _one_trial(
+                        topology=topology, mode=mode, index=i, task=task, probe=session.probe
+                    )
+                except _TRIAL_ERRORS as exc:
+                    # A user would reconnect: so does the trial, with a fresh grant.
+                    results.notes.append(
+                        f"{topology}/{mode}: a trial could not drive the car, retried "
+                        f"({type(exc).__name__}: {str(exc)[:100]})"
+                    )
+                    await asyncio.sleep(1.0)
+                    continue
+                if trial is None:
+                    results.notes.append(f"{topology}/{mode}: trial {i}: NO SAFE ACTION in 10 s")
+                else:
+                    trials.append(trial)
+                break
+            await asyncio.sleep(0.2)
+        done = len(trials) - first
+        deadline = time.monotonic() + 15
+        count = await orm(_failsafes_logged, session.session_id) - logged_before
+        while count < done and time.monotonic() < deadline:
+            await asyncio.sleep(0.5)
+            count = await orm(_failsafes_logged, session.session_id) - logged_before
+        for trial in trials[first : first + count]:
+            trial.platform_logged = True
+    return trials
+
+
+def _failsafes_logged(session_id: str) -> int:
+    return sum(kind == "unintentional_end" for kind in session_log_kinds(session_id))
+
+
+async def relay_session(
+    *,
+    base: str,
+    token: str,
+    session: CarSession,
+    hz: float,
+    ready: asyncio.Event,
+    counting: asyncio.Event,
+    until: asyncio.Event,
+) -> tuple[list[float], int]:
+    """A relayed controller: once connected (``ready`` is set), commands at ``hz``
+    through the platform's relay, each waiting for its ack, until ``until`` is set.
+    Returns the round trips (ms) of the commands acknowledged while ``counting`` was set
+    (the load's window) and how many got no ack within LOST_AFTER_S (counted lost)."""
+    rtts: list[float] = []
+    lost = 0
+    ws = await _controller(await _grant(base, token, session))
+    try:
+        ready.set()
+        seq = 0
+        next_at = time.monotonic()
+        while not until.is_set():
+            seq += 1
+            name = "forward" if seq % 2 else "stop"
+            args = {"speed": 0.3} if name == "forward" else {}
+            start = time.monotonic()
+            await ws.send(json.dumps({"type": "command", "seq": seq, "name": name, "args": args}))
+            try:
+                await _recv(ws, "ack", seq=seq, within=LOST_AFTER_S)
+                # Counted when the ack lands in the window: on an overloaded platform one
+                # round trip can outlast a short window, and must still show.
+                if counting.is_set():
+                    rtts.append((time.monotonic() - start) * 1000)
+            except TimeoutError:
+                lost += counting.is_set()
+            next_at = max(next_at + 1 / hz, time.monotonic())
+            await asyncio.sleep(next_at - time.monotonic())
+    finally:
+        await ws.close()
+    return rtts, lost
+
+
+# ======================================================================================
+# The run
+# ======================================================================================
+
+
+@dataclass
+class Results:
+    """Everything measured, as the outputs need it."""
+
+    params: Params
+    machine: dict[str, Any]
+    command: str
+    database: str
+    usage: list[Usage] = field(default_factory=list)
+    fleet: dict[str, dict[str, Any]] = field(default_factory=dict)  # "topology/phase"
+    online_after_s: dict[str, float | None] = field(default_factory=dict)
+    api_rows: list[dict[str, Any]] = field(default_factory=list)
+    deliveries: list[dict[str, Any]] = field(default_factory=list)
+    sessions: dict[str, dict[str, int]] = field(default_factory=dict)
+    relay: dict[str, tuple[list[float], int]] = field(default_factory=dict)
+    trials: list[Trial] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)  # phase -> seconds
+    log_counts: dict[str, dict[str, int]] = field(default_factory=dict)  # process -> counts
+
+    @contextlib.contextmanager
+    def timed(self, phase: str) -> Iterator[None]:
+        """Record how long the block took, for the report's run-time line."""
+        start = time.monotonic()
+        try:
+            yield
+        finally:
+            self.timings[phase] = time.monotonic() - start
+
+
+async def wait_online(
+    *, names: Sequence[str], workers: AgentWorkers, expect_uplinks: int, within: float
+) -> float | None:
+    """Seconds until the workers report ``expect_uplinks`` connected uplinks and the
+    database counts every vehicle of ``names`` online; None if that did not happen
+    ``within`` seconds (the run goes on: how many were online is itself a result)."""
+    start = time.monotonic()
+    while time.monotonic() - start < within:
+        if workers.connected >= expect_uplinks:
+            check = await orm(fleet_check, names)
+            if check["online"] == len(names):
+                return time.monotonic() - start
+        await asyncio.sleep(0.5)
+    return None
+
+
+async def measure(
+    *,
+    results: Results,
+    topology: str,
+    phase: str,
+    pids: dict[str, list[int]],
+    seconds: float,
+    names: Sequence[str],
+) -> None:
+    """CPU and memory of ``pids`` over ``seconds``, and the fleet as the database sees
+    it: online count (sampled every 2 s), heartbeat age at the end, vehicle rows
+    updated per second."""
+    before = await orm(fleet_check, names)
+    window = Window(pids)
+    window.start()
+    end = time.monotonic() + seconds
+    online = []
+    while (remaining := end - time.monotonic()) > 0:
+        await asyncio.sleep(min(2.0, remaining))
+        if end - time.monotonic() > 0.5:
+            online.append((await orm(fleet_check, names))["online"])
+    usage = window.stop(phase=phase, topology=topology)
+    results.usage += usage
+    after = await orm(fleet_check, names)
+    online.append(after["online"])
+    results.fleet[f"{topology}/{phase}"] = {
+        **after,
+        "online_min": min(online),
+        "online_mean": statistics.fmean(online),
+        "vehicle_updates_per_s": (after["vehicle_updates"] - before["vehicle_updates"])
+        / usage[0].window_s,
+    }
+
+
+def _read_api_rows(path: Path, topology: str, start_wall: float) -> list[dict[str, Any]]:
+    with open(path, newline="") as f:
+        return [
+            {
+                "topology": topology,
+                "client": int(r["client"]),
+                "endpoint": r["endpoint"],
+                "start_s": float(r["start_wall"]) - start_wall,
+                "latency_ms": float(r["latency_ms"]),
+                "status": int(r["status"]),
+                "session_id": r["session_id"],
+            }
+            for r in csv.DictReader(f)
+        ]
+
+
+def _open_log(path: Path) -> Any:
+    # A child's output file; the child keeps its own descriptor, ours is closed at once.
+    return open(path, "w")
+
+
+async def load_phase(
+    *,
+    topology: str,
+    results: Results,
+    params: Params,
+    world: World,
+    base: str,
+    env: dict[str, str],
+    logs: Path,
+    workers: AgentWorkers,
+    pids: dict[str, list[int]],
+    names: Sequence[str],
+    sessions: dict[bool, CarSession],
+) -> None:
+    """API clients + a relayed control session for ``api_duration_s``, measuring CPU."""
+    out = logs / f"api-{topology}.csv"
+    # The relayed session first: it is driving before the load starts, so its round trips
+    # cover the whole window.
+    ready, counting, done = asyncio.Event(), asyncio.Event(), asyncio.Event()
+    relay = asyncio.create_task(
+        relay_session(
+            base=base,
+            token=world.driver_token,
+            session=sessions[True],
+            hz=params.relay_hz,
+            ready=ready,
+            counting=counting,
+            until=done,
+        )
+    )
+    waiter = asyncio.ensure_future(ready.wait())
+    await asyncio.wait([relay, waiter], timeout=90, return_when=asyncio.FIRST_COMPLETED)
+    waiter.cancel()
+    # The API worker needs a moment to start: its clients begin together at start_wall.
+    start_wall = time.time() + params.start_delay_s
+    spec = logs / f"api-worker-{topology}.json"
+    spec.write_text(
+        json.dumps(
+            {
+                "base": base,
+                "tokens": world.client_tokens,
+                "service": LIGHT_SERVICE,
+                "start_wall": start_wall,
+                "duration_s": params.api_duration_s,
+                "out": str(out),
+            }
+        )
+    )
+    with _open_log(logs / f"api-worker-{topology}.log") as log_file:
+        proc = await asyncio.create_subprocess_exec(
+            *(sys.executable, "-m", "benchmarks.scale", "--api-worker", str(spec)),
+            cwd=ROOT,
+            env=env,
+            stdout=asyncio.subprocess.PIPE,
+            stderr=log_file,
+        )
+    await asyncio.sleep(max(0.0, start_wall - time.time()))
+    counting.set()
+    await measure(
+        results=results,
+        topology=topology,
+        phase="API load",
+        pids={**pids, "API clients": [proc.pid]},
+        seconds=params.api_duration_s,
+        names=names,
+    )
+    done.set()
+    await proc.wait()
+    try:
+        results.relay[topology] = await relay
+    except (*_TRIAL_ERRORS, ValueError) as exc:
+        results.relay[topology] = ([], 0)
+        results.notes.append(
+            f"{topology}: the relayed control session failed "
+            f"({type(exc).__name__}: {str(exc)[:160]})"
+        )
+    rows = await asyncio.to_thread(_read_api_rows, out, topology, start_wall)
+    results.api_rows += rows
+    created = [r for r in rows if r["endpoint"] == "request" and r["status"] == 201]
+    # Give the last acceptances a moment to reach the workers' reports and the logs; a
+    # busy platform logs them late, so wait (up to 15 s more) until they are all in.
+    await asyncio.sleep(params.drain_s)
+    ids = [r["session_id"] for r in created]
+    deadline = time.monotonic() + 15
+    check = await orm(sessions_check, ids)
+    while check["task_accepted"] < check["task_deployed"] and time.monotonic() < deadline:
+        await asyncio.sleep(1.0)
+        check = await orm(sessions_check, ids)
+    results.sessions[topology] = check
+    arrived = workers.task_times()
+    for r in created:
+        at = arrived.get(r["session_id"])
+        results.deliveries.append(
+            {
+                "topology": topology,
+                "session_id": r["session_id"],
+                "delivery_ms": (at - start_wall - r["start_s"]) * 1000 if at else None,
+            }
+        )
+
+
+async def run_async(
+    params: Params, *, world: World, env: dict[str, str], logs: Path, results: Results
+) -> None:
+    """The phases in order (see the module docstring); children stopped on the way out."""
+    names = [s.name for s in world.light + world.cars]
+    light = [s.name for s in world.light]
+    # Long enough for a platform that keeps up; one that cannot is reported as such.
+    within = 30 + params.agents / 20
+    loaded = f"{params.agents} agents"
+    workers = AgentWorkers()
+    async with contextlib.AsyncExitStack() as stack:
+        stack.push_async_callback(workers.stop)
+        with results.timed("start two daphne processes and the proxy"):
+            # Process 2 waits, idle, until phase 4: starting both now saves a start-up.
+            p1, p2 = await asyncio.gather(
+                daphne_start("platform-1", env=env, logs=logs),
+                daphne_start("platform-2", env=env, logs=logs),
+            )
+            stack.push_async_callback(p1.stop)
+            stack.push_async_callback(p2.stop)
+            front = free_port()
+            proxy = await proxy_start(
+                port=front, routes={}, default=p1.port, env=env, logs=logs, tag="one"
+            )
+            stack.push_async_callback(proxy.stop)
+        base, ws_url = f"http://127.0.0.1:{front}", f"ws://127.0.0.1:{front}"
+
+        # --- 1. idle, then N agents ----------------------------------------------------
+        with results.timed("1. idle window"):
+            await asyncio.sleep(params.settle_s)
+            await measure(
+                results=results,
+                topology="one",
+                phase="0 agents",
+                pids={"platform-1": [p1.pid]},
+                seconds=params.window_s,
+                names=light,
+            )
+        probes = await cars_start(stack, world=world, url=ws_url)
+        cars = [s.name for s in world.cars]
+        await wait_online(names=cars, workers=workers, expect_uplinks=0, within=60)
+        sessions = await car_sessions_open(
+            base=base, token=world.driver_token, probes=probes, results=results
+        )
+
+        async def sessions_end() -> None:
+            for session in sessions.values():
+                with contextlib.suppress(ApiRefused, OSError):
+                    path = f"/api/v1/sessions/{session.session_id}/end"
+                    await api(base, world.driver_token, "POST", path)
+
+        stack.push_async_callback(sessions_end)
+        started = 0
+        for count in params.stages():
+            # More agents join at each stage, in their own worker processes.
+            stage = [s.name for s in world.light[:count]]
+            with results.timed(f"1. up to {count} agents connect"):
+                share = max(1, round(params.agent_workers * (count - started) / params.agents))
+                await workers.start(
+                    specs=world.light[started:count],
+                    world=world,
+                    url=ws_url,
+                    workers=share,
+                    ramp_per_s=params.ramp_per_s,
+                    env=env,
+                    logs=logs,
+                )
+                started = count
+                wait = 30 + count / 20
+                key = f"one, {count} agents"
+                results.online_after_s[key] = await wait_online(
+                    names=stage + cars, workers=workers, expect_uplinks=count, within=wait
+                )
+            if results.online_after_s[key] is None:
+                results.notes.append(
+                    f"one process, {count} agents: not every vehicle was online together "
+                    f"within {wait:.0f} s of the agents starting; the run went on (see the "
+                    "online counts)."
+                )
+            helpers = {
+                "front proxy": [proxy.pid],
+                "agent workers": [c.pid for c in workers.children],
+                "this process (2 cars, orchestration)": [os.getpid()],
+                "postgres (all databases)": pids_named("postgres"),
+                "redis-server": pids_named("redis-server"),
+            }
+            pids = {"platform-1": [p1.pid], **helpers}
+            with results.timed(f"1. {count} agents window"):
+                await asyncio.sleep(params.settle_s)
+                await measure(
+                    results=results,
+                    topology="one",
+                    phase=f"{count} agents",
+                    pids=pids,
+                    seconds=params.window_s,
+                    names=stage,
+                )
+
+        # --- 2 and 3 with one process --------------------------------------------------
+        with results.timed("2. API load, one process"):
+            await load_phase(
+                topology="one",
+                results=results,
+                params=params,
+                world=world,
+                base=base,
+                env=env,
+                logs=logs,
+                workers=workers,
+                pids=pids,
+                names=light,
+                sessions=sessions,
+            )
+        with results.timed("3. link-loss trials, one process"):
+            results.trials += await reaction_trials(
+                topology="one",
+                modes=MODES,
+                n=params.trials,
+                base=base,
+                token=world.driver_token,
+                sessions=sessions,
+                results=results,
+                budget_s=params.trial_budget_s,
+            )
+
+        # --- 4. two processes behind the proxy ----------------------------------------
+        with results.timed("4. proxy restart, agents reconnect"):
+            await proxy.stop()
+            proxy = await proxy_start(
+                port=front,
+                routes={"/ws/agent/": p1.port},
+                default=p2.port,
+                env=env,
+                logs=logs,
+                tag="two",
+            )
+            stack.push_async_callback(proxy.stop)
+            helpers["front proxy"] = [proxy.pid]
+            results.online_after_s["two, all reconnect"] = await wait_online(
+                names=names, workers=workers, expect_uplinks=params.agents, within=within
+            )
+        if results.online_after_s["two, all reconnect"] is None:
+            results.notes.append(
+                f"two processes: not every vehicle was online together within {within:.0f} s "
+                "of the proxy's restart; the run went on (see the online counts)."
+            )
+        pids = {"platform-1 (agents)": [p1.pid], "platform-2 (users)": [p2.pid], **helpers}
+        with results.timed("4. agents window, two processes"):
+            await asyncio.sleep(params.settle_s)
+            await measure(
+                results=results,
+                topology="two",
+                phase=loaded,
+                pids=pids,
+                seconds=params.window_s,
+                names=light,
+            )
+        with results.timed("4. API load, two processes"):
+            await load_phase(
+                topology="two",
+                results=results,
+                params=params,
+                world=world,
+                base=base,
+                env=env,
+                logs=logs,
+                workers=workers,
+                pids=pids,
+                names=light,
+                sessions=sessions,
+            )
+        with results.timed("4. relayed link-loss trials, two processes"):
+            results.trials += await reaction_trials(
+                topology="two",
+                modes=[m for m in MODES if m.startswith("relay")],
+                n=params.trials,
+                base=base,
+                token=world.driver_token,
+                sessions=sessions,
+                results=results,
+                budget_s=params.trial_budget_s,
+            )
+
+
+#: What to count in the platform processes' output (daphne's access log and Django's
+#: log): label -> text a line contains.
+LOG_PATTERNS = {
+    "uplinks accepted (WSCONNECT /ws/agent/)": '"WSCONNECT /ws/agent/"',
+    "WebSocket handshakes rejected (WSREJECT)": '"WSREJECT ',
+    "Redis pool exhausted (MaxConnectionsError)": "redis.exceptions.MaxConnectionsError",
+    "errors logged (ERROR)": " ERROR ",
+    "tracebacks": "Traceback (most recent call last)",
+    "consumers slow to shut down": "took too long to shut down",
+}
+
+
+def log_counts(path: Path) -> dict[str, int]:
+    """How many lines of a platform process's output match each of LOG_PATTERNS."""
+    counts = dict.fromkeys(LOG_PATTERNS, 0)
+    with open(path, errors="replace") as f:
+        for line in f:
+            for label, text in LOG_PATTERNS.items():
+                if text in line:
+                    counts[label] += 1
+    return counts
+
+
+def run(params: Params, *, out: Path, command: str, database_url: str) -> Results:
+    """Run every phase and write the outputs to ``out``; returns the results.
+
+    Needs Django set up on an empty, migrated database whose URL (for the daphne
+    processes) is ``database_url``; REDIS_URL, CHANNELS_PREFIX and IOUV_VAR_DIR are
+    taken from the environment, which the children inherit.
+    """
+    from django.conf import settings
+
+    raise_open_files_limit()
+    logs = Path(settings.VAR_DIR) / "bench-scale"
+    logs.mkdir(parents=True, exist_ok=True)
+    env = {
+        **os.environ,
+        "DATABASE_URL": database_url,
+        "PYTHONUNBUFFERED": "1",
+        # Per-connection INFO lines would put a thousand log writes in the measurement.
+        "LOG_LEVEL": os.environ.get("BENCH_LOG_LEVEL", "WARNING"),
+    }
+    results = Results(
+        params=params,
+        machine=machine_info(),
+        command=command,
+        database=database_url.rsplit("@", 1)[-1],
+    )
+    with results.timed("register vehicles, users and tokens"):
+        world = world_build(
+            light=params.agents,
+            cars=params.cars,
+            clients=params.api_clients,
+            link_loss_timeout_ms=params.link_loss_timeout_ms,
+        )
+    results.machine["db_conn_max_age"] = env.get("DB_CONN_MAX_AGE", "60 (default)")
+    results.machine["heartbeat_s"] = settings.IOUV_HEARTBEAT_INTERVAL_S
+    results.machine["offline_after_s"] = settings.IOUV_OFFLINE_AFTER_S
+    try:
+        asyncio.run(run_async(params, world=world, env=env, logs=logs, results=results))
+    finally:
+        for name in ("platform-1", "platform-2"):
+            if (logs / f"{name}.log").exists():
+                results.log_counts[name] = log_counts(logs / f"{name}.log")
+    write_outputs(results, out)
+    return results
+
+
+# ======================================================================================
+# Outputs
+# ======================================================================================
+
+
+def _write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> None:
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(header)
+        for row in rows:
+            writer.writerow([f"{v:.3f}" if isinstance(v, float) else v for v in row])
+
+
+def figures(results: Results) -> dict[str, Any]:
+    """The aggregate figures the report shows (also written to summary.json)."""
+    p, m = results.params, results.machine
+    usage = {(u.topology, u.phase, u.process): u for u in results.usage}
+    loaded_phase = f"{p.agents} agents"
+    idle = usage[("one", "0 agents", "platform-1")]
+    loaded = usage[("one", loaded_phase, "platform-1")]
+    fleet = results.fleet[f"one/{loaded_phase}"]
+    updates = fleet["vehicle_updates_per_s"]
+    out: dict[str, Any] = {
+        "agents": {
+            "n": p.agents,
+            "idle_cpu_pct": idle.cpu_pct,
+            "idle_rss_mb": idle.rss_mb,
+            "cpu_pct": loaded.cpu_pct,
+            "rss_mb": loaded.rss_mb,
+            "threads": loaded.threads,
+            "cpu_pct_per_agent": (loaded.cpu_pct - idle.cpu_pct) / p.agents,
+            "rss_kb_per_agent": (loaded.rss_mb - idle.rss_mb) * 1024 / p.agents,
+            "heartbeats_sent_per_s": p.agents / float(m["heartbeat_s"]),
+            "vehicle_updates_per_s": updates,
+            # All of the process's CPU over what it stored: an upper bound per heartbeat.
+            "cpu_ms_per_update": loaded.cpu_pct * 10 / updates if updates else None,
+            "online_after_s": results.online_after_s,
+        },
+        "stages": [],
+        "fleet": results.fleet,
+        "api": {},
+        "relay": {},
+        "reaction": {},
+    }
+    for count in p.stages():
+        u = usage[("one", f"{count} agents", "platform-1")]
+        f = results.fleet[f"one/{count} agents"]
+        out["stages"].append(
+            {
+                "agents": count,
+                "cpu_pct": u.cpu_pct,
+                "rss_mb": u.rss_mb,
+                "threads": u.threads,
+                "cpu_pct_per_agent": (u.cpu_pct - idle.cpu_pct) / count,
+                "rss_kb_per_agent": (u.rss_mb - idle.rss_mb) * 1024 / count,
+                "online_min": f["online_min"],
+                "online_mean": f["online_mean"],
+                "heartbeat_age_s": f["heartbeat_age_s"],
+                "heartbeats_sent_per_s": count / float(m["heartbeat_s"]),
+                "vehicle_updates_per_s": f["vehicle_updates_per_s"],
+            }
+        )
+    for topology in ("one", "two"):
+        rows = [r for r in results.api_rows if r["topology"] == topology]
+        ok = [r for r in rows if 200 <= r["status"] < 300]
+        duration = p.api_duration_s
+        done = [r for r in ok if r["start_s"] + r["latency_ms"] / 1000 <= duration]
+        delivered = [
+            d["delivery_ms"]
+            for d in results.deliveries
+            if d["topology"] == topology and d["delivery_ms"] is not None
+        ]
+        statuses: dict[str, int] = {}
+        for r in rows:
+            key = f"{r['endpoint']} {r['status']}"
+            statuses[key] = statuses.get(key, 0) + 1
+        out["api"][topology] = {
+            "clients": p.api_clients,
+            "duration_s": duration,
+            "requests_per_s": len(done) / duration,
+            "sessions_per_s": sum(r["endpoint"] == "request" for r in done) / duration,
+            "request_ms": summary(r["latency_ms"] for r in ok if r["endpoint"] == "request"),
+            "end_ms": summary(r["latency_ms"] for r in ok if r["endpoint"] == "end"),
+            "statuses": statuses,
+            "task_delivery_ms": summary(delivered),
+            "sessions": results.sessions.get(topology, {}),
+        }
+        rtts, lost = results.relay.get(topology, ([], 0))
+        out["relay"][topology] = {**summary(rtts), "lost": lost}
+        for mode in MODES:
+            trials = [t for t in results.trials if t.topology == topology and t.mode == mode]
+            if trials:
+                out["reaction"][f"{topology}/{mode}"] = {
+                    "reaction_ms": summary(t.reaction_ms for t in trials),
+                    "agent_ms": summary(t.agent_ms for t in trials),
+                    "platform_logged": sum(t.platform_logged for t in trials),
+                }
+    return out
+
+
+def write_outputs(results: Results, out: Path) -> None:
+    """The CSVs, summary.json and report.md."""
+    out.mkdir(parents=True, exist_ok=True)
+    _write_csv(
+        out / "resources.csv",
+        ["topology", "phase", "process", "window_s", "cpu_pct_of_one_core", "rss_mb", "threads"],
+        (
+            (u.topology, u.phase, u.process, u.window_s, u.cpu_pct, u.rss_mb, u.threads)
+            for u in results.usage
+        ),
+    )
+    _write_csv(
+        out / "api_requests.csv",
+        ["topology", "client", "endpoint", "start_s", "latency_ms", "status", "session_id"],
+        (
+            [r[k] for k in ("topology", "client", "endpoint", "start_s", "latency_ms", "status")]
+            + [r["session_id"]]
+            for r in results.api_rows
+        ),
+    )
+    _write_csv(
+        out / "task_delivery.csv",
+        ["topology", "session_id", "request_to_agent_ms"],
+        (
+            (d["topology"], d["session_id"], "" if d["delivery_ms"] is None else d["delivery_ms"])
+            for d in results.deliveries
+        ),
+    )
+    _write_csv(
+        out / "relay_rtt.csv",
+        ["topology", "n", "rtt_ms"],
+        (
+            (topology, i, rtt)
+            for topology, (rtts, _) in results.relay.items()
+            for i, rtt in enumerate(rtts)
+        ),
+    )
+    _write_csv(
+        out / "reaction_trials.csv",
+        ["topology", "mode", "trial", "reaction_ms", "agent_side_ms", "platform_logged"],
+        (
+            (t.topology, t.mode, t.trial, t.reaction_ms, t.agent_ms, int(t.platform_logged))
+            for t in results.trials
+        ),
+    )
+    data = figures(results)
+    document = {
+        "command": results.command,
+        "machine": results.machine,
+        "params": asdict(results.params),
+        "figures": data,
+        "platform_logs": results.log_counts,
+        "notes": results.notes,
+    }
+    (out / "summary.json").write_text(json.dumps(document, indent=2) + "\n")
+    (out / "report.md").write_text(report_md(results, data))
+
+
+def _q(s: dict[str, float], *keys: str, sep: str = " / ") -> str:
+    """Figures of a summary for a table cell ("n/a" for an empty one)."""
+    if not s.get("n", 1):
+        return sep.join("n/a" for _ in keys)
+    return sep.join(f"{s[k]:.0f}" if s[k] >= 10 else f"{s[k]:.1f}" for k in keys)
+
+
+def _change(before: float, after: float) -> str:
+    if not before or math.isnan(before) or math.isnan(after):
+        return "n/a"
+    return f"{before:.1f} → {after:.1f} ({100 * (after - before) / before:+.0f} %)"
+
+
+def report_md(results: Results, data: dict[str, Any]) -> str:
+    """The human report: summary first, then each phase's tables and the notes."""
+    p, m = results.params, results.machine
+    agents, api_, relay, reaction = data["agents"], data["api"], data["relay"], data["reaction"]
+    one, two = api_["one"], api_["two"]
+    loaded = f"{p.agents} agents"
+    fleet_one = results.fleet[f"one/{loaded}"]
+    hb = float(m["heartbeat_s"])
+
+    def cpu(topology: str, phase: str, process: str) -> float:
+        for u in results.usage:
+            if (u.topology, u.phase, u.process) == (topology, phase, process):
+                return u.cpu_pct
+        return float("nan")
+
+    lines: list[str] = []
+    add = lines.append
+    add("# Scale benchmark: agents, assignment and deployment, link loss, two processes")
+    add("")
+    add(f"Generated by `{results.command}` (`benchmarks/scale.py`) on {m['date_utc']}; raw data")
+    add("in the CSV files beside this report, every figure in `summary.json`.")
+    if p.quick:
+        add("")
+        add("**Quick mode: a smoke test of the benchmark, not a measurement.**")
+    add("")
+    add("## Summary")
+    add("")
+    all_online = fleet_one["online_min"] == p.agents
+    held = (
+        f"all {p.agents} were online in the database throughout the window"
+        if all_online
+        else f"only {fleet_one['online_min']} to {fleet_one['online']} of {p.agents} counted as "
+        f"online in the database at once (mean {fleet_one['online_mean']:.0f}): the process "
+        f"stored {agents['vehicle_updates_per_s']:.0f} vehicle updates/s of the "
+        f"{agents['heartbeats_sent_per_s']:.0f} heartbeats/s sent, so heartbeats reached the "
+        f"database {fleet_one['heartbeat_age_s']['p50']:.1f} s late (p50) against an "
+        f"offline threshold of {m['offline_after_s']:g} s"
+    )
+    add(
+        f"* **{p.agents} agents** on uplinks to one daphne process, heartbeating every {hb:g} s: "
+        f"the process used **{agents['cpu_pct']:.0f} % of one core and "
+        f"{agents['rss_mb']:.0f} MB** resident (idle: {agents['idle_cpu_pct']:.1f} %, "
+        f"{agents['idle_rss_mb']:.0f} MB), that is **{agents['cpu_pct_per_agent']:.3f} % of a "
+        f"core and {agents['rss_kb_per_agent']:.0f} KiB per agent**; {held}."
+    )
+    kept = [st for st in data["stages"] if st["online_min"] == st["agents"]]
+    if len(data["stages"]) > 1:
+        first = data["stages"][0]
+        add(
+            "  On the way up: "
+            + (
+                f"up to {kept[-1]['agents']} agents all stayed online "
+                f"({kept[-1]['cpu_pct']:.0f} % of a core, {kept[-1]['cpu_pct_per_agent']:.3f} % "
+                f"and {kept[-1]['rss_kb_per_agent']:.0f} KiB per agent)"
+                if kept
+                else f"already at {first['agents']} agents not all stayed online "
+                f"(min {first['online_min']}, {first['cpu_pct']:.0f} % of a core, "
+                f"{first['cpu_pct_per_agent']:.3f} % and {first['rss_kb_per_agent']:.0f} KiB "
+                "per agent)"
+            )
+            + "; see section 1."
+        )
+    silent = reaction.get("one/direct_silent")
+    if silent:
+        parts = []
+        for key, v in reaction.items():
+            if key.startswith("one/"):
+                r = v["reaction_ms"]
+                parts.append(
+                    f"{key.split('/')[1].replace('_', ' ')}: {_q(r, 'min', 'p50', 'p95', 'max')} ms"
+                )
+        add(
+            "* **Link loss to safe action** (last input, or the socket's death, to the car's "
+            f"stop; min / p50 / p95 / max over {p.trials} trials each; link-loss timeout "
+            f"{p.link_loss_timeout_ms} ms; {p.agents} agents connected): " + "; ".join(parts) + "."
+        )
+    add(
+        f"* **Assignment + deployment** ({p.api_clients} API clients in a closed loop, each "
+        "session requested, deployed to a live agent and ended): one process sustained "
+        f"**{one['sessions_per_s']:.1f} sessions/s** ({one['requests_per_s']:.1f} requests/s; "
+        f"request p50 / p95 {_q(one['request_ms'], 'p50', 'p95')} ms); two processes, agents on "
+        f"one and users on the other, **{two['sessions_per_s']:.1f} sessions/s** "
+        f"({two['requests_per_s']:.1f} requests/s; {_q(two['request_ms'], 'p50', 'p95')} ms). "
+        f"Relayed command round trip p50 / p95 under that load: "
+        f"{_q(relay['one'], 'p50', 'p95')} ms with one process, "
+        f"{_q(relay['two'], 'p50', 'p95')} ms with two."
+    )
+    add("")
+    add("## Machine and run")
+    add("")
+    add("| | |")
+    add("|---|---|")
+    for key, label in (
+        ("cpu_model", "CPU"),
+        ("cores", "cores"),
+        ("ram_gb", "RAM (GB)"),
+        ("os", "OS"),
+        ("python", "Python"),
+        ("date_utc", "date"),
+        ("load_average_at_start", "load average at start (1, 5, 15 min)"),
+        ("open_files_limit", "open files limit"),
+        ("db_conn_max_age", "DB_CONN_MAX_AGE of the platform"),
+        ("heartbeat_s", "IOUV_HEARTBEAT_INTERVAL_S"),
+        ("offline_after_s", "IOUV_OFFLINE_AFTER_S"),
+    ):
+        add(f"| {label} | {m.get(key)} |")
+    add(f"| command | `{results.command}` |")
+    add(
+        "| run time | "
+        + ", ".join(f"{name} {seconds:.0f} s" for name, seconds in results.timings.items())
+        + " |"
+    )
+    add(f"| database | `{results.database}` (created, migrated and emptied by the run) |")
+    add("")
+    add("The machine is shared: everything below (platform, PostgreSQL, Redis, proxy, agents,")
+    add("API clients) ran on it at once, and so may other people's work. The load generators'")
+    add("own CPU is listed beside the platform's, and so is the whole machine's.")
+    add("")
+    add("| parameter | value |")
+    add("|---|---|")
+    for key, value in asdict(p).items():
+        add(f"| `{key}` | {value} |")
+    add("")
+    add("**Real**: daphne serving `iouv.asgi` (one or two processes), PostgreSQL, the Redis")
+    add("channel layer, the platform's signing key, vehicles and API tokens in the database,")
+    add("assignment, signed task deployment, supervision, the relay; every agent runs the real")
+    add("`agents.uplink.Uplink` client; the two cars are full agents (`agents.runtime.Agent`,")
+    add("car adapter on gpiozero mock pins with its simulated world). **Light**: the light")
+    add("agents have no adapter and no video; they verify and accept tasks, and heartbeat.")
+    add("**Not running**: the Celery worker and beat (periodic sweeps and supervision timers),")
+    add("which take no part in what is measured. All traffic went through")
+    add("`benchmarks.front_proxy` in both topologies, so both have the same path.")
+    add("")
+
+    add(f"## 1. {p.agents} agents on uplinks")
+    add("")
+    after = ", ".join(
+        f"{k}: {f'{v:.1f} s' if v is not None else 'not within the time limit'}"
+        for k, v in agents["online_after_s"].items()
+    )
+    add(
+        f"The uplinks opened at about {p.ramp_per_s:g} per second. Time until every vehicle was "
+        f"online in the database at once: {after}. CPU is the share of one core over "
+        f"{p.window_s:g} s from `/proc/<pid>/stat` (user + system, all threads), memory is "
+        "VmRSS; *threads* are the platform process's busiest threads (and how many it has)."
+    )
+    add("")
+    add("On the way up (one process; CPU of one core, per agent over the idle process):")
+    add("")
+    add(
+        "| agents | CPU % | RSS MB | per agent: CPU % / KiB | online min / mean | heartbeat "
+        "age p50 / p95 (s) | heartbeats stored / sent per s |"
+    )
+    add("|---:|---:|---:|---:|---:|---:|---:|")
+    for st in data["stages"]:
+        age = st["heartbeat_age_s"]
+        add(
+            f"| {st['agents']} | {st['cpu_pct']:.0f} | {st['rss_mb']:.0f} | "
+            f"{st['cpu_pct_per_agent']:.3f} / {st['rss_kb_per_agent']:.0f} | "
+            f"{st['online_min']} / {st['online_mean']:.0f} | {age['p50']:.1f} / {age['p95']:.1f} | "
+            f"{st['vehicle_updates_per_s']:.0f} / {st['heartbeats_sent_per_s']:.0f} |"
+        )
+    add("")
+    add("Every process, idle and with all the agents:")
+    add("")
+    add("| topology | phase | process | CPU % of one core | RSS MB | threads |")
+    add("|---|---|---|---:|---:|---|")
+    for u in results.usage:
+        if u.phase in ("0 agents", loaded):
+            rss = f"{u.rss_mb:.0f}" if u.rss_mb else ""
+            add(
+                f"| {u.topology} | {u.phase} | {u.process} | {u.cpu_pct:.1f} | {rss} | "
+                f"{u.threads} |"
+            )
+    add("")
+    add("The fleet as the database saw it (light agents only):")
+    add("")
+    add(
+        "| topology / phase | online at end | online min / mean | heartbeat age p50 / p95 / max "
+        "(s) | vehicle updates/s | DB connections (this DB / server) |"
+    )
+    add("|---|---:|---:|---:|---:|---:|")
+    for key, f in results.fleet.items():
+        age = f["heartbeat_age_s"]
+        add(
+            f"| {key} | {f['online']} of {f['of']} | {f['online_min']} / {f['online_mean']:.0f} | "
+            f"{age['p50']:.1f} / {age['p95']:.1f} / {age['max']:.1f} | "
+            f"{f['vehicle_updates_per_s']:.0f} | {f['db_conns']} / {f['db_conns_all']} |"
+        )
+    add("")
+    per_update = agents["cpu_ms_per_update"]
+    add(
+        f"Per agent (one process, {p.agents} agents minus idle): "
+        f"**{agents['cpu_pct_per_agent']:.3f} % of a core** and "
+        f"**{agents['rss_kb_per_agent']:.0f} KiB**. The agents sent "
+        f"{agents['heartbeats_sent_per_s']:.0f} heartbeats/s; the platform stored "
+        f"{agents['vehicle_updates_per_s']:.0f} vehicle-row updates/s (PostgreSQL's counter)"
+        + (f", about {per_update:.1f} ms of the process's CPU per update." if per_update else ".")
+    )
+    add("")
+
+    add("## 2. Assignment and task deployment")
+    add("")
+    add(
+        f"{p.api_clients} API clients, each its own user with a bearer token, in a closed loop "
+        f"for {p.api_duration_s:g} s: `POST /api/v1/sessions` (assignment among the online idle "
+        "drones, nearest to a random target within 1 km; a signed task deployed to the chosen "
+        "light agent over its uplink; the user task returned), then `POST .../end`. Meanwhile "
+        f"a relayed control session sent commands at {p.relay_hz:g} Hz through the platform to "
+        "a car, each waiting for its ack. *Delivery*: from the request's start to the task's "
+        "arrival at the agent (wall clocks of one machine)."
+    )
+    add("")
+    add("| | one process | two processes |")
+    add("|---|---:|---:|")
+    add(f"| sessions per s | {one['sessions_per_s']:.1f} | {two['sessions_per_s']:.1f} |")
+    add(f"| API requests per s | {one['requests_per_s']:.1f} | {two['requests_per_s']:.1f} |")
+    for label, key in (
+        ("request", "request_ms"),
+        ("end", "end_ms"),
+        ("task delivery", "task_delivery_ms"),
+    ):
+        add(
+            f"| {label} p50 / p95 / max (ms) | {_q(one[key], 'p50', 'p95', 'max')} | "
+            f"{_q(two[key], 'p50', 'p95', 'max')} |"
+        )
+    add(
+        f"| relayed round trip p50 / p95 / max (ms) | {_q(relay['one'], 'p50', 'p95', 'max')} | "
+        f"{_q(relay['two'], 'p50', 'p95', 'max')} |"
+    )
+    add(
+        f"| relayed commands without ack in {LOST_AFTER_S:g} s | {relay['one']['lost']} | "
+        f"{relay['two']['lost']} |"
+    )
+    add(
+        "| answers (endpoint status: count) | "
+        + " | ".join(
+            ", ".join(f"{k}: {v}" for k, v in sorted(t["statuses"].items())) for t in (one, two)
+        )
+        + " |"
+    )
+
+    def log_line(t: dict[str, Any]) -> str:
+        s = t["sessions"]
+        if not s:
+            return ""
+        return f"{s['task_deployed']} / {s['task_accepted']} / {s['final']} of {s['sessions']}"
+
+    add(
+        "| sessions: task deployed / accepted by the agent / over (session logs) | "
+        f"{log_line(one)} | {log_line(two)} |"
+    )
+    add("")
+    add("CPU during the load (% of one core):")
+    add("")
+    add("| topology | process | CPU % | RSS MB | threads |")
+    add("|---|---|---:|---:|---|")
+    for u in results.usage:
+        if u.phase == "API load":
+            rss = f"{u.rss_mb:.0f}" if u.rss_mb else ""
+            add(f"| {u.topology} | {u.process} | {u.cpu_pct:.1f} | {rss} | {u.threads} |")
+    add("")
+
+    add("## 3. Link loss to safe action")
+    add("")
+    add(
+        f"A car serving a session (link-loss timeout {p.link_loss_timeout_ms} ms, fail-safe "
+        f"`stop`), {p.trials} trials per case, with the light agents connected (the cars' "
+        "sessions, one reached directly and one through the relay, were opened before the "
+        "fleet connected; each trial takes a fresh grant from the API). The controller "
+        "drives (`forward`, then a keepalive every 50 ms), then either goes **silent** (nothing "
+        "more is sent: a pulled cable or a frozen tab; the agent's watchdog fires) or its "
+        "socket is **closed** abruptly (aborted: no WebSocket close handshake, what a crashed "
+        "tab or browser leaves). *Reaction*: from the controller's last frame (or the close) "
+        "to the adapter being told to stop, on one monotonic clock. "
+        "*Agent side*: from the last frame the agent received (or the moment it saw the link "
+        "close) to the stop. *Logged*: fail-safes that reached the session log as "
+        "`unintentional_end`."
+    )
+    add("")
+    add("| topology | case | n | min | p50 | p95 | max | agent side p50 / p95 | logged |")
+    add("|---|---|---:|---:|---:|---:|---:|---:|---:|")
+    for key, v in reaction.items():
+        topology, mode = key.split("/")
+        r, a = v["reaction_ms"], v["agent_ms"]
+        add(
+            f"| {topology} | {mode.replace('_', ' ')} | {r['n']} | "
+            f"{_q(r, 'min', 'p50', 'p95', 'max', sep=' | ')} | {_q(a, 'p50', 'p95')} | "
+            f"{v['platform_logged']}/{r['n']} |"
+        )
+    add("")
+    add(
+        "(ms.) A silent link cannot be told from a slow one before the timeout; the watchdog "
+        f"looks every {min(50, p.link_loss_timeout_ms / 5):g} ms, hence up to that much on top. "
+        "A closed direct socket is seen by the agent at once; a closed relayed socket is seen by "
+        "the platform process holding it, which tells the agent through the channel layer and "
+        "the agent's uplink (`relay_close`)."
+    )
+    add("")
+
+    add("## 4. One platform process against two")
+    add("")
+    add(
+        "Two daphne processes behind `benchmarks.front_proxy` on one address, sharing "
+        "PostgreSQL and Redis: `/ws/agent/` to process 1, everything else (API, relay) to "
+        "process 2. The agents reconnected through the restarted proxy by themselves (backoff "
+        "with jitter). Assignment on process 2, deployment to agents held by process 1, the "
+        "relay across both and supervision all worked (tables above; "
+        "`tests/integration/test_scale_out.py` checks it too)."
+    )
+    add("")
+    load = "API load"
+    rows = [
+        ("sessions per s", f"{one['sessions_per_s']:.1f}", f"{two['sessions_per_s']:.1f}"),
+        (
+            "request p50 / p95 (ms)",
+            _q(one["request_ms"], "p50", "p95"),
+            _q(two["request_ms"], "p50", "p95"),
+        ),
+        (
+            "task delivery p50 / p95 (ms)",
+            _q(one["task_delivery_ms"], "p50", "p95"),
+            _q(two["task_delivery_ms"], "p50", "p95"),
+        ),
+        (
+            "relayed round trip p50 / p95 (ms)",
+            _q(relay["one"], "p50", "p95"),
+            _q(relay["two"], "p50", "p95"),
+        ),
+        (
+            "CPU of the process holding the agents (%)",
+            f"{cpu('one', load, 'platform-1'):.0f}",
+            f"{cpu('two', load, 'platform-1 (agents)'):.0f}",
+        ),
+        (
+            "CPU of the process serving users (%)",
+            "(the same)",
+            f"{cpu('two', load, 'platform-2 (users)'):.0f}",
+        ),
+        (
+            "CPU of the whole machine (% of one core)",
+            f"{cpu('one', load, 'whole machine'):.0f}",
+            f"{cpu('two', load, 'whole machine'):.0f}",
+        ),
+    ]
+    add("| under the same load | one process | two processes |")
+    add("|---|---:|---:|")
+    for row in rows:
+        add(f"| {row[0]} | {row[1]} | {row[2]} |")
+    add("")
+    cores = int(m.get("cores") or 1)
+    add(
+        f"What the second process adds on this {cores}-core machine: sessions per second "
+        f"{_change(one['sessions_per_s'], two['sessions_per_s'])}; request p95 (ms) "
+        f"{_change(one['request_ms']['p95'], two['request_ms']['p95'])}; relayed round trip "
+        f"p95 (ms) {_change(relay['one']['p95'], relay['two']['p95'])}. The whole machine ran "
+        f"at {cpu('two', load, 'whole machine'):.0f} % of {100 * cores} % during the "
+        "two-process load, load generators included."
+    )
+    add("")
+    if results.log_counts:
+        add("## What the platform processes logged")
+        add("")
+        names = list(results.log_counts)
+        add("| | " + " | ".join(names) + " |")
+        add("|---|" + "---:|" * len(names))
+        for label in LOG_PATTERNS:
+            add(
+                f"| {label} | "
+                + " | ".join(str(results.log_counts[n][label]) for n in names)
+                + " |"
+            )
+        add("")
+        add(
+            f"Process 1 holds the uplinks in both topologies; each of the {p.agents + p.cars} "
+            "agents opens one uplink per phase (two phases), so more accepted uplinks than "
+            "that are reconnections."
+        )
+        add("")
+    if results.notes:
+        add("## Notes from the run")
+        add("")
+        counts: dict[str, int] = {}
+        for note in results.notes:
+            counts[note] = counts.get(note, 0) + 1
+        for note, count in counts.items():
+            add(f"* {note}" + (f" ({count} times)" if count > 1 else ""))
+        add("")
+    return "\n".join(lines)
+
+
+# ======================================================================================
+# Command line
+# ======================================================================================
+
+
+def database_prepare(url: str) -> None:
+    """Create the benchmark's database if missing, migrate it and empty it."""
+    import psycopg
+    from django.core.management import call_command
+
+    from iouv.env import database_from_url
+
+    db = database_from_url(url)
+    with psycopg.connect(
+        host=str(db["HOST"]) or None,
+        port=int(str(db["PORT"])) if db["PORT"] else None,
+        user=str(db["USER"]) or None,
+        password=str(db["PASSWORD"]) or None,
+        dbname="postgres",
+        autocommit=True,
+    ) as conn:
+        exists = conn.execute(
+            "SELECT 1 FROM pg_database WHERE datname = %s", (db["NAME"],)
+        ).fetchone()
+        if not exists:
+            conn.execute(f'CREATE DATABASE "{db["NAME"]}"')
+    call_command("migrate", verbosity=0, interactive=False)
+    call_command("flush", verbosity=0, interactive=False)
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.scale",
+        description="Agents, assignment and deployment, link loss, one vs two platform processes.",
+    )
+    parser.add_argument("--quick", action="store_true", help="the smoke test: small and short")
+    parser.add_argument("--agents", type=int, help="light agents (default 1000; quick: 50)")
+    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks" / "scale")
+    parser.add_argument("--agent-workers", type=int, help="processes running the light agents")
+    parser.add_argument("--window", type=float, help="CPU/memory window, seconds")
+    parser.add_argument("--api-clients", type=int, help="concurrent API clients")
+    parser.add_argument("--api-duration", type=float, help="seconds of API load per topology")
+    parser.add_argument("--trials", type=int, help="link-loss trials per case and topology")
+    parser.add_argument(
+        "--heartbeat-s",
+        type=float,
+        help="the platform's IOUV_HEARTBEAT_INTERVAL_S (default: its own, 2 s); "
+        "IOUV_OFFLINE_AFTER_S is set to three times it",
+    )
+    parser.add_argument(
+        "--database-url",
+        default=DEFAULT_DATABASE_URL,
+        help="the benchmark's own database (created, migrated and EMPTIED)",
+    )
+    parser.add_argument("--agent-worker", help=argparse.SUPPRESS)
+    parser.add_argument("--api-worker", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.agent_worker:
+        # Warnings too: every lost uplink says why, which is what a reconnection storm
+        # needs explained.
+        logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(message)s")
+        asyncio.run(agent_worker(json.loads(Path(args.agent_worker).read_text())))
+        return
+    if args.api_worker:
+        api_worker(args.api_worker)
+        return
+
+    params = Params.quick_mode() if args.quick else Params()
+    overrides = {
+        "agents": args.agents,
+        "agent_workers": args.agent_workers,
+        "window_s": args.window,
+        "api_clients": args.api_clients,
+        "api_duration_s": args.api_duration,
+        "trials": args.trials,
+    }
+    params = replace(params, **{k: v for k, v in overrides.items() if v is not None})
+    # The platform under test and this process share these; the database is ours alone.
+    os.environ["DATABASE_URL"] = args.database_url
+    os.environ.setdefault("REDIS_URL", DEFAULT_REDIS_URL)
+    os.environ.setdefault("CHANNELS_PREFIX", "benchscale")
+    os.environ.setdefault("IOUV_VAR_DIR", str(ROOT / "var" / "bench-scale"))
+    os.environ.setdefault("IOUV_DEV_SECRETS", "1")
+    os.environ.setdefault("SECURE_SSL_REDIRECT", "0")
+    os.environ.setdefault("SECURE_COOKIES", "0")
+    os.environ.setdefault("DJANGO_SETTINGS_MODULE", "iouv.settings")
+    if args.heartbeat_s:
+        # Set here, before Django reads them: the platform processes inherit them.
+        os.environ["IOUV_HEARTBEAT_INTERVAL_S"] = f"{args.heartbeat_s:g}"
+        os.environ["IOUV_OFFLINE_AFTER_S"] = f"{3 * args.heartbeat_s:g}"
+    logging.basicConfig(
+        level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    # SIGTERM unwinds like Ctrl-C, so the daphne processes and workers are stopped too.
+    signal.signal(signal.SIGTERM, _terminate)
+    os.environ.setdefault("LOG_LEVEL", "WARNING")
+    import django
+
+    django.setup()
+    # The cars' fail-safes are the point of phase 3: their warnings are not news.
+    logging.getLogger("agents").setLevel(logging.ERROR)
+    database_prepare(args.database_url)
+    command = "python -m benchmarks.scale " + " ".join(argv if argv is not None else sys.argv[1:])
+    results = run(params, out=args.out, command=command.strip(), database_url=args.database_url)
+    print((args.out / "report.md").read_text().split("## Machine")[0])
+    del results
+
+
+if __name__ == "__main__":
+    main()
