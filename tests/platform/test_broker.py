@@ -10,7 +10,12 @@ from iouv.broker import Transport
 
 
 def test_messages_written_while_a_consumer_polls_all_arrive_whole(tmp_path) -> None:
-    options = {"data_folder_in": str(tmp_path), "data_folder_out": str(tmp_path)}
+    (tmp_path / "control").mkdir()
+    options = {
+        "data_folder_in": str(tmp_path),
+        "data_folder_out": str(tmp_path),
+        "control_folder": str(tmp_path / "control"),  # else "control/" in the cwd
+    }
     queue = Queue("steps", Exchange("steps"), routing_key="steps")
     sent = 400
 
