@@ -127,8 +127,16 @@ if REDIS_URL:
                 # redis-py 8 times reads out after 5 s by default, the same 5 s that
                 # channels-redis blocks in BZPOPMIN waiting for messages: an idle socket
                 # would then crash its consumer. Reads may wait longer than that pop.
+                # The pool raises rather than waits when full (redis-py's default is
+                # 100): a thousand agents reconnecting at once, each joining its group,
+                # need more at the same moment.
                 "hosts": [
-                    {"address": REDIS_URL, "socket_timeout": 30, "socket_connect_timeout": 5}
+                    {
+                        "address": REDIS_URL,
+                        "socket_timeout": 30,
+                        "socket_connect_timeout": 5,
+                        "max_connections": env_int("REDIS_MAX_CONNECTIONS", 1000),
+                    }
                 ],
                 "prefix": env_str("CHANNELS_PREFIX", "iouv"),
                 "capacity": 1000,

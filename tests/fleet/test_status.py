@@ -62,3 +62,37 @@ def test_a_vehicle_still_flying_home_is_not_assignable_until_it_says_idle():
     vehicle_record_heartbeat(vehicle_id=v.pk, heartbeat=beat, now=later, registered=True)
     v.refresh_from_db()
     assert v.status == Vehicle.Status.IDLE
+
+
+def test_heartbeats_of_many_vehicles_in_one_write():
+    from fleet.uplink import Heartbeat, vehicle_record_heartbeats
+
+    station, vtype = f.station(), f.vehicle_type()
+    idle = f.vehicle(station=station, vtype=vtype, battery=90)
+    held = f.vehicle(station=station, vtype=vtype, status=Vehicle.Status.IN_SERVICE)
+    offline = f.vehicle(station=station, vtype=vtype, status=Vehicle.Status.OFFLINE)
+    now = timezone.now()
+    beats = [
+        Heartbeat(str(idle.pk), {"type": "heartbeat", "seq": 1, "battery": 80}, now, True),
+        # A vehicle's later heartbeat in the same batch wins.
+        Heartbeat(str(idle.pk), {"type": "heartbeat", "seq": 2, "battery": 79}, now, True),
+        Heartbeat(str(held.pk), {"type": "heartbeat", "seq": 1, "status": "idle"}, now, True),
+        Heartbeat(
+            str(offline.pk),
+            {"type": "heartbeat", "seq": 1, "position": {"lat": 40.1, "lon": -8.2}},
+            now,
+            True,
+        ),
+        Heartbeat("0" * 32, {"type": "heartbeat", "seq": 1}, now, True),  # deleted meanwhile
+    ]
+    written = vehicle_record_heartbeats(beats)
+    assert sorted(written) == sorted(str(v.pk) for v in (idle, held, offline))
+    for v in (idle, held, offline):
+        v.refresh_from_db()
+        assert v.last_seen == now
+    assert (idle.battery, idle.status) == (79, Vehicle.Status.IDLE)
+    # The platform's statuses are its own; what the agent says does not override them.
+    assert held.status == Vehicle.Status.IN_SERVICE
+    # Heard from again: back in the pool, where it says it is; its battery unchanged.
+    assert (offline.status, offline.lat, offline.lon) == (Vehicle.Status.IDLE, 40.1, -8.2)
+    assert offline.battery == 90.0

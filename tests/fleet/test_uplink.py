@@ -272,6 +272,66 @@ async def test_heartbeat_flood_is_throttled(settings):
     await comm.disconnect()
 
 
+async def test_heartbeats_of_many_uplinks_are_written_together(monkeypatch):
+    # A thousand agents heartbeat 500 times a second; one transaction each kept the
+    # platform behind. Heartbeats that arrive while a write is in flight share the next.
+    batches: list[int] = []
+    real = uplink.vehicle_record_heartbeats
+
+    def counted(beats):
+        batches.append(len(beats))
+        return real(beats)
+
+    monkeypatch.setattr(uplink, "vehicle_record_heartbeats", counted)
+    agents = []
+    for _ in range(30):
+        vehicle, credential = await _enrolled()
+        comm, _ = await _agent(vehicle, credential)
+        await comm.send_json_to(PROFILE)
+        agents.append((vehicle, comm))
+    ids = [vehicle.pk for vehicle, _ in agents]
+    await _eventually(lambda: Vehicle.objects.filter(pk__in=ids, status="idle").count() == 30)
+
+    for n, (_, comm) in enumerate(agents):
+        await comm.send_json_to({"type": "heartbeat", "seq": 1, "battery": n})
+    await _eventually(
+        lambda: (
+            sorted(Vehicle.objects.filter(pk__in=ids).values_list("battery", flat=True))
+            == list(range(30))
+        )
+    )
+    assert sum(batches) == 30
+    assert len(batches) < 10, batches  # 30 separate transactions would be the old way
+    for _, comm in agents:
+        await comm.disconnect()
+
+
+async def test_a_failed_heartbeat_write_is_an_error_reply_not_a_lost_uplink(monkeypatch):
+    from django.db import OperationalError
+
+    vehicle, credential = await _enrolled()
+    comm, _ = await _agent(vehicle, credential)
+    await comm.send_json_to(PROFILE)
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+    real = uplink.vehicle_record_heartbeats
+
+    def failing(beats):
+        raise OperationalError("deadlock detected")
+
+    monkeypatch.setattr(uplink, "vehicle_record_heartbeats", failing)
+    await comm.send_json_to({"type": "heartbeat", "seq": 1, "battery": 12})
+    reply = await comm.receive_json_from(timeout=5)
+    assert reply["type"] == "error" and reply["code"] == "internal", reply
+    assert (await _get(vehicle)).battery == PROFILE["battery"]
+
+    # The database is back: the same uplink's next heartbeat is stored.
+    monkeypatch.setattr(uplink, "vehicle_record_heartbeats", real)
+    await asyncio.sleep(float(uplink.settings.IOUV_HEARTBEAT_INTERVAL_S) / 2)
+    await comm.send_json_to({"type": "heartbeat", "seq": 2, "battery": 13})
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 13)
+    await comm.disconnect()
+
+
 async def test_disconnect_marks_offline_and_signals():
     vehicle, credential = await _enrolled()
     gone, stop = _collect(agent_disconnected)
