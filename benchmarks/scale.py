@@ -100,7 +100,10 @@ class Params:
     ramp_per_s: float = 50.0  # new uplinks per second, all workers together
     settle_s: float = 5.0  # quiet time before a measurement window
     window_s: float = 15.0  # CPU and memory window
-    api_clients: int = 12
+    # Each API request runs on its own thread in daphne, and with the default
+    # DB_CONN_MAX_AGE each such thread leaves a connection open: more clients would take
+    # this shared PostgreSQL server's last connections from other people.
+    api_clients: int = 8
     api_duration_s: float = 20.0
     trials: int = 20  # per link-loss mode and topology
     trial_budget_s: float = 120.0  # per mode: an overloaded platform gets fewer trials
@@ -504,7 +507,7 @@ async def orm(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
     """Run ORM code in a thread; its connection closes after, so nothing lingers.
 
     PostgreSQL is shared with other work on the machine and may refuse a connection
-    for a while ("too many clients"): such a call is retried for up to a minute.
+    for a while ("too many clients"): such a call is retried for up to three minutes.
     """
     from django.db import OperationalError
 
@@ -516,7 +519,7 @@ async def orm(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         finally:
             connections.close_all()
 
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 180
     while True:
         try:
             return await asyncio.to_thread(call)
@@ -1535,6 +1538,13 @@ async def run_async(
     within = 30 + params.agents / 20
     loaded = f"{params.agents} agents"
     workers = AgentWorkers()
+    # SIGTERM cancels the run, which unwinds the stack below: every daphne process,
+    # worker and proxy this run started is stopped.
+    loop = asyncio.get_running_loop()
+    main = asyncio.current_task()
+    assert main is not None
+    with contextlib.suppress(ValueError, RuntimeError):  # not the main thread
+        loop.add_signal_handler(signal.SIGTERM, main.cancel)
     async with contextlib.AsyncExitStack() as stack:
         stack.push_async_callback(workers.stop)
         with results.timed("start two daphne processes and the proxy"):
@@ -2369,10 +2379,6 @@ def database_prepare(url: str) -> None:
     call_command("flush", verbosity=0, interactive=False)
 
 
-def _terminate(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt
-
-
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.scale",
@@ -2436,8 +2442,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     logging.basicConfig(
         level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
-    # SIGTERM unwinds like Ctrl-C, so the daphne processes and workers are stopped too.
-    signal.signal(signal.SIGTERM, _terminate)
+
     os.environ.setdefault("LOG_LEVEL", "WARNING")
     import django
 
@@ -2446,7 +2451,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     logging.getLogger("agents").setLevel(logging.ERROR)
     database_prepare(args.database_url)
     command = "python -m benchmarks.scale " + " ".join(argv if argv is not None else sys.argv[1:])
-    results = run(params, out=args.out, command=command.strip(), database_url=args.database_url)
+    try:
+        results = run(params, out=args.out, command=command.strip(), database_url=args.database_url)
+    except asyncio.CancelledError:
+        sys.exit("benchmarks.scale: stopped (SIGTERM); what it had started is stopped too")
     print((args.out / "report.md").read_text().split("## Machine")[0])
     del results
 
