@@ -262,7 +262,17 @@ def metres_from(origin: tuple[float, float], location: dict[str, float]) -> tupl
 
 async def test_take_off_rotate_fly_east_ceiling_and_return_home(rig: Rig):
     ws = await join(rig)
-    data = await watch(ws, lambda d: d["location"] is not None, 5, "a position fix")
+    # Position, GPS status and battery come in separate MAVLink messages, in any order.
+    data = await watch(
+        ws,
+        lambda d: (
+            d["location"] is not None
+            and d["number_of_gps_satellites"] is not None
+            and d["battery_level"] is not None
+        ),
+        5,
+        "a position fix, the GPS status and the battery",
+    )
     assert data["autopilot_link"] == "ok" and data["is_armed"] is False
     assert data["number_of_gps_satellites"] >= 6 and data["battery_level"] > 90
     home = (data["location"]["lat"], data["location"]["lon"])
