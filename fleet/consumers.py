@@ -8,10 +8,11 @@ from channels.db import database_sync_to_async
 from channels.generic.websocket import AsyncJsonWebsocketConsumer
 
 from fleet.feed import FLEET_GROUP
+from iouv.consumers import DirectDispatch
 from iouv.layer import relay_ensure
 
 
-class FleetFeedConsumer(AsyncJsonWebsocketConsumer):
+class FleetFeedConsumer(DirectDispatch, AsyncJsonWebsocketConsumer):
     """Live fleet for monitors: a snapshot on connect, then every change.
 
     Sends ``{"type": "fleet", "vehicles": [...], "full": bool}``. Users without the

@@ -30,7 +30,7 @@ import time
 import uuid
 import weakref
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -54,6 +54,7 @@ from fleet.credentials import vehicle_authenticate
 from fleet.feed import fleet_notify
 from fleet.models import Vehicle
 from fleet.signals import agent_connected, agent_disconnected, agent_message, agent_welcome
+from iouv.consumers import DirectDispatch
 from iouv.layer import group_send_after_commit, relay_ensure
 
 log = logging.getLogger(__name__)
@@ -78,9 +79,26 @@ _PUBLISHED = frozenset({"task_accepted", "task_refused", "event"})
 # it is on the control path and must not wait for a database thread.
 _RELAYED = frozenset({"relay", "relay_close"})
 
+#: Frames of one uplink waiting for its database work (profile, heartbeats, reports);
+#: past this the uplink stops reading until they are handled (backpressure).
+BACKLOG_MAX = 64
+
 # Statuses the platform owns while a vehicle serves a session: what the agent says in
 # its profile or heartbeats never overrides them (services moves them on).
 _PLATFORM_HELD = frozenset({Vehicle.Status.RESERVED, Vehicle.Status.IN_SERVICE})
+
+
+def _db(func: Callable[..., Any]) -> Callable[..., Awaitable[Any]]:
+    """``func`` as a coroutine function for the uplink's database work.
+
+    With a database server, on a pool of threads: a thousand agents reconnecting at
+    once (a proxy restart) are a thousand hellos and as many disconnects, and on
+    channels' one thread for synchronous calls they queued for longer than the agents
+    wait for their welcome, which sent every agent round again. Each uplink still
+    does its own work in order (it awaits each call). SQLite takes one writer at a
+    time, so there the work stays on that one thread.
+    """
+    return database_sync_to_async(func, thread_sensitive=connection.vendor == "sqlite")
 
 
 # --------------------------------------------------------------------------------------
@@ -387,13 +405,7 @@ class HeartbeatWriter:
             error: BaseException | None = None
             for attempt in range(1, self.ATTEMPTS + 1):
                 try:
-                    # Off channels' single database thread, which serves everything
-                    # else the consumers do (hello, profile, sessions); but SQLite
-                    # takes one writer at a time, so there it stays on that thread.
-                    await database_sync_to_async(
-                        vehicle_record_heartbeats,
-                        thread_sensitive=connection.vendor == "sqlite",
-                    )([beat for beat, _ in batch])
+                    await _db(vehicle_record_heartbeats)([beat for beat, _ in batch])
                     error = None
                     break
                 except Exception as exc:  # handed to every waiter below
@@ -485,12 +497,31 @@ def _welcome(vehicle_id: str) -> dict[str, Any]:
     return full
 
 
+def _admit(
+    *, vehicle_id: str, credential: str, now: datetime
+) -> tuple[Vehicle, dict[str, Any]] | None:
+    """A hello's database work in one call: the vehicle if the credential is its own
+    (last_seen recorded at ``now``) and the ``welcome`` to send it, else None."""
+    vehicle = vehicle_authenticate(vehicle_id=vehicle_id, credential=credential)
+    if vehicle is None:
+        return None
+    vehicle_record_hello(vehicle_id=vehicle.pk, now=now)
+    return vehicle, _welcome(str(vehicle.pk))
+
+
+def _disconnected(*, vehicle_id: str, last_seen: datetime | None, code: int) -> None:
+    """A closed uplink's database work in one call: the vehicle is marked offline and
+    the other apps told, if this uplink still was the vehicle's."""
+    if vehicle_record_disconnect(vehicle_id=vehicle_id, last_seen=last_seen):
+        _signal_send(agent_disconnected, vehicle_id=vehicle_id, code=code)
+
+
 # --------------------------------------------------------------------------------------
 # The consumer
 # --------------------------------------------------------------------------------------
 
 
-class AgentUplinkConsumer(AsyncWebsocketConsumer):
+class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
     """One vehicle agent's uplink (``/ws/agent/``). See the module docstring.
 
     Lifecycle: ``hello`` within the timeout (else 4408), authenticated by vehicle
@@ -512,6 +543,12 @@ class AgentUplinkConsumer(AsyncWebsocketConsumer):
         self._next_heartbeat_write = 0.0
         self._bad_frames: deque[float] = deque()
         self._hello_timer: asyncio.Task[None] | None = None
+        # Database work of this uplink, in arrival order, off the consumer's dispatch
+        # (see _backlog_run); None marks the end.
+        self._backlog: asyncio.Queue[Callable[[], Awaitable[None]] | None] = asyncio.Queue(
+            BACKLOG_MAX
+        )
+        self._backlog_task: asyncio.Task[None] | None = None
 
     # -- connection ---------------------------------------------------------------------
 
@@ -543,15 +580,16 @@ class AgentUplinkConsumer(AsyncWebsocketConsumer):
                     # drop at once. The stale member only costs messages that expire
                     # unread; the vehicle must still be marked offline below.
                     log.warning("uplink %s: leaving its group failed: %s", self.vehicle_id, exc)
+            if self._backlog_task is not None and not self._backlog_task.done():
+                # What the agent said before it left is stored first: a heartbeat
+                # written after the offline mark would make the vehicle look alive.
+                await self._backlog.put(None)
+                await self._backlog_task
             if self.vehicle_id is None or self._replaced:
                 return
-            ours = await database_sync_to_async(vehicle_record_disconnect)(
-                vehicle_id=self.vehicle_id, last_seen=self._last_seen
+            await _db(_disconnected)(
+                vehicle_id=self.vehicle_id, last_seen=self._last_seen, code=code
             )
-            if ours:
-                await database_sync_to_async(_signal_send)(
-                    agent_disconnected, vehicle_id=self.vehicle_id, code=code
-                )
         except Exception:
             log.exception("uplink %s: disconnect handling failed", self.vehicle_id)
 
@@ -561,8 +599,12 @@ class AgentUplinkConsumer(AsyncWebsocketConsumer):
         if self._closed:
             return
         raw: str | bytes | None = text_data if text_data is not None else bytes_data
+        await self._guarded(lambda: self._receive(raw))
+
+    async def _guarded(self, handle: Callable[[], Awaitable[None]]) -> None:
+        """Run ``handle``; a failure is logged and answered, never raised."""
         try:
-            await self._receive(raw)
+            await handle()
         except Exception:
             log.exception("uplink %s: unexpected error on a frame", self.vehicle_id)
             with contextlib.suppress(Exception):
@@ -584,33 +626,59 @@ class AgentUplinkConsumer(AsyncWebsocketConsumer):
             # A binary frame is read as UTF-8 JSON (docs/protocol.md, Transports).
             msg = parse_message(raw, channel="uplink_to_platform")  # type: ignore[arg-type]
         except ProtocolError as exc:
-            await self._bad_frame(exc.code, exc.message)
+            if self.vehicle_id is None:
+                await self._bad_frame(exc.code, exc.message)
+            else:  # answered in turn, after what came before it
+                code, text = exc.code, exc.message
+                await self._later(lambda: self._bad_frame(code, text))
             return
         if self.vehicle_id is None:
             if first:
                 await self._hello(msg)
             return
         kind = msg["type"]
-        if kind == "profile":
-            await self._profile(msg)
-        elif kind == "heartbeat":
-            await self._heartbeat(msg)
-        elif kind in _RELAYED:
-            if not msg.get("conn"):
-                await self._bad_frame("bad_field", "a relayed message needs its conn")
-                return
-            # The relay checks the vehicle id, so an agent cannot talk into another
+        if kind in _RELAYED and msg.get("conn"):
+            # On the control path: sent now, whatever database work is queued. The
+            # relay checks the vehicle id, so an agent cannot talk into another
             # vehicle's relayed session.
             await self.channel_layer.group_send(
                 relay_group(msg["conn"]),
                 {"type": "relay.from_agent", "vehicle_id": self.vehicle_id, "message": msg},
             )
+        else:
+            await self._later(lambda: self._handle(msg))
+
+    async def _handle(self, msg: dict[str, Any]) -> None:
+        """What an authenticated agent's frame asks of the database, in arrival order."""
+        kind = msg["type"]
+        if kind == "profile":
+            await self._profile(msg)
+        elif kind == "heartbeat":
+            await self._heartbeat(msg)
+        elif kind in _RELAYED:
+            await self._bad_frame("bad_field", "a relayed message needs its conn")
         elif kind in _PUBLISHED:
-            await database_sync_to_async(_signal_send)(
-                agent_message, vehicle_id=self.vehicle_id, message=msg
-            )
+            await _db(_signal_send)(agent_message, vehicle_id=self.vehicle_id, message=msg)
         else:  # hello again
             await self._bad_frame("already_authenticated", "this uplink already said hello")
+
+    async def _later(self, handle: Callable[[], Awaitable[None]]) -> None:
+        """Queue ``handle`` behind this uplink's earlier database work.
+
+        The consumer handles one message at a time, both the agent's frames and what the
+        platform sends it (tasks, relayed commands). Awaiting a heartbeat write there
+        held relayed commands and their answers for as long as the database took, which
+        under load was seconds. Queued here, the work keeps its order while the
+        consumer goes on; a full queue makes the consumer wait, as before.
+        """
+        if self._backlog_task is None:
+            self._backlog_task = asyncio.create_task(self._backlog_run())
+        await self._backlog.put(handle)
+
+    async def _backlog_run(self) -> None:
+        while (handle := await self._backlog.get()) is not None:
+            if not self._closed:  # after a refusal the uplink ignores what follows
+                await self._guarded(handle)
 
     async def _bad_frame(self, code: str, message: str) -> None:
         """Answer a refused frame; before authentication that ends the uplink."""
@@ -640,38 +708,41 @@ class AgentUplinkConsumer(AsyncWebsocketConsumer):
                 "not_authenticated", "the first message must be hello", CLOSE_UNAUTHORIZED
             )
             return
-        vehicle = await database_sync_to_async(vehicle_authenticate)(
-            vehicle_id=msg["vehicle_id"], credential=msg["credential"]
+        now = timezone.now()
+        admitted = await _db(_admit)(
+            vehicle_id=msg["vehicle_id"], credential=msg["credential"], now=now
         )
-        if vehicle is None:
+        if admitted is None:
             log.warning("uplink: refused hello for vehicle id %.40r", msg["vehicle_id"])
             await self._refuse(
                 "bad_credential", "unknown vehicle or wrong credential", CLOSE_UNAUTHORIZED
             )
             return
+        vehicle, welcome = admitted
         self.vehicle_id = str(vehicle.pk)
+        self._last_seen = now
         self._group = vehicle_group(vehicle.pk)
         # A vehicle is one agent: tell an older uplink of this vehicle to go, before
-        # joining the group so this one does not hear its own notice.
+        # joining the group so this one does not hear its own notice. (The older one
+        # no longer owns last_seen, so it will not mark the vehicle offline.)
         await self.channel_layer.group_send(
             self._group, {"type": "agent.replaced", "channel": self.channel_name}
         )
         await self.channel_layer.group_add(self._group, self.channel_name)
-        now = timezone.now()
-        await database_sync_to_async(vehicle_record_hello)(vehicle_id=self.vehicle_id, now=now)
-        self._last_seen = now
-        await self._send_message(await database_sync_to_async(_welcome)(self.vehicle_id))
+        try:
+            await self._send_message(welcome)
+        except Exception as exc:  # the agent stopped waiting and left (its disconnect follows)
+            log.info("uplink %s: gone before its welcome: %s", self.vehicle_id, exc)
+            return
         log.info("uplink: vehicle %s (%s) connected", vehicle.name, self.vehicle_id)
 
     async def _profile(self, msg: dict[str, Any]) -> None:
         now = timezone.now()
-        await database_sync_to_async(vehicle_record_profile)(
-            vehicle_id=self.vehicle_id, profile=msg, now=now
-        )
+        await _db(vehicle_record_profile)(vehicle_id=self.vehicle_id, profile=msg, now=now)
         self._last_seen = now
         if not self._registered:
             self._registered = True
-            await database_sync_to_async(_signal_send)(agent_connected, vehicle_id=self.vehicle_id)
+            await _db(_signal_send)(agent_connected, vehicle_id=self.vehicle_id)
 
     async def _heartbeat(self, msg: dict[str, Any]) -> None:
         # At most two writes per heartbeat interval: an agent that heartbeats too fast

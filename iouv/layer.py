@@ -54,7 +54,10 @@ def group_send_after_commit(group: str, message: dict[str, Any]) -> None:
         if layer is not None:
             async_to_sync(layer.group_send)(group, message)
 
-    transaction.on_commit(send)
+    # Robust: a push that fails (Redis away, its connections all in use) is logged and
+    # lost like any best-effort push; it must not turn the committed change into an
+    # error for the caller, nor stop the callbacks after it.
+    transaction.on_commit(send, robust=True)
 
 
 def _take_relayed(limit: int = 200) -> list[tuple[str, dict[str, Any]]]:

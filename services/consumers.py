@@ -18,6 +18,7 @@ from agents.protocol import (
     parse_message,
 )
 from fleet.uplink import avehicle_send, relay_group
+from iouv.consumers import DirectDispatch
 from iouv.layer import relay_ensure
 from services.feed import SESSIONS_GROUP, session_group
 
@@ -27,7 +28,7 @@ RELAY_BURST = 400.0
 CLOSED_BY_AGENT = 4000
 
 
-class SessionFeedConsumer(AsyncJsonWebsocketConsumer):
+class SessionFeedConsumer(DirectDispatch, AsyncJsonWebsocketConsumer):
     """One session's log as it grows, for its user and for monitors.
 
     Sends ``{"type": "session", "session": {...}}`` on connect, then
@@ -60,7 +61,7 @@ class SessionFeedConsumer(AsyncJsonWebsocketConsumer):
         await self.send_json({"type": "event", "event": message["event"], "session": summary})
 
 
-class SessionsMonitorConsumer(AsyncJsonWebsocketConsumer):
+class SessionsMonitorConsumer(DirectDispatch, AsyncJsonWebsocketConsumer):
     """Every live session for monitors: a snapshot, then each logged event.
 
     Requires ``services.view_session``; others are refused (4403).
@@ -118,7 +119,7 @@ def _live_sessions() -> list[dict[str, Any]]:
     return [session_summary(s) for s in live.order_by("-created_at")[:200]]
 
 
-class RelayConsumer(AsyncWebsocketConsumer):
+class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
     """Control through the platform, for clients that cannot reach the vehicle.
 
     The client speaks the same control protocol as on a direct socket. Its first frame

@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import asyncio
 import json
+import threading
 import time
 from typing import Any
 
 import pytest
 from channels.db import database_sync_to_async
+from channels.layers import get_channel_layer
 from channels.testing import WebsocketCommunicator
 from django.db import connections
 from hypothesis import HealthCheck, given
@@ -330,6 +332,111 @@ async def test_a_failed_heartbeat_write_is_an_error_reply_not_a_lost_uplink(monk
     await comm.send_json_to({"type": "heartbeat", "seq": 2, "battery": 13})
     await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 13)
     await comm.disconnect()
+
+
+@pytest.mark.parametrize("slow", ["heartbeat write", "shared database thread"])
+async def test_relay_traffic_does_not_wait_for_a_slow_database(monkeypatch, slow):
+    # Relayed answers and everything sent to the agent are on the control path: neither
+    # a heartbeat write stuck behind a lock nor another consumer's work on the process's
+    # one thread for synchronous database calls may hold them.
+    vehicle, credential = await _enrolled()
+    comm, _ = await _agent(vehicle, credential)
+    await comm.send_json_to(PROFILE)
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+    entered, release = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        entered.set()
+        release.wait(10)
+
+    busy = None
+    if slow == "heartbeat write":
+        real = uplink.vehicle_record_heartbeats
+
+        def stuck(beats):
+            hold()
+            return real(beats)
+
+        monkeypatch.setattr(uplink, "vehicle_record_heartbeats", stuck)
+        await comm.send_json_to({"type": "heartbeat", "seq": 1, "battery": 40})
+    else:
+        busy = asyncio.create_task(database_sync_to_async(hold)())
+    assert await asyncio.to_thread(entered.wait, 5)
+    layer = get_channel_layer()
+    browser = await layer.new_channel()
+    await layer.group_add(uplink.relay_group("c0ffee"), browser)
+    try:
+        answer = {"type": "ack", "seq": 7, "ok": True, "error": None}
+        await comm.send_json_to(
+            {"type": "relay", "session_id": "s-1", "conn": "c0ffee", "payload": answer}
+        )
+        event = await asyncio.wait_for(layer.receive(browser), 2)
+        assert event["message"]["payload"] == answer and not release.is_set()
+
+        revoke = {"type": "revoke", "session_id": "s-1", "reason": "kill", "action": "stop"}
+        await avehicle_send(vehicle_id=vehicle.pk, message=revoke)
+        assert await comm.receive_json_from(timeout=2) == revoke
+        assert not release.is_set()  # the database work is still held
+    finally:
+        release.set()
+        await layer.group_discard(uplink.relay_group("c0ffee"), browser)
+        if busy is not None:
+            await busy
+    if slow == "heartbeat write":
+        await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 40)
+    await comm.disconnect()
+
+
+async def test_what_the_agent_said_before_leaving_is_stored_before_the_offline_mark(
+    monkeypatch,
+):
+    vehicle, credential = await _enrolled()
+    comm, _ = await _agent(vehicle, credential)
+    await comm.send_json_to(PROFILE)
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+    real = uplink.vehicle_record_heartbeats
+
+    def slow(beats):
+        time.sleep(0.5)
+        return real(beats)
+
+    monkeypatch.setattr(uplink, "vehicle_record_heartbeats", slow)
+    await comm.send_json_to({"type": "heartbeat", "seq": 1, "battery": 41})
+    await comm.disconnect(code=1001)
+    # The heartbeat went in first, so the offline mark is the last word.
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
+    await asyncio.sleep(0.6)
+    stored = await _get(vehicle)
+    assert stored.status == "offline" and stored.battery == 41
+
+
+async def test_a_lost_push_does_not_lose_the_disconnect(monkeypatch):
+    # A thousand uplinks dropping at once once exhausted the channel layer's pool: the
+    # monitors' push of the offline mark failed after the commit, and that error
+    # skipped the rest, so the sessions never logged their vehicle going offline.
+    from redis.exceptions import MaxConnectionsError
+
+    vehicle, credential = await _enrolled()
+    gone, stop = _collect(agent_disconnected)
+    try:
+        comm, _ = await _agent(vehicle, credential)
+        await comm.send_json_to(PROFILE)
+        await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+        layer = get_channel_layer()
+        real_send = layer.group_send
+
+        async def failing(group, message):
+            if group == "fleet":
+                raise MaxConnectionsError("Too many connections")
+            await real_send(group, message)
+
+        monkeypatch.setattr(layer, "group_send", failing)
+        await comm.disconnect(code=1006)
+        await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
+        await _eventually(lambda: len(gone) == 1)
+        assert gone == [{"vehicle_id": str(vehicle.pk), "code": 1006}]
+    finally:
+        stop()
 
 
 async def test_disconnect_marks_offline_and_signals():
