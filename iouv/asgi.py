@@ -20,13 +20,16 @@ from channels.security.websocket import AllowedHostsOriginValidator  # noqa: E40
 from django.conf import settings  # noqa: E402
 from django.urls import re_path  # noqa: E402
 
+from iouv.concurrency import HttpConcurrencyLimit  # noqa: E402
 from iouv.routing import browser_websocket_urlpatterns, self_authenticating_websocket_urlpatterns  # noqa: E402
 
-http_app = django_asgi_app
+http_app = HttpConcurrencyLimit(django_asgi_app, limit=settings.IOUV_HTTP_CONCURRENCY)
 if settings.SERVE_STATIC:
     from django.contrib.staticfiles.handlers import ASGIStaticFilesHandler
 
-    http_app = ASGIStaticFilesHandler(django_asgi_app)
+    # Static files are served here, outside the limit: a page's scripts never wait
+    # behind API requests.
+    http_app = ASGIStaticFilesHandler(http_app)
 
 application = ProtocolTypeRouter(
     {

@@ -241,6 +241,11 @@ IOUV_RECONNECT_GRACE_S = env_int("IOUV_RECONNECT_GRACE_S", 30)
 IOUV_UNSAFE_REFUSALS_MAX = env_int("IOUV_UNSAFE_REFUSALS_MAX", 5)
 IOUV_UNSAFE_REFUSALS_WINDOW_S = env_float("IOUV_UNSAFE_REFUSALS_WINDOW_S", 10.0)
 
+# HTTP requests one platform process runs at once (0: no limit); the rest wait their
+# turn. Their threads share the interpreter with the WebSockets' event loop, which
+# must keep its share (iouv.concurrency).
+IOUV_HTTP_CONCURRENCY = env_int("IOUV_HTTP_CONCURRENCY", 4)
+
 # Embedded mode: a worker process pushes through the database to the ASGI process.
 IOUV_LAYER_RELAY = env_bool("IOUV_LAYER_RELAY", True)
 
