@@ -44,10 +44,56 @@ class AssignmentError(Exception):
 
 
 @dataclass(frozen=True)
+class Facts:
+    """What matching reads of one online idle vehicle.
+
+    Plain values, not model instances: with a thousand vehicles idle, building a
+    vehicle, its type and its station for each was most of a request's time.
+    """
+
+    pk: Any
+    name: str
+    kind: str
+    adapter: str
+    attributes: dict[str, Any]
+    battery: float | None
+    position: tuple[float, float]  # reported, else its station's
+    home: tuple[float, float]  # its station
+
+    FIELDS = (
+        "pk",
+        "name",
+        "vehicle_type__kind",
+        "vehicle_type__adapter",
+        "attributes",
+        "battery",
+        "lat",
+        "lon",
+        "station__lat",
+        "station__lon",
+    )
+
+    @classmethod
+    def from_row(cls, row: tuple[Any, ...]) -> Facts:
+        pk, name, kind, adapter, attributes, battery, lat, lon, home_lat, home_lon = row
+        home = (home_lat, home_lon)
+        position = (lat, lon) if lat is not None and lon is not None else home
+        return cls(pk, name, kind, adapter, attributes or {}, battery, position, home)
+
+    @property
+    def cameras(self) -> list[str]:
+        return list(self.attributes.get("cameras", []))
+
+    @property
+    def features(self) -> list[str]:
+        return list(self.attributes.get("features", []))
+
+
+@dataclass(frozen=True)
 class Candidate:
     """An eligible vehicle and why it ranks where it does."""
 
-    vehicle: Vehicle
+    vehicle: Facts
     distance_m: float  # vehicle to target (0 without a target)
     trip_m: float  # vehicle to target, the extra work, and back to its station
     eta_s: float  # distance over top speed
@@ -66,13 +112,12 @@ class Match:
     unmet: str = ""
 
 
-def _attr(vehicle: Vehicle, name: str) -> Any:
+def _attr(vehicle: Facts, name: str) -> Any:
     return vehicle.attributes.get(name)
 
 
-def _trip(vehicle: Vehicle, target: tuple[float, float] | None, extra_m: float) -> Candidate:
-    here = vehicle.position
-    home = (vehicle.station.lat, vehicle.station.lon)
+def _trip(vehicle: Facts, target: tuple[float, float] | None, extra_m: float) -> Candidate:
+    here, home = vehicle.position, vehicle.home
     out = distance_m(here, target) if target else 0.0
     back = distance_m(target, home) if target else 0.0
     trip = out + extra_m + back
@@ -95,18 +140,16 @@ def _range_ok(c: Candidate) -> bool:
     return c.trip_m / speed <= (_attr(v, "endurance_min") or 0.0) * 60 * charge
 
 
-def _requirements(role: ServiceRole) -> list[tuple[str, Callable[[Vehicle], bool]]]:
+def _requirements(role: ServiceRole) -> list[tuple[str, Callable[[Facts], bool]]]:
     """(description, test) pairs, checked in order; descriptions are user-facing."""
-    checks: list[tuple[str, Callable[[Vehicle], bool]]] = []
+    checks: list[tuple[str, Callable[[Facts], bool]]] = []
     if role.kinds:
-        checks.append(
-            (f"kind {' or '.join(role.kinds)}", lambda v: v.vehicle_type.kind in role.kinds)
-        )
+        checks.append((f"kind {' or '.join(role.kinds)}", lambda v: v.kind in role.kinds))
     if role.adapters:
         checks.append(
             (
                 f"adapter {' or '.join(role.adapters)}",
-                lambda v: v.vehicle_type.adapter in role.adapters,
+                lambda v: v.adapter in role.adapters,
             )
         )
     if role.environments:
@@ -159,12 +202,13 @@ def role_match(
     ``extra_distance_m`` is work done at the target (a search pattern, say) that must
     fit in the vehicle's range too. On no match, ``unmet`` names the requirement.
     """
-    pool = list(
-        vehicles_online(now)
+    pool = [
+        Facts.from_row(row)
+        for row in vehicles_online(now)
         .filter(status=Vehicle.Status.IDLE)
         .exclude(pk__in=list(exclude))
-        .select_related("vehicle_type", "station")
-    )
+        .values_list(*Facts.FIELDS)
+    ]
     if not pool:
         return Match(role, unmet="no vehicle is online and idle")
     for description, test in _requirements(role):
@@ -179,7 +223,7 @@ def role_match(
     return Match(role, candidates=reachable)
 
 
-def _reserve_first(*, session: Session, match: Match) -> Assignment | None:
+def _reserve_first(*, session: Session, match: Match) -> tuple[Assignment, Facts] | None:
     """Reserve the best candidate still free; None when every one was taken meanwhile."""
     for candidate in match.candidates:
         vehicle = candidate.vehicle
@@ -194,13 +238,13 @@ def _reserve_first(*, session: Session, match: Match) -> Assignment | None:
                 assignment = Assignment.objects.create(
                     session=session,
                     role=match.role.name,
-                    vehicle=vehicle,
+                    vehicle_id=vehicle.pk,
                     distance_m=round(candidate.distance_m, 1),
                 )
         except IntegrityError:
             continue  # held by another session's active assignment
         fleet_notify([vehicle.pk])
-        return assignment
+        return assignment, vehicle
     return None
 
 
@@ -221,20 +265,21 @@ def role_assign(
     if match.unmet:
         raise AssignmentError(f"{role.name}: {match.unmet}", session=session, role=role.name)
     with transaction.atomic():
-        assignment = _reserve_first(session=session, match=match)
-    if assignment is None:
+        reserved = _reserve_first(session=session, match=match)
+    if reserved is None:
         raise AssignmentError(
             f"{role.name}: every matching vehicle was just taken by other requests",
             session=session,
             role=role.name,
         )
+    assignment, vehicle = reserved
     event_append(
         session=session,
         kind="assigned",
         data={
             "role": role.name,
             "vehicle": str(assignment.vehicle_id),
-            "vehicle_name": assignment.vehicle.name,
+            "vehicle_name": vehicle.name,
             "distance_m": assignment.distance_m,
         },
     )

@@ -53,4 +53,6 @@ def service_vehicles_matching(service: Service) -> list[Vehicle]:
     role = service.roles.filter(required=True).first()
     if role is None:
         return []
-    return [c.vehicle for c in role_match(role=role).candidates]
+    ranked = [c.vehicle.pk for c in role_match(role=role).candidates]
+    vehicles = Vehicle.objects.select_related("station").in_bulk(ranked)
+    return [vehicles[pk] for pk in ranked if pk in vehicles]
