@@ -1775,6 +1775,7 @@ def run(params: Params, *, out: Path, command: str, database_url: str) -> Result
             link_loss_timeout_ms=params.link_loss_timeout_ms,
         )
     results.machine["db_conn_max_age"] = env.get("DB_CONN_MAX_AGE", "60 (default)")
+    results.machine["http_concurrency"] = settings.IOUV_HTTP_CONCURRENCY
     results.machine["heartbeat_s"] = settings.IOUV_HEARTBEAT_INTERVAL_S
     results.machine["offline_after_s"] = settings.IOUV_OFFLINE_AFTER_S
     try:
@@ -2060,6 +2061,7 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
         ("load_average_at_start", "load average at start (1, 5, 15 min)"),
         ("open_files_limit", "open files limit"),
         ("db_conn_max_age", "DB_CONN_MAX_AGE of the platform"),
+        ("http_concurrency", "IOUV_HTTP_CONCURRENCY (HTTP requests at once per process)"),
         ("heartbeat_s", "IOUV_HEARTBEAT_INTERVAL_S"),
         ("offline_after_s", "IOUV_OFFLINE_AFTER_S"),
     ):
