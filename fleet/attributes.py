@@ -132,6 +132,21 @@ def features_clean(value: Any) -> list[str]:
     return sorted(set(value))
 
 
+class DeclaredAttributes:
+    """The list-valued declared attributes, read from ``self.attributes``: shared by the
+    vehicle model and the plain rows matching works on (services.assignment.Facts)."""
+
+    attributes: dict[str, Any]
+
+    @property
+    def cameras(self) -> list[str]:
+        return list(self.attributes.get("cameras", []))
+
+    @property
+    def features(self) -> list[str]:
+        return list(self.attributes.get("features", []))
+
+
 @deconstructible
 class ChoiceListValidator:
     """Model-field validator: the value is a list drawn from ``choices``."""

@@ -8,7 +8,12 @@ from django.core.exceptions import ValidationError
 from django.core.validators import MaxValueValidator, MinValueValidator
 from django.db import models
 
-from fleet.attributes import ENVIRONMENTS, ChoiceListValidator, attributes_clean
+from fleet.attributes import (
+    ENVIRONMENTS,
+    ChoiceListValidator,
+    DeclaredAttributes,
+    attributes_clean,
+)
 
 
 class Station(models.Model):
@@ -65,7 +70,7 @@ class VehicleType(models.Model):
         return self.name
 
 
-class Vehicle(models.Model):
+class Vehicle(DeclaredAttributes, models.Model):
     """One vehicle, its declared attributes and what its agent last reported."""
 
     class Status(models.TextChoices):
@@ -122,14 +127,6 @@ class Vehicle(models.Model):
             self.attributes = attributes_clean(self.attributes)
         except ValidationError as exc:
             raise ValidationError({"attributes": exc.messages}) from None
-
-    @property
-    def cameras(self) -> list[str]:
-        return list(self.attributes.get("cameras", []))
-
-    @property
-    def features(self) -> list[str]:
-        return list(self.attributes.get("features", []))
 
     @property
     def position(self) -> tuple[float, float]:

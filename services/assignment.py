@@ -21,6 +21,7 @@ from django.contrib.auth.models import AbstractBaseUser
 from django.db import IntegrityError, transaction
 
 from agents.geo import distance_m
+from fleet.attributes import DeclaredAttributes
 from fleet.feed import fleet_notify
 from fleet.models import Vehicle
 from fleet.status import vehicles_online
@@ -44,7 +45,7 @@ class AssignmentError(Exception):
 
 
 @dataclass(frozen=True)
-class Facts:
+class Facts(DeclaredAttributes):
     """What matching reads of one online idle vehicle.
 
     Plain values, not model instances: with a thousand vehicles idle, building a
@@ -79,14 +80,6 @@ class Facts:
         home = (home_lat, home_lon)
         position = (lat, lon) if lat is not None and lon is not None else home
         return cls(pk, name, kind, adapter, attributes or {}, battery, position, home)
-
-    @property
-    def cameras(self) -> list[str]:
-        return list(self.attributes.get("cameras", []))
-
-    @property
-    def features(self) -> list[str]:
-        return list(self.attributes.get("features", []))
 
 
 @dataclass(frozen=True)

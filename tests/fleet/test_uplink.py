@@ -91,6 +91,15 @@ async def _agent(vehicle: Vehicle, credential: str) -> tuple[WebsocketCommunicat
     return comm, welcome
 
 
+async def _idle_agent() -> tuple[Vehicle, WebsocketCommunicator]:
+    """An enrolled vehicle whose agent said hello and sent its profile: idle."""
+    vehicle, credential = await _enrolled()
+    comm, _ = await _agent(vehicle, credential)
+    await comm.send_json_to(PROFILE)
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+    return vehicle, comm
+
+
 async def _closed(comm: WebsocketCommunicator) -> tuple[list[dict], int]:
     """Everything sent until the platform closed the socket, and the close code."""
     messages = []
@@ -234,10 +243,7 @@ async def test_profile_keeps_platform_held_statuses(before, maintenance, after):
 
 async def test_heartbeats_update_last_seen_battery_and_status(settings):
     settings.IOUV_HEARTBEAT_INTERVAL_S = 0.2  # one write per 0.1 s at most
-    vehicle, credential = await _enrolled()
-    comm, _ = await _agent(vehicle, credential)
-    await comm.send_json_to(PROFILE)
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+    vehicle, comm = await _idle_agent()
     seen_at = (await _get(vehicle)).last_seen
 
     await asyncio.sleep(0.15)
@@ -311,10 +317,7 @@ async def test_heartbeats_of_many_uplinks_are_written_together(monkeypatch):
 async def test_a_failed_heartbeat_write_is_an_error_reply_not_a_lost_uplink(monkeypatch):
     from django.db import OperationalError
 
-    vehicle, credential = await _enrolled()
-    comm, _ = await _agent(vehicle, credential)
-    await comm.send_json_to(PROFILE)
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+    vehicle, comm = await _idle_agent()
     real = uplink.vehicle_record_heartbeats
 
     def failing(beats):
@@ -339,10 +342,7 @@ async def test_relay_traffic_does_not_wait_for_a_slow_database(monkeypatch, slow
     # Relayed answers and everything sent to the agent are on the control path: neither
     # a heartbeat write stuck behind a lock nor another consumer's work on the process's
     # one thread for synchronous database calls may hold them.
-    vehicle, credential = await _enrolled()
-    comm, _ = await _agent(vehicle, credential)
-    await comm.send_json_to(PROFILE)
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+    vehicle, comm = await _idle_agent()
     entered, release = threading.Event(), threading.Event()
 
     def hold() -> None:
@@ -390,10 +390,7 @@ async def test_relay_traffic_does_not_wait_for_a_slow_database(monkeypatch, slow
 async def test_what_the_agent_said_before_leaving_is_stored_before_the_offline_mark(
     monkeypatch,
 ):
-    vehicle, credential = await _enrolled()
-    comm, _ = await _agent(vehicle, credential)
-    await comm.send_json_to(PROFILE)
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+    vehicle, comm = await _idle_agent()
     real = uplink.vehicle_record_heartbeats
 
     def slow(beats):
