@@ -122,20 +122,21 @@ DEFAULT_AUTO_FIELD = "django.db.models.BigAutoField"
 if REDIS_URL:
     CHANNEL_LAYERS = {
         "default": {
-            "BACKEND": "channels_redis.core.RedisChannelLayer",
+            "BACKEND": "iouv.redis_layer.WaitingRedisChannelLayer",
             "CONFIG": {
                 # redis-py 8 times reads out after 5 s by default, the same 5 s that
                 # channels-redis blocks in BZPOPMIN waiting for messages: an idle socket
                 # would then crash its consumer. Reads may wait longer than that pop.
-                # The pool raises rather than waits when full (redis-py's default is
-                # 100): a thousand agents reconnecting at once, each joining its group,
-                # need more at the same moment.
+                # When all max_connections are busy (a thousand agents reconnecting at
+                # once, each leaving and joining its group), a caller waits up to
+                # `timeout` seconds for one rather than failing its frame.
                 "hosts": [
                     {
                         "address": REDIS_URL,
                         "socket_timeout": 30,
                         "socket_connect_timeout": 5,
                         "max_connections": env_int("REDIS_MAX_CONNECTIONS", 1000),
+                        "timeout": 10,
                     }
                 ],
                 "prefix": env_str("CHANNELS_PREFIX", "iouv"),

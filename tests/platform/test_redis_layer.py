@@ -1,0 +1,69 @@
+"""The Redis channel layer serves a burst larger than its connection pool."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import uuid
+
+import pytest
+from channels_redis.core import RedisChannelLayer
+from redis.exceptions import MaxConnectionsError
+
+from iouv.redis_layer import WaitingRedisChannelLayer
+
+REDIS_URL = os.environ.get("REDIS_URL", "")
+pytestmark = pytest.mark.skipif(not REDIS_URL, reason="needs the machine's Redis (REDIS_URL)")
+
+AGENTS = 60
+
+
+async def _reconnect_storm(layer: RedisChannelLayer) -> list[dict]:
+    """Many consumers join their groups at once, then each is sent a message."""
+    channels = [await layer.new_channel() for _ in range(AGENTS)]
+    await asyncio.gather(
+        *(layer.group_add(f"vehicle-{i}", name) for i, name in enumerate(channels))
+    )
+    await asyncio.gather(
+        *(layer.group_send(f"vehicle-{i}", {"type": "welcome", "n": i}) for i in range(AGENTS))
+    )
+    got = await asyncio.wait_for(
+        asyncio.gather(*(layer.receive(name) for name in channels)), timeout=20
+    )
+    await asyncio.gather(
+        *(layer.group_discard(f"vehicle-{i}", name) for i, name in enumerate(channels))
+    )
+    return got
+
+
+def _layer(cls: type[RedisChannelLayer], prefix: str) -> RedisChannelLayer:
+    host = {"address": REDIS_URL, "max_connections": 3, "timeout": 10}
+    return cls(hosts=[host], prefix=prefix)
+
+
+@pytest.mark.asyncio
+async def test_a_burst_beyond_the_pool_waits_for_connections_and_loses_nothing() -> None:
+    layer = _layer(WaitingRedisChannelLayer, f"test-{uuid.uuid4().hex[:8]}")
+    try:
+        got = await _reconnect_storm(layer)
+    finally:
+        await layer.flush()
+        await layer.close_pools()
+    assert sorted(m["n"] for m in got) == list(range(AGENTS))
+
+
+@pytest.mark.asyncio
+async def test_channels_redis_own_pool_fails_the_same_burst() -> None:
+    """The reason for the layer above: the stock pool raises when it is full."""
+    prefix = f"test-{uuid.uuid4().hex[:8]}"
+    layer = _layer(RedisChannelLayer, prefix)
+    layer.hosts[0].pop("timeout")  # the stock pool has no wait
+    try:
+        with pytest.raises(MaxConnectionsError):
+            await _reconnect_storm(layer)
+    finally:
+        await layer.close_pools()
+        # The failed burst's other calls may still hold the stock pool: clean up apart.
+        cleaner = _layer(WaitingRedisChannelLayer, prefix)
+        await cleaner.flush()
+        await cleaner.close_pools()
