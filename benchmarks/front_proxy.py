@@ -222,7 +222,7 @@ class FrontProxy:
             backend = self.routes.backend_for(path)
             self.routes.counts[str(backend)] += 1
             try:
-                up_reader, upstream = await asyncio.wait_for(
+                up_reader, up_writer = await asyncio.wait_for(
                     asyncio.open_connection(backend.host, backend.port, limit=CHUNK),
                     CONNECT_TIMEOUT_S,
                 )
@@ -230,10 +230,11 @@ class FrontProxy:
                 log.warning("backend %s unreachable: %s", backend, exc)
                 writer.write(b"HTTP/1.1 502 Bad Gateway\r\nConnection: close\r\n\r\n")
                 return
+            upstream = up_writer  # closed in the finally clause below
             upstream.write(first)
             await asyncio.gather(
-                _pipe(reader, upstream, writer),
-                _pipe(up_reader, writer, upstream),
+                _pipe(reader, up_writer, writer),
+                _pipe(up_reader, writer, up_writer),
             )
         except (ConnectionError, OSError):
             pass

@@ -212,18 +212,29 @@ class Usage:
 class Window:
     """CPU use of named processes between :meth:`start` and :meth:`stop`; RSS at stop.
 
-    A name may stand for several pids (the PostgreSQL backends, the agent workers);
-    processes that vanish meanwhile are counted up to their last reading.
+    A name may stand for several pids (the agent workers), or for a command name
+    (``"postgres"``): those are looked up at :meth:`start` and again at :meth:`stop`,
+    because the server starts a backend for each new connection while the window runs,
+    and a backend born meanwhile is counted from its birth. A process that exits during
+    the window is not counted.
     """
 
-    def __init__(self, pids: dict[str, list[int]]) -> None:
-        self.pids = pids
+    def __init__(self, pids: dict[str, list[int] | str]) -> None:
+        self._named = {k: v for k, v in pids.items() if isinstance(v, str)}
+        self.pids: dict[str, list[int]] = {
+            k: ([] if isinstance(v, str) else v) for k, v in pids.items()
+        }
         self._cpu0: dict[int, float] = {}
         self._threads0: dict[int, dict[str, float]] = {}
         self._t0 = 0.0
         self._machine0 = (0, 0)
 
+    def _lookup(self) -> None:
+        for label, comm in self._named.items():
+            self.pids[label] = sorted(set(self.pids[label]) | set(pids_named(comm)))
+
     def start(self) -> None:
+        self._lookup()
         self._t0 = time.monotonic()
         self._machine0 = machine_busy_ticks()
         for pids in self.pids.values():
@@ -239,6 +250,7 @@ class Window:
     def stop(self, *, phase: str, topology: str) -> list[Usage]:
         elapsed = time.monotonic() - self._t0
         busy1, total1 = machine_busy_ticks()
+        self._lookup()
         busy0, total0 = self._machine0
         out = []
         for name, pids in self.pids.items():
@@ -1357,14 +1369,24 @@ class Results:
 
 
 async def wait_online(
-    *, names: Sequence[str], workers: AgentWorkers, expect_uplinks: int, within: float
+    *,
+    names: Sequence[str],
+    workers: AgentWorkers,
+    expect_uplinks: int,
+    within: float,
+    registrations_at_least: int = 0,
 ) -> float | None:
-    """Seconds until the workers report ``expect_uplinks`` connected uplinks and the
+    """Seconds until the workers report ``expect_uplinks`` connected uplinks (and at
+    least ``registrations_at_least`` uplinks opened since they started) and the
     database counts every vehicle of ``names`` online; None if that did not happen
-    ``within`` seconds (the run goes on: how many were online is itself a result)."""
+    ``within`` seconds (the run goes on: how many were online is itself a result).
+
+    After a restart, pass the registrations so far plus the agents: right after the
+    cut, the workers' last report and the database (until ``IOUV_OFFLINE_AFTER_S``)
+    still show the old uplinks online."""
     start = time.monotonic()
     while time.monotonic() - start < within:
-        if workers.connected >= expect_uplinks:
+        if workers.connected >= expect_uplinks and workers.registrations >= registrations_at_least:
             check = await orm(fleet_check, names)
             if check["online"] == len(names):
                 return time.monotonic() - start
@@ -1377,7 +1399,7 @@ async def measure(
     results: Results,
     topology: str,
     phase: str,
-    pids: dict[str, list[int]],
+    pids: dict[str, list[int] | str],
     seconds: float,
     names: Sequence[str],
 ) -> None:
@@ -1437,7 +1459,7 @@ async def load_phase(
     env: dict[str, str],
     logs: Path,
     workers: AgentWorkers,
-    pids: dict[str, list[int]],
+    pids: dict[str, list[int] | str],
     names: Sequence[str],
     sessions: dict[bool, CarSession],
 ) -> None:
@@ -1614,12 +1636,12 @@ async def run_async(
                     f"within {wait:.0f} s of the agents starting; the run went on (see the "
                     "online counts)."
                 )
-            helpers = {
+            helpers: dict[str, list[int] | str] = {
                 "front proxy": [proxy.pid],
                 "agent workers": [c.pid for c in workers.children],
                 "this process (2 cars, orchestration)": [os.getpid()],
-                "postgres (all databases)": pids_named("postgres"),
-                "redis-server": pids_named("redis-server"),
+                "postgres (all databases)": "postgres",
+                "redis-server": "redis-server",
             }
             pids = {"platform-1": [p1.pid], **helpers}
             with results.timed(f"1. {count} agents window"):
@@ -1662,6 +1684,7 @@ async def run_async(
 
         # --- 4. two processes behind the proxy ----------------------------------------
         with results.timed("4. proxy restart, agents reconnect"):
+            registered = workers.registrations
             await proxy.stop()
             proxy = await proxy_start(
                 port=front,
@@ -1674,7 +1697,11 @@ async def run_async(
             stack.push_async_callback(proxy.stop)
             helpers["front proxy"] = [proxy.pid]
             results.online_after_s["two, all reconnect"] = await wait_online(
-                names=names, workers=workers, expect_uplinks=params.agents, within=within
+                names=names,
+                workers=workers,
+                expect_uplinks=params.agents,
+                within=within,
+                registrations_at_least=registered + params.agents,
             )
         if results.online_after_s["two, all reconnect"] is None:
             results.notes.append(
