@@ -54,7 +54,9 @@ def machine() -> list[str]:
 
 
 def run(module: str, quick: bool, extra: str) -> float:
-    command = [sys.executable, "-m", module, "--out", str(OUT / module.rsplit(".", 1)[1])]
+    # Relative to ROOT (the run's cwd), so the reports name no machine's path.
+    out = (OUT / module.rsplit(".", 1)[1]).relative_to(ROOT)
+    command = [sys.executable, "-m", module, "--out", str(out)]
     if quick:
         command.append("--quick")
     command += shlex.split(extra)
