@@ -370,15 +370,18 @@ async def test_user_draws_the_area_and_watches_the_mission_on_the_map(tmp_path: 
             arg=before,
             timeout=20000,
         )
+        # The search drone's thermal video plays in the page while it searches (waited
+        # for: the first frame may come after the marker's first move).
+        await page.wait_for_function(
+            "() => { const v = document.querySelector('video'); return v && v.videoWidth > 0; }",
+            timeout=30000,
+        )
         await expect(page.locator("path.detection-marker")).to_have_count(1, timeout=90000)
         await expect(page.locator("[data-mission-detection]")).to_contain_text("confidence")
         await expect(page.locator("path.vehicle-delivery")).to_have_count(1, timeout=30000)
         await expect(
             page.locator("[data-mission-timeline] li[data-kind=person_detected]")
         ).to_have_count(1)
-        # The search drone's thermal video played in the page.
-        width = await page.evaluate("() => document.querySelector('video').videoWidth")
-        assert width > 0
         await expect(page.locator("#mission-map")).to_have_attribute(
             "data-mission-state", "completed", timeout=120000
         )
