@@ -6,7 +6,8 @@ pool (a thousand agents reconnecting at once after a proxy restart: each leaves 
 group, joins it again and is welcomed, and the platform pushes what it saved for them)
 then fails frames at random and the agents must reconnect again. Here the pool is
 redis-py's ``BlockingConnectionPool``: a caller waits for a free connection, up to the
-host's ``timeout`` seconds, and the burst is served in turn.
+host's ``timeout`` seconds (set in settings; redis-py's default is 20), and the burst
+is served in turn.
 """
 
 from __future__ import annotations
@@ -15,9 +16,6 @@ from typing import Any
 
 from channels_redis.core import RedisChannelLayer
 from redis.asyncio import BlockingConnectionPool
-
-#: Seconds a caller waits for a free connection when the host sets no ``timeout``.
-POOL_WAIT_S = 10.0
 
 
 class WaitingRedisChannelLayer(RedisChannelLayer):  # type: ignore[misc]
@@ -32,5 +30,4 @@ class WaitingRedisChannelLayer(RedisChannelLayer):  # type: ignore[misc]
         if "address" not in host:
             return super().create_pool(index)
         address = host.pop("address")
-        host.setdefault("timeout", POOL_WAIT_S)
         return BlockingConnectionPool.from_url(address, **host)
