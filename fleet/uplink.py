@@ -550,6 +550,16 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         )
         self._backlog_task: asyncio.Task[None] | None = None
 
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            # A server shutting down cancels the consumer without a disconnect: the
+            # uplink's own tasks end with it instead of being destroyed pending.
+            for task in (self._hello_timer, self._backlog_task):
+                if task is not None:
+                    task.cancel()
+
     # -- connection ---------------------------------------------------------------------
 
     async def connect(self) -> None:

@@ -6,6 +6,7 @@ The channel layer is Redis under bin/test and in-memory under plain pytest.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import threading
 import time
@@ -385,6 +386,20 @@ async def test_relay_traffic_does_not_wait_for_a_slow_database(monkeypatch, slow
     if slow == "heartbeat write":
         await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 40)
     await comm.disconnect()
+
+
+async def test_a_server_cancelling_the_uplink_leaves_none_of_its_tasks_pending():
+    # A server shutting down cancels its application instances, without a disconnect.
+    # The uplink's own tasks (the hello deadline, the database backlog) must end with it,
+    # not be destroyed pending when the loop closes.
+    _, comm = await _idle_agent()
+    mine = {t for t in asyncio.all_tasks() if t.get_coro().__qualname__.startswith("AgentUplink")}
+    assert mine, "the uplink runs its backlog in a task of its own"
+    comm.future.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await comm.future
+    await asyncio.sleep(0)
+    assert all(t.done() for t in mine), [t for t in mine if not t.done()]
 
 
 async def test_what_the_agent_said_before_leaving_is_stored_before_the_offline_mark(
