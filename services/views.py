@@ -10,6 +10,7 @@ from django.contrib.auth.decorators import login_required, permission_required
 from django.db import connection
 from django.http import Http404, HttpRequest, HttpResponse, JsonResponse
 from django.shortcuts import get_object_or_404, redirect, render
+from django.views.decorators.cache import never_cache
 from django.views.decorators.http import require_POST
 
 from accounts.roles import user_roles
@@ -133,6 +134,10 @@ def _own_session(request: HttpRequest, session_id: str) -> Session:
     return session
 
 
+# Pages and answers that carry a signed grant must not be stored by the browser or a
+# proxy (Cache-Control: no-store): a grant kept in a cache could be read there and
+# used, by someone else, until it expires.
+@never_cache
 @login_required
 def session_page(request: HttpRequest, session_id: str) -> HttpResponse:
     """The user task: the controller for the session's vehicle."""
@@ -173,6 +178,7 @@ def session_page(request: HttpRequest, session_id: str) -> HttpResponse:
     )
 
 
+@never_cache
 @login_required
 @require_POST
 def session_grant(request: HttpRequest, session_id: str) -> JsonResponse:
@@ -243,6 +249,7 @@ def spectate(request: HttpRequest) -> HttpResponse:
     return render(request, "services/spectate.html", {"sessions": sessions_spectatable()})
 
 
+@never_cache
 @login_required
 def spectate_session(request: HttpRequest, session_id: str) -> HttpResponse:
     """Watch one session's vehicle: video and telemetry, view-only."""

@@ -1,0 +1,86 @@
+"""Portal answers that carry a signed user grant are never kept by a cache.
+
+The JSON API's answers are covered in test_api.py and the admin's fresh credentials in
+tests/test_admin.py; here the portal's pages and its reconnect endpoint.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+from django.test import Client
+from django.urls import reverse
+
+from agents.protocol import UserGrant
+from services.assignment import session_request
+from services.demo import demo_seed
+from services.models import Service, Session
+from services.rescue import rescue_request
+from services.signing import platform_public_key
+from tests import factories as f
+from tests.services.test_deployment import TARGET, _registered_vehicle, _service
+from tests.services.test_rescue import area, online
+
+pytestmark = pytest.mark.django_db
+
+
+def _uncacheable(response: Any) -> None:
+    assert response.status_code == 200
+    assert "no-store" in response.get("Cache-Control", ""), response.get("Cache-Control")
+
+
+@pytest.fixture
+def live(client: Client) -> tuple[Session, str]:
+    """A live session of the logged-in client, and its vehicle's id."""
+    vehicle = _registered_vehicle()
+    user = f.user(username="alice")
+    session = session_request(user=user, service=_service(), target=TARGET)
+    client.force_login(user)
+    return session, str(vehicle.pk)
+
+
+def _page_grant(html: str, vehicle_id: str) -> UserGrant:
+    """The grant in the page's user-task JSON (it must verify: a real grant)."""
+    start = html.index('<script id="user-task" type="application/json">')
+    task = json.loads(html[html.index(">", start) + 1 : html.index("</script>", start)])
+    return UserGrant.verify(task["grant"], platform_public_key(), vehicle_id=vehicle_id)
+
+
+def test_the_controller_page_is_not_stored(client, live) -> None:
+    session, vehicle_id = live
+    page = client.get(reverse("session", args=[session.pk]))
+    _uncacheable(page)
+    assert _page_grant(page.content.decode(), vehicle_id).role == "controller"
+
+
+def test_a_fresh_grant_to_reconnect_is_not_stored(client, live) -> None:
+    session, vehicle_id = live
+    answer = client.post(reverse("session_grant", args=[session.pk]))
+    _uncacheable(answer)
+    UserGrant.verify(answer.json()["grant"], platform_public_key(), vehicle_id=vehicle_id)
+
+
+def test_the_spectators_page_is_not_stored(client, live) -> None:
+    session, vehicle_id = live
+    f.service("spectate", workflow="spectate")
+    client.force_login(f.user(username="vera"))
+    page = client.get(reverse("spectate_session", args=[session.pk]))
+    _uncacheable(page)
+    assert _page_grant(page.content.decode(), vehicle_id).role == "viewer"
+
+
+def test_the_rescue_mission_page_is_not_stored(client) -> None:
+    # The same view as the controller's: once a search vehicle flies, it carries the
+    # user's viewer grant.
+    demo_seed(password="pw")
+    online("search-1", "lifeguard-1")
+    user = f.user(username="skipper")
+    session = rescue_request(
+        user=user, service=Service.objects.get(slug="rescue-at-sea"), area=area()
+    )
+    client.force_login(user)
+    page = client.get(reverse("session", args=[session.pk]))
+    _uncacheable(page)
+    assert 'id="mission-map"' in page.content.decode()
