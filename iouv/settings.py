@@ -16,8 +16,10 @@ from __future__ import annotations
 import secrets
 from pathlib import Path
 
+from csp.constants import NONE, SELF
 from django.core.exceptions import ImproperlyConfigured
 
+from iouv.csp_sources import csp_origin_of_template
 from iouv.env import (
     database_from_url,
     env_bool,
@@ -75,6 +77,9 @@ INSTALLED_APPS = [
 
 MIDDLEWARE = [
     "django.middleware.security.SecurityMiddleware",
+    # Early, so that every page answered below it, error pages included, carries the
+    # policy (CONTENT_SECURITY_POLICY).
+    "csp.middleware.CSPMiddleware",
     "django.contrib.sessions.middleware.SessionMiddleware",
     "django.middleware.common.CommonMiddleware",
     "django.middleware.csrf.CsrfViewMiddleware",
@@ -265,6 +270,28 @@ IOUV_MISSION_TICK_S = env_float("IOUV_MISSION_TICK_S", 2.0)
 IOUV_MAP_TILES_URL = env_str("IOUV_MAP_TILES_URL", "")
 # Rescue team webhooks: how long one delivery attempt may take.
 IOUV_WEBHOOK_TIMEOUT_S = env_float("IOUV_WEBHOOK_TIMEOUT_S", 5.0)
+
+# --- Content-Security-Policy (django-csp, on every response) ------------------------------
+# Scripts and styles come only from the platform's static files (Leaflet is vendored
+# there); pages hold no inline code, so neither needs 'unsafe-inline'. The controller
+# opens a WebSocket straight to the vehicle's agent (ws://host:port/ of any vehicle),
+# hence ws: and wss: in connect-src. WebRTC video reaches <video> as a MediaStream
+# (srcObject), which no fetch directive governs. Map tiles come from the tile server in
+# IOUV_MAP_TILES_URL; Leaflet blanks a cancelled tile with a data: image.
+_MAP_TILES_SOURCE = csp_origin_of_template(IOUV_MAP_TILES_URL, setting="IOUV_MAP_TILES_URL")
+CONTENT_SECURITY_POLICY = {
+    "DIRECTIVES": {
+        "default-src": [SELF],
+        "script-src": [SELF],
+        "style-src": [SELF],
+        "img-src": [SELF, "data:", *([_MAP_TILES_SOURCE] if _MAP_TILES_SOURCE else [])],
+        "connect-src": [SELF, "ws:", "wss:"],
+        "object-src": [NONE],
+        "base-uri": [NONE],
+        "form-action": [SELF],
+        "frame-ancestors": [NONE],
+    }
+}
 
 EMAIL_BACKEND = env_str("EMAIL_BACKEND", "django.core.mail.backends.console.EmailBackend")
 EMAIL_FILE_PATH = env_str("EMAIL_FILE_PATH", str(VAR_DIR / "mail"))
