@@ -21,7 +21,12 @@ from django.conf import settings  # noqa: E402
 from django.urls import re_path  # noqa: E402
 
 from iouv.concurrency import HttpConcurrencyLimit  # noqa: E402
+from iouv.http_limits import daphne_use_limited_channel  # noqa: E402
 from iouv.routing import browser_websocket_urlpatterns, self_authenticating_websocket_urlpatterns  # noqa: E402
+
+# daphne answers an oversized request line or header with a 414 or 431 instead of
+# dropping the connection without a word.
+daphne_use_limited_channel()
 
 http_app = HttpConcurrencyLimit(django_asgi_app, limit=settings.IOUV_HTTP_CONCURRENCY)
 if settings.SERVE_STATIC:
