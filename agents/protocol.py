@@ -446,6 +446,12 @@ _SCHEMAS: Final[dict[str, dict[str, dict[str, str]]]] = {
             "video": "bool",
             "position": "position|null",
             "battery": "battery|null",
+            # What the agent is doing as it (re)registers, so the platform can converge
+            # it: the session of the task it runs, whether a user controls it, and its
+            # status word (as in heartbeats).
+            "session_id": "id|null?",
+            "controller": "bool?",
+            "status": "str?",
         },
         "heartbeat": {
             "seq": "uint",
@@ -456,6 +462,8 @@ _SCHEMAS: Final[dict[str, dict[str, dict[str, str]]]] = {
         },
         "task_accepted": {"session_id": "id"},
         "task_refused": {"session_id": "id|null?", "code": "id", "reason": "str"},
+        # The agent handled the platform message carrying this id (see "Delivery").
+        "ack": {"id": "id", "ok": "bool", "detail": "str?"},
         "event": {"session_id": "id|null", "event": "id", "data": "object"},
         "relay": {"session_id": "id", "conn": "id?", "payload": "relay_to_client"},
         # The agent dropped a relayed client (bad grant, revoked, flooding).
@@ -467,9 +475,10 @@ _SCHEMAS: Final[dict[str, dict[str, dict[str, str]]]] = {
             "heartbeat_interval_s": "positive_number",
             "platform_public_key": "str?",
         },
-        "task": {"token": "id"},
-        "revoke": {"session_id": "id", "reason": "str", "action": "action"},
-        "end_task": {"session_id": "id", "reason": "str"},
+        # These three carry an id and are sent again until the agent acknowledges it.
+        "task": {"token": "id", "id": "id?"},
+        "revoke": {"session_id": "id", "reason": "str", "action": "action", "id": "id?"},
+        "end_task": {"session_id": "id", "reason": "str", "id": "id?"},
         "relay": {"session_id": "id", "conn": "id?", "payload": "relay_to_agent"},
         # The relayed browser went away: for the agent, that client's socket closed.
         "relay_close": {"session_id": "id", "conn": "id", "code": "uint?", "reason": "str?"},

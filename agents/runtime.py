@@ -133,7 +133,12 @@ class Agent:
 
     # --- what the platform hears ---------------------------------------------------------
     def profile(self) -> dict[str, Any]:
+        """The ``profile`` sent on every registration: what the vehicle is and offers,
+        and what it is doing now (its task's session, whether a user controls it, its
+        status), from which the platform converges it to what it should be doing."""
         state = self.adapter.state()
+        hub = self.hub
+        task = hub.task if hub is not None else None
         return {
             "type": "profile",
             "vehicle_type": str(self.config.adapter_options.get("vehicle_type", self.adapter.name)),
@@ -145,21 +150,26 @@ class Agent:
             "video": self.video is not None,
             "position": self._position(),
             "battery": state.battery,
+            "session_id": task.session_id if task is not None else None,
+            "controller": hub is not None and hub.controller is not None,
+            "status": self._status(),
         }
 
     def heartbeat(self) -> dict[str, Any]:
-        hub = self.hub
-        status = "idle"
-        if hub is not None and hub.task is not None:
-            status = "in_service"
-        elif self._airborne():
-            status = "returning"  # still flying home or landing on its own
         return {
             "type": "heartbeat",
             "position": self._position(),
             "battery": self.adapter.state().battery,
-            "status": status,
+            "status": self._status(),
         }
+
+    def _status(self) -> str:
+        hub = self.hub
+        if hub is not None and hub.task is not None:
+            return "in_service"
+        if self._airborne():
+            return "returning"  # still flying home or landing on its own
+        return "idle"
 
     def _airborne(self) -> bool:
         """True while the vehicle is still in the air (telemetry ``in_air`` or an

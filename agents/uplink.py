@@ -5,6 +5,12 @@ keeps serving the user already connected to it (and its fail-safes keep working)
 reports queue up in a bounded outbox to be sent after reconnecting. Reconnection
 uses exponential backoff with full jitter so a fleet does not reconnect in lockstep
 after a platform restart.
+
+The platform sends the messages that change what the vehicle does (``task``,
+``revoke``, ``end_task``) with an ``id``, again and again until they are acknowledged.
+The uplink answers ``ack`` with that id once the message has been handled, and hands a
+message it has already handled (a resend after a reconnect) to nobody: it only
+acknowledges it again.
 """
 
 from __future__ import annotations
@@ -13,7 +19,7 @@ import asyncio
 import contextlib
 import logging
 import random
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Awaitable, Callable, Mapping
 from typing import Any
 
@@ -32,6 +38,8 @@ log = logging.getLogger(__name__)
 
 WELCOME_TIMEOUT_S = 10.0
 OUTBOX_SIZE = 1000
+#: Ids of handled platform messages remembered, to recognise resends.
+HANDLED_IDS = 4096
 
 
 def backoff_delay(attempt: int, *, base: float, cap: float) -> float:
@@ -72,6 +80,7 @@ class Uplink:
         self.connected = asyncio.Event()
         self.connections = 0  # successful registrations, for tests and status
         self._outbox: deque[str] = deque(maxlen=OUTBOX_SIZE)
+        self._handled: OrderedDict[str, None] = OrderedDict()
         self._wake = asyncio.Event()
         self._hb_seq = 0
 
@@ -156,11 +165,30 @@ class Uplink:
             except ProtocolError as exc:
                 log.warning("ignored a bad message from the platform: %s", exc)
                 continue
-            try:
-                await self.on_message(msg)
-            except Exception:
-                # A bug handling one message must not take the vehicle off the platform.
-                log.exception("handling platform message %s failed", msg.get("type"))
+            await self._handle(msg)
+
+    async def _handle(self, msg: dict[str, Any]) -> None:
+        """Hand ``msg`` to ``on_message`` (once per id) and acknowledge it if it has one."""
+        mid = msg.get("id")
+        if isinstance(mid, str) and mid in self._handled:
+            self._handled.move_to_end(mid)
+            self.send({"type": "ack", "id": mid, "ok": True, "detail": "already handled"})
+            return
+        ok, detail = True, ""
+        try:
+            await self.on_message(msg)
+        except Exception as exc:
+            # A bug handling one message must not take the vehicle off the platform;
+            # the platform hears that it failed instead of sending it for ever.
+            log.exception("handling platform message %s failed", msg.get("type"))
+            ok, detail = False, f"{type(exc).__name__}: {exc}"[:200]
+        if isinstance(mid, str):
+            self._handled[mid] = None
+            while len(self._handled) > HANDLED_IDS:
+                self._handled.popitem(last=False)
+            # Queued behind what handling it queued (task_accepted...), so the platform
+            # hears the outcome before the acknowledgement.
+            self.send({"type": "ack", "id": mid, "ok": ok, "detail": detail})
 
     async def _heartbeats(self, ws: ClientConnection) -> None:
         while True:

@@ -13,9 +13,11 @@ import secrets
 import uuid
 
 from django.db import transaction
+from django.db.models import F
 from django.utils import timezone
 
 from fleet.models import Vehicle
+from fleet.outbox import vehicle_disconnect_older_uplinks
 
 
 def _digest(credential: str) -> str:
@@ -26,14 +28,22 @@ def vehicle_issue_credential(*, vehicle: Vehicle) -> str:
     """Make a fresh credential for ``vehicle``, store its digest and return it.
 
     The plain value is returned only here: show it once and put it in the agent's
-    config. Any earlier credential stops working.
+    config. Any earlier credential stops working, and an uplink authenticated with one
+    is closed wherever it is (fleet.outbox), within a second.
     """
     credential = secrets.token_urlsafe(32)
     with transaction.atomic():
+        locked = Vehicle.objects.select_for_update().get(pk=vehicle.pk)
         Vehicle.objects.filter(pk=vehicle.pk).update(
-            credential_hash=_digest(credential), credential_issued_at=timezone.now()
+            credential_hash=_digest(credential),
+            credential_issued_at=timezone.now(),
+            credential_generation=F("credential_generation") + 1,
         )
+        generation = locked.credential_generation + 1
+        if locked.credential_hash:
+            vehicle_disconnect_older_uplinks(vehicle_id=vehicle.pk, generation=generation)
     vehicle.credential_hash = _digest(credential)
+    vehicle.credential_generation = generation
     return credential
 
 

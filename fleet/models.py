@@ -79,6 +79,9 @@ class Vehicle(DeclaredAttributes, models.Model):
         RESERVED = "reserved"
         IN_SERVICE = "in_service", "in service"
         RETURNING = "returning"
+        # Its session is over but the agent has not yet confirmed the end (or revoke):
+        # not assignable, whatever its heartbeats say (see fleet.outbox).
+        RELEASING = "releasing", "finishing its task"
         FAILSAFE = "failsafe"
         MAINTENANCE = "maintenance"
 
@@ -93,6 +96,9 @@ class Vehicle(DeclaredAttributes, models.Model):
 
     # Enrolment: the agent's credential, kept as a SHA-256 digest (see fleet.credentials).
     credential_hash = models.CharField(max_length=64, blank=True, editable=False)
+    #: Bumped by every credential issued: an uplink authenticated under an older one is
+    #: closed (see fleet.outbox).
+    credential_generation = models.PositiveIntegerField(default=0, editable=False)
     credential_issued_at = models.DateTimeField(null=True, blank=True, editable=False)
 
     # Live state, written by the uplink.
@@ -149,3 +155,61 @@ class LayerMessage(models.Model):
 
     def __str__(self) -> str:
         return f"{self.group}: {self.message.get('type', '?')}"
+
+
+class AgentMessage(models.Model):
+    """A message the platform owes a vehicle's agent, kept until the agent acknowledges it.
+
+    The platform's word to a vehicle (a task, a revoke, the end of a task, the closing
+    of an uplink whose credential was replaced) is written here in the transaction that
+    decides it, and delivered by the process holding the vehicle's uplink (fleet.outbox),
+    again and again until the agent answers ``ack`` with its ``key``. A broker outage
+    delays it; nothing loses it. Messages of one vehicle are delivered in ``id`` order.
+    """
+
+    class Kind(models.TextChoices):
+        TASK = "task"
+        REVOKE = "revoke"
+        END_TASK = "end_task"
+        #: Not sent to the agent: the uplink holding an older credential is closed.
+        DISCONNECT = "disconnect"
+
+    class State(models.TextChoices):
+        PENDING = "pending"
+        ACKED = "acked", "acknowledged"
+        #: Superseded before delivery (a task whose session ended, a reconnect that
+        #: showed the agent does not need it).
+        CANCELLED = "cancelled"
+
+    id = models.BigAutoField(primary_key=True)
+    #: The message id on the wire: random, so an agent's memory of ids it has handled
+    #: can never match a different message.
+    key = models.UUIDField(default=uuid.uuid4, unique=True, editable=False)
+    vehicle = models.ForeignKey(Vehicle, on_delete=models.CASCADE, related_name="messages")
+    #: The session the message is about (fleet does not know sessions: a plain id).
+    session_id = models.UUIDField(null=True, blank=True)
+    kind = models.CharField(max_length=12, choices=Kind.choices)
+    message = models.JSONField(help_text="The uplink_to_agent message, without its id.")
+    state = models.CharField(max_length=10, choices=State.choices, default=State.PENDING)
+    created_at = models.DateTimeField(auto_now_add=True)
+    #: When it was last put on an uplink, and how often.
+    sent_at = models.DateTimeField(null=True, blank=True)
+    attempts = models.PositiveIntegerField(default=0)
+    acked_at = models.DateTimeField(null=True, blank=True)
+    #: What the agent said when it acknowledged (``ok`` and a short detail).
+    result = models.JSONField(default=dict, blank=True)
+
+    class Meta:
+        ordering = ["id"]
+        indexes = [
+            # The outbox reads only what is still owed, so the index holds only that.
+            models.Index(
+                fields=["vehicle", "id"],
+                condition=models.Q(state="pending"),
+                name="agent_message_pending",
+            ),
+            models.Index(fields=["session_id"], name="agent_message_session"),
+        ]
+
+    def __str__(self) -> str:
+        return f"{self.kind} to {self.vehicle_id} ({self.state})"

@@ -17,7 +17,12 @@ from __future__ import annotations
 from django.dispatch import Signal
 
 #: An agent registered: it said ``hello`` with a valid credential and its ``profile``
-#: has been stored. Kwargs: ``vehicle_id``.
+#: has been stored. Sent inside the transaction that stored it, so receivers converge
+#: the agent to the platform's wishes before anything else sees the vehicle; receivers
+#: must do their writes in their own ``transaction.atomic()`` block. Kwargs:
+#: ``vehicle_id``, ``state``: what the agent says it is doing, ``{"session_id": the
+#: session of the task it runs or None, "controller": a user controls it, "status":
+#: its own status word or None}``.
 agent_connected = Signal()
 
 #: An agent's uplink closed (and no newer uplink of the same vehicle has taken over).
@@ -29,6 +34,11 @@ agent_disconnected = Signal()
 #: dict of extra optional ``welcome`` fields (e.g. ``platform_public_key``, which the
 #: signing key's owner knows and ``fleet`` does not). Kwargs: ``vehicle_id``.
 agent_welcome = Signal()
+
+#: An agent acknowledged a message the platform owed it (fleet.outbox). Kwargs:
+#: ``vehicle_id``, ``acked`` (a :class:`fleet.outbox.Acked`: the message's kind and
+#: session, the agent's ``ok`` and detail, whether the vehicle left ``releasing``).
+agent_acked = Signal()
 
 #: An agent sent ``task_accepted``, ``task_refused``, ``event`` or ``relay``.
 #: Kwargs: ``vehicle_id``, ``message`` (the dict from ``parse_message``: fields

@@ -13,12 +13,15 @@ Close codes the platform uses on this socket:
 4401   bad credential, or anything but a valid ``hello`` first
 4408   no ``hello`` within ``IOUV_HELLO_TIMEOUT_S``
 4409   replaced: a newer uplink of the same vehicle took over
+4401   (also) the vehicle's credential was replaced (error ``credential_revoked``)
 4429   flood: too many refused frames in a short time
 1011   the platform failed before authentication finished (retry)
 =====  ===============================================================
 
-Messages to an agent travel on the channel layer to the group of its vehicle
-(:func:`vehicle_send`), so any platform process can reach an agent connected to another.
+What the platform tells an agent (tasks, revokes, ends) is owed in the database until
+the agent acknowledges it (:func:`vehicle_send`, fleet.outbox); relayed control traffic
+travels on the channel layer to the group of the vehicle (:func:`avehicle_send`), so any
+platform process can reach an agent connected to another.
 """
 
 from __future__ import annotations
@@ -53,9 +56,21 @@ from agents.protocol import (
 from fleet.credentials import vehicle_authenticate
 from fleet.feed import fleet_notify
 from fleet.models import Vehicle
-from fleet.signals import agent_connected, agent_disconnected, agent_message, agent_welcome
+from fleet.outbox import (
+    agent_message_ack,
+    agent_message_enqueue,
+    outbox,
+    vehicle_group,
+)
+from fleet.signals import (
+    agent_acked,
+    agent_connected,
+    agent_disconnected,
+    agent_message,
+    agent_welcome,
+)
 from iouv.consumers import DirectDispatch
-from iouv.layer import group_send_after_commit, relay_ensure
+from iouv.layer import relay_ensure
 
 log = logging.getLogger(__name__)
 
@@ -83,9 +98,12 @@ _RELAYED = frozenset({"relay", "relay_close"})
 #: past this the uplink stops reading until they are handled (backpressure).
 BACKLOG_MAX = 64
 
-# Statuses the platform owns while a vehicle serves a session: what the agent says in
-# its profile or heartbeats never overrides them (services moves them on).
-_PLATFORM_HELD = frozenset({Vehicle.Status.RESERVED, Vehicle.Status.IN_SERVICE})
+# Statuses the platform owns while a vehicle serves a session or gives one up: what the
+# agent says in its profile or heartbeats never overrides them (services and the
+# outbox move them on).
+_PLATFORM_HELD = frozenset(
+    {Vehicle.Status.RESERVED, Vehicle.Status.IN_SERVICE, Vehicle.Status.RELEASING}
+)
 
 
 def _db(func: Callable[..., Any]) -> Callable[..., Awaitable[Any]]:
@@ -106,49 +124,36 @@ def _db(func: Callable[..., Any]) -> Callable[..., Awaitable[Any]]:
 # --------------------------------------------------------------------------------------
 
 
-def vehicle_group(vehicle_id: Any) -> str:
-    """The channel-layer group of a vehicle's uplink: ``vehicle-<uuid hex>``.
-
-    Raises ValueError when ``vehicle_id`` is not a UUID (group names must be plain ASCII).
-    """
-    return f"vehicle-{uuid.UUID(str(vehicle_id)).hex}"
-
-
 def relay_group(conn: str) -> str:
     """The channel-layer group of one relayed browser connection (``conn`` is the
     random id the relay picked)."""
     return f"relay-{conn}"
 
 
-def _agent_event(vehicle_id: Any, message: dict[str, Any]) -> tuple[str, dict[str, Any]]:
-    # Validate here so a sender's bug surfaces at the caller, not silently in the consumer.
-    encode_message(message, channel="uplink_to_agent")
-    return vehicle_group(vehicle_id), {"type": "agent.send", "message": dict(message)}
+def vehicle_send(*, vehicle_id: Any, message: dict[str, Any], session_id: Any = None) -> None:
+    """Tell the vehicle's agent ``message`` (a ``task``, ``revoke`` or ``end_task``),
+    reliably: it is owed in the database from the current transaction on and delivered
+    until the agent acknowledges it, whenever the agent is connected (fleet.outbox).
+    ``session_id``: the session it is about (default: the message's own field; a
+    ``task`` carries it only inside its token).
 
-
-def vehicle_send(*, vehicle_id: Any, message: dict[str, Any]) -> None:
-    """Send ``message`` (an uplink_to_agent message) to the vehicle's agent.
-
-    Sent after the current transaction commits, so an agent never hears about a task or a
-    revocation that was rolled back; sent at once outside a transaction. Delivery is
-    best effort: no agent connected means nobody receives it (the caller's state, e.g. a
-    session, stays the source of truth). Raises ProtocolError if ``message`` is not a
-    valid uplink_to_agent message, ValueError if ``vehicle_id`` is not a UUID.
+    Raises ProtocolError if ``message`` is not a valid uplink_to_agent message,
+    ValueError for another type or if ``vehicle_id`` is not a UUID.
     """
-    group, event = _agent_event(vehicle_id, message)
-    group_send_after_commit(group, event)
+    agent_message_enqueue(vehicle_id=vehicle_id, message=message, session_id=session_id)
 
 
 async def avehicle_send(*, vehicle_id: Any, message: dict[str, Any]) -> None:
-    """Async :func:`vehicle_send` for async callers (consumers); sends at once.
-
-    Same errors as :func:`vehicle_send`. Do not call it from inside a transaction whose
-    outcome is not yet known: use :func:`vehicle_send` there.
+    """Send ``message`` (an uplink_to_agent message) to the vehicle's agent now, best
+    effort, through the channel layer: for relayed control traffic, which is worthless
+    late. Raises ProtocolError for an invalid message, ValueError for a bad id.
     """
-    group, event = _agent_event(vehicle_id, message)
+    encode_message(message, channel="uplink_to_agent")
     layer = get_channel_layer()
     if layer is not None:
-        await layer.group_send(group, event)
+        await layer.group_send(
+            vehicle_group(vehicle_id), {"type": "agent.send", "message": dict(message)}
+        )
 
 
 # --------------------------------------------------------------------------------------
@@ -157,14 +162,21 @@ async def avehicle_send(*, vehicle_id: Any, message: dict[str, Any]) -> None:
 
 
 def _status_after(
-    vehicle: Vehicle, *, reported: str | None, registered: bool, new_profile: bool = False
+    vehicle: Vehicle,
+    *,
+    reported: str | None,
+    registered: bool,
+    new_profile: bool = False,
+    running: bool = False,
 ) -> str:
     """The status a live agent's report leads to.
 
     Maintenance and the session statuses are the platform's to change. An agent in
     fail-safe is not assignable; one that is heard from again after being offline (or
     that says it is idle again after a fail-safe) is idle, but only once it has sent a
-    profile, since without one nobody could control it.
+    profile, since without one nobody could control it. ``running``: the agent says
+    (in its profile) it still runs a task; unless the platform holds the vehicle for
+    that task, it is ``releasing`` until it confirms the end the platform sends it.
     """
     current = vehicle.status
     if vehicle.maintenance or current == Vehicle.Status.MAINTENANCE or current in _PLATFORM_HELD:
@@ -173,6 +185,8 @@ def _status_after(
         return Vehicle.Status.FAILSAFE
     if not registered:
         return current
+    if running:
+        return Vehicle.Status.RELEASING
     # Still flying home or landing after its session: not assignable until it says idle.
     if reported == "returning" and current in (Vehicle.Status.IDLE, Vehicle.Status.OFFLINE):
         return Vehicle.Status.RETURNING
@@ -211,7 +225,13 @@ def vehicle_record_profile(*, vehicle_id: Any, profile: dict[str, Any], now: dat
     Stores the control URL, the reported vocabulary, telemetry topics, video, type,
     adapter and attributes (as reported: the declared attributes used for matching
     stay the admin's), position, battery and last_seen. An offline or fail-safe vehicle
-    becomes idle, unless in maintenance; reserved/in-service are kept.
+    becomes idle (or what its reported ``status`` says), unless in maintenance;
+    reserved, in-service and releasing are kept; a vehicle whose agent says it runs a
+    task the platform does not hold it for is ``releasing``.
+
+    Then, in the same transaction, ``agent_connected`` is sent with the state the agent
+    reported, so that other apps converge the agent to what the platform wants before
+    anything else is decided about the vehicle.
     """
     with transaction.atomic():
         vehicle = Vehicle.objects.select_for_update().filter(pk=vehicle_id).first()
@@ -232,7 +252,13 @@ def vehicle_record_profile(*, vehicle_id: Any, profile: dict[str, Any], now: dat
         _set_position(vehicle, profile["position"])
         vehicle.battery = profile["battery"]
         vehicle.last_seen = now
-        vehicle.status = _status_after(vehicle, reported=None, registered=True, new_profile=True)
+        vehicle.status = _status_after(
+            vehicle,
+            reported=profile.get("status"),
+            registered=True,
+            new_profile=True,
+            running=profile.get("session_id") is not None,
+        )
         vehicle.save(
             update_fields=[
                 "control_url",
@@ -246,6 +272,15 @@ def vehicle_record_profile(*, vehicle_id: Any, profile: dict[str, Any], now: dat
             ]
         )
         fleet_notify([vehicle.pk])
+        _signal_send(
+            agent_connected,
+            vehicle_id=str(vehicle.pk),
+            state={
+                "session_id": profile.get("session_id"),
+                "controller": bool(profile.get("controller")),
+                "status": profile.get("status"),
+            },
+        )
 
 
 @dataclass(frozen=True)
@@ -509,6 +544,13 @@ def _admit(
     return vehicle, _welcome(str(vehicle.pk))
 
 
+def _acked(*, vehicle_id: str, key: str, ok: bool, detail: str | None) -> None:
+    """An ``ack`` from the agent: the message is delivered; other apps hear of it."""
+    acked = agent_message_ack(vehicle_id=vehicle_id, key=key, ok=ok, detail=detail or "")
+    if acked is not None:
+        _signal_send(agent_acked, vehicle_id=vehicle_id, acked=acked)
+
+
 def _disconnected(*, vehicle_id: str, last_seen: datetime | None, code: int) -> None:
     """A closed uplink's database work in one call: the vehicle is marked offline and
     the other apps told, if this uplink still was the vehicle's."""
@@ -537,6 +579,9 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self._group: str | None = None
         self._first_frame_seen = False
         self._registered = False  # a profile was stored on this uplink
+        #: The credential generation this uplink authenticated under (fleet.outbox
+        #: closes it when a newer credential is issued).
+        self.credential_generation = 0
         self._closed = False  # we closed (or were replaced): ignore what follows
         self._replaced = False
         self._last_seen: datetime | None = None  # the last last_seen this uplink wrote
@@ -582,6 +627,8 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         try:
             if self._hello_timer is not None:
                 self._hello_timer.cancel()
+            if self.vehicle_id is not None:
+                outbox().unregister(self.vehicle_id, self)
             if self._group is not None:
                 try:
                     await self.channel_layer.group_discard(self._group, self.channel_name)
@@ -665,6 +712,10 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             await self._profile(msg)
         elif kind == "heartbeat":
             await self._heartbeat(msg)
+        elif kind == "ack":
+            await _db(_acked)(
+                vehicle_id=self.vehicle_id, key=msg["id"], ok=msg["ok"], detail=msg.get("detail")
+            )
         elif kind in _RELAYED:
             await self._bad_frame("bad_field", "a relayed message needs its conn")
         elif kind in _PUBLISHED:
@@ -730,6 +781,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             return
         vehicle, welcome = admitted
         self.vehicle_id = str(vehicle.pk)
+        self.credential_generation = vehicle.credential_generation
         self._last_seen = now
         self._group = vehicle_group(vehicle.pk)
         # A vehicle is one agent: tell an older uplink of this vehicle to go, before
@@ -748,11 +800,15 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
 
     async def _profile(self, msg: dict[str, Any]) -> None:
         now = timezone.now()
+        # Records the profile and converges the agent to what the platform wants (the
+        # agent_connected receivers) in one transaction; only then does the outbox
+        # deliver what the vehicle is owed on this uplink.
         await _db(vehicle_record_profile)(vehicle_id=self.vehicle_id, profile=msg, now=now)
         self._last_seen = now
-        if not self._registered:
-            self._registered = True
-            await _db(_signal_send)(agent_connected, vehicle_id=self.vehicle_id)
+        self._registered = True
+        if not self._closed:
+            assert self.vehicle_id is not None
+            outbox().register(self.vehicle_id, self)
 
     async def _heartbeat(self, msg: dict[str, Any]) -> None:
         # At most two writes per heartbeat interval: an agent that heartbeats too fast
@@ -784,11 +840,33 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         except Exception:
             log.exception("uplink %s: sending to the agent failed", self.vehicle_id)
 
+    async def agent_outbox(self, event: dict[str, Any]) -> None:
+        """Something was written for this vehicle (fleet.outbox): look now, not at the
+        next poll."""
+        if self.vehicle_id is not None and self._registered:
+            outbox().wake()
+
+    async def outbox_send(self, message: dict[str, Any]) -> None:
+        """Send one owed message (it carries its ``id``); raises if the uplink is gone."""
+        if self._closed:
+            raise ConnectionError("uplink closed")
+        await self._send_message(message)
+
+    async def outbox_credential_revoked(self) -> None:
+        """The vehicle has a new credential: this uplink's holder is no longer trusted."""
+        if self.vehicle_id is not None:
+            outbox().unregister(self.vehicle_id, self)
+        await self._refuse(
+            "credential_revoked", "this vehicle's credential was replaced", CLOSE_UNAUTHORIZED
+        )
+
     async def agent_replaced(self, event: dict[str, Any]) -> None:
         """A newer uplink of this vehicle authenticated: this one closes (4409)."""
         if event.get("channel") == self.channel_name or self._closed:
             return
         self._replaced = True
+        if self.vehicle_id is not None:
+            outbox().unregister(self.vehicle_id, self)
         try:
             if self._group is not None:
                 await self.channel_layer.group_discard(self._group, self.channel_name)

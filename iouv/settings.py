@@ -242,9 +242,17 @@ IOUV_GRANT_TTL_S = env_int("IOUV_GRANT_TTL_S", 300)
 IOUV_TASK_TTL_S = env_int("IOUV_TASK_TTL_S", 60)
 # An uplink that has not sent ``hello`` after this long is closed.
 IOUV_HELLO_TIMEOUT_S = env_float("IOUV_HELLO_TIMEOUT_S", 5.0)
-# After an agent reports a fail-safe, how long the user has to reconnect before the
-# session ends as an unintentional end.
+# After a fail-safe or the controller leaving, how long the user has to come back (a
+# new connection, or input again on the socket it kept) before the session ends.
 IOUV_RECONNECT_GRACE_S = env_int("IOUV_RECONNECT_GRACE_S", 30)
+# A session of a user-driven service that nobody connected to this long after its
+# vehicle was reserved ends, so a user who asked and left holds no vehicle.
+IOUV_CONNECT_TIMEOUT_S = env_float("IOUV_CONNECT_TIMEOUT_S", 120.0)
+# A user-driven session whose vehicle has been offline this long ends: the platform can
+# no longer supervise it. The vehicle stays offline, not free, until its agent is back.
+IOUV_VEHICLE_LOST_S = env_float("IOUV_VEHICLE_LOST_S", IOUV_OFFLINE_AFTER_S)
+# How often the supervisor's timers run (Celery beat), in seconds.
+IOUV_SUPERVISION_TICK_S = env_float("IOUV_SUPERVISION_TICK_S", 2.0)
 # More than this many commands refused for safety reasons within the window revokes
 # the session.
 IOUV_UNSAFE_REFUSALS_MAX = env_int("IOUV_UNSAFE_REFUSALS_MAX", 5)

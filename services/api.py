@@ -47,7 +47,9 @@ from services.openapi import (
     REASON_MAX,
     openapi_document,
 )
-from services.sessions import SessionStateError
+from services.rescue import RescueError, rescue_request
+from services.selectors import session_delivery
+from services.sessions import FINAL, SessionStateError
 
 logger = logging.getLogger(__name__)
 
@@ -422,6 +424,7 @@ def session_json(session: Session) -> dict[str, Any]:
             }
             for a in session.assignments.select_related("vehicle")
         ],
+        "delivery": session_delivery(session) if session.state in FINAL else [],
         "log": {
             "chain_ok": check.ok,
             "bad_seq": check.bad_seq,
@@ -484,6 +487,14 @@ def sessions_create(request: HttpRequest) -> JsonResponse:
         raise ApiError(403, "permission_denied", f"you may not use the service {service.name!r}")
     if service.workflow == "spectate":
         raise field_error("service", "spectating is not requested as a session")
+    if service.workflow == "rescue_at_sea":
+        session = _rescue_create(request, service, data)
+        response = JsonResponse({"session": session_json(session), "task": None}, status=201)
+        response["Location"] = f"{BASE_PATH}/sessions/{session.pk}"
+        return response
+    if service.mode != Service.Mode.SYNCHRONOUS:
+        # Nothing would run it: reserving its vehicles would only strand them.
+        raise field_error("service", f"{service.name!r} has no workflow the API can start")
     try:
         session = session_request(
             user=request.user,
@@ -494,6 +505,8 @@ def sessions_create(request: HttpRequest) -> JsonResponse:
             preferences=data.preferences,
         )
     except AssignmentError as exc:
+        if exc.over_cap:
+            raise ApiError(409, "session_limit", str(exc)) from None
         if exc.session is None:  # the grant went away meanwhile
             raise ApiError(403, "permission_denied", str(exc)) from None
         raise ApiError(
@@ -514,6 +527,27 @@ def sessions_create(request: HttpRequest) -> JsonResponse:
     response = JsonResponse({"session": session_json(session), "task": task}, status=201)
     response["Location"] = f"{BASE_PATH}/sessions/{session.pk}"
     return response
+
+
+def _rescue_create(request: HttpRequest, service: Service, data: SessionRequestData) -> Session:
+    """A rescue at sea over ``params.area`` ([[lat, lon], ...]) at ``params.altitude_m``
+    (optional), started exactly as from the portal's map."""
+    if data.target is not None or data.relay or data.preferences:
+        raise field_error("service", "a rescue takes only params.area and params.altitude_m")
+    _only(data.params, {"area", "altitude_m"}, "params.")
+    if "area" not in data.params:
+        raise field_error("params.area", "is required: the search area, [[lat, lon], ...]")
+    altitude = data.params.get("altitude_m")
+    if altitude is not None:
+        altitude = _number(altitude, "params.altitude_m", 1, 500)
+    try:
+        return rescue_request(
+            user=request.user, service=service, area=data.params["area"], altitude_m=altitude
+        )
+    except RescueError as exc:
+        if exc.over_cap:
+            raise ApiError(409, "session_limit", str(exc)) from None
+        raise field_error("params.area", str(exc)) from None
 
 
 @api_view("GET")

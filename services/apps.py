@@ -8,7 +8,13 @@ class ServicesConfig(AppConfig):
     def ready(self) -> None:
         # fleet never imports services: it publishes what agents say as signals, and
         # the supervisor listens here.
-        from fleet.signals import agent_connected, agent_disconnected, agent_message, agent_welcome
+        from fleet.signals import (
+            agent_acked,
+            agent_connected,
+            agent_disconnected,
+            agent_message,
+            agent_welcome,
+        )
         from services import supervision
 
         agent_message.connect(
@@ -20,6 +26,9 @@ class ServicesConfig(AppConfig):
         agent_disconnected.connect(
             supervision.receive_agent_disconnected,
             dispatch_uid="services.supervision.disconnected",
+        )
+        agent_acked.connect(
+            supervision.receive_agent_acked, dispatch_uid="services.supervision.acked"
         )
         agent_welcome.connect(
             supervision.receive_agent_welcome, dispatch_uid="services.supervision.welcome"

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
+from django.contrib.auth import get_user_model
 from django.contrib.auth.models import AbstractBaseUser
 from django.db import IntegrityError, transaction
 
@@ -28,7 +29,10 @@ from fleet.status import vehicles_online
 from services.eventlog import event_append
 from services.grants import user_can_use
 from services.models import Assignment, Service, ServiceRole, Session
-from services.sessions import session_transition
+from services.sessions import FINAL, session_transition
+
+#: States of a session that holds (or is about to hold) vehicles.
+LIVE_STATES = [state for state in Session.State.values if state not in FINAL]
 
 
 class AssignmentError(Exception):
@@ -38,10 +42,19 @@ class AssignmentError(Exception):
     was created, e.g. for a missing grant).
     """
 
-    def __init__(self, message: str, *, session: Session | None = None, role: str = "") -> None:
+    def __init__(
+        self,
+        message: str,
+        *,
+        session: Session | None = None,
+        role: str = "",
+        over_cap: bool = False,
+    ) -> None:
         super().__init__(message)
         self.session = session
         self.role = role
+        #: Refused because the user already holds as many sessions as the service allows.
+        self.over_cap = over_cap
 
 
 @dataclass(frozen=True)
@@ -288,6 +301,57 @@ def role_tightened(role: ServiceRole, preferences: dict[str, Any]) -> ServiceRol
     return tight
 
 
+def session_open(
+    *,
+    user: AbstractBaseUser,
+    service: Service,
+    target: tuple[float, float] | None = None,
+    params: dict[str, Any] | None = None,
+    relay: bool = False,
+    preferences: dict[str, Any] | None = None,
+) -> Session:
+    """Record a new session of ``service`` for ``user`` (state ``requested``, logged),
+    if the user may use the service and holds fewer than ``max_sessions_per_user``
+    live sessions of it. Call it in a transaction with the work that follows.
+
+    Raises AssignmentError (nothing recorded) when the user may not use the service,
+    or when over the cap (``over_cap``).
+    """
+    if not service.is_active or not user_can_use(user, service):
+        raise AssignmentError(f"you may not use the service {service.name!r}")
+    with transaction.atomic():
+        # The user's row is the lock: two requests of one user are counted one after
+        # the other, so together they cannot pass the cap.
+        get_user_model().objects.select_for_update().filter(pk=user.pk).first()
+        live = Session.objects.filter(user=user, service=service, state__in=LIVE_STATES).count()
+        cap = service.max_sessions_per_user
+        if live >= cap:
+            raise AssignmentError(
+                f"you already have {live} live session{'s' if live != 1 else ''} of "
+                f"{service.name!r} (at most {cap}); end one first",
+                over_cap=True,
+            )
+        session = Session.objects.create(
+            service=service,
+            user=user,
+            target_lat=target[0] if target else None,
+            target_lon=target[1] if target else None,
+            params=params or {},
+            relay=relay,
+        )
+        event_append(
+            session=session,
+            kind="requested",
+            data={
+                "user": user.get_username(),
+                "target": list(target) if target else None,
+                "relay": relay,
+                "preferences": preferences or {},
+            },
+        )
+    return session
+
+
 def session_request(
     *,
     user: AbstractBaseUser,
@@ -302,28 +366,17 @@ def session_request(
     ``preferences`` (cameras, min_battery) tighten the requirements of every role.
 
     Returns the session in state ``assigned``. Raises AssignmentError when the user
-    has no grant (no session is recorded) or a role cannot be filled (the session is
-    recorded as failed with the reason, and no vehicle stays reserved).
+    has no grant or already holds ``service.max_sessions_per_user`` live sessions of
+    it (no session is recorded; ``over_cap`` says which), or a role cannot be filled
+    (the session is recorded as failed with the reason, and no vehicle stays reserved).
     """
-    if not service.is_active or not user_can_use(user, service):
-        raise AssignmentError(f"you may not use the service {service.name!r}")
-    session = Session.objects.create(
-        service=service,
+    session = session_open(
         user=user,
-        target_lat=target[0] if target else None,
-        target_lon=target[1] if target else None,
-        params=params or {},
+        service=service,
+        target=target,
+        params=params,
         relay=relay,
-    )
-    event_append(
-        session=session,
-        kind="requested",
-        data={
-            "user": user.get_username(),
-            "target": target,
-            "relay": relay,
-            "preferences": preferences or {},
-        },
+        preferences=preferences,
     )
     try:
         # All roles or none: a failure on the second role frees the first.

@@ -24,6 +24,7 @@ from django.http import HttpRequest
 from agents.protocol import FAILSAFE_ACTIONS, Limits, ProtocolError, UserGrant, VehicleTask
 from fleet.feed import fleet_notify
 from fleet.models import Vehicle
+from fleet.outbox import agent_message_was_sent, agent_messages_cancel
 from fleet.uplink import vehicle_send
 from services.eventlog import event_append
 from services.grants import user_can_use
@@ -155,7 +156,9 @@ def vehicle_task_deploy(*, session: Session, assignment: Assignment) -> VehicleT
                 "exp": task.expires_at,
             },
         )
-        vehicle_send(vehicle_id=vehicle.pk, message={"type": "task", "token": token})
+        vehicle_send(
+            vehicle_id=vehicle.pk, message={"type": "task", "token": token}, session_id=session.pk
+        )
     return task
 
 
@@ -274,6 +277,40 @@ def grant_issue(
         return _user_task(session=session, assignment=_primary(assignments), user=user, role=role)
 
 
+def vehicle_release(*, vehicle_id: Any, session_id: Any, message: dict[str, Any]) -> bool:
+    """Make the vehicle give up ``session_id``: its agent is told ``message`` (an
+    ``end_task`` or a ``revoke``) reliably, and the vehicle is ``releasing`` until the
+    agent confirms (fleet.outbox), so no one else is given a vehicle still busy with
+    this session. A vehicle whose agent never got the session's task has nothing to
+    give up: its undelivered task is withdrawn and it is free at once.
+
+    Call it in the transaction that ends the vehicle's role. Returns True when the
+    agent has to confirm, False when the vehicle was freed at once.
+    """
+    agent_messages_cancel(vehicle_id=vehicle_id, kinds=["task"], session_id=session_id)
+    held = [
+        Vehicle.Status.RESERVED,
+        Vehicle.Status.IN_SERVICE,
+        Vehicle.Status.FAILSAFE,
+        Vehicle.Status.IDLE,
+    ]
+    if not agent_message_was_sent(vehicle_id=vehicle_id, session_id=session_id, kind="task"):
+        # A vehicle the supervisor marked fail-safe is freed too: if its agent still
+        # is in fail-safe, its next heartbeat says so and marks it again.
+        if Vehicle.objects.filter(pk=vehicle_id, maintenance=False, status__in=held[:3]).update(
+            status=Vehicle.Status.IDLE
+        ):
+            fleet_notify([vehicle_id])
+        return False
+    vehicle_send(vehicle_id=vehicle_id, message=message)
+    # An offline vehicle stays offline: it is told when it reconnects.
+    if Vehicle.objects.filter(pk=vehicle_id, maintenance=False, status__in=held).update(
+        status=Vehicle.Status.RELEASING
+    ):
+        fleet_notify([vehicle_id])
+    return True
+
+
 def _close(
     *, session: Session, to: str, reason: str, message: dict[str, Any], data: dict[str, Any]
 ) -> Session:
@@ -282,22 +319,16 @@ def _close(
         vehicle_ids = [a.vehicle_id for a in Assignment.objects.filter(session=locked, active=True)]
         # The transition validates the move first: nothing is sent for a refused one.
         session_transition(session=locked, to=to, reason=reason, data=data)
-        # The release frees reserved and in-service vehicles; one the supervisor marked
-        # fail-safe is freed too: if its agent still is in fail-safe, its next heartbeat
-        # says so and marks it again.
-        if Vehicle.objects.filter(
-            pk__in=vehicle_ids, maintenance=False, status=Vehicle.Status.FAILSAFE
-        ).update(status=Vehicle.Status.IDLE):
-            fleet_notify(vehicle_ids)
         for vehicle_id in vehicle_ids:
-            vehicle_send(vehicle_id=vehicle_id, message=message)
+            vehicle_release(vehicle_id=vehicle_id, session_id=locked.pk, message=message)
     session.refresh_from_db()
     return session
 
 
 def session_end(*, session: Session, reason: str, by_user: bool) -> Session:
     """End ``session`` on purpose: its agents get ``end_task`` and its vehicles are
-    released. ``by_user`` records whether the user asked (else the platform did).
+    released (see :func:`vehicle_release`). ``by_user`` records whether the user asked
+    (else the platform did).
 
     Raises services.sessions.SessionStateError when the session cannot end (already
     final, or never assigned) or ``reason`` is empty.
@@ -314,7 +345,9 @@ def session_end(*, session: Session, reason: str, by_user: bool) -> Session:
 def session_revoke(*, session: Session, reason: str, action: str) -> Session:
     """Stop ``session`` now (a supervisor rule or a monitor's kill switch): its agents
     get ``revoke`` and perform ``action`` (stop, land or return_to_home); the session is
-    aborted with ``reason`` and its vehicles are released.
+    aborted with ``reason`` and its vehicles are released once their agents confirm
+    (see :func:`vehicle_release`; :func:`services.selectors.session_delivery` says
+    whether the revoke has reached each vehicle).
 
     Raises SessionStateError as :func:`session_end`; ValueError for an unknown action.
     """

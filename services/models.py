@@ -62,6 +62,12 @@ class Service(models.Model):
         max_length=20, choices=Failsafe.choices, default=Failsafe.STOP
     )
     session_time_limit_s = models.PositiveIntegerField(null=True, blank=True)
+    max_sessions_per_user = models.PositiveIntegerField(
+        default=1,
+        validators=[MinValueValidator(1)],
+        help_text="Live sessions one user may hold at once: a client cannot reserve the "
+        "whole fleet.",
+    )
     latency_soft_ms = models.PositiveIntegerField(
         null=True, blank=True, help_text="Round trip above which the agent lowers the speed."
     )

@@ -119,6 +119,7 @@ ERROR_CODES = {
     "not_found": (404, "no such resource, or not visible to the token's user"),
     "method_not_allowed": (405, "the path exists but not with this method"),
     "session_state": (409, "the session is not in a state that allows this"),
+    "session_limit": (409, "the user already holds as many live sessions as the service allows"),
     "payload_too_large": (413, f"the body is over {MAX_BODY_BYTES} bytes"),
     "unmet_requirement": (422, "no vehicle can meet the service's requirements now"),
     "invalid_task": (422, "the service's settings cannot make a valid vehicle task"),
@@ -283,6 +284,25 @@ SESSION = obj(
         "started_at": nullable(timestamp()),
         "ended_at": nullable(timestamp()),
         "assignments": array(ref("Assignment")),
+        "delivery": array(
+            obj(
+                {
+                    "vehicle": obj({"id": string(format="uuid"), "name": string()}),
+                    "message": string(enum=["revoke", "end_task"]),
+                    "action": nullable(string(enum=["stop", "land", "return_to_home"])),
+                    "state": string(
+                        "delivered: the vehicle's agent confirmed; sending: it is online "
+                        "and has not yet; vehicle_offline: its own fail-safe holds until "
+                        "it reconnects and is told.",
+                        enum=["delivered", "sending", "vehicle_offline"],
+                    ),
+                    "at": nullable(timestamp()),
+                    "text": string("The same, for people."),
+                }
+            ),
+            description="Once the session is over: whether its end (or a monitor's stop) "
+            "has reached each vehicle that had its task.",
+        ),
         "log": obj(
             {
                 "chain_ok": boolean("The hash chain of the log verifies."),
@@ -353,7 +373,10 @@ RESPONSES: dict[str, Schema] = {
     "Forbidden": response("The token's user may not do this.", ref("Error")),
     "NotFound": response("No such resource for this user.", ref("Error")),
     "MethodNotAllowed": response("Wrong method.", ref("Error"), headers=_ALLOW_HEADERS),
-    "Conflict": response("The session's state does not allow this.", ref("Error")),
+    "Conflict": response(
+        "The session's state does not allow this, or the user is at the service's session limit.",
+        ref("Error"),
+    ),
     "PayloadTooLarge": response(f"Body over {MAX_BODY_BYTES} bytes.", ref("Error")),
     "Unprocessable": response("The fleet cannot meet the request now.", ref("Error")),
     "InternalError": response("A bug on the platform.", ref("Error")),
@@ -442,7 +465,10 @@ PATHS: dict[str, Schema] = {
             body_required=True,
             description="A synchronous service is deployed at once: the response carries "
             "the user task (control URL and grant). An asynchronous service returns the "
-            "session only; its workflow runs it. 422 names the requirement no vehicle met.",
+            "session only; its workflow runs it (a rescue at sea takes `params.area`, "
+            "[[lat, lon], ...], and optionally `params.altitude_m`). 422 names the "
+            "requirement no vehicle met; 409 `session_limit` says the user already holds "
+            "as many live sessions of the service as it allows.",
         )
     },
     "/sessions/{session_id}": {

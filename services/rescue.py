@@ -46,8 +46,7 @@ from django.utils import timezone
 
 from agents.geo import distance_m
 from fleet.models import Station, Vehicle
-from fleet.uplink import vehicle_send
-from services.assignment import AssignmentError, role_assign
+from services.assignment import AssignmentError, role_assign, session_open
 from services.coverage import (
     DEFAULT_HFOV_DEG,
     area_centroid,
@@ -55,7 +54,7 @@ from services.coverage import (
     coverage_plan,
     point_in_area,
 )
-from services.deployment import session_end, vehicle_task_deploy
+from services.deployment import session_end, vehicle_release, vehicle_task_deploy
 from services.eventlog import event_append
 from services.grants import user_can_use
 from services.models import Assignment, Mission, MissionNotification, Service, Session
@@ -90,7 +89,12 @@ _WORKING = {S.WAITING_SEARCH, S.SEARCHING, S.WAITING_DELIVERY, S.DELIVERING}
 
 
 class RescueError(Exception):
-    """The rescue cannot be requested; the message says why."""
+    """The rescue cannot be requested; the message says why. ``over_cap``: the user
+    already holds as many live rescue sessions as the service allows."""
+
+    def __init__(self, message: str, *, over_cap: bool = False) -> None:
+        super().__init__(message)
+        self.over_cap = over_cap
 
 
 # --------------------------------------------------------------------------------------
@@ -125,18 +129,15 @@ def rescue_request(
     plan = coverage_plan(polygon, altitude_m=altitude, hfov_deg=DEFAULT_HFOV_DEG)
     center = area_centroid(polygon)
     with transaction.atomic():
-        session = Session.objects.create(
-            service=service,
-            user=user,
-            target_lat=center[0],
-            target_lon=center[1],
-            params={"area": [list(p) for p in polygon], "altitude_m": altitude},
-        )
-        event_append(
-            session=session,
-            kind="requested",
-            data={"user": user.get_username(), "target": list(center), "relay": False},
-        )
+        try:
+            session = session_open(
+                user=user,
+                service=service,
+                target=center,
+                params={"area": [list(p) for p in polygon], "altitude_m": altitude},
+            )
+        except AssignmentError as exc:
+            raise RescueError(str(exc), over_cap=exc.over_cap) from None
         mission = Mission.objects.create(
             session=session,
             area=[list(p) for p in polygon],
@@ -504,12 +505,9 @@ def _vehicle_trouble(assignment: Assignment) -> str:
 def _release(mission: Mission, assignment: Assignment, reason: str) -> None:
     """Take ``assignment``'s vehicle off the mission; it returns to its station."""
     Assignment.objects.filter(pk=assignment.pk).update(active=False, released_at=timezone.now())
-    Vehicle.objects.filter(
-        pk=assignment.vehicle_id,
-        status__in=[Vehicle.Status.RESERVED, Vehicle.Status.IN_SERVICE],
-    ).update(status=Vehicle.Status.IDLE)
-    vehicle_send(
+    vehicle_release(
         vehicle_id=assignment.vehicle_id,
+        session_id=mission.pk,
         message={"type": "end_task", "session_id": str(mission.pk), "reason": reason[:120]},
     )
     event_append(

@@ -6,7 +6,8 @@ from typing import Any
 
 from django.db.models import QuerySet
 
-from fleet.models import Vehicle
+from fleet.models import AgentMessage, Vehicle
+from fleet.outbox import ENDING, agent_messages_owed
 from services.models import Service, Session
 from services.sessions import FINAL
 
@@ -28,7 +29,54 @@ def session_summary(session: Session) -> dict[str, Any]:
             {"role": a.role, "id": str(a.vehicle_id), "name": a.vehicle.name}
             for a in session.assignments.select_related("vehicle").filter(active=True)
         ],
+        "delivery": session_delivery(session) if session.state in FINAL else [],
     }
+
+
+def session_delivery(session: Session) -> list[dict[str, Any]]:
+    """Whether the platform's last word on the session (the revoke or end of each
+    vehicle's task) has reached each vehicle, in words a monitor can act on.
+
+    One entry per vehicle told: ``state`` is ``delivered`` (its agent confirmed, at
+    ``at``), ``sending`` (its agent is online and has not confirmed yet) or
+    ``vehicle_offline`` (its own fail-safe, ``action``, holds; it is told when it
+    reconnects). Vehicles whose agent never had the session's task are not listed.
+    """
+    latest: dict[Any, AgentMessage] = {}
+    for row in agent_messages_owed(session_id=session.pk):
+        if row.kind in ENDING and row.state != AgentMessage.State.CANCELLED:
+            latest[row.vehicle_id] = row
+    out = []
+    for row in latest.values():
+        vehicle = row.vehicle
+        action = row.message.get("action") or "end"
+        word = "stop" if row.kind == AgentMessage.Kind.REVOKE else "end of the session"
+        if row.state == AgentMessage.State.ACKED:
+            state = "delivered"
+            text = f"The {word} reached {vehicle.name}"
+            if row.kind == AgentMessage.Kind.REVOKE:
+                text += f": it performs {action.replace('_', ' ')}"
+        elif vehicle.status == Vehicle.Status.OFFLINE:
+            state = "vehicle_offline"
+            failsafe = action if row.kind == AgentMessage.Kind.REVOKE else "its fail-safe"
+            text = (
+                f"{vehicle.name} is offline: its own fail-safe ({failsafe.replace('_', ' ')}) "
+                f"holds; the {word} is delivered when it reconnects"
+            )
+        else:
+            state = "sending"
+            text = f"Sending the {word} to {vehicle.name}…"
+        out.append(
+            {
+                "vehicle": {"id": str(vehicle.pk), "name": vehicle.name},
+                "message": row.kind,
+                "action": row.message.get("action"),
+                "state": state,
+                "at": row.acked_at.isoformat() if row.acked_at else None,
+                "text": text,
+            }
+        )
+    return out
 
 
 def sessions_spectatable() -> QuerySet[Session]:

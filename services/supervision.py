@@ -34,11 +34,13 @@ from typing import Any
 
 from django.conf import settings
 from django.db import transaction
+from django.db.models import Q
 from django.utils import timezone
 
 from agents.protocol import CLOCK_SKEW_S
 from fleet.feed import fleet_notify
-from fleet.models import Vehicle
+from fleet.models import AgentMessage, Vehicle
+from fleet.outbox import ENDING, Acked, agent_messages_cancel, vehicle_release_if_settled
 from fleet.uplink import vehicle_send
 from services.deployment import (
     LIVE,
@@ -48,7 +50,7 @@ from services.deployment import (
     vehicle_task_deploy,
 )
 from services.eventlog import event_append
-from services.models import Assignment, Session, SessionEvent
+from services.models import Assignment, Service, Session, SessionEvent
 from services.rescue import MISSION_EVENTS, WORKFLOW, mission_event, mission_task_accepted
 from services.sessions import SessionStateError, session_transition
 from services.signing import platform_public_key_pem
@@ -120,13 +122,41 @@ def _task_accepted(*, vehicle_id: Any, message: dict[str, Any]) -> None:
     if session.service.workflow == WORKFLOW:
         mission_task_accepted(assignment=assignment)
     if not _serving(assignment):
-        # A late acceptance (e.g. delivered after the session ended): the agent must not
-        # keep serving a session that is over.
+        # A late acceptance of a session that is over. Its end normally follows the
+        # task in the vehicle's outbox; should none be owed, owe one now.
+        _owe_end(vehicle_id=vehicle_id, session_id=session.pk)
+
+
+def _ending_message(*, vehicle_id: Any, session_id: Any) -> dict[str, Any]:
+    """What makes the vehicle's agent give up ``session_id``: the revoke or end the
+    platform already decided for it, else an ``end_task`` with the session's reason."""
+    decided = (
+        AgentMessage.objects.filter(vehicle_id=vehicle_id, session_id=session_id, kind__in=ENDING)
+        .order_by("-id")
+        .first()
+    )
+    if decided is not None:
+        return dict(decided.message)
+    session = _stale_session(session_id)
+    if session is None:
+        reason = "the platform knows no such session"
+    else:
         reason = session.reason or "this vehicle no longer serves the session"
-        vehicle_send(
-            vehicle_id=vehicle_id,
-            message={"type": "end_task", "session_id": str(session.pk), "reason": reason},
-        )
+    return {"type": "end_task", "session_id": str(session_id), "reason": reason[:_REASON_MAX]}
+
+
+def _owe_end(*, vehicle_id: Any, session_id: Any) -> None:
+    """Make sure the agent is owed the end of ``session_id`` (one pending message at
+    most); the vehicle's status is left to whatever it serves now."""
+    if AgentMessage.objects.filter(
+        vehicle_id=vehicle_id,
+        session_id=session_id,
+        kind__in=ENDING,
+        state=AgentMessage.State.PENDING,
+    ).exists():
+        return
+    message = _ending_message(vehicle_id=vehicle_id, session_id=session_id)
+    vehicle_send(vehicle_id=vehicle_id, message=message, session_id=session_id)
 
 
 def _task_refused(*, vehicle_id: Any, message: dict[str, Any]) -> None:
@@ -298,30 +328,91 @@ def _serving_assignments(vehicle_id: Any) -> list[Assignment]:
     )
 
 
-def agent_connected_handle(*, vehicle_id: Any) -> None:
-    """A vehicle's agent registered (hello + profile). If the vehicle serves a session:
-    log ``vehicle_online``, give it back its session status (the uplink made it idle)
-    and, if it had been sent a task, send a fresh one: a restarted agent lost it, and
-    one that kept it answers ``task_accepted`` again (docs/protocol.md, Replay rule).
+def agent_connected_handle(*, vehicle_id: Any, state: dict[str, Any] | None = None) -> None:
+    """A vehicle's agent (re)registered and said what it is doing (``state``, from its
+    profile): converge it to what the platform wants it to do.
+
+    * It runs a session it should not (ended meanwhile, or unknown): it is owed that
+      session's end (the revoke or end decided for it, else ``end_task``).
+    * Messages that no longer apply are withdrawn: tasks of other sessions, and ends of
+      sessions it does not run (a restarted agent has nothing to give up).
+    * It should serve a session: ``vehicle_online`` is logged (with whether a user
+      controls it), the vehicle gets back its session status, and if it lacks the task
+      it had been sent, it gets a fresh one (a restarted agent lost it; the task sent
+      earlier may have expired).
+    * It serves nothing: a ``releasing`` vehicle with nothing left to confirm is idle.
+
+    Runs in the transaction that stored the profile (fleet.uplink).
     """
-    for assignment in _serving_assignments(vehicle_id):
+    state = state or {}
+    reported = state.get("session_id")
+    with transaction.atomic():
+        serving = _serving_assignments(vehicle_id)
+        assignment = serving[0] if serving else None
+        desired = str(assignment.session_id) if assignment is not None else None
+        if reported is not None and reported != desired:
+            try:
+                _owe_end(vehicle_id=vehicle_id, session_id=uuid.UUID(str(reported)))
+            except ValueError:  # not even a session id: nothing the platform could end
+                log.warning("vehicle %s runs a task of session %.40r", vehicle_id, reported)
+        agent_messages_cancel(vehicle_id=vehicle_id, kinds=["task"], except_session=desired)
+        # Ends of sessions it does not run are moot (all of them when it runs none).
+        agent_messages_cancel(vehicle_id=vehicle_id, kinds=ENDING, except_session=reported)
+        if assignment is None:
+            vehicle_release_if_settled(vehicle_id=vehicle_id)
+            return
         session = assignment.session
-        with transaction.atomic():
-            _log(assignment, "vehicle_online", {})
-            held = (
-                Vehicle.Status.IN_SERVICE
-                if session.state == Session.State.ACTIVE
-                else Vehicle.Status.RESERVED
-            )
-            if Vehicle.objects.filter(
-                pk=vehicle_id, maintenance=False, status=Vehicle.Status.IDLE
-            ).update(status=held):
-                fleet_notify([vehicle_id])
-            deployed = session.events.filter(
-                kind="task_deployed", data__vehicle=str(vehicle_id)
-            ).exists()
-            if deployed:
-                vehicle_task_deploy(session=session, assignment=assignment)
+        _log(assignment, "vehicle_online", {"controller": bool(state.get("controller"))})
+        held = (
+            Vehicle.Status.IN_SERVICE
+            if session.state == Session.State.ACTIVE
+            else Vehicle.Status.RESERVED
+        )
+        if Vehicle.objects.filter(
+            pk=vehicle_id,
+            maintenance=False,
+            status__in=[Vehicle.Status.IDLE, Vehicle.Status.RELEASING],
+        ).update(status=held):
+            fleet_notify([vehicle_id])
+        if reported == desired:
+            return
+        agent_messages_cancel(vehicle_id=vehicle_id, kinds=["task"])
+        deployed = session.events.filter(
+            kind="task_deployed", data__vehicle=str(vehicle_id)
+        ).exists()
+        if deployed:
+            vehicle_task_deploy(session=session, assignment=assignment)
+
+
+def _stale_session(session_id: Any) -> Session | None:
+    try:
+        pk = uuid.UUID(str(session_id))
+    except ValueError:
+        return None
+    return Session.objects.filter(pk=pk).first()
+
+
+def agent_acked_handle(*, vehicle_id: Any, acked: Acked) -> None:
+    """An agent confirmed the end (or revoke) of a session: the session log says the
+    platform's word reached the vehicle, and when."""
+    if acked.kind not in ENDING or acked.session_id is None:
+        return
+    session = _stale_session(acked.session_id)
+    if session is None:
+        return
+    name = Vehicle.objects.filter(pk=vehicle_id).values_list("name", flat=True).first()
+    event_append(
+        session=session,
+        kind="stop_delivered" if acked.kind == "revoke" else "end_delivered",
+        data={
+            "vehicle": str(vehicle_id),
+            "vehicle_name": name,
+            "action": acked.message.get("action"),
+            "ok": acked.ok,
+            "detail": acked.detail,
+            "released": acked.released,
+        },
+    )
 
 
 def agent_disconnected_handle(*, vehicle_id: Any, code: int | None = None) -> None:
@@ -339,40 +430,135 @@ def agent_disconnected_handle(*, vehicle_id: Any, code: int | None = None) -> No
 # --------------------------------------------------------------------------------------
 
 
+#: Log events that show the session's controller back (or still there) and gone.
+_BACK = frozenset({"user_connected", "link_recovered", "vehicle_online"})
+_GONE = frozenset({"unintentional_end", "user_disconnected"})
+
+
+def _controller_gone(session: Session) -> SessionEvent | None:
+    """The event since which nobody controls the session's vehicle, or None while
+    someone does (or nobody ever did: see :func:`sessions_expire_unconnected`).
+
+    Facts the agent reported count, newest first: a controller connecting, its link
+    recovering on the socket it kept open, the vehicle coming back online with a
+    controller still connected to it; against a fail-safe or the controller leaving.
+    Viewers come and go without changing anything.
+    """
+    events = session.events.filter(kind__in=sorted(_BACK | _GONE)).order_by("-seq")
+    for event in events.iterator():
+        data = event.data if isinstance(event.data, dict) else {}
+        if event.kind in ("user_connected", "user_disconnected") and data.get("role") == "viewer":
+            continue
+        if event.kind == "vehicle_online" and not data.get("controller"):
+            continue  # the agent is back; whether its user is, it says separately
+        return event if event.kind in _GONE else None
+    return None
+
+
+def _gone_reason(event: SessionEvent) -> str:
+    data = event.data if isinstance(event.data, dict) else {}
+    grace = settings.IOUV_RECONNECT_GRACE_S
+    if event.kind == "unintentional_end":
+        return (
+            f"unintentional end: {data.get('cause', 'unknown')}, "
+            f"vehicle performed {data.get('action', 'unknown')}"
+        )
+    return f"the user left and did not come back within {grace:g} s"
+
+
 def sessions_expire_grace(
     *, now: datetime | None = None, session_ids: Iterable[Any] | None = None
 ) -> list[str]:
-    """End the live sessions whose last ``unintentional_end`` is older than
-    ``IOUV_RECONNECT_GRACE_S`` with no controller ``user_connected`` after it.
+    """End the live sessions whose controller has been gone for more than
+    ``IOUV_RECONNECT_GRACE_S``: after a fail-safe or the controller leaving, no
+    controller connected again and no link recovered on the open socket since.
 
     The reason says what happened: ``unintentional end: <cause>, vehicle performed
-    <action>``. ``session_ids`` limits the check (e.g. for a countdown task). Returns
-    the ids of the sessions ended.
+    <action>``, or that the user left. ``session_ids`` limits the check. Returns the
+    ids of the sessions ended.
     """
     now = now or timezone.now()
     cutoff = now - timedelta(seconds=settings.IOUV_RECONNECT_GRACE_S)
     candidates = Session.objects.filter(
-        state__in=LIVE, events__kind="unintentional_end", events__created_at__lte=cutoff
+        state__in=LIVE,
+        events__kind__in=sorted(_GONE),
+        events__created_at__lte=cutoff,
     ).distinct()
     if session_ids is not None:
         candidates = candidates.filter(pk__in=list(session_ids))
     ended: list[str] = []
     for session in candidates:
-        last = session.events.filter(kind="unintentional_end").order_by("-seq").first()
-        if last is None or last.created_at > cutoff:
-            continue  # a newer fail-safe restarted the grace
-        later = session.events.filter(kind="user_connected", seq__gt=last.seq)
-        if any(e.data.get("role") != "viewer" for e in later):
-            continue  # the controller came back
-        reason = (
-            f"unintentional end: {last.data.get('cause', 'unknown')}, "
-            f"vehicle performed {last.data.get('action', 'unknown')}"
-        )
+        gone = _controller_gone(session)
+        if gone is None or gone.created_at > cutoff:
+            continue  # someone controls it, or the grace is still running
         try:
-            session_end(session=session, reason=reason[:_REASON_MAX], by_user=False)
+            session_end(session=session, reason=_gone_reason(gone)[:_REASON_MAX], by_user=False)
         except SessionStateError:
             continue  # ended meanwhile
         ended.append(str(session.pk))
+    return ended
+
+
+def sessions_expire_unconnected(*, now: datetime | None = None) -> list[str]:
+    """End the sessions of services driven by a user (synchronous) that were assigned
+    more than ``IOUV_CONNECT_TIMEOUT_S`` ago and that no controller ever connected to:
+    a user who asked and went away must not hold a vehicle. Returns their ids."""
+    now = now or timezone.now()
+    limit = settings.IOUV_CONNECT_TIMEOUT_S
+    cutoff = now - timedelta(seconds=limit)
+    ended: list[str] = []
+    stale = Session.objects.filter(
+        state=Session.State.ASSIGNED,
+        service__mode=Service.Mode.SYNCHRONOUS,
+        assigned_at__lte=cutoff,
+    )
+    for session in stale:
+        try:
+            session_end(
+                session=session,
+                reason=f"nobody connected to the vehicle within {limit:g} s",
+                by_user=False,
+            )
+        except SessionStateError:
+            continue
+        ended.append(str(session.pk))
+    return ended
+
+
+def sessions_end_vehicle_lost(*, now: datetime | None = None) -> list[str]:
+    """End the live sessions of services driven by a user whose vehicle has been
+    offline for more than ``IOUV_VEHICLE_LOST_S`` (its agent stopped, or its uplink
+    is down): the platform can no longer supervise them.
+
+    The vehicle is not freed: it stays offline until its agent reconnects and says
+    what it is doing, and is then told the session is over (fleet.outbox). Asynchronous
+    workflows replace their lost vehicles themselves. Returns the ids ended.
+    """
+    now = now or timezone.now()
+    lost_s = settings.IOUV_VEHICLE_LOST_S
+    cutoff = now - timedelta(seconds=lost_s)
+    lost = (
+        Assignment.objects.filter(
+            active=True,
+            session__state__in=LIVE,
+            session__service__mode=Service.Mode.SYNCHRONOUS,
+            vehicle__status=Vehicle.Status.OFFLINE,
+        )
+        .filter(Q(vehicle__last_seen__lte=cutoff) | Q(vehicle__last_seen__isnull=True))
+        .select_related("session", "vehicle")
+    )
+    ended: list[str] = []
+    for assignment in lost:
+        if str(assignment.session_id) in ended:
+            continue
+        reason = (
+            f"vehicle {assignment.vehicle.name} went offline (no word from it for {lost_s:g} s)"
+        )
+        try:
+            session_end(session=assignment.session, reason=reason, by_user=False)
+        except SessionStateError:
+            continue
+        ended.append(str(assignment.session_id))
     return ended
 
 
@@ -452,7 +638,11 @@ def receive_agent_message(sender: Any, *, vehicle_id: Any, message: Any, **kwarg
 
 
 def receive_agent_connected(sender: Any, *, vehicle_id: Any, **kwargs: Any) -> None:
-    agent_connected_handle(vehicle_id=vehicle_id)
+    agent_connected_handle(vehicle_id=vehicle_id, state=kwargs.get("state"))
+
+
+def receive_agent_acked(sender: Any, *, vehicle_id: Any, acked: Acked, **kwargs: Any) -> None:
+    agent_acked_handle(vehicle_id=vehicle_id, acked=acked)
 
 
 def receive_agent_disconnected(sender: Any, *, vehicle_id: Any, **kwargs: Any) -> None:

@@ -12,8 +12,10 @@ from django.conf import settings
 from iouv.celery import app
 from services.rescue import mission_advance, missions_tick
 from services.supervision import (
+    sessions_end_vehicle_lost,
     sessions_expire_grace,
     sessions_expire_time_limit,
+    sessions_expire_unconnected,
     sessions_expire_undelivered,
 )
 
@@ -22,6 +24,18 @@ from services.supervision import (
 def services_expire_grace() -> int:
     """End sessions whose user did not come back after a fail-safe."""
     return len(sessions_expire_grace())
+
+
+@shared_task(name="services.expire_unconnected")
+def services_expire_unconnected() -> int:
+    """End sessions nobody connected to in time."""
+    return len(sessions_expire_unconnected())
+
+
+@shared_task(name="services.end_vehicle_lost")
+def services_end_vehicle_lost() -> int:
+    """End sessions whose vehicle has been offline too long."""
+    return len(sessions_end_vehicle_lost())
 
 
 @shared_task(name="services.expire_time_limit")
@@ -50,8 +64,13 @@ def services_missions_tick() -> int:
 
 @app.on_after_finalize.connect
 def _schedule(sender, **kwargs) -> None:  # type: ignore[no-untyped-def]
-    sender.add_periodic_task(5.0, services_expire_grace.s(), name="end abandoned fail-safes")
-    sender.add_periodic_task(5.0, services_expire_time_limit.s(), name="enforce time limits")
+    tick = settings.IOUV_SUPERVISION_TICK_S
+    sender.add_periodic_task(tick, services_expire_grace.s(), name="end abandoned sessions")
+    sender.add_periodic_task(tick, services_end_vehicle_lost.s(), name="end lost vehicles")
+    sender.add_periodic_task(tick, services_expire_time_limit.s(), name="enforce time limits")
+    sender.add_periodic_task(
+        15.0, services_expire_unconnected.s(), name="end sessions nobody joined"
+    )
     sender.add_periodic_task(15.0, services_expire_undelivered.s(), name="fail undelivered tasks")
     sender.add_periodic_task(
         settings.IOUV_MISSION_TICK_S, services_missions_tick.s(), name="advance missions"

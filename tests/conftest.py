@@ -49,3 +49,73 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 @pytest.fixture(autouse=True)
 def _fast_passwords(settings: Any) -> None:
     settings.PASSWORD_HASHERS = ["django.contrib.auth.hashers.MD5PasswordHasher"]
+
+
+class AgentInbox:
+    """What the platform owes one vehicle's agent, read as the outbox delivers it.
+
+    ``take(n)`` puts the next ``n`` owed messages on the (imaginary) uplink, as
+    fleet.outbox does (they count as sent from then on), and returns them without their
+    ``id``, oldest first; fewer than ``n`` owed is a test failure. ``ack(message)``
+    answers as the agent does, through the uplink's own code path.
+    """
+
+    def __init__(self, vehicle: Any) -> None:
+        self.vehicle = vehicle
+        self._keys: dict[int, str] = {}
+
+    def owed(self) -> list[Any]:
+        from fleet.models import AgentMessage
+
+        return list(
+            AgentMessage.objects.filter(vehicle_id=self.vehicle.pk, state="pending")
+            .exclude(kind="disconnect")
+            .order_by("id")
+        )
+
+    def take(self, n: int = 1) -> list[dict[str, Any]]:
+        from django.db.models import F
+        from django.utils import timezone
+
+        from fleet.models import AgentMessage
+
+        rows = [r for r in self.owed() if r.pk not in self._keys][:n]
+        assert len(rows) == n, f"the agent is owed {len(rows)} new message(s), not {n}"
+        AgentMessage.objects.filter(pk__in=[r.pk for r in rows]).update(
+            attempts=F("attempts") + 1, sent_at=timezone.now()
+        )
+        messages = []
+        for row in rows:
+            self._keys[row.pk] = str(row.key)
+            messages.append(dict(row.message))
+        self._last = rows
+        return messages
+
+    def ack(self, message: dict[str, Any] | None = None, *, ok: bool = True) -> None:
+        """Acknowledge ``message`` (one returned by ``take``), or every message taken."""
+        from fleet.models import AgentMessage
+        from fleet.uplink import _acked
+
+        rows = AgentMessage.objects.filter(pk__in=list(self._keys)).order_by("id")
+        for row in rows:
+            if message is None or row.message == message:
+                _acked(vehicle_id=str(self.vehicle.pk), key=self._keys[row.pk], ok=ok, detail="")
+
+
+@pytest.fixture
+def inbox() -> Any:
+    """``inbox(vehicle)``: an :class:`AgentInbox` for that vehicle's agent, whose
+    ``take`` is also returned by calling it the old way (``take = inbox(v); take()``)."""
+
+    def listen(vehicle: Any) -> Any:
+        box = AgentInbox(vehicle)
+
+        def take(n: int = 1) -> list[dict[str, Any]]:
+            return box.take(n)
+
+        take.box = box  # type: ignore[attr-defined]
+        take.ack = box.ack  # type: ignore[attr-defined]
+        take.owed = box.owed  # type: ignore[attr-defined]
+        return take
+
+    return listen

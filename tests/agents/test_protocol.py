@@ -442,6 +442,7 @@ MINIMAL: dict[str, dict[str, dict[str, Any]]] = {
         "heartbeat": {"seq": 3},
         "task_accepted": {"session_id": "s-1"},
         "task_refused": {"code": "busy", "reason": "already running s-0"},
+        "ack": {"id": "0b1c5e2e-4d7f-4a8e-9f0a-3c2b1a0d9e8f", "ok": True},
         "event": {"session_id": None, "event": "failsafe", "data": {}},
         "relay": {
             "session_id": "s-1",
@@ -508,6 +509,18 @@ FULL: list[tuple[str, str, dict[str, Any]]] = [
         },
     ),
     ("uplink_to_platform", "task_refused", {"session_id": None, "code": "c", "reason": ""}),
+    ("uplink_to_platform", "ack", {"id": "m-1", "ok": False, "detail": "handler failed"}),
+    (
+        "uplink_to_platform",
+        "profile",
+        {
+            **MINIMAL["uplink_to_platform"]["profile"],
+            "session_id": "s-1",
+            "controller": True,
+            "status": "in_service",
+        },
+    ),
+    ("uplink_to_agent", "revoke", {**MINIMAL["uplink_to_agent"]["revoke"], "id": "m-2"}),
     (
         "uplink_to_platform",
         "profile",

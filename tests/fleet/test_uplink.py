@@ -24,7 +24,8 @@ from hypothesis import strategies as st
 from agents.protocol import MAX_MESSAGE_BYTES, MESSAGE_TYPES, ProtocolError
 from fleet import uplink
 from fleet.credentials import vehicle_issue_credential
-from fleet.models import Vehicle
+from fleet.models import AgentMessage, Vehicle
+from fleet.outbox import outbox
 from fleet.signals import agent_connected, agent_disconnected, agent_message
 from fleet.uplink import avehicle_send, vehicle_record_disconnect, vehicle_send
 from iouv.asgi import application
@@ -214,7 +215,12 @@ async def test_profile_makes_the_vehicle_idle_with_its_control_url():
         assert stored.profile["telemetry"] == ["position", "battery"]
         assert stored.profile["video"] is True and stored.profile["adapter"] == "sim_drone"
         assert (stored.lat, stored.lon, stored.alt, stored.battery) == (40.63, -8.65, 12.5, 88)
-        assert connected == [{"vehicle_id": str(vehicle.pk)}]
+        assert connected == [
+            {
+                "vehicle_id": str(vehicle.pk),
+                "state": {"session_id": None, "controller": False, "status": None},
+            }
+        ]
         await comm.disconnect()
     finally:
         stop()
@@ -559,13 +565,77 @@ async def test_second_connection_replaces_the_first():
 # --- platform -> agent, agent -> platform ------------------------------------------------
 
 
-async def test_vehicle_send_reaches_the_agent():
-    vehicle, credential = await _enrolled()
-    comm, _ = await _agent(vehicle, credential)
-    revoke = {"type": "revoke", "session_id": "s-1", "reason": "kill switch", "action": "land"}
-    await database_sync_to_async(vehicle_send)(vehicle_id=vehicle.pk, message=revoke)
-    assert await comm.receive_json_from(timeout=5) == revoke
+SESSION = "5b0d6c0e-8a3c-4d7e-9a51-0c4f1f2b7a10"
+REVOKE = {"type": "revoke", "session_id": SESSION, "reason": "kill switch", "action": "land"}
+
+
+@database_sync_to_async
+def _owe(vehicle: Vehicle, message: dict[str, Any]) -> None:
+    """Owe ``message`` to the vehicle's agent, committed (as a view or a worker does)."""
+    vehicle_send(vehicle_id=vehicle.pk, message=message)
+
+
+@database_sync_to_async
+def _message_state(vehicle: Vehicle) -> list[str]:
+    owed = AgentMessage.objects.filter(vehicle_id=vehicle.pk).exclude(kind="disconnect")
+    return list(owed.values_list("state", flat=True))
+
+
+async def test_an_owed_message_reaches_the_agent_with_an_id_until_acknowledged():
+    vehicle, comm = await _idle_agent()
+    await _owe(vehicle, REVOKE)
+    first = await comm.receive_json_from(timeout=5)
+    assert first == {**REVOKE, "id": first["id"]}
+    # Not acknowledged: it comes again, with the same id, so the agent can tell.
+    again = await comm.receive_json_from(timeout=5)
+    assert again == first
+    await comm.send_json_to({"type": "ack", "id": first["id"], "ok": True})
+    await _eventually(
+        lambda: AgentMessage.objects.get(vehicle_id=vehicle.pk).state == AgentMessage.State.ACKED
+    )
+    assert await outbox().deliver_due() == 0  # acknowledged: owed no more
+    assert await comm.receive_nothing(timeout=0.3)
     await comm.disconnect()
+
+
+async def test_a_message_owed_while_the_agent_is_away_is_delivered_when_it_is_back():
+    vehicle, comm = await _idle_agent()
+    await comm.disconnect()
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
+    await _owe(vehicle, REVOKE)
+    credential = await database_sync_to_async(vehicle_issue_credential)(vehicle=vehicle)
+    back, _ = await _agent(vehicle, credential)
+    await back.send_json_to({**PROFILE, "session_id": SESSION})
+    message = await back.receive_json_from(timeout=5)
+    assert message == {**REVOKE, "id": message["id"]}
+    # Until it confirms, the vehicle is busy with the session it still runs.
+    assert (await _get(vehicle)).status == Vehicle.Status.RELEASING
+    await back.send_json_to({"type": "ack", "id": message["id"], "ok": True})
+    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+    assert await _message_state(vehicle) == ["acked"]
+    await back.disconnect()
+
+
+async def test_a_replaced_credential_closes_the_live_uplink_within_a_second():
+    vehicle, comm = await _idle_agent()
+    started = time.monotonic()
+    await database_sync_to_async(vehicle_issue_credential)(vehicle=vehicle)
+    messages, code = await _closed(comm)
+    assert time.monotonic() - started < 1.0
+    assert code == 4401 and messages[-1]["code"] == "credential_revoked"
+
+
+async def test_a_replaced_credential_closes_the_uplink_without_the_channel_layer(monkeypatch):
+    """The database alone carries the word: the nudge through the broker is lost."""
+    from fleet import outbox as outbox_module
+
+    monkeypatch.setattr(outbox_module, "get_channel_layer", lambda: None)
+    vehicle, comm = await _idle_agent()
+    # As if another process (a worker) issued it: this process's outbox is not woken.
+    monkeypatch.setattr(outbox_module, "_outboxes", {})
+    await database_sync_to_async(vehicle_issue_credential)(vehicle=vehicle)
+    _, code = await _closed(comm)
+    assert code == 4401
 
 
 def test_vehicle_send_refuses_a_bad_message():

@@ -10,8 +10,6 @@ from typing import Any
 
 import pytest
 import schemathesis
-from asgiref.sync import async_to_sync
-from channels.layers import get_channel_layer
 from django.core.handlers.wsgi import WSGIHandler
 from django.core.signals import request_finished, request_started
 from django.db import close_old_connections
@@ -34,7 +32,6 @@ from accounts.roles import CLIENT, MONITOR
 from accounts.tokens import token_for_raw, token_issue, token_revoke
 from agents.protocol import UserGrant
 from fleet.models import Vehicle
-from fleet.uplink import vehicle_group
 from services import api
 from services.models import Service, Session
 from services.signing import platform_public_key
@@ -205,12 +202,15 @@ def test_preferences_narrow_the_requirements(drone, fly, alice):
     assert "thermal" in error["message"]
 
 
-def test_an_asynchronous_service_returns_the_session_only(drone, alice):
-    f.service("rescue", mode=Service.Mode.ASYNCHRONOUS)
-    response = call("POST", "/sessions", token=alice, body={"service": "rescue"})
-    assert response.status_code == 201
-    assert response.json()["task"] is None
-    assert response.json()["session"]["state"] == "assigned"
+def test_an_asynchronous_service_no_workflow_runs_is_refused_and_holds_nothing(drone, alice):
+    """Reserving its vehicles would strand them: nothing would ever run the session."""
+    f.service("autonomous", mode=Service.Mode.ASYNCHRONOUS)
+    response = call("POST", "/sessions", token=alice, body={"service": "autonomous"})
+    error = _error(response, 400, "invalid_field")
+    assert error["field"] == "service" and "no workflow" in error["message"]
+    assert not Session.objects.exists()
+    drone.refresh_from_db()
+    assert drone.status == Vehicle.Status.IDLE
 
 
 def test_an_unmeetable_request_is_422_with_the_reason(fly, alice):
@@ -407,29 +407,66 @@ async def _receive(layer: Any, channel: str) -> dict[str, Any]:
     return await asyncio.wait_for(layer.receive(channel), 5)
 
 
-def test_a_monitor_stops_a_session_with_the_failsafe(
-    requested, monitor, drone, django_capture_on_commit_callbacks
-):
-    layer = get_channel_layer()
-    channel = async_to_sync(layer.new_channel)()
-    async_to_sync(layer.group_add)(vehicle_group(drone.pk), channel)
-
+def test_a_monitor_stops_a_session_with_the_failsafe(requested, monitor, drone, inbox):
+    take = inbox(drone)
+    (_task,) = take()  # the task went out: the agent holds the session
     sid = requested["session"]["id"]
-    with django_capture_on_commit_callbacks(execute=True):
-        response = call("POST", f"/sessions/{sid}/stop", token=monitor)
+    response = call("POST", f"/sessions/{sid}/stop", token=monitor)
     assert response.status_code == 200
     assert response.json()["state"] == "aborted"
     assert response.json()["reason"] == "stopped by monitor mona"
-    message = async_to_sync(_receive)(layer, channel)["message"]
-    assert message == {
+    (sending,) = response.json()["delivery"]
+    assert sending["state"] == "sending" and sending["vehicle"]["name"] == "drone-1"
+    revoke = {
         "type": "revoke",
         "session_id": sid,
         "reason": "stopped by monitor mona",
         "action": "land",
     }
+    assert take() == [revoke]
+    drone.refresh_from_db()
+    assert drone.status == Vehicle.Status.RELEASING  # nobody gets it before it confirms
+    take.ack(revoke)
     drone.refresh_from_db()
     assert drone.status == Vehicle.Status.IDLE
+    (delivered,) = call("GET", f"/sessions/{sid}", token=monitor).json()["delivery"]
+    assert delivered["state"] == "delivered" and delivered["action"] == "land"
+    assert delivered["text"] == "The stop reached drone-1: it performs land"
     _error(call("POST", f"/sessions/{sid}/stop", token=monitor), 409, "session_state")
+
+
+def test_a_stop_for_an_offline_vehicle_says_its_own_failsafe_holds(
+    requested, monitor, drone, inbox
+):
+    take = inbox(drone)
+    take()
+    Vehicle.objects.filter(pk=drone.pk).update(status=Vehicle.Status.OFFLINE)
+    sid = requested["session"]["id"]
+    (offline,) = call("POST", f"/sessions/{sid}/stop", token=monitor).json()["delivery"]
+    assert offline["state"] == "vehicle_offline"
+    assert offline["text"] == (
+        "drone-1 is offline: its own fail-safe (land) holds; the stop is delivered when it "
+        "reconnects"
+    )
+    assert [m.kind for m in take.owed()] == ["revoke"]  # still owed
+
+
+def test_a_stop_before_the_task_left_frees_the_vehicle_at_once(requested, monitor, drone, inbox):
+    sid = requested["session"]["id"]
+    response = call("POST", f"/sessions/{sid}/stop", token=monitor)
+    assert response.json()["state"] == "aborted" and response.json()["delivery"] == []
+    assert inbox(drone).owed() == []
+    drone.refresh_from_db()
+    assert drone.status == Vehicle.Status.IDLE
+
+
+def test_a_client_holds_at_most_the_services_session_limit(requested, fly, alice):
+    f.vehicle(station=f.station(), vtype=f.vehicle_type())
+    second = call("POST", "/sessions", token=alice, body={"service": "fly"})
+    _error(second, 409, "session_limit")
+    assert "at most 1" in second.json()["error"]["message"]
+    Service.objects.filter(pk=fly.pk).update(max_sessions_per_user=2)
+    assert call("POST", "/sessions", token=alice, body={"service": "fly"}).status_code == 201
 
 
 def test_the_owner_cannot_use_the_monitors_stop(requested, alice):
@@ -671,6 +708,8 @@ def test_the_live_api_conforms_to_its_schema(wsgi_app, drone, fly, mode):
     refused; in positive mode every operation also succeeds at least once. The token's
     user is both a client and a monitor, so every endpoint answers for real."""
     f.service("rescue", mode=Service.Mode.ASYNCHRONOUS)
+    # Every session-id operation needs a live session of its own.
+    Service.objects.filter(pk=fly.pk).update(max_sessions_per_user=1000)
     token = _token("fuzzer", CLIENT, MONITOR)
     auth = {"Authorization": f"Bearer {token}"}
     schema = schemathesis.openapi.from_wsgi("/api/v1/openapi.json", wsgi_app)

@@ -6,19 +6,15 @@ the same group the uplink consumer of the vehicle listens on.
 
 from __future__ import annotations
 
-import asyncio
 import time
 
 import pytest
-from asgiref.sync import async_to_sync
-from channels.layers import get_channel_layer
 from django.conf import settings
 from django.core.exceptions import ImproperlyConfigured
 
 from accounts.roles import MONITOR
 from agents.protocol import Limits, UserGrant, VehicleTask, generate_keypair
 from fleet.models import Vehicle
-from fleet.uplink import vehicle_group
 from services.assignment import session_request
 from services.deployment import (
     DeploymentError,
@@ -51,28 +47,6 @@ LIMITS = {
     "latency_hard_ms": 400,
     "session_time_limit_s": 600,
 }
-
-
-@pytest.fixture
-def inbox():
-    """``listen(vehicle)`` -> ``take(n)``: the next n messages sent to that vehicle's agent."""
-    layer = get_channel_layer()
-
-    def listen(vehicle):
-        name = async_to_sync(layer.new_channel)()
-        async_to_sync(layer.group_add)(vehicle_group(vehicle.pk), name)
-
-        def take(n=1):
-            async def receive():
-                return [await asyncio.wait_for(layer.receive(name), 5) for _ in range(n)]
-
-            events = async_to_sync(receive)()
-            assert all(e["type"] == "agent.send" for e in events)
-            return [e["message"] for e in events]
-
-        return take
-
-    return listen
 
 
 def _registered_vehicle(name="", at=None):
@@ -249,18 +223,27 @@ def test_no_grant_for_a_final_session(deployed):
 # --- ending -----------------------------------------------------------------------------
 
 
-def test_session_end_sends_end_task_and_frees_the_vehicle(deployed, committing):
+def status(vehicle):
+    return Vehicle.objects.get(pk=vehicle.pk).status
+
+
+def test_session_end_sends_end_task_and_frees_the_vehicle_once_its_agent_confirms(
+    deployed, committing
+):
     session, vehicle, _, _, take = deployed
     with committing():
         session_end(session=session, reason="user ended the session", by_user=True)
-    assert take() == [
-        {"type": "end_task", "session_id": str(session.pk), "reason": "user ended the session"}
-    ]
+    end = {"type": "end_task", "session_id": str(session.pk), "reason": "user ended the session"}
+    assert take() == [end]
     session.refresh_from_db()
     assert session.state == Session.State.ENDED and session.reason == "user ended the session"
     assert session.events.filter(kind="state").last().data["by_user"] is True
-    assert Vehicle.objects.get(pk=vehicle.pk).status == Vehicle.Status.IDLE
     assert not session.assignments.filter(active=True).exists()
+    # Nobody else gets the vehicle before its agent says it gave the session up.
+    assert status(vehicle) == Vehicle.Status.RELEASING
+    take.ack(end)
+    assert status(vehicle) == Vehicle.Status.IDLE
+    assert session.events.filter(kind="end_delivered").exists()
     with pytest.raises(SessionStateError):
         session_end(session=session, reason="again", by_user=True)
 
@@ -269,17 +252,43 @@ def test_session_revoke_sends_revoke_and_aborts(deployed, committing):
     session, vehicle, _, _, take = deployed
     with committing():
         session_revoke(session=session, reason="kill switch", action="return_to_home")
-    assert take() == [
-        {
-            "type": "revoke",
-            "session_id": str(session.pk),
-            "reason": "kill switch",
-            "action": "return_to_home",
-        }
-    ]
+    revoke = {
+        "type": "revoke",
+        "session_id": str(session.pk),
+        "reason": "kill switch",
+        "action": "return_to_home",
+    }
+    assert take() == [revoke]
     session.refresh_from_db()
     assert session.state == Session.State.ABORTED and session.reason == "kill switch"
-    assert Vehicle.objects.get(pk=vehicle.pk).status == Vehicle.Status.IDLE
+    assert status(vehicle) == Vehicle.Status.RELEASING
+    take.ack(revoke)
+    assert status(vehicle) == Vehicle.Status.IDLE
+    delivered = session.events.get(kind="stop_delivered").data
+    assert delivered["vehicle_name"] == vehicle.name and delivered["action"] == "return_to_home"
+
+
+def test_a_task_that_never_left_is_withdrawn_and_the_vehicle_freed_at_once(inbox, committing):
+    """The agent never heard of the session: there is nothing to take back."""
+    vehicle = _registered_vehicle()
+    take = inbox(vehicle)
+    session = session_request(user=f.user(username="alice"), service=_service(), target=TARGET)
+    with committing():
+        session_deploy(session=session)
+        session_revoke(session=session, reason="kill switch", action="land")
+    assert take.owed() == []
+    assert status(vehicle) == Vehicle.Status.IDLE
+
+
+def test_messages_to_an_agent_are_owed_in_order_until_acknowledged(deployed, committing):
+    session, _vehicle, _, _, take = deployed
+    with committing():
+        session_end(session=session, reason="done", by_user=True)
+    (end,) = take()
+    # Not acknowledged: still owed, and a second session's task queues behind it.
+    assert [m.kind for m in take.owed()] == ["end_task"]
+    take.ack(end)
+    assert take.owed() == []
 
 
 def test_session_revoke_refuses_an_unknown_action(deployed):

@@ -411,3 +411,36 @@ def test_a_notice_being_sent_by_another_worker_is_not_sent_again(world, client_u
     assert len(mail.outbox) == 1
     email.refresh_from_db()
     assert email.sent_at is not None and email.attempts == 2
+
+
+def test_a_rescue_requested_through_the_api_runs_its_workflow(world, client_user) -> None:
+    """The API starts a rescue exactly as the portal's map does: a mission over the
+    area, whose workflow reserves and tasks the search drone; nothing is stranded."""
+    from django.test import Client
+
+    from accounts.tokens import token_issue
+
+    token = token_issue(user=client_user, name="tests")
+    body = {"service": "rescue-at-sea", "params": {"area": area(), "altitude_m": 40}}
+    response = Client().post(
+        "/api/v1/sessions",
+        json.dumps(body),
+        content_type="application/json",
+        HTTP_AUTHORIZATION=f"Bearer {token}",
+    )
+    assert response.status_code == 201, response.content
+    assert response.json()["task"] is None
+    session = Session.objects.get(pk=response.json()["session"]["id"])
+    assert mission(session).altitude_m == 40
+    assert step(session) == Mission.State.SEARCHING
+    assert session.events.filter(kind="task_deployed").exists()
+
+    # Without an area there is nothing to search: refused, nothing recorded.
+    bad = Client().post(
+        "/api/v1/sessions",
+        json.dumps({"service": "rescue-at-sea"}),
+        content_type="application/json",
+        HTTP_AUTHORIZATION=f"Bearer {token}",
+    )
+    assert bad.status_code == 400 and bad.json()["error"]["field"] == "params.area"
+    assert Session.objects.count() == 1

@@ -14,9 +14,7 @@ from datetime import UTC, datetime, timedelta
 
 import pytest
 import time_machine
-from asgiref.sync import async_to_sync
 from channels.db import database_sync_to_async
-from channels.layers import get_channel_layer
 from channels.testing import WebsocketCommunicator
 from django.conf import settings
 from django.db import connections
@@ -26,7 +24,6 @@ from agents.protocol import VehicleTask, parse_message
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
 from fleet.signals import agent_connected, agent_disconnected, agent_message
-from fleet.uplink import vehicle_group
 from iouv.asgi import application
 from services.assignment import session_request
 from services.deployment import session_deploy, session_end
@@ -47,26 +44,6 @@ pytestmark = pytest.mark.django_db
 def committing(django_capture_on_commit_callbacks):
     """A block whose on-commit work (the pushes to agents) runs, as after a real commit."""
     return lambda: django_capture_on_commit_callbacks(execute=True)
-
-
-@pytest.fixture
-def inbox():
-    """``listen(vehicle)`` -> ``take(n)``: the next n messages sent to that vehicle's agent."""
-    layer = get_channel_layer()
-
-    def listen(vehicle):
-        name = async_to_sync(layer.new_channel)()
-        async_to_sync(layer.group_add)(vehicle_group(vehicle.pk), name)
-
-        def take(n=1):
-            async def receive():
-                return [await asyncio.wait_for(layer.receive(name), 5) for _ in range(n)]
-
-            return [e["message"] for e in async_to_sync(receive)()]
-
-        return take
-
-    return listen
 
 
 @pytest.fixture
@@ -129,7 +106,10 @@ def test_task_refused_fails_the_session_with_the_agents_reason(live, committing)
         )
     assert state(session) == Session.State.FAILED
     assert "task arrived after its deadline (expired)" in session.reason
-    assert take()[0]["type"] == "end_task"
+    (end,) = take()
+    assert end["type"] == "end_task"
+    assert status(vehicle) == Vehicle.Status.RELEASING
+    take.ack(end)
     assert status(vehicle) == Vehicle.Status.IDLE
 
 
@@ -137,10 +117,17 @@ def test_late_task_accepted_for_an_ended_session_is_told_to_end(live, committing
     session, vehicle, take = live
     with committing():
         session_end(session=session, reason="user left", by_user=True)
-    take()
+    end = {"type": "end_task", "session_id": str(session.pk), "reason": "user left"}
+    assert take() == [end]
+    # The end is still owed: a late acceptance does not owe it twice.
     with committing():
         say(vehicle, {"type": "task_accepted", "session_id": str(session.pk)})
-    assert take() == [{"type": "end_task", "session_id": str(session.pk), "reason": "user left"}]
+    assert [m.kind for m in take.owed()] == ["end_task"]
+    # Once the agent has confirmed an end, a later acceptance is told again.
+    take.ack(end)
+    with committing():
+        say(vehicle, {"type": "task_accepted", "session_id": str(session.pk)})
+    assert take() == [end]
 
 
 def test_a_task_never_accepted_fails_the_session_after_its_deadline(live):
@@ -155,7 +142,8 @@ def test_a_task_never_accepted_fails_the_session_after_its_deadline(live):
     assert sessions_expire_undelivered(now=at + timedelta(seconds=5)) == [str(session.pk)]
     assert state(session) == Session.State.FAILED
     assert session.reason == f"vehicle {vehicle.name} did not accept its task in time"
-    assert status(vehicle) == Vehicle.Status.IDLE
+    # The task was sent: the agent may hold it, so it is told to end it first.
+    assert status(vehicle) == Vehicle.Status.RELEASING
 
 
 def test_an_accepted_task_is_not_undelivered(live):
@@ -241,7 +229,9 @@ def test_failsafe_logs_an_unintentional_end_then_the_grace_ends_the_session(live
     assert ended == [str(session.pk)]
     assert state(session) == Session.State.ENDED
     assert session.reason == "unintentional end: link_lost, vehicle performed land"
-    assert take()[0]["type"] == "end_task"
+    (end,) = take()
+    assert end["type"] == "end_task"
+    take.ack(end)
     assert status(vehicle) == Vehicle.Status.IDLE
     assert sessions_expire_grace(now=logged.created_at + timedelta(seconds=grace + 99)) == []
 
@@ -440,18 +430,29 @@ async def test_agent_flow_over_the_uplink(_close_worker_connections):
         await asyncio.sleep(0.02)
     assert await database_sync_to_async(status)(vehicle) == Vehicle.Status.IN_SERVICE
 
+    await agent.send_json_to({"type": "ack", "id": message["id"], "ok": True})
+
     await database_sync_to_async(session_end)(session=session, reason="user left", by_user=True)
-    assert await agent.receive_json_from(timeout=5) == {
+    end = await agent.receive_json_from(timeout=5)
+    assert end == {
         "type": "end_task",
         "session_id": str(session.pk),
         "reason": "user left",
+        "id": end["id"],
     }
+    assert await database_sync_to_async(status)(vehicle) == Vehicle.Status.RELEASING
     await agent.send_json_to(event(session, "task_ended"))
+    await agent.send_json_to({"type": "ack", "id": end["id"], "ok": True})
+    for _ in range(250):
+        if await database_sync_to_async(status)(vehicle) == Vehicle.Status.IDLE:
+            break
+        await asyncio.sleep(0.02)
+    assert await database_sync_to_async(status)(vehicle) == Vehicle.Status.IDLE
     await agent.disconnect()
     for _ in range(250):
         if await database_sync_to_async(status)(vehicle) == Vehicle.Status.OFFLINE:
             break
         await asyncio.sleep(0.02)
     logged = await database_sync_to_async(kinds)(session)
-    assert "task_accepted" in logged and logged[-1] == "task_ended"
+    assert "task_accepted" in logged and logged[-2:] == ["task_ended", "end_delivered"]
     assert await database_sync_to_async(status)(vehicle) == Vehicle.Status.OFFLINE

@@ -1,0 +1,124 @@
+"""The agent's uplink over a real socket, against a stand-in platform.
+
+The platform sends what changes the vehicle's work with an ``id`` and repeats it until
+acknowledged; the agent must handle each id once, acknowledge every delivery, and say
+when handling failed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator
+from typing import Any
+
+import pytest
+from websockets.asyncio.server import ServerConnection, serve
+
+from agents.uplink import Uplink
+
+SESSION = "5b0d6c0e-8a3c-4d7e-9a51-0c4f1f2b7a10"
+REVOKE = {"type": "revoke", "session_id": SESSION, "reason": "kill switch", "action": "land"}
+
+
+class Platform:
+    """Accepts one agent at a time: answers hello, then lets the test talk to it."""
+
+    def __init__(self) -> None:
+        self.connections: asyncio.Queue[ServerConnection] = asyncio.Queue()
+        self.port = 0
+
+    async def handler(self, ws: ServerConnection) -> None:
+        hello = json.loads(await ws.recv())
+        assert hello["type"] == "hello"
+        await ws.send(json.dumps({"type": "welcome", "v": 1, "heartbeat_interval_s": 30}))
+        await self.connections.put(ws)
+        await ws.wait_closed()
+
+
+async def next_of(ws: ServerConnection, kind: str) -> dict[str, Any]:
+    """The next message of ``kind`` from the agent (heartbeats and others skipped)."""
+    while True:
+        msg = json.loads(await asyncio.wait_for(ws.recv(), 5))
+        if msg["type"] == kind:
+            return msg
+
+
+@pytest.fixture
+async def platform() -> AsyncIterator[Platform]:
+    p = Platform()
+    async with serve(p.handler, "127.0.0.1", 0) as server:
+        p.port = next(iter(server.sockets)).getsockname()[1]
+        yield p
+
+
+@pytest.fixture
+async def agent(platform: Platform) -> AsyncIterator[tuple[Uplink, list[dict[str, Any]]]]:
+    handled: list[dict[str, Any]] = []
+
+    async def on_message(msg: dict[str, Any]) -> None:
+        handled.append(msg)
+        if msg.get("reason") == "explode":
+            raise RuntimeError("the handler broke")
+
+    uplink = Uplink(
+        url=f"ws://127.0.0.1:{platform.port}/",
+        vehicle_id="v-1",
+        credential="c",
+        on_message=on_message,
+        profile=lambda: {"type": "profile"},
+        heartbeat=lambda: {"type": "heartbeat"},
+        reconnect_min_s=0.05,
+        reconnect_max_s=0.1,
+    )
+    run = asyncio.create_task(uplink.run())
+    yield uplink, handled
+    run.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await run
+
+
+async def test_a_message_with_an_id_is_handled_once_and_acknowledged_every_time(platform, agent):
+    _uplink, handled = agent
+    ws = await asyncio.wait_for(platform.connections.get(), 5)
+    await ws.send(json.dumps({**REVOKE, "id": "m-1"}))
+    assert await next_of(ws, "ack") == {"type": "ack", "id": "m-1", "ok": True, "detail": ""}
+    # Resent (the platform did not hear the first ack): acknowledged, not handled again.
+    await ws.send(json.dumps({**REVOKE, "id": "m-1"}))
+    again = await next_of(ws, "ack")
+    assert again["id"] == "m-1" and again["ok"] is True
+    assert [m["id"] for m in handled] == ["m-1"]
+
+
+async def test_a_handler_failure_is_acknowledged_as_failed(platform, agent):
+    _uplink, handled = agent
+    ws = await asyncio.wait_for(platform.connections.get(), 5)
+    await ws.send(json.dumps({**REVOKE, "reason": "explode", "id": "m-2"}))
+    ack = await next_of(ws, "ack")
+    assert ack["id"] == "m-2" and ack["ok"] is False
+    assert "the handler broke" in ack["detail"]
+    # The uplink is still there for the next message.
+    await ws.send(json.dumps({**REVOKE, "id": "m-3"}))
+    assert (await next_of(ws, "ack"))["id"] == "m-3"
+    assert len(handled) == 2
+
+
+async def test_an_ack_the_link_lost_goes_out_on_the_next_connection(platform, agent):
+    uplink, handled = agent
+    ws = await asyncio.wait_for(platform.connections.get(), 5)
+    # The message arrives and the link drops before anything else is said.
+    handled_now = asyncio.Event()
+    original = uplink.on_message
+
+    async def slow(msg: dict[str, Any]) -> None:
+        await original(msg)
+        await ws.close()
+        handled_now.set()
+
+    uplink.on_message = slow
+    await ws.send(json.dumps({**REVOKE, "id": "m-4"}))
+    await asyncio.wait_for(handled_now.wait(), 5)
+    uplink.on_message = original
+    back = await asyncio.wait_for(platform.connections.get(), 5)
+    assert (await next_of(back, "ack"))["id"] == "m-4"
+    assert [m["id"] for m in handled] == ["m-4"]
