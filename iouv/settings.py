@@ -198,10 +198,22 @@ if env_bool("BEHIND_PROXY", False):
 # --- Celery ----------------------------------------------------------------------------
 if REDIS_URL:
     CELERY_BROKER_URL = REDIS_URL
-    # A task whose worker died unacknowledged (acks_late) is delivered again after this
-    # long; workflow steps are idempotent, so a second run changes nothing.
+    # kombu's Redis transport could turn a Redis outage into an "unrecoverable error"
+    # that ends the worker and its beat; this one reports it as the lost connection it
+    # is, and the worker reconnects (iouv/redis_broker.py).
+    CELERY_BROKER_TRANSPORT = "iouv.redis_broker:Transport"
     CELERY_BROKER_TRANSPORT_OPTIONS: dict[str, object] = {
-        "visibility_timeout": env_int("CELERY_VISIBILITY_TIMEOUT_S", 3600)
+        # A task whose worker died unacknowledged (acks_late) is delivered again after
+        # this long; workflow steps are idempotent, so a second run changes nothing.
+        "visibility_timeout": env_int("CELERY_VISIBILITY_TIMEOUT_S", 3600),
+        # A Redis host that stops answering without closing the sockets (a lost
+        # network, not a crash) must not hang the worker or beat: connecting and each
+        # reply have a deadline, and a connection idle for health_check_interval is
+        # checked (a PING; a BRPOP left without its reply is dropped). Redis has no
+        # heartbeats (broker_heartbeat is AMQP's); these checks stand in for them.
+        "socket_connect_timeout": 5,
+        "socket_timeout": 10,
+        "health_check_interval": 10,
     }
 else:
     # kombu's filesystem transport: daphne and a separate worker process share a
@@ -225,6 +237,14 @@ CELERY_WORKER_PREFETCH_MULTIPLIER = 1
 CELERY_TASK_IGNORE_RESULT = True
 CELERY_TASK_ALWAYS_EAGER = env_bool("CELERY_TASK_ALWAYS_EAGER", False)
 CELERY_BROKER_CONNECTION_RETRY_ON_STARTUP = True
+# The worker, its beat and beat's remote control reconnect for as long as the broker is
+# away; Celery's default gives up after 100 attempts (some 45 minutes) and stops.
+CELERY_BROKER_CONNECTION_MAX_RETRIES = None
+# A task running when the broker goes away finishes its work: its state is in the
+# database. Only its acknowledgement may be lost, and then it runs once more after the
+# visibility timeout, changing nothing. Cancelling it (Celery 6's default) would throw
+# the work away and still wait for that timeout.
+CELERY_WORKER_CANCEL_LONG_RUNNING_TASKS_ON_CONNECTION_LOSS = False
 
 # --- IoUV ------------------------------------------------------------------------------
 # The platform's Ed25519 key that signs vehicle tasks and user grants. Agents hold only
