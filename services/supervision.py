@@ -196,6 +196,8 @@ def _agent_event(*, vehicle_id: Any, message: dict[str, Any]) -> None:
     assignment = _assignment_for(vehicle_id=vehicle_id, session_id=message["session_id"])
     if assignment is None:
         return
+    if name in _LIVE_ONLY and not _serving(assignment):
+        return  # a late report of a session that is over: nothing to act on or show
     handler = _EVENT_HANDLERS.get(name)
     if handler is None:
         event_append(
@@ -237,18 +239,35 @@ def _on_user_connected(assignment: Assignment, data: dict[str, Any]) -> None:
             fleet_notify([assignment.vehicle_id])
 
 
+def _unsafe_count(data: Any) -> int:
+    """How many of the refusals one ``command_refused`` report stands for were unsafe.
+
+    An agent reports the first refusal of a burst at once and folds the rest into one
+    report a second (``count``, and ``codes``: code -> how many)."""
+    if not isinstance(data, dict):
+        return 0
+    codes = data.get("codes")
+    if isinstance(codes, dict):
+        return sum(int(n) for code, n in codes.items() if code in UNSAFE_REFUSALS and _is_count(n))
+    if data.get("code") not in UNSAFE_REFUSALS:
+        return 0
+    count = data.get("count", 1)
+    return int(count) if _is_count(count) else 1
+
+
+def _is_count(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 1_000_000
+
+
 def _on_command_refused(assignment: Assignment, data: dict[str, Any]) -> None:
     event = _log(assignment, "command_refused", data)
-    if data.get("code") not in UNSAFE_REFUSALS or not _serving(assignment):
+    if not _unsafe_count(data) or not _serving(assignment):
         return
     since = event.created_at - timedelta(seconds=settings.IOUV_UNSAFE_REFUSALS_WINDOW_S)
     recent = SessionEvent.objects.filter(
-        session=assignment.session,
-        kind="command_refused",
-        data__code__in=sorted(UNSAFE_REFUSALS),
-        created_at__gt=since,
-    ).count()
-    if recent > settings.IOUV_UNSAFE_REFUSALS_MAX:
+        session=assignment.session, kind="command_refused", created_at__gt=since
+    ).values_list("data", flat=True)
+    if sum(_unsafe_count(d) for d in recent) > settings.IOUV_UNSAFE_REFUSALS_MAX:
         session = assignment.session
         # Suppressed: a concurrent refusal may have revoked it already.
         with contextlib.suppress(SessionStateError):
@@ -274,6 +293,16 @@ def _on_failsafe(assignment: Assignment, data: dict[str, Any]) -> None:
         fleet_notify([assignment.vehicle_id])
 
 
+def _on_link_recovered(assignment: Assignment, data: dict[str, Any]) -> None:
+    """The controller's input came back on the socket it kept open after a fail-safe:
+    the user drives again, and the session goes on (see :func:`sessions_expire_grace`)."""
+    _log(assignment, "link_recovered", data)
+    if Vehicle.objects.filter(
+        pk=assignment.vehicle_id, maintenance=False, status=Vehicle.Status.FAILSAFE
+    ).update(status=Vehicle.Status.IN_SERVICE):
+        fleet_notify([assignment.vehicle_id])
+
+
 def _on_link_quality(assignment: Assignment, data: dict[str, Any]) -> None:
     # Agents report link quality often; the hash-chained log keeps a sample, not a flood.
     last = (
@@ -295,12 +324,17 @@ def _logged_as(kind: str) -> Any:
     return handler
 
 
+#: Events that only mean something while the session runs; late ones are dropped.
+_LIVE_ONLY = frozenset({"command_refused", "link_quality", "link_recovered", "control_handover"})
+
 _EVENT_HANDLERS = {
     "user_connected": _on_user_connected,
     "user_disconnected": _logged_as("user_disconnected"),
     "command_refused": _on_command_refused,
     "failsafe": _on_failsafe,
     "task_ended": _logged_as("task_ended"),
+    "link_recovered": _on_link_recovered,
+    "control_handover": _logged_as("control_handover"),
     "link_quality": _on_link_quality,
 }
 

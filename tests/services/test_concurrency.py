@@ -63,3 +63,47 @@ def test_forty_concurrent_requests_for_five_vehicles():
     assert Vehicle.objects.filter(status=Vehicle.Status.RESERVED).count() == VEHICLES
     assert Session.objects.filter(state=Session.State.ASSIGNED).count() == VEHICLES
     assert Session.objects.filter(state=Session.State.FAILED).count() == REQUESTS - VEHICLES
+
+
+@pytest.mark.postgres
+@pytest.mark.django_db(transaction=True)
+def test_one_client_racing_twenty_requests_holds_only_the_services_cap():
+    """A client cannot reserve the fleet: its concurrent requests are counted in turn."""
+    st = f.station()
+    drone = f.vehicle_type()
+    for i in range(20):
+        f.vehicle(station=st, vtype=drone, name=f"d{i}")
+    svc = f.service(max_sessions_per_user=2)
+    greedy = f.user()
+
+    start = threading.Barrier(20)
+    granted: list[str] = []
+    capped: list[str] = []
+    crashes: list[BaseException] = []
+    lock = threading.Lock()
+
+    def request() -> None:
+        try:
+            start.wait()
+            session = session_request(user=greedy, service=svc, target=f.HOME)
+            with lock:
+                granted.append(str(session.pk))
+        except AssignmentError as exc:
+            with lock:
+                (capped if exc.over_cap else crashes).append(exc)  # type: ignore[arg-type]
+        except BaseException as exc:
+            with lock:
+                crashes.append(exc)
+        finally:
+            connection.close()
+
+    threads = [threading.Thread(target=request) for _ in range(20)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+
+    assert not crashes, crashes
+    assert len(granted) == 2 and len(capped) == 18
+    assert Vehicle.objects.filter(status=Vehicle.Status.RESERVED).count() == 2
+    assert not Session.objects.exclude(pk__in=granted).exists()  # refusals record nothing

@@ -27,12 +27,14 @@ from fleet.signals import agent_connected, agent_disconnected, agent_message
 from iouv.asgi import application
 from services.assignment import session_request
 from services.deployment import session_deploy, session_end
-from services.models import Session
+from services.models import Service, Session
 from services.signing import platform_public_key
 from services.supervision import (
     LINK_QUALITY_EVERY_S,
+    sessions_end_vehicle_lost,
     sessions_expire_grace,
     sessions_expire_time_limit,
+    sessions_expire_unconnected,
     sessions_expire_undelivered,
 )
 from tests import factories as f
@@ -366,6 +368,177 @@ def test_an_idle_vehicle_coming_online_is_left_alone():
     agent_connected.send(sender=None, vehicle_id=str(vehicle.pk))
     agent_disconnected.send(sender=None, vehicle_id=str(vehicle.pk), code=1000)
     assert status(vehicle) == Vehicle.Status.IDLE
+
+
+# --- sessions follow what really happens -------------------------------------------------
+
+
+def _past_grace(event_kind, session):
+    logged = session.events.filter(kind=event_kind).last()
+    return logged.created_at + timedelta(seconds=settings.IOUV_RECONNECT_GRACE_S + 1)
+
+
+def test_input_again_on_the_open_socket_keeps_the_session(live):
+    """A throttled tab stalls, the fail-safe acts, the user drives on: that is recovery."""
+    session, vehicle, _ = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    say(vehicle, event(session, "failsafe", cause="link_lost", action="land"))
+    assert status(vehicle) == Vehicle.Status.FAILSAFE
+    say(vehicle, event(session, "link_recovered", user="alice", after_ms=900))
+    assert status(vehicle) == Vehicle.Status.IN_SERVICE
+    assert sessions_expire_grace(now=_past_grace("unintentional_end", session)) == []
+    assert state(session) == Session.State.ACTIVE
+
+
+def test_the_controller_leaving_ends_the_session_after_the_grace(live, committing):
+    session, vehicle, _ = live
+    say(vehicle, event(session, "user_connected", user="alice", role="controller"))
+    say(vehicle, event(session, "user_disconnected", user="alice", role="controller"))
+    say(vehicle, event(session, "user_connected", user="bob", role="viewer"))
+    with committing():
+        assert sessions_expire_grace(now=_past_grace("user_disconnected", session)) == [
+            str(session.pk)
+        ]
+    grace = settings.IOUV_RECONNECT_GRACE_S
+    assert state(session) == Session.State.ENDED
+    assert session.reason == f"the user left and did not come back within {grace:g} s"
+
+
+def test_a_vehicle_back_online_with_its_controller_keeps_the_session(live):
+    """The uplink dropped, not the user: the agent says its controller is still there."""
+    session, vehicle, _ = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    say(vehicle, event(session, "failsafe", cause="link_lost", action="land"))
+    agent_connected.send(
+        sender=None,
+        vehicle_id=str(vehicle.pk),
+        state={"session_id": str(session.pk), "controller": True, "status": "in_service"},
+    )
+    assert sessions_expire_grace(now=_past_grace("unintentional_end", session)) == []
+
+
+def test_a_session_nobody_connects_to_ends_after_the_connect_timeout(live, committing):
+    session, _vehicle, _ = live
+    assigned = Session.objects.get(pk=session.pk).assigned_at
+    limit = settings.IOUV_CONNECT_TIMEOUT_S
+    assert sessions_expire_unconnected(now=assigned + timedelta(seconds=limit - 1)) == []
+    with committing():
+        ended = sessions_expire_unconnected(now=assigned + timedelta(seconds=limit + 1))
+    assert ended == [str(session.pk)]
+    assert state(session) == Session.State.ENDED
+    assert session.reason == f"nobody connected to the vehicle within {limit:g} s"
+
+
+def test_an_autonomous_session_waits_for_no_user(inbox, committing):
+    vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type())
+    service = f.service(mode=Service.Mode.ASYNCHRONOUS)
+    session_request(user=f.user(), service=service)
+    later = timezone.now() + timedelta(seconds=settings.IOUV_CONNECT_TIMEOUT_S + 60)
+    assert sessions_expire_unconnected(now=later) == []
+    assert status(vehicle) == Vehicle.Status.RESERVED
+
+
+def test_a_session_whose_vehicle_went_offline_ends_and_the_vehicle_stays_held(live, committing):
+    session, vehicle, take = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    seen = timezone.now()
+    Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.OFFLINE, last_seen=seen)
+    lost = settings.IOUV_VEHICLE_LOST_S
+    assert sessions_end_vehicle_lost(now=seen + timedelta(seconds=lost - 0.5)) == []
+    with committing():
+        assert sessions_end_vehicle_lost(now=seen + timedelta(seconds=lost + 0.5)) == [
+            str(session.pk)
+        ]
+    assert state(session) == Session.State.ENDED
+    assert session.reason == f"vehicle {vehicle.name} went offline (no word from it for {lost:g} s)"
+    # Not freed: nobody knows where it is. It is told the session is over when back.
+    assert status(vehicle) == Vehicle.Status.OFFLINE
+    assert [m.kind for m in take.owed()] == ["end_task"]
+
+
+def test_an_agent_back_with_a_session_that_ended_is_told_to_end_it(live, committing):
+    session, vehicle, take = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.OFFLINE)
+    with committing():
+        session_end(session=session, reason="vehicle lost", by_user=False)
+    # Its uplink comes back; the profile says it still runs the session.
+    Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.RELEASING)
+    with committing():
+        agent_connected.send(
+            sender=None,
+            vehicle_id=str(vehicle.pk),
+            state={"session_id": str(session.pk), "controller": True, "status": "in_service"},
+        )
+    end = {"type": "end_task", "session_id": str(session.pk), "reason": "vehicle lost"}
+    assert take() == [end]  # once, though decided before and again now
+    assert status(vehicle) == Vehicle.Status.RELEASING
+    take.ack(end)
+    assert status(vehicle) == Vehicle.Status.IDLE
+
+
+def test_a_restarted_agent_gets_its_live_session_back_and_nothing_stale(live, committing):
+    session, vehicle, take = live
+    Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.IDLE)
+    with committing():
+        agent_connected.send(
+            sender=None,
+            vehicle_id=str(vehicle.pk),
+            state={"session_id": None, "controller": False, "status": "idle"},
+        )
+    (message,) = take()
+    assert message["type"] == "task"  # a fresh one: the first may have expired
+    assert status(vehicle) == Vehicle.Status.RESERVED
+    assert kinds(session).count("task_deployed") == 2
+
+
+def test_a_restarted_agent_owes_nothing_for_sessions_it_no_longer_runs(live, committing):
+    session, vehicle, take = live
+    with committing():
+        session_end(session=session, reason="done", by_user=True)
+    assert status(vehicle) == Vehicle.Status.RELEASING
+    # It restarted before the end reached it: there is nothing left to end.
+    Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.IDLE)
+    agent_connected.send(
+        sender=None,
+        vehicle_id=str(vehicle.pk),
+        state={"session_id": None, "controller": False, "status": "idle"},
+    )
+    assert take.owed() == []
+    assert status(vehicle) == Vehicle.Status.IDLE
+
+
+def test_refusals_reported_in_aggregate_count_each_refusal(live, committing):
+    session, vehicle, _take = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    say(vehicle, event(session, "command_refused", name="up", code="altitude_limit", count=1))
+    say(
+        vehicle,
+        event(
+            session,
+            "command_refused",
+            name="up",
+            code="altitude_limit",
+            count=40,
+            codes={"not_allowed": 36, "altitude_limit": 4},
+        ),
+    )
+    assert state(session) == Session.State.ACTIVE  # 5 unsafe of 41: the most tolerated
+    with committing():
+        say(vehicle, event(session, "command_refused", name="up", code="geofence", count=1))
+    assert state(session) == Session.State.ABORTED
+    assert session.reason == "repeated unsafe commands"
+
+
+def test_reports_after_the_session_ended_are_not_logged(live, committing):
+    session, vehicle, _ = live
+    with committing():
+        session_end(session=session, reason="done", by_user=True)
+    before = kinds(session)
+    say(vehicle, event(session, "command_refused", name="up", code="view_only", count=150))
+    say(vehicle, event(session, "link_quality", rtt_ms=20))
+    say(vehicle, event(session, "task_ended", reason="done"))
+    assert kinds(session) == [*before, "task_ended"]
 
 
 # --- the whole flow over a real uplink --------------------------------------------------
