@@ -10,6 +10,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import re
+import shutil
 import socket
 import subprocess
 import sys
@@ -20,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import redis
 from asgiref.sync import sync_to_async
 from django.conf import settings
 from django.db import connections
@@ -152,18 +155,97 @@ class _Worker:
         self.log.close()
 
     def stop(self) -> None:
-        if self.proc is None or self.proc.poll() is not None:
-            return
-        os.killpg(self.proc.pid, 15)
-        try:
-            self.proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            os.killpg(self.proc.pid, 9)
-            self.proc.wait(timeout=10)
+        if self.proc is not None and self.proc.poll() is None:
+            os.killpg(self.proc.pid, 15)
+            try:
+                self.proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, 9)
+                self.proc.wait(timeout=10)
         self.log.close()
+
+    def alive(self) -> bool:
+        """True while the worker's main process runs (its beat is one of its children)."""
+        return self.proc is not None and self.proc.poll() is None
 
     def output(self) -> str:
         return Path(self.log.name).read_text()[-4000:]
+
+    def tasks_in_flight(self) -> list[str]:
+        """Names of the tasks the worker received and has not finished, read from its
+        log (Celery writes "Task <name>[<id>] received", then one more line per id)."""
+        running: dict[str, str] = {}
+        for name, task_id, word in _TASK_LOG.findall(Path(self.log.name).read_text()):
+            if word == "received":
+                running[task_id] = name
+            else:
+                running.pop(task_id, None)
+        return sorted(running.values())
+
+    def quiet_for(self) -> float:
+        """Seconds since the worker (or its beat) last wrote to its log."""
+        return time.time() - Path(self.log.name).stat().st_mtime
+
+
+_TASK_LOG = re.compile(r"Task (\S+)\[([0-9a-f-]+)\] (\w+)")
+
+
+@contextlib.contextmanager
+def redis_server_process() -> Iterator[RedisServer]:
+    """Run a private redis-server on a free loopback port, for tests that take Redis
+    away (the machine's shared one must stay up for everyone else); yields its handle.
+    Skips the test when ``redis-server`` is not installed."""
+    binary = shutil.which("redis-server")
+    if binary is None:
+        pytest.skip("needs redis-server")
+    server = RedisServer(binary, free_port())
+    server.start()
+    try:
+        yield server
+    finally:
+        server.kill()
+
+
+class RedisServer:
+    """A redis-server process that keeps nothing on disk, on a fixed port: ``kill()``
+    is an outage (SIGKILL, as a crash or a lost host), ``start()`` its end."""
+
+    def __init__(self, binary: str, port: int) -> None:
+        self.binary = binary
+        self.port = port
+        self.url = f"redis://127.0.0.1:{port}/0"
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self, within: float = 10.0) -> None:
+        """Start the server and return once it answers PING."""
+        self.proc = subprocess.Popen(
+            [
+                self.binary, "--port", str(self.port), "--bind", "127.0.0.1",
+                "--save", "", "--appendonly", "no", "--dir", str(settings.VAR_DIR),
+                "--logfile", str(settings.VAR_DIR / f"redis-{self.port}.log"),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        client = redis.Redis(host="127.0.0.1", port=self.port, socket_connect_timeout=1)
+        deadline = time.monotonic() + within
+        try:
+            while True:
+                try:
+                    client.ping()
+                    return
+                except redis.ConnectionError:
+                    if self.proc.poll() is not None or time.monotonic() > deadline:
+                        raise RuntimeError(f"redis-server did not start on {self.port}") from None
+                    time.sleep(0.1)
+        finally:
+            client.close()
+
+    def kill(self) -> None:
+        """SIGKILL the server: clients see their connections reset, then refused."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=10)
 
 
 @sync_to_async
