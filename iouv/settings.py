@@ -237,8 +237,8 @@ CELERY_WORKER_PREFETCH_MULTIPLIER = 1
 CELERY_TASK_IGNORE_RESULT = True
 CELERY_TASK_ALWAYS_EAGER = env_bool("CELERY_TASK_ALWAYS_EAGER", False)
 CELERY_BROKER_CONNECTION_RETRY_ON_STARTUP = True
-# The worker, its beat and beat's remote control reconnect for as long as the broker is
-# away; Celery's default gives up after 100 attempts (some 45 minutes) and stops.
+# The worker and its beat reconnect for as long as the broker is away; Celery's default
+# gives up after 100 attempts (some 45 minutes) and stops the worker.
 CELERY_BROKER_CONNECTION_MAX_RETRIES = None
 # A task running when the broker goes away finishes its work: its state is in the
 # database. Only its acknowledgement may be lost, and then it runs once more after the
