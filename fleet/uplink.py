@@ -579,6 +579,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self._group: str | None = None
         self._first_frame_seen = False
         self._registered = False  # a profile was stored on this uplink
+        self._grouped = False  # member of the vehicle's channel-layer group
         #: The credential generation this uplink authenticated under (fleet.outbox
         #: closes it when a newer credential is issued).
         self.credential_generation = 0
@@ -787,10 +788,13 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         # A vehicle is one agent: tell an older uplink of this vehicle to go, before
         # joining the group so this one does not hear its own notice. (The older one
         # no longer owns last_seen, so it will not mark the vehicle offline.)
-        await self.channel_layer.group_send(
-            self._group, {"type": "agent.replaced", "channel": self.channel_name}
-        )
-        await self.channel_layer.group_add(self._group, self.channel_name)
+        try:
+            await self.channel_layer.group_send(
+                self._group, {"type": "agent.replaced", "channel": self.channel_name}
+            )
+        except Exception as exc:
+            log.warning("uplink %s: telling older uplinks failed: %s", self.vehicle_id, exc)
+        await self._join_group()
         try:
             await self._send_message(welcome)
         except Exception as exc:  # the agent stopped waiting and left (its disconnect follows)
@@ -810,7 +814,24 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             assert self.vehicle_id is not None
             outbox().register(self.vehicle_id, self)
 
+    async def _join_group(self) -> None:
+        """Join the vehicle's group; when Redis is away, the next heartbeat tries again.
+
+        The group only carries relayed traffic and "look now" nudges: what the vehicle
+        is owed reaches it through the database (fleet.outbox), so the agent is
+        admitted either way.
+        """
+        if self._grouped or self._group is None:
+            return
+        try:
+            await self.channel_layer.group_add(self._group, self.channel_name)
+        except Exception as exc:
+            log.warning("uplink %s: joining its group failed: %s", self.vehicle_id, exc)
+            return
+        self._grouped = True
+
     async def _heartbeat(self, msg: dict[str, Any]) -> None:
+        await self._join_group()
         # At most two writes per heartbeat interval: an agent that heartbeats too fast
         # costs the database nothing more. A skipped heartbeat is superseded by the next.
         mono = time.monotonic()

@@ -8,22 +8,66 @@ then fails frames at random and the agents must reconnect again. Here the pool i
 redis-py's ``BlockingConnectionPool``: a caller waits for a free connection, up to the
 host's ``timeout`` seconds (set in settings; redis-py's default is 20), and the burst
 is served in turn.
+
+And a consumer waiting for its next message outlives a Redis outage: channels_redis
+raises the lost connection out of ``receive``, which ends the consumer and closes its
+WebSocket, so every agent uplink and browser socket of the process dropped with Redis,
+and agents reconnecting during the outage were refused. Here the wait goes on (and
+simply receives nothing) until Redis is back. What the platform owes the agents does
+not wait for Redis at all (fleet.outbox).
 """
 
 from __future__ import annotations
 
+import asyncio
+import logging
+import time
 from typing import Any
 
 from channels_redis.core import RedisChannelLayer
 from redis.asyncio import BlockingConnectionPool
+from redis.exceptions import ConnectionError as RedisConnectionError
+from redis.exceptions import TimeoutError as RedisTimeoutError
+
+log = logging.getLogger(__name__)
+
+#: How long a receiver waits before trying a Redis that did not answer again.
+RECEIVE_RETRY_S = 0.5
 
 
 class WaitingRedisChannelLayer(RedisChannelLayer):  # type: ignore[misc]
-    """``RedisChannelLayer`` whose pools wait for a connection instead of raising.
+    """``RedisChannelLayer`` whose pools wait for a connection instead of raising, and
+    whose receivers wait through a Redis outage instead of failing.
 
     Only hosts given as ``{"address": url, ...}`` change; the other keys of the host
     (``max_connections``, ``socket_timeout``, ``timeout`` for the wait) go to the pool.
     """
+
+    _outage_since = 0.0
+
+    async def _brpop_with_clean(
+        self,
+        index: int,
+        channel: str,
+        timeout: int,  # noqa: ASYNC109 - the parent's signature
+    ) -> Any:
+        # channels_redis's receive_single calls this in a loop until it returns a
+        # message; None means "nothing yet", so an unreachable Redis becomes a wait.
+        try:
+            result = await super()._brpop_with_clean(index, channel, timeout)
+        except (RedisConnectionError, RedisTimeoutError, OSError) as exc:
+            now = time.monotonic()
+            if not self._outage_since:
+                log.warning("channel layer: Redis unreachable (%s); receivers wait", exc)
+                self._outage_since = now
+            await asyncio.sleep(RECEIVE_RETRY_S)
+            return None
+        if self._outage_since:
+            log.warning(
+                "channel layer: Redis back after %.1f s", time.monotonic() - self._outage_since
+            )
+            self._outage_since = 0.0
+        return result
 
     def create_pool(self, index: int) -> Any:
         host = dict(self.hosts[index])

@@ -1,0 +1,345 @@
+"""Supervision that cannot be lost, on the real servers: daphne, PostgreSQL, Redis, a
+Celery worker with its beat, and vehicle agents on their simulators.
+
+Each test breaks something the way it breaks in the field (an agent killed, a user who
+never comes, a stolen credential, a greedy client) and checks that the platform's word
+still reaches the vehicle and the session follows what really happened.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from django.conf import settings
+from websockets.asyncio.client import connect
+
+from accounts.tokens import token_issue
+from fleet.credentials import vehicle_issue_credential
+from fleet.models import AgentMessage, Vehicle
+from services.models import Session
+from services.signing import platform_public_key_pem
+from tests import factories as f
+from tests.agents.test_control import command, recv
+from tests.servers import (
+    ROOT,
+    agent_running,
+    celery_worker_process,
+    db,
+    platform_process,
+    until,
+)
+
+pytestmark = [
+    pytest.mark.postgres,
+    pytest.mark.redis,
+    pytest.mark.django_db(transaction=True),
+]
+
+CAR_COMMANDS = ["forward", "backward", "left", "right", "stop"]
+#: Short timers, so the rules act within a test's patience (defaults: 30 s and 120 s).
+TIMERS = {
+    "IOUV_RECONNECT_GRACE_S": "4",
+    "IOUV_CONNECT_TIMEOUT_S": "4",
+    "IOUV_SUPERVISION_TICK_S": "0.5",
+}
+
+
+def _fleet(cap: int = 1) -> tuple[Vehicle, str, Any]:
+    station = f.station()
+    car = f.vehicle(
+        station=station,
+        vtype=f.vehicle_type("ground", "car", name="Raspberry Pi car"),
+        name="car-1",
+        online=False,
+        environments=["land"],
+    )
+    service = f.service(
+        "drive-car",
+        roles=[{"name": "vehicle", "kinds": ["ground"], "min_battery": 20}],
+        allowed_commands=CAR_COMMANDS,
+        failsafe_action="stop",
+        link_loss_timeout_ms=500,
+        max_sessions_per_user=cap,
+    )
+    return car, vehicle_issue_credential(vehicle=car), service
+
+
+@pytest.fixture
+def servers() -> Iterator[str]:
+    """daphne and a worker with its beat, on the test database and Redis."""
+    with platform_process() as base, celery_worker_process(extra_env=TIMERS):
+        yield base
+
+
+def api(base: str, method: str, path: str, token: str, body: Any = None) -> tuple[int, Any]:
+    """Call the JSON API; returns (status, body)."""
+    request = urllib.request.Request(
+        f"{base}/api/v1{path}",
+        method=method,
+        data=json.dumps(body).encode() if body is not None else None,
+        headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"},
+    )
+    try:
+        with urllib.request.urlopen(request, timeout=20) as response:
+            return response.status, json.loads(response.read())
+    except urllib.error.HTTPError as exc:
+        return exc.code, json.loads(exc.read())
+
+
+async def _status(vehicle: Vehicle) -> str:
+    return (await db(Vehicle.objects.get, pk=vehicle.pk)).status
+
+
+async def _session(session_id: str) -> Session:
+    return await db(Session.objects.get, pk=session_id)
+
+
+async def _idle(vehicle: Vehicle) -> bool:
+    return await _status(vehicle) == Vehicle.Status.IDLE
+
+
+async def drive(task: dict[str, Any], seq: int) -> Any:
+    """Connect to the vehicle with the user task once its agent has accepted the
+    session's task (as the controller page does by retrying), and drive once."""
+    session_id = task["session_id"]
+
+    async def accepted() -> bool:
+        return await db(
+            lambda: Session.objects.get(pk=session_id).events.filter(kind="task_accepted").exists()
+        )
+
+    await until(accepted, within=15, what="the agent to accept its task")
+    ws = await connect(task["control_url"], proxy=None, compression=None)
+    await ws.send(json.dumps({"type": "auth", "grant": task["grant"]}))
+    assert (await recv(ws, "welcome"))["role"] == "controller"
+    assert (await command(ws, seq, "forward", speed=0.5))["ok"]
+    return ws
+
+
+# --- an agent in a process of its own, to be killed --------------------------------------
+
+
+class AgentProcess:
+    """``python -m agents run`` for one simulated car, as on a vehicle."""
+
+    def __init__(self, config: Path) -> None:
+        self.config = config
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> None:
+        self.log = open(self.config.with_suffix(".log"), "a")  # noqa: SIM115 - closed in stop
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "agents", "run", "--config", str(self.config)],
+            cwd=ROOT,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            stdout=self.log,
+            stderr=subprocess.STDOUT,
+        )
+
+    def kill(self) -> None:
+        """SIGKILL: no goodbye, no safe action, the socket dies with the process."""
+        assert self.proc is not None
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(timeout=10)
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self.log.close()
+
+
+@pytest.fixture
+def agent_process(tmp_path: Path) -> Iterator[Any]:
+    started: list[AgentProcess] = []
+
+    def make(*, base: str, vehicle: Vehicle, credential: str, key: str) -> AgentProcess:
+        config = tmp_path / f"{vehicle.name}.json"
+        config.write_text(
+            json.dumps(
+                {
+                    "platform_url": base.replace("http", "ws"),
+                    "vehicle_id": str(vehicle.pk),
+                    "credential": credential,
+                    "platform_public_key": key,
+                    "adapter": "car",
+                    "adapter_options": {"simulate": True, "origin": list(f.HOME)},
+                    "control": {"host": "127.0.0.1", "port": 0},
+                    "name": vehicle.name,
+                }
+            )
+        )
+        process = AgentProcess(config)
+        process.start()
+        started.append(process)
+        return process
+
+    yield make
+    for process in started:
+        process.stop()
+
+
+# --- the tests ---------------------------------------------------------------------------
+
+
+async def test_a_killed_agent_ends_its_session_and_its_vehicle_is_held_until_it_is_back(
+    servers, agent_process
+):
+    base = servers
+    car, credential, _service = await db(_fleet)
+    key = await db(platform_public_key_pem)
+    token = await db(lambda: token_issue(user=f.user(username="alice"), name="t"))
+    agent = agent_process(base=base, vehicle=car, credential=credential, key=key)
+    await until(lambda: _idle(car), within=30, what="the agent to register")
+
+    status, body = await asyncio.to_thread(
+        api, base, "POST", "/sessions", token, {"service": "drive-car"}
+    )
+    assert status == 201, body
+    session_id = body["session"]["id"]
+    await drive(body["task"], 1)
+
+    async def active() -> bool:
+        return (await _session(session_id)).state == Session.State.ACTIVE
+
+    await until(active, what="the session to start")
+    agent.kill()
+    killed = time.monotonic()
+
+    async def ended() -> Session | None:
+        session = await _session(session_id)
+        return session if session.state == Session.State.ENDED else None
+
+    # The offline timeout, plus the 5 s the issue allows for the rule to act.
+    session = await until(ended, within=settings.IOUV_VEHICLE_LOST_S + 5 + 10, what="the end")
+    assert time.monotonic() - killed <= settings.IOUV_VEHICLE_LOST_S + 5
+    lost = settings.IOUV_VEHICLE_LOST_S
+    assert session.reason == f"vehicle car-1 went offline (no word from it for {lost:g} s)"
+    # Nobody knows where the car is: it is not given to anyone.
+    assert await _status(car) == Vehicle.Status.OFFLINE
+
+    # Back, freshly started: it runs nothing, owes nothing, and serves the next user.
+    agent_process(base=base, vehicle=car, credential=credential, key=key)
+    await until(lambda: _idle(car), within=30, what="the restarted agent to register")
+    pending = await db(
+        lambda: list(
+            AgentMessage.objects.filter(vehicle=car, state="pending").values_list("kind", flat=True)
+        )
+    )
+    assert pending == []
+    status, body = await asyncio.to_thread(
+        api, base, "POST", "/sessions", token, {"service": "drive-car"}
+    )
+    assert status == 201, body
+    ws = await drive(body["task"], 2)
+    await ws.close()
+
+
+async def test_a_session_nobody_connects_to_ends_and_its_vehicle_is_freed(servers):
+    base = servers
+    car, credential, _service = await db(_fleet)
+    user = await db(f.user, "bob")
+    async with agent_running(
+        base=base,
+        vehicle=car,
+        credential=credential,
+        adapter="car",
+        options={"origin": list(f.HOME)},
+    ) as agent:
+        await until(lambda: _idle(car), within=30, what="the agent to register")
+        token = await db(lambda: token_issue(user=user, name="t"))
+        status, body = await asyncio.to_thread(
+            api, base, "POST", "/sessions", token, {"service": "drive-car"}
+        )
+        assert status == 201, body
+        session_id = body["session"]["id"]
+
+        async def task_arrived() -> bool:
+            return agent.hub is not None and agent.hub.task is not None
+
+        await until(task_arrived, what="the task to reach the agent")
+
+        async def ended() -> Session | None:
+            session = await _session(session_id)
+            return session if session.state == Session.State.ENDED else None
+
+        session = await until(ended, within=30, what="the unjoined session to end")
+        assert session.reason == "nobody connected to the vehicle within 4 s"
+
+        async def released() -> bool:
+            return agent.hub is not None and agent.hub.task is None and await _idle(car)
+
+        # The agent was told, confirmed, and the car is free for the next user.
+        await until(released, what="the agent to end its task and the car to be free")
+
+
+async def test_a_replaced_credential_cuts_the_live_uplink_within_a_second(servers):
+    base = servers
+    car, credential, _service = await db(_fleet)
+    async with agent_running(
+        base=base,
+        vehicle=car,
+        credential=credential,
+        adapter="car",
+        options={"origin": list(f.HOME)},
+    ) as agent:
+        await until(lambda: _idle(car), within=30, what="the agent to register")
+        assert agent.uplink is not None and agent.uplink.connected.is_set()
+        issued = time.monotonic()
+        await db(vehicle_issue_credential, vehicle=car)
+
+        async def cut() -> bool:
+            return agent.uplink is not None and not agent.uplink.connected.is_set()
+
+        await until(cut, within=5, what="the old credential's uplink to close")
+        assert time.monotonic() - issued < 1.0
+        # The old holder cannot come back: the car goes offline, and any reconnection
+        # it tries is refused.
+        await until(lambda: _offline(car), within=10, what="the car to be offline")
+        assert agent.uplink.connections == 1
+
+
+async def _offline(vehicle: Vehicle) -> bool:
+    return await _status(vehicle) == Vehicle.Status.OFFLINE
+
+
+async def test_a_client_cannot_reserve_more_than_the_services_cap(servers):
+    base = servers
+    _car, _credential, _service = await db(_fleet)
+    for i in range(4):  # more cars than the cap, all idle
+        await db(
+            f.vehicle,
+            station=await db(f.station),
+            vtype=await db(f.vehicle_type, "ground", "car"),
+            name=f"car-extra-{i}",
+            environments=["land"],
+        )
+    token = await db(lambda: token_issue(user=f.user(username="greedy"), name="t"))
+    answers = await asyncio.gather(
+        *(
+            asyncio.to_thread(api, base, "POST", "/sessions", token, {"service": "drive-car"})
+            for _ in range(5)
+        )
+    )
+    statuses = sorted(status for status, _ in answers)
+    assert statuses == [201, 409, 409, 409, 409], answers
+    refused = [body for status, body in answers if status == 409]
+    assert all(b["error"]["code"] == "session_limit" for b in refused)
+    reserved = await db(lambda: Vehicle.objects.filter(status=Vehicle.Status.RESERVED).count())
+    assert reserved == 1
