@@ -22,6 +22,7 @@ def session_summary(session: Session) -> dict[str, Any]:
         "state": session.state,
         "reason": session.reason,
         "relay": session.relay,
+        "failsafe_action": session.service.failsafe_action,
         "created_at": session.created_at.isoformat(),
         "started_at": session.started_at.isoformat() if session.started_at else None,
         "ended_at": session.ended_at.isoformat() if session.ended_at else None,

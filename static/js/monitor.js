@@ -35,6 +35,7 @@
   }
 
   function renderSessions() {
+    renderEnded();
     const body = root.querySelector("[data-sessions] tbody");
     body.textContent = "";
     const live = [...sessions.values()].filter((s) => !FINAL.includes(s.state));
@@ -62,14 +63,49 @@
     }
   }
 
+  /* Sessions that ended while this page was open, with whether the platform's last
+   * word (a stop, the end) has reached each vehicle, or the vehicle is offline and its
+   * own fail-safe holds. */
+  function renderEnded() {
+    const box = root.querySelector("[data-ended]");
+    const list = box.querySelector("ul");
+    list.textContent = "";
+    const ended = [...sessions.values()].filter(
+      (s) => FINAL.includes(s.state) && (s.delivery || []).length,
+    );
+    box.hidden = ended.length === 0;
+    for (const s of ended) {
+      const item = document.createElement("li");
+      item.dataset.endedSession = s.id;
+      const head = document.createElement("strong");
+      head.textContent = `${s.service_name} (${s.user}): ${s.reason}`;
+      item.append(head);
+      for (const d of s.delivery) {
+        const line = document.createElement("div");
+        line.className = `delivery delivery-${d.state}`;
+        line.dataset.delivery = d.state;
+        const at = d.at ? ` at ${new Date(d.at).toLocaleTimeString()}` : "";
+        line.textContent = `${d.text}${at}`;
+        item.append(line);
+      }
+      list.append(item);
+    }
+  }
+
   async function stopSession(id, button) {
+    const s = sessions.get(id) || {};
+    const names = (s.vehicles || []).map((v) => v.name).join(", ") || "the vehicle";
+    const action = (s.failsafe_action || "stop").replace(/_/g, " ");
+    if (!window.confirm(`Stop ${s.user || "this user"}'s session? ${names} will ${action}, and the user loses control.`)) return;
     button.disabled = true;
     const token = root.parentElement.querySelector("[name=csrfmiddlewaretoken]").value;
     const response = await fetch(`/sessions/${id}/stop`, {
       method: "POST", headers: { "X-CSRFToken": token, Accept: "application/json" },
       credentials: "same-origin",
     });
-    if (!response.ok) button.disabled = false;
+    if (!response.ok) { button.disabled = false; return; }
+    const body = await response.json();
+    if (body.session) { sessions.set(body.session.id, body.session); renderSessions(); }
   }
 
   function feed(path, onMessage) {

@@ -243,6 +243,13 @@ async def test_monitor_stops_a_running_session(world: World):
     row = monitor.locator(f"[data-session='{session_id}']")
     await expect(row).to_be_visible(timeout=10000)
     await expect(monitor.locator("[data-vehicle=car-1]")).to_contain_text("in service")
+    asked: list[str] = []
+
+    async def confirm(dialog: Any) -> None:
+        asked.append(dialog.message)
+        await dialog.accept()
+
+    monitor.once("dialog", confirm)
     await row.locator("[data-stop]").click()
 
     await expect(client.locator("[data-banner]")).to_contain_text(
@@ -253,6 +260,11 @@ async def test_monitor_stops_a_running_session(world: World):
     session = await db(Session.objects.get, pk=session_id)
     assert session.state == Session.State.ABORTED and "monitor" in session.reason
     await expect(row).to_have_count(0, timeout=10000)
+    # The monitor was told what the car would do, and sees that the stop reached it.
+    assert asked and "car-1 will stop" in asked[0]
+    delivered = monitor.locator(f"[data-ended-session='{session_id}'] [data-delivery]")
+    await expect(delivered).to_contain_text("The stop reached car-1", timeout=10000)
+    await expect(delivered).to_have_attribute("data-delivery", "delivered")
 
 
 async def test_closing_the_tab_triggers_failsafe_and_is_recorded(world: World):
