@@ -9,6 +9,7 @@ still reaches the vehicle and the session follows what really happened.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import signal
@@ -25,6 +26,7 @@ import pytest
 from django.conf import settings
 from websockets.asyncio.client import connect
 
+from accounts.roles import MONITOR
 from accounts.tokens import token_issue
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import AgentMessage, Vehicle
@@ -38,6 +40,7 @@ from tests.servers import (
     celery_worker_process,
     db,
     platform_process,
+    redis_server_process,
     until,
 )
 
@@ -343,3 +346,81 @@ async def test_a_client_cannot_reserve_more_than_the_services_cap(servers):
     assert all(b["error"]["code"] == "session_limit" for b in refused)
     reserved = await db(lambda: Vehicle.objects.filter(status=Vehicle.Status.RESERVED).count())
     assert reserved == 1
+
+
+async def test_a_monitor_stop_during_a_redis_outage_reaches_the_vehicle(monkeypatch):
+    """Redis dies while a user drives; a monitor stops the session. The stop is owed in
+    the database, so it reaches the car at once, Redis or not; the user drives no more,
+    and once Redis is back the car serves the next session."""
+    car, credential, _service = await db(_fleet)
+    alice = await db(lambda: token_issue(user=f.user(username="alice"), name="t"))
+    mona = await db(lambda: token_issue(user=f.user(username="mona", roles=(MONITOR,)), name="t"))
+    with (
+        redis_server_process() as redis,
+        platform_process(extra_env={"REDIS_URL": redis.url}) as base,
+    ):
+        async with agent_running(
+            base=base,
+            vehicle=car,
+            credential=credential,
+            adapter="car",
+            options={"origin": list(f.HOME)},
+        ) as agent:
+            await until(lambda: _idle(car), within=30, what="the agent to register")
+            status, body = await asyncio.to_thread(
+                api, base, "POST", "/sessions", alice, {"service": "drive-car"}
+            )
+            assert status == 201, body
+            session_id = body["session"]["id"]
+            ws = await drive(body["task"], 1)
+
+            acked_at: list[float] = []
+
+            async def keep_driving() -> None:
+                seq = 10
+                with contextlib.suppress(Exception):  # ends when the agent drops us
+                    while True:
+                        seq += 1
+                        if (await command(ws, seq, "forward", speed=0.5))["ok"]:
+                            acked_at.append(time.monotonic())
+                        await asyncio.sleep(0.1)
+
+            driving = asyncio.create_task(keep_driving())
+            await until(lambda: _true(len(acked_at) >= 3), what="the user to drive")
+
+            redis.kill()
+            status, body = await asyncio.to_thread(
+                api, base, "POST", f"/sessions/{session_id}/stop", mona
+            )
+            stopped = time.monotonic()
+            assert status == 200 and body["state"] == "aborted", body
+
+            async def car_stopped() -> bool:
+                return agent.hub is not None and agent.hub.task is None
+
+            await until(car_stopped, within=10, what="the revoke to reach the car")
+            assert time.monotonic() - stopped < 2.0
+            assert agent.adapter.telemetry()["motors"] == {"left": 0.0, "right": 0.0}
+            await asyncio.wait_for(driving, 10)
+            assert not [t for t in acked_at if t > stopped + 0.5], "the user kept driving"
+
+            async def stop_confirmed() -> bool:
+                _, session = await asyncio.to_thread(
+                    api, base, "GET", f"/sessions/{session_id}", mona
+                )
+                return [d["state"] for d in session["delivery"]] == ["delivered"]
+
+            await until(stop_confirmed, within=10, what="the stop to be confirmed")
+
+            redis.start()
+            await until(lambda: _idle(car), within=10, what="the car to be free")
+            status, body = await asyncio.to_thread(
+                api, base, "POST", "/sessions", alice, {"service": "drive-car"}
+            )
+            assert status == 201, body
+            ws = await drive(body["task"], 100)
+            await ws.close()
+
+
+async def _true(value: bool) -> bool:
+    return value
