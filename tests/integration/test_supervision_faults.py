@@ -424,3 +424,54 @@ async def test_a_monitor_stop_during_a_redis_outage_reaches_the_vehicle(monkeypa
 
 async def _true(value: bool) -> bool:
     return value
+
+
+async def test_a_driver_whose_keepalives_stall_for_a_second_keeps_the_session(servers):
+    """A throttled tab: nothing from the driver for 1 s, so the car's watchdog stops it;
+    then the driver goes on on the same socket. The session must go on too, past the
+    reconnection grace (4 s here), instead of ending as an unintentional end."""
+    base = servers
+    car, credential, _service = await db(_fleet)
+    alice = await db(lambda: token_issue(user=f.user(username="alice"), name="t"))
+    async with agent_running(
+        base=base,
+        vehicle=car,
+        credential=credential,
+        adapter="car",
+        options={"origin": list(f.HOME)},
+    ) as agent:
+        await until(lambda: _idle(car), within=30, what="the agent to register")
+        status, body = await asyncio.to_thread(
+            api, base, "POST", "/sessions", alice, {"service": "drive-car"}
+        )
+        assert status == 201, body
+        session_id = body["session"]["id"]
+        ws = await drive(body["task"], 1)
+
+        # The stall itself (a tab the browser throttled): at least 1 s, and until the
+        # car's watchdog has acted on it.
+        await asyncio.sleep(1.0)
+
+        async def failsafe_fired() -> bool:
+            return agent.hub is not None and agent.hub.stats["failsafes"] == 1
+
+        await until(failsafe_fired, what="the watchdog to stop the car")
+
+        async def logged(kind: str) -> bool:
+            return await db(
+                lambda: Session.objects.get(pk=session_id).events.filter(kind=kind).exists()
+            )
+
+        await until(lambda: logged("unintentional_end"), what="the fail-safe to be logged")
+        # The driver drives on, on the same socket, for longer than the grace.
+        seq = 10
+        started = time.monotonic()
+        while time.monotonic() - started < 4 + 3:
+            seq += 1
+            assert (await command(ws, seq, "forward", speed=0.3))["ok"]
+            await asyncio.sleep(0.1)
+        await until(lambda: logged("link_recovered"), what="the recovery to be logged")
+        session = await _session(session_id)
+        assert session.state == Session.State.ACTIVE, session.reason
+        assert await _status(car) == Vehicle.Status.IN_SERVICE
+        await ws.close()
