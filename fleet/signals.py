@@ -44,3 +44,9 @@ agent_acked = Signal()
 #: Kwargs: ``vehicle_id``, ``message`` (the dict from ``parse_message``: fields
 #: validated against the uplink_to_platform table, unknown fields kept).
 agent_message = Signal()
+
+#: Vehicles the platform had marked offline (silent past the sweep's limit) were heard
+#: from again on the uplink they kept open. Sent inside the transaction that made them
+#: available again; receivers do their writes in their own ``transaction.atomic()``.
+#: Kwargs: ``vehicle_ids`` (UUIDs as text).
+vehicle_back = Signal()

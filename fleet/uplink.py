@@ -68,6 +68,7 @@ from fleet.signals import (
     agent_disconnected,
     agent_message,
     agent_welcome,
+    vehicle_back,
 )
 from iouv.consumers import DirectDispatch
 from iouv.layer import relay_ensure
@@ -324,13 +325,21 @@ def vehicle_record_heartbeats(beats: Sequence[Heartbeat]) -> list[str]:
         else:
             for beat in reports:
                 Vehicle.objects.filter(pk=beat.vehicle_id).update(**_reported_fields(beat))
+        back: list[str] = []
         for pk, vehicle in current.items():
             beat = latest[pk]
             status = _status_after(
                 vehicle, reported=beat.message.get("status"), registered=beat.registered
             )
             if status != vehicle.status:
-                Vehicle.objects.filter(pk=pk, status=vehicle.status).update(status=status)
+                changed = Vehicle.objects.filter(pk=pk, status=vehicle.status).update(status=status)
+                if changed and vehicle.status == Vehicle.Status.OFFLINE:
+                    back.append(pk)
+        if back:
+            # Heard from again on an uplink that never closed (the sweep had found it
+            # silent): a vehicle still serving a session gets its session status back
+            # from the receivers, in this transaction, before anyone could take it.
+            _signal_send(vehicle_back, vehicle_ids=back)
         written = sorted(current)
         fleet_notify(written)  # one push for the batch, not one per vehicle
     return written

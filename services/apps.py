@@ -14,6 +14,7 @@ class ServicesConfig(AppConfig):
             agent_disconnected,
             agent_message,
             agent_welcome,
+            vehicle_back,
         )
         from services import supervision
 
@@ -29,6 +30,9 @@ class ServicesConfig(AppConfig):
         )
         agent_acked.connect(
             supervision.receive_agent_acked, dispatch_uid="services.supervision.acked"
+        )
+        vehicle_back.connect(
+            supervision.receive_vehicle_back, dispatch_uid="services.supervision.back"
         )
         agent_welcome.connect(
             supervision.receive_agent_welcome, dispatch_uid="services.supervision.welcome"

@@ -145,6 +145,9 @@ def vehicle_task_deploy(*, session: Session, assignment: Assignment) -> VehicleT
         raise InvalidTaskError(f"cannot make a vehicle task: {exc.message}") from None
     token = task.sign(platform_private_key())
     with transaction.atomic():
+        # A fresh task supersedes one still owed for this session: delivered late, that
+        # one's deadline could have passed, and the agent would refuse it.
+        agent_messages_cancel(vehicle_id=vehicle.pk, kinds=["task"], session_id=session.pk)
         event_append(
             session=session,
             kind="task_deployed",

@@ -423,9 +423,7 @@ def _assign_search(mission: Mission) -> None:
     pattern_m = sum(
         distance_m((a[0], a[1]), (b[0], b[1])) for a, b in itertools.pairwise(remaining)
     )
-    tried = Assignment.objects.filter(session_id=mission.pk, role=SEARCH).values_list(
-        "vehicle_id", flat=True
-    )
+    tried = _unfit(mission, SEARCH)
     try:
         with transaction.atomic():
             assignment = role_assign(
@@ -471,23 +469,29 @@ def _assign_search(mission: Mission) -> None:
     )
 
 
-def _vehicle_trouble(assignment: Assignment) -> str:
-    """Why this vehicle cannot go on with its role ('' if it can)."""
+#: Why a vehicle left a mission. One that went offline may come back and fly again; one
+#: that failed or ran low is not asked again for this mission.
+OFFLINE, LOW_BATTERY, FAILED = "offline", "low_battery", "failed"
+
+
+def _vehicle_trouble(assignment: Assignment) -> tuple[str, str] | None:
+    """Why this vehicle cannot go on with its role, as (cause, words), or None."""
     vehicle = Vehicle.objects.get(pk=assignment.vehicle_id)
     now = timezone.now()
     grace = timedelta(seconds=settings.IOUV_MISSION_OFFLINE_GRACE_S)
-    if vehicle.status == Vehicle.Status.OFFLINE or (
-        vehicle.last_seen is not None and now - vehicle.last_seen > grace
-    ):
+    # Offline means the platform lost it (its uplink closed, or the sweep found it
+    # silent), for longer than the grace. Late heartbeats alone, on a loaded platform,
+    # are no reason to call back a drone carrying a life jacket.
+    if vehicle.status == Vehicle.Status.OFFLINE:
         seen = vehicle.last_seen or assignment.created_at
         if now - seen > grace:
-            return f"{vehicle.name} went offline"
+            return OFFLINE, f"{vehicle.name} went offline"
     if (
         vehicle.battery is not None
         and vehicle.battery < settings.IOUV_MISSION_LOW_BATTERY_PCT
         and assignment.role == SEARCH
     ):
-        return f"{vehicle.name} is low on battery ({vehicle.battery:.0f} %)"
+        return LOW_BATTERY, f"{vehicle.name} is low on battery ({vehicle.battery:.0f} %)"
     failed = (
         assignment.session.events.filter(
             kind__in=("mission_failed", "task_refused"),
@@ -498,12 +502,27 @@ def _vehicle_trouble(assignment: Assignment) -> str:
         .first()
     )
     if failed is not None:
-        return f"{vehicle.name} could not go on: {failed.data.get('reason', 'no reason given')}"
-    return ""
+        reason = failed.data.get("reason", "no reason given")
+        return FAILED, f"{vehicle.name} could not go on: {reason}"
+    return None
 
 
-def _release(mission: Mission, assignment: Assignment, reason: str) -> None:
+def _unfit(mission: Mission, role: str) -> list[Any]:
+    """Vehicles not to ask again for ``role``: released because they failed or ran low.
+    One that only went offline is asked again once it is back and idle: a mission must
+    not wait for ever for a vehicle that is standing by."""
+    released = mission.session.events.filter(kind="vehicle_released", data__role=role)
+    return [
+        e.data["vehicle"]
+        for e in released
+        if isinstance(e.data, dict) and e.data.get("cause") != OFFLINE and "vehicle" in e.data
+    ]
+
+
+def _release(mission: Mission, assignment: Assignment, trouble: tuple[str, str]) -> None:
     """Take ``assignment``'s vehicle off the mission; it returns to its station."""
+    cause, words = trouble
+    reason = f"replaced: {words}"
     Assignment.objects.filter(pk=assignment.pk).update(active=False, released_at=timezone.now())
     vehicle_release(
         vehicle_id=assignment.vehicle_id,
@@ -518,6 +537,7 @@ def _release(mission: Mission, assignment: Assignment, reason: str) -> None:
             "vehicle_name": assignment.vehicle.name,
             "role": assignment.role,
             "reason": reason,
+            "cause": cause,
             "progress": mission.progress,
         },
     )
@@ -546,8 +566,8 @@ def _supervise_search(mission: Mission) -> None:
         return
     trouble = _vehicle_trouble(assignment)
     if trouble:
-        _release(mission, assignment, f"replaced: {trouble}")
-        _set(mission, S.WAITING_SEARCH, f"{trouble}: handing its remaining lines to another")
+        _release(mission, assignment, trouble)
+        _set(mission, S.WAITING_SEARCH, f"{trouble[1]}: handing its remaining lines to another")
         _assign_search(mission)
         return
     _redeploy_if_unaccepted(mission, assignment)
@@ -561,9 +581,7 @@ def _assign_delivery(mission: Mission) -> None:
     detection = mission.detection or {}
     target = (detection["lat"], detection["lon"])
     role = session.service.roles.get(name=DELIVERY)
-    tried = Assignment.objects.filter(session_id=mission.pk, role=DELIVERY).values_list(
-        "vehicle_id", flat=True
-    )
+    tried = _unfit(mission, DELIVERY)
     busy = Assignment.objects.filter(session_id=mission.pk, active=True).values_list(
         "vehicle_id", flat=True
     )
@@ -595,8 +613,8 @@ def _supervise_delivery(mission: Mission) -> None:
         return
     trouble = _vehicle_trouble(assignment)
     if trouble:
-        _release(mission, assignment, f"replaced: {trouble}")
-        _set(mission, S.WAITING_DELIVERY, f"{trouble}: looking for another delivery vehicle")
+        _release(mission, assignment, trouble)
+        _set(mission, S.WAITING_DELIVERY, f"{trouble[1]}: looking for another delivery vehicle")
         _assign_delivery(mission)
         return
     _redeploy_if_unaccepted(mission, assignment)

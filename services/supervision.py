@@ -449,6 +449,27 @@ def agent_acked_handle(*, vehicle_id: Any, acked: Acked) -> None:
     )
 
 
+def vehicles_back_handle(*, vehicle_ids: Iterable[Any]) -> None:
+    """Vehicles found silent (marked offline) are heard from again on their open
+    uplink: those still serving a session get their session status back, so none is
+    given to anyone else meanwhile."""
+    with transaction.atomic():
+        serving = Assignment.objects.filter(
+            vehicle_id__in=list(vehicle_ids), active=True, session__state__in=LIVE
+        ).select_related("session__service", "vehicle")
+        for assignment in serving:
+            held = (
+                Vehicle.Status.IN_SERVICE
+                if assignment.session.state == Session.State.ACTIVE
+                else Vehicle.Status.RESERVED
+            )
+            Vehicle.objects.filter(
+                pk=assignment.vehicle_id, maintenance=False, status=Vehicle.Status.IDLE
+            ).update(status=held)
+            _log(assignment, "vehicle_online", {"after": "silence"})
+            fleet_notify([assignment.vehicle_id])
+
+
 def agent_disconnected_handle(*, vehicle_id: Any, code: int | None = None) -> None:
     """A vehicle's uplink closed: log ``vehicle_offline`` in the sessions it serves.
 
@@ -673,6 +694,10 @@ def receive_agent_message(sender: Any, *, vehicle_id: Any, message: Any, **kwarg
 
 def receive_agent_connected(sender: Any, *, vehicle_id: Any, **kwargs: Any) -> None:
     agent_connected_handle(vehicle_id=vehicle_id, state=kwargs.get("state"))
+
+
+def receive_vehicle_back(sender: Any, *, vehicle_ids: Any, **kwargs: Any) -> None:
+    vehicles_back_handle(vehicle_ids=vehicle_ids)
 
 
 def receive_agent_acked(sender: Any, *, vehicle_id: Any, acked: Acked, **kwargs: Any) -> None:

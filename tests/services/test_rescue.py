@@ -269,6 +269,59 @@ def test_no_delivery_vehicle_waits_after_detection(world, client_user) -> None:
     assert step(session) == Mission.State.DELIVERING
 
 
+def _delivering(world, client_user) -> tuple[Session, Assignment]:
+    session = rescue_request(user=client_user, service=world, area=area())
+    step(session)
+    search = Assignment.objects.get(session=session, role="search")
+    person = offset(SEA, 50, 50)
+    report(session, search.vehicle, "person_detected", lat=person[0], lon=person[1], confidence=0.9)
+    assert step(session) == Mission.State.DELIVERING
+    return session, Assignment.objects.get(session=session, role="delivery", active=True)
+
+
+def test_late_heartbeats_on_a_loaded_platform_do_not_call_the_delivery_back(
+    world, client_user, settings
+) -> None:
+    """Its uplink is open and it flies on: silence in the database alone is not trouble."""
+    session, delivery = _delivering(world, client_user)
+    Vehicle.objects.filter(pk=delivery.vehicle_id).update(
+        last_seen=timezone.now() - timedelta(seconds=settings.IOUV_MISSION_OFFLINE_GRACE_S + 5)
+    )
+    assert step(session) == Mission.State.DELIVERING
+    assert Assignment.objects.get(pk=delivery.pk).active
+
+
+def test_a_delivery_vehicle_that_went_offline_flies_again_once_back(
+    world, client_user, settings
+) -> None:
+    """The only life-jacket carrier drops off and comes back: the mission must not sit
+    in waiting_delivery for ever (seen under load)."""
+    session, delivery = _delivering(world, client_user)
+    Vehicle.objects.filter(pk=delivery.vehicle_id).update(
+        status=Vehicle.Status.OFFLINE,
+        last_seen=timezone.now() - timedelta(seconds=settings.IOUV_MISSION_OFFLINE_GRACE_S + 1),
+    )
+    assert step(session) == Mission.State.WAITING_DELIVERY
+    released = session.events.get(kind="vehicle_released")
+    assert released.data["cause"] == "offline"
+    online("lifeguard-1")
+    assert step(session) == Mission.State.DELIVERING
+    again = Assignment.objects.get(session=session, role="delivery", active=True)
+    assert again.vehicle_id == delivery.vehicle_id
+
+
+def test_a_delivery_vehicle_that_failed_is_not_asked_again(world, client_user) -> None:
+    session, delivery = _delivering(world, client_user)
+    report(session, delivery.vehicle, "mission_failed", reason="gripper jammed")
+    assert step(session) == Mission.State.WAITING_DELIVERY
+    online("lifeguard-1")
+    assert step(session) == Mission.State.WAITING_DELIVERY
+    assert (
+        "could not go on: gripper jammed"
+        in session.events.get(kind="vehicle_released").data["reason"]
+    )
+
+
 def test_search_times_out_and_everyone_is_told(world, client_user, settings) -> None:
     session = rescue_request(user=client_user, service=world, area=area())
     step(session)

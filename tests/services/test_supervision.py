@@ -24,6 +24,8 @@ from agents.protocol import VehicleTask, parse_message
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
 from fleet.signals import agent_connected, agent_disconnected, agent_message
+from fleet.status import vehicles_mark_stale_offline
+from fleet.uplink import vehicle_record_heartbeat
 from iouv.asgi import application
 from services.assignment import session_request
 from services.deployment import session_deploy, session_end
@@ -506,6 +508,23 @@ def test_a_restarted_agent_owes_nothing_for_sessions_it_no_longer_runs(live, com
     )
     assert take.owed() == []
     assert status(vehicle) == Vehicle.Status.IDLE
+
+
+def test_a_vehicle_found_silent_and_heard_again_keeps_its_session(live):
+    """The sweep marked it offline (late heartbeats); a heartbeat on its open uplink
+    must not make a vehicle in a session look free."""
+    session, vehicle, _ = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    assert vehicles_mark_stale_offline(now=timezone.now() + timedelta(seconds=60)) == [vehicle.pk]
+    assert status(vehicle) == Vehicle.Status.OFFLINE
+    vehicle_record_heartbeat(
+        vehicle_id=vehicle.pk,
+        heartbeat={"type": "heartbeat", "seq": 9, "status": "in_service"},
+        now=timezone.now(),
+        registered=True,
+    )
+    assert status(vehicle) == Vehicle.Status.IN_SERVICE
+    assert kinds(session)[-1] == "vehicle_online"
 
 
 def test_refusals_reported_in_aggregate_count_each_refusal(live, committing):
