@@ -16,7 +16,8 @@ relay. It
   the adapter's safe action and a ``failsafe`` event to the platform;
 * runs the commands of the task's autonomous mission (:mod:`agents.mission`) through
   :meth:`ControlHub.mission_execute`, under the same lock, and counts the user
-  commands and fail-safes that take over from it (:attr:`ControlHub.overrides`).
+  commands and fail-safes that take over from it (:attr:`ControlHub.overrides`);
+* names the command in every refusal it acks.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import asyncio
 import contextlib
 import itertools
 import logging
+import re
 import time
 from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from dataclasses import dataclass, field
@@ -70,6 +72,14 @@ COMMAND_QUEUE = 16
 
 Reporter = Callable[[str, str | None, dict[str, Any]], None]
 TaskEnded = Callable[[VehicleTask], None]
+
+
+def refusal_text(name: str, text: str) -> str:
+    """``text`` as the user sees it in an ``ack``: naming the command ``name`` (a
+    controller has several in flight), prefixed with it unless it already says it."""
+    if re.search(rf"(?<!\w){re.escape(name)}(?!\w)", text):
+        return text
+    return f"{name}: {text}"
 
 
 class ClientLink(Protocol):
@@ -404,14 +414,19 @@ class ControlHub:
 
     # --- message handlers --------------------------------------------------------------
     async def _on_command(self, client: _Client, msg: dict[str, Any]) -> None:
+        name = msg["name"]
         if client is not self.controller:
-            await self._ack(client, msg["seq"], "view_only", "you are watching; take control first")
+            await self._ack(
+                client, msg["seq"], "view_only", f"{name}: you are watching; take control first"
+            )
             return
         self._input()
         try:
             client.commands.put_nowait(msg)
         except asyncio.QueueFull:
-            await self._ack(client, msg["seq"], "busy", "commands are arriving faster than applied")
+            await self._ack(
+                client, msg["seq"], "busy", f"{name}: commands are arriving faster than applied"
+            )
 
     async def _run_commands(self, client: _Client) -> None:
         """Apply the controller's commands in order, one at a time."""
@@ -419,7 +434,7 @@ class ControlHub:
             msg = await client.commands.get()
             seq, name, args = msg["seq"], msg["name"], msg["args"]
             if client is not self.controller or self.gate is None or self.task is None:
-                await self._ack(client, seq, "view_only", "you no longer hold control")
+                await self._ack(client, seq, "view_only", f"{name}: you no longer hold control")
                 continue
             try:
                 checked = self.gate.check(name, args, rtt_ms=client.rtt_ms)
@@ -430,22 +445,14 @@ class ControlHub:
                     # Counted before the lock is free: a mission step waiting for it
                     # sees that the user took over.
                     self._override(f"the user sent {name}")
-            except Refusal as exc:
+            except (Refusal, AdapterError) as exc:
                 self.stats["refused"] += 1
-                await self._ack(client, seq, exc.code, str(exc))
+                reason = refusal_text(name, str(exc))
+                await self._ack(client, seq, exc.code, reason)
                 self.report(
                     "command_refused",
                     self.task.session_id if self.task else None,
-                    {"name": name, "code": exc.code, "reason": str(exc)},
-                )
-                continue
-            except AdapterError as exc:
-                self.stats["refused"] += 1
-                await self._ack(client, seq, exc.code, str(exc))
-                self.report(
-                    "command_refused",
-                    self.task.session_id if self.task else None,
-                    {"name": name, "code": exc.code, "reason": str(exc)},
+                    {"name": name, "code": exc.code, "reason": reason},
                 )
                 continue
             except TimeoutError:

@@ -27,7 +27,8 @@ MIN_SPEED_FACTOR = 0.3
 
 
 class Refusal(Exception):
-    """A command the gate refuses; ``code`` is machine-readable, ``str()`` for people."""
+    """A command the gate refuses; ``code`` is machine-readable, ``str()`` for people
+    and names the command (a user may have several in flight)."""
 
     def __init__(self, code: str, message: str) -> None:
         super().__init__(message)
@@ -80,14 +81,15 @@ class CommandGate:
         try:
             clean = validate_command_args(spec.args, args)
         except ProtocolError as exc:
-            raise Refusal("bad_args", exc.message) from None
+            raise Refusal("bad_args", f"{name}: {exc.message}") from None
 
         factor = latency_speed_factor(self.limits, rtt_ms)
         if factor == 0.0 and spec.motion and name not in SAFE_COMMANDS:
             raise Refusal(
                 "latency",
-                f"round trip {rtt_ms:.0f} ms is over the {self.limits.latency_hard_ms} ms "
-                "limit: only stop, land and return home are accepted",
+                f"{name} refused: round trip {rtt_ms:.0f} ms is over the "
+                f"{self.limits.latency_hard_ms} ms limit: only stop, land and return home "
+                "are accepted",
             )
         if spec.speed_arg and spec.speed_arg in clean:
             clean[spec.speed_arg] = self._speed(spec, clean[spec.speed_arg], factor)

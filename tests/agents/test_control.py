@@ -15,8 +15,9 @@ from hypothesis import strategies as st
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
+from agents.adapters.base import AdapterError
 from agents.adapters.car import CarAdapter
-from agents.control import ControlHub, ControlServer
+from agents.control import ControlHub, ControlServer, refusal_text
 from agents.protocol import (
     Limits,
     UserGrant,
@@ -444,3 +445,44 @@ async def test_fuzzed_frames_never_break_the_agent(frames):
             # Every frame was answered or ignored; the agent still serves this client.
             assert (await command(ws, 99, "stop"))["seq"] == 99
             await ws.close()
+
+
+# --- what the user and the platform are told ---------------------------------------------
+
+
+def test_refusal_texts_name_the_command():
+    assert refusal_text("up", "arm the motors first") == "up: arm the motors first"
+    assert refusal_text("up", "the drone is on the ground: take off first (up)").endswith("(up)")
+    # A word, not a substring: "unsupported" does not name "up".
+    assert refusal_text("up", "autopilot refused it: unsupported") == (
+        "up: autopilot refused it: unsupported"
+    )
+
+
+async def test_every_refusal_the_user_sees_names_the_command(rig: Rig):
+    ws, _ = await join(rig)
+    viewer, _ = await join(rig, make_grant(role="viewer", user="bob"))
+    acks = [
+        await command(ws, 1, "fly"),
+        await command(ws, 2, "forward", speed=7),
+        await command(ws, 3, "forward", warp=1),
+        await command(viewer, 1, "backward"),
+    ]
+    assert [a["code"] for a in acks] == ["unknown_command", "bad_args", "bad_args", "view_only"]
+    assert "fly" in acks[0]["error"]
+    assert acks[1]["error"].startswith("forward: ") and "speed" in acks[1]["error"]
+    assert acks[2]["error"].startswith("forward: ") and "warp" in acks[2]["error"]
+    assert acks[3]["error"].startswith("backward: ")
+
+    async def vehicle_says_no(name: str, args: Any) -> None:
+        raise AdapterError("the vehicle said no", code="refused")
+
+    rig.car.execute = vehicle_says_no  # type: ignore[method-assign]
+    ack = await command(ws, 4, "left")
+    assert ack["code"] == "refused" and ack["error"] == "left: the vehicle said no"
+    await rig.hub.task_end(SESSION, reason="next test", action="stop")
+    rig.hub.task_accept(make_task(session="laggy", latency_soft_ms=1, latency_hard_ms=2))
+    ws, _ = await join(rig, make_grant(session="laggy"))
+    rig.hub.controller.rtt_ms = 50.0
+    ack = await command(ws, 1, "backward")
+    assert ack["code"] == "latency" and ack["error"].startswith("backward refused: round trip")

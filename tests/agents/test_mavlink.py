@@ -339,7 +339,8 @@ async def test_autopilot_refusal_reaches_the_user_in_its_words(make_rig: RigFact
     ws = await join(rig)
     ack = await command(ws, 1, "arm")
     assert ack["ok"] is False and ack["code"] == "autopilot_refused"
-    assert ack["error"].startswith("autopilot refused MAV_CMD_COMPONENT_ARM_DISARM: ")
+    # Named: the user's command, then the autopilot's words.
+    assert ack["error"].startswith("arm: autopilot refused MAV_CMD_COMPONENT_ARM_DISARM: ")
     assert "temporarily rejected" in ack["error"] and "PreArm: GPS: no 3D fix" in ack["error"]
     ack = await command(ws, 2, "take_off", altitude_m=3)
     assert ack["code"] == "autopilot_refused" and "GPS" in ack["error"]
