@@ -17,7 +17,8 @@ relay. It
 * runs the commands of the task's autonomous mission (:mod:`agents.mission`) through
   :meth:`ControlHub.mission_execute`, under the same lock, and counts the user
   commands and fail-safes that take over from it (:attr:`ControlHub.overrides`);
-* names the command in every refusal it acks.
+* names the command in every refusal it acks, and folds a burst of refused commands
+  into at most one ``command_refused`` report a second.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import itertools
 import logging
 import re
 import time
+from collections import Counter
 from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
@@ -69,6 +71,9 @@ BURST = 400.0
 FLOOD_LIMIT = 300  # refused frames within FLOOD_WINDOW_S before disconnecting
 FLOOD_WINDOW_S = 5.0
 COMMAND_QUEUE = 16
+#: Refused commands: the first of a burst is reported at once, the rest folded into at
+#: most one report this often while they go on.
+REFUSAL_REPORT_S = 1.0
 
 Reporter = Callable[[str, str | None, dict[str, Any]], None]
 TaskEnded = Callable[[VehicleTask], None]
@@ -80,6 +85,68 @@ def refusal_text(name: str, text: str) -> str:
     if re.search(rf"(?<!\w){re.escape(name)}(?!\w)", text):
         return text
     return f"{name}: {text}"
+
+
+class _RefusalReports:
+    """``command_refused`` reports for one hub, folded so a flooding controller cannot
+    flood the platform: the first refusal of a burst is reported at once with data
+    ``{name, code, reason, count: 1}``; while refusals go on, the next ones are
+    summed into at most one report per REFUSAL_REPORT_S, with the last refusal's
+    ``name``, ``code``, ``reason``, ``count`` (refusals since the previous report) and
+    ``codes`` (code -> how many). :meth:`close` sends what is pending; after it nothing
+    is reported for that session."""
+
+    def __init__(self, report: Reporter) -> None:
+        self.report = report
+        self.session: str | None = None
+        self.reported_at = -REFUSAL_REPORT_S
+        self.count = 0
+        self.codes: Counter[str] = Counter()
+        self.last: dict[str, Any] = {}
+        self.timer: asyncio.TimerHandle | None = None
+
+    def add(self, session: str | None, name: str, code: str, reason: str) -> None:
+        """One refused command of ``session`` (None: no task, not reported)."""
+        if session is None:
+            return
+        if session != self.session:
+            self.close()
+            self.session = session
+        now = time.monotonic()
+        if self.count == 0 and now - self.reported_at >= REFUSAL_REPORT_S:
+            self.reported_at = now
+            self.report(
+                "command_refused",
+                session,
+                {"name": name, "code": code, "reason": reason, "count": 1},
+            )
+            return
+        self.count += 1
+        self.codes[code] += 1
+        self.last = {"name": name, "code": code, "reason": reason}
+        if self.timer is None:
+            delay = max(0.0, self.reported_at + REFUSAL_REPORT_S - now)
+            self.timer = asyncio.get_running_loop().call_later(delay, self.flush)
+
+    def flush(self) -> None:
+        """Report the refusals pending, if any."""
+        if self.timer is not None:
+            self.timer.cancel()
+            self.timer = None
+        if self.count and self.session is not None:
+            self.report(
+                "command_refused",
+                self.session,
+                {**self.last, "count": self.count, "codes": dict(self.codes)},
+            )
+            self.reported_at = time.monotonic()
+        self.count = 0
+        self.codes = Counter()
+
+    def close(self) -> None:
+        """The session ends: report what is pending, then nothing more for it."""
+        self.flush()
+        self.session = None
 
 
 class ClientLink(Protocol):
@@ -160,6 +227,7 @@ class ControlHub:
         self._time_limit: asyncio.Task[None] | None = None
         self._pinger: asyncio.Task[None] | None = None
         self._background: set[asyncio.Future[None]] = set()
+        self._refusals = _RefusalReports(report)
         #: Called with the task as it ends, before the safe action (stops its mission).
         self.on_task_end = on_task_end
         #: True while an autonomous mission flies the vehicle (set by its runner).
@@ -177,6 +245,7 @@ class ControlHub:
     async def close(self) -> None:
         for client in list(self.clients.values()):
             await self._drop(client, 1001, "agent shutting down")
+        self._refusals.flush()
         if self._background:
             await asyncio.wait(self._background, timeout=2)
         for task in (self._watchdog, self._time_limit, self._pinger):
@@ -232,6 +301,7 @@ class ControlHub:
             await self._drop(client, CLOSE_FORBIDDEN, reason[:120])
         async with self._exec:
             await self.adapter.safe_action(action or task.limits.failsafe_action)
+        self._refusals.close()  # the platform hears them before the end, never after
         self.report("task_ended", session_id, {"reason": reason})
         return True
 
@@ -449,10 +519,8 @@ class ControlHub:
                 self.stats["refused"] += 1
                 reason = refusal_text(name, str(exc))
                 await self._ack(client, seq, exc.code, reason)
-                self.report(
-                    "command_refused",
-                    self.task.session_id if self.task else None,
-                    {"name": name, "code": exc.code, "reason": reason},
+                self._refusals.add(
+                    self.task.session_id if self.task else None, name, exc.code, reason
                 )
                 continue
             except TimeoutError:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import time
 from collections.abc import AsyncIterator
@@ -17,7 +18,7 @@ from websockets.exceptions import ConnectionClosed
 
 from agents.adapters.base import AdapterError
 from agents.adapters.car import CarAdapter
-from agents.control import ControlHub, ControlServer, refusal_text
+from agents.control import REFUSAL_REPORT_S, ControlHub, ControlServer, refusal_text
 from agents.protocol import (
     Limits,
     UserGrant,
@@ -51,6 +52,8 @@ class Rig:
     server: ControlServer
     car: CarAdapter
     reports: list[tuple[str, str | None, dict[str, Any]]] = field(default_factory=list)
+    #: When each report was made (monotonic), in the same order.
+    stamps: list[float] = field(default_factory=list)
 
     @property
     def url(self) -> str:
@@ -58,6 +61,10 @@ class Rig:
 
     def events(self, name: str) -> list[dict[str, Any]]:
         return [data for event, _, data in self.reports if event == name]
+
+    def report(self, event: str, session: str | None, data: dict[str, Any]) -> None:
+        self.reports.append((event, session, data))
+        self.stamps.append(time.monotonic())
 
 
 def make_task(*, session: str = SESSION, user: str = "alice", **limits: Any) -> VehicleTask:
@@ -101,18 +108,19 @@ async def rig() -> AsyncIterator[Rig]:
     car = CarAdapter(
         {"simulate": True, "camera_arm": True, "distance_sensor": True, "origin": [40.63, -8.65]}
     )
-    reports: list[tuple[str, str | None, dict[str, Any]]] = []
+    rigs: list[Rig] = []
     async with car:
         hub = ControlHub(
             vehicle_id=VEHICLE,
             vehicle_name="car-1",
             public_key=load_public_key(PUBLIC_PEM),
             adapter=car,
-            report=lambda e, s, d: reports.append((e, s, d)),
+            report=lambda e, s, d: rigs[0].report(e, s, d),
         )
         async with hub, ControlServer(hub) as server:
+            rigs.append(Rig(hub, server, car))
             hub.task_accept(make_task())
-            yield Rig(hub, server, car, reports)
+            yield rigs[0]
 
 
 async def recv(ws: ClientConnection, kind: str, within: float = 3.0) -> dict[str, Any]:
@@ -486,3 +494,68 @@ async def test_every_refusal_the_user_sees_names_the_command(rig: Rig):
     rig.hub.controller.rtt_ms = 50.0
     ack = await command(ws, 1, "backward")
     assert ack["code"] == "latency" and ack["error"].startswith("backward refused: round trip")
+
+
+async def until(predicate: Any, *, within: float = 5.0, what: str = "") -> Any:
+    deadline = time.monotonic() + within
+    while not (value := predicate()):
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what or predicate}")
+        await asyncio.sleep(0.01)
+    return value
+
+
+async def refuse(ws: ClientConnection, seqs: range, name: str = "fly", **args: Any) -> int:
+    """Send refused commands as fast as they go, then wait for every ack. Returns how
+    many the gate refused (the rest found the command queue full: "busy")."""
+    for seq in seqs:
+        await ws.send(json.dumps({"type": "command", "seq": seq, "name": name, "args": args}))
+    codes = [(await recv(ws, "ack"))["code"] for _ in seqs]
+    return sum(code != "busy" for code in codes)
+
+
+async def test_refused_commands_are_reported_at_once_then_at_most_once_a_second(rig: Rig):
+    ws, _ = await join(rig)
+
+    def refusals() -> list[tuple[float, dict[str, Any]]]:
+        return [
+            (at, data)
+            for at, (event, _, data) in zip(rig.stamps, rig.reports, strict=True)
+            if event == "command_refused"
+        ]
+
+    def counted() -> int:
+        return sum(data["count"] for _, data in refusals())
+
+    # A flooding controller: the first refusal is reported at once...
+    total = await refuse(ws, range(1, 41))
+    (_, first), *_ = refusals()
+    assert first == {
+        "name": "fly",
+        "code": "unknown_command",
+        "reason": "'fly' is not a command of this vehicle",
+        "count": 1,
+    }
+    # ... the others in one summary a second later.
+    await until(lambda: counted() == total, what="the summary")
+    assert [data["count"] for _, data in refusals()] == [1, total - 1]
+    assert refusals()[1][1]["codes"] == {"unknown_command": total - 1}
+    # Refusals going on for a while, of two kinds: at most one report a second.
+    seq = 41
+    for _ in range(12):
+        total += await refuse(ws, range(seq, seq + 5), "forward", speed=9)
+        total += await refuse(ws, range(seq + 5, seq + 7))
+        seq += 7
+        await asyncio.sleep(0.2)  # the pace of the refusals, not a wait for a result
+    await until(lambda: counted() == total, what="every refusal counted")
+    stamps = [at for at, _ in refusals()]
+    assert all(b - a >= REFUSAL_REPORT_S - 0.01 for a, b in itertools.pairwise(stamps))
+    last = refusals()[-1][1]
+    assert (last["name"], last["code"]) == ("fly", "unknown_command")
+    assert set(last["codes"]) <= {"bad_args", "unknown_command"}
+    # Pending refusals reach the platform before the end of the task, none after it.
+    total += await refuse(ws, range(seq, seq + 3))
+    await rig.hub.task_end(SESSION, reason="done", action="stop")
+    events = [event for event, _, _ in rig.reports]
+    assert events[-1] == "task_ended" and counted() == total
+    assert rig.hub._refusals.timer is None and rig.hub._refusals.session is None
