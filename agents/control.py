@@ -18,7 +18,9 @@ relay. It
   :meth:`ControlHub.mission_execute`, under the same lock, and counts the user
   commands and fail-safes that take over from it (:attr:`ControlHub.overrides`);
 * names the command in every refusal it acks, and folds a burst of refused commands
-  into at most one ``command_refused`` report a second.
+  into at most one ``command_refused`` report a second;
+* reports a controller that went silent (fail-safe) and then speaks again on the same
+  link (``link_recovered``).
 """
 
 from __future__ import annotations
@@ -228,6 +230,8 @@ class ControlHub:
         self._pinger: asyncio.Task[None] | None = None
         self._background: set[asyncio.Future[None]] = set()
         self._refusals = _RefusalReports(report)
+        # The controller the watchdog found silent, and its last input before that.
+        self._silenced: tuple[_Client, float] | None = None
         #: Called with the task as it ends, before the safe action (stops its mission).
         self.on_task_end = on_task_end
         #: True while an autonomous mission flies the vehicle (set by its runner).
@@ -377,6 +381,8 @@ class ControlHub:
                 self.task.session_id,
                 {"user": client.grant.user, "role": client.role},
             )
+        if self._silenced is not None and self._silenced[0] is client:
+            self._silenced = None
         if client is self.controller:
             self.controller = None
             if self._armed:
@@ -477,6 +483,7 @@ class ControlHub:
             async with self._exec:
                 await self.adapter.neutral()
         self._armed = False
+        self._silenced = None
         self.controller = client
         if client is not None:
             client.role = "controller"
@@ -490,7 +497,7 @@ class ControlHub:
                 client, msg["seq"], "view_only", f"{name}: you are watching; take control first"
             )
             return
-        self._input()
+        await self._heard(client)
         try:
             client.commands.put_nowait(msg)
         except asyncio.QueueFull:
@@ -533,7 +540,7 @@ class ControlHub:
 
     async def _on_keepalive(self, client: _Client, msg: dict[str, Any]) -> None:
         if client is self.controller:
-            self._input()
+            await self._heard(client)
 
     async def _on_ping(self, client: _Client, msg: dict[str, Any]) -> None:
         # Pings measure the link; only commands and keepalives show a user in control.
@@ -662,11 +669,28 @@ class ControlHub:
             timeout_s = (self.task.limits.link_loss_timeout_ms if self.task else 500) / 1000
             await asyncio.sleep(min(0.05, timeout_s / 5))
             if self._armed and time.monotonic() - self._last_input > timeout_s:
+                # Silence, with the socket still open: if this controller speaks again
+                # on it, the platform hears that the link came back.
+                if self.controller is not None:
+                    self._silenced = (self.controller, self._last_input)
                 await self._failsafe("link_lost")
 
     def _input(self) -> None:
         self._last_input = time.monotonic()
         self._armed = True
+
+    async def _heard(self, client: _Client) -> None:
+        """The controller sent input (a command or a keepalive)."""
+        silenced = self._silenced
+        if silenced is not None and silenced[0] is client:
+            self._silenced = None
+            after_ms = round((time.monotonic() - silenced[1]) * 1000)
+            data = {"user": client.grant.user if client.grant else None, "after_ms": after_ms}
+            log.warning("controller back after %d ms of silence", after_ms)
+            if self.task is not None:
+                self.report("link_recovered", self.task.session_id, data)
+            await self._send(client, {"type": "event", "event": "link_recovered", "data": data})
+        self._input()
 
     async def _failsafe(self, cause: str) -> None:
         """The controller went quiet or away: make the vehicle safe and tell everyone."""

@@ -559,3 +559,30 @@ async def test_refused_commands_are_reported_at_once_then_at_most_once_a_second(
     events = [event for event, _, _ in rig.reports]
     assert events[-1] == "task_ended" and counted() == total
     assert rig.hub._refusals.timer is None and rig.hub._refusals.session is None
+
+
+async def test_a_controller_back_after_a_silence_is_reported_once(rig: Rig):
+    ws, _ = await join(rig)
+    assert (await command(ws, 1, "forward", speed=0.5))["ok"]
+    silent_at = time.monotonic()
+    assert (await recv(ws, "event", within=3))["event"] == "failsafe"  # 500 ms of nothing
+    await ws.send(json.dumps({"type": "keepalive"}))
+    back = await recv(ws, "event")
+    assert back["event"] == "link_recovered" and back["data"]["user"] == "alice"
+    after_ms = back["data"]["after_ms"]
+    assert 500 <= after_ms <= (time.monotonic() - silent_at) * 1000 + 50
+    assert rig.events("link_recovered") == [{"user": "alice", "after_ms": after_ms}]
+    # Once: further input is just input.
+    await ws.send(json.dumps({"type": "keepalive"}))
+    assert (await command(ws, 2, "stop"))["ok"]
+    assert len(rig.events("link_recovered")) == 1
+    await ws.close()
+    # A closed socket is no silence: a new connection is not a recovery.
+    again, _ = await join(rig)
+    assert (await command(again, 1, "forward", speed=0.5))["ok"]
+    again.transport.abort()
+    await until(lambda: len(rig.events("failsafe")) == 2, what="the second fail-safe")
+    third, _ = await join(rig)
+    assert (await command(third, 1, "stop"))["ok"]
+    assert len(rig.events("link_recovered")) == 1
+    await third.close()
