@@ -479,6 +479,7 @@ class SpektrumConfig:
     min_transition_altitude_m: float = 20.0
     allow_transition_without_altitude: bool = False
     hover_throttle: float = 0.5
+    cruise_throttle: float = 0.6
     max_climb_mps: float = 4.0
     max_descent_mps: float = 4.0
     vtol_max_speed_mps: float = 6.0
@@ -587,6 +588,9 @@ class SpektrumConfig:
             min_transition_altitude_m=_number(options, "min_transition_altitude_m", 20.0, low=0.0),
             allow_transition_without_altitude=_flag(options, "allow_transition_without_altitude"),
             hover_throttle=hover,
+            cruise_throttle=_number(
+                options, "cruise_throttle", 0.6, low=0.0, high=1.0, low_open=True
+            ),
             max_climb_mps=_number(options, "max_climb_mps", 4.0, low=0.0, low_open=True),
             max_descent_mps=_number(options, "max_descent_mps", 4.0, low=0.0, low_open=True),
             vtol_max_speed_mps=_number(options, "vtol_max_speed_mps", 6.0, low=0.0, low_open=True),
@@ -646,9 +650,13 @@ class FlightControls:
     10 ms; with the thread writer, once per frame). Every method takes :attr:`lock`
     (callers that mutate fields directly hold it too); none blocks or does I/O under it.
 
-    Values: ``throttle`` 0..1 (holds), stick axes -1..1 (aileron +right, elevator
-    +nose up i.e. stick back, rudder +right) that return to 0 once their hold time
-    passes without a repeat; ``mode`` "vtol"/"aircraft"; ``armed``.
+    Values: ``throttle`` 0..1, stick axes -1..1 (aileron +right, elevator +nose up i.e.
+    stick back, rudder +right). Every one of them returns to its neutral once its hold
+    time passes without a repeat (the key was released, the browser went away): the
+    stick axes to centre, the throttle to :meth:`throttle_neutral` for the flight mode
+    (VTOL mode: the hover setting in the air, idle on the ground; aircraft mode: the
+    cruise setting). Nothing a user sends stays applied after the user stops sending.
+    ``mode`` "vtol"/"aircraft"; ``armed``.
     """
 
     def __init__(self, config: SpektrumConfig) -> None:
@@ -657,10 +665,19 @@ class FlightControls:
         #: Notified (under ``lock``) when the landing sequence disarms.
         self.landed = threading.Condition(self.lock)
         self.throttle = 0.0
+        #: Where the throttle returns to, as of the last tick.
+        self.neutral_throttle = 0.0
         self.axes = dict.fromkeys(STICK_AXES, 0.0)
         self._expires = dict.fromkeys(STICK_AXES, 0.0)
-        self._last_press: dict[str, tuple[float, int]] = dict.fromkeys(STICK_AXES, (-1e9, 0))
-        self._repeat_s: dict[str, float | None] = dict.fromkeys(STICK_AXES)
+        # Until then the throttle keeps a user's setting; after, it follows the neutral.
+        self._throttle_expires = 0.0
+        # Hold-time bookkeeping per stick axis and for the throttle.
+        self._last_press: dict[str, tuple[float, int]] = dict.fromkeys(
+            (*STICK_AXES, "throttle"), (-1e9, 0)
+        )
+        self._repeat_s: dict[str, float | None] = dict.fromkeys((*STICK_AXES, "throttle"))
+        # Whether the plane may be in the air, for when telemetry cannot tell.
+        self._lifted = False
         self.mode = "vtol"
         self.armed = False
         self.landing: _Landing | None = None
@@ -671,33 +688,58 @@ class FlightControls:
         self._last_tick: float | None = None
 
     # --- the event loop's side ---------------------------------------------------------
-    def set_axis(self, axis: str, value: float, now: float) -> None:
-        """Deflect ``axis`` to ``value`` for the hold time (a repeat extends it).
-
-        The hold time is ``stick_hold_ms``, or longer when the client repeats a held key
-        less often: the browser's repeat interval follows the round trip (100 ms at
-        best), and a stick that centred between two repeats would stutter. It adapts
-        to 1.5 x the observed repeat interval + 50 ms (a moving average of the gaps
-        between same-direction presses), at most ``stick_hold_max_ms``.
-        """
+    def _hold_locked(self, key: str, direction: int, now: float) -> float:
+        """The hold time of a press of ``key`` (a stick axis or "throttle") in
+        ``direction``: ``stick_hold_ms``, or longer when the client repeats a held key
+        less often. The browser's repeat interval follows the round trip (100 ms at
+        best), and a stick that returned to neutral between two repeats would stutter.
+        It adapts to 1.5 x the observed repeat interval + 50 ms (a moving average of
+        the gaps between same-direction presses), at most ``stick_hold_max_ms``."""
         cfg = self.config
+        last_at, last_direction = self._last_press[key]
+        gap = now - last_at
+        if direction and direction == last_direction and gap < cfg.stick_hold_max_ms / 1000:
+            seen = self._repeat_s[key]
+            self._repeat_s[key] = gap if seen is None else 0.7 * seen + 0.3 * gap
+        elif direction != last_direction:
+            self._repeat_s[key] = None
+        self._last_press[key] = (now, direction)
+        hold = cfg.stick_hold_ms / 1000
+        repeat = self._repeat_s[key]
+        if repeat is not None:
+            hold = min(max(hold, 1.5 * repeat + 0.05), cfg.stick_hold_max_ms / 1000)
+        return hold
+
+    def set_axis(self, axis: str, value: float, now: float) -> None:
+        """Deflect ``axis`` to ``value`` for the hold time (a repeat extends it; see
+        :meth:`_hold_locked`)."""
         value = max(-1.0, min(1.0, value)) if math.isfinite(value) else 0.0
         direction = (value > 0) - (value < 0)
         with self.lock:
-            last_at, last_direction = self._last_press[axis]
-            gap = now - last_at
-            if direction and direction == last_direction and gap < cfg.stick_hold_max_ms / 1000:
-                seen = self._repeat_s[axis]
-                self._repeat_s[axis] = gap if seen is None else 0.7 * seen + 0.3 * gap
-            elif direction != last_direction:
-                self._repeat_s[axis] = None
-            self._last_press[axis] = (now, direction)
-            hold = cfg.stick_hold_ms / 1000
-            repeat = self._repeat_s[axis]
-            if repeat is not None:
-                hold = min(max(hold, 1.5 * repeat + 0.05), cfg.stick_hold_max_ms / 1000)
+            hold = self._hold_locked(axis, direction, now)
             self.axes[axis] = value
             self._expires[axis] = now + hold
+
+    def throttle_after(self, delta: float) -> float:
+        """The throttle one press of ``delta`` would set: a step from the current
+        setting, or from the neutral when the press goes the other way (``s`` right
+        after ``w`` descends at once instead of first undoing the climb)."""
+        base = self.throttle
+        if (delta > 0 and base < self.neutral_throttle) or (
+            delta < 0 and base > self.neutral_throttle
+        ):
+            base = self.neutral_throttle
+        return max(0.0, min(1.0, base + delta))
+
+    def move_throttle_locked(self, delta: float, now: float) -> None:
+        """Step the throttle by ``delta`` for the hold time of a press; after it the
+        throttle returns to its neutral. The caller holds :attr:`lock`."""
+        direction = (delta > 0) - (delta < 0)
+        hold = self._hold_locked("throttle", direction, now)
+        self.throttle = self.throttle_after(delta)
+        self._throttle_expires = now + hold
+        if self.mode == "vtol" and self.throttle > self.config.hover_throttle:
+            self._lifted = True
 
     def centre(self) -> None:
         """Centre aileron, elevator and rudder at once."""
@@ -709,6 +751,29 @@ class FlightControls:
         for axis in self.axes:
             self.axes[axis] = 0.0
             self._expires[axis] = 0.0
+
+    def neutral_locked(self, fc: FcReport | None) -> None:
+        """Sticks centred and the throttle at its neutral now (the caller holds
+        :attr:`lock`); ``fc`` is the latest fresh report, or None."""
+        self.centre_locked()
+        self._throttle_expires = 0.0
+        if self.landing is None:
+            self.neutral_throttle = self.throttle_neutral(fc)
+            self.throttle = self.neutral_throttle
+
+    def throttle_neutral(self, fc: FcReport | None) -> float:
+        """Where the throttle rests for the flight mode: VTOL mode in the air, the hover
+        setting (the altitude holds); on the ground, idle; aircraft mode, the cruise
+        setting (level flight); disarmed, idle. In the air or not: from telemetry, or
+        without, from whether the throttle went past the hover setting since arming."""
+        cfg = self.config
+        if not self.armed:
+            return 0.0
+        if self.mode == "aircraft":
+            return cfg.cruise_throttle
+        if fc is not None and fc.on_ground is not None:
+            self._lifted = not fc.on_ground
+        return cfg.hover_throttle if self._lifted else 0.0
 
     def wait_disarmed(self, timeout: float) -> bool:
         """Block until disarmed (at most ``timeout`` s); True if disarmed."""
@@ -749,8 +814,8 @@ class FlightControls:
     # --- the writer thread's side ------------------------------------------------------
     def tick(self, now: float, fc: FcReport | None) -> list[int]:
         """Advance time to ``now`` (hold timeouts, landing, loop watchdog) and return
-        the eight servo positions to send. ``fc`` is the latest fresh report from the
-        far end, or None when there is none."""
+        the eight servo positions to send. ``fc`` is the latest
+        fresh report from the far end, or None when there is none."""
         cfg = self.config
         with self.lock:
             dt = 0.0 if self._last_tick is None else min(0.1, max(0.0, now - self._last_tick))
@@ -758,6 +823,12 @@ class FlightControls:
             for axis, expires in self._expires.items():
                 if now >= expires:
                     self.axes[axis] = 0.0
+            if not self.armed:
+                self._lifted = False
+            self.neutral_throttle = self.throttle_neutral(fc)
+            if self.landing is None and now >= self._throttle_expires:
+                # Released (or never pressed): the throttle rests at its neutral.
+                self.throttle = self.neutral_throttle
             if (
                 self.armed
                 and self.landing is None
@@ -1632,6 +1703,13 @@ class SpektrumAdapter(Adapter):
             CommandSpec("arm", "Arm the motors (throttle must be at idle)", group="setup"),
             CommandSpec("disarm", "Disarm the motors (on the ground only)", group="setup"),
             CommandSpec("land", "Land where it is, then disarm", group="setup", key="l"),
+            # Sent by the browser when the last held key goes up.
+            CommandSpec(
+                "stop",
+                "Sticks and throttle to neutral: hover (VTOL mode) or level cruise",
+                group="setup",
+                key="Space",
+            ),
         ]
         return out
 
@@ -1717,6 +1795,12 @@ class SpektrumAdapter(Adapter):
         if name == "land":
             controls.start_landing("user", now)
             return
+        if name == "stop":
+            # The browser sends it as the last key goes up. During a landing the
+            # sequence owns the sticks already: nothing to do, nothing to refuse.
+            with controls.lock:
+                controls.neutral_locked(self.fc_report())
+            return
         if controls.landing is not None:
             raise AdapterError(
                 "the plane is landing; wait until it has landed and disarmed", code="landing"
@@ -1728,12 +1812,9 @@ class SpektrumAdapter(Adapter):
         elif name in ("throttle_up", "throttle_down"):
             step = float(args.get("step", cfg.throttle_step))
             with controls.lock:
-                if name == "throttle_up":
-                    if not controls.armed:
-                        raise AdapterError("arm the motors first", code="not_armed")
-                    controls.throttle = min(1.0, controls.throttle + step)
-                else:
-                    controls.throttle = max(0.0, controls.throttle - step)
+                if name == "throttle_up" and not controls.armed:
+                    raise AdapterError("arm the motors first", code="not_armed")
+                controls.move_throttle_locked(step if name == "throttle_up" else -step, now)
         elif name == "change_to_vtol_mode":
             with controls.lock:
                 if controls.mode == "aircraft":
@@ -1821,17 +1902,11 @@ class SpektrumAdapter(Adapter):
         self._push()
 
     async def neutral(self) -> None:
-        """Centre the sticks. In VTOL mode in the air the throttle goes to the hover
-        setting (the new controller starts from a hover); on the ground to idle."""
-        controls = self.controls
-        airborne = self._airborne()
-        with controls.lock:
-            controls.centre_locked()
-            if controls.landing is None and controls.mode == "vtol":
-                if airborne is True:
-                    controls.throttle = self.config.hover_throttle
-                elif airborne is False:
-                    controls.throttle = 0.0
+        """Centre the sticks and the throttle (see :meth:`FlightControls.throttle_neutral`):
+        the new controller starts from a hover, or level flight in aircraft mode."""
+        fc = self.fc_report()
+        with self.controls.lock:
+            self.controls.neutral_locked(fc)
         self._push()
 
     def project(self, name: str, args: Mapping[str, Any]) -> Projection | None:
@@ -1849,7 +1924,7 @@ class SpektrumAdapter(Adapter):
         vz = max(0.0, fc.vz or 0.0)
         if name == "throttle_up" and fc.alt is not None:
             if mode == "vtol":
-                throttle = min(1.0, self.controls.throttle + float(args.get("step", 0)))
+                throttle = self.controls.throttle_after(float(args.get("step", 0)))
                 vz = max(vz, self._climb_rate(throttle))
             return Projection(alt=fc.alt + vz)
         if name == "pitch_up" and mode == "aircraft" and fc.alt is not None:

@@ -319,6 +319,14 @@ STICK_TABLE = [
 ]
 
 
+HOVER = LOW + round(0.5 * 1364)  # hover_throttle 0.5: the VTOL neutral in the air
+CRUISE = LOW + round(0.6 * 1364)  # cruise_throttle 0.6: the aircraft-mode neutral
+HOVERING = {
+    "throttle": HOVER, "aileron": CENTRE, "elevator": CENTRE, "rudder": CENTRE,
+    "gear": LOW, "aux1": HIGH, "aux2": CENTRE, "aux3": CENTRE,
+}  # fmt: skip
+
+
 @pytest.mark.parametrize("mode", ["vtol", "aircraft"])
 async def test_every_command_decodes_to_the_expected_channels(line: LineRig, mode: str) -> None:
     plane = line.plane
@@ -331,13 +339,16 @@ async def test_every_command_decodes_to_the_expected_channels(line: LineRig, mod
     base = {**idle, "aux1": HIGH}
     await line.shows(base)
     await plane.execute("throttle_up", {"step": 0.25})
-    base["throttle"] = LOW + round(0.25 * 1364)
+    await line.shows({**base, "throttle": LOW + round(0.25 * 1364)})
+    # Released on the ground: back to idle after the hold time.
+    await line.shows(base)
+    line.flying(alt=30.0)
+    await until(lambda: plane.state().alt == 30.0)
+    base["throttle"] = HOVER  # in the air the throttle rests at the hover setting
     await line.shows(base)
     if mode == "aircraft":
-        line.flying(alt=30.0)
-        await until(lambda: plane.state().alt == 30.0)
         await plane.execute("change_to_aircraft_mode", {})
-        base["gear"] = HIGH
+        base.update(gear=HIGH, throttle=CRUISE)
         await line.shows(base)
 
     for name, channel, value in STICK_TABLE:
@@ -346,19 +357,26 @@ async def test_every_command_decodes_to_the_expected_channels(line: LineRig, mod
         # Released (no repeat): back to centre after the 250 ms hold time.
         await line.shows(base)
 
-    # Throttle holds (no hold timeout) and steps down again.
-    await asyncio.sleep(0.4)
-    assert line.last_pair() == base
-    await plane.execute("throttle_down", {"step": 0.1})
-    await line.shows({**base, "throttle": LOW + round(0.15 * 1364)})
+    # The throttle steps from its neutral and returns to it when released.
+    neutral = 0.5 if mode == "vtol" else 0.6
+    for name, step in (("throttle_up", 0.1), ("throttle_down", -0.1)):
+        await plane.execute(name, {"step": abs(step)})
+        await line.shows({**base, "throttle": LOW + round((neutral + step) * 1364)})
+        await line.shows(base)
+    # "stop" (the browser sends it when the last key goes up): neutral at once.
+    await plane.execute("roll_left", {"amount": 1.0})
+    await plane.execute("throttle_up", {"step": 0.25})
+    await line.shows({**base, "aileron": LOW, "throttle": LOW + round((neutral + 0.25) * 1364)})
+    await plane.execute("stop", {})
+    assert plane.telemetry()["channels"] == base
     if mode == "aircraft":
         await plane.execute("change_to_vtol_mode", {})
         # Back in VTOL mode the throttle goes to the hover setting (0.5).
-        await line.shows({**base, "gear": LOW, "throttle": CENTRE})
+        base.update(gear=LOW, throttle=HOVER)
+        await line.shows(base)
     line.flying(alt=0.0, on_ground=True)
     await until(lambda: plane.state().alt == 0.0)
-    await plane.execute("throttle_down", {"step": 0.25})
-    await plane.execute("throttle_down", {"step": 0.25})
+    await line.shows({**base, "throttle": LOW})  # on the ground: idle
     await plane.execute("disarm", {})
     await line.shows(idle)
     assert plane.telemetry()["channels"] == idle
@@ -366,6 +384,26 @@ async def test_every_command_decodes_to_the_expected_channels(line: LineRig, mod
     assert all(f.system == DSMX_11MS and f.fades == 0 for f in frames)
     assert all(a.phase != b.phase for a, b in itertools.pairwise(frames))
     assert all(LOW <= v <= HIGH for f in frames for v in f.servos.values())
+
+
+async def test_a_held_then_released_throttle_key_does_not_latch(line: LineRig) -> None:
+    # The demo's failure: "w" held, then released, left the throttle up and the plane
+    # climbed on with nobody touching it. Released, the throttle returns to hover.
+    plane = line.plane
+    await arm(line)
+    line.flying(alt=20.0)
+    await until(lambda: plane.state().alt == 20.0)
+    for _ in range(30):  # the browser repeats the held key every 100 ms
+        await plane.execute("throttle_up", {})
+        if plane.controls.throttle >= 0.8:
+            break
+        await asyncio.sleep(0.1)
+    assert plane.controls.throttle >= 0.8
+    # Nothing more is sent: no stop, no keepalive (the browser may be gone). The
+    # throttle is back at hover one hold time (250 ms) after the last repeat.
+    await line.shows(HOVERING, within=2.0)
+    await asyncio.sleep(0.3)
+    assert line.last_pair() == HOVERING
 
 
 async def test_held_stick_stays_deflected_and_centres_after_the_hold_time(line: LineRig) -> None:
@@ -456,11 +494,16 @@ async def test_arming_and_disarming_are_refused_when_unsafe(line: LineRig) -> No
     await plane.execute("throttle_up", {"step": 0.2})
     await plane.execute("disarm", {})  # on the ground (the FC says so): allowed
     assert plane.controls.throttle == 0.0 and not plane.controls.armed
-    plane.controls.throttle = 0.2  # as if held from an earlier flight
+    controls = plane.controls
+    with controls.lock:  # as if the throttle were up (it cannot be, disarmed)
+        controls.throttle = 0.2
+        controls._throttle_expires = time.monotonic() + 10
     with pytest.raises(AdapterError) as refused:
         await plane.execute("arm", {})
     assert refused.value.code == "unsafe"
-    plane.controls.throttle = 0.0
+    with controls.lock:
+        controls.throttle = 0.0
+        controls._throttle_expires = 0.0
     await arm(line)
     line.flying(alt=8.0)
     await until(lambda: plane.state().alt == 8.0)
@@ -581,7 +624,7 @@ async def test_a_hung_event_loop_lands_the_plane_from_the_control_thread() -> No
             assert plane.frames_written - before >= 0.8 / 0.011 * 0.8
             assert plane.controls.landing is not None
             assert plane.controls.landing.cause == "agent_stalled"
-            assert plane.controls.throttle < 0.75  # the descent ramp has begun
+            assert plane.controls.throttle < 0.5  # the descent ramp, from the hover setting
     finally:
         fc.close()
 
@@ -669,7 +712,7 @@ class HubRig:
 
 
 @contextlib.asynccontextmanager
-async def hub_rig(**options: Any) -> AsyncIterator[HubRig]:
+async def hub_rig(*, limits: dict[str, Any] | None = None, **options: Any) -> AsyncIterator[HubRig]:
     plane = SpektrumAdapter({"simulate": True, "origin": [40.63, -8.65], **FAST, **options})
     reports: list[tuple[str, str | None, dict[str, Any]]] = []
     async with plane:
@@ -681,7 +724,7 @@ async def hub_rig(**options: Any) -> AsyncIterator[HubRig]:
             report=lambda e, s, d: reports.append((e, s, d)),
         )
         async with hub, ControlServer(hub) as server:
-            hub.task_accept(make_task())
+            hub.task_accept(make_task(**(limits or {})))
             yield HubRig(hub, server, plane, reports)
 
 
@@ -692,18 +735,23 @@ async def join(rig: HubRig) -> ClientConnection:
     return ws
 
 
-async def climb_to(ws: ClientConnection, rig: HubRig, alt: float) -> None:
-    assert (await command(ws, 1, "arm"))["ok"]
-    for seq in range(2, 7):
-        assert (await command(ws, seq, "throttle_up", step=0.1))["ok"]  # 0.5: hover
-    for seq in range(7, 10):
-        assert (await command(ws, seq, "throttle_up", step=0.1))["ok"]  # climbing
-    for _ in range(100):
-        if rig.sim().get("alt", 0) >= alt:
-            break
+async def climb_to(ws: ClientConnection, rig: HubRig, alt: float, seq: int = 1) -> int:
+    """Arm and hold "w" (a repeat every 100 ms, as the browser sends a held key) until
+    the plane is ``alt`` high; then release it and wait for the hover. Returns the next
+    free seq."""
+    assert (await command(ws, seq, "arm"))["ok"]
+    deadline = time.monotonic() + 10
+    while rig.sim().get("alt", 0) < alt:
+        assert time.monotonic() < deadline, f"not at {alt} m: {rig.sim()}"
+        seq += 1
+        assert (await command(ws, seq, "throttle_up", step=0.1))["ok"]
+        await asyncio.sleep(0.1)
+    # Released: the throttle returns to hover and the climb dies away.
+    while abs(rig.sim()["vz"]) > 0.2:
+        assert time.monotonic() < deadline, f"no hover: {rig.sim()}"
         await ws.send(json.dumps({"type": "keepalive"}))
         await asyncio.sleep(0.05)
-    assert rig.sim()["alt"] >= alt
+    return seq + 1
 
 
 async def watch_landing(rig: HubRig, within: float = 15.0) -> list[dict[str, Any]]:
@@ -741,8 +789,8 @@ async def test_link_loss_in_vtol_mode_lands_and_disarms() -> None:
 async def test_link_loss_in_aircraft_mode_goes_back_to_vtol_then_lands() -> None:
     async with hub_rig() as rig:
         ws = await join(rig)
-        await climb_to(ws, rig, 7.0)
-        assert (await command(ws, 20, "change_to_aircraft_mode"))["ok"]
+        seq = await climb_to(ws, rig, 7.0)
+        assert (await command(ws, seq, "change_to_aircraft_mode"))["ok"]
         for _ in range(14):  # through the transition into cruise
             await ws.send(json.dumps({"type": "keepalive"}))
             await asyncio.sleep(0.05)
