@@ -587,6 +587,8 @@ def world_seed(*, vehicles: int) -> World:
                 "allowed_commands": command_names(CAR_COMMANDS),
                 "failsafe_action": Service.Failsafe.STOP,
                 "link_loss_timeout_ms": LINK_LOSS_TIMEOUT_MS,
+                # One benchmark user drives the four cars of TC3 at once.
+                "max_sessions_per_user": 100,
                 "latency_soft_ms": None,
                 "latency_hard_ms": None,
                 "session_time_limit_s": None,

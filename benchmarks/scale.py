@@ -418,8 +418,12 @@ def world_build(*, light: int, cars: int, clients: int, link_loss_timeout_ms: in
         )
         for v in rows
     ]
+    # The load's clients each hold many sessions at once: no per-user cap here.
     light_service = Service.objects.create(
-        slug=LIGHT_SERVICE, name="Bench assignment", allowed_commands=["stop"]
+        slug=LIGHT_SERVICE,
+        name="Bench assignment",
+        allowed_commands=["stop"],
+        max_sessions_per_user=100_000,
     )
     ServiceRole.objects.create(
         service=light_service, name="vehicle", kinds=["aerial"], min_battery=20
@@ -430,6 +434,7 @@ def world_build(*, light: int, cars: int, clients: int, link_loss_timeout_ms: in
         allowed_commands=CAR_COMMANDS,
         link_loss_timeout_ms=link_loss_timeout_ms,
         failsafe_action="stop",
+        max_sessions_per_user=100_000,
     )
     ServiceRole.objects.create(service=car_service, name="vehicle", kinds=["ground"])
     for service in (light_service, car_service):

@@ -158,10 +158,15 @@ async def test_client_flies_the_drone_from_the_browser(world: World):
 
     await page.click("[data-end-session]")
     await page.wait_for_url(f"{world.base}/")
-    # Freed: no longer reserved. It flies home on its own and shows "returning" until
-    # it has landed, when its agent reports it idle again.
+    # No longer reserved: "releasing" until its agent confirms the end, then it flies
+    # home on its own and shows "returning" until it has landed, when its agent reports
+    # it idle again.
     quad = await db(Vehicle.objects.get, name="quad-1")
-    assert quad.status in (Vehicle.Status.IDLE, Vehicle.Status.RETURNING)
+    assert quad.status in (
+        Vehicle.Status.RELEASING,
+        Vehicle.Status.IDLE,
+        Vehicle.Status.RETURNING,
+    )
     assert not await db(lambda: quad.assignments.filter(active=True).exists())
 
     async def returning() -> bool:
@@ -193,8 +198,13 @@ async def test_client_requests_drives_sees_video_and_ends(world: World):
     await page.wait_for_url(f"{world.base}/")
     session = await db(Session.objects.get, pk=session_id)
     assert session.state == Session.State.ENDED
-    car = await db(Vehicle.objects.get, name="car-1")
-    assert car.status == Vehicle.Status.IDLE
+
+    async def car_free() -> bool:
+        car = await db(Vehicle.objects.get, name="car-1")
+        return car.status == Vehicle.Status.IDLE
+
+    # Free once its agent has confirmed the end, a moment later.
+    await until(car_free, what="the car to be free again")
 
 
 async def request_drone(world: World, page: Page) -> Any:
