@@ -20,7 +20,11 @@ relay. It
 * names the command in every refusal it acks, and folds a burst of refused commands
   into at most one ``command_refused`` report a second;
 * reports a controller that went silent (fail-safe) and then speaks again on the same
-  link (``link_recovered``).
+  link (``link_recovered``);
+* watches the vehicle's actual state against the task's limits while the task is
+  current (:mod:`agents.envelope`): a breach is corrected under the same lock, takes
+  over from a mission, and is reported (``envelope_breach``, ``envelope_restored``) to
+  the platform and the users.
 """
 
 from __future__ import annotations
@@ -41,7 +45,8 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
-from agents.adapters.base import SAFE_COMMANDS, Adapter, AdapterError
+from agents.adapters.base import SAFE_COMMANDS, Adapter, AdapterError, Breach
+from agents.envelope import EnvelopeWatch
 from agents.protocol import (
     MAX_MESSAGE_BYTES,
     ProtocolError,
@@ -229,6 +234,7 @@ class ControlHub:
         self._time_limit: asyncio.Task[None] | None = None
         self._pinger: asyncio.Task[None] | None = None
         self._background: set[asyncio.Future[None]] = set()
+        self._envelope: EnvelopeWatch | None = None
         self._refusals = _RefusalReports(report)
         # The controller the watchdog found silent, and its last input before that.
         self._silenced: tuple[_Client, float] | None = None
@@ -247,6 +253,7 @@ class ControlHub:
         self._pinger = asyncio.create_task(self._ping_controller(), name="control-pinger")
 
     async def close(self) -> None:
+        await self._envelope_stop()
         for client in list(self.clients.values()):
             await self._drop(client, 1001, "agent shutting down")
         self._refusals.flush()
@@ -277,6 +284,19 @@ class ControlHub:
             raise Refusal("busy", f"the vehicle is serving session {self.task.session_id}")
         self.task = task
         self.gate = CommandGate(self.adapter, allowed=task.allowed_commands, limits=task.limits)
+        # The watch of the previous copy of this task (the platform resent it) goes.
+        previous, self._envelope = (
+            self._envelope,
+            EnvelopeWatch(
+                limits=task.limits,
+                state=self.adapter.state,
+                recover=self._envelope_recover,
+                notify=self._envelope_notify,
+            ),
+        )
+        self._envelope.start()
+        if previous is not None:
+            self._spawn(previous.stop())
         if self._time_limit:
             self._time_limit.cancel()
         limit = task.limits.session_time_limit_s
@@ -292,6 +312,8 @@ class ControlHub:
         self.task = None
         self.gate = None
         self._armed = False
+        # Before the safe action: the envelope must not correct what the end performs.
+        await self._envelope_stop()
         if self.on_task_end is not None:
             try:
                 self.on_task_end(task)
@@ -351,9 +373,40 @@ class ControlHub:
                 ) from None
 
     def _override(self, reason: str) -> None:
-        """A user command or a fail-safe acted on the vehicle: a mission must yield."""
+        """A user command, a fail-safe or the envelope acted on the vehicle: a mission
+        must yield."""
         self.overrides += 1
         self.override_reason = reason
+
+    # --- the envelope ------------------------------------------------------------------
+    async def _envelope_recover(self, breach: Breach) -> str:
+        """Correct a breach, under the command lock like any command: never in the
+        middle of a user's command or a mission step, and a mission yields to it."""
+        async with self._exec:
+            if self.task is None:
+                return "none: the task has ended"
+            try:
+                async with asyncio.timeout(COMMAND_TIMEOUT_S):
+                    action = await self.adapter.envelope_recover(breach)
+            finally:
+                # Counted before the lock is free, whatever happened: the vehicle may
+                # have been moved, and a mission step must not fly on regardless.
+                self._override(f"the safety envelope ({breach.limit} limit)")
+        return action
+
+    async def _envelope_notify(self, event: str, data: dict[str, Any]) -> None:
+        task = self.task
+        if task is None:
+            return
+        self.report(event, task.session_id, data)
+        for client in list(self.clients.values()):
+            if client.role != "pending":
+                await self._send(client, {"type": "event", "event": event, "data": data})
+
+    async def _envelope_stop(self) -> None:
+        watch, self._envelope = self._envelope, None
+        if watch is not None:
+            await watch.stop()
 
     # --- connections -------------------------------------------------------------------
     async def connected(self, link: ClientLink) -> None:

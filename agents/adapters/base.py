@@ -88,6 +88,24 @@ class VehicleState:
 
 
 @dataclass(frozen=True)
+class Breach:
+    """The vehicle is outside one of its task's limits (see :mod:`agents.envelope`).
+
+    ``limit`` is ``"altitude"`` (``value`` and ``limit_value`` in metres above home),
+    ``"geofence"`` (metres from ``centre``) or ``"speed"`` (m/s). ``target`` is where the
+    recovery should bring the value: a margin inside the limit (a lower altitude, a
+    smaller distance from ``centre``, a lower speed), so that the vehicle does not hover
+    on the line and cross it again.
+    """
+
+    limit: str
+    value: float
+    limit_value: float
+    target: float
+    centre: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
 class Projection:
     """Where a command would take the vehicle (None fields: unchanged/unknown)."""
 
@@ -100,8 +118,8 @@ class Adapter(abc.ABC):
     """Base class of vehicle adapters. Subclasses set ``name`` and register.
 
     Concurrency contract: the agent serialises calls to :meth:`execute`,
-    :meth:`neutral` and :meth:`safe_action`; :meth:`state` and :meth:`telemetry` may be
-    called at any time and must not block.
+    :meth:`neutral`, :meth:`safe_action` and :meth:`envelope_recover`; :meth:`state` and
+    :meth:`telemetry` may be called at any time and must not block.
     """
 
     name: ClassVar[str]
@@ -165,6 +183,23 @@ class Adapter(abc.ABC):
     async def neutral(self) -> None:  # noqa: B027 - optional hook
         """Zero the user's inputs (sticks centred, motors stopped) without ending the
         task; called when the controller changes. Default: nothing to zero."""
+
+    async def envelope_recover(self, breach: Breach) -> str:
+        """Bring the vehicle back inside a limit it has crossed, whatever crossed it.
+
+        Called by the agent's envelope watch (serialised with :meth:`execute`, like
+        every action) when :meth:`state` shows the vehicle past the task's ceiling,
+        geofence or maximum speed, and again while it stays there without getting
+        better. Return once the correction is under way, with a few words saying what
+        was done (they go to the platform and the users). A vehicle that cannot be
+        corrected now (not flying, no link) is no error: say so in the answer. Raises
+        AdapterError when the vehicle refuses (reported as the action).
+
+        Default: :meth:`safe_action` ``"stop"``, the one action every vehicle has.
+        Flying vehicles override it: stopping is no answer to a ceiling.
+        """
+        await self.safe_action("stop")
+        return "stop"
 
     def project(self, name: str, args: Mapping[str, Any]) -> Projection | None:
         """Where ``name`` would take the vehicle over the next second or so, for the

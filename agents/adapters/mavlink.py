@@ -69,13 +69,14 @@ from pymavlink import mavutil  # type: ignore[import-untyped, unused-ignore]
 from agents.adapters.base import (
     Adapter,
     AdapterError,
+    Breach,
     CommandSpec,
     Projection,
     VehicleState,
     origin_option,
     register,
 )
-from agents.geo import offset
+from agents.geo import distance_m, local_offset_m, offset
 
 mavutil.set_dialect("ardupilotmega")
 #: The MAVLink module of the ArduPilot dialect (message classes and constants).
@@ -1309,6 +1310,12 @@ class MavlinkAdapter(Adapter):
             # ArduCopter flies guided targets at WPNAV_SPEED and ignores DO_REPOSITION's
             # speed field: DO_CHANGE_SPEED (ground speed) sets it for this and later legs.
             await self._command_long(MAV.MAV_CMD_DO_CHANGE_SPEED, (1, speed, -1, 0))
+        await self._reposition(lat, lon, alt, speed=speed)
+
+    async def _reposition(
+        self, lat: float, lon: float, alt: float, *, speed: float | None = None
+    ) -> None:
+        """Fly to a position in GUIDED (the caller made sure of GUIDED)."""
         try:
             await self._command_int(
                 MAV.MAV_CMD_DO_REPOSITION,
@@ -1429,6 +1436,64 @@ class MavlinkAdapter(Adapter):
         except Exception:
             logger.exception("mavlink: safe action %s failed", action)
             self._emit("safe_action_failed", {"action": action, "reason": "internal error"})
+
+    async def envelope_recover(self, breach: Breach) -> str:
+        """Bring the drone back inside a limit it crossed, whatever crossed it.
+
+        * altitude: a position target right here, ``breach.target`` high (GUIDED):
+          the climb stops and the drone descends below the ceiling and holds; in RTL
+          (its climb to RTL_ALT crossed the ceiling) LAND instead, as ArduCopter's
+          own fence does when breached during a return; in LAND nothing to do;
+        * geofence: a position target ``breach.target`` from the centre on the line to
+          where it is, at its altitude (GUIDED); nothing in LAND or RTL (on its way
+          down or home);
+        * speed: a zero velocity setpoint if the user's movement is under way, and
+          DO_CHANGE_SPEED to ``breach.target`` (the autopilot's cruise speed for
+          positions, returns and later legs).
+
+        Flying is what the user's own commands see afterwards, in GUIDED. Raises
+        AdapterError when the autopilot refuses (the hub reports it as the action).
+        """
+        t = self.t
+        moving = self._moving_until is not None
+        if not self._link_ok:
+            return "none: no link to the autopilot"
+        if not t.armed or not self._in_air():
+            return "none: not flying"
+        if breach.limit == "speed":
+            if moving and t.mode == GUIDED:
+                self._moving_until = None
+                self._send_velocity(0.0, 0.0, 0.0)
+            await self._command_long(MAV.MAV_CMD_DO_CHANGE_SPEED, (1, breach.target, -1, 0))
+            return f"slow down to {breach.target:.1f} m/s"
+        if t.mode == LAND:
+            return "none: landing"
+        if t.mode in (RTL, SMART_RTL):
+            if breach.limit == "geofence":
+                return "none: returning home"
+            owner = "low_battery" if self._mode_owner == "low_battery" else "failsafe"
+            await self._set_mode(LAND, owner=owner)
+            return "land: the return climbs above the ceiling"
+        if t.lat is None or t.lon is None or t.alt is None:
+            return "none: position unknown"
+        lat, lon, alt = t.lat, t.lon, t.alt
+        if breach.limit == "altitude":
+            alt = breach.target
+            action = f"descend to {alt:.1f} m and hold"
+        else:
+            centre = breach.centre or (lat, lon)
+            out = distance_m(centre, (lat, lon))
+            if out > 0:
+                north, east = local_offset_m(centre, (lat, lon))
+                share = max(0.0, breach.target) / out
+                lat, lon = offset(centre, north * share, east * share)
+            action = "fly back inside the geofence and hold"
+        self._moving_until = None
+        self._yaw_target = None
+        if t.mode != GUIDED:
+            await self._set_mode(GUIDED, owner="failsafe")
+        await self._reposition(lat, lon, alt)
+        return action
 
     async def neutral(self) -> None:
         """Hover: a zero velocity setpoint if the drone flies in GUIDED. Never raises."""

@@ -76,13 +76,14 @@ import serial  # type: ignore[import-untyped, unused-ignore]
 from agents.adapters.base import (
     Adapter,
     AdapterError,
+    Breach,
     CommandSpec,
     Projection,
     VehicleState,
     origin_option,
     register,
 )
-from agents.geo import offset
+from agents.geo import local_offset_m, offset
 
 logger = logging.getLogger(__name__)
 
@@ -643,6 +644,31 @@ class _Landing:
     since: float
 
 
+#: An envelope correction descends at this rate (VTOL and aircraft mode alike) ...
+RECOVERY_DESCENT_MPS = 1.0
+#: ... and flies back towards the geofence at this speed (VTOL mode).
+RECOVERY_RETURN_MPS = 2.0
+#: How fast a correction's descent setting adapts when the plane does not sink at
+#: RECOVERY_DESCENT_MPS (an updraft): the change of vertical speed asked for per second,
+#: per m/s of error (an integral controller; 2/s settles in about a second and stays
+#: well damped with the FC's own lag and 20 Hz telemetry).
+RECOVERY_SINK_GAIN = 2.0
+
+
+@dataclass
+class _Recovery:
+    """An envelope correction the control thread flies until ``target`` is reached (see
+    :meth:`FlightControls.recover`): ``limit`` is "altitude", "geofence" or "speed".
+    ``throttle_cap`` (VTOL mode) and ``elevator_cap`` (aircraft mode) hold the descent;
+    they adapt while the plane does not sink as it should."""
+
+    limit: str
+    target: float
+    centre: tuple[float, float] | None
+    throttle_cap: float
+    elevator_cap: float
+
+
 class FlightControls:
     """The virtual transmitter: stick positions, switches and the landing sequence.
 
@@ -683,6 +709,8 @@ class FlightControls:
         self.landing: _Landing | None = None
         self.landings = 0
         self.last_cause: str | None = None
+        #: Envelope corrections under way, by limit.
+        self.recoveries: dict[str, _Recovery] = {}
         self.loop_beat = time.monotonic()
         self.servos: list[int] = self._servos()
         self._last_tick: float | None = None
@@ -793,6 +821,7 @@ class FlightControls:
 
     def _start_landing(self, cause: str, now: float) -> bool:
         self.centre_locked()
+        self.recoveries.clear()  # the landing descends anyway, and owns the throttle
         if not self.armed:
             self.throttle = 0.0
             return False
@@ -811,10 +840,123 @@ class FlightControls:
         logger.warning("spektrum: landing (%s)", cause)
         return True
 
+    def recover(self, breach: Breach, fc: FcReport | None, now: float) -> str:
+        """Start (or keep up) the correction of an envelope breach; returns what it
+        does, in words. The control thread flies it (:meth:`tick`) until the breach's
+        target is reached, telemetry is lost or a landing starts.
+
+        * altitude: the climb is cut at once (throttle to its neutral, elevator no
+          higher than centre), then the plane descends at RECOVERY_DESCENT_MPS (VTOL
+          mode: the throttle held below the hover setting; aircraft mode: the elevator
+          held down) until it is ``breach.target`` high;
+        * geofence: back to VTOL mode, sticks centred, then flown back towards the
+          centre at RECOVERY_RETURN_MPS until ``breach.target`` from it;
+        * speed: VTOL mode: the right stick centred until slower than the target;
+          aircraft mode: back to VTOL mode (a plane cannot fly slower than it stalls).
+        """
+        cfg = self.config
+        with self.lock:
+            if self.landing is not None:
+                return "none: the plane is landing"
+            if not self.armed:
+                return "none: the motors are disarmed"
+            mode = self.mode
+            again = breach.limit in self.recoveries
+            if not again:
+                self.recoveries[breach.limit] = _Recovery(
+                    limit=breach.limit,
+                    target=breach.target,
+                    centre=breach.centre,
+                    throttle_cap=self._throttle_for(-RECOVERY_DESCENT_MPS),
+                    elevator_cap=-min(1.0, RECOVERY_DESCENT_MPS / cfg.aircraft_climb_mps),
+                )
+            if breach.limit == "altitude":
+                self._throttle_expires = 0.0
+                self.neutral_throttle = self.throttle_neutral(fc)
+                self.throttle = min(self.throttle, self.neutral_throttle)
+                self.axes["elevator"] = min(0.0, self.axes["elevator"])
+                self._apply_recoveries(now, 0.0, fc)
+                level = "hover" if mode == "vtol" else "level flight"
+                return f"{level}, descending to {breach.target:.1f} m"
+            if breach.limit == "geofence":
+                self._apply_recoveries(now, 0.0, fc)
+                what = "back to VTOL mode, " if mode == "aircraft" else ""
+                return f"{what}flying back inside the geofence"
+            self._apply_recoveries(now, 0.0, fc)
+            if mode == "aircraft":
+                return "back to VTOL mode: slowing down"
+            return "sticks centred: slowing down"
+
+    def _throttle_for(self, vz: float) -> float:
+        """The VTOL throttle for vertical speed ``vz`` (inverse of the climb model)."""
+        cfg = self.config
+        if vz >= 0:
+            return cfg.hover_throttle + vz / cfg.max_climb_mps * (1 - cfg.hover_throttle)
+        return max(0.0, cfg.hover_throttle * (1 + vz / cfg.max_descent_mps))
+
+    def _to_vtol_locked(self) -> None:
+        if self.mode == "aircraft":
+            logger.warning("spektrum: envelope: back to VTOL mode")
+            self.mode = "vtol"
+            self._throttle_expires = 0.0
+            self.throttle = self.config.hover_throttle
+
+    def _apply_recoveries(self, now: float, dt: float, fc: FcReport | None) -> None:
+        """Fly the envelope corrections for one tick (the caller holds the lock)."""
+        cfg = self.config
+        for limit, rec in list(self.recoveries.items()):
+            if fc is None:
+                # Blind, a correction could fly the plane into the ground: level off
+                # and let the agent's envelope start it again once telemetry is back.
+                logger.warning("spektrum: envelope %s correction ends: no telemetry", limit)
+                del self.recoveries[limit]
+                continue
+            if limit == "altitude":
+                if fc.alt is None or fc.alt <= rec.target:
+                    del self.recoveries[limit]
+                    continue
+                sink_error = 0.0 if fc.vz is None else fc.vz + RECOVERY_DESCENT_MPS
+                if self.mode == "vtol":
+                    per_throttle = cfg.max_descent_mps / cfg.hover_throttle  # m/s per unit
+                    rec.throttle_cap -= RECOVERY_SINK_GAIN * sink_error / per_throttle * dt
+                    rec.throttle_cap = max(0.0, min(cfg.hover_throttle, rec.throttle_cap))
+                    self.throttle = min(self.throttle, rec.throttle_cap)
+                else:
+                    rec.elevator_cap -= (
+                        RECOVERY_SINK_GAIN * sink_error / cfg.aircraft_climb_mps * dt
+                    )
+                    rec.elevator_cap = max(-1.0, min(0.0, rec.elevator_cap))
+                    self.axes["elevator"] = min(self.axes["elevator"], rec.elevator_cap)
+            elif limit == "speed":
+                if fc.speed is None or fc.speed <= rec.target:
+                    del self.recoveries[limit]
+                    continue
+                self._to_vtol_locked()
+                self.axes["aileron"] = self.axes["elevator"] = 0.0
+            else:
+                if rec.centre is None or fc.lat is None or fc.lon is None:
+                    del self.recoveries[limit]
+                    continue
+                north, east = local_offset_m((fc.lat, fc.lon), rec.centre)
+                if math.hypot(north, east) <= rec.target:
+                    self.axes["aileron"] = self.axes["elevator"] = 0.0
+                    del self.recoveries[limit]
+                    continue
+                self._to_vtol_locked()
+                if fc.heading is None:
+                    self.axes["aileron"] = self.axes["elevator"] = 0.0
+                    continue
+                # Body-frame stick towards the centre: forward is stick forward
+                # (elevator -), right is aileron +.
+                bearing = math.atan2(east, north) - math.radians(fc.heading)
+                amount = min(1.0, RECOVERY_RETURN_MPS / cfg.vtol_max_speed_mps)
+                self.axes["elevator"] = -math.cos(bearing) * amount
+                self.axes["aileron"] = math.sin(bearing) * amount
+
     # --- the writer thread's side ------------------------------------------------------
     def tick(self, now: float, fc: FcReport | None) -> list[int]:
-        """Advance time to ``now`` (hold timeouts, landing, loop watchdog) and return
-        the eight servo positions to send. ``fc`` is the latest
+        """Advance time to ``now`` (hold timeouts, landing, envelope corrections, loop
+        watchdog) and return the eight servo positions to send. ``fc`` is the latest
         fresh report from the far end, or None when there is none."""
         cfg = self.config
         with self.lock:
@@ -841,6 +983,8 @@ class FlightControls:
                 self._start_landing("agent_stalled", now)
             if self.landing is not None:
                 self._advance_landing(now, dt, fc)
+            elif self.recoveries and self.armed:
+                self._apply_recoveries(now, dt, fc)
             self.servos = self._servos()
             return list(self.servos)
 
@@ -1908,6 +2052,15 @@ class SpektrumAdapter(Adapter):
         with self.controls.lock:
             self.controls.neutral_locked(fc)
         self._push()
+
+    async def envelope_recover(self, breach: Breach) -> str:
+        """Correct a breach of the task's ceiling, geofence or speed from the control
+        thread (see :meth:`FlightControls.recover`): cut the climb to hover (VTOL mode)
+        or level flight (aircraft mode) and descend below the ceiling; fly back inside
+        the geofence in VTOL mode; slow down (VTOL mode). Returns at once."""
+        action = self.controls.recover(breach, self.fc_report(), time.monotonic())
+        self._push()
+        return action
 
     def project(self, name: str, args: Mapping[str, Any]) -> Projection | None:
         """Where a command takes the plane over the next second, for the agent's

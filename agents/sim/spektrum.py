@@ -330,6 +330,9 @@ class SimParams:
     arm_max_throttle: float = 0.1
     failsafe_after_s: float = 0.5  # no good frame for this long: receiver loss
     heading_deg: float = 0.0
+    #: Rising air in flight, m/s: the wind the agent's envelope must answer (tests
+    #: change :attr:`VtolModel.updraft_mps` while flying, as a gust).
+    updraft_mps: float = 0.0
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> SimParams:
@@ -397,7 +400,8 @@ class VtolModel:
     Disarmed or with an empty battery the motors are off. Arming needs the throttle at
     idle when the arm switch goes on (else it stays disarmed until the switch cycles).
     Touch-downs faster than ``hard_landing_mps`` vertically are hard landings; in
-    aircraft mode faster than ``crash_speed_mps`` a crash.
+    aircraft mode faster than ``crash_speed_mps`` a crash. In the air, ``updraft_mps``
+    adds to the vertical speed whatever the controls say.
     Conventions: metres north/east of the origin, heading clockwise from north.
     """
 
@@ -422,6 +426,7 @@ class VtolModel:
         self.crashed = False
         self.hard_landings = 0
         self.fc_failsafe = False
+        self.updraft_mps = params.updraft_mps
 
     @property
     def position(self) -> tuple[float, float]:
@@ -463,6 +468,8 @@ class VtolModel:
             vz_target, turn = self._transition(dt, inputs, power)
         else:
             vz_target, turn = self._vtol(dt, inputs, power)
+        if not self.on_ground:
+            vz_target += self.updraft_mps
         if self.on_ground and vz_target <= 0:
             vz_target = 0.0
         self.vz = _approach(self.vz, vz_target, dt, 0.3)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import json
 import time
@@ -19,6 +20,7 @@ from websockets.exceptions import ConnectionClosed
 from agents.adapters.base import AdapterError
 from agents.adapters.car import CarAdapter
 from agents.control import REFUSAL_REPORT_S, ControlHub, ControlServer, refusal_text
+from agents.geo import distance_m
 from agents.protocol import (
     Limits,
     UserGrant,
@@ -586,3 +588,72 @@ async def test_a_controller_back_after_a_silence_is_reported_once(rig: Rig):
     assert (await command(third, 1, "stop"))["ok"]
     assert len(rig.events("link_recovered")) == 1
     await third.close()
+
+
+# --- the safety envelope -----------------------------------------------------------------
+
+#: A car at its full 0.5 m/s is stopped within this distance outside its geofence (the
+#: tolerance, 5 % of a 1 m radius, plus up to two 100 ms checks of travel, with room
+#: for a busy machine); see docs/vehicles/car.md.
+CAR_FENCE_MARGIN_M = 0.3
+
+
+async def live_until_event(ws: ClientConnection, name: str, within: float = 5.0) -> dict[str, Any]:
+    """Stay a live controller (keepalives every 100 ms) until event ``name`` arrives."""
+    deadline = time.monotonic() + within
+    while time.monotonic() < deadline:
+        await ws.send(json.dumps({"type": "keepalive"}))
+        with contextlib.suppress(TimeoutError):
+            msg = await recv(ws, "event", within=0.1)
+            if msg["event"] == name:
+                return msg
+    raise AssertionError(f"no {name} event")
+
+
+async def test_a_car_rolling_out_of_its_geofence_is_stopped(rig: Rig):
+    here = rig.car.state().position
+    assert here is not None
+    await rig.hub.task_end(SESSION, reason="next test", action="stop")
+    rig.hub.task_accept(make_task(session="fenced", geofence_center=here, geofence_radius_m=1.0))
+    ws, _ = await join(rig, make_grant(session="fenced"))
+    overrides = rig.hub.overrides
+    # "forward" held: once a repeat would leave the fence the gate refuses it, but the
+    # motors keep the last accepted speed: only the envelope stops the car.
+    seq, farthest, codes = 1, 0.0, set()
+    deadline = time.monotonic() + 8
+    while not rig.events("envelope_breach"):
+        assert time.monotonic() < deadline, f"still driving: {rig.car.state()}"
+        codes.add((await command(ws, seq, "forward", speed=1.0)).get("code"))
+        farthest = max(farthest, distance_m(here, rig.car.state().position))
+        seq += 1
+        await asyncio.sleep(0.1)
+    assert "geofence" in codes
+    event = await recv(ws, "event")
+    assert event["event"] == "envelope_breach"
+    breach = event["data"]
+    assert breach["limit"] == "geofence" and breach["action"] == "stop"
+    assert breach["limit_value"] == 1.0 and 1.0 < breach["value"] <= 1.0 + CAR_FENCE_MARGIN_M
+    assert rig.events("envelope_breach") == [breach]
+    assert rig.hub.overrides > overrides and "envelope" in rig.hub.override_reason
+    # The key is still held: the car stays where it stopped, outside but close.
+    for _ in range(5):
+        assert (await command(ws, seq, "forward", speed=1.0))["code"] == "geofence"
+        seq += 1
+        farthest = max(farthest, distance_m(here, rig.car.state().position))
+    assert rig.car.world.speed_mps == 0.0
+    print(
+        f"\ncar at 0.5 m/s, 1 m fence: breach seen at {breach['value']:.2f} m, "
+        f"stopped at most {farthest:.2f} m out"
+    )
+    assert farthest <= 1.0 + CAR_FENCE_MARGIN_M
+    # Backing in brings it inside; the platform hears it is back.
+    while distance_m(here, rig.car.state().position) > 0.8:
+        assert (await command(ws, seq, "backward", speed=1.0))["ok"]
+        seq += 1
+        await asyncio.sleep(0.1)
+    assert (await command(ws, seq, "stop"))["ok"]
+    restored = await live_until_event(ws, "envelope_restored")
+    assert restored["data"]["limit"] == "geofence"
+    assert rig.events("envelope_restored")[0]["limit"] == "geofence"
+    await rig.hub.task_end("fenced", reason="done", action="stop")
+    assert rig.hub._envelope is None  # the watch ends with the task

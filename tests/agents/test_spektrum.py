@@ -31,7 +31,7 @@ from typing import Any
 import pytest
 from websockets.asyncio.client import ClientConnection, connect
 
-from agents.adapters.base import AdapterError, adapter_create
+from agents.adapters.base import AdapterError, Breach, adapter_create
 from agents.adapters.spektrum import (
     FrameError,
     SpektrumAdapter,
@@ -40,6 +40,7 @@ from agents.adapters.spektrum import (
     parse_report,
 )
 from agents.control import ControlHub, ControlServer
+from agents.geo import offset
 from agents.protocol import (
     Limits,
     UserGrant,
@@ -808,6 +809,195 @@ async def test_link_loss_in_aircraft_mode_goes_back_to_vtol_then_lands() -> None
         assert final["alt"] == 0.0 and not final["crashed"] and final["hard_landings"] == 0
         assert final["speed"] == 0.0
         assert rig.plane.controls.last_cause == "safe_action:land"
+
+
+# --------------------------------------------------------------------------------------
+# The safety envelope: the ceiling holds whatever climbs
+# --------------------------------------------------------------------------------------
+
+CEILING = 10.0
+#: The plane's stated margin (docs/vehicles/vtol.md): never more than this above the
+#: ceiling, for climbs and updrafts up to its 4 m/s.
+VTOL_MARGIN_M = 3.0
+#: The model's default climb and descent rates (the rig's FAST ones would climb twice
+#: as fast as the stated margin is for).
+DEFAULT_RATES = {"max_climb_mps": 4.0, "max_descent_mps": 4.0}
+
+
+class Altimeter:
+    """Samples the simulator's altitude every 20 ms while in use: the highest point is
+    caught between the test's own steps."""
+
+    def __init__(self, rig: HubRig) -> None:
+        self.rig = rig
+        self.highest = 0.0
+        self._task: asyncio.Task[None] | None = None
+
+    async def _run(self) -> None:
+        while True:
+            self.highest = max(self.highest, self.rig.sim().get("alt", 0.0))
+            await asyncio.sleep(0.02)
+
+    async def __aenter__(self) -> Altimeter:
+        self._task = asyncio.create_task(self._run())
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        assert self._task is not None
+        self._task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._task
+
+
+async def live(
+    ws: ClientConnection, predicate: Callable[[], Any], *, within: float, what: str
+) -> None:
+    """Stay a live controller (keepalives) until ``predicate()`` holds."""
+    deadline = time.monotonic() + within
+    while not predicate():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        await ws.send(json.dumps({"type": "keepalive"}))
+        await asyncio.sleep(0.05)
+
+
+async def hold_key(ws: ClientConnection, name: str, seconds: float, seq: int, **args: Any) -> int:
+    """Hold a key for ``seconds``: a repeat every 100 ms whatever the acks say (the gate
+    refuses repeats that would climb past the ceiling). Returns the next free seq."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        await command(ws, seq, name, **args)
+        seq += 1
+        await asyncio.sleep(0.1)
+    return seq
+
+
+async def to_aircraft_mode(ws: ClientConnection, rig: HubRig, seq: int) -> int:
+    assert (await command(ws, seq, "change_to_aircraft_mode"))["ok"]
+    await live(ws, lambda: rig.sim()["mode"] == "aircraft", within=5, what="aircraft mode")
+    return seq + 1
+
+
+def settled_below(rig: HubRig, alt: float) -> bool:
+    s = rig.sim()
+    return s["alt"] < alt and abs(s["vz"]) < 0.3
+
+
+@pytest.mark.parametrize(
+    ("mode", "key"),
+    [("vtol", "throttle_up"), ("aircraft", "pitch_up"), ("aircraft", "throttle_up")],
+)
+async def test_a_held_climb_key_never_takes_the_plane_over_the_ceiling_for_long(
+    mode: str, key: str
+) -> None:
+    # The demo's failure: with "w" held then released the plane climbed on past the
+    # service's ceiling. Released, every key leaves the plane below the ceiling.
+    async with hub_rig(limits={"max_altitude_m": CEILING}, **DEFAULT_RATES) as rig:
+        ws = await join(rig)
+        async with Altimeter(rig) as altimeter:
+            seq = await climb_to(ws, rig, CEILING - 4)
+            if mode == "aircraft":
+                seq = await to_aircraft_mode(ws, rig, seq)
+            seq = await hold_key(ws, key, 3.0, seq)
+            # Released: no stop, only keepalives.
+            await live(ws, lambda: settled_below(rig, CEILING), within=8, what="below")
+        print(
+            f"\nVTOL, {mode} mode, {key} held, {CEILING:g} m ceiling: "
+            f"highest {altimeter.highest:.2f} m"
+        )
+        assert altimeter.highest <= CEILING + VTOL_MARGIN_M, altimeter.highest
+        assert rig.sim()["mode"] == mode and rig.sim()["armed"]
+
+
+@pytest.mark.parametrize("mode", ["vtol", "aircraft"])
+async def test_an_updraft_past_the_ceiling_is_answered_and_reported(mode: str) -> None:
+    async with hub_rig(limits={"max_altitude_m": CEILING}, **DEFAULT_RATES) as rig:
+        ws = await join(rig)
+        model = rig.plane.simulator.model
+        async with Altimeter(rig) as altimeter:
+            seq = await climb_to(ws, rig, CEILING - 4)
+            if mode == "aircraft":
+                seq = await to_aircraft_mode(ws, rig, seq)
+            model.updraft_mps = 2.0  # a thermal lifts the plane: nobody touches a key
+
+            def breached() -> bool:
+                return any(e == "envelope_breach" for e, _, _ in rig.reports)
+
+            await live(ws, breached, within=10, what="the breach")
+            # The correction holds the plane down against the updraft ...
+            await live(ws, lambda: settled_below(rig, CEILING), within=8, what="below")
+            model.updraft_mps = 0.0
+            await live(
+                ws,
+                lambda: any(e == "envelope_restored" for e, _, _ in rig.reports),
+                within=8,
+                what="restored",
+            )
+        print(
+            f"\nVTOL, {mode} mode, 2 m/s updraft, {CEILING:g} m ceiling: "
+            f"highest {altimeter.highest:.2f} m"
+        )
+        assert altimeter.highest <= CEILING + VTOL_MARGIN_M, altimeter.highest
+        [breach] = [d for e, _, d in rig.reports if e == "envelope_breach"]
+        level = "hover" if mode == "vtol" else "level flight"
+        assert breach["limit"] == "altitude" and breach["limit_value"] == CEILING
+        assert breach["action"] == f"{level}, descending to 8.0 m"
+        assert CEILING < breach["value"] <= CEILING + 1
+        assert rig.sim()["alt"] < CEILING and rig.sim()["mode"] == mode
+        # The user saw it too.
+        seen = []
+        with contextlib.suppress(TimeoutError):
+            while len(seen) < 2:
+                seen.append((await recv(ws, "event", within=1))["event"])
+        assert seen == ["envelope_breach", "envelope_restored"]
+
+
+async def test_out_of_the_geofence_the_plane_flies_back_in_vtol_mode(line: LineRig) -> None:
+    plane = line.plane
+    await arm(line)
+    line.flying(alt=30.0, heading=90.0)  # facing east, 40.63 -8.65
+    await until(lambda: plane.state().alt == 30.0)
+    await plane.execute("change_to_aircraft_mode", {})
+    centre = offset((40.63, -8.65), 0.0, -100.0)  # the fence's centre 100 m west
+    breach = Breach("geofence", 100.0, 80.0, 64.0, centre=centre)
+    action = await plane.envelope_recover(breach)
+    assert action == "back to VTOL mode, flying back inside the geofence"
+    channels = await line.channels()
+    # Back to VTOL mode, facing away from the centre: the stick pulled back (elevator +,
+    # fly backwards) at 2 m/s of the 6 m/s full stick, no roll.
+    assert channels["gear"] == LOW
+    assert channels["elevator"] == CENTRE + round(682 / 3)
+    assert abs(channels["aileron"] - CENTRE) <= 1
+    line.flying(alt=30.0, heading=90.0, lat=centre[0], lon=centre[1] + 0.0001)
+    await until(lambda: "geofence" not in plane.controls.recoveries, what="the return to end")
+    assert (await line.channels())["elevator"] == CENTRE
+
+
+async def test_too_fast_the_plane_centres_its_stick_or_leaves_aircraft_mode(
+    line: LineRig,
+) -> None:
+    plane = line.plane
+    await arm(line)
+    line.flying(alt=30.0, speed=9.0)
+    await until(lambda: plane.state().speed_mps == 9.0)
+    await plane.execute("roll_left", {"amount": 1.0})
+    breach = Breach("speed", 9.0, 5.0, 4.0)
+    assert await plane.envelope_recover(breach) == "sticks centred: slowing down"
+    assert (await line.channels())["aileron"] == CENTRE
+    # While still too fast, the aircraft mode is not for now.
+    await plane.execute("change_to_aircraft_mode", {})
+    await line.shows(HOVERING)
+    line.flying(alt=30.0, speed=3.0)
+    await until(lambda: not plane.controls.recoveries, what="the correction to end")
+    await plane.execute("change_to_aircraft_mode", {})
+    line.flying(alt=30.0, speed=24.0)
+    await until(lambda: plane.state().speed_mps == 24.0)
+    assert await plane.envelope_recover(breach) == "back to VTOL mode: slowing down"
+    assert (await line.channels())["gear"] == LOW
+    line.flying(alt=30.0, speed=3.0)
+    await until(lambda: not plane.controls.recoveries, what="the correction to end")
+    # Landing: the landing flies the plane, the envelope has nothing to add.
+    await plane.execute("land", {})
+    assert await plane.envelope_recover(breach) == "none: the plane is landing"
 
 
 #: A controller in its own process (its pace must not depend on this process's busy

@@ -1,0 +1,188 @@
+"""The safety envelope's logic (agents.envelope), on a clock the tests move.
+
+The vehicles' own answers to a breach are tested with their simulators in test_car.py,
+test_mavlink.py and test_spektrum.py.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import Any
+
+import pytest
+
+from agents.adapters.base import Breach, VehicleState
+from agents.envelope import (
+    DWELL_S,
+    MIN_REPEAT_S,
+    REPEAT_S,
+    RESTORE_S,
+    Envelope,
+    EnvelopeWatch,
+    band_for,
+)
+from agents.geo import offset
+from agents.protocol import Limits
+
+CENTRE = (40.0, -8.0)
+
+
+def at(alt: float | None = None, *, north: float | None = None, speed: float | None = None):
+    position = None if north is None else offset(CENTRE, north, 0.0)
+    return VehicleState(
+        alt=alt,
+        lat=None if position is None else position[0],
+        lon=None if position is None else position[1],
+        speed_mps=speed,
+    )
+
+
+def run(envelope: Envelope, values: list[tuple[float, float]]) -> list[tuple[float, str]]:
+    """Feed (time, altitude) pairs; returns (time, step kind) of every step."""
+    out = []
+    for now, alt in values:
+        out += [(now, step.kind) for step in envelope.update(at(alt), now)]
+    return out
+
+
+def test_bands_scale_with_the_limit_and_are_capped():
+    small, large = band_for("altitude", 6.0), band_for("altitude", 60.0)
+    assert (small.tolerance, small.margin) == pytest.approx((0.3, 1.2))
+    assert (large.tolerance, large.margin) == (0.5, 2.0)
+    assert large.target == 58.0 and large.restore_below == 59.0
+    fence = band_for("geofence", 100.0)
+    assert (fence.tolerance, fence.margin) == (1.0, 5.0)
+    speed = band_for("speed", 2.0)
+    assert (speed.tolerance, speed.margin) == pytest.approx((0.1, 0.4))
+
+
+def test_a_climb_past_the_tolerance_is_one_breach_with_a_target_inside():
+    envelope = Envelope(Limits(max_altitude_m=60))
+    steps = envelope.update(at(60.4), 0.0)  # within the 0.5 m tolerance: not yet
+    assert steps == []
+    [step] = envelope.update(at(60.6), 0.1)
+    assert step.kind == "breach"
+    assert step.breach == Breach("altitude", 60.6, 60.0, 58.0)
+    assert envelope.breached == ["altitude"]
+
+
+def test_a_vehicle_sitting_just_above_the_limit_is_a_breach_after_the_dwell():
+    envelope = Envelope(Limits(max_altitude_m=10))
+    steps = run(envelope, [(t / 10, 10.2) for t in range(0, 30)])
+    assert steps == [(DWELL_S, "breach")]
+
+
+def test_noise_around_the_limit_does_not_chatter():
+    envelope = Envelope(Limits(max_altitude_m=10))
+    # Across the limit and back every 100 ms, never for long: no breach at all.
+    wobble = [(t / 10, 10.2 if t % 2 else 9.9) for t in range(0, 100)]
+    assert run(envelope, wobble) == []
+    # Once breached, in and out near the limit: one breach, recoveries, no restore
+    # until the value stayed inside by half the margin for RESTORE_S.
+    envelope = Envelope(Limits(max_altitude_m=10))
+    values = [(0.0, 11.0)] + [(0.1 + t / 10, 10.4 if t % 3 else 9.6) for t in range(50)]
+    kinds = [kind for _, kind in run(envelope, values)]
+    assert kinds.count("breach") == 1 and "restored" not in kinds
+    later = run(envelope, [(6.0 + t / 10, 8.5) for t in range(15)])
+    assert later == [(6.0 + RESTORE_S, "restored")]
+
+
+def test_recovery_is_repeated_when_the_value_crosses_again_or_gets_no_better():
+    envelope = Envelope(Limits(max_altitude_m=10))
+    assert run(envelope, [(0.0, 11.0)]) == [(0.0, "breach")]
+    # Getting better (by more than a quarter of the 2 m margin): no repeat.
+    assert run(envelope, [(0.5, 10.8), (REPEAT_S + 0.1, 10.3)]) == []
+    # No better than at the last recovery a while after it: again, and again.
+    assert run(envelope, [(REPEAT_S + 0.2, 10.6), (REPEAT_S * 2 + 0.2, 10.7)]) == [
+        (REPEAT_S + 0.2, "again"),
+        (REPEAT_S * 2 + 0.2, "again"),
+    ]
+    # Back under the limit, then across it again: again at once (not closer together
+    # than MIN_REPEAT_S).
+    t = REPEAT_S * 2 + 0.2
+    steps = run(envelope, [(t + 0.1, 9.9), (t + MIN_REPEAT_S + 0.05, 10.2)])
+    assert steps == [(t + MIN_REPEAT_S + 0.05, "again")]
+
+
+def test_geofence_and_speed_are_watched_and_unknown_values_are_not():
+    limits = Limits(geofence_center=CENTRE, geofence_radius_m=20, max_speed_mps=2)
+    envelope = Envelope(limits)
+    assert envelope.update(at(north=None, speed=None), 0.0) == []
+    steps = envelope.update(at(north=25.0, speed=3.0), 0.1)
+    assert sorted(step.breach.limit for step in steps) == ["geofence", "speed"]
+    fence = next(step.breach for step in steps if step.breach.limit == "geofence")
+    assert fence.value == pytest.approx(25.0, abs=0.01) and fence.target == 16.0
+    assert fence.centre == CENTRE
+    assert Envelope(Limits()).tracks == {}
+
+
+class FakeVehicle:
+    def __init__(self) -> None:
+        self.alt = 5.0
+        self.recovered: list[Breach] = []
+        self.fail = False
+
+    def state(self) -> VehicleState:
+        return at(self.alt)
+
+    async def recover(self, breach: Breach) -> str:
+        self.recovered.append(breach)
+        if self.fail:
+            raise RuntimeError("autopilot said no")
+        return "descend"
+
+
+async def wait_for(predicate: Any, within: float = 5.0) -> None:
+    deadline = time.monotonic() + within
+    while True:
+        if predicate():
+            return
+        assert time.monotonic() < deadline, f"timed out waiting for {predicate}"
+        await asyncio.sleep(0.01)
+
+
+async def test_the_watch_recovers_reports_once_and_reports_the_return():
+    vehicle = FakeVehicle()
+    told: list[tuple[str, dict[str, Any]]] = []
+
+    async def notify(event: str, data: dict[str, Any]) -> None:
+        told.append((event, data))
+
+    watch = EnvelopeWatch(
+        limits=Limits(max_altitude_m=10),
+        state=vehicle.state,
+        recover=vehicle.recover,
+        notify=notify,
+        period_s=0.01,
+    )
+    async with watch:
+        vehicle.alt = 12.0
+        await wait_for(lambda: told)
+        assert told == [
+            (
+                "envelope_breach",
+                {"limit": "altitude", "value": 12.0, "limit_value": 10.0, "action": "descend"},
+            )
+        ]
+        await wait_for(lambda: len(vehicle.recovered) >= 2)  # no better: again
+        assert len(told) == 1  # ... but reported once
+        vehicle.alt = 8.0
+        await wait_for(lambda: len(told) == 2)
+        event, data = told[1]
+        assert event == "envelope_restored" and data["value"] == 8.0
+        assert data["duration_ms"] >= RESTORE_S * 1000
+        vehicle.fail = True
+        vehicle.alt = 12.0
+        await wait_for(lambda: len(told) == 3)
+        assert told[2][1]["action"] == "recovery failed: autopilot said no"
+    await watch.stop()  # idempotent
+    assert watch.breaches == 2
+
+
+def test_a_task_without_limits_is_not_watched():
+    async def never(*_: Any) -> Any:
+        raise AssertionError("not called")
+
+    watch = EnvelopeWatch(limits=Limits(), state=VehicleState, recover=never, notify=never)
+    assert not watch.watching
