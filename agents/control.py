@@ -635,13 +635,32 @@ class ControlHub:
             await self._send(client, error_message("view_only", "your grant is view-only"))
             return
         if client is not self.controller:
+            previous = self.controller
             await self._set_controller(client)
+            # The platform follows who holds the sticks: a hand-over between the
+            # user's devices, or control taken up again after the controller left.
+            self.report(
+                "control_handover",
+                task.session_id,
+                {
+                    "user": client.grant.user,
+                    "from": previous.link.id if previous is not None else None,
+                    "to": client.link.id,
+                    "role": "controller",
+                },
+            )
         await self._send(client, {"type": "role", "role": "controller"})
 
     async def _on_release_control(self, client: _Client, msg: dict[str, Any]) -> None:
         if client is self.controller:
             await self._set_controller(None)
             client.role = "viewer"
+            if self.task is not None and client.grant is not None:
+                self.report(
+                    "control_released",
+                    self.task.session_id,
+                    {"user": client.grant.user, "from": client.link.id, "role": "controller"},
+                )
         await self._send(client, {"type": "role", "role": client.role})
 
     async def _on_webrtc_request(self, client: _Client, msg: dict[str, Any]) -> None:

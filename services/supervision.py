@@ -325,7 +325,9 @@ def _logged_as(kind: str) -> Any:
 
 
 #: Events that only mean something while the session runs; late ones are dropped.
-_LIVE_ONLY = frozenset({"command_refused", "link_quality", "link_recovered", "control_handover"})
+_LIVE_ONLY = frozenset(
+    {"command_refused", "link_quality", "link_recovered", "control_handover", "control_released"}
+)
 
 _EVENT_HANDLERS = {
     "user_connected": _on_user_connected,
@@ -335,6 +337,7 @@ _EVENT_HANDLERS = {
     "task_ended": _logged_as("task_ended"),
     "link_recovered": _on_link_recovered,
     "control_handover": _logged_as("control_handover"),
+    "control_released": _logged_as("control_released"),
     "link_quality": _on_link_quality,
 }
 
@@ -486,8 +489,8 @@ def agent_disconnected_handle(*, vehicle_id: Any, code: int | None = None) -> No
 
 
 #: Log events that show the session's controller back (or still there) and gone.
-_BACK = frozenset({"user_connected", "link_recovered", "vehicle_online"})
-_GONE = frozenset({"unintentional_end", "user_disconnected"})
+_BACK = frozenset({"user_connected", "link_recovered", "vehicle_online", "control_handover"})
+_GONE = frozenset({"unintentional_end", "user_disconnected", "control_released"})
 
 
 def _controller_gone(session: Session) -> SessionEvent | None:
@@ -518,6 +521,8 @@ def _gone_reason(event: SessionEvent) -> str:
             f"unintentional end: {data.get('cause', 'unknown')}, "
             f"vehicle performed {data.get('action', 'unknown')}"
         )
+    if event.kind == "control_released":
+        return f"the user released control and did not take it back within {grace:g} s"
     return f"the user left and did not come back within {grace:g} s"
 
 

@@ -287,6 +287,13 @@ async def test_second_controller_cannot_steer_until_it_takes_control(rig: Rig):
     assert rig.car.world.efforts == (0.0, 0.0)
     assert (await command(first, 2, "forward"))["code"] == "view_only"
     assert (await command(second, 2, "backward"))["ok"]
+    # The platform hears of the hand-over, and of control put down.
+    (handover,) = rig.events("control_handover")
+    assert handover["user"] == "alice" and handover["from"] != handover["to"]
+    await second.send(json.dumps({"type": "release_control"}))
+    assert (await recv(second, "role"))["role"] == "viewer"
+    (released,) = rig.events("control_released")
+    assert released["from"] == handover["to"]
     await first.close()
     await second.close()
 

@@ -406,6 +406,27 @@ def test_the_controller_leaving_ends_the_session_after_the_grace(live, committin
     assert session.reason == f"the user left and did not come back within {grace:g} s"
 
 
+def test_control_taken_up_again_from_another_tab_keeps_the_session(live):
+    session, vehicle, _ = live
+    say(vehicle, event(session, "user_connected", user="alice", role="controller"))
+    say(vehicle, event(session, "user_disconnected", user="alice", role="controller"))
+    say(vehicle, event(session, "control_handover", user="alice", role="controller"))
+    assert sessions_expire_grace(now=_past_grace("user_disconnected", session)) == []
+    assert kinds(session)[-1] == "control_handover"
+
+
+def test_control_put_down_and_not_taken_back_ends_the_session(live, committing):
+    session, vehicle, _ = live
+    say(vehicle, event(session, "user_connected", user="alice", role="controller"))
+    say(vehicle, event(session, "control_released", user="alice", role="controller"))
+    with committing():
+        assert sessions_expire_grace(now=_past_grace("control_released", session)) == [
+            str(session.pk)
+        ]
+    assert state(session) == Session.State.ENDED
+    assert "released control" in session.reason
+
+
 def test_a_vehicle_back_online_with_its_controller_keeps_the_session(live):
     """The uplink dropped, not the user: the agent says its controller is still there."""
     session, vehicle, _ = live
