@@ -243,6 +243,17 @@
         this.showBanner(`Fail-safe: ${msg.data.cause.replace(/_/g, " ")} — the vehicle will ${msg.data.action.replace(/_/g, " ")}.`, "bad");
       } else if (msg.event === "session_ended") {
         this.endSession(msg.data.reason);
+      } else if (msg.event === "link_recovered") {
+        this.showBanner("Link back: you are in control again.", "info");
+      } else if (msg.event === "envelope_breach") {
+        const d = msg.data || {};
+        const unit = { altitude: "m", geofence: "m from the centre", speed: "m/s" }[d.limit] || "";
+        const value = Number(d.value).toFixed(1);
+        this.showBanner(
+          `Safety limit: ${d.limit} ${value} ${unit} is past the ${d.limit_value} limit — ` +
+          `the vehicle corrects itself (${String(d.action || "").replace(/_/g, " ")}).`, "warn");
+      } else if (msg.event === "envelope_restored") {
+        this.showBanner(`Back inside the ${msg.data.limit} limit.`, "info");
       }
     }
 
