@@ -113,6 +113,26 @@ async def _idle(vehicle: Vehicle) -> bool:
     return await _status(vehicle) == Vehicle.Status.IDLE
 
 
+def car_agent(base: str, car: Vehicle, credential: str) -> Any:
+    """The car's agent, in this process, on its simulator (an async context manager)."""
+    return agent_running(
+        base=base,
+        vehicle=car,
+        credential=credential,
+        adapter="car",
+        options={"origin": list(f.HOME)},
+    )
+
+
+async def request_car(base: str, token: str) -> dict[str, Any]:
+    """The 201 body of a request for the car service through the API."""
+    status, body = await asyncio.to_thread(
+        api, base, "POST", "/sessions", token, {"service": "drive-car"}
+    )
+    assert status == 201, body
+    return body
+
+
 async def drive(task: dict[str, Any], seq: int) -> Any:
     """Connect to the vehicle with the user task once its agent has accepted the
     session's task (as the controller page does by retrying), and drive once."""
@@ -211,10 +231,7 @@ async def test_a_killed_agent_ends_its_session_and_its_vehicle_is_held_until_it_
     agent = agent_process(base=base, vehicle=car, credential=credential, key=key)
     await until(lambda: _idle(car), within=30, what="the agent to register")
 
-    status, body = await asyncio.to_thread(
-        api, base, "POST", "/sessions", token, {"service": "drive-car"}
-    )
-    assert status == 201, body
+    body = await request_car(base, token)
     session_id = body["session"]["id"]
     await drive(body["task"], 1)
 
@@ -246,10 +263,7 @@ async def test_a_killed_agent_ends_its_session_and_its_vehicle_is_held_until_it_
         )
     )
     assert pending == []
-    status, body = await asyncio.to_thread(
-        api, base, "POST", "/sessions", token, {"service": "drive-car"}
-    )
-    assert status == 201, body
+    body = await request_car(base, token)
     ws = await drive(body["task"], 2)
     await ws.close()
 
@@ -258,19 +272,10 @@ async def test_a_session_nobody_connects_to_ends_and_its_vehicle_is_freed(server
     base = servers
     car, credential, _service = await db(_fleet)
     user = await db(f.user, "bob")
-    async with agent_running(
-        base=base,
-        vehicle=car,
-        credential=credential,
-        adapter="car",
-        options={"origin": list(f.HOME)},
-    ) as agent:
+    async with car_agent(base, car, credential) as agent:
         await until(lambda: _idle(car), within=30, what="the agent to register")
         token = await db(lambda: token_issue(user=user, name="t"))
-        status, body = await asyncio.to_thread(
-            api, base, "POST", "/sessions", token, {"service": "drive-car"}
-        )
-        assert status == 201, body
+        body = await request_car(base, token)
         session_id = body["session"]["id"]
 
         async def task_arrived() -> bool:
@@ -295,13 +300,7 @@ async def test_a_session_nobody_connects_to_ends_and_its_vehicle_is_freed(server
 async def test_a_replaced_credential_cuts_the_live_uplink_within_a_second(servers):
     base = servers
     car, credential, _service = await db(_fleet)
-    async with agent_running(
-        base=base,
-        vehicle=car,
-        credential=credential,
-        adapter="car",
-        options={"origin": list(f.HOME)},
-    ) as agent:
+    async with car_agent(base, car, credential) as agent:
         await until(lambda: _idle(car), within=30, what="the agent to register")
         assert agent.uplink is not None and agent.uplink.connected.is_set()
         issued = time.monotonic()
@@ -359,18 +358,9 @@ async def test_a_monitor_stop_during_a_redis_outage_reaches_the_vehicle(monkeypa
         redis_server_process() as redis,
         platform_process(extra_env={"REDIS_URL": redis.url}) as base,
     ):
-        async with agent_running(
-            base=base,
-            vehicle=car,
-            credential=credential,
-            adapter="car",
-            options={"origin": list(f.HOME)},
-        ) as agent:
+        async with car_agent(base, car, credential) as agent:
             await until(lambda: _idle(car), within=30, what="the agent to register")
-            status, body = await asyncio.to_thread(
-                api, base, "POST", "/sessions", alice, {"service": "drive-car"}
-            )
-            assert status == 201, body
+            body = await request_car(base, alice)
             session_id = body["session"]["id"]
             ws = await drive(body["task"], 1)
 
@@ -414,10 +404,7 @@ async def test_a_monitor_stop_during_a_redis_outage_reaches_the_vehicle(monkeypa
 
             redis.start()
             await until(lambda: _idle(car), within=10, what="the car to be free")
-            status, body = await asyncio.to_thread(
-                api, base, "POST", "/sessions", alice, {"service": "drive-car"}
-            )
-            assert status == 201, body
+            body = await request_car(base, alice)
             ws = await drive(body["task"], 100)
             await ws.close()
 
@@ -433,18 +420,9 @@ async def test_a_driver_whose_keepalives_stall_for_a_second_keeps_the_session(se
     base = servers
     car, credential, _service = await db(_fleet)
     alice = await db(lambda: token_issue(user=f.user(username="alice"), name="t"))
-    async with agent_running(
-        base=base,
-        vehicle=car,
-        credential=credential,
-        adapter="car",
-        options={"origin": list(f.HOME)},
-    ) as agent:
+    async with car_agent(base, car, credential) as agent:
         await until(lambda: _idle(car), within=30, what="the agent to register")
-        status, body = await asyncio.to_thread(
-            api, base, "POST", "/sessions", alice, {"service": "drive-car"}
-        )
-        assert status == 201, body
+        body = await request_car(base, alice)
         session_id = body["session"]["id"]
         ws = await drive(body["task"], 1)
 
