@@ -19,13 +19,22 @@ for the command set the IoUV agent uses (see ``docs/vehicles/quadcopter.md``):
   velocity setpoint lapses after ``GUID_TIMEOUT`` s, and one that ignores both yaw and
   yaw rate hands yaw to ``WP_YAW_BEHAVIOR`` (by default the nose turns into the
   direction of travel);
-* telemetry streams only when asked (SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM):
-  SYS_STATUS, GLOBAL_POSITION_INT, GPS_RAW_INT, ATTITUDE, VFR_HUD, BATTERY_STATUS,
-  HOME_POSITION, EXTENDED_SYS_STATE, EKF_STATUS_REPORT, LOCAL_POSITION_NED;
+* telemetry streams from the start, every stream group at ``--stream-rate`` (1 Hz, the
+  default of ArduPilot's stream-rate parameters on ArduPlane and ArduRover; ArduCopter
+  ships 0, which ``--stream-rate 0`` reproduces), changed per group by
+  REQUEST_DATA_STREAM and per message by SET_MESSAGE_INTERVAL: SYS_STATUS,
+  GLOBAL_POSITION_INT, GPS_RAW_INT, ATTITUDE, VFR_HUD, BATTERY_STATUS, HOME_POSITION,
+  EXTENDED_SYS_STATE, EKF_STATUS_REPORT, LOCAL_POSITION_NED, SYSTEM_TIME;
+* a GPS that may take ``--gps-fix-after`` seconds to get its fix: until then, as
+  ArduCopter before its EKF has an origin, GPS_RAW_INT reports no fix and 0 satellites,
+  GLOBAL_POSITION_INT 0/0, and there is no home;
 * parameters (PARAM_REQUEST_READ / PARAM_REQUEST_LIST / PARAM_SET) for a small set:
-  FS_GCS_ENABLE, FS_GCS_TIMEOUT, SYSID_MYGCS, RTL_ALT, RTL_LOIT_TIME, WPNAV_SPEED, ...;
-* its own GCS fail-safe: armed, having heard a GCS (sysid ``SYSID_MYGCS``) and then
-  nothing from it for ``FS_GCS_TIMEOUT`` s, it acts as ``FS_GCS_ENABLE`` says;
+  FS_GCS_ENABLE, FS_GCS_TIMEOUT, SYSID_MYGCS, RTL_ALT, RTL_LOIT_TIME, WPNAV_SPEED, ...,
+  under the names of its ``--firmware``: ArduPilot 4.7 renamed SYSID_MYGCS to
+  MAV_GCS_SYSID (with MAV_GCS_SYSID_HI for a range) and SYSID_THISMAV to MAV_SYSID;
+* its own GCS fail-safe: armed, having heard a GCS (sysid ``SYSID_MYGCS``, or within
+  ``MAV_GCS_SYSID``..``MAV_GCS_SYSID_HI``) and then nothing from it for
+  ``FS_GCS_TIMEOUT`` s, it acts as ``FS_GCS_ENABLE`` says;
 * kinematics at 50 Hz: velocity and acceleration limits (``WPNAV_*``), ground contact,
   LAND (fast then slow descent, disarm on touchdown), RTL (climb to ``RTL_ALT``, fly
   home, loiter ``RTL_LOIT_TIME``, land, disarm), BRAKE/LOITER (hold), auto-disarm after
@@ -35,7 +44,7 @@ Time: ``--speedup`` runs the flight physics (and the delays measured in flight t
 RTL loiter, disarm delay, battery drain) that many times faster than the wall clock.
 Everything about the link stays on the wall clock: heartbeats, stream rates, the
 ``GUID_TIMEOUT`` of setpoints and the GCS fail-safe timeout, because the peer sends at
-wall-clock rates.
+wall-clock rates; so does the time to the first GPS fix, which is not flight.
 
 Not modelled: missions (MISSION_COUNT is always 0), RC input, wind, terrain, EKF
 variances, signing.
@@ -91,8 +100,8 @@ FS_GCS_ACTIONS = {
     7: "BRAKE or LAND",
 }
 
-#: The parameter set: name -> (default, is_integer). Units as in ArduCopter 4.x (cm,
-#: cm/s, ms); defaults as ArduCopter ships them.
+#: The parameter set of ArduCopter 4.5: name -> (default, is_integer). Units as in
+#: ArduCopter 4.x (cm, cm/s, ms); defaults as ArduCopter ships them.
 PARAMS: dict[str, tuple[float, bool]] = {
     "SYSID_THISMAV": (1, True),
     "SYSID_MYGCS": (255, True),
@@ -119,17 +128,45 @@ PARAMS: dict[str, tuple[float, bool]] = {
     "BATT_ARM_VOLT": (0.0, False),
     "PILOT_TKOFF_ALT": (0.0, False),
 }
+#: ArduPilot 4.7 moved the MAVLink ids into the MAV_ namespace (a parameter conversion
+#: of March 2025): old name -> new name. SYSID_MYGCS no longer exists there.
+RENAMED_IN_4_7 = {"SYSID_THISMAV": "MAV_SYSID", "SYSID_MYGCS": "MAV_GCS_SYSID"}
+#: ... and added an upper end: GCS ids MAV_GCS_SYSID..MAV_GCS_SYSID_HI when HI >= the id.
+ADDED_IN_4_7: dict[str, tuple[float, bool]] = {"MAV_GCS_SYSID_HI": (0, True)}
+#: The simulated ArduCopter releases: ``--firmware`` -> AUTOPILOT_VERSION's
+#: flight_sw_version (major, minor, patch, type: 255 official, 0 development).
+FIRMWARES = {"4.5": (4, 5, 7, 255), "4.7": (4, 7, 0, 0)}
+
+
+def firmware_params(firmware: str) -> dict[str, tuple[float, bool]]:
+    """The parameter table of the simulated ``firmware`` (a key of :data:`FIRMWARES`)."""
+    if firmware == "4.5":
+        return dict(PARAMS)
+    table = {RENAMED_IN_4_7.get(name, name): spec for name, spec in PARAMS.items()}
+    return {**table, **ADDED_IN_4_7}
+
+
+#: Every parameter name some simulated firmware has (what ``--param`` accepts).
+KNOWN_PARAMS = frozenset(name for f in FIRMWARES for name in firmware_params(f))
 
 #: REQUEST_DATA_STREAM stream ids -> the messages ArduPilot sends in them (those of
-#: them this simulator has).
+#: them this simulator has), as GCS_MAVLink_Parameters.cpp groups them.
 DATA_STREAMS: dict[int, tuple[str, ...]] = {
     2: ("SYS_STATUS", "GPS_RAW_INT", "EXTENDED_SYS_STATE"),  # EXTENDED_STATUS
     6: ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED"),  # POSITION
     10: ("ATTITUDE",),  # EXTRA1
     11: ("VFR_HUD",),  # EXTRA2
-    12: ("BATTERY_STATUS", "EKF_STATUS_REPORT"),  # EXTRA3
+    12: ("BATTERY_STATUS", "EKF_STATUS_REPORT", "SYSTEM_TIME"),  # EXTRA3
 }
 DATA_STREAMS[0] = tuple(m for ms in DATA_STREAMS.values() for m in ms)  # ALL
+
+#: What every stream group sends before a ground station asks for anything, in Hz:
+#: ArduPilot's stream-rate parameters (SRn_EXT_STAT, SRn_POSITION, SRn_EXTRA1..3;
+#: MAVn_* from 4.7) default to 1 Hz on ArduPlane, ArduRover and AntennaTracker, and to 0
+#: on ArduCopter (libraries/GCS_MAVLink/GCS_MAVLink_Parameters.cpp). The simulator
+#: streams by default so that any ground station shows telemetry at once;
+#: ``--stream-rate 0`` is ArduCopter's own behaviour (nothing until asked).
+DEFAULT_STREAM_RATE_HZ = 1.0
 
 #: Message names this simulator can stream; everything else is "unsupported".
 STREAMABLE = frozenset(
@@ -152,8 +189,8 @@ STREAMABLE = frozenset(
 MAX_STREAM_HZ = 50.0
 PHYSICS_HZ = 50.0
 DEFAULT_YAW_RATE_DEG_S = 60.0
-#: The simulated firmware: ArduCopter 4.5.7, official release.
-FIRMWARE_VERSION = (4 << 24) | (5 << 16) | (7 << 8) | 255
+#: The simulated firmware by default: ArduCopter 4.5.7, official release.
+DEFAULT_FIRMWARE = "4.5"
 
 TYPE_MASK_POS = 0b111
 TYPE_MASK_VEL = 0b111000
@@ -216,8 +253,11 @@ class Copter:
     landed: bool = True
     battery_pct: float = 100.0
     drain_pct_per_min: float = 5.0  # flying; a 20-minute battery
-    gps_fix: int = 3  # GPS_FIX_TYPE: 0 none, 2 2D, 3 3D
+    gps_fix: int = 3  # GPS_FIX_TYPE: 0 no GPS, 1 no fix, 2 2D, 3 3D
     satellites: int = 12
+    # The EKF's origin (and home) is set at the first good fix; before it ArduCopter
+    # knows no position and sends 0/0.
+    origin_set: bool = False
     sim_time: float = 0.0
     # GUIDED sub-mode: "idle" (hold), "takeoff", "velocity", "position"
     guided: str = "idle"
@@ -412,6 +452,9 @@ class Copter:
     def step(self, dt: float, wall: float) -> None:
         """Advance the flight by ``dt`` seconds of flight time (``wall``: wall clock)."""
         self.sim_time += dt
+        if not self.origin_set and self.position_ok:
+            self.origin_set = True
+            self.say(MAV.MAV_SEVERITY_INFO, "EKF3 IMU0 origin set")
         self._battery(dt)
         if not self.armed:
             self.vn = self.ve = 0.0
@@ -605,9 +648,13 @@ class SimOptions:
     sysid: int = 1
     params: Mapping[str, float] = field(default_factory=dict)
     parent_pid: int | None = None
-    #: Stream every telemetry message at this rate until a GCS asks otherwise (like
-    #: ArduPilot's SRn_ parameters); 0: only what is asked for.
-    stream_rate_hz: float = 0.0
+    #: Every stream group's rate until a GCS asks otherwise (ArduPilot's SRn_
+    #: parameters, see :data:`DEFAULT_STREAM_RATE_HZ`); 0: only what is asked for.
+    stream_rate_hz: float = DEFAULT_STREAM_RATE_HZ
+    #: Wall-clock seconds from the start until the GPS has its fix (``gps_fix``).
+    gps_fix_after_s: float = 0.0
+    #: The simulated release, a key of :data:`FIRMWARES` (its parameter names).
+    firmware: str = DEFAULT_FIRMWARE
 
 
 class Autopilot:
@@ -621,11 +668,19 @@ class Autopilot:
     def __init__(self, options: SimOptions, *, clock: Callable[[], float] = time.monotonic):
         self.options = options
         self.clock = clock
-        params = {name: float(default) for name, (default, _) in PARAMS.items()}
-        params["SYSID_THISMAV"] = float(options.sysid)
+        if options.firmware not in FIRMWARES:
+            known = ", ".join(FIRMWARES)
+            raise ValueError(f"unknown firmware {options.firmware!r}; one of {known}")
+        #: This firmware's parameters: name -> (default, is_integer), in index order.
+        self.param_table = firmware_params(options.firmware)
+        params = {name: float(default) for name, (default, _) in self.param_table.items()}
+        params["MAV_SYSID" if "MAV_SYSID" in params else "SYSID_THISMAV"] = float(options.sysid)
         for name, value in options.params.items():
-            if name not in PARAMS:
-                raise ValueError(f"unknown parameter {name!r}; known: {', '.join(PARAMS)}")
+            if name not in self.param_table:
+                raise ValueError(
+                    f"unknown parameter {name!r} on ArduCopter {options.firmware}; "
+                    f"known: {', '.join(self.param_table)}"
+                )
             params[name] = float(value)
         self.copter = Copter(
             params=params,
@@ -637,10 +692,17 @@ class Autopilot:
             gps_fix=options.gps_fix,
             satellites=options.satellites,
         )
+        self.gps_fix_at: float | None = None  # wall time the GPS gets its fix, if later
+        if options.gps_fix_after_s > 0 and options.gps_fix > 0:
+            # A GPS still searching: connected (NO_FIX), no satellites used yet.
+            self.copter.gps_fix, self.copter.satellites = 1, 0
+            self.gps_fix_at = clock() + options.gps_fix_after_s
         self.conn: Any = None
         self.started = clock()
         self.intervals: dict[str, float] = {}  # message name -> seconds (wall)
         self.next_due: dict[str, float] = {}
+        #: What SET_MESSAGE_INTERVAL's "default rate" (0) restores: the stream rates.
+        self.default_intervals: dict[str, float] = {}
         self.running = False
         self.bad_frames = 0
         self.unknown_messages = 0
@@ -648,9 +710,10 @@ class Autopilot:
         self.gcs_failsafe = False
         self.peers: dict[tuple[int, int], float] = {}
         if options.stream_rate_hz > 0:
-            for names in DATA_STREAMS.values():
-                for name in names:
-                    self._stream(name, 1.0 / min(options.stream_rate_hz, MAX_STREAM_HZ))
+            for name in DATA_STREAMS[0]:
+                interval = 1.0 / min(options.stream_rate_hz, MAX_STREAM_HZ)
+                self.default_intervals[name] = interval
+                self._stream(name, interval)
 
     # --- lifecycle --------------------------------------------------------------------
     def open(self) -> str:
@@ -696,6 +759,10 @@ class Autopilot:
             # A paused process (SIGSTOP) or a slow machine: never step more than 0.2 s.
             dt = min(0.2, max(0.0, now - last)) * self.options.speedup
             last = now
+            if self.gps_fix_at is not None and now >= self.gps_fix_at:
+                self.gps_fix_at = None
+                self.copter.gps_fix = self.options.gps_fix
+                self.copter.satellites = self.options.satellites
             self.copter.step(dt, now)
             self._gcs_failsafe(now)
             if now >= next_heartbeat:
@@ -760,13 +827,20 @@ class Autopilot:
     def _on_heartbeat(self, msg: Any) -> None:
         now = self.clock()
         self.peers[(msg.get_srcSystem(), msg.get_srcComponent())] = now
-        if msg.type == MAV.MAV_TYPE_GCS and msg.get_srcSystem() == int(
-            self.copter.p("SYSID_MYGCS")
-        ):
+        if msg.type == MAV.MAV_TYPE_GCS and self.is_gcs(msg.get_srcSystem()):
             self.gcs_last = now
             if self.gcs_failsafe:
                 self.gcs_failsafe = False
                 self.copter.say(MAV.MAV_SEVERITY_WARNING, "GCS Failsafe Cleared")
+
+    def is_gcs(self, sysid: int) -> bool:
+        """Whether heartbeats from ``sysid`` count for the GCS fail-safe: SYSID_MYGCS, or
+        from 4.7 MAV_GCS_SYSID, or MAV_GCS_SYSID..MAV_GCS_SYSID_HI when HI is not below it."""
+        params = self.copter.params
+        if "MAV_GCS_SYSID" not in params:
+            return sysid == int(params["SYSID_MYGCS"])
+        low, high = int(params["MAV_GCS_SYSID"]), int(params["MAV_GCS_SYSID_HI"])
+        return sysid == low or low <= sysid <= high
 
     def _on_command_long(self, msg: Any) -> None:
         if not self._for_me(msg):
@@ -859,15 +933,20 @@ class Autopilot:
             name = self._message_name(int(p[0]))
             if name is None or name not in STREAMABLE:
                 return MAV.MAV_RESULT_UNSUPPORTED, None
-            self._send(self._message(name))
-            return ok, None
+            return self._send_now(name)
         if command == MAV.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
-            self._send(self._message("AUTOPILOT_VERSION"))
-            return ok, None
+            return self._send_now("AUTOPILOT_VERSION")
         if command == MAV.MAV_CMD_GET_HOME_POSITION:
-            self._send(self._message("HOME_POSITION"))
-            return ok, None
+            return self._send_now("HOME_POSITION")
         return MAV.MAV_RESULT_UNSUPPORTED, None
+
+    def _send_now(self, name: str) -> tuple[int, str | None]:
+        """Send ``name`` once; FAILED when there is nothing to send (no home yet)."""
+        msg = self._message(name)
+        if msg is None:
+            return MAV.MAV_RESULT_FAILED, None
+        self._send(msg)
+        return MAV.MAV_RESULT_ACCEPTED, None
 
     def _on_set_mode(self, msg: Any) -> None:
         if msg.target_system not in (0, self.options.sysid):
@@ -940,28 +1019,28 @@ class Autopilot:
     def _on_param_request_read(self, msg: Any) -> None:
         if not self._for_me(msg):
             return
-        names = list(PARAMS)
+        names = list(self.param_table)
         if msg.param_index >= 0:
             if msg.param_index < len(names):
                 self._send_param(names[msg.param_index])
             return
         name = _param_name(msg.param_id)
-        if name in PARAMS:
+        if name in self.param_table:
             self._send_param(name)
 
     def _on_param_request_list(self, msg: Any) -> None:
         if self._for_me(msg):
-            for name in PARAMS:
+            for name in self.param_table:
                 self._send_param(name)
 
     def _on_param_set(self, msg: Any) -> None:
         if not self._for_me(msg):
             return
         name = _param_name(msg.param_id)
-        if name not in PARAMS or not math.isfinite(msg.param_value):
+        if name not in self.param_table or not math.isfinite(msg.param_value):
             return  # ArduPilot ignores unknown parameters
         value = float(msg.param_value)
-        self.copter.params[name] = float(round(value)) if PARAMS[name][1] else value
+        self.copter.params[name] = float(round(value)) if self.param_table[name][1] else value
         self._send_param(name)
 
     def _on_request_data_stream(self, msg: Any) -> None:
@@ -1035,8 +1114,8 @@ class Autopilot:
             self._send(MAV.MAVLink_statustext_message(severity, text.encode()))
 
     def _send_param(self, name: str) -> None:
-        names = list(PARAMS)
-        kind = MAV.MAV_PARAM_TYPE_INT32 if PARAMS[name][1] else MAV.MAV_PARAM_TYPE_REAL32
+        names = list(self.param_table)
+        kind = MAV.MAV_PARAM_TYPE_INT32 if self.param_table[name][1] else MAV.MAV_PARAM_TYPE_REAL32
         self._send(
             MAV.MAVLink_param_value_message(
                 name.encode(), self.copter.params[name], kind, len(names), names.index(name)
@@ -1057,7 +1136,8 @@ class Autopilot:
         if interval_us < 0:
             self._stream(name, None)
         elif interval_us == 0:
-            self._stream(name, 1.0)  # "default rate"
+            # "Default rate": back to its stream group's rate, or off where that is 0.
+            self._stream(name, self.default_intervals.get(name))
         else:
             self._stream(name, max(1.0 / MAX_STREAM_HZ, interval_us / 1e6))
         return MAV.MAV_RESULT_ACCEPTED, None
@@ -1097,17 +1177,21 @@ class Autopilot:
         )
 
     def _message(self, name: str) -> Any:
+        """The message ``name`` as of now; None when ArduCopter would send nothing."""
         c = self.copter
         lat, lon = c.latlon
         lat_i, lon_i = round(lat * 1e7), round(lon * 1e7)
         amsl_mm = int((c.home_alt_amsl + c.up) * 1000)
         ground_speed = math.hypot(c.vn, c.ve)
         if name == "GLOBAL_POSITION_INT":
+            # Before the EKF has an origin ArduPilot sends the location it starts with,
+            # 0/0 at 0 m AMSL; the height above home comes from the barometer.
+            known = c.origin_set
             return MAV.MAVLink_global_position_int_message(
                 self._time_boot_ms(),
-                lat_i,
-                lon_i,
-                amsl_mm,
+                lat_i if known else 0,
+                lon_i if known else 0,
+                amsl_mm if known else 0,
                 int(c.up * 1000),
                 int(c.vn * 100),
                 int(c.ve * 100),
@@ -1115,6 +1199,8 @@ class Autopilot:
                 int(c.yaw * 100) % 36000,
             )
         if name == "LOCAL_POSITION_NED":
+            if not c.origin_set:
+                return None  # no origin to be local to
             return MAV.MAVLink_local_position_ned_message(
                 self._time_boot_ms(), c.north, c.east, -c.up, c.vn, c.ve, -c.vu
             )
@@ -1192,6 +1278,8 @@ class Autopilot:
                 int(c.battery_pct),
             )
         if name == "HOME_POSITION":
+            if not c.origin_set:
+                return None  # ArduCopter sets home with the EKF origin
             home_lat, home_lon = c.home
             return MAV.MAVLink_home_position_message(
                 int(home_lat * 1e7),
@@ -1226,9 +1314,10 @@ class Autopilot:
                 | MAV.MAV_PROTOCOL_CAPABILITY_FLIGHT_TERMINATION
             )
             uid = abs(hash((c.home, self.options.sysid))) & 0xFFFFFFFFFFFF
+            major, minor, patch, kind = FIRMWARES[self.options.firmware]
             return MAV.MAVLink_autopilot_version_message(
                 capabilities,
-                FIRMWARE_VERSION,
+                (major << 24) | (minor << 16) | (patch << 8) | kind,
                 0,
                 0,
                 0,
@@ -1273,9 +1362,9 @@ def _latlon(text: str) -> tuple[float, float]:
 
 def _param(text: str) -> tuple[str, float]:
     name, sep, value = text.partition("=")
-    if not sep or name.strip().upper() not in PARAMS:
+    if not sep or name.strip().upper() not in KNOWN_PARAMS:
         raise argparse.ArgumentTypeError(
-            f"expected NAME=VALUE with NAME one of {', '.join(PARAMS)}"
+            f"expected NAME=VALUE with NAME one of {', '.join(sorted(KNOWN_PARAMS))}"
         )
     try:
         return name.strip().upper(), float(value)
@@ -1319,6 +1408,22 @@ def parse_args(argv: Iterable[str]) -> SimOptions:
     )
     parser.add_argument("--gps", choices=("3d", "2d", "none"), default="3d", help="GPS fix")
     parser.add_argument("--satellites", type=int, default=12)
+    parser.add_argument(
+        "--gps-fix-after",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="the GPS gets its fix this long after the start (wall clock): until then no "
+        "fix, 0 satellites and position 0/0, as ArduCopter before its EKF origin is set",
+    )
+    parser.add_argument(
+        "--firmware",
+        choices=tuple(FIRMWARES),
+        default=DEFAULT_FIRMWARE,
+        help="the ArduCopter release simulated: its version and parameter names (4.7 has "
+        "MAV_GCS_SYSID, MAV_GCS_SYSID_HI and MAV_SYSID instead of SYSID_MYGCS and "
+        "SYSID_THISMAV)",
+    )
     parser.add_argument("--sysid", type=int, default=1, help="MAVLink system id")
     parser.add_argument(
         "--param", type=_param, action="append", default=[], help="NAME=VALUE (repeatable)"
@@ -1326,9 +1431,10 @@ def parse_args(argv: Iterable[str]) -> SimOptions:
     parser.add_argument(
         "--stream-rate",
         type=float,
-        default=0.0,
-        help="stream all telemetry at this rate (Hz) until asked otherwise, like ArduPilot's "
-        "SRn_ parameters; default 0: only the streams a ground station asks for",
+        default=DEFAULT_STREAM_RATE_HZ,
+        help="every telemetry stream's rate (Hz) until a ground station asks otherwise, "
+        "like ArduPilot's SRn_ parameters; default 1 (ArduPlane's and ArduRover's default), "
+        "0: only the streams a ground station asks for (ArduCopter's default)",
     )
     parser.add_argument("--parent-pid", type=int, default=None, help="stop when it exits")
     parser.add_argument("--log-level", default="WARNING")
@@ -1337,6 +1443,15 @@ def parse_args(argv: Iterable[str]) -> SimOptions:
         parser.error("--battery must be within 0..100")
     if not 1 <= args.sysid <= 254:
         parser.error("--sysid must be within 1..254")
+    if not (math.isfinite(args.gps_fix_after) and args.gps_fix_after >= 0):
+        parser.error("--gps-fix-after must be 0 or more seconds")
+    params = dict(args.param)
+    unknown = set(params) - set(firmware_params(args.firmware))
+    if unknown:
+        parser.error(
+            f"ArduCopter {args.firmware} has no parameter {', '.join(sorted(unknown))} "
+            "(see --firmware)"
+        )
     logging.basicConfig(
         level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
@@ -1351,9 +1466,11 @@ def parse_args(argv: Iterable[str]) -> SimOptions:
         gps_fix={"3d": 3, "2d": 2, "none": 0}[args.gps],
         satellites=max(0, args.satellites) if args.gps != "none" else 0,
         sysid=args.sysid,
-        params=dict(args.param),
+        params=params,
         parent_pid=args.parent_pid,
         stream_rate_hz=max(0.0, args.stream_rate),
+        gps_fix_after_s=args.gps_fix_after,
+        firmware=args.firmware,
     )
 
 
