@@ -35,6 +35,10 @@ message to the event loop (``call_soon_threadsafe``), where all state lives, and
 GCS heartbeats are produced by the event loop on purpose: if the agent hangs, they stop
 and the autopilot's own GCS fail-safe takes over.
 
+Position: only while the autopilot has a fix (a 3D GPS fix, or an EKF with an absolute
+position); before its first fix ArduCopter reports 0/0, which the agent reports as no
+position (None) to users and to the platform.
+
 Events: set :attr:`MavlinkAdapter.on_event` to ``callable(name, data)``; it is called on
 the event loop thread and must not block. Names: ``autopilot_link_lost``,
 ``autopilot_link_restored``, ``low_battery``, ``autopilot_mode_changed`` (the autopilot
@@ -181,10 +185,25 @@ FS_GCS_AGREES = {
     "stop": frozenset({7}),
 }
 
+#: The autopilot parameter naming the GCS its fail-safe follows, newest name first:
+#: ArduPilot 4.7 renamed SYSID_MYGCS to MAV_GCS_SYSID (and added MAV_GCS_SYSID_HI, the
+#: upper end of a range of GCS ids); an autopilot has one name or the other.
+GCS_SYSID_PARAMS = ("MAV_GCS_SYSID", "SYSID_MYGCS")
+GCS_SYSID_HI = "MAV_GCS_SYSID_HI"
+#: GPS_RAW_INT fix_type from which the autopilot's position is a position (3D fix).
+GPS_FIX_3D = 3
+#: EKF_STATUS_REPORT flag: the EKF has an absolute horizontal position (a GPS fix, or
+#: what stands in for one, e.g. an external navigation system).
+EKF_POS_HORIZ_ABS = 0x10
+
 SIM_ORIGIN = (40.6306, -8.6588)
 #: Parameters a simulated drone starts with unless ``simulator.params`` says otherwise:
 #: what an operator would set on a real one (the agent's heartbeat loss -> RTL).
 SIM_DEFAULT_PARAMS = {"FS_GCS_ENABLE": 1.0}
+#: Settings a simulated drone starts with unless ``simulator`` says otherwise: no
+#: telemetry until the agent asks for it, as ArduCopter ships (its stream rates are 0),
+#: so that the agent's own stream requests are what the tests fly on.
+SIM_DEFAULTS: dict[str, Any] = {"stream_rate_hz": 0}
 
 #: Keys of the agent config's ``adapter_options`` that the agent itself reads.
 AGENT_OPTIONS = frozenset({"vehicle_type", "attributes"})
@@ -377,6 +396,9 @@ SIMULATOR_KEYS = frozenset(
         "home_alt_m",
         "sysid",
         "params",
+        "gps_fix_after_s",
+        "firmware",
+        "stream_rate_hz",
     }
 )
 
@@ -396,13 +418,16 @@ def _check_simulator(sim: Mapping[str, Any]) -> None:
     unknown = set(sim) - SIMULATOR_KEYS
     if unknown:
         raise ValueError(f"mavlink option simulator: unknown keys {', '.join(sorted(unknown))}")
-    for key in ("speedup", "battery_pct", "drain_pct_per_min", "heading_deg", "home_alt_m"):
+    numbers = ("speedup", "battery_pct", "drain_pct_per_min", "heading_deg", "home_alt_m")
+    for key in (*numbers, "gps_fix_after_s", "stream_rate_hz"):
         if key in sim:
             value = sim[key]
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise ValueError(f"mavlink option simulator.{key}: expected a number")
     if sim.get("gps", "3d") not in ("3d", "2d", "none"):
         raise ValueError("mavlink option simulator.gps: 3d, 2d or none")
+    if sim.get("firmware", "4.5") not in ("4.5", "4.7"):
+        raise ValueError("mavlink option simulator.firmware: 4.5 or 4.7")
     params = sim.get("params", {})
     if not isinstance(params, Mapping) or not all(
         isinstance(k, str) and isinstance(v, int | float) and not isinstance(v, bool)
@@ -506,6 +531,9 @@ class MavlinkAdapter(Adapter):
         self._low_battery_handled = False
         self._background: set[asyncio.Task[Any]] = set()
         self._warned_at: dict[str, float] = {}
+        #: Which name the autopilot has for its GCS system id (``MAV_GCS_SYSID`` or
+        #: ``SYSID_MYGCS``), once :meth:`check_failsafe_params` found out; else None.
+        self.gcs_sysid_param: str | None = None
 
     # --- lifecycle ---------------------------------------------------------------------
     async def start(self) -> None:
@@ -577,7 +605,7 @@ class MavlinkAdapter(Adapter):
         UDP port (it dies with us: ``--parent-pid``)."""
         if port is None:
             raise RuntimeError("no local UDP port for the simulator")
-        sim = self.config.simulator
+        sim = {**SIM_DEFAULTS, **self.config.simulator}
         origin = self.config.origin or SIM_ORIGIN
         params = {**SIM_DEFAULT_PARAMS, **dict(sim.get("params", {}))}
         args = [
@@ -595,6 +623,9 @@ class MavlinkAdapter(Adapter):
             "heading_deg": "--heading",
             "home_alt_m": "--home-alt",
             "sysid": "--sysid",
+            "gps_fix_after_s": "--gps-fix-after",
+            "firmware": "--firmware",
+            "stream_rate_hz": "--stream-rate",
         }
         for key, flag in flags.items():
             if key in sim:
@@ -755,7 +786,12 @@ class MavlinkAdapter(Adapter):
         now = time.monotonic()
         t = self.t
         if kind == "GLOBAL_POSITION_INT":
-            t.lat, t.lon = msg.lat / 1e7, msg.lon / 1e7
+            # Before its first fix ArduCopter sends the location it starts with, 0/0:
+            # that is no position, and neither users nor matching may take it for one.
+            if self._has_fix() and (msg.lat, msg.lon) != (0, 0):
+                t.lat, t.lon = msg.lat / 1e7, msg.lon / 1e7
+            else:
+                t.lat = t.lon = None
             t.alt = msg.relative_alt / 1000.0
             t.speed = math.hypot(msg.vx, msg.vy) / 100.0
             t.climb = -msg.vz / 100.0
@@ -784,10 +820,12 @@ class MavlinkAdapter(Adapter):
         elif kind == "GPS_RAW_INT":
             t.gps_fix = int(msg.fix_type)
             t.satellites = None if msg.satellites_visible == 255 else int(msg.satellites_visible)
+            self._forget_position_without_fix()
         elif kind == "EXTENDED_SYS_STATE":
             t.landed_state = int(msg.landed_state)
         elif kind == "EKF_STATUS_REPORT":
             t.ekf_flags = int(msg.flags)
+            self._forget_position_without_fix()
         elif kind == "HOME_POSITION":
             t.home = (msg.latitude / 1e7, msg.longitude / 1e7)
         elif kind == "COMMAND_ACK":
@@ -799,6 +837,19 @@ class MavlinkAdapter(Adapter):
             for future in self._param_waiters.pop(name, []):
                 if not future.done():
                     future.set_result(float(msg.param_value))
+
+    def _has_fix(self) -> bool:
+        """Whether the autopilot knows where it is: a 3D GPS fix (GPS_RAW_INT), or an
+        EKF with an absolute horizontal position (a fix or what stands in for one).
+        Neither reported yet: no."""
+        t = self.t
+        if t.gps_fix is not None and t.gps_fix >= GPS_FIX_3D:
+            return True
+        return t.ekf_flags is not None and bool(t.ekf_flags & EKF_POS_HORIZ_ABS)
+
+    def _forget_position_without_fix(self) -> None:
+        if not self._has_fix():
+            self.t.lat = self.t.lon = None
 
     def _on_heartbeat(self, msg: Any, source: tuple[int, int]) -> None:
         if self.target is None:
@@ -994,7 +1045,10 @@ class MavlinkAdapter(Adapter):
         return list(TELEMETRY_TOPICS)
 
     def telemetry(self) -> dict[str, Any]:
-        """Every topic of :data:`TELEMETRY_TOPICS`; None until the autopilot sent it."""
+        """Every topic of :data:`TELEMETRY_TOPICS`; None until the autopilot sent it.
+        ``location`` (like :meth:`state`'s lat/lon, which the platform hears) is None
+        while the autopilot has no fix: ArduCopter's 0/0 before its first fix is no
+        position."""
         t = self.t
         fix = {0: "none", 1: "none", 2: "2D", 3: "3D", 4: "DGPS", 5: "RTK float", 6: "RTK"}
         ekf_ok = None
@@ -1534,25 +1588,27 @@ class MavlinkAdapter(Adapter):
         """Compare the autopilot's own GCS fail-safe with the task's ``expected_action``
         (``return_to_home``, ``land`` or ``stop``); meant for task start.
 
-        Reads FS_GCS_ENABLE, FS_GCS_TIMEOUT and SYSID_MYGCS (and RTL_ALT, when
-        ``max_altitude_m`` is given and the task returns home) with PARAM_REQUEST_READ.
-        Returns the mismatches in words, [] when they agree. Never raises: a parameter
-        the autopilot does not answer for is itself reported.
+        Reads FS_GCS_ENABLE, FS_GCS_TIMEOUT and the GCS system id (``MAV_GCS_SYSID``, with
+        ``MAV_GCS_SYSID_HI``, on ArduPilot 4.7 and later, else ``SYSID_MYGCS``; the name
+        found is kept in :attr:`gcs_sysid_param` and named in the answer), and RTL_ALT
+        when ``max_altitude_m`` is given and the task returns home, with
+        PARAM_REQUEST_READ, all at once. Returns the mismatches in words, [] when they
+        agree. Never raises: a parameter the autopilot does not answer for is itself
+        reported. On an autopilot with the older name it takes up to
+        ``command_timeout_s``: ArduPilot does not answer for a name it lacks.
         """
         if not self._link_ok:
             return ["cannot check the autopilot's fail-safe: no link to the autopilot"]
-        names = ["FS_GCS_ENABLE", "FS_GCS_TIMEOUT", "SYSID_MYGCS"]
+        names = ["FS_GCS_ENABLE", "FS_GCS_TIMEOUT"]
         if max_altitude_m is not None and expected_action == "return_to_home":
             names.append("RTL_ALT")
-        values: dict[str, float] = {}
-        problems: list[str] = []
-        for name in names:
-            try:
-                values[name] = await self.read_param(name)
-            except AdapterError as exc:
-                problems.append(str(exc))
+        gcs_read = asyncio.ensure_future(self._read_gcs_sysid())
+        answers = await asyncio.gather(*(self._read_or_problem(name) for name in names))
+        values = dict(zip(names, answers, strict=True))
+        gcs = await gcs_read
+        problems = [value for value in values.values() if isinstance(value, str)]
         enable = values.get("FS_GCS_ENABLE")
-        if enable is not None:
+        if isinstance(enable, float):
             code = int(enable)
             words = FS_GCS_WORDS.get(code, f"action {code}")
             if code == 0:
@@ -1566,20 +1622,89 @@ class MavlinkAdapter(Adapter):
                     f"the autopilot's GCS fail-safe does {words} (FS_GCS_ENABLE={code}) but "
                     f"the task expects {expected_action}"
                 )
-        mygcs = values.get("SYSID_MYGCS")
-        if mygcs is not None and int(mygcs) != self.config.source_system:
-            problems.append(
-                f"the autopilot's GCS fail-safe follows system {int(mygcs)} (SYSID_MYGCS) but "
-                f"the agent is system {self.config.source_system}: it would never see the "
-                "agent's heartbeats"
-            )
+        if isinstance(gcs, str):
+            problems.append(gcs)
+        else:
+            name, low, high = gcs
+            agent = self.config.source_system
+            if high is not None and high >= low:
+                if not low <= agent <= high:
+                    problems.append(
+                        f"the autopilot's GCS fail-safe follows systems {low}-{high} ({name}, "
+                        f"{GCS_SYSID_HI}) but the agent is system {agent}: it would never see "
+                        "the agent's heartbeats"
+                    )
+            elif low != agent:
+                problems.append(
+                    f"the autopilot's GCS fail-safe follows system {low} ({name}) but the agent "
+                    f"is system {agent}: it would never see the agent's heartbeats"
+                )
         rtl_alt = values.get("RTL_ALT")
-        if rtl_alt is not None and max_altitude_m is not None and rtl_alt / 100.0 > max_altitude_m:
+        if (
+            isinstance(rtl_alt, float)
+            and max_altitude_m is not None
+            and rtl_alt / 100.0 > max_altitude_m
+        ):
             problems.append(
                 f"RTL climbs to {rtl_alt / 100.0:g} m (RTL_ALT={rtl_alt:g} cm), above the "
                 f"task's {max_altitude_m:g} m ceiling"
             )
         return problems
+
+    async def _read_or_problem(self, name: str) -> float | str:
+        """One parameter, or why it could not be read (in words)."""
+        try:
+            return await self.read_param(name)
+        except AdapterError as exc:
+            return str(exc)
+
+    async def _read_gcs_sysid(self) -> tuple[str, int, int | None] | str:
+        """(the name the autopilot has, its GCS system id, MAV_GCS_SYSID_HI or None), or
+        why neither name could be read (in words). Both names are asked for at once, the
+        newer first. ArduPilot answers reads in order and has only one of them, so once
+        the older name answered the newer one gets one ``resend_s`` more (an autopilot
+        with both, or a reordering link), then the older one counts."""
+        loop = asyncio.get_running_loop()
+        tasks = [asyncio.ensure_future(self.read_param(name)) for name in GCS_SYSID_PARAMS]
+        try:
+            pending: set[asyncio.Future[float]] = set(tasks)
+            grace_until: float | None = None
+            while pending:
+                wait = None if grace_until is None else max(0.0, grace_until - loop.time())
+                done, pending = await asyncio.wait(
+                    pending, timeout=wait, return_when=asyncio.FIRST_COMPLETED
+                )
+                if not done:
+                    break  # the newer name's grace is over
+                answered = [t.done() and t.exception() is None for t in tasks]
+                if answered[0] or (answered[1] and tasks[0].done()):
+                    break
+                if answered[1] and grace_until is None:
+                    grace_until = loop.time() + self.config.resend_s
+            for name, task in zip(GCS_SYSID_PARAMS, tasks, strict=True):
+                if task.done() and task.exception() is None:
+                    self.gcs_sysid_param = name
+                    value = int(task.result())
+                    logger.info("mavlink: the autopilot's GCS system id: %s=%d", name, value)
+                    high = None
+                    if name == "MAV_GCS_SYSID":
+                        answer = await self._read_or_problem(GCS_SYSID_HI)
+                        high = int(answer) if isinstance(answer, float) else None
+                    return name, value, high
+            errors = [t.exception() for t in tasks if t.done()]
+            lost = [e for e in errors if isinstance(e, AdapterError) and e.code != "timeout"]
+            if lost:
+                return str(lost[0])
+            return (
+                f"the autopilot did not answer for parameter {' or '.join(GCS_SYSID_PARAMS)} "
+                f"within {self.config.command_timeout_s:g} s"
+            )
+        finally:
+            for task in tasks:
+                if not task.done():
+                    task.cancel()
+                elif not task.cancelled():
+                    task.exception()  # retrieved: a failed read is part of the answer
 
     async def read_param(self, name: str) -> float:
         """One autopilot parameter (PARAM_REQUEST_READ, resent until

@@ -474,6 +474,74 @@ async def test_failsafe_parameters_are_checked_against_the_task(make_rig: RigFac
     assert "follows system 250 (SYSID_MYGCS) but the agent is system 255" in problems[1]
 
 
+async def test_failsafe_check_reads_the_gcs_id_under_either_name(make_rig: RigFactory):
+    """ArduPilot 4.7 renamed SYSID_MYGCS to MAV_GCS_SYSID (with MAV_GCS_SYSID_HI for a
+    range): the check reads the newer name first and says which one the autopilot has."""
+    legacy = await make_rig()  # ArduCopter 4.5: SYSID_MYGCS
+    assert await legacy.drone.check_failsafe_params("return_to_home") == []
+    assert legacy.drone.gcs_sysid_param == "SYSID_MYGCS"
+
+    current = await make_rig(simulator={**SIM, "firmware": "4.7"})
+    assert await current.drone.check_failsafe_params("return_to_home") == []
+    assert current.drone.gcs_sysid_param == "MAV_GCS_SYSID"
+
+    params = {"FS_GCS_ENABLE": 1, "MAV_GCS_SYSID": 250}
+    other = await make_rig(simulator={**SIM, "firmware": "4.7", "params": params})
+    [problem] = await other.drone.check_failsafe_params("return_to_home")
+    assert problem == (
+        "the autopilot's GCS fail-safe follows system 250 (MAV_GCS_SYSID) but the agent is "
+        "system 255: it would never see the agent's heartbeats"
+    )
+    ranged = {"FS_GCS_ENABLE": 1, "MAV_GCS_SYSID": 250, "MAV_GCS_SYSID_HI": 255}
+    within = await make_rig(simulator={**SIM, "firmware": "4.7", "params": ranged})
+    assert await within.drone.check_failsafe_params("return_to_home") == []
+    apart = {"FS_GCS_ENABLE": 1, "MAV_GCS_SYSID": 200, "MAV_GCS_SYSID_HI": 210}
+    outside = await make_rig(simulator={**SIM, "firmware": "4.7", "params": apart})
+    [problem] = await outside.drone.check_failsafe_params("return_to_home")
+    assert "follows systems 200-210 (MAV_GCS_SYSID, MAV_GCS_SYSID_HI) but the agent is" in problem
+
+
+async def test_failsafe_check_names_both_gcs_id_parameters_when_unanswered(make_rig: RigFactory):
+    rig = await make_rig(heartbeat_timeout_s=5.0, command_timeout_s=1.0)
+    process = rig.drone.sim_process
+    assert process is not None
+    os.kill(process.pid, signal.SIGSTOP)  # silent for less than the heartbeat timeout
+    try:
+        problems = await rig.drone.check_failsafe_params("return_to_home")
+    finally:
+        os.kill(process.pid, signal.SIGCONT)
+    assert problems == [
+        "the autopilot did not answer for parameter FS_GCS_ENABLE within 1 s",
+        "the autopilot did not answer for parameter FS_GCS_TIMEOUT within 1 s",
+        "the autopilot did not answer for parameter MAV_GCS_SYSID or SYSID_MYGCS within 1 s",
+    ]
+    assert rig.drone.gcs_sysid_param is None
+
+
+async def test_no_position_before_the_autopilots_gps_fix(make_rig: RigFactory):
+    """Before its first fix ArduCopter reports 0/0 with no satellites: users and the
+    platform (the agent's heartbeat carries ``state()``'s position) get none at all."""
+    rig = await make_rig(simulator={**SIM, "gps_fix_after_s": 6})
+    drone = rig.drone
+    ws = await join(rig)
+
+    def searching(d: dict[str, Any]) -> bool:
+        return d["number_of_gps_satellites"] == 0 and d["altitude"] is not None
+
+    data = await watch(ws, searching, 6, "telemetry from an autopilot without a fix")
+    assert data["location"] is None and data["autopilot_link"] == "ok"
+    assert drone.telemetry()["gps_fix"] == "none"
+    assert drone.t.position_at > 0  # GLOBAL_POSITION_INT did come: 0/0
+    assert (drone.state().lat, drone.state().lon) == (None, None)
+
+    data = await watch(ws, lambda d: d["location"] is not None, 15, "a position after the fix")
+    assert distance_m(HOME, (data["location"]["lat"], data["location"]["lon"])) < 1
+    assert data["number_of_gps_satellites"] >= 6 and drone.telemetry()["gps_fix"] == "3D"
+    assert drone.state().lat is not None
+    assert (await command(ws, 1, "take_off", altitude_m=3))["ok"]
+    await ws.close()
+
+
 async def test_movement_is_refused_before_take_off_and_the_gate_checks_projections(rig: Rig):
     drone = rig.drone
     with pytest.raises(AdapterError) as refused:
@@ -516,6 +584,8 @@ def test_options_are_checked():
         {"velocity_frame": "local_ned"},
         {"command_timeout_s": 0},
         {"simulator": {"gps": "maybe"}},
+        {"simulator": {"firmware": "5.0"}},
+        {"simulator": {"gps_fix_after_s": "soon"}},
         {"origin": [91, 0]},
         {"stream_rates_hz": {"NOT_A_MESSAGE": 1}},
     ):
