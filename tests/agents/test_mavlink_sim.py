@@ -9,6 +9,7 @@ messages, so a loaded machine slows the simulator and the test alike.
 from __future__ import annotations
 
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -16,7 +17,7 @@ from typing import Any
 
 from agents.adapters.mavlink import MAV, mavutil
 from agents.geo import distance_m
-from tests.agents.test_mavlink import HOME, start_simulator
+from tests.agents.test_mavlink import HOME, ROOT, start_simulator
 
 GCS_SYSID = 255
 
@@ -219,9 +220,16 @@ def test_the_gcs_id_has_the_name_of_the_firmware_release():
 
 
 def test_an_unknown_parameter_for_the_release_is_refused_on_the_command_line():
-    sim = start_simulator("--firmware", "4.7", "--param", "SYSID_MYGCS=250")
-    sim.communicate(timeout=30)
+    sim = subprocess.Popen(
+        [
+            sys.executable, "-m", "agents", "sim", "mavlink",
+            "--firmware", "4.7", "--param", "SYSID_MYGCS=250",
+        ],
+        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    _, err = sim.communicate(timeout=30)
     assert sim.returncode == 2
+    assert "ArduCopter 4.7 has no parameter SYSID_MYGCS" in err
 
 
 def armed_then_silent(gcs: Any) -> None:
