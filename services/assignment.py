@@ -7,6 +7,13 @@ best is reserved with a conditional UPDATE ... WHERE status = 'idle': of two req
 racing for one vehicle, the database lets exactly one update succeed, and a partial
 unique index on active assignments backs that up. No table lock is held, so requests
 for different vehicles do not wait on each other.
+
+Which requests need a vehicle's position: those with a target. Their ranking, time to
+arrive and range (there, the work, and back to its station) are measured from where
+the vehicle is, as its agent reports it; a vehicle reporting none (a drone before its
+GPS fix, a car that cannot tell) is not matched for them, rather than measured from its
+station as if it stood there. A request without a target measures nothing from the
+vehicle (the work alone must fit its range) and may be given such a vehicle.
 """
 
 from __future__ import annotations
@@ -71,7 +78,7 @@ class Facts(DeclaredAttributes):
     adapter: str
     attributes: dict[str, Any]
     battery: float | None
-    position: tuple[float, float]  # reported, else its station's
+    position: tuple[float, float] | None  # as its agent reports it; None: unknown
     home: tuple[float, float]  # its station
 
     FIELDS = (
@@ -90,9 +97,10 @@ class Facts(DeclaredAttributes):
     @classmethod
     def from_row(cls, row: tuple[Any, ...]) -> Facts:
         pk, name, kind, adapter, attributes, battery, lat, lon, home_lat, home_lon = row
-        home = (home_lat, home_lon)
-        position = (lat, lon) if lat is not None and lon is not None else home
-        return cls(pk, name, kind, adapter, attributes or {}, battery, position, home)
+        position = (lat, lon) if lat is not None and lon is not None else None
+        return cls(
+            pk, name, kind, adapter, attributes or {}, battery, position, (home_lat, home_lon)
+        )
 
 
 @dataclass(frozen=True)
@@ -123,8 +131,12 @@ def _attr(vehicle: Facts, name: str) -> Any:
 
 
 def _trip(vehicle: Facts, target: tuple[float, float] | None, extra_m: float) -> Candidate:
+    """The vehicle's trip to ``target``; with a target, only for a vehicle whose
+    position is known (:func:`role_match` filters the others out first)."""
     here, home = vehicle.position, vehicle.home
-    out = distance_m(here, target) if target else 0.0
+    if target is not None and here is None:
+        raise ValueError(f"{vehicle.name}: no position to measure the trip from")
+    out = distance_m(here, target) if target and here else 0.0
     back = distance_m(target, home) if target else 0.0
     trip = out + extra_m + back
     speed = _attr(vehicle, "max_speed_mps") or 0.0
@@ -206,7 +218,9 @@ def role_match(
     """Rank the vehicles that can fill ``role`` now; nothing is written.
 
     ``extra_distance_m`` is work done at the target (a search pattern, say) that must
-    fit in the vehicle's range too. On no match, ``unmet`` names the requirement.
+    fit in the vehicle's range too. With a ``target``, only vehicles reporting their
+    position are ranked (see the module docstring). On no match, ``unmet`` names the
+    requirement.
     """
     pool = [
         Facts.from_row(row)
@@ -221,6 +235,15 @@ def role_match(
         pool = [v for v in pool if test(v)]
         if not pool:
             return Match(role, unmet=f"no idle vehicle has {description}")
+    if target is not None:
+        # Distances are measured from where the vehicle is: unknown, nothing to measure.
+        pool = [v for v in pool if v.position is not None]
+        if not pool:
+            return Match(
+                role,
+                unmet="no idle vehicle reports its position, which the distance to the "
+                "target is measured from",
+            )
     trips = [_trip(v, target, extra_distance_m) for v in pool]
     reachable = [c for c in trips if _range_ok(c)]
     if not reachable:

@@ -50,8 +50,8 @@ def test_picks_the_nearest_eligible_vehicle(base):
 
 def test_equal_distance_prefers_the_fuller_battery(base):
     st, drone = base
-    f.vehicle(station=st, vtype=drone, name="half", battery=50)
-    f.vehicle(station=st, vtype=drone, name="full", battery=99)
+    f.vehicle(station=st, vtype=drone, name="half", battery=50, at=f.HOME)
+    f.vehicle(station=st, vtype=drone, name="full", battery=99, at=f.HOME)
     svc = f.service()
     assert assigned(session_request(user=f.user(), service=svc, target=near(0.5))) == ["full"]
 
@@ -128,10 +128,27 @@ def test_ineligible_vehicle_is_skipped_and_named_when_alone(base, defect, role, 
     assert assigned(session_request(user=f.user(), service=svc, target=target)) == ["eligible"]
 
 
+def test_a_vehicle_reporting_no_position_is_matched_only_without_a_target(base):
+    """A drone before its GPS fix reports no position. A request with a target measures
+    the distance, the time to arrive and the range from where the vehicle is, so the
+    vehicle is not matched: its station is no stand-in. A request without a target
+    measures nothing from it and may have it."""
+    st, drone = base
+    blind = f.vehicle(station=st, vtype=drone, name="no-fix", at=f.HOME)
+    # Its agent reports position null (as the uplink stores it).
+    Vehicle.objects.filter(pk=blind.pk).update(lat=None, lon=None, alt=None)
+    svc = f.service()
+    with pytest.raises(AssignmentError, match="no idle vehicle reports its position"):
+        session_request(user=f.user(), service=svc, target=near(0.1))
+    f.vehicle(station=st, vtype=drone, name="fixed", at=near(1.0))
+    assert assigned(session_request(user=f.user(), service=svc, target=near(0.1))) == ["fixed"]
+    assert assigned(session_request(user=f.user(), service=svc)) == ["no-fix"]
+
+
 def test_all_roles_or_none(base):
     st, drone = base
-    f.vehicle(station=st, vtype=drone, name="searcher", cameras=["rgb", "thermal"])
-    f.vehicle(station=st, vtype=drone, name="light", max_payload_kg=0.5)
+    f.vehicle(station=st, vtype=drone, name="searcher", cameras=["rgb", "thermal"], at=f.HOME)
+    f.vehicle(station=st, vtype=drone, name="light", max_payload_kg=0.5, at=f.HOME)
     svc = f.service(
         roles=[
             {"name": "search", "cameras": ["thermal"]},
