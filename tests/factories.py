@@ -56,7 +56,10 @@ def vehicle(
     at: tuple[float, float] | None = None,
     **attrs: Any,
 ) -> Vehicle:
-    """A vehicle; ``online`` sets last_seen to now, ``at`` its reported position."""
+    """A vehicle; ``online`` sets last_seen to now, ``at`` its reported position (an
+    online vehicle's agent reports one: by default, its station's)."""
+    if at is None and online:
+        at = (station.lat, station.lon)
     v = Vehicle(
         name=name or f"vehicle-{next(_counter)}",
         vehicle_type=vtype,
