@@ -71,8 +71,10 @@ from agents.geo import offset
 logger = logging.getLogger(__name__)
 
 GRAVITY = 9.81
-#: A new frame starts after this much silence on the line. ArduPilot resynchronises
-#: after 2 ms, PX4 after 5 ms; frames are 11 ms apart and take 1.4 ms at 115200 baud.
+#: A new frame starts after this much silence on the line, as in older ArduPilot
+#: releases (today's resynchronises after 5 ms, PX4 after more than 5 ms; the gap only
+#: matters while searching for a frame start, see docs/vehicles/vtol.md); frames are
+#: 11 ms apart and take 1.4 ms at 115200 baud.
 FRAME_GAP_S = 0.002
 #: A servo position this far past centre is "switch on" (gear, aux).
 SWITCH_THRESHOLD = 200
