@@ -13,9 +13,9 @@ import logging
 import sys
 from pathlib import Path
 
-from agents.adapters.base import adapter_class
 from agents.config import AgentConfig, ConfigError
 from agents.runtime import agents_run_forever
+from agents.vehicles.registry import UnknownIntegration, integration
 
 
 def _load_fleet(folder: Path, only: list[str]) -> list[AgentConfig]:
@@ -26,8 +26,8 @@ def _load_fleet(folder: Path, only: list[str]) -> list[AgentConfig]:
         if only and config.name not in only and path.stem not in only:
             continue
         try:
-            adapter_class(config.adapter)
-        except KeyError:
+            integration(config.adapter)
+        except UnknownIntegration:
             logging.warning("%s: no %r adapter here; not started", path.name, config.adapter)
             continue
         # A simulated fleet: every adapter on its simulator, control on a free port.
@@ -41,10 +41,13 @@ def main(argv: list[str] | None = None) -> int:
     # `sim KIND` for a vehicle simulator is handled by that simulator's own module.
     if len(argv) >= 2 and argv[0] == "sim" and argv[1] not in {"fleet", "-h", "--help"}:
         try:
-            module = importlib.import_module(f"agents.sim.{argv[1]}")
-        except ModuleNotFoundError:
+            simulator = integration(argv[1]).simulator
+        except UnknownIntegration:
+            simulator = None
+        if simulator is None:
             print(f"no simulator named {argv[1]!r}", file=sys.stderr)
             return 2
+        module = importlib.import_module(simulator)
         return int(module.cli(argv[2:]))
     parser = argparse.ArgumentParser(
         prog="python -m agents",

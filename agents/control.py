@@ -45,7 +45,6 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
-from agents.adapters.base import SAFE_COMMANDS, Adapter, AdapterError, Breach
 from agents.envelope import EnvelopeWatch
 from agents.protocol import (
     MAX_MESSAGE_BYTES,
@@ -58,6 +57,7 @@ from agents.protocol import (
     parse_message,
 )
 from agents.safety import CommandGate, Refusal
+from agents.vehicles.base import SAFE_COMMANDS, Adapter, AdapterError, Breach
 
 log = logging.getLogger(__name__)
 

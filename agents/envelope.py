@@ -6,7 +6,7 @@ gust, an autopilot's own return-to-launch climb or a car that keeps rolling afte
 next command was refused all cross a limit with no command to refuse. So while a task
 is current, :class:`EnvelopeWatch` reads :meth:`Adapter.state` ``CHECK_HZ`` times a
 second and, when the vehicle is outside a limit, asks the adapter to bring it back
-(:meth:`Adapter.envelope_recover`, with a :class:`~agents.adapters.base.Breach`).
+(:meth:`Adapter.envelope_recover`, with a :class:`~agents.vehicles.base.Breach`).
 
 Per limit (``altitude``: metres above home against ``max_altitude_m``; ``geofence``:
 metres from ``geofence_center`` against ``geofence_radius_m``; ``speed``: ground speed
@@ -39,9 +39,9 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Self
 
-from agents.adapters.base import Breach, VehicleState
 from agents.geo import distance_m
 from agents.protocol import Limits
+from agents.vehicles.base import Breach, VehicleState
 
 log = logging.getLogger(__name__)
 
@@ -225,7 +225,7 @@ Notify = Callable[[str, dict[str, Any]], Awaitable[None]]
 class EnvelopeWatch:
     """Watches one task's limits on the vehicle's state (an async context manager).
 
-    ``state`` is the adapter's :meth:`~agents.adapters.base.Adapter.state`. On a breach
+    ``state`` is the adapter's :meth:`~agents.vehicles.base.Adapter.state`. On a breach
     the watch awaits ``recover(breach)`` (the hub runs it under its command lock) and
     then ``notify("envelope_breach", {"limit", "value", "limit_value", "action"})``;
     when the vehicle is back inside, ``notify("envelope_restored", {"limit", "value",

@@ -37,11 +37,11 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Final, Protocol, TypeAlias
 
-from agents.adapters.base import Adapter, AdapterError, VehicleState
 from agents.geo import distance_m
 from agents.protocol import VehicleTask
 from agents.safety import Refusal
 from agents.thermal import Blob, ThermalError, ThermalFeed, ThermalFrame, geolocate
+from agents.vehicles.base import Adapter, AdapterError, VehicleState
 
 log = logging.getLogger(__name__)
 

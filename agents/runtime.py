@@ -10,7 +10,6 @@ import logging
 from collections.abc import Mapping
 from typing import Any
 
-from agents.adapters.base import Adapter, adapter_create
 from agents.config import AgentConfig
 from agents.control import ControlHub, ControlServer
 from agents.mission import MissionControl
@@ -24,6 +23,8 @@ from agents.protocol import (
 from agents.safety import Refusal
 from agents.thermal import ThermalFeed, thermal_feed_create
 from agents.uplink import Uplink
+from agents.vehicles.base import Adapter
+from agents.vehicles.registry import adapter_create
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +54,7 @@ class Agent:
         self.missions: MissionControl | None = None
         self.relay_links: dict[str, _RelayLink] = {}
         self._checks: set[asyncio.Task[None]] = set()
-        if hasattr(self.adapter, "on_event"):
-            self.adapter.on_event = self._adapter_event
+        self.adapter.on_event = self._adapter_event
 
     def _adapter_event(self, name: str, data: dict[str, Any]) -> None:
         """Something the vehicle itself reported (autopilot link, low battery...):
@@ -259,20 +259,19 @@ class Agent:
         if self.missions is not None:
             # After task_accepted: the platform hears the task before its mission events.
             self.missions.task_accepted(task)
-        check = getattr(self.adapter, "check_failsafe_params", None)
-        if check is not None:
-            job = asyncio.create_task(self._check_failsafe(task, check))
-            self._checks.add(job)
-            job.add_done_callback(self._checks.discard)
+        job = asyncio.create_task(self._check_failsafe(task))
+        self._checks.add(job)
+        job.add_done_callback(self._checks.discard)
 
     def _task_ended(self, task: VehicleTask) -> None:
         if self.missions is not None:
             self.missions.task_ended(task)
 
-    async def _check_failsafe(self, task: VehicleTask, check: Any) -> None:
-        """Does the autopilot's own fail-safe agree with the task? Report if not."""
+    async def _check_failsafe(self, task: VehicleTask) -> None:
+        """Does the vehicle's own fail-safe (an autopilot's) agree with the task? Report
+        if not (see :meth:`Adapter.check_failsafe_params`)."""
         try:
-            problems = await check(
+            problems = await self.adapter.check_failsafe_params(
                 task.limits.failsafe_action, max_altitude_m=task.limits.max_altitude_m
             )
         except Exception as exc:  # a parameter read failing is itself worth reporting

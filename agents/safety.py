@@ -18,9 +18,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from agents.adapters.base import SAFE_COMMANDS, Adapter, CommandSpec
 from agents.geo import distance_m
 from agents.protocol import Limits, ProtocolError, validate_command_args
+from agents.vehicles.base import SAFE_COMMANDS, Adapter, CommandSpec
 
 #: At the hard latency limit, speeds are cut to this fraction of what the user asked.
 MIN_SPEED_FACTOR = 0.3

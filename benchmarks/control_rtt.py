@@ -23,7 +23,6 @@ from typing import Any
 from websockets.asyncio.client import connect
 from websockets.asyncio.server import ServerConnection, serve
 
-from agents.adapters.car import CarAdapter
 from agents.control import ControlHub, ControlServer
 from agents.protocol import (
     Limits,
@@ -34,6 +33,7 @@ from agents.protocol import (
     load_public_key,
     new_nonce,
 )
+from agents.vehicles.car.adapter import CarAdapter
 
 
 def summary(samples_ms: list[float]) -> dict[str, float]:

@@ -25,8 +25,8 @@ from django.contrib.auth.models import Group
 from django.db import transaction
 
 from accounts.roles import ADMIN, CLIENT, MONITOR, OPERATOR, roles_ensure, user_set_roles
-from agents.adapters.base import adapter_class
 from agents.geo import offset
+from agents.vehicles.registry import integration
 from fleet.attributes import attributes_clean
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Station, Vehicle, VehicleType
@@ -74,7 +74,7 @@ PAYLOAD_OPTIONS: dict[str, Any] = {"payload": {"method": "gripper"}}
 
 
 def _declared(adapter: str, options: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
-    return [c.to_profile() for c in adapter_class(adapter)(dict(options or {})).commands()]
+    return [c.to_profile() for c in integration(adapter).commands(dict(options or {}))]
 
 
 CAR_COMMANDS = _declared("car", {"camera_arm": True, "distance_sensor": True})

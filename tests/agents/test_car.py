@@ -15,12 +15,13 @@ from typing import Any
 import gpiozero
 import pytest
 
-from agents.adapters.base import AdapterError, adapter_create
-from agents.adapters.car import TELEMETRY_TOPICS, CarAdapter
 from agents.geo import distance_m, local_offset_m
 from agents.protocol import Limits
 from agents.safety import CommandGate, Refusal
-from agents.sim.car_world import Box, CarWorld, Circle, Pose
+from agents.vehicles.base import AdapterError
+from agents.vehicles.car.adapter import TELEMETRY_TOPICS, CarAdapter
+from agents.vehicles.car.sim.world import Box, CarWorld, Circle, Pose
+from agents.vehicles.registry import adapter_create
 
 MakeCar = Callable[..., Awaitable[CarAdapter]]
 

@@ -17,8 +17,6 @@ from hypothesis import strategies as st
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
-from agents.adapters.base import AdapterError
-from agents.adapters.car import CarAdapter
 from agents.control import REFUSAL_REPORT_S, ControlHub, ControlServer, refusal_text
 from agents.geo import distance_m
 from agents.protocol import (
@@ -30,6 +28,8 @@ from agents.protocol import (
     load_public_key,
     new_nonce,
 )
+from agents.vehicles.base import AdapterError
+from agents.vehicles.car.adapter import CarAdapter
 
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
 PRIVATE = load_private_key(PRIVATE_PEM)

@@ -12,7 +12,6 @@ from typing import Any
 
 import pytest
 
-from agents.adapters.base import Breach, VehicleState
 from agents.envelope import (
     DWELL_S,
     MIN_REPEAT_S,
@@ -24,6 +23,7 @@ from agents.envelope import (
 )
 from agents.geo import offset
 from agents.protocol import Limits
+from agents.vehicles.base import Breach, VehicleState
 
 CENTRE = (40.0, -8.0)
 

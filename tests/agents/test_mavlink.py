@@ -26,8 +26,6 @@ from typing import Any
 import pytest
 from websockets.asyncio.client import ClientConnection, connect
 
-from agents.adapters.base import AdapterError
-from agents.adapters.mavlink import MAV, MavlinkAdapter, MavlinkConfig, mavutil
 from agents.control import ControlHub, ControlServer
 from agents.geo import distance_m, local_offset_m, offset
 from agents.protocol import (
@@ -40,6 +38,8 @@ from agents.protocol import (
     new_nonce,
 )
 from agents.safety import CommandGate, Refusal
+from agents.vehicles.base import AdapterError
+from agents.vehicles.mavlink.adapter import MAV, MavlinkAdapter, MavlinkConfig, mavutil
 from tests.agents.test_control import command, recv
 
 ROOT = Path(__file__).resolve().parents[2]

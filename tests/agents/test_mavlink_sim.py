@@ -15,8 +15,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from agents.adapters.mavlink import MAV, mavutil
 from agents.geo import distance_m
+from agents.vehicles.mavlink.adapter import MAV, mavutil
 from tests.agents.test_mavlink import HOME, ROOT, start_simulator
 
 GCS_SYSID = 255

@@ -22,7 +22,6 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.asyncio.server import ServerConnection, serve
 
-from agents.adapters.mavlink import MavlinkAdapter
 from agents.config import AgentConfig, ControlConfig
 from agents.control import ControlHub, ControlServer
 from agents.geo import distance_m, offset
@@ -39,6 +38,7 @@ from agents.protocol import (
 from agents.runtime import Agent
 from agents.safety import Refusal
 from agents.thermal import SyntheticSeaThermal, ThermalFeed
+from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from tests.agents.test_control import command, recv
 
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()

@@ -31,14 +31,6 @@ from typing import Any
 import pytest
 from websockets.asyncio.client import ClientConnection, connect
 
-from agents.adapters.base import AdapterError, Breach, adapter_create
-from agents.adapters.spektrum import (
-    FrameError,
-    SpektrumAdapter,
-    decode_frame,
-    encode_frame,
-    parse_report,
-)
 from agents.control import ControlHub, ControlServer
 from agents.geo import offset
 from agents.protocol import (
@@ -51,7 +43,16 @@ from agents.protocol import (
     new_nonce,
 )
 from agents.safety import CommandGate, Refusal
-from agents.sim.spektrum import FrameChecker, SimParams, VtolModel, cli
+from agents.vehicles.base import AdapterError, Breach
+from agents.vehicles.registry import adapter_create
+from agents.vehicles.spektrum.adapter import (
+    FrameError,
+    SpektrumAdapter,
+    decode_frame,
+    encode_frame,
+    parse_report,
+)
+from agents.vehicles.spektrum.sim.simulator import FrameChecker, SimParams, VtolModel, cli
 from tests.agents.test_control import command, recv
 
 # --------------------------------------------------------------------------------------
@@ -631,7 +632,7 @@ async def test_a_hung_event_loop_lands_the_plane_from_the_control_thread() -> No
 
 
 def test_the_model_stalls_below_the_stall_speed_and_climbs_in_vtol_mode() -> None:
-    from agents.sim.spektrum import Inputs
+    from agents.vehicles.spektrum.sim.simulator import Inputs
 
     model = VtolModel(SimParams(transition_s=1.0), (40.0, -8.0))
     model.step(0.02, Inputs(arm=True))

@@ -201,7 +201,7 @@ def test_on_the_ground_it_sees_nothing() -> None:
 
 
 def test_pose_accepts_mappings_and_state_objects() -> None:
-    from agents.adapters.base import VehicleState
+    from agents.vehicles.base import VehicleState
 
     pose = ThermalPose.coerce({"lat": 1, "lon": 2, "alt": 30, "heading": 90}, alt_offset_m=2)
     assert pose == ThermalPose(1.0, 2.0, 32.0, 90.0)

@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 from websockets.asyncio.client import connect
 
-from agents.adapters.spektrum import SpektrumAdapter
+from agents.vehicles.spektrum.adapter import SpektrumAdapter
 from agents.runtime import Agent
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle

@@ -70,17 +70,16 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from pymavlink import mavutil  # type: ignore[import-untyped, unused-ignore]
 
-from agents.adapters.base import (
+from agents.geo import distance_m, local_offset_m, offset
+from agents.vehicles.base import (
     Adapter,
     AdapterError,
     Breach,
     CommandSpec,
     Projection,
     VehicleState,
-    origin_option,
-    register,
 )
-from agents.geo import distance_m, local_offset_m, offset
+from agents.vehicles.kit import OptionReader
 
 mavutil.set_dialect("ardupilotmega")
 #: The MAVLink module of the ArduPilot dialect (message classes and constants).
@@ -295,7 +294,7 @@ class MavlinkConfig:
         if not isinstance(simulator, Mapping):
             raise ValueError("mavlink option simulator: expected an object")
         _check_simulator(simulator)
-        origin = origin_option(options, "mavlink")
+        origin = OptionReader("mavlink", options).origin()
         source = _optional_id(options, "source_system")
         frame = options.get("velocity_frame", "body_offset_ned")
         if frame not in VELOCITY_FRAMES:
@@ -384,7 +383,8 @@ KNOWN_OPTIONS = frozenset(
         "payload",
     }
 )
-#: Keys of the ``simulator`` option (the simulator's command line, see agents.sim.mavlink).
+#: Keys of the ``simulator`` option (the simulator's command line, see
+#: agents.vehicles.mavlink.sim.autopilot).
 SIMULATOR_KEYS = frozenset(
     {
         "speedup",
@@ -478,7 +478,6 @@ class _Pending:
 # --------------------------------------------------------------------------------------
 
 
-@register
 class MavlinkAdapter(Adapter):
     """A MAVLink (ArduCopter) multicopter; see the module docstring."""
 
@@ -487,9 +486,6 @@ class MavlinkAdapter(Adapter):
     def __init__(self, options: Mapping[str, Any]) -> None:
         super().__init__(options)
         self.config = MavlinkConfig.from_options(options)
-        #: ``callable(name, data)`` for events the platform should hear; see the module
-        #: docstring. Called on the event loop thread; must not block.
-        self.on_event: Callable[[str, dict[str, Any]], None] | None = None
         self.conn: Any = None
         self.sim_process: subprocess.Popen[bytes] | None = None
         self.t = _Telemetry()
@@ -632,7 +628,7 @@ class MavlinkAdapter(Adapter):
                 args += [flag, str(sim[key])]
         for name, value in params.items():
             args += ["--param", f"{name}={value}"]
-        root = str(Path(__file__).resolve().parents[2])
+        root = str(Path(__file__).resolve().parents[3])
         env = {
             **os.environ,
             "PYTHONPATH": os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p),
@@ -658,7 +654,7 @@ class MavlinkAdapter(Adapter):
                     wait_s,
                 )
                 self._link_reported_lost = True
-                self._emit("autopilot_link_lost", {"silent_s": round(wait_s, 1)})
+                self.emit("autopilot_link_lost", {"silent_s": round(wait_s, 1)})
                 return
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._first_heartbeat.wait(), min(remaining, 0.2))
@@ -880,7 +876,7 @@ class MavlinkAdapter(Adapter):
             elif previous is not None:
                 self._mode_owner = "autopilot"
                 self._moving_until = None
-                self._emit(
+                self.emit(
                     "autopilot_mode_changed",
                     {"mode": mode_name(mode), "previous": mode_name(previous)},
                 )
@@ -892,7 +888,7 @@ class MavlinkAdapter(Adapter):
             if self._link_reported_lost:
                 self._link_reported_lost = False
                 logger.warning("mavlink: autopilot link restored")
-                self._emit("autopilot_link_restored", {})
+                self.emit("autopilot_link_restored", {})
                 self._spawn(self._request_streams())
 
     def _on_ack(self, msg: Any) -> None:
@@ -911,7 +907,7 @@ class MavlinkAdapter(Adapter):
         # The same warning at most every 5 s: autopilots repeat pre-arm texts.
         if msg.severity <= MAV.MAV_SEVERITY_WARNING and now - self._warned_at.get(text, -1e9) > 5.0:
             self._warned_at[text] = now
-            self._emit("autopilot_warning", {"severity": int(msg.severity), "text": text})
+            self.emit("autopilot_warning", {"severity": int(msg.severity), "text": text})
 
     # --- background loops ------------------------------------------------------------------
     async def _heartbeats(self) -> None:
@@ -940,7 +936,7 @@ class MavlinkAdapter(Adapter):
             self._link_reported_lost = True
             self._moving_until = None
             logger.warning("mavlink: no heartbeat from the autopilot for %.1f s", now - last)
-            self._emit("autopilot_link_lost", {"silent_s": round(now - last, 1)})
+            self.emit("autopilot_link_lost", {"silent_s": round(now - last, 1)})
             for pending in self._pending.values():
                 if not pending.future.done():
                     pending.future.set_exception(self._lost_error(command_name(pending.command)))
@@ -963,15 +959,6 @@ class MavlinkAdapter(Adapter):
         task = asyncio.ensure_future(coro)
         self._background.add(task)
         task.add_done_callback(self._background.discard)
-
-    def _emit(self, name: str, data: dict[str, Any]) -> None:
-        callback = self.on_event
-        if callback is None:
-            return
-        try:
-            callback(name, data)
-        except Exception:
-            logger.exception("mavlink: on_event(%s) failed", name)
 
     async def _request_streams(self) -> None:
         """Ask for every telemetry stream at its rate (SET_MESSAGE_INTERVAL), falling back
@@ -1450,7 +1437,7 @@ class MavlinkAdapter(Adapter):
         try:
             if not self._link_ok:
                 logger.error("mavlink: safe action %s impossible: no autopilot link", action)
-                self._emit(
+                self.emit(
                     "safe_action_failed",
                     {"action": action, "reason": "no link to the autopilot"},
                 )
@@ -1486,10 +1473,10 @@ class MavlinkAdapter(Adapter):
                 except AdapterError as exc:
                     errors.append(str(exc))
             logger.error("mavlink: safe action %s failed: %s", action, "; ".join(errors))
-            self._emit("safe_action_failed", {"action": action, "reason": "; ".join(errors)})
+            self.emit("safe_action_failed", {"action": action, "reason": "; ".join(errors)})
         except Exception:
             logger.exception("mavlink: safe action %s failed", action)
-            self._emit("safe_action_failed", {"action": action, "reason": "internal error"})
+            self.emit("safe_action_failed", {"action": action, "reason": "internal error"})
 
     async def envelope_recover(self, breach: Breach) -> str:
         """Bring the drone back inside a limit it crossed, whatever crossed it.
@@ -1570,7 +1557,7 @@ class MavlinkAdapter(Adapter):
         returning = self.t.mode in (RTL, LAND, SMART_RTL)
         action = "return_to_home" if flying and not returning else "none"
         logger.warning("mavlink: battery %.0f%% < %g%%: %s", battery, threshold, action)
-        self._emit("low_battery", {"battery": battery, "threshold": threshold, "action": action})
+        self.emit("low_battery", {"battery": battery, "threshold": threshold, "action": action})
         if action == "return_to_home":
             self._spawn(self._low_battery_return())
 
@@ -1580,7 +1567,7 @@ class MavlinkAdapter(Adapter):
             await self._set_mode(RTL, owner="low_battery")
         except AdapterError as exc:
             logger.error("mavlink: low-battery RTL failed: %s", exc)
-            self._emit("safe_action_failed", {"action": "return_to_home", "reason": str(exc)})
+            self.emit("safe_action_failed", {"action": "return_to_home", "reason": str(exc)})
 
     async def check_failsafe_params(
         self, expected_action: str, *, max_altitude_m: float | None = None

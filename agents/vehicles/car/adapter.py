@@ -12,11 +12,12 @@ Hardware, all optional parts declared in the options (see ``docs/vehicles/car.md
   and turning stay allowed.
 
 Off a Pi (``simulate``, or no GPIO found) the adapter builds exactly the same gpiozero
-devices on mock pins of a per-car ``MockFactory``; a :class:`~agents.sim.car_world.CarWorld`
-reads the motor pins back to move the car, feeds the distance sensor's echo pin, and
-supplies position, heading, speed and battery. On a real car, which has no GPS,
-position and heading are dead-reckoned from the motor commands when ``origin`` is
-configured (and unknown otherwise); the battery level is unknown.
+devices on mock pins of a per-car ``MockFactory``; a
+:class:`~agents.vehicles.car.sim.world.CarWorld` reads the motor pins back to move the
+car, feeds the distance sensor's echo pin, and supplies position, heading, speed and
+battery. On a real car, which has no GPS, position and heading are dead-reckoned from
+the motor commands when ``origin`` is configured (and unknown otherwise); the battery
+level is unknown.
 
 Speeds are fractions of full motor power (0..1), not m/s: ``max_speed_mps`` converts
 them for telemetry, dead reckoning and :meth:`CarAdapter.project`.
@@ -44,17 +45,15 @@ from gpiozero.pins.mock import (  # type: ignore[import-untyped, unused-ignore]
     MockPWMPin,
 )
 
-from agents.adapters.base import (
+from agents.geo import offset
+from agents.vehicles.base import (
     Adapter,
     AdapterError,
     CommandSpec,
     Projection,
     VehicleState,
-    origin_option,
-    register,
 )
-from agents.geo import offset
-from agents.sim.car_world import (
+from agents.vehicles.car.sim.world import (
     CarWorld,
     DualPinMotorWiring,
     MotorWiring,
@@ -64,6 +63,7 @@ from agents.sim.car_world import (
     diff_drive_step,
     obstacles_from_spec,
 )
+from agents.vehicles.kit import OptionReader
 
 logger = logging.getLogger(__name__)
 
@@ -207,7 +207,7 @@ class CarConfig:
         else:
             raise ValueError("car option motor_driver: expected 'dual' or 'phase_enable'")
 
-        origin = origin_option(options, "car")
+        origin = OptionReader("car", options).origin()
 
         queue_len = options.get("distance_queue_len", 3)
         if isinstance(queue_len, bool) or not isinstance(queue_len, int) or queue_len < 1:
@@ -360,7 +360,6 @@ def _load_pin_factory(name: str | None) -> Any:
 # --------------------------------------------------------------------------------------
 
 
-@register
 class CarAdapter(Adapter):
     """The Raspberry Pi car. Options: see :class:`CarConfig` and ``docs/vehicles/car.md``.
 

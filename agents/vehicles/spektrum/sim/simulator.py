@@ -15,7 +15,7 @@ is. It
   transition, stall, ground contact, battery, arming, the FC's own receiver-loss
   fail-safe);
 * writes its state back as one JSON object per line at ``report_hz`` (the format
-  :func:`agents.adapters.spektrum.parse_report` reads).
+  :func:`agents.vehicles.spektrum.adapter.parse_report` reads).
 
 Threads: :meth:`SpektrumSimulator.start` runs it on its own thread (the adapter's
 ``simulate`` default); :func:`cli` runs it in the foreground (``python -m agents sim
@@ -47,7 +47,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any, Protocol
 
-from agents.adapters.spektrum import (
+from agents.geo import offset
+from agents.vehicles.spektrum.adapter import (
     AILERON,
     AUX1,
     CHANNEL_COUNT,
@@ -66,7 +67,6 @@ from agents.adapters.spektrum import (
     servo_to_stick,
     servo_to_throttle,
 )
-from agents.geo import offset
 
 logger = logging.getLogger(__name__)
 

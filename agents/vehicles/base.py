@@ -3,8 +3,23 @@
 The agent talks to a vehicle only through an :class:`Adapter`. An adapter declares its
 command vocabulary (:class:`CommandSpec`) and telemetry topics, executes commands the
 agent has already checked against the task, reports the vehicle's state and performs
-the safe action on a fail-safe. Adding a vehicle kind means writing one adapter and
-registering it; users and service developers never see MAVLink, GPIO or serial frames.
+the safe action on a fail-safe. Users and service developers never see MAVLink, GPIO or
+serial frames.
+
+Each vehicle integration is one folder under ``agents/vehicles/`` (its adapter, its
+options, its wire format and its simulator), declared to the registry
+(:mod:`agents.vehicles.registry`); ``docs/integrating-a-vehicle.md`` walks through one.
+What every adapter shares is here and in :mod:`agents.vehicles.kit` (the option reader):
+
+* the abstract methods every adapter implements, and the optional hooks with their
+  defaults (:meth:`Adapter.neutral`, :meth:`Adapter.envelope_recover`,
+  :meth:`Adapter.project`, :meth:`Adapter.check_failsafe_params`, the event sink
+  :attr:`Adapter.on_event` with :meth:`Adapter.emit`, :meth:`Adapter.video_source`);
+* the simulator hook's contract (:class:`Simulation`): an integration's simulator
+  module offers ``simulation(options)``, an async context manager that starts the
+  simulator and yields the adapter options that drive the simulated vehicle. Only the
+  simulation runner (:mod:`agents.simulation`) and tests call it: production code never
+  imports a simulator.
 
 Lifecycle: ``async with adapter_create(name, options) as adapter: ...`` calls
 :meth:`Adapter.start` and, whatever happens, :meth:`Adapter.close`.
@@ -13,10 +28,14 @@ Lifecycle: ``async with adapter_create(name, options) as adapter: ...`` calls
 from __future__ import annotations
 
 import abc
-from collections.abc import Mapping, Sequence
+import logging
+from collections.abc import Callable, Mapping
+from contextlib import AbstractAsyncContextManager
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, ClassVar, Self
+
+logger = logging.getLogger(__name__)
 
 #: Commands that make a vehicle safer; they pass every latency limit.
 SAFE_COMMANDS = frozenset({"stop", "land", "return_to_home"})
@@ -114,8 +133,13 @@ class Projection:
     alt: float | None = None
 
 
+#: Receives what the vehicle itself reports: ``(event name, JSON-ready data)``.
+EventSink = Callable[[str, dict[str, Any]], None]
+
+
 class Adapter(abc.ABC):
-    """Base class of vehicle adapters. Subclasses set ``name`` and register.
+    """Base class of vehicle adapters. Subclasses set ``name`` (their integration's)
+    and are created through their integration (:mod:`agents.vehicles.registry`).
 
     Concurrency contract: the agent serialises calls to :meth:`execute`,
     :meth:`neutral`, :meth:`safe_action` and :meth:`envelope_recover`; :meth:`state` and
@@ -126,6 +150,10 @@ class Adapter(abc.ABC):
 
     def __init__(self, options: Mapping[str, Any]) -> None:
         self.options = dict(options)
+        #: Where :meth:`emit` sends what the vehicle reports by itself (the autopilot
+        #: link lost, a low battery, a warning): the agent sets it to forward them to
+        #: the platform. Called on the event loop's thread; must not block.
+        self.on_event: EventSink | None = None
 
     # --- lifecycle ---------------------------------------------------------------------
     async def start(self) -> None:  # noqa: B027 - optional hook
@@ -206,53 +234,49 @@ class Adapter(abc.ABC):
         altitude and geofence checks; None when the command does not move it."""
         return None
 
+    async def check_failsafe_params(
+        self, expected_action: str, *, max_altitude_m: float | None = None
+    ) -> list[str]:
+        """Compare the vehicle's own fail-safe (an autopilot's, when the agent goes
+        silent) with a task's ``expected_action`` and ceiling; called when a task
+        starts. Returns the mismatches in words ([] when they agree); the agent reports
+        them as ``failsafe_mismatch``. Default: [] (no fail-safe of its own: the
+        agent's is the vehicle's)."""
+        return []
+
+    def emit(self, name: str, data: dict[str, Any]) -> None:
+        """Report an event of the vehicle's own to :attr:`on_event`, if set. Never
+        raises: a failing sink is logged."""
+        sink = self.on_event
+        if sink is None:
+            return
+        try:
+            sink(name, data)
+        except Exception:
+            logger.exception("%s: on_event(%s) failed", self.name, name)
+
     def video_source(self) -> Any | None:
         """A video source for WebRTC (see agents.video), or None without a camera."""
         return None
 
 
-def origin_option(options: Mapping[str, Any], adapter: str) -> tuple[float, float] | None:
-    """The ``origin`` option, ``[lat, lon]`` where a simulated vehicle starts (or a real
-    one without GPS counts from), or None. Raises ValueError naming the option."""
-    origin = options.get("origin")
-    if origin is None:
-        return None
-    if not isinstance(origin, Sequence) or isinstance(origin, str) or len(origin) != 2:
-        raise ValueError(f"{adapter} option origin: expected [lat, lon]")
-    lat, lon = float(origin[0]), float(origin[1])
-    if not (-90 <= lat <= 90 and -180 <= lon <= 180):
-        raise ValueError(f"{adapter} option origin: latitude or longitude out of range")
-    return (lat, lon)
+@dataclass
+class Simulation:
+    """A running simulator, as an integration's simulator hook yields it.
 
-
-REGISTRY: dict[str, type[Adapter]] = {}
-
-
-def register(cls: type[Adapter]) -> type[Adapter]:
-    """Class decorator: make an adapter available by its ``name``."""
-    REGISTRY[cls.name] = cls
-    return cls
-
-
-def adapter_class(name: str) -> type[Adapter]:
-    """The adapter class registered as ``name``.
-
-    Adapter modules are imported on demand so an agent only loads its own vehicle's
-    libraries (no pymavlink on a car). Raises KeyError naming the known adapters.
+    An integration's simulator module offers ``simulation(options)``: an async context
+    manager (:data:`SimulatorHook`) that takes the agent's adapter options (with the
+    simulator's own parameters under ``options["simulator"]``), starts the simulator
+    and yields this; on exit it stops the simulator. ``options`` are the adapter
+    options that drive the simulated vehicle: the input ones with what connects to the
+    simulator (a UDP address, a pty path, a mock pin factory...) and without
+    ``simulator``. ``simulator`` is the simulator itself (a world, a process), for tests
+    and diagnostics.
     """
-    if name not in REGISTRY:
-        import importlib
 
-        try:
-            importlib.import_module(f"agents.adapters.{name}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"agents.adapters.{name}":
-                raise
-    if name not in REGISTRY:
-        raise KeyError(f"unknown adapter {name!r}; known: {', '.join(sorted(REGISTRY))}")
-    return REGISTRY[name]
+    options: dict[str, Any]
+    simulator: Any = None
 
 
-def adapter_create(name: str, options: Mapping[str, Any]) -> Adapter:
-    """Instantiate the adapter registered as ``name`` (see :func:`adapter_class`)."""
-    return adapter_class(name)(options)
+#: ``simulation(options)`` of an integration's simulator module (see :class:`Simulation`).
+SimulatorHook = Callable[[Mapping[str, Any]], AbstractAsyncContextManager[Simulation]]

@@ -43,8 +43,8 @@ such as ``loop://``) fall back to a writer thread.
 Telemetry: the Convergence's FC sends nothing back over the receiver line, so on the
 real plane altitude, speed, position and battery are unknown (``None``) unless a
 companion sensor writes the same JSON lines as the simulator onto the return line. In
-simulation (``simulate``), :mod:`agents.sim.spektrum` sits on the other end of a pty,
-decodes the frames, checks their framing and timing, flies a VTOL/airplane model and
+simulation (``simulate``), :mod:`agents.vehicles.spektrum.sim.simulator` sits on the other
+end of a pty, decodes the frames, checks their framing and timing, flies a VTOL/airplane model and
 reports its state back as JSON lines. Anything malformed on the return line is counted
 and ignored.
 """
@@ -73,17 +73,16 @@ from typing import Any
 # pyserial ships no type hints of its own (types-pyserial adds them when installed).
 import serial  # type: ignore[import-untyped, unused-ignore]
 
-from agents.adapters.base import (
+from agents.geo import local_offset_m, offset
+from agents.vehicles.base import (
     Adapter,
     AdapterError,
     Breach,
     CommandSpec,
     Projection,
     VehicleState,
-    origin_option,
-    register,
 )
-from agents.geo import local_offset_m, offset
+from agents.vehicles.kit import OptionReader
 
 logger = logging.getLogger(__name__)
 
@@ -552,7 +551,7 @@ class SpektrumConfig:
                     f"spektrum option reversed_channels: {name!r} is not one of "
                     f"{', '.join(CHANNEL_NAMES)}"
                 )
-        origin = origin_option(options, "spektrum")
+        origin = OptionReader("spektrum", options).origin()
         sim = options.get("sim", {})
         if not isinstance(sim, Mapping):
             raise ValueError("spektrum option sim: an object of simulator parameters")
@@ -1170,14 +1169,14 @@ PUMP_MAGIC = b"SPK1"
 #: The pump reports its counters and frame times this often.
 PUMP_STATUS_S = 0.025
 _PUMP_BOOT = (
-    "import sys; from agents.adapters.spektrum import frame_pump_main; "
+    "import sys; from agents.vehicles.spektrum.adapter import frame_pump_main; "
     "sys.exit(frame_pump_main(sys.argv[1:]))"
 )
 
 
 def _child_env() -> dict[str, str]:
     """The environment for a child ``python``: this checkout importable as ``agents``."""
-    root = str(Path(__file__).resolve().parents[2])
+    root = str(Path(__file__).resolve().parents[3])
     path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p)
     return {**os.environ, "PYTHONPATH": path}
 
@@ -1484,7 +1483,6 @@ TELEMETRY_TOPICS = [
 ]
 
 
-@register
 class SpektrumAdapter(Adapter):
     """The Spektrum VTOL plane; see the module docstring and ``docs/vehicles/vtol.md``.
 
@@ -1582,7 +1580,7 @@ class SpektrumAdapter(Adapter):
     def _start_simulator(self) -> str:
         """Create a pty pair, put the simulator on the master side; returns the slave's
         path for pyserial (the same code path as a real UART)."""
-        from agents.sim.spektrum import FdLink, SpektrumSimulator
+        from agents.vehicles.spektrum.sim.simulator import FdLink, SpektrumSimulator
 
         cfg = self.config
         master, slave = os.openpty()

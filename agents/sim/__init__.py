@@ -1,1 +1,0 @@
-"""Simulators that stand in for vehicle hardware in tests and demos."""

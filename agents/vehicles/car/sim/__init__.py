@@ -1,0 +1,1 @@
+"""The car simulator (never imported by production code: see agents.simulation)."""

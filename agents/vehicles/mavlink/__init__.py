@@ -1,0 +1,30 @@
+"""MAVLink autopilots (the paper's 4.2.2 quadcopter): the agent is the ground station;
+see ``docs/vehicles/quadcopter.md``."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from agents.vehicles.base import Adapter, CommandSpec
+from agents.vehicles.registry import Integration
+
+
+def _create(options: Mapping[str, Any]) -> Adapter:
+    # Imported here: pymavlink is loaded only by an agent that flies an autopilot.
+    from agents.vehicles.mavlink.adapter import MavlinkAdapter
+
+    return MavlinkAdapter(options)
+
+
+def _commands(options: Mapping[str, Any]) -> list[CommandSpec]:
+    return _create(options).commands()
+
+
+INTEGRATION = Integration(
+    name="mavlink",
+    title="MAVLink autopilot (pymavlink)",
+    create=_create,
+    commands=_commands,
+    simulator="agents.vehicles.mavlink.sim.autopilot",
+)

@@ -1,0 +1,1 @@
+"""The mavlink simulator (never imported by production code: see agents.simulation)."""

@@ -1,0 +1,1 @@
+"""The spektrum simulator (never imported by production code: see agents.simulation)."""
