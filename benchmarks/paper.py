@@ -581,8 +581,7 @@ def world_seed(*, vehicles: int) -> World:
             defaults={
                 "name": "Paper benchmark: drive a car",
                 "description": "Reproduces the paper's response-time tests (benchmarks.paper).",
-                "mode": Service.Mode.SYNCHRONOUS,
-                "workflow": "manual_control",
+                "kind": "manual_control",
                 "is_active": True,
                 "allowed_commands": command_names(CAR_COMMANDS),
                 "failsafe_action": Service.Failsafe.STOP,

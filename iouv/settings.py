@@ -73,6 +73,10 @@ INSTALLED_APPS = [
     "accounts",
     "fleet",
     "services",
+    # Service kinds (services.kinds): one app each.
+    "kinds.manual_control",
+    "kinds.spectate",
+    "kinds.rescue_at_sea",
 ]
 
 MIDDLEWARE = [
@@ -286,7 +290,7 @@ IOUV_HTTP_CONCURRENCY = env_int("IOUV_HTTP_CONCURRENCY", 4)
 # Embedded mode: a worker process pushes through the database to the ASGI process.
 IOUV_LAYER_RELAY = env_bool("IOUV_LAYER_RELAY", True)
 
-# Rescue missions (services.rescue): how long a search may last, how long a search
+# Rescue missions (kinds.rescue_at_sea): how long a search may last, how long a search
 # vehicle may be silent before another takes over its remaining lines, the battery
 # level at which it is replaced, and how often the workflow's timer runs.
 IOUV_MISSION_SEARCH_TIMEOUT_S = env_int("IOUV_MISSION_SEARCH_TIMEOUT_S", 1200)

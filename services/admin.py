@@ -51,13 +51,13 @@ class ServiceGrantInline(admin.TabularInline):
 
 @admin.register(Service)
 class ServiceAdmin(admin.ModelAdmin):
-    list_display = ("slug", "name", "mode", "workflow", "is_active")
-    list_filter = ("mode", "workflow", "is_active")
+    list_display = ("slug", "name", "kind", "is_active")
+    list_filter = ("kind", "is_active")
     search_fields = ("slug", "name")
     prepopulated_fields = {"slug": ("name",)}
     inlines = (ServiceRoleInline, ServiceGrantInline)
     fieldsets = (
-        (None, {"fields": ("slug", "name", "description", "mode", "workflow", "is_active")}),
+        (None, {"fields": ("slug", "name", "description", "kind", "is_active")}),
         (
             "Commands and limits (signed into every vehicle task)",
             {

@@ -27,18 +27,18 @@ from accounts.tokens import token_authenticate
 from fleet.attributes import CAMERAS
 from fleet.models import Vehicle
 from fleet.status import fleet_snapshot
-from services.assignment import AssignmentError, session_request
+from services.assignment import AssignmentError
 from services.deployment import (
     DeploymentError,
     InvalidTaskError,
     grant_issue,
-    session_deploy,
     session_end,
     session_revoke,
     user_task_json,
 )
 from services.eventlog import session_log_verify
 from services.grants import services_for_user, user_can_use
+from services.kinds import Request, RequestError
 from services.models import Service, Session
 from services.openapi import (
     BASE_PATH,
@@ -47,7 +47,7 @@ from services.openapi import (
     REASON_MAX,
     openapi_document,
 )
-from services.rescue import RescueError, rescue_request
+from services.request import service_request
 from services.selectors import session_delivery
 from services.sessions import FINAL, SessionStateError
 
@@ -362,7 +362,7 @@ def service_json(service: Service) -> dict[str, Any]:
         "name": service.name,
         "description": service.description,
         "mode": service.mode,
-        "workflow": service.workflow,
+        "kind": service.kind,
         "commands": list(service.allowed_commands),
         "roles": [
             {
@@ -476,8 +476,9 @@ def services_list(request: HttpRequest) -> JsonResponse:
 
 @api_view("POST")
 def sessions_create(request: HttpRequest) -> JsonResponse:
-    """Request a session; a synchronous service is deployed at once (201 with the user
-    task), an asynchronous one is left to its workflow (201, task null)."""
+    """Request a session, as the portal does (services.request): a service its user
+    drives is deployed at once (201 with the user task); one the platform runs is left
+    to its kind's workflow (201, task null)."""
     _require_perm(request, "services.use_services", "request services")
     data = parse_session_request(json_body(request, required=True))
     service = Service.objects.filter(slug=data.service, is_active=True).first()
@@ -485,25 +486,13 @@ def sessions_create(request: HttpRequest) -> JsonResponse:
         raise field_error("service", f"no service {data.service!r}")
     if not user_can_use(request.user, service):
         raise ApiError(403, "permission_denied", f"you may not use the service {service.name!r}")
-    if service.workflow == "spectate":
-        raise field_error("service", "spectating is not requested as a session")
-    if service.workflow == "rescue_at_sea":
-        session = _rescue_create(request, service, data)
-        response = JsonResponse({"session": session_json(session), "task": None}, status=201)
-        response["Location"] = f"{BASE_PATH}/sessions/{session.pk}"
-        return response
-    if service.mode != Service.Mode.SYNCHRONOUS:
-        # Nothing would run it: reserving its vehicles would only strand them.
-        raise field_error("service", f"{service.name!r} has no workflow the API can start")
+    wish = Request(
+        target=data.target, relay=data.relay, preferences=data.preferences, params=data.params
+    )
     try:
-        session = session_request(
-            user=request.user,
-            service=service,
-            target=data.target,
-            params=data.params,
-            relay=data.relay,
-            preferences=data.preferences,
-        )
+        opened = service_request(user=request.user, service=service, request=wish)
+    except RequestError as exc:
+        raise field_error(exc.field or "service", str(exc)) from None
     except AssignmentError as exc:
         if exc.over_cap:
             raise ApiError(409, "session_limit", str(exc)) from None
@@ -516,38 +505,15 @@ def sessions_create(request: HttpRequest) -> JsonResponse:
             session_id=str(exc.session.pk),
             role=exc.role,
         ) from None
-    task = None
-    if service.mode == Service.Mode.SYNCHRONOUS:
-        try:
-            task = user_task_json(session_deploy(session=session), request=request)
-        except InvalidTaskError as exc:
-            raise ApiError(422, "invalid_task", str(exc), session_id=str(session.pk)) from None
-        except DeploymentError as exc:
-            raise ApiError(409, "session_state", str(exc), session_id=str(session.pk)) from None
-    response = JsonResponse({"session": session_json(session), "task": task}, status=201)
-    response["Location"] = f"{BASE_PATH}/sessions/{session.pk}"
+    except InvalidTaskError as exc:
+        failed = str(exc.session.pk) if exc.session is not None else None
+        raise ApiError(422, "invalid_task", str(exc), session_id=failed) from None
+    except DeploymentError as exc:
+        raise ApiError(409, "session_state", str(exc)) from None
+    task = user_task_json(opened.task, request=request) if opened.task is not None else None
+    response = JsonResponse({"session": session_json(opened.session), "task": task}, status=201)
+    response["Location"] = f"{BASE_PATH}/sessions/{opened.session.pk}"
     return response
-
-
-def _rescue_create(request: HttpRequest, service: Service, data: SessionRequestData) -> Session:
-    """A rescue at sea over ``params.area`` ([[lat, lon], ...]) at ``params.altitude_m``
-    (optional), started exactly as from the portal's map."""
-    if data.target is not None or data.relay or data.preferences:
-        raise field_error("service", "a rescue takes only params.area and params.altitude_m")
-    _only(data.params, {"area", "altitude_m"}, "params.")
-    if "area" not in data.params:
-        raise field_error("params.area", "is required: the search area, [[lat, lon], ...]")
-    altitude = data.params.get("altitude_m")
-    if altitude is not None:
-        altitude = _number(altitude, "params.altitude_m", 1, 500)
-    try:
-        return rescue_request(
-            user=request.user, service=service, area=data.params["area"], altitude_m=altitude
-        )
-    except RescueError as exc:
-        if exc.over_cap:
-            raise ApiError(409, "session_limit", str(exc)) from None
-        raise field_error("params.area", str(exc)) from None
 
 
 @api_view("GET")
@@ -560,8 +526,8 @@ def session_read(request: HttpRequest, session_id: Any) -> JsonResponse:
 def session_grant(request: HttpRequest, session_id: Any) -> JsonResponse:
     """A fresh controller grant for the session's owner, e.g. to reconnect."""
     session = _owned_session(request, session_id, "control")
-    if session.service.mode != Service.Mode.SYNCHRONOUS:
-        raise ApiError(409, "session_state", "an asynchronous session is run by its workflow")
+    if session.service.mode != "sync":
+        raise ApiError(409, "session_state", "this session is run by the platform, not driven")
     try:
         task = grant_issue(session=session, user=request.user)
     except DeploymentError as exc:

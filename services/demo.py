@@ -218,8 +218,7 @@ VEHICLES: dict[str, dict[str, Any]] = {
 # --------------------------------------------------------------------------------------
 
 _MANUAL: dict[str, Any] = {
-    "mode": Service.Mode.SYNCHRONOUS,
-    "workflow": "manual_control",
+    "kind": "manual_control",
     "link_loss_timeout_ms": 500,
     "latency_soft_ms": 150,
     "latency_hard_ms": 400,
@@ -277,9 +276,8 @@ SERVICES: dict[str, dict[str, Any]] = {
         "fields": {
             "name": "Spectate a vehicle",
             "description": "Watch a vehicle's camera; no control.",
-            "mode": Service.Mode.SYNCHRONOUS,
-            "workflow": "spectate",
-            # View only: the spectate workflow grants the viewer role, never control.
+            "kind": "spectate",
+            # View only: spectating grants the viewer role, never control.
             "allowed_commands": [],
             "failsafe_action": Service.Failsafe.STOP,
             "link_loss_timeout_ms": 500,
@@ -294,8 +292,7 @@ SERVICES: dict[str, dict[str, Any]] = {
                 "Report a person in the water: a thermal-camera drone searches the area, "
                 "then a payload drone drops a buoy and the rescue team is alerted."
             ),
-            "mode": Service.Mode.ASYNCHRONOUS,
-            "workflow": "rescue_at_sea",
+            "kind": "rescue_at_sea",
             "allowed_commands": [],
             "failsafe_action": Service.Failsafe.RETURN_TO_HOME,
             "link_loss_timeout_ms": 500,

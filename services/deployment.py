@@ -28,6 +28,7 @@ from fleet.outbox import agent_message_was_sent, agent_messages_cancel
 from fleet.uplink import vehicle_send
 from services.eventlog import event_append
 from services.grants import user_can_use
+from services.kinds import UnknownKind, kind_of
 from services.models import Assignment, Service, Session
 from services.sessions import FINAL, session_transition
 from services.signing import platform_private_key
@@ -41,7 +42,10 @@ class DeploymentError(Exception):
 
 
 class InvalidTaskError(DeploymentError):
-    """The service's settings (limits, mission) cannot make a valid vehicle task."""
+    """The service's settings (limits, mission) cannot make a valid vehicle task.
+    ``session``: the session failed for it, once one was."""
+
+    session: Session | None = None
 
 
 @dataclass(frozen=True)
@@ -109,13 +113,13 @@ def _primary(assignments: list[Assignment]) -> Assignment:
 
 
 def _mission_for(*, session: Session, assignment: Assignment) -> dict[str, Any] | None:
-    """The autonomous mission of this vehicle's task: the workflow's (one per vehicle,
-    from the mission's recorded state), else the session's ``params["mission"]``."""
-    if session.service.workflow == "rescue_at_sea":
-        from services.rescue import vehicle_mission  # the workflow builds on this module
-
-        return vehicle_mission(assignment=assignment)
-    return session.params.get("mission") if isinstance(session.params, dict) else None
+    """The autonomous mission of this vehicle's task: its kind's (from the workflow's
+    recorded state), else none."""
+    try:
+        kind = kind_of(session.service)
+    except UnknownKind:
+        return None
+    return kind.vehicle_mission(assignment=assignment)
 
 
 def vehicle_task_deploy(*, session: Session, assignment: Assignment) -> VehicleTask:
@@ -123,8 +127,8 @@ def vehicle_task_deploy(*, session: Session, assignment: Assignment) -> VehicleT
 
     Every call makes a new nonce: a task is never re-sent (docs/protocol.md, "Replay
     rule"). The push happens after the surrounding transaction commits. Raises
-    InvalidTaskError when the service's limits or the session's mission
-    (``params["mission"]``) cannot go into a task.
+    InvalidTaskError when the service's limits or the mission its kind flies cannot go
+    into a task.
     """
     service = session.service
     vehicle = assignment.vehicle
@@ -240,6 +244,7 @@ def session_deploy(*, session: Session) -> UserTask:
     except InvalidTaskError as exc:
         # The block above rolled back (no task went out); record why and free the vehicles.
         session_transition(session=session, to=Session.State.FAILED, reason=str(exc))
+        exc.session = session
         raise
 
 

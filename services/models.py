@@ -21,14 +21,21 @@ from fleet.attributes import (
     NumberAttribute,
 )
 from fleet.models import Vehicle, VehicleType
+from services.kinds import UnknownKind, kind_named, kinds
+
+
+def _kind_installed(value: str) -> None:
+    try:
+        kind_named(value)
+    except UnknownKind:
+        known = ", ".join(k.name for k in kinds()) or "none"
+        raise ValidationError(
+            f"no service kind {value!r} is installed (installed: {known})"
+        ) from None
 
 
 class Service(models.Model):
     """Something a user can ask the fleet to do, and the rules it runs under."""
-
-    class Mode(models.TextChoices):
-        SYNCHRONOUS = "sync", "synchronous (user controls live)"
-        ASYNCHRONOUS = "async", "asynchronous (autonomous workflow)"
 
     class Failsafe(models.TextChoices):
         STOP = "stop"
@@ -38,11 +45,12 @@ class Service(models.Model):
     slug = models.SlugField(unique=True)
     name = models.CharField(max_length=100)
     description = models.TextField(blank=True)
-    mode = models.CharField(max_length=5, choices=Mode.choices, default=Mode.SYNCHRONOUS)
-    workflow = models.CharField(
+    kind = models.CharField(
         max_length=40,
         default="manual_control",
-        help_text="What runs the session: manual_control, spectate or rescue_at_sea.",
+        validators=[_kind_installed],
+        help_text="What kind of service this is (services.kinds): what a request sets "
+        "going, what the user and the vehicles get.",
     )
     is_active = models.BooleanField(default=True)
     allowed_commands = models.JSONField(
@@ -80,6 +88,14 @@ class Service(models.Model):
 
     def __str__(self) -> str:
         return self.name
+
+    @property
+    def mode(self) -> str:
+        """``sync`` when a user drives the session live, else ``async`` (its kind's)."""
+        try:
+            return "sync" if kind_named(self.kind).user_drives else "async"
+        except UnknownKind:
+            return "async"
 
     def clean(self) -> None:
         if (
@@ -293,80 +309,3 @@ class SessionEvent(models.Model):
 
     def delete(self, *args: Any, **kwargs: Any) -> Any:
         raise ValidationError("session events are append-only")
-
-
-class Mission(models.Model):
-    """The workflow state of an asynchronous session (services.rescue): one per session.
-
-    The state machine lives here, in the database, so any worker can take the next
-    step and a killed worker loses nothing; every change is also in the session log.
-    """
-
-    class State(models.TextChoices):
-        WAITING_SEARCH = "waiting_search", "waiting for a search vehicle"
-        SEARCHING = "searching"
-        WAITING_DELIVERY = "waiting_delivery", "person found, waiting for a delivery vehicle"
-        DELIVERING = "delivering"
-        RETURNING = "returning", "vehicles returning to their stations"
-        COMPLETED = "completed"
-        NOT_FOUND = "not_found", "search finished without finding the person"
-        TIMED_OUT = "timed_out", "search timed out"
-        FAILED = "failed"
-        ABORTED = "aborted"
-
-    session = models.OneToOneField(
-        Session, on_delete=models.CASCADE, primary_key=True, related_name="mission"
-    )
-    state = models.CharField(max_length=20, choices=State.choices, default=State.WAITING_SEARCH)
-    #: Why the mission waits or ended, in words for the user and monitors.
-    status_text = models.CharField(max_length=300, blank=True)
-    #: The search area: [[lat, lon], ...], a simple polygon.
-    area = models.JSONField()
-    altitude_m = models.FloatField()
-    speed_mps = models.FloatField()
-    spacing_m = models.FloatField(default=0.0)
-    #: The coverage path: [[lat, lon], ...] in flying order.
-    path = models.JSONField(default=list, blank=True)
-    #: Index in ``path`` of the last waypoint a search vehicle reached (-1: none yet).
-    progress = models.IntegerField(default=-1)
-    #: {"lat", "lon", "confidence", ...} once the person is found.
-    detection = models.JSONField(null=True, blank=True)
-    detected_at = models.DateTimeField(null=True, blank=True)
-    released_at = models.DateTimeField(null=True, blank=True)
-    search_deadline = models.DateTimeField(null=True, blank=True)
-    #: How many search vehicles have flown it (the first, then replacements).
-    search_legs = models.PositiveIntegerField(default=0)
-    updated_at = models.DateTimeField(auto_now=True)
-
-    def __str__(self) -> str:
-        return f"mission {self.session_id} ({self.state})"
-
-
-class MissionNotification(models.Model):
-    """One notice to the rescue team on one channel; at most one per mission and
-    channel, so a step that runs twice never pages the team twice."""
-
-    class Channel(models.TextChoices):
-        EMAIL = "email"
-        WEBHOOK = "webhook"
-        DASHBOARD = "dashboard"
-
-    mission = models.ForeignKey(Mission, on_delete=models.CASCADE, related_name="notifications")
-    channel = models.CharField(max_length=10, choices=Channel.choices)
-    target = models.CharField(max_length=300, blank=True)
-    payload = models.JSONField()
-    created_at = models.DateTimeField(auto_now_add=True)
-    sent_at = models.DateTimeField(null=True, blank=True)
-    attempts = models.PositiveIntegerField(default=0)
-    #: A worker sending this notice holds it until then; after that (the worker died
-    #: mid-send), another may send it again, with the same idempotency key.
-    claimed_until = models.DateTimeField(null=True, blank=True)
-    last_error = models.CharField(max_length=300, blank=True)
-
-    class Meta:
-        constraints = [
-            models.UniqueConstraint(fields=["mission", "channel"], name="one_notice_per_channel")
-        ]
-
-    def __str__(self) -> str:
-        return f"{self.channel} for {self.mission_id}"

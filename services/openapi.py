@@ -21,7 +21,6 @@ REASON_MAX = 300
 # Free-form params are stored as JSON: deep nesting gains nothing and some databases'
 # JSON functions refuse it.
 PARAMS_MAX_DEPTH = 16
-MODES = list(Service.Mode.values)
 
 Schema = dict[str, Any]
 
@@ -179,7 +178,7 @@ SERVICE = obj(
         "mode": string(
             "sync: the user controls live; async: a workflow runs it.", enum=["sync", "async"]
         ),
-        "workflow": string(),
+        "kind": string("The service's kind: manual_control, rescue_at_sea, ... (services.kinds)."),
         "commands": array(string(), "Commands a controller may send; empty = view only."),
         "roles": array(ref("ServiceRole")),
         "limits": ref("Limits"),

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from typing import Any
 
-from django.db.models import QuerySet
-
 from fleet.models import AgentMessage, Vehicle
 from fleet.outbox import ENDING, agent_messages_owed
 from services.models import Service, Session
@@ -78,21 +76,6 @@ def session_delivery(session: Session) -> list[dict[str, Any]]:
             }
         )
     return out
-
-
-def sessions_spectatable() -> QuerySet[Session]:
-    """Live sessions whose main vehicle streams video: what spectators may watch."""
-    return (
-        Session.objects.exclude(state__in=FINAL)
-        .filter(
-            state__in=[Session.State.ASSIGNED, Session.State.ACTIVE],
-            assignments__active=True,
-            assignments__vehicle__profile__video=True,
-        )
-        .select_related("service", "user")
-        .distinct()
-        .order_by("-created_at")
-    )
 
 
 def service_vehicles_matching(service: Service) -> list[Vehicle]:

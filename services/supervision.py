@@ -50,8 +50,8 @@ from services.deployment import (
     vehicle_task_deploy,
 )
 from services.eventlog import event_append
+from services.kinds import ServiceKind, UnknownKind, kind_of, kinds_user_driven
 from services.models import Assignment, Service, Session, SessionEvent
-from services.rescue import MISSION_EVENTS, WORKFLOW, mission_event, mission_task_accepted
 from services.sessions import SessionStateError, session_transition
 from services.signing import platform_public_key_pem
 
@@ -119,8 +119,9 @@ def _task_accepted(*, vehicle_id: Any, message: dict[str, Any]) -> None:
         return
     session = assignment.session
     event_append(session=session, kind="task_accepted", data={"vehicle": str(vehicle_id)})
-    if session.service.workflow == WORKFLOW:
-        mission_task_accepted(assignment=assignment)
+    kind = _kind(session.service)
+    if kind is not None:
+        kind.task_accepted(assignment=assignment)
     if not _serving(assignment):
         # A late acceptance of a session that is over. Its end normally follows the
         # task in the vehicle's outbox; should none be owed, owe one now.
@@ -198,7 +199,8 @@ def _agent_event(*, vehicle_id: Any, message: dict[str, Any]) -> None:
         return
     if name in _LIVE_ONLY and not _serving(assignment):
         return  # a late report of a session that is over: nothing to act on or show
-    handler = _EVENT_HANDLERS.get(name)
+    kind = _kind(assignment.session.service)
+    handler = _EVENT_HANDLERS.get(name) or (kind.event_handlers.get(name) if kind else None)
     if handler is None:
         event_append(
             session=assignment.session,
@@ -342,14 +344,13 @@ _EVENT_HANDLERS = {
 }
 
 
-def _on_mission_event(name: str) -> Any:
-    def handler(assignment: Assignment, data: dict[str, Any]) -> None:
-        mission_event(assignment=assignment, name=name, data=data)
-
-    return handler
-
-
-_EVENT_HANDLERS.update({name: _on_mission_event(name) for name in MISSION_EVENTS})
+def _kind(service: Service) -> ServiceKind | None:
+    """The service's kind; None (logged) when it is not installed here."""
+    try:
+        return kind_of(service)
+    except UnknownKind:
+        log.warning("service %s: its kind %r is not installed", service.slug, service.kind)
+        return None
 
 
 # --------------------------------------------------------------------------------------
@@ -569,7 +570,7 @@ def sessions_expire_unconnected(*, now: datetime | None = None) -> list[str]:
     ended: list[str] = []
     stale = Session.objects.filter(
         state=Session.State.ASSIGNED,
-        service__mode=Service.Mode.SYNCHRONOUS,
+        service__kind__in=kinds_user_driven(),
         assigned_at__lte=cutoff,
     )
     for session in stale:
@@ -601,7 +602,7 @@ def sessions_end_vehicle_lost(*, now: datetime | None = None) -> list[str]:
         Assignment.objects.filter(
             active=True,
             session__state__in=LIVE,
-            session__service__mode=Service.Mode.SYNCHRONOUS,
+            session__service__kind__in=kinds_user_driven(),
             vehicle__status=Vehicle.Status.OFFLINE,
         )
         .filter(Q(vehicle__last_seen__lte=cutoff) | Q(vehicle__last_seen__isnull=True))

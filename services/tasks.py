@@ -1,7 +1,8 @@
 """Celery tasks of the services app: the supervisor's timers.
 
-They keep no state of their own: each reads the session log, so a worker restart
-loses nothing and running one twice changes nothing.
+They keep no state of their own: each reads the database, so a worker restart loses
+nothing and running one twice changes nothing. Each service kind has its own tasks
+(``kinds/<kind>/tasks.py``).
 """
 
 from __future__ import annotations
@@ -10,7 +11,6 @@ from celery import shared_task
 from django.conf import settings
 
 from iouv.celery import app
-from services.rescue import mission_advance, missions_tick
 from services.supervision import (
     sessions_end_vehicle_lost,
     sessions_expire_grace,
@@ -50,18 +50,6 @@ def services_expire_undelivered() -> int:
     return len(sessions_expire_undelivered())
 
 
-@shared_task(name="services.mission_step", acks_late=True)
-def mission_step(session_id: str) -> str | None:
-    """One step of a mission's workflow (idempotent: safe to run twice)."""
-    return mission_advance(session_id)
-
-
-@shared_task(name="services.missions_tick")
-def services_missions_tick() -> int:
-    """Re-run every unfinished mission: timers, waiting, lost messages."""
-    return missions_tick()
-
-
 @app.on_after_finalize.connect
 def _schedule(sender, **kwargs) -> None:  # type: ignore[no-untyped-def]
     tick = settings.IOUV_SUPERVISION_TICK_S
@@ -72,6 +60,3 @@ def _schedule(sender, **kwargs) -> None:  # type: ignore[no-untyped-def]
         15.0, services_expire_unconnected.s(), name="end sessions nobody joined"
     )
     sender.add_periodic_task(15.0, services_expire_undelivered.s(), name="fail undelivered tasks")
-    sender.add_periodic_task(
-        settings.IOUV_MISSION_TICK_S, services_missions_tick.s(), name="advance missions"
-    )

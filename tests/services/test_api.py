@@ -202,12 +202,12 @@ def test_preferences_narrow_the_requirements(drone, fly, alice):
     assert "thermal" in error["message"]
 
 
-def test_an_asynchronous_service_no_workflow_runs_is_refused_and_holds_nothing(drone, alice):
+def test_a_service_whose_kind_is_not_installed_is_refused_and_holds_nothing(drone, alice):
     """Reserving its vehicles would strand them: nothing would ever run the session."""
-    f.service("autonomous", mode=Service.Mode.ASYNCHRONOUS)
+    Service.objects.filter(pk=f.service("autonomous").pk).update(kind="not_installed")
     response = call("POST", "/sessions", token=alice, body={"service": "autonomous"})
     error = _error(response, 400, "invalid_field")
-    assert error["field"] == "service" and "no workflow" in error["message"]
+    assert error["field"] == "service" and "not installed" in error["message"]
     assert not Session.objects.exists()
     drone.refresh_from_db()
     assert drone.status == Vehicle.Status.IDLE
@@ -252,7 +252,7 @@ def test_a_user_without_the_client_role_cannot_request(drone, fly, monitor):
 
 
 def test_spectating_is_not_requested_as_a_session(drone, alice):
-    f.service("watch", workflow="spectate")
+    f.service("watch", kind="spectate")
     response = call("POST", "/sessions", token=alice, body={"service": "watch"})
     error = _error(response, 400, "invalid_field")
     assert error["field"] == "service"
@@ -713,7 +713,7 @@ def test_the_live_api_conforms_to_its_schema(wsgi_app, drone, fly, mode):
     """No 5xx, only documented statuses, headers and bodies, and every invalid request
     refused; in positive mode every operation also succeeds at least once. The token's
     user is both a client and a monitor, so every endpoint answers for real."""
-    f.service("rescue", mode=Service.Mode.ASYNCHRONOUS)
+    f.service("rescue", kind="rescue_at_sea")
     # Every session-id operation needs a live session of its own.
     Service.objects.filter(pk=fly.pk).update(max_sessions_per_user=1000)
     token = _token("fuzzer", CLIENT, MONITOR)

@@ -15,13 +15,10 @@ from django.urls import reverse
 
 from agents.protocol import UserGrant
 from services.assignment import session_request
-from services.demo import demo_seed
-from services.models import Service, Session
-from services.rescue import rescue_request
+from services.models import Session
 from services.signing import platform_public_key
 from tests import factories as f
 from tests.services.test_deployment import TARGET, _registered_vehicle, _service
-from tests.services.test_rescue import area, online
 
 pytestmark = pytest.mark.django_db
 
@@ -60,27 +57,3 @@ def test_a_fresh_grant_to_reconnect_is_not_stored(client, live) -> None:
     answer = client.post(reverse("session_grant", args=[session.pk]))
     _uncacheable(answer)
     UserGrant.verify(answer.json()["grant"], platform_public_key(), vehicle_id=vehicle_id)
-
-
-def test_the_spectators_page_is_not_stored(client, live) -> None:
-    session, vehicle_id = live
-    f.service("spectate", workflow="spectate")
-    client.force_login(f.user(username="vera"))
-    page = client.get(reverse("spectate_session", args=[session.pk]))
-    _uncacheable(page)
-    assert _page_grant(page.content.decode(), vehicle_id).role == "viewer"
-
-
-def test_the_rescue_mission_page_is_not_stored(client) -> None:
-    # The same view as the controller's: once a search vehicle flies, it carries the
-    # user's viewer grant.
-    demo_seed(password="pw")
-    online("search-1", "lifeguard-1")
-    user = f.user(username="skipper")
-    session = rescue_request(
-        user=user, service=Service.objects.get(slug="rescue-at-sea"), area=area()
-    )
-    client.force_login(user)
-    page = client.get(reverse("session", args=[session.pk]))
-    _uncacheable(page)
-    assert 'id="mission-map"' in page.content.decode()

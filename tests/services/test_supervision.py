@@ -29,7 +29,7 @@ from fleet.uplink import vehicle_record_heartbeat
 from iouv.asgi import application
 from services.assignment import session_request
 from services.deployment import session_deploy, session_end
-from services.models import Service, Session
+from services.models import Session
 from services.signing import platform_public_key
 from services.supervision import (
     LINK_QUALITY_EVERY_S,
@@ -454,7 +454,7 @@ def test_a_session_nobody_connects_to_ends_after_the_connect_timeout(live, commi
 
 def test_an_autonomous_session_waits_for_no_user(inbox, committing):
     vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type())
-    service = f.service(mode=Service.Mode.ASYNCHRONOUS)
+    service = f.service(kind="rescue_at_sea")
     session_request(user=f.user(), service=service)
     later = timezone.now() + timedelta(seconds=settings.IOUV_CONNECT_TIMEOUT_S + 60)
     assert sessions_expire_unconnected(now=later) == []

@@ -21,17 +21,15 @@ from agents.geo import offset
 from agents.protocol import parse_message
 from fleet.models import Station, Vehicle
 from fleet.signals import agent_message
+from kinds.rescue_at_sea.missions import vehicle_mission
+from kinds.rescue_at_sea.models import Mission, MissionNotification
+from kinds.rescue_at_sea.notifications import notices_create, notifications_send
+from kinds.rescue_at_sea.presentation import mission_json
+from kinds.rescue_at_sea.request import RescueError, rescue_request
+from kinds.rescue_at_sea.workflow import mission_advance, missions_tick
+from services.assignment import AssignmentError
 from services.demo import demo_seed
-from services.models import Assignment, Mission, MissionNotification, Service, Session
-from services.rescue import (
-    RescueError,
-    mission_advance,
-    mission_json,
-    missions_tick,
-    notifications_send,
-    rescue_request,
-    vehicle_mission,
-)
+from services.models import Assignment, Service, Session
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db
@@ -75,7 +73,10 @@ def mission(session: Session) -> Mission:
 
 
 def step(session: Session) -> str:
-    return mission_advance(session.pk)
+    """One step, then the notice task it scheduled, as a worker runs both."""
+    state = mission_advance(session.pk)
+    notifications_send(session.pk)
+    return state
 
 
 @pytest.fixture
@@ -382,10 +383,11 @@ def test_bad_requests_are_refused_and_record_nothing(world, client_user, kwargs,
 
 
 def test_users_without_the_grant_and_other_services_are_refused(world) -> None:
-    with pytest.raises(RescueError, match="may not use"):
+    with pytest.raises(AssignmentError, match="may not use"):
         rescue_request(user=f.user(roles=()), service=world, area=area())
     with pytest.raises(RescueError, match="not a rescue service"):
         rescue_request(user=f.user(), service=Service.objects.get(slug="fly-drone"), area=area())
+    assert not Session.objects.exists()
 
 
 class _Hook(http.server.BaseHTTPRequestHandler):
@@ -444,11 +446,9 @@ def test_a_notice_being_sent_by_another_worker_is_not_sent_again(world, client_u
     # Another worker holds the e-mail (it is sending it right now).
     report(session, search.vehicle, "person_detected", lat=person[0], lon=person[1])
     with time_machine.travel(timezone.now()):
-        from services.rescue import _notices_create
-
         m = mission(session)
         m.session = session
-        _notices_create(m)
+        notices_create(m)
     MissionNotification.objects.filter(channel="email").update(
         claimed_until=timezone.now() + timedelta(seconds=30), attempts=1
     )

@@ -26,9 +26,10 @@ from agents.config import AgentConfig
 from agents.geo import distance_m, offset
 from agents.runtime import Agent
 from fleet.models import Station, Vehicle
+from kinds.rescue_at_sea.models import Mission, MissionNotification
+from kinds.rescue_at_sea.request import rescue_request
 from services.demo import CASTAWAY, agent_configs_write, demo_seed
-from services.models import Assignment, Mission, MissionNotification, Service, Session
-from services.rescue import rescue_request
+from services.models import Assignment, Service, Session
 from tests.browser import chromium_browser, needs_chromium
 from tests.servers import celery_worker_process, db, platform_process, until
 

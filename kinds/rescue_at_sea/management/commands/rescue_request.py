@@ -15,9 +15,12 @@ from django.contrib.auth import get_user_model
 from django.core.management.base import BaseCommand, CommandError, CommandParser
 
 from agents.geo import offset
+from kinds.rescue_at_sea.kind import RescueAtSea
+from kinds.rescue_at_sea.request import rescue_request
+from services.assignment import AssignmentError
 from services.demo import CASTAWAY
+from services.kinds import RequestError
 from services.models import Service
-from services.rescue import WORKFLOW, RescueError, rescue_request
 
 
 def _pair(text: str, sep: str, what: str) -> tuple[float, float]:
@@ -49,7 +52,7 @@ class Command(BaseCommand):
         user = get_user_model().objects.filter(username=options["user"]).first()
         if user is None:
             raise CommandError(f"no user {options['user']!r}")
-        services = Service.objects.filter(workflow=WORKFLOW, is_active=True)
+        services = Service.objects.filter(kind=RescueAtSea.name, is_active=True)
         if options["service"]:
             services = services.filter(slug=options["service"])
         service = services.first()
@@ -77,6 +80,6 @@ class Command(BaseCommand):
             session = rescue_request(
                 user=user, service=service, area=area, altitude_m=options["altitude"]
             )
-        except RescueError as exc:
+        except (RequestError, AssignmentError) as exc:
             raise CommandError(str(exc)) from None
         self.stdout.write(f"rescue {session.pk} requested; watch it at /sessions/{session.pk}/")

@@ -1,8 +1,7 @@
-"""Portal forms."""
+"""The request form of manual control: where, extra vehicle wishes, relay."""
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 from django import forms
@@ -58,28 +57,3 @@ class SessionRequestForm(forms.Form):
         if self.cleaned_data.get("min_battery") is not None:
             prefs["min_battery"] = self.cleaned_data["min_battery"]
         return prefs
-
-
-class RescueRequestForm(forms.Form):
-    """A rescue request: the search area drawn on the map, and the search altitude."""
-
-    area = forms.CharField(
-        widget=forms.HiddenInput,
-        error_messages={"required": "Draw the search area on the map (at least 3 points)."},
-    )
-    altitude_m = forms.FloatField(
-        required=False,
-        min_value=1,
-        max_value=500,
-        label="Search altitude (m)",
-        help_text="Higher sees a wider strip per pass; lower sees a person more clearly.",
-    )
-
-    def clean_area(self) -> Any:
-        raw = self.cleaned_data["area"]
-        if len(raw) > 20_000:
-            raise forms.ValidationError("The area has too many points.")
-        try:
-            return json.loads(raw)
-        except ValueError:
-            raise forms.ValidationError("The area is not valid JSON.") from None

@@ -7,10 +7,13 @@ import json
 import pytest
 from django.urls import reverse
 
+from kinds.rescue_at_sea.models import Mission
+from kinds.rescue_at_sea.request import rescue_request
+from kinds.rescue_at_sea.tests.test_workflow import area, online
 from services.demo import demo_seed
-from services.models import Mission, Session
+from services.models import Service, Session
 from tests import factories as f
-from tests.services.test_rescue import area, online
+from tests.services.test_grant_pages import _uncacheable
 
 pytestmark = pytest.mark.django_db
 
@@ -73,3 +76,18 @@ def test_the_mission_is_private_to_its_user_and_the_monitors(client, skipper) ->
     assert client.get(reverse("session", args=[session.pk])).status_code == 404
     client.force_login(f.user(username="watch", roles=("monitor",)))
     assert client.get(mission_url).status_code == 200
+
+
+def test_the_rescue_mission_page_is_not_stored(client) -> None:
+    # The same view as the controller's: once a search vehicle flies, it carries the
+    # user's viewer grant.
+    demo_seed(password="pw")
+    online("search-1", "lifeguard-1")
+    user = f.user(username="skipper")
+    session = rescue_request(
+        user=user, service=Service.objects.get(slug="rescue-at-sea"), area=area()
+    )
+    client.force_login(user)
+    page = client.get(reverse("session", args=[session.pk]))
+    _uncacheable(page)
+    assert 'id="mission-map"' in page.content.decode()

@@ -8,7 +8,7 @@ import math
 import pytest
 
 from agents.geo import distance_m, local_offset_m, offset
-from services.coverage import (
+from kinds.rescue_at_sea.coverage import (
     AreaError,
     area_centroid,
     area_clean,

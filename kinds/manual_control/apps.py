@@ -1,0 +1,13 @@
+from django.apps import AppConfig
+
+
+class ManualControlConfig(AppConfig):
+    name = "kinds.manual_control"
+    label = "manual_control"
+    verbose_name = "Manual control"
+
+    def ready(self) -> None:
+        from kinds.manual_control.kind import ManualControl
+        from services.kinds import kind_register
+
+        kind_register(ManualControl())

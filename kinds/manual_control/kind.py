@@ -1,0 +1,50 @@
+"""Manual control, as a service kind: the user drives one vehicle live."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from django import forms
+from django.contrib.auth.models import AbstractBaseUser
+
+from kinds.manual_control.forms import SessionRequestForm
+from services.assignment import session_request
+from services.deployment import session_deploy
+from services.kinds import Opened, Request, ServiceKind
+from services.models import Service
+
+
+class ManualControl(ServiceKind):
+    """The platform reserves the best vehicle near the target and deploys its task;
+    the user drives it point-to-point from the controller page while the platform
+    supervises. The paper's first kind of service."""
+
+    name = "manual_control"
+    label = "Manual control"
+    user_drives = True
+    accepts = frozenset({"target", "relay", "preferences"})
+    form_class = SessionRequestForm
+    request_template = "manual_control/request.html"
+
+    def request_from_form(self, form: forms.Form) -> Request:
+        assert isinstance(form, SessionRequestForm)
+        return Request(
+            target=form.target(),
+            relay=bool(form.cleaned_data["relay"]),
+            preferences=form.preferences(),
+        )
+
+    def open(self, *, service: Service, user: AbstractBaseUser, request: Request) -> Opened:
+        session = session_request(
+            user=user,
+            service=service,
+            target=request.target,
+            params=dict(request.params),
+            relay=request.relay,
+            preferences=dict(request.preferences),
+        )
+        return Opened(session=session, task=session_deploy(session=session))
+
+    def params_clean(self, params: Any) -> dict[str, Any]:
+        # Free-form, kept with the session (the API limits their depth and size).
+        return dict(params)

@@ -1,0 +1,69 @@
+"""The missions signed into the rescue vehicles' tasks, built from the recorded state,
+so a re-sent task carries the same mission (and the same id) as the first."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from kinds.rescue_at_sea.models import DELIVERY, SEARCH, Mission
+from services.models import Assignment
+
+#: Search speed cap: faster smears the thermal image (about 9 frames per second).
+SEARCH_SPEED_MPS = 10.0
+DELIVERY_ALTITUDE_M = 25.0
+DROP_ALTITUDE_M = 4.0
+#: A detection below this confidence is not acted on by the agent.
+MIN_CONFIDENCE = 0.6
+
+
+def vehicle_mission(*, assignment: Assignment) -> dict[str, Any] | None:
+    """The ``mission`` signed into ``assignment``'s vehicle task, from the recorded
+    state, so a re-sent task carries the same mission (and the same id) as the first.
+    None when the session has no mission."""
+    mission = Mission.objects.filter(pk=assignment.session_id).first()
+    if mission is None:
+        return None
+    vehicle = assignment.vehicle
+    top_speed = float(vehicle.attributes.get("max_speed_mps") or SEARCH_SPEED_MPS)
+    # The id names the session, the role and this assignment: the agent keeps one
+    # running mission per id and never repeats it.
+    mission_id = f"{assignment.session_id}-{assignment.role}-{assignment.pk}"
+    if assignment.role == SEARCH:
+        start = _start_index(mission, assignment)
+        return {
+            "kind": "search",
+            "id": mission_id,
+            "altitude_m": mission.altitude_m,
+            "speed_mps": min(top_speed, mission.speed_mps),
+            "waypoints": mission.path,
+            "start_index": start,
+            "min_confidence": MIN_CONFIDENCE,
+        }
+    if assignment.role == DELIVERY and mission.detection is not None:
+        return {
+            "kind": "delivery",
+            "id": mission_id,
+            "target": [mission.detection["lat"], mission.detection["lon"]],
+            "altitude_m": DELIVERY_ALTITUDE_M,
+            "drop_altitude_m": DROP_ALTITUDE_M,
+            "speed_mps": top_speed,
+        }
+    return None
+
+
+def _start_index(mission: Mission, assignment: Assignment) -> int:
+    """Where a search vehicle starts: where the pattern stood when it was assigned.
+
+    A replacement re-flies the leg its predecessor was on (from the last waypoint
+    reached), so no strip of the area is skipped.
+    """
+    start = (
+        assignment.session.events.filter(
+            kind="search_leg", data__vehicle=str(assignment.vehicle_id)
+        )
+        .order_by("-seq")
+        .first()
+    )
+    if start is not None and isinstance(start.data.get("start_index"), int):
+        return int(start.data["start_index"])
+    return max(mission.progress, 0)

@@ -1,0 +1,117 @@
+"""Rescue at sea: the mission of each rescue, and its notices to the rescue team."""
+
+from __future__ import annotations
+
+from django.db import models
+
+from services.models import Session
+
+
+class Mission(models.Model):
+    """The state of one rescue (one per session): the workflow's state machine.
+
+    The state machine lives here, in the database, so any worker can take the next
+    step and a killed worker loses nothing; every change is also in the session log.
+    """
+
+    class State(models.TextChoices):
+        WAITING_SEARCH = "waiting_search", "waiting for a search vehicle"
+        SEARCHING = "searching"
+        WAITING_DELIVERY = "waiting_delivery", "person found, waiting for a delivery vehicle"
+        DELIVERING = "delivering"
+        RETURNING = "returning", "vehicles returning to their stations"
+        COMPLETED = "completed"
+        NOT_FOUND = "not_found", "search finished without finding the person"
+        TIMED_OUT = "timed_out", "search timed out"
+        FAILED = "failed"
+        ABORTED = "aborted"
+
+    session = models.OneToOneField(
+        Session, on_delete=models.CASCADE, primary_key=True, related_name="mission"
+    )
+    state = models.CharField(max_length=20, choices=State.choices, default=State.WAITING_SEARCH)
+    #: Why the mission waits or ended, in words for the user and monitors.
+    status_text = models.CharField(max_length=300, blank=True)
+    #: The search area: [[lat, lon], ...], a simple polygon.
+    area = models.JSONField()
+    altitude_m = models.FloatField()
+    speed_mps = models.FloatField()
+    spacing_m = models.FloatField(default=0.0)
+    #: The coverage path: [[lat, lon], ...] in flying order.
+    path = models.JSONField(default=list, blank=True)
+    #: Index in ``path`` of the last waypoint a search vehicle reached (-1: none yet).
+    progress = models.IntegerField(default=-1)
+    #: {"lat", "lon", "confidence", ...} once the person is found.
+    detection = models.JSONField(null=True, blank=True)
+    detected_at = models.DateTimeField(null=True, blank=True)
+    released_at = models.DateTimeField(null=True, blank=True)
+    search_deadline = models.DateTimeField(null=True, blank=True)
+    #: How many search vehicles have flown it (the first, then replacements).
+    search_legs = models.PositiveIntegerField(default=0)
+    updated_at = models.DateTimeField(auto_now=True)
+
+    class Meta:
+        # Created by the services app before rescue became a kind of its own.
+        db_table = "services_mission"
+
+    def __str__(self) -> str:
+        return f"mission {self.session_id} ({self.state})"
+
+
+class MissionNotification(models.Model):
+    """One notice to the rescue team on one channel; at most one per mission and
+    channel, so a step that runs twice never pages the team twice."""
+
+    class Channel(models.TextChoices):
+        EMAIL = "email"
+        WEBHOOK = "webhook"
+        DASHBOARD = "dashboard"
+
+    mission = models.ForeignKey(Mission, on_delete=models.CASCADE, related_name="notifications")
+    channel = models.CharField(max_length=10, choices=Channel.choices)
+    target = models.CharField(max_length=300, blank=True)
+    payload = models.JSONField()
+    created_at = models.DateTimeField(auto_now_add=True)
+    sent_at = models.DateTimeField(null=True, blank=True)
+    attempts = models.PositiveIntegerField(default=0)
+    #: A worker sending this notice holds it until then; after that (the worker died
+    #: mid-send), another may send it again, with the same idempotency key.
+    claimed_until = models.DateTimeField(null=True, blank=True)
+    last_error = models.CharField(max_length=300, blank=True)
+
+    class Meta:
+        db_table = "services_missionnotification"
+        constraints = [
+            models.UniqueConstraint(fields=["mission", "channel"], name="one_notice_per_channel")
+        ]
+
+    def __str__(self) -> str:
+        return f"{self.channel} for {self.mission_id}"
+
+
+#: The kind's name (services.kinds), stored in ``Service.kind``.
+KIND = "rescue_at_sea"
+
+#: The service roles of a rescue: the drone that searches, the vehicle that delivers.
+SEARCH = "search"
+DELIVERY = "delivery"
+
+#: Mission states after which nothing more happens.
+FINAL_MISSION = frozenset(
+    {
+        Mission.State.COMPLETED,
+        Mission.State.NOT_FOUND,
+        Mission.State.TIMED_OUT,
+        Mission.State.FAILED,
+        Mission.State.ABORTED,
+    }
+)
+#: Mission states in which vehicles are still out working.
+WORKING = frozenset(
+    {
+        Mission.State.WAITING_SEARCH,
+        Mission.State.SEARCHING,
+        Mission.State.WAITING_DELIVERY,
+        Mission.State.DELIVERING,
+    }
+)

@@ -1,0 +1,394 @@
+"""The rescue's state machine: one idempotent step at a time.
+
+    waiting_search ──► searching ──► waiting_delivery ──► delivering ──► returning ──► completed
+          ▲                │ vehicle lost / low battery / refused: its remaining
+          └────────────────┘ lines go to another vehicle
+    searching ──► timed_out / not_found;  any state ──► aborted / failed (with the session)
+
+:func:`mission_advance` is the step: it locks the mission row, looks at the recorded
+facts and does what the current state calls for. Steps decide from the database only,
+everything they change is committed with the state that records it, and a step that
+runs twice (a worker killed before its ack, a timer and an event together) finds the
+work done. Celery runs them (``tasks``) with late acknowledgement, and a periodic timer
+re-runs every unfinished mission, so a lost message delays a mission by one tick.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from datetime import timedelta
+from typing import Any
+
+from django.conf import settings
+from django.db import transaction
+from django.utils import timezone
+
+from agents.geo import distance_m
+from fleet.models import Vehicle
+from kinds.rescue_at_sea.models import DELIVERY, FINAL_MISSION, SEARCH, Mission
+from kinds.rescue_at_sea.notifications import notices_create, notices_pending, notify_schedule
+from kinds.rescue_at_sea.presentation import timeline
+from services.assignment import AssignmentError, role_assign
+from services.deployment import session_end, vehicle_release, vehicle_task_deploy
+from services.eventlog import event_append
+from services.models import Assignment, Session
+from services.sessions import FINAL, SessionStateError, session_transition
+
+log = logging.getLogger(__name__)
+
+S = Mission.State
+#: A vehicle this close to its station, on the ground, is home.
+HOME_RADIUS_M = 30.0
+#: After this long the mission stops waiting for its vehicles to land and completes.
+RETURN_WAIT_S = 900
+
+#: Why a vehicle left a mission. One that went offline may come back and fly again; one
+#: that failed or ran low is not asked again for this mission.
+OFFLINE, LOW_BATTERY, FAILED = "offline", "low_battery", "failed"
+
+
+def mission_advance(session_id: Any) -> str | None:
+    """Take the mission's next step, whatever its state; idempotent (see the module
+    docstring). Returns the mission state after the step, None for no such mission."""
+    with transaction.atomic():
+        mission = (
+            Mission.objects.select_for_update()
+            .select_related("session__service", "session__user")
+            .filter(pk=session_id)
+            .first()
+        )
+        if mission is None:
+            return None
+        if mission.state not in FINAL_MISSION:
+            _step(mission)
+        state = mission.state
+        if notices_pending(mission.pk):
+            notify_schedule(mission.pk)
+    return state
+
+
+def _step(mission: Mission) -> None:
+    session = Session.objects.select_for_update().get(pk=mission.session_id)
+    mission.session = session
+    if session.state in FINAL and mission.state != S.RETURNING:
+        # Ended from outside: a monitor's stop, a refused task, the time limit.
+        failed = session.state == Session.State.FAILED
+        to = S.FAILED if failed else S.ABORTED
+        _set(mission, to, f"the session {session.state}: {session.reason}")
+        return
+    if mission.state == S.WAITING_SEARCH:
+        _assign_search(mission)
+    elif mission.state == S.SEARCHING:
+        _supervise_search(mission)
+    elif mission.state == S.WAITING_DELIVERY:
+        _assign_delivery(mission)
+    elif mission.state == S.DELIVERING:
+        _supervise_delivery(mission)
+    elif mission.state == S.RETURNING:
+        _check_returned(mission)
+
+
+def _set(mission: Mission, state: str, text: str, **data: Any) -> None:
+    """Move the mission to ``state`` and log it (nothing when nothing changes)."""
+    if mission.state == state and mission.status_text == text:
+        return
+    previous = mission.state
+    mission.state = state
+    mission.status_text = text[:300]
+    mission.save(update_fields=["state", "status_text", "updated_at"])
+    event_append(
+        session=mission.session,
+        kind="mission_state",
+        data={"from": previous, "to": state, "text": mission.status_text, **data},
+    )
+
+
+def _active(mission: Mission, role: str) -> Assignment | None:
+    return (
+        Assignment.objects.filter(session_id=mission.pk, role=role, active=True)
+        .select_related("vehicle__station", "session")
+        .first()
+    )
+
+
+def _timed_out(mission: Mission) -> bool:
+    if mission.search_deadline is None or timezone.now() < mission.search_deadline:
+        return False
+    minutes = settings.IOUV_MISSION_SEARCH_TIMEOUT_S / 60
+    _end(mission, S.TIMED_OUT, f"search timed out after {minutes:g} min without finding the person")
+    return True
+
+
+def _assign_search(mission: Mission) -> None:
+    if mission.detection is not None:
+        _set(mission, S.WAITING_DELIVERY, "person found: looking for a delivery vehicle")
+        _assign_delivery(mission)
+        return
+    if _timed_out(mission):
+        return
+    session = mission.session
+    role = session.service.roles.get(name=SEARCH)
+    start = max(mission.progress, 0)
+    remaining = mission.path[start:]
+    target = (remaining[0][0], remaining[0][1])
+    pattern_m = sum(
+        distance_m((a[0], a[1]), (b[0], b[1])) for a, b in itertools.pairwise(remaining)
+    )
+    tried = _unfit(mission, SEARCH)
+    try:
+        with transaction.atomic():
+            assignment = role_assign(
+                session=session,
+                role=role,
+                target=target,
+                extra_distance_m=pattern_m,
+                exclude=list(tried),
+            )
+    except AssignmentError as exc:
+        _set(mission, S.WAITING_SEARCH, f"waiting for a search vehicle: {exc}")
+        return
+    if mission.progress < 0 and mission.search_legs == 0:
+        # First vehicle: fly the pattern from the end nearest to it.
+        here = assignment.vehicle.position
+        if distance_m(here, tuple(mission.path[-1])) < distance_m(here, tuple(mission.path[0])):
+            mission.path = list(reversed(mission.path))
+            mission.save(update_fields=["path", "updated_at"])
+    mission.search_legs += 1
+    mission.save(update_fields=["search_legs", "updated_at"])
+    event_append(
+        session=session,
+        kind="search_leg",
+        data={
+            "role": SEARCH,
+            "vehicle": str(assignment.vehicle_id),
+            "vehicle_name": assignment.vehicle.name,
+            "start_index": start,
+            "leg": mission.search_legs,
+        },
+    )
+    if session.state == Session.State.REQUESTED:
+        session_transition(
+            session=session, to=Session.State.ASSIGNED, reason="search vehicle reserved"
+        )
+    vehicle_task_deploy(session=session, assignment=assignment)
+    what = "searches" if start == 0 else f"continues the search from waypoint {start + 1}"
+    _set(
+        mission,
+        S.SEARCHING,
+        f"{assignment.vehicle.name} {what} ({len(mission.path)} waypoints)",
+        vehicle=str(assignment.vehicle_id),
+    )
+
+
+def _vehicle_trouble(assignment: Assignment) -> tuple[str, str] | None:
+    """Why this vehicle cannot go on with its role, as (cause, words), or None."""
+    vehicle = Vehicle.objects.get(pk=assignment.vehicle_id)
+    now = timezone.now()
+    grace = timedelta(seconds=settings.IOUV_MISSION_OFFLINE_GRACE_S)
+    # Offline means the platform lost it (its uplink closed, or the sweep found it
+    # silent), for longer than the grace. Late heartbeats alone, on a loaded platform,
+    # are no reason to call back a drone carrying a life jacket.
+    if vehicle.status == Vehicle.Status.OFFLINE:
+        seen = vehicle.last_seen or assignment.created_at
+        if now - seen > grace:
+            return OFFLINE, f"{vehicle.name} went offline"
+    if (
+        vehicle.battery is not None
+        and vehicle.battery < settings.IOUV_MISSION_LOW_BATTERY_PCT
+        and assignment.role == SEARCH
+    ):
+        return LOW_BATTERY, f"{vehicle.name} is low on battery ({vehicle.battery:.0f} %)"
+    failed = (
+        assignment.session.events.filter(
+            kind__in=("mission_failed", "task_refused"),
+            data__vehicle=str(vehicle.pk),
+            created_at__gte=assignment.created_at,
+        )
+        .order_by("-seq")
+        .first()
+    )
+    if failed is not None:
+        reason = failed.data.get("reason", "no reason given")
+        return FAILED, f"{vehicle.name} could not go on: {reason}"
+    return None
+
+
+def _unfit(mission: Mission, role: str) -> list[Any]:
+    """Vehicles not to ask again for ``role``: released because they failed or ran low.
+    One that only went offline is asked again once it is back and idle: a mission must
+    not wait for ever for a vehicle that is standing by."""
+    released = mission.session.events.filter(kind="vehicle_released", data__role=role)
+    return [
+        e.data["vehicle"]
+        for e in released
+        if isinstance(e.data, dict) and e.data.get("cause") != OFFLINE and "vehicle" in e.data
+    ]
+
+
+def _release(mission: Mission, assignment: Assignment, trouble: tuple[str, str]) -> None:
+    """Take ``assignment``'s vehicle off the mission; it returns to its station."""
+    cause, words = trouble
+    reason = f"replaced: {words}"
+    Assignment.objects.filter(pk=assignment.pk).update(active=False, released_at=timezone.now())
+    vehicle_release(
+        vehicle_id=assignment.vehicle_id,
+        session_id=mission.pk,
+        message={"type": "end_task", "session_id": str(mission.pk), "reason": reason[:120]},
+    )
+    event_append(
+        session=mission.session,
+        kind="vehicle_released",
+        data={
+            "vehicle": str(assignment.vehicle_id),
+            "vehicle_name": assignment.vehicle.name,
+            "role": assignment.role,
+            "reason": reason,
+            "cause": cause,
+            "progress": mission.progress,
+        },
+    )
+
+
+def _supervise_search(mission: Mission) -> None:
+    assignment = _active(mission, SEARCH)
+    if mission.detection is not None:
+        _set(mission, S.WAITING_DELIVERY, "person found: looking for a delivery vehicle")
+        notices_create(mission)
+        _assign_delivery(mission)
+        return
+    if assignment is None:
+        _set(mission, S.WAITING_SEARCH, "looking for a search vehicle")
+        _assign_search(mission)
+        return
+    if (
+        mission.progress >= len(mission.path) - 1
+        and mission.session.events.filter(
+            kind="search_complete", data__vehicle=str(assignment.vehicle_id)
+        ).exists()
+    ):
+        _end(mission, S.NOT_FOUND, "the whole area was searched without finding the person")
+        return
+    if _timed_out(mission):
+        return
+    trouble = _vehicle_trouble(assignment)
+    if trouble:
+        _release(mission, assignment, trouble)
+        _set(mission, S.WAITING_SEARCH, f"{trouble[1]}: handing its remaining lines to another")
+        _assign_search(mission)
+        return
+    _redeploy_if_unaccepted(mission, assignment)
+
+
+def _assign_delivery(mission: Mission) -> None:
+    if _active(mission, DELIVERY) is not None:
+        _set(mission, S.DELIVERING, mission.status_text or "delivering the life jacket")
+        return
+    session = mission.session
+    detection = mission.detection or {}
+    target = (detection["lat"], detection["lon"])
+    role = session.service.roles.get(name=DELIVERY)
+    tried = _unfit(mission, DELIVERY)
+    busy = Assignment.objects.filter(session_id=mission.pk, active=True).values_list(
+        "vehicle_id", flat=True
+    )
+    try:
+        with transaction.atomic():
+            assignment = role_assign(
+                session=session, role=role, target=target, exclude=[*tried, *busy]
+            )
+    except AssignmentError as exc:
+        _set(mission, S.WAITING_DELIVERY, f"person found; waiting for a delivery vehicle: {exc}")
+        return
+    vehicle_task_deploy(session=session, assignment=assignment)
+    _set(
+        mission,
+        S.DELIVERING,
+        f"{assignment.vehicle.name} brings the life jacket ({assignment.distance_m:.0f} m away)",
+        vehicle=str(assignment.vehicle_id),
+    )
+
+
+def _supervise_delivery(mission: Mission) -> None:
+    if mission.released_at is not None:
+        _end(mission, S.RETURNING, "life jacket delivered; vehicles returning to their stations")
+        return
+    assignment = _active(mission, DELIVERY)
+    if assignment is None:
+        _set(mission, S.WAITING_DELIVERY, "looking for a delivery vehicle")
+        _assign_delivery(mission)
+        return
+    trouble = _vehicle_trouble(assignment)
+    if trouble:
+        _release(mission, assignment, trouble)
+        _set(mission, S.WAITING_DELIVERY, f"{trouble[1]}: looking for another delivery vehicle")
+        _assign_delivery(mission)
+        return
+    _redeploy_if_unaccepted(mission, assignment)
+
+
+def _redeploy_if_unaccepted(mission: Mission, assignment: Assignment) -> None:
+    """Send the task again if the vehicle has not accepted it by its deadline (the
+    push may have been lost with a worker); the agent recognises the mission id."""
+    events = mission.session.events
+    vehicle = str(assignment.vehicle_id)
+    deployed = events.filter(kind="task_deployed", data__vehicle=vehicle).order_by("-seq").first()
+    if deployed is None:
+        vehicle_task_deploy(session=mission.session, assignment=assignment)
+        return
+    if events.filter(kind="task_accepted", data__vehicle=vehicle, seq__gt=deployed.seq).exists():
+        return
+    if deployed.data.get("exp", 0) < timezone.now().timestamp():
+        vehicle_task_deploy(session=mission.session, assignment=assignment)
+
+
+def _end(mission: Mission, state: str, text: str) -> None:
+    """Close the session (every vehicle gets ``end_task`` and returns to its station,
+    the service's fail-safe action) and move the mission to ``state``."""
+    session = mission.session
+    if session.state not in FINAL:
+        try:
+            if session.state == Session.State.REQUESTED:
+                session_transition(session=session, to=Session.State.FAILED, reason=text)
+            else:
+                session_end(session=session, reason=text, by_user=False)
+        except SessionStateError:
+            log.info("mission %s: session already closed", mission.pk)
+        session.refresh_from_db()
+    _set(mission, state, text)
+
+
+def _check_returned(mission: Mission) -> None:
+    """Complete the mission once every vehicle that flew it is home and on the ground."""
+    ids = set(Assignment.objects.filter(session_id=mission.pk).values_list("vehicle_id", flat=True))
+    away = []
+    for vehicle in Vehicle.objects.filter(pk__in=ids).select_related("station"):
+        home = (vehicle.station.lat, vehicle.station.lon)
+        landed = vehicle.alt is None or vehicle.alt < 1.0
+        near = vehicle.lat is None or distance_m(vehicle.position, home) <= HOME_RADIUS_M
+        out = vehicle.status == Vehicle.Status.RETURNING or not (landed and near)
+        if out and vehicle.status != Vehicle.Status.OFFLINE:
+            away.append(vehicle.name)
+    waited = (timezone.now() - mission.updated_at).total_seconds()
+    if away and waited < RETURN_WAIT_S:
+        return
+    text = "mission completed: person found, life jacket delivered, vehicles home"
+    if away:
+        text = f"mission completed; not yet back: {', '.join(sorted(away))}"
+    _set(mission, S.COMPLETED, text, timeline=timeline(mission))
+
+
+def missions_tick() -> int:
+    """One step for every unfinished mission (Celery beat): time-outs, waiting for a
+    vehicle, vehicles gone quiet, lost pushes, notices to retry. Returns how many ran."""
+    ids = list(Mission.objects.exclude(state__in=FINAL_MISSION).values_list("pk", flat=True))
+    for pk in ids:
+        try:
+            mission_advance(pk)
+        except Exception:  # one broken mission must not stop the others' timers
+            log.exception("mission %s: step failed", pk)
+    # Notices still unsent (their own task's retries ran out, or its message was lost
+    # with a worker) are tried again at every tick, whatever the mission's state.
+    for pk in notices_pending():
+        notify_schedule(pk)
+    return len(ids)

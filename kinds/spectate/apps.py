@@ -1,0 +1,13 @@
+from django.apps import AppConfig
+
+
+class SpectateConfig(AppConfig):
+    name = "kinds.spectate"
+    label = "spectate"
+    verbose_name = "Spectate"
+
+    def ready(self) -> None:
+        from kinds.spectate.kind import Spectate
+        from services.kinds import kind_register
+
+        kind_register(Spectate())

@@ -1,0 +1,71 @@
+"""Spectating: the sessions there are to watch, and watching one."""
+
+from __future__ import annotations
+
+from django.contrib import messages
+from django.contrib.auth.decorators import login_required
+from django.db.models import QuerySet
+from django.http import Http404, HttpRequest, HttpResponse
+from django.shortcuts import get_object_or_404, redirect, render
+from django.views.decorators.cache import never_cache
+
+from kinds.spectate.kind import Spectate
+from services.deployment import DeploymentError, grant_issue, user_task_json
+from services.grants import user_can_use
+from services.models import Service, Session
+from services.selectors import session_summary
+from services.sessions import FINAL
+from services.views import log_lines
+
+
+def sessions_spectatable() -> QuerySet[Session]:
+    """Live sessions whose main vehicle streams video: what spectators may watch."""
+    return (
+        Session.objects.exclude(state__in=FINAL)
+        .filter(
+            state__in=[Session.State.ASSIGNED, Session.State.ACTIVE],
+            assignments__active=True,
+            assignments__vehicle__profile__video=True,
+        )
+        .select_related("service", "user")
+        .distinct()
+        .order_by("-created_at")
+    )
+
+
+def _spectate_service(request: HttpRequest) -> Service:
+    service = Service.objects.filter(kind=Spectate.name, is_active=True).first()
+    if service is None or not user_can_use(request.user, service):
+        raise Http404("spectating is not open to you")
+    return service
+
+
+@login_required
+def spectate(request: HttpRequest) -> HttpResponse:
+    """Vehicles streaming video in a live session, to watch."""
+    _spectate_service(request)
+    return render(request, "spectate/list.html", {"sessions": sessions_spectatable()})
+
+
+@never_cache  # the page carries a signed grant: no cache may keep it
+@login_required
+def spectate_session(request: HttpRequest, session_id: str) -> HttpResponse:
+    """Watch one session's vehicle: video and telemetry, view-only."""
+    service = _spectate_service(request)
+    session = get_object_or_404(sessions_spectatable(), pk=session_id)
+    try:
+        task = grant_issue(session=session, user=request.user, role="viewer", allowed_by=service)
+    except DeploymentError as exc:
+        messages.error(request, str(exc))
+        return redirect("spectate")
+    return render(
+        request,
+        "services/controller.html",
+        {
+            "session": session,
+            "summary": session_summary(session),
+            "user_task": user_task_json(task, request=request),
+            "events": log_lines(session),
+            "spectating": True,
+        },
+    )

@@ -1,0 +1,206 @@
+"""Service kinds: what a kind of service declares, and the registry the core asks.
+
+A *service kind* (manual control, spectate, rescue at sea, parcel delivery, ...) is one
+folder under ``kinds/``: a Django app whose ``ready()`` registers one
+:class:`ServiceKind`. A ``Service`` row (an offer to users: its limits, roles, grants)
+names its kind in ``Service.kind``. The core (assignment, deployment, supervision,
+sessions, the portal, the API, the consumers) only ever calls the registry and the
+methods below; it never names a kind, and kinds never import each other.
+
+What a kind declares:
+
+* **who drives** (:attr:`ServiceKind.user_drives`): a user controls a vehicle live
+  (a controller grant, the connect timeout, the reconnection grace), or the platform
+  runs the session (the user watches);
+* **how it is requested**: the request fields it reads besides ``params``
+  (:attr:`ServiceKind.accepts`), and :meth:`ServiceKind.params_clean`, the one
+  validation of its input for both the portal's form and the API; its portal form and
+  page (:attr:`ServiceKind.form_class`, :attr:`ServiceKind.request_template`);
+* **the user task**: the page the session opens on (:attr:`ServiceKind.session_template`,
+  with :meth:`ServiceKind.session_context`) and the grant role it hands the browser;
+* **the vehicle tasks**: the autonomous mission signed into each vehicle's task
+  (:meth:`ServiceKind.vehicle_mission`);
+* **the platform task**: :meth:`ServiceKind.open` (what a request sets going), the
+  agent events it handles (:attr:`ServiceKind.event_handlers`), what an accepted task
+  means (:meth:`ServiceKind.task_accepted`); Celery steps and timers live in its own
+  ``tasks.py``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any, ClassVar
+
+if TYPE_CHECKING:
+    from django import forms
+    from django.contrib.auth.models import AbstractBaseUser
+    from django.http import HttpRequest
+
+    from services.deployment import UserTask
+    from services.models import Assignment, Service, Session
+
+#: The request fields, besides ``params``, a kind may read.
+REQUEST_FIELDS = frozenset({"target", "relay", "preferences"})
+
+
+class RequestError(Exception):
+    """A request a kind refuses as given; ``field`` names the request field at fault
+    (dotted, as the API names it: ``params.area``), ``str()`` says why."""
+
+    def __init__(self, message: str, *, field: str | None = None) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+@dataclasses.dataclass(frozen=True)
+class Request:
+    """What a user asks of a service, from the portal's form or the API's body."""
+
+    target: tuple[float, float] | None = None
+    relay: bool = False
+    preferences: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    params: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+
+    def given(self) -> set[str]:
+        """The request fields (besides ``params``) that say something."""
+        given = set()
+        if self.target is not None:
+            given.add("target")
+        if self.relay:
+            given.add("relay")
+        if self.preferences:
+            given.add("preferences")
+        return given
+
+
+@dataclasses.dataclass(frozen=True)
+class Opened:
+    """A request that went through: the session, and the user task when the user
+    drives (the controller page's control URL and grant), else None."""
+
+    session: Session
+    task: UserTask | None = None
+
+
+#: An agent event handler: (the reporting vehicle's assignment, the event's data).
+EventHandler = Callable[["Assignment", dict[str, Any]], None]
+
+
+class ServiceKind:
+    """Base of every service kind; subclasses set the class attributes and override
+    what differs. See the module docstring."""
+
+    #: The registry key, stored in ``Service.kind``.
+    name: ClassVar[str]
+    #: For people: the admin's choice list, the catalog.
+    label: ClassVar[str]
+    #: A user controls a vehicle live; otherwise the platform runs the session.
+    user_drives: ClassVar[bool] = False
+    #: Requested as a session of its own (spectating is not: it watches others').
+    requestable: ClassVar[bool] = True
+    #: Request fields besides ``params`` the kind reads; a request giving others is
+    #: refused, so nothing a user asks is silently ignored.
+    accepts: ClassVar[frozenset[str]] = frozenset()
+    #: The portal's request form (it collects the request; :meth:`params_clean`
+    #: validates it, as for the API) and its page.
+    form_class: ClassVar[type[forms.Form] | None] = None
+    request_template: ClassVar[str] = ""
+    #: The page a session of this kind opens on.
+    session_template: ClassVar[str] = "services/controller.html"
+    #: The kind's own URLs (a URLconf module, dotted), included at the site's root.
+    urls: ClassVar[str | None] = None
+    #: What the catalog's button says.
+    entry_label: ClassVar[str] = "Request"
+    #: Agent events of this kind's sessions the kind handles (name -> handler); the
+    #: core logs the others.
+    event_handlers: ClassVar[Mapping[str, EventHandler]] = {}
+
+    # --- request -------------------------------------------------------------------------
+    def params_clean(self, params: Mapping[str, Any]) -> dict[str, Any]:
+        """The kind's own request input, validated; raises RequestError naming the
+        field (``params.<name>``). Default: free-form, kept with the session."""
+        return dict(params)
+
+    def request_from_form(self, form: forms.Form) -> Request:
+        """The request a valid portal form stands for (its ``params`` not yet
+        cleaned: :meth:`params_clean` does that for both paths)."""
+        raise NotImplementedError(f"{self.name} has no portal form")
+
+    def open(self, *, service: Service, user: AbstractBaseUser, request: Request) -> Opened:
+        """Set a request going: reserve, deploy, start the workflow. ``request`` has
+        been checked against :attr:`accepts` and its params cleaned.
+
+        Raises services.assignment.AssignmentError (no vehicle, over the user's cap),
+        services.deployment.DeploymentError, or RequestError.
+        """
+        raise NotImplementedError
+
+    def entry_url(self, service: Service) -> str:
+        """Where the catalog sends a user who picks ``service``: its request page."""
+        from django.urls import reverse
+
+        return reverse("service_request", args=[service.slug])
+
+    # --- the user task -------------------------------------------------------------------
+    def grant_role(self, session: Session) -> str:
+        """The grant the session's own user gets: ``controller`` where the user
+        drives, else ``viewer`` (a viewer's link cannot arm the vehicle's link-loss
+        fail-safe, so closing the page does not abort an autonomous mission)."""
+        return "controller" if self.user_drives else "viewer"
+
+    def session_context(self, *, request: HttpRequest, session: Session) -> dict[str, Any]:
+        """Extra context for :attr:`session_template`."""
+        return {}
+
+    def session_data(self, session: Session) -> dict[str, Any] | None:
+        """The kind's live state of a session as JSON (a mission map...), or None."""
+        return None
+
+    # --- the vehicle and platform tasks --------------------------------------------------
+    def vehicle_mission(self, *, assignment: Assignment) -> dict[str, Any] | None:
+        """The autonomous mission signed into this vehicle's task, or None."""
+        return None
+
+    def task_accepted(self, *, assignment: Assignment) -> None:
+        """A vehicle of one of this kind's sessions accepted its task."""
+
+
+_REGISTRY: dict[str, ServiceKind] = {}
+
+
+class UnknownKind(LookupError):
+    """No kind of that name is installed (its app is not in INSTALLED_APPS)."""
+
+
+def kind_register(kind: ServiceKind) -> ServiceKind:
+    """Make ``kind`` available under its name (call from the kind app's ``ready()``).
+    Registering a second kind under a taken name is a bug and raises ValueError."""
+    existing = _REGISTRY.get(kind.name)
+    if existing is not None and type(existing) is not type(kind):
+        raise ValueError(f"service kind {kind.name!r} is registered twice")
+    _REGISTRY[kind.name] = kind
+    return kind
+
+
+def kind_named(name: str) -> ServiceKind:
+    """The kind registered as ``name``; raises UnknownKind."""
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise UnknownKind(f"no service kind {name!r} is installed") from None
+
+
+def kind_of(service: Service) -> ServiceKind:
+    """``service``'s kind; raises UnknownKind."""
+    return kind_named(service.kind)
+
+
+def kinds() -> list[ServiceKind]:
+    """Every installed kind, by name."""
+    return [_REGISTRY[name] for name in sorted(_REGISTRY)]
+
+
+def kinds_user_driven() -> list[str]:
+    """Names of the kinds whose users drive (for queries over sessions)."""
+    return [kind.name for kind in kinds() if kind.user_drives]
