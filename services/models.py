@@ -309,3 +309,50 @@ class SessionEvent(models.Model):
 
     def delete(self, *args: Any, **kwargs: Any) -> Any:
         raise ValidationError("session events are append-only")
+
+
+class Notice(models.Model):
+    """One message to people outside the session (a rescue team, a parcel's
+    recipient, the monitors' dashboard) about one moment of a session, on one channel:
+    sent until it succeeds, once (services.notices)."""
+
+    class Channel(models.TextChoices):
+        EMAIL = "email"
+        WEBHOOK = "webhook"
+        DASHBOARD = "dashboard", "monitors' dashboard"
+
+    class Level(models.TextChoices):
+        INFO = "info"
+        WARN = "warn", "warning"
+        BAD = "bad", "alert"
+
+    session = models.ForeignKey(Session, on_delete=models.CASCADE, related_name="notices")
+    channel = models.CharField(max_length=10, choices=Channel.choices)
+    #: What it is about, one per session and channel: ``person_in_water``,
+    #: ``parcel_dispatched``...
+    topic = models.SlugField(max_length=40)
+    #: The e-mail address or webhook URL ("" for the dashboard).
+    target = models.CharField(max_length=300, blank=True)
+    level = models.CharField(max_length=5, choices=Level.choices, default=Level.INFO)
+    subject = models.CharField(max_length=200, blank=True)
+    message = models.TextField()
+    #: The webhook's JSON body (the message and the facts a program needs).
+    payload = models.JSONField(default=dict, blank=True)
+    created_at = models.DateTimeField(auto_now_add=True)
+    sent_at = models.DateTimeField(null=True, blank=True)
+    attempts = models.PositiveIntegerField(default=0)
+    #: A worker sending this notice holds it until then; after that (the worker died
+    #: mid-send), another may send it again, with the same idempotency key.
+    claimed_until = models.DateTimeField(null=True, blank=True)
+    last_error = models.CharField(max_length=300, blank=True)
+
+    class Meta:
+        constraints = [
+            models.UniqueConstraint(
+                fields=["session", "channel", "topic"], name="one_notice_per_topic"
+            )
+        ]
+        ordering = ["created_at"]
+
+    def __str__(self) -> str:
+        return f"{self.topic} by {self.channel} for {self.session_id}"

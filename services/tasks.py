@@ -1,4 +1,4 @@
-"""Celery tasks of the services app: the supervisor's timers.
+"""Celery tasks of the services app: the supervisor's timers and the notices.
 
 They keep no state of their own: each reads the database, so a worker restart loses
 nothing and running one twice changes nothing. Each service kind has its own tasks
@@ -7,10 +7,13 @@ nothing and running one twice changes nothing. Each service kind has its own tas
 
 from __future__ import annotations
 
+import logging
+
 from celery import shared_task
 from django.conf import settings
 
 from iouv.celery import app
+from services.notices import NoticeNotSent, notices_pending, notices_send, notices_send_or_retry
 from services.supervision import (
     sessions_end_vehicle_lost,
     sessions_expire_grace,
@@ -18,6 +21,8 @@ from services.supervision import (
     sessions_expire_unconnected,
     sessions_expire_undelivered,
 )
+
+log = logging.getLogger(__name__)
 
 
 @shared_task(name="services.expire_grace")
@@ -50,6 +55,34 @@ def services_expire_undelivered() -> int:
     return len(sessions_expire_undelivered())
 
 
+@shared_task(
+    name="services.notices_send",
+    acks_late=True,
+    autoretry_for=(NoticeNotSent,),
+    max_retries=8,
+    retry_backoff=2,
+    retry_backoff_max=120,
+    retry_jitter=True,
+)
+def services_notices_send(session_id: str) -> int:
+    """Send a session's pending notices; retried with growing delays while any is
+    still unsent (a webhook down, a mail server away)."""
+    return notices_send_or_retry(session_id)
+
+
+@shared_task(name="services.notices_retry")
+def services_notices_retry() -> int:
+    """Try again every notice still unsent (its task's retries ran out, or its message
+    was lost with a worker)."""
+    pending = notices_pending()
+    for session_id in pending:
+        try:
+            notices_send(session_id)
+        except Exception:  # one broken notice must not stop the others
+            log.exception("notices of session %s: sending failed", session_id)
+    return len(pending)
+
+
 @app.on_after_finalize.connect
 def _schedule(sender, **kwargs) -> None:  # type: ignore[no-untyped-def]
     tick = settings.IOUV_SUPERVISION_TICK_S
@@ -60,3 +93,4 @@ def _schedule(sender, **kwargs) -> None:  # type: ignore[no-untyped-def]
         15.0, services_expire_unconnected.s(), name="end sessions nobody joined"
     )
     sender.add_periodic_task(15.0, services_expire_undelivered.s(), name="fail undelivered tasks")
+    sender.add_periodic_task(10.0, services_notices_retry.s(), name="retry unsent notices")

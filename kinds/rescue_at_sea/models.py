@@ -1,4 +1,4 @@
-"""Rescue at sea: the mission of each rescue, and its notices to the rescue team."""
+"""Rescue at sea: the mission of each rescue."""
 
 from __future__ import annotations
 
@@ -56,37 +56,6 @@ class Mission(models.Model):
 
     def __str__(self) -> str:
         return f"mission {self.session_id} ({self.state})"
-
-
-class MissionNotification(models.Model):
-    """One notice to the rescue team on one channel; at most one per mission and
-    channel, so a step that runs twice never pages the team twice."""
-
-    class Channel(models.TextChoices):
-        EMAIL = "email"
-        WEBHOOK = "webhook"
-        DASHBOARD = "dashboard"
-
-    mission = models.ForeignKey(Mission, on_delete=models.CASCADE, related_name="notifications")
-    channel = models.CharField(max_length=10, choices=Channel.choices)
-    target = models.CharField(max_length=300, blank=True)
-    payload = models.JSONField()
-    created_at = models.DateTimeField(auto_now_add=True)
-    sent_at = models.DateTimeField(null=True, blank=True)
-    attempts = models.PositiveIntegerField(default=0)
-    #: A worker sending this notice holds it until then; after that (the worker died
-    #: mid-send), another may send it again, with the same idempotency key.
-    claimed_until = models.DateTimeField(null=True, blank=True)
-    last_error = models.CharField(max_length=300, blank=True)
-
-    class Meta:
-        db_table = "services_missionnotification"
-        constraints = [
-            models.UniqueConstraint(fields=["mission", "channel"], name="one_notice_per_channel")
-        ]
-
-    def __str__(self) -> str:
-        return f"{self.channel} for {self.mission_id}"
 
 
 #: The kind's name (services.kinds), stored in ``Service.kind``.

@@ -52,7 +52,7 @@ def mission_json(mission: Mission) -> dict[str, Any]:
         "search_leg",
         "mission_state",
         "person_detected",
-        "rescue_team_notified",
+        "notice_sent",
         "payload_released",
         "vehicle_released",
         "state",

@@ -1,4 +1,4 @@
-"""Celery tasks of the rescue: its steps, its timer and its notices to the team.
+"""Celery tasks of the rescue: its steps and its timer (notices are the core's).
 
 They keep no state of their own: every one reads the mission from the database, so a
 killed worker loses nothing and running one twice changes nothing.
@@ -13,7 +13,6 @@ from django.conf import settings
 from django.db import transaction
 
 from iouv.celery import app
-from kinds.rescue_at_sea.notifications import NoticeNotSent, notices_pending, notifications_send
 from kinds.rescue_at_sea.workflow import mission_advance, missions_tick
 
 
@@ -32,24 +31,6 @@ def mission_step(session_id: str) -> str | None:
 def rescue_missions_tick() -> int:
     """Re-run every unfinished mission: timers, waiting, lost messages, notices."""
     return missions_tick()
-
-
-@shared_task(
-    name="rescue_at_sea.notify",
-    acks_late=True,
-    autoretry_for=(NoticeNotSent,),
-    max_retries=8,
-    retry_backoff=2,
-    retry_backoff_max=120,
-    retry_jitter=True,
-)
-def rescue_notify(session_id: str) -> int:
-    """Send the mission's pending notices to the rescue team; retried with growing
-    delays while any is still unsent (a webhook down, a mail server away)."""
-    sent = notifications_send(session_id)
-    if notices_pending(session_id):
-        raise NoticeNotSent(f"rescue {session_id}: notices still unsent after this attempt")
-    return sent
 
 
 @app.on_after_finalize.connect

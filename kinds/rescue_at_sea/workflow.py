@@ -27,7 +27,7 @@ from django.utils import timezone
 from agents.geo import distance_m
 from fleet.models import Vehicle
 from kinds.rescue_at_sea.models import DELIVERY, FINAL_MISSION, SEARCH, Mission
-from kinds.rescue_at_sea.notifications import notices_create, notices_pending, notify_schedule
+from kinds.rescue_at_sea.notifications import mission_alert, notices_create
 from kinds.rescue_at_sea.presentation import timeline
 from services.assignment import AssignmentError, role_assign
 from services.deployment import session_end, vehicle_release, vehicle_task_deploy
@@ -38,6 +38,9 @@ from services.sessions import FINAL, SessionStateError, session_transition
 log = logging.getLogger(__name__)
 
 S = Mission.State
+#: States the monitors' dashboard is warned of (once per mission each): the mission
+#: waits for a vehicle, or gave up.
+_ALERTED = frozenset({S.WAITING_SEARCH, S.WAITING_DELIVERY, S.TIMED_OUT, S.NOT_FOUND})
 #: A vehicle this close to its station, on the ground, is home.
 HOME_RADIUS_M = 30.0
 #: After this long the mission stops waiting for its vehicles to land and completes.
@@ -63,8 +66,6 @@ def mission_advance(session_id: Any) -> str | None:
         if mission.state not in FINAL_MISSION:
             _step(mission)
         state = mission.state
-        if notices_pending(mission.pk):
-            notify_schedule(mission.pk)
     return state
 
 
@@ -102,6 +103,8 @@ def _set(mission: Mission, state: str, text: str, **data: Any) -> None:
         kind="mission_state",
         data={"from": previous, "to": state, "text": mission.status_text, **data},
     )
+    if state in _ALERTED:
+        mission_alert(mission, topic=f"mission_{state}", text=mission.status_text)
 
 
 def _active(mission: Mission, role: str) -> Assignment | None:
@@ -387,8 +390,4 @@ def missions_tick() -> int:
             mission_advance(pk)
         except Exception:  # one broken mission must not stop the others' timers
             log.exception("mission %s: step failed", pk)
-    # Notices still unsent (their own task's retries ran out, or its message was lost
-    # with a worker) are tried again at every tick, whatever the mission's state.
-    for pk in notices_pending():
-        notify_schedule(pk)
     return len(ids)

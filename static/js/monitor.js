@@ -118,21 +118,19 @@
     };
   }
 
-  /* Rescue missions page the monitors: a person found, a search that timed out. */
+  /* Notices for the monitors' dashboard (any kind of service may send them: a person
+   * found at sea, a mission that waits for a vehicle) become alerts. */
   function alert(session, event) {
     const data = event.data || {};
-    let text = null;
-    if (event.kind === "rescue_team_notified" && data.channel === "dashboard") {
-      text = `PERSON IN THE WATER at ${Number(data.lat).toFixed(5)}, ${Number(data.lon).toFixed(5)}: ${data.message || ""}`;
-    } else if (event.kind === "mission_state" && ["timed_out", "not_found", "waiting_search", "waiting_delivery"].includes(data.to)) {
-      text = `${session.service}: ${data.text}`;
-    }
-    if (!text) return;
+    if (event.kind !== "notice_sent" || data.channel !== "dashboard") return;
     const box = root.querySelector("[data-alerts]");
     const item = document.createElement("li");
-    item.className = event.kind === "rescue_team_notified" ? "alert-bad" : "alert-warn";
+    item.className = data.level === "bad" ? "alert-bad" : "alert-warn";
     item.dataset.kind = event.kind;
-    item.textContent = `${new Date(event.at || Date.now()).toLocaleTimeString()} · ${text}`;
+    item.dataset.topic = data.topic || "";
+    const where = Number.isFinite(data.lat) && Number.isFinite(data.lon)
+      ? ` (${Number(data.lat).toFixed(5)}, ${Number(data.lon).toFixed(5)})` : "";
+    item.textContent = `${new Date(event.at || Date.now()).toLocaleTimeString()} · ${data.message || data.topic}${where}`;
     box.prepend(item);
     box.hidden = false;
   }

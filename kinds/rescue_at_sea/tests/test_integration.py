@@ -26,10 +26,10 @@ from agents.config import AgentConfig
 from agents.geo import distance_m, offset
 from agents.runtime import Agent
 from fleet.models import Station, Vehicle
-from kinds.rescue_at_sea.models import Mission, MissionNotification
+from kinds.rescue_at_sea.models import Mission
 from kinds.rescue_at_sea.request import rescue_request
 from services.demo import CASTAWAY, agent_configs_write, demo_seed
-from services.models import Assignment, Service, Session
+from services.models import Assignment, Notice, Service, Session
 from tests.browser import chromium_browser, needs_chromium
 from tests.servers import celery_worker_process, db, platform_process, until
 
@@ -141,8 +141,16 @@ def _mission(session_id: Any) -> Mission:
 
 
 def _kinds(session_id: Any) -> list[str]:
+    """The session log's kinds, a notice about the person found named
+    ``team_notified`` (other notices, such as the dashboard's warnings, stay
+    ``notice_sent``)."""
     session = Session.objects.get(pk=session_id)
-    return list(session.events.order_by("seq").values_list("kind", flat=True))
+    return [
+        "team_notified"
+        if kind == "notice_sent" and data.get("topic") == "person_in_water"
+        else kind
+        for kind, data in session.events.order_by("seq").values_list("kind", "data")
+    ]
 
 
 async def mission_reaches(session_id: Any, state: str, *, within: float) -> Mission:
@@ -173,7 +181,7 @@ async def _assert_rescued_and_home(session_id: Any) -> None:
     assert done.detection["confidence"] >= 0.6
     kinds = await db(_kinds, session_id)
     order = ["mission_planned", "assigned", "task_accepted", "person_detected"]
-    order += ["rescue_team_notified", "payload_released"]
+    order += ["team_notified", "payload_released"]
     positions = [kinds.index(k) for k in order]
     positions.append(len(kinds) - 1 - kinds[::-1].index("mission_state"))  # completed
     assert positions == sorted(positions), kinds
@@ -253,7 +261,9 @@ async def test_worker_killed_mid_step_completes_without_duplicates(tmp_path: Pat
             await mission_reaches(session.pk, Mission.State.COMPLETED, within=150)
 
             notices = await db(
-                lambda: list(MissionNotification.objects.values_list("channel", "sent_at"))
+                lambda: list(
+                    Notice.objects.filter(topic="person_in_water").values_list("channel", "sent_at")
+                )
             )
             assert sorted(c for c, _ in notices) == ["dashboard", "email", "webhook"]
             assert all(sent for _, sent in notices)
@@ -262,7 +272,7 @@ async def test_worker_killed_mid_step_completes_without_duplicates(tmp_path: Pat
             assert len(_emails(world.mail_dir)) == 1
             kinds = await db(_kinds, session.pk)
             assert kinds.count("payload_released") == 1
-            assert kinds.count("rescue_team_notified") == 3
+            assert kinds.count("team_notified") == 3
             deliveries = await db(
                 Assignment.objects.filter(session_id=session.pk, role="delivery").count
             )

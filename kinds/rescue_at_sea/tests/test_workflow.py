@@ -22,14 +22,15 @@ from agents.protocol import parse_message
 from fleet.models import Station, Vehicle
 from fleet.signals import agent_message
 from kinds.rescue_at_sea.missions import vehicle_mission
-from kinds.rescue_at_sea.models import Mission, MissionNotification
-from kinds.rescue_at_sea.notifications import notices_create, notifications_send
+from kinds.rescue_at_sea.models import Mission
+from kinds.rescue_at_sea.notifications import notices_create
 from kinds.rescue_at_sea.presentation import mission_json
 from kinds.rescue_at_sea.request import RescueError, rescue_request
 from kinds.rescue_at_sea.workflow import mission_advance, missions_tick
 from services.assignment import AssignmentError
 from services.demo import demo_seed
-from services.models import Assignment, Service, Session
+from services.models import Assignment, Notice, Service, Session
+from services.notices import notices_send as notifications_send
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db
@@ -66,6 +67,11 @@ def report(session: Session, vehicle: Vehicle, name: str, **data) -> None:
 
 def kinds(session: Session) -> list[str]:
     return list(session.events.order_by("seq").values_list("kind", flat=True))
+
+
+def team_notices(session: Session) -> int:
+    """Notices sent about the person found (dashboard, e-mail, webhook)."""
+    return session.events.filter(kind="notice_sent", data__topic="person_in_water").count()
 
 
 def mission(session: Session) -> Mission:
@@ -158,12 +164,12 @@ def test_whole_rescue_from_area_to_completed(world, client_user, settings) -> No
     assert len(mail.outbox) == 1
     assert f"{person[0]:.5f}" in mail.outbox[0].subject
     assert mail.outbox[0].to == ["lifeguards@costanova.example"]
-    assert mail.outbox[0].extra_headers["Message-ID"].startswith("<iouv-rescue-")
-    assert kinds(session).count("rescue_team_notified") == 2
+    assert mail.outbox[0].extra_headers["Message-ID"].startswith("<iouv-person_in_water-")
+    assert team_notices(session) == 2
     deployed = kinds(session).count("task_deployed")
     step(session)
     step(session)
-    assert len(mail.outbox) == 1 and kinds(session).count("rescue_team_notified") == 2
+    assert len(mail.outbox) == 1 and team_notices(session) == 2
     assert Assignment.objects.filter(session=session, role="delivery").count() == 1
     assert kinds(session).count("task_deployed") == deployed
 
@@ -421,7 +427,7 @@ def test_webhook_is_retried_until_it_succeeds_and_sent_once(world, client_user, 
             session, search.vehicle, "person_detected", lat=person[0], lon=person[1], confidence=0.8
         )
         step(session)  # the team's server is down: the notice waits
-        hook = MissionNotification.objects.get(channel="webhook")
+        hook = Notice.objects.get(channel="webhook")
         assert hook.sent_at is None and hook.attempts == 1 and "503" in hook.last_error
         _Hook.status = 200
         missions_tick()
@@ -449,13 +455,13 @@ def test_a_notice_being_sent_by_another_worker_is_not_sent_again(world, client_u
         m = mission(session)
         m.session = session
         notices_create(m)
-    MissionNotification.objects.filter(channel="email").update(
+    Notice.objects.filter(channel="email").update(
         claimed_until=timezone.now() + timedelta(seconds=30), attempts=1
     )
     notifications_send(session.pk)
     step(session)
     assert len(mail.outbox) == 0
-    email = MissionNotification.objects.get(channel="email")
+    email = Notice.objects.get(channel="email")
     assert email.sent_at is None and email.attempts == 1
     # That worker died mid-send: once its claim lapses the notice goes out, once.
     with time_machine.travel(timezone.now() + timedelta(seconds=31)):

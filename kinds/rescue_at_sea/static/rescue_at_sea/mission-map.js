@@ -278,7 +278,7 @@
         case "search_leg": return d.start_index ? `${d.vehicle_name} continues from waypoint ${d.start_index + 1}` : `${d.vehicle_name} starts the search`;
         case "mission_state": return d.text || d.to;
         case "person_detected": return `person detected at ${Number(d.lat).toFixed(5)}, ${Number(d.lon).toFixed(5)}`;
-        case "rescue_team_notified": return `rescue team notified (${d.channel})`;
+        case "notice_sent": return `${d.channel === "dashboard" ? "monitors alerted" : "rescue team notified"} (${d.channel})`;
         case "payload_released": return "life jacket released";
         case "vehicle_released": return `${d.vehicle_name} released: ${d.reason}`;
         case "state": return `session ${d.to}${d.reason ? ": " + d.reason : ""}`;
