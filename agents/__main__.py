@@ -1,25 +1,37 @@
 """Command line of the vehicle agent.
 
-python -m agents run --config agent.json         run one vehicle's agent
+python -m agents run --config agent.json         run one vehicle's agent, on its hardware
 python -m agents sim fleet --configs var/agents  run simulated vehicles with their agents
+python -m agents sim NAME [ARGS]                 run one integration's simulator on its own
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import importlib
 import logging
 import sys
 from pathlib import Path
 
 from agents.config import AgentConfig, ConfigError
 from agents.runtime import agents_run_forever
-from agents.vehicles.registry import UnknownIntegration, integration
+from agents.vehicles.registry import UnknownIntegration, integration, integration_names
+
+
+def _checked(config: AgentConfig, source: Path) -> AgentConfig:
+    """``config`` if its adapter is installed and its options are good; else ConfigError
+    naming the file and the option."""
+    try:
+        integration(config.adapter).commands(config.adapter_options)
+    except UnknownIntegration as exc:
+        raise ConfigError(f"{source}: adapter: {exc}") from None
+    except ValueError as exc:
+        raise ConfigError(f"{source}: adapter_options: {exc}") from None
+    return config
 
 
 def _load_fleet(folder: Path, only: list[str]) -> list[AgentConfig]:
-    """The agent configs in ``folder`` whose adapter this installation has."""
+    """The agent configs in ``folder`` (those named in ``only``, if given) whose adapter
+    this installation has."""
     configs = []
     for path in sorted(folder.glob("*.json")):
         config = AgentConfig.load(path)
@@ -30,25 +42,19 @@ def _load_fleet(folder: Path, only: list[str]) -> list[AgentConfig]:
         except UnknownIntegration:
             logging.warning("%s: no %r adapter here; not started", path.name, config.adapter)
             continue
-        # A simulated fleet: every adapter on its simulator, control on a free port.
-        options = {**config.adapter_options, "simulate": True}
-        configs.append(dataclasses.replace(config, adapter_options=options))
+        configs.append(_checked(config, path))
     return configs
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    # `sim KIND` for a vehicle simulator is handled by that simulator's own module.
+    # `sim NAME` hands its arguments to that integration's simulator untouched.
     if len(argv) >= 2 and argv[0] == "sim" and argv[1] not in {"fleet", "-h", "--help"}:
-        try:
-            simulator = integration(argv[1]).simulator
-        except UnknownIntegration:
-            simulator = None
-        if simulator is None:
-            print(f"no simulator named {argv[1]!r}", file=sys.stderr)
-            return 2
-        module = importlib.import_module(simulator)
-        return int(module.cli(argv[2:]))
+        # Imported here, and only here: `run` on a vehicle never loads a simulator.
+        from agents.simulation import simulator_cli
+
+        # No logging set up here: each simulator's command line sets up its own.
+        return simulator_cli(argv[1], argv[2:])
     parser = argparse.ArgumentParser(
         prog="python -m agents",
         description=__doc__,
@@ -63,7 +69,9 @@ def main(argv: list[str] | None = None) -> int:
     sim = commands.add_parser("sim", help="simulated vehicles with their agents")
     sim_kinds = sim.add_subparsers(dest="kind", required=True)
     fleet = sim_kinds.add_parser("fleet", help="one simulated agent per config file")
-    sim_kinds.add_parser("KIND", help="a vehicle simulator: car_world, mavlink, spektrum, ...")
+    sim_kinds.add_parser(
+        "NAME", help=f"an integration's simulator: {', '.join(integration_names())}"
+    )
     fleet.add_argument("--configs", type=Path, default=Path("var/agents"))
     fleet.add_argument("--only", nargs="*", default=[], help="vehicle names to run")
 
@@ -73,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         if args.command == "run":
-            configs = [AgentConfig.load(args.config)]
+            configs = [_checked(AgentConfig.load(args.config), args.config)]
         else:
             configs = _load_fleet(args.configs, args.only)
             if not configs:
@@ -82,7 +90,12 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"config error: {exc}", file=sys.stderr)
         return 2
-    agents_run_forever(configs)
+    if args.command == "run":
+        agents_run_forever(configs)
+    else:
+        from agents.simulation import fleet_run_forever
+
+        fleet_run_forever(configs)
     return 0
 
 

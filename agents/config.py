@@ -8,7 +8,7 @@ Example::
       "credential": "...",                      # issued once in the platform's admin
       "platform_public_key_file": "platform.pub.pem",
       "adapter": "car",
-      "adapter_options": {"simulate": false},
+      "adapter_options": {"distance_sensor": true},
       "control": {"host": "0.0.0.0", "port": 8765, "public_url": "wss://car-1.example.org"},
       "video": {"source": "v4l2", "device": "/dev/video0"}
     }

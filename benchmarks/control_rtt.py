@@ -33,7 +33,7 @@ from agents.protocol import (
     load_public_key,
     new_nonce,
 )
-from agents.vehicles.car.adapter import CarAdapter
+from agents.simulation import adapter_simulated
 
 
 def summary(samples_ms: list[float]) -> dict[str, float]:
@@ -92,7 +92,7 @@ async def agent_rtts(n: int, interval_s: float) -> list[float]:
         nonce=new_nonce(),
     ).sign(load_private_key(private_pem))
     reports: list[Any] = []
-    async with CarAdapter({"simulate": True}) as car:
+    async with adapter_simulated("car", {}) as (car, _):
         hub = ControlHub(
             vehicle_id="car-bench",
             vehicle_name="car-bench",

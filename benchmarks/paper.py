@@ -8,7 +8,7 @@ What runs, all on this machine:
 * the **platform**: daphne serving ``iouv.asgi`` in its own process, on its own database
   (Postgres ``iouv_bench`` and the Redis channel layer when they answer on 127.0.0.1,
   else embedded SQLite and the in-memory layer; the report says which);
-* the **vehicles**: one agent process per car (``python -m agents run``), the ``car``
+* the **vehicles**: one agent process per car (``python -m agents sim fleet``), the ``car``
   adapter on gpiozero mock pins with its simulated world, registered on the platform's
   uplink with credentials the platform issued;
 * a **raw WebSocket echo** server in its own process, with the agent control socket's
@@ -624,7 +624,6 @@ def world_seed(*, vehicles: int) -> World:
         car = fleet[f"car-{index}"]
         config = vehicle_agent_config(vehicle=car, credential=vehicle_issue_credential(vehicle=car))
         config["video"] = None  # no camera: the test is about control, and encoding is costly
-        config["adapter_options"]["simulate"] = True  # gpiozero mock pins, simulated world
         cars.append(Car(id=str(car.pk), name=car.name, config=config))
     station = STATIONS[CAMPUS]
     return World(
@@ -802,7 +801,8 @@ async def _fleet_until(
 
 
 def _agent_start(car: Car, *, port: int, url: str | None, uplink: str, folder: Path) -> Any:
-    """Write ``car``'s config for this scenario and start its agent process."""
+    """Write ``car``'s config for this scenario and start its agent process, on the car's
+    simulator (gpiozero mock pins, a simulated world)."""
     config = {
         **car.config,
         "platform_url": uplink,
@@ -821,9 +821,12 @@ def _agent_start(car: Car, *, port: int, url: str | None, uplink: str, folder: P
                 "agents",
                 "--log-level",
                 "WARNING",
-                "run",
-                "--config",
-                str(path),
+                "sim",
+                "fleet",
+                "--configs",
+                str(folder),
+                "--only",
+                car.name,
             ],
             cwd=ROOT,
             stdout=log,
@@ -1430,7 +1433,7 @@ def report_text(
     add("## How it is measured\n")
     add(
         "* **Platform**: daphne serving the project's ASGI application in its own process. "
-        "**Vehicles**: one agent process per car (`python -m agents run`), the `car` adapter "
+        "**Vehicles**: one agent process per car (`python -m agents sim fleet`), the `car` adapter "
         "on gpiozero mock pins driving the simulated world, registered over the uplink with "
         "credentials the platform issued. **User**: the benchmark process, which asks the "
         "JSON API for a session of a car service (`POST /api/v1/sessions`, `relay` false or "

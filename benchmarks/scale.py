@@ -49,6 +49,7 @@ import argparse
 import asyncio
 import contextlib
 import csv
+import dataclasses
 import http.client
 import json
 import logging
@@ -1016,6 +1017,7 @@ async def cars_start(
     cancelled when ``stack`` closes. Returns a probe per vehicle id."""
     from agents.config import AgentConfig, ControlConfig
     from agents.runtime import Agent
+    from agents.simulation import simulator_running
 
     probes = {}
     for spec in world.cars:
@@ -1025,12 +1027,16 @@ async def cars_start(
             credential=spec.credential,
             platform_public_key=world.public_key,
             adapter="car",
-            adapter_options={"simulate": True, "origin": [spec.lat, spec.lon]},
+            adapter_options={"origin": [spec.lat, spec.lon]},
             control=ControlConfig(host="127.0.0.1", port=0),
             name=spec.name,
             reconnect_max_s=5.0,
         )
-        agent = Agent(config)
+        # The car on its simulator (mock pins, a world), stopped after its agent.
+        simulation = await stack.enter_async_context(
+            simulator_running(config.adapter, config.adapter_options)
+        )
+        agent = Agent(dataclasses.replace(config, adapter_options=simulation.options))
         task = asyncio.create_task(agent.run())
 
         async def cancel(task: asyncio.Task[None] = task) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import os
 import re
 import shutil
@@ -29,6 +30,8 @@ from django.db import connections
 
 from agents.config import AgentConfig, ControlConfig
 from agents.runtime import Agent
+from agents.simulation import simulator_running
+from agents.vehicles.base import Simulation
 from services.signing import platform_public_key_pem
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -269,28 +272,79 @@ async def until(predicate: Any, *, within: float = 10.0, what: str = "") -> Any:
 
 
 @contextlib.asynccontextmanager
+async def agent_simulated(
+    *, base: str, vehicle: Any, credential: str, adapter: str, options: dict[str, Any]
+) -> AsyncIterator[tuple[Agent, Simulation]]:
+    """Run ``vehicle``'s agent on its simulator (the integration's hook, as ``python -m
+    agents sim fleet`` runs it) against the platform at ``base``; yields the agent and
+    the simulation (``options`` are adapter options, the simulator's own under
+    ``simulator``).
+
+    The agent is cancelled on exit, and must end by that cancellation, not by an error;
+    the simulator stops after it.
+    """
+    async with simulator_running(adapter, options) as simulation:
+        config = AgentConfig(
+            platform_url=base.replace("http", "ws"),
+            vehicle_id=str(vehicle.pk),
+            credential=credential,
+            platform_public_key=await db(platform_public_key_pem),
+            adapter=adapter,
+            adapter_options=simulation.options,
+            control=ControlConfig(host="127.0.0.1", port=0),
+            name=vehicle.name,
+        )
+        agent = Agent(config)
+        run = asyncio.create_task(agent.run())
+        try:
+            yield agent, simulation
+        finally:
+            run.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await run
+
+
+async def agent_started(config: AgentConfig) -> tuple[Agent, asyncio.Task[None]]:
+    """Start the agent of ``config`` on its simulator in a task of its own; returns the
+    agent (once built) and the task. Cancelling the task stops the agent, then its
+    simulator, as a vehicle that is switched off."""
+    built: asyncio.Future[Agent] = asyncio.get_running_loop().create_future()
+
+    async def run() -> None:
+        async with simulator_running(config.adapter, config.adapter_options) as simulation:
+            agent = Agent(dataclasses.replace(config, adapter_options=simulation.options))
+            built.set_result(agent)
+            await agent.run()
+
+    task = asyncio.create_task(run())
+    done, _ = await asyncio.wait([built, task], return_when=asyncio.FIRST_COMPLETED)
+    if built not in done:
+        task.result()  # the simulator did not start: raise why
+    return built.result(), task
+
+
+@contextlib.asynccontextmanager
+async def agent_configured(config: AgentConfig) -> AsyncIterator[tuple[Agent, Simulation]]:
+    """Run the agent of ``config`` on its simulator (the integration's hook, as ``python
+    -m agents sim fleet`` runs it) until the block ends; yields the agent and the
+    simulation. The agent is cancelled on exit, then the simulator stops."""
+    async with simulator_running(config.adapter, config.adapter_options) as simulation:
+        agent = Agent(dataclasses.replace(config, adapter_options=simulation.options))
+        run = asyncio.create_task(agent.run())
+        try:
+            yield agent, simulation
+        finally:
+            run.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await run
+
+
+@contextlib.asynccontextmanager
 async def agent_running(
     *, base: str, vehicle: Any, credential: str, adapter: str, options: dict[str, Any]
 ) -> AsyncIterator[Agent]:
-    """Run ``vehicle``'s agent, on its simulator, against the platform at ``base``.
-
-    The agent is cancelled on exit, and must end by that cancellation, not by an error.
-    """
-    config = AgentConfig(
-        platform_url=base.replace("http", "ws"),
-        vehicle_id=str(vehicle.pk),
-        credential=credential,
-        platform_public_key=await db(platform_public_key_pem),
-        adapter=adapter,
-        adapter_options={"simulate": True, **options},
-        control=ControlConfig(host="127.0.0.1", port=0),
-        name=vehicle.name,
-    )
-    agent = Agent(config)
-    run = asyncio.create_task(agent.run())
-    try:
+    """:func:`agent_simulated`, yielding the agent alone."""
+    async with agent_simulated(
+        base=base, vehicle=vehicle, credential=credential, adapter=adapter, options=options
+    ) as (agent, _):
         yield agent
-    finally:
-        run.cancel()
-        with pytest.raises(asyncio.CancelledError):
-            await run

@@ -179,7 +179,7 @@ class OptionReader:
     def finish(self, *, accepted: Iterable[str] = ()) -> None:
         """Refuse every key that was not read (besides :data:`AGENT_KEYS`, ``simulator``
         and ``accepted``), naming them all."""
-        if not self.prefix and self.options.get("simulate") is True:
+        if not self.prefix and self.options.get("simulate", False) is not False:
             raise self.error(
                 "simulate",
                 "simulators are started by `python -m agents sim fleet`, never by the "

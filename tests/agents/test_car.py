@@ -1,12 +1,15 @@
 """The Raspberry Pi car adapter, on gpiozero mock pins wired to the kinematic world.
 
-Kinematics tests step the world by hand (``sim_hz: 0``) so distances are exact; the
-obstacle watch and the distance sensor run in real time, as they do on the car.
+Every car runs on its simulator (the integration's hook, through agents.simulation).
+Kinematics tests step the world by hand (the simulator's ``hz: 0``) so distances are
+exact; the obstacle watch and the distance sensor run in real time, as they do on the
+car.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -18,9 +21,11 @@ import pytest
 from agents.geo import distance_m, local_offset_m
 from agents.protocol import Limits
 from agents.safety import CommandGate, Refusal
+from agents.simulation import adapter_simulated, simulator_running
 from agents.vehicles.base import AdapterError
 from agents.vehicles.car.adapter import TELEMETRY_TOPICS, CarAdapter
-from agents.vehicles.car.sim.world import Box, CarWorld, Circle, Pose
+from agents.vehicles.car.kinematics import Pose
+from agents.vehicles.car.sim.world import Box, CarWorld, Circle
 from agents.vehicles.registry import adapter_create
 
 MakeCar = Callable[..., Awaitable[CarAdapter]]
@@ -28,26 +33,38 @@ MakeCar = Callable[..., Awaitable[CarAdapter]]
 FULL = 0.5  # max_speed_mps used below: ground speed at full power
 
 
+#: make_car's keywords that are the simulator's parameters (``hz`` as ``sim_hz``).
+SIMULATOR = {
+    "sim_hz": "hz",
+    "battery_pct": "battery_pct",
+    "battery_drain_pct_per_s": "battery_drain_pct_per_s",
+    "body_radius_m": "body_radius_m",
+    "obstacles": "obstacles",
+}
+
+
 @pytest.fixture
 async def make_car() -> AsyncIterator[MakeCar]:
-    """Start simulated cars; every one is closed after the test."""
-    cars: list[CarAdapter] = []
+    """Start simulated cars; every one (and its simulator) is closed after the test."""
+    async with contextlib.AsyncExitStack() as stack:
 
-    async def make(**options: Any) -> CarAdapter:
-        car = adapter_create("car", {"simulate": True, "max_speed_mps": FULL, **options})
-        assert isinstance(car, CarAdapter)
-        cars.append(car)
-        await car.start()
-        return car
+        async def make(**options: Any) -> CarAdapter:
+            simulator = {
+                SIMULATOR[key]: options.pop(key) for key in list(options) if key in SIMULATOR
+            }
+            car, _ = await stack.enter_async_context(
+                adapter_simulated("car", {"max_speed_mps": FULL, **options, "simulator": simulator})
+            )
+            assert isinstance(car, CarAdapter)
+            return car
 
-    yield make
-    for car in cars:
-        await car.close()
+        yield make
 
 
 def world_of(car: CarAdapter) -> CarWorld:
-    assert car.world is not None
-    return car.world
+    """The simulated world: the simulator hands it to the car as its sensors."""
+    assert isinstance(car.sensors, CarWorld)
+    return car.sensors
 
 
 def run_world(world: CarWorld, seconds: float, dt: float = 0.01) -> None:
@@ -479,7 +496,7 @@ async def test_without_gpio_and_simulate_false_start_fails(
 ) -> None:
     monkeypatch.delenv("GPIOZERO_PIN_FACTORY", raising=False)
     monkeypatch.setenv("PIGPIO_ADDR", "127.0.0.1")  # no daemon there: fails fast
-    car = adapter_create("car", {"simulate": False, "pin_factory": "native"})
+    car = adapter_create("car", {"pin_factory": "native"})
     with pytest.raises(AdapterError) as refused:
         await car.start()
     assert refused.value.code == "hardware"
@@ -492,10 +509,10 @@ async def test_the_real_code_path_dead_reckons_from_the_origin(
     # gpiozero's "mock" pin factory stands in for a real one (no world, no battery).
     monkeypatch.setenv("GPIOZERO_MOCK_PIN_CLASS", "mockpwmpin")
     origin = (41.15, -8.61)
-    car = adapter_create("car", {"simulate": False, "pin_factory": "mock", "origin": list(origin)})
+    car = adapter_create("car", {"pin_factory": "mock", "origin": list(origin)})
     async with car:
         assert isinstance(car, CarAdapter)
-        assert not car.simulated and car.world is None
+        assert car.sensors is None
         assert car.telemetry()["battery_level"] is None
         await car.execute("forward", {"speed": 1.0})
         await asyncio.sleep(0.5)
@@ -513,7 +530,6 @@ async def test_the_real_code_path_dead_reckons_from_the_origin(
         ({"watch_hz": 10}, "watch_hz"),
         ({"motor_driver": "steam"}, "motor_driver"),
         ({"origin": [91, 0]}, "origin"),
-        ({"obstacles": [{"circle": [1, 2]}]}, "obstacles[0]"),
         ({"distance_sensor": "yes"}, "distance_sensor"),
     ],
 )
@@ -527,7 +543,21 @@ async def test_obstacles_from_the_options(make_car: MakeCar) -> None:
     assert world_of(car).obstacles == [Circle(0.5, 0.0, 0.1), Box(0.0, 3.0, 1.0, 1.0)]
 
 
-def test_unknown_options_are_logged(caplog: pytest.LogCaptureFixture) -> None:
-    adapter_create("car", {"distance_senor": True, "vehicle_type": "car"})
-    assert "distance_senor" in caplog.text
-    assert "vehicle_type" not in caplog.text
+def test_unknown_options_are_refused_by_name() -> None:
+    # A misspelt distance_sensor must not leave the obstacle stop silently off.
+    with pytest.raises(ValueError, match="car options: unknown keys distance_senor, sim_hz"):
+        adapter_create("car", {"distance_senor": True, "sim_hz": 0, "vehicle_type": "car"})
+
+
+async def test_bad_simulator_parameters_are_refused_before_anything_starts() -> None:
+    with pytest.raises(ValueError, match=r"car option simulator.obstacles: obstacles\[0\]"):
+        async with simulator_running("car", {"simulator": {"obstacles": [{"circle": [1, 2]}]}}):
+            pass
+    with pytest.raises(ValueError, match="car options simulator: unknown key speed"):
+        async with simulator_running("car", {"simulator": {"speed": 2}}):
+            pass
+
+
+def test_simulate_is_refused_with_where_simulators_start() -> None:
+    with pytest.raises(ValueError, match="python -m agents sim fleet"):
+        adapter_create("car", {"simulate": True})

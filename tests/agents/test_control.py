@@ -28,8 +28,10 @@ from agents.protocol import (
     load_public_key,
     new_nonce,
 )
+from agents.simulation import adapter_simulated
 from agents.vehicles.base import AdapterError
 from agents.vehicles.car.adapter import CarAdapter
+from agents.vehicles.car.sim.world import CarWorld
 
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
 PRIVATE = load_private_key(PRIVATE_PEM)
@@ -53,6 +55,7 @@ class Rig:
     hub: ControlHub
     server: ControlServer
     car: CarAdapter
+    world: CarWorld
     reports: list[tuple[str, str | None, dict[str, Any]]] = field(default_factory=list)
     #: When each report was made (monotonic), in the same order.
     stamps: list[float] = field(default_factory=list)
@@ -107,11 +110,10 @@ def make_grant(
 
 @pytest.fixture
 async def rig() -> AsyncIterator[Rig]:
-    car = CarAdapter(
-        {"simulate": True, "camera_arm": True, "distance_sensor": True, "origin": [40.63, -8.65]}
-    )
+    options = {"camera_arm": True, "distance_sensor": True, "origin": [40.63, -8.65]}
     rigs: list[Rig] = []
-    async with car:
+    async with adapter_simulated("car", options) as (car, simulation):
+        assert isinstance(car, CarAdapter)
         hub = ControlHub(
             vehicle_id=VEHICLE,
             vehicle_name="car-1",
@@ -120,7 +122,7 @@ async def rig() -> AsyncIterator[Rig]:
             report=lambda e, s, d: rigs[0].report(e, s, d),
         )
         async with hub, ControlServer(hub) as server:
-            rigs.append(Rig(hub, server, car))
+            rigs.append(Rig(hub, server, car, simulation.simulator))
             hub.task_accept(make_task())
             yield rigs[0]
 
@@ -173,17 +175,17 @@ async def test_controller_drives_the_car_and_acks_carry_seq(rig: Rig):
     ws, welcome = await join(rig)
     assert welcome["role"] == "controller"
     assert {c["name"] for c in welcome["commands"]} >= set(CAR_COMMANDS)
-    start = rig.car.world.position
+    start = rig.world.position
 
     ack = await command(ws, 7, "forward", speed=1.0)
     assert ack == {"type": "ack", "seq": 7, "ok": True, "error": None}
     await keep_alive(ws, 1.0)
-    moved = rig.car.world.position
+    moved = rig.world.position
     assert moved != start
-    heading_before = rig.car.world.heading_deg
+    heading_before = rig.world.heading_deg
     assert (await command(ws, 8, "right", speed=1.0))["ok"]
     await keep_alive(ws, 0.5)
-    assert rig.car.world.heading_deg != heading_before
+    assert rig.world.heading_deg != heading_before
     assert (await command(ws, 9, "stop"))["ok"]
 
     tilt = rig.car.telemetry()["camera_tilt"]
@@ -274,17 +276,17 @@ async def test_second_controller_cannot_steer_until_it_takes_control(rig: Rig):
     assert welcome["role"] == "viewer"
     refused = await command(second, 1, "forward")
     assert not refused["ok"] and refused["code"] == "view_only"
-    assert rig.car.world.efforts == (0.0, 0.0)
+    assert rig.world.efforts == (0.0, 0.0)
 
     assert (await command(first, 1, "forward", speed=0.8))["ok"]
     await asyncio.sleep(0.1)
-    assert rig.car.world.efforts != (0.0, 0.0)
+    assert rig.world.efforts != (0.0, 0.0)
     # The other tab takes over: the car's inputs are zeroed before it may steer.
     await second.send(json.dumps({"type": "take_control"}))
     assert (await recv(second, "role"))["role"] == "controller"
     assert (await recv(first, "role"))["role"] == "viewer"
     await asyncio.sleep(0.1)
-    assert rig.car.world.efforts == (0.0, 0.0)
+    assert rig.world.efforts == (0.0, 0.0)
     assert (await command(first, 2, "forward"))["code"] == "view_only"
     assert (await command(second, 2, "backward"))["ok"]
     # The platform hears of the hand-over, and of control put down.
@@ -312,9 +314,9 @@ async def test_viewer_grant_never_controls(rig: Rig):
 async def test_obstacle_stops_the_car_and_refuses_forward(rig: Rig):
     ws, _ = await join(rig)
     assert (await command(ws, 1, "forward", speed=0.5))["ok"]
-    rig.car.world.place_obstacle_ahead(0.15)
+    rig.world.place_obstacle_ahead(0.15)
     await keep_alive(ws, 0.3)
-    assert rig.car.world.speed_mps == pytest.approx(0.0, abs=1e-3)
+    assert rig.world.speed_mps == pytest.approx(0.0, abs=1e-3)
     refused = await command(ws, 2, "forward")
     assert not refused["ok"] and refused["code"] == "obstacle"
     assert (await command(ws, 3, "backward", speed=0.3))["ok"]
@@ -326,11 +328,11 @@ async def test_killed_client_stops_the_car_and_platform_is_told(rig: Rig):
     ws, _ = await join(rig)
     assert (await command(ws, 1, "forward", speed=1.0))["ok"]
     await asyncio.sleep(0.1)
-    assert rig.car.world.speed_mps > 0
+    assert rig.world.speed_mps > 0
     killed_at = time.monotonic()
     ws.transport.abort()  # as if the browser's process died: no close handshake
     for _ in range(200):  # poll the simulated car for up to 2 s
-        if rig.car.world.speed_mps == 0:
+        if rig.world.speed_mps == 0:
             break
         await asyncio.sleep(0.01)
     # The closed socket is noticed at once, well within the 500 ms link-loss timeout.
@@ -342,7 +344,7 @@ async def test_silent_controller_triggers_failsafe_after_timeout(rig: Rig):
     ws, _ = await join(rig)
     assert (await command(ws, 1, "forward", speed=1.0))["ok"]
     silent_at = await keep_alive(ws, 0.8)
-    assert rig.car.world.speed_mps > 0  # keepalives hold the link
+    assert rig.world.speed_mps > 0  # keepalives hold the link
     event = await recv(ws, "event", within=3)  # the agent tells the user why it stopped
     assert event["event"] == "failsafe"
     # Not before the 500 ms timeout; the upper bound is loose for a busy machine.
@@ -443,9 +445,8 @@ async def test_flood_is_throttled_then_disconnected(rig: Rig):
 @settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
 @given(frames=st.lists(st.one_of(st.text(max_size=200), st.binary(max_size=200)), max_size=8))
 async def test_fuzzed_frames_never_break_the_agent(frames):
-    car = CarAdapter({"simulate": True})
     reports: list[Any] = []
-    async with car:
+    async with adapter_simulated("car", {}) as (car, simulation):
         hub = ControlHub(
             vehicle_id=VEHICLE,
             vehicle_name="car",
@@ -455,7 +456,7 @@ async def test_fuzzed_frames_never_break_the_agent(frames):
         )
         async with hub, ControlServer(hub) as server:
             hub.task_accept(make_task())
-            rig = Rig(hub, server, car)
+            rig = Rig(hub, server, car, simulation.simulator)
             ws, _ = await join(rig)
             for frame in frames:
                 await ws.send(frame)
@@ -647,7 +648,7 @@ async def test_a_car_rolling_out_of_its_geofence_is_stopped(rig: Rig):
         assert (await command(ws, seq, "forward", speed=1.0))["code"] == "geofence"
         seq += 1
         farthest = max(farthest, distance_m(here, rig.car.state().position))
-    assert rig.car.world.speed_mps == 0.0
+    assert rig.world.speed_mps == 0.0
     print(
         f"\ncar at 0.5 m/s, 1 m fence: breach seen at {breach['value']:.2f} m, "
         f"stopped at most {farthest:.2f} m out"

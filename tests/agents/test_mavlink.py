@@ -9,6 +9,7 @@ about where the drone goes and what the user is told, with loose time bounds onl
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import math
 import os
@@ -38,8 +39,12 @@ from agents.protocol import (
     new_nonce,
 )
 from agents.safety import CommandGate, Refusal
+from agents.simulation import simulator_running
 from agents.vehicles.base import AdapterError
-from agents.vehicles.mavlink.adapter import MAV, MavlinkAdapter, MavlinkConfig, mavutil
+from agents.vehicles.mavlink.adapter import MAV, MavlinkAdapter, mavutil
+from agents.vehicles.mavlink.config import MavlinkConfig
+from agents.vehicles.mavlink.sim import simulator_command
+from agents.vehicles.registry import adapter_create
 from tests.agents.test_control import command, recv
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -72,6 +77,8 @@ class Rig:
     hub: ControlHub
     server: ControlServer
     drone: MavlinkAdapter
+    #: The simulator's process (``python -m agents sim mavlink``).
+    sim_process: subprocess.Popen[bytes]
     reports: list[tuple[str, str | None, dict[str, Any]]] = field(default_factory=list)
     events: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
 
@@ -123,7 +130,6 @@ def make_grant() -> str:
 
 def drone_options(**overrides: Any) -> dict[str, Any]:
     return {
-        "simulate": True,
         "origin": list(HOME),
         "simulator": SIM,
         "heartbeat_timeout_s": 1.5,
@@ -137,11 +143,17 @@ RigFactory = Callable[..., Awaitable[Rig]]
 
 @pytest.fixture
 async def make_rig() -> AsyncIterator[RigFactory]:
-    """Build rigs (drone + hub + server + task); everything is closed at the end."""
+    """Build rigs (simulator + drone + hub + server + task); everything is closed at
+    the end, the simulators last."""
     opened: list[tuple[ControlServer, ControlHub, MavlinkAdapter]] = []
+    simulators = contextlib.AsyncExitStack()
 
     async def build(task: VehicleTask | None = None, **options: Any) -> Rig:
-        drone = MavlinkAdapter(drone_options(**options))
+        simulation = await simulators.enter_async_context(
+            simulator_running("mavlink", drone_options(**options))
+        )
+        drone = adapter_create("mavlink", simulation.options)
+        assert isinstance(drone, MavlinkAdapter)
         events: list[tuple[str, dict[str, Any]]] = []
         drone.on_event = lambda name, data: events.append((name, data))
         await drone.start()
@@ -158,7 +170,7 @@ async def make_rig() -> AsyncIterator[RigFactory]:
         await server.start()
         opened.append((server, hub, drone))
         hub.task_accept(task or make_task())
-        return Rig(hub, server, drone, reports, events)
+        return Rig(hub, server, drone, simulation.simulator, reports, events)
 
     try:
         yield build
@@ -167,6 +179,7 @@ async def make_rig() -> AsyncIterator[RigFactory]:
             await server.close()
             await hub.close()
             await drone.close()
+        await simulators.aclose()
 
 
 @pytest.fixture
@@ -354,7 +367,7 @@ async def test_autopilot_refusal_reaches_the_user_in_its_words(make_rig: RigFact
 
 async def test_unanswered_command_is_a_timeout(make_rig: RigFactory):
     rig = await make_rig(heartbeat_timeout_s=5.0, command_timeout_s=1.0)
-    process = rig.drone.sim_process
+    process = rig.sim_process
     assert process is not None
     os.kill(process.pid, signal.SIGSTOP)  # silent for less than the heartbeat timeout
     try:
@@ -416,7 +429,7 @@ async def test_bad_bytes_from_the_autopilot_side_never_crash_the_agent(rig: Rig)
 async def test_autopilot_silence_is_reported_and_refuses_commands(rig: Rig):
     ws = await join(rig)
     await watch(ws, lambda d: d["location"] is not None, 5, "a position")
-    process = rig.drone.sim_process
+    process = rig.sim_process
     assert process is not None
     os.kill(process.pid, signal.SIGSTOP)  # the autopilot goes silent
     try:
@@ -503,7 +516,7 @@ async def test_failsafe_check_reads_the_gcs_id_under_either_name(make_rig: RigFa
 
 async def test_failsafe_check_names_both_gcs_id_parameters_when_unanswered(make_rig: RigFactory):
     rig = await make_rig(heartbeat_timeout_s=5.0, command_timeout_s=1.0)
-    process = rig.drone.sim_process
+    process = rig.sim_process
     assert process is not None
     os.kill(process.pid, signal.SIGSTOP)  # silent for less than the heartbeat timeout
     try:
@@ -561,7 +574,8 @@ async def test_movement_is_refused_before_take_off_and_the_gate_checks_projectio
 
 
 def test_projection_turns_the_body_axes_by_the_heading():
-    drone = MavlinkAdapter({"connection": "udpin:127.0.0.1:0", "setpoint_hold_s": 1.0})
+    drone = adapter_create("mavlink", {"connection": "udpin:127.0.0.1:0", "setpoint_hold_s": 1.0})
+    assert isinstance(drone, MavlinkAdapter)
     t = drone.t
     t.lat, t.lon, t.alt, t.heading = HOME[0], HOME[1], 5.0, 90.0
     front = drone.project("front", {"speed_mps": 2})
@@ -579,21 +593,28 @@ def test_projection_turns_the_body_axes_by_the_heading():
 
 def test_options_are_checked():
     assert MavlinkConfig.from_options({}).source_system == 255
-    for bad in (
-        {"simulate": "yes"},
-        {"velocity_frame": "local_ned"},
-        {"command_timeout_s": 0},
-        {"simulator": {"gps": "maybe"}},
-        {"simulator": {"firmware": "5.0"}},
-        {"simulator": {"gps_fix_after_s": "soon"}},
-        {"origin": [91, 0]},
-        {"stream_rates_hz": {"NOT_A_MESSAGE": 1}},
+    for bad, named in (
+        ({"simulate": "yes"}, "simulate"),
+        ({"velocity_frame": "local_ned"}, "velocity_frame"),
+        ({"command_timeout_s": 0}, "command_timeout_s"),
+        ({"origin": [91, 0]}, "origin"),
+        ({"stream_rates_hz": {"NOT_A_MESSAGE": 1}}, "stream_rates_hz"),
+        ({"payload": {"method": "servo", "servo": 40, "pwm": 1900}}, "payload.servo"),
+        ({"heartbeat_timeout": 2}, "unknown key heartbeat_timeout"),
     ):
-        with pytest.raises(ValueError):
+        with pytest.raises(ValueError, match=named):
             MavlinkConfig.from_options(bad)
-    names = [c.name for c in MavlinkAdapter({}).commands()]
+    for bad_simulator, named in (
+        ({"gps": "maybe"}, "simulator.gps"),
+        ({"firmware": "5.0"}, "simulator.firmware"),
+        ({"gps_fix_after_s": "soon"}, "simulator.gps_fix_after_s"),
+        ({"speed_up": 4}, "unknown key speed_up"),
+    ):
+        with pytest.raises(ValueError, match=named):
+            simulator_command(bad_simulator, home=HOME)
+    names = [c.name for c in adapter_create("mavlink", {}).commands()]
     assert set(DRONE_COMMANDS) <= set(names)
-    keys = {c.name: c.key for c in MavlinkAdapter({}).commands()}
+    keys = {c.name: c.key for c in adapter_create("mavlink", {}).commands()}
     assert keys["up"] == "w" and keys["rotate_right"] == "d" and keys["front"] == "ArrowUp"
     assert keys["land"] == "l" and keys["return_to_home"] == "h"
 
@@ -612,7 +633,8 @@ async def test_a_dead_agent_leaves_the_drone_to_the_autopilots_own_failsafe():
         ready = sim.stdout.readline().split()
         assert ready[0] == "READY", ready
         address = ready[1].replace("udpin:", "udpout:")
-        drone = MavlinkAdapter({"connection": address, "close_action": "none"})
+        drone = adapter_create("mavlink", {"connection": address, "close_action": "none"})
+        assert isinstance(drone, MavlinkAdapter)
         async with drone:
             assert await drone.check_failsafe_params("return_to_home") == []
             await drone.execute("take_off", {"altitude_m": 3})

@@ -37,8 +37,10 @@ from agents.protocol import (
 )
 from agents.runtime import Agent
 from agents.safety import Refusal
+from agents.simulation import simulator_running
 from agents.thermal import SyntheticSeaThermal, ThermalFeed
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
+from agents.vehicles.registry import adapter_create
 from tests.agents.test_control import command, recv
 
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
@@ -99,7 +101,6 @@ def make_task(mission: dict[str, Any] | None, session: str = "s-1", **limits: An
 
 def drone_options(**overrides: Any) -> dict[str, Any]:
     return {
-        "simulate": True,
         "origin": list(HOME),
         "simulator": SIM,
         "payload": {"method": "gripper"},
@@ -168,11 +169,16 @@ RigFactory = Callable[..., Awaitable[Rig]]
 @pytest.fixture
 async def make_rig() -> AsyncIterator[RigFactory]:
     opened: list[Rig] = []
+    simulators = contextlib.AsyncExitStack()
 
     async def build(
         persons: list[Any] | None = None, *, control: bool = False, **options: Any
     ) -> Rig:
-        drone = MavlinkAdapter(drone_options(**options))
+        simulation = await simulators.enter_async_context(
+            simulator_running("mavlink", drone_options(**options))
+        )
+        drone = adapter_create("mavlink", simulation.options)
+        assert isinstance(drone, MavlinkAdapter)
         await drone.start()
         feed = ThermalFeed(SyntheticSeaThermal(drone.state, persons=persons or [], seed=3))
         reports: list[tuple[str, str | None, dict[str, Any]]] = []
@@ -207,6 +213,7 @@ async def make_rig() -> AsyncIterator[RigFactory]:
             await rig.hub.close()
             await rig.feed.close()
             await rig.drone.close()
+        await simulators.aclose()
 
 
 # --- a fake platform for whole-agent tests ----------------------------------------------
@@ -263,15 +270,19 @@ async def agent_with_platform(
     thermal: dict[str, Any] | None, video: dict[str, Any] | None = None
 ) -> AsyncIterator[tuple[Agent, FakePlatform]]:
     platform = FakePlatform()
-    async with serve(platform.handle, "127.0.0.1", 0) as server:
+    async with (
+        contextlib.AsyncExitStack() as stack,
+        serve(platform.handle, "127.0.0.1", 0) as server,
+    ):
         port = next(iter(server.sockets)).getsockname()[1]
+        simulation = await stack.enter_async_context(simulator_running("mavlink", drone_options()))
         config = AgentConfig(
             platform_url=f"ws://127.0.0.1:{port}",
             vehicle_id=VEHICLE,
             credential="secret",
             platform_public_key=PUBLIC_PEM,
             adapter="mavlink",
-            adapter_options=drone_options(),
+            adapter_options=simulation.options,
             control=ControlConfig(host="127.0.0.1", port=0),
             video=video,
             thermal=thermal,

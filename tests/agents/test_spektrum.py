@@ -43,16 +43,15 @@ from agents.protocol import (
     new_nonce,
 )
 from agents.safety import CommandGate, Refusal
+from agents.simulation import adapter_simulated
 from agents.vehicles.base import AdapterError, Breach
 from agents.vehicles.registry import adapter_create
-from agents.vehicles.spektrum.adapter import (
-    FrameError,
-    SpektrumAdapter,
-    decode_frame,
-    encode_frame,
-    parse_report,
-)
-from agents.vehicles.spektrum.sim.simulator import FrameChecker, SimParams, VtolModel, cli
+from agents.vehicles.spektrum.adapter import SpektrumAdapter
+from agents.vehicles.spektrum.frames import FrameError, decode_frame, encode_frame
+from agents.vehicles.spektrum.report import parse_report
+from agents.vehicles.spektrum.sim import cli
+from agents.vehicles.spektrum.sim.line import FrameChecker
+from agents.vehicles.spektrum.sim.model import SimParams, VtolModel
 from tests.agents.test_control import command, recv
 
 # --------------------------------------------------------------------------------------
@@ -632,7 +631,7 @@ async def test_a_hung_event_loop_lands_the_plane_from_the_control_thread() -> No
 
 
 def test_the_model_stalls_below_the_stall_speed_and_climbs_in_vtol_mode() -> None:
-    from agents.vehicles.spektrum.sim.simulator import Inputs
+    from agents.vehicles.spektrum.sim.model import Inputs
 
     model = VtolModel(SimParams(transition_s=1.0), (40.0, -8.0))
     model.step(0.02, Inputs(arm=True))
@@ -703,6 +702,8 @@ class HubRig:
     hub: ControlHub
     server: ControlServer
     plane: SpektrumAdapter
+    #: The simulated flight controller (a thread of this process, or a process).
+    simulator: Any
     reports: list[tuple[str, str | None, dict[str, Any]]] = field(default_factory=list)
 
     @property
@@ -710,14 +711,15 @@ class HubRig:
         return f"ws://127.0.0.1:{self.server.port}/"
 
     def sim(self) -> dict[str, Any]:
-        return dict(self.plane.simulator.snapshot())
+        return dict(self.simulator.snapshot())
 
 
 @contextlib.asynccontextmanager
 async def hub_rig(*, limits: dict[str, Any] | None = None, **options: Any) -> AsyncIterator[HubRig]:
-    plane = SpektrumAdapter({"simulate": True, "origin": [40.63, -8.65], **FAST, **options})
     reports: list[tuple[str, str | None, dict[str, Any]]] = []
-    async with plane:
+    options = {"origin": [40.63, -8.65], **FAST, **options}
+    async with adapter_simulated("spektrum", options) as (plane, simulation):
+        assert isinstance(plane, SpektrumAdapter)
         hub = ControlHub(
             vehicle_id=VEHICLE,
             vehicle_name="vtol-1",
@@ -727,7 +729,7 @@ async def hub_rig(*, limits: dict[str, Any] | None = None, **options: Any) -> As
         )
         async with hub, ControlServer(hub) as server:
             hub.task_accept(make_task(**(limits or {})))
-            yield HubRig(hub, server, plane, reports)
+            yield HubRig(hub, server, plane, simulation.simulator, reports)
 
 
 async def join(rig: HubRig) -> ClientConnection:
@@ -913,7 +915,7 @@ async def test_a_held_climb_key_never_takes_the_plane_over_the_ceiling_for_long(
 async def test_an_updraft_past_the_ceiling_is_answered_and_reported(mode: str) -> None:
     async with hub_rig(limits={"max_altitude_m": CEILING}, **DEFAULT_RATES) as rig:
         ws = await join(rig)
-        model = rig.plane.simulator.model
+        model = rig.simulator.model
         async with Altimeter(rig) as altimeter:
             seq = await climb_to(ws, rig, CEILING - 4)
             if mode == "aircraft":
@@ -1069,7 +1071,7 @@ async def flood(url: str, count: int) -> dict[str, Any]:
 async def test_the_frame_period_holds_while_the_control_socket_is_flooded() -> None:
     # The simulator in its own process: the timing it measures is the receiving end's
     # view, not disturbed by this process's interpreter lock.
-    async with hub_rig(simulator="process") as rig:
+    async with hub_rig(simulator={"process": True}) as rig:
         plane = rig.plane
         await until(lambda: plane.fc_report() is not None, within=10, what="the simulator")
         stop = asyncio.Event()

@@ -105,7 +105,7 @@ async def test_register_deploy_drive_and_unintentional_end(running):
 
     await until(active, what="the platform to see the user connected")
 
-    world = agent.adapter.world
+    world = agent.adapter.sensors  # the simulated world
     start = world.position
     assert (await command(ws, 41, "forward", speed=1.0)) == {
         "type": "ack",

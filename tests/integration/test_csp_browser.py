@@ -9,7 +9,6 @@ CSP console error fails the test.
 
 from __future__ import annotations
 
-import asyncio
 import base64
 import contextlib
 import dataclasses
@@ -30,7 +29,7 @@ from services.demo import demo_seed
 from services.deployment import session_deploy
 from services.models import Service, Session
 from tests.browser import chromium_browser, needs_chromium
-from tests.integration.test_portal import PASSWORD, _start_agent, wait_for
+from tests.integration.test_portal import PASSWORD, demo_agent, wait_for
 from tests.servers import db, platform_process, until
 
 pytestmark = [
@@ -136,20 +135,16 @@ async def portal(tmp_path: Path) -> AsyncIterator[Portal]:
             extra_env={"IOUV_MAP_TILES_URL": f"{tiles.base}/{{z}}/{{x}}/{{y}}.png"}
         ) as base,
     ):
-        car = await _start_agent(tmp_path / "car-1.json", base)
-        task = asyncio.create_task(car.run())
+        async with demo_agent(tmp_path / "car-1.json", base):
 
-        async def idle() -> bool:
-            return await db(lambda: Vehicle.objects.filter(name="car-1", status="idle").exists())
+            async def idle() -> bool:
+                return await db(
+                    lambda: Vehicle.objects.filter(name="car-1", status="idle").exists()
+                )
 
-        try:
             await until(idle, within=15, what="car-1 online and idle")
             async with chromium_browser(webrtc_loopback=True) as browser:
                 yield Portal(base, browser, tiles)
-        finally:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
 
 
 def _drive_car_for(username: str) -> Session:

@@ -26,7 +26,7 @@ from services.demo import demo_seed
 from services.models import Session
 from tests import factories as f
 from tests.browser import chromium_browser, needs_chromium
-from tests.servers import db, platform_process, until
+from tests.servers import agent_configured, db, platform_process, until
 
 pytestmark = [
     pytest.mark.postgres,
@@ -54,45 +54,42 @@ class World:
         return page
 
 
-async def _start_agent(path: Path, base: str) -> Agent:
+def demo_agent(path: Path, base: str) -> contextlib.AbstractAsyncContextManager[Any]:
+    """The agent of a demo config file, on its simulator, against the platform at
+    ``base`` (an async context manager yielding ``(agent, simulation)``)."""
     config = AgentConfig.load(path)
     config = dataclasses.replace(
         config,
         platform_url=base.replace("http://", "ws://"),
-        adapter_options={**config.adapter_options, "simulate": True},
         # Loopback only: aioice would otherwise offer this machine's other addresses.
         video={"source": "synthetic", "ice_host_addresses": ["127.0.0.1"]},
         reconnect_min_s=0.2,
     )
-    return Agent(config)
+    return agent_configured(config)
 
 
 @pytest.fixture
 async def world(tmp_path: Path) -> AsyncIterator[World]:
     await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path)
     with platform_process() as base:
-        agents = {
-            name: await _start_agent(tmp_path / f"{name}.json", base)
-            for name in ("car-1", "quad-1")
-        }
-        tasks = [asyncio.create_task(a.run()) for a in agents.values()]
+        async with contextlib.AsyncExitStack() as running:
+            agents: dict[str, Agent] = {}
+            for name in ("car-1", "quad-1"):
+                agent, _ = await running.enter_async_context(
+                    demo_agent(tmp_path / f"{name}.json", base)
+                )
+                agents[name] = agent
 
-        async def online() -> bool:
-            return await db(lambda: Vehicle.objects.filter(name="car-1", status="idle").exists())
+            async def online() -> bool:
+                # Idle with a position: matching measures from where a vehicle reports
+                # it is, and the drone has none before its autopilot's GPS fix.
+                ready = Vehicle.objects.filter(name__in=agents, status="idle", lat__isnull=False)
+                return await db(ready.count) == len(agents)
 
-        for _ in range(100):
-            if await online():
-                break
-            await asyncio.sleep(0.1)
-        async with chromium_browser(webrtc_loopback=True) as browser:
-            try:
+            await until(online, within=30, what="car-1 and quad-1 online with a position")
+            # The agents stop (cancelled, then their simulators) after the browser.
+            async with chromium_browser(webrtc_loopback=True) as browser:
                 yield World(base, browser, agents)
-            finally:
-                for task in tasks:
-                    task.cancel()
-                for task in tasks:
-                    with contextlib.suppress(asyncio.CancelledError):
-                        await task
 
 
 async def controller(page: Page, expression: str) -> Any:
@@ -119,7 +116,7 @@ async def request_car(world: World, page: Page, *, relay: bool = False) -> str:
 
 async def drive_forward(world: World, page: Page, seconds: float = 1.0) -> float:
     """Hold ArrowUp; returns how far the simulated car moved (metres)."""
-    car = world.agents["car-1"].adapter.world
+    car = world.agents["car-1"].adapter.sensors  # the simulated world
     start = car.pose
     await page.keyboard.down("ArrowUp")
     await asyncio.sleep(seconds)

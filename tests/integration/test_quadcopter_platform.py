@@ -26,7 +26,7 @@ from services.deployment import session_deploy
 from services.models import Session
 from tests import factories as f
 from tests.agents.test_control import command, recv
-from tests.servers import agent_running, db, platform_process, until
+from tests.servers import agent_simulated, db, platform_process, until
 
 pytestmark = [
     pytest.mark.postgres,
@@ -71,7 +71,7 @@ def _fleet() -> tuple[Vehicle, str, Any]:
 async def running() -> AsyncIterator[tuple[Agent, Vehicle, Any]]:
     quad, credential, service = await db(_fleet)
     with platform_process() as base:
-        async with agent_running(
+        async with agent_simulated(
             base=base,
             vehicle=quad,
             credential=credential,
@@ -80,9 +80,9 @@ async def running() -> AsyncIterator[tuple[Agent, Vehicle, Any]]:
                 "origin": [f.HOME[0], f.HOME[1]],
                 "simulator": {"speedup": 4, "params": {"RTL_ALT": 800, "RTL_LOIT_TIME": 500}},
             },
-        ) as agent:
+        ) as (agent, simulation):
             yield agent, quad, service
-    assert agent.adapter.sim_process is None  # the simulator was stopped with the agent
+    assert simulation.simulator.poll() is not None  # the simulator stopped after the agent
 
 
 async def test_fly_then_browser_dies_drone_returns_home_and_platform_records_it(running):

@@ -155,7 +155,8 @@ async def drive(task: dict[str, Any], seq: int) -> Any:
 
 
 class AgentProcess:
-    """``python -m agents run`` for one simulated car, as on a vehicle."""
+    """One simulated car's agent in a process of its own (``python -m agents sim fleet``
+    with that car's config alone), to be killed as a vehicle's agent can be."""
 
     def __init__(self, config: Path) -> None:
         self.config = config
@@ -163,8 +164,9 @@ class AgentProcess:
 
     def start(self) -> None:
         self.log = open(self.config.with_suffix(".log"), "a")  # noqa: SIM115 - closed in stop
+        only = ["--configs", str(self.config.parent), "--only", self.config.stem]
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "agents", "run", "--config", str(self.config)],
+            [sys.executable, "-m", "agents", "sim", "fleet", *only],
             cwd=ROOT,
             env={**os.environ, "PYTHONUNBUFFERED": "1"},
             stdout=self.log,
@@ -202,7 +204,7 @@ def agent_process(tmp_path: Path) -> Iterator[Any]:
                     "credential": credential,
                     "platform_public_key": key,
                     "adapter": "car",
-                    "adapter_options": {"simulate": True, "origin": list(f.HOME)},
+                    "adapter_options": {"origin": list(f.HOME)},
                     "control": {"host": "127.0.0.1", "port": 0},
                     "name": vehicle.name,
                 }

@@ -18,8 +18,8 @@ from typing import Any
 import pytest
 from websockets.asyncio.client import connect
 
-from agents.vehicles.spektrum.adapter import SpektrumAdapter
 from agents.runtime import Agent
+from agents.vehicles.spektrum.adapter import SpektrumAdapter
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
 from services.assignment import session_request
@@ -27,7 +27,7 @@ from services.deployment import session_deploy
 from services.models import Session
 from tests import factories as f
 from tests.agents.test_spektrum import FAST, command, recv
-from tests.servers import agent_running, db, platform_process, until
+from tests.servers import agent_simulated, db, platform_process, until
 
 pytestmark = [
     pytest.mark.postgres,
@@ -72,10 +72,10 @@ def _fleet() -> tuple[Vehicle, str, Any]:
 
 
 @pytest.fixture
-async def running() -> AsyncIterator[tuple[Agent, Vehicle, Any]]:
+async def running() -> AsyncIterator[tuple[Agent, Vehicle, Any, Any]]:
     plane, credential, service = await db(_fleet)
     with platform_process() as base:
-        async with agent_running(
+        async with agent_simulated(
             base=base,
             vehicle=plane,
             credential=credential,
@@ -85,12 +85,12 @@ async def running() -> AsyncIterator[tuple[Agent, Vehicle, Any]]:
                 "vehicle_type": "Spektrum VTOL plane",
                 **FAST,
             },
-        ) as agent:
-            yield agent, plane, service
+        ) as (agent, simulation):
+            yield agent, plane, service, simulation.simulator
 
 
 async def test_register_deploy_fly_and_link_loss_lands(running: Any) -> None:
-    agent, plane, service = running
+    agent, plane, service, sim = running
 
     async def registered() -> bool:
         v = await db(Vehicle.objects.get, pk=plane.pk)
@@ -122,7 +122,6 @@ async def test_register_deploy_fly_and_link_loss_lands(running: Any) -> None:
 
     adapter = agent.adapter
     assert isinstance(adapter, SpektrumAdapter)
-    sim = adapter.simulator
     assert (await command(ws, 1, "arm"))["ok"]
     # Hold "w" as the browser does (a repeat every 100 ms) until the plane is 3 m up:
     # the throttle only stays up while the key is held.

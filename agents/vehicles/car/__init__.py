@@ -1,12 +1,17 @@
 """The Raspberry Pi car (the paper's 4.2.1): gpiozero motors, a pan/tilt camera arm and an
-HC-SR04 distance sensor; see ``docs/vehicles/car.md``."""
+HC-SR04 distance sensor; see ``docs/vehicles/car.md``.
+
+Files: ``config`` (options), ``vocabulary`` (commands, telemetry), ``kinematics`` (pose,
+dead reckoning), ``adapter`` (gpiozero), ``sim/`` (the simulated world on mock pins).
+"""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from typing import Any
 
-from agents.vehicles.base import Adapter, CommandSpec
+from agents.vehicles.base import Adapter
+from agents.vehicles.car.vocabulary import car_commands
 from agents.vehicles.registry import Integration
 
 
@@ -17,13 +22,10 @@ def _create(options: Mapping[str, Any]) -> Adapter:
     return CarAdapter(options)
 
 
-def _commands(options: Mapping[str, Any]) -> list[CommandSpec]:
-    return _create(options).commands()
-
-
 INTEGRATION = Integration(
     name="car",
     title="Raspberry Pi car (gpiozero)",
     create=_create,
-    commands=_commands,
+    commands=car_commands,
+    simulator="agents.vehicles.car.sim",
 )

@@ -11,13 +11,12 @@ Hardware, all optional parts declared in the options (see ``docs/vehicles/car.md
   forwards, and ``forward`` is refused (code ``obstacle``) while it is; backing away
   and turning stay allowed.
 
-Off a Pi (``simulate``, or no GPIO found) the adapter builds exactly the same gpiozero
-devices on mock pins of a per-car ``MockFactory``; a
-:class:`~agents.vehicles.car.sim.world.CarWorld` reads the motor pins back to move the
-car, feeds the distance sensor's echo pin, and supplies position, heading, speed and
-battery. On a real car, which has no GPS, position and heading are dead-reckoned from
-the motor commands when ``origin`` is configured (and unknown otherwise); the battery
-level is unknown.
+The devices sit on a gpiozero pin factory: a real one on a Pi (``pin_factory`` names it,
+else the first that loads), or one handed over as an object, as the simulator
+(:mod:`agents.vehicles.car.sim`) hands over its mock pins. The car has no GPS: position
+and heading are dead-reckoned from the motor commands when ``origin`` is configured
+(and unknown otherwise), and the battery level is unknown, unless a ``sensors`` object
+knows better (:class:`~agents.vehicles.car.config.CarSensors`: the simulated world).
 
 Speeds are fractions of full motor power (0..1), not m/s: ``max_speed_mps`` converts
 them for telemetry, dead reckoning and :meth:`CarAdapter.project`.
@@ -32,18 +31,13 @@ import math
 import os
 import time
 import warnings
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping
 from importlib.metadata import entry_points
 from typing import Any
 
 # gpiozero ships no type hints ("unused-ignore": the project config may already
 # ignore missing imports).
 import gpiozero  # type: ignore[import-untyped, unused-ignore]
-from gpiozero.pins.mock import (  # type: ignore[import-untyped, unused-ignore]
-    MockFactory,
-    MockPWMPin,
-)
 
 from agents.geo import offset
 from agents.vehicles.base import (
@@ -53,286 +47,14 @@ from agents.vehicles.base import (
     Projection,
     VehicleState,
 )
-from agents.vehicles.car.sim.world import (
-    CarWorld,
-    DualPinMotorWiring,
-    MotorWiring,
-    PhaseEnableMotorWiring,
-    PinName,
-    Pose,
-    diff_drive_step,
-    obstacles_from_spec,
-)
-from agents.vehicles.kit import OptionReader
+from agents.vehicles.car.config import CarConfig, DualPinMotorWiring, MotorWiring, PinName
+from agents.vehicles.car.kinematics import Pose, diff_drive_step
+from agents.vehicles.car.vocabulary import TELEMETRY_TOPICS, car_vocabulary
 
 logger = logging.getLogger(__name__)
 
-#: Where a simulated car starts when the options give no ``origin``: an arbitrary
-#: point (Leiria, Portugal).
-SIM_ORIGIN = (39.7436, -8.8071)
-
 #: gpiozero's own order of preference for real pin factories.
 REAL_PIN_FACTORIES = ("lgpio", "rpigpio", "pigpio", "native")
-
-#: Default BCM pins: the CamJam EduKit #3 robot layout (the paper does not give its
-#: wiring), with the pan/tilt servos on GPIO12/13, the Pi's hardware-PWM pins.
-DEFAULT_DUAL_PINS = {"left": (9, 10), "right": (7, 8)}
-#: Pololu DRV8835 kit (gpiozero's PololuDRV8835Robot): (phase, enable) per motor.
-DEFAULT_PHASE_ENABLE_PINS = {"left": (5, 12), "right": (6, 13)}
-
-SPEED_ARG = {
-    "speed": {
-        "type": "number",
-        "min": 0,
-        "max": 1,
-        "default": 0.5,
-        "description": "fraction of full motor power",
-    }
-}
-STEP_ARG = {"step_deg": {"type": "number", "min": 1, "max": 90, "default": 10, "unit": "deg"}}
-
-#: Keys of the agent config's ``adapter_options`` that the agent itself reads.
-AGENT_OPTIONS = frozenset({"vehicle_type", "attributes"})
-
-TELEMETRY_TOPICS = [
-    "battery_level",
-    "location",
-    "heading",
-    "speed",
-    "distance_ahead",
-    "camera_pan",
-    "camera_tilt",
-    "motors",
-]
-
-
-# --------------------------------------------------------------------------------------
-# Options
-# --------------------------------------------------------------------------------------
-
-
-def _pin(value: Any, what: str) -> PinName:
-    if isinstance(value, bool) or not isinstance(value, int | str):
-        raise ValueError(f"car option {what}: a GPIO pin must be a number or a name")
-    return value
-
-
-def _pair(value: Any, what: str) -> tuple[PinName, PinName]:
-    if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != 2:
-        raise ValueError(f"car option {what}: expected two pins")
-    return (_pin(value[0], what), _pin(value[1], what))
-
-
-def _number(options: Mapping[str, Any], key: str, default: float, *, low: float = 0.0) -> float:
-    value = options.get(key, default)
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise ValueError(f"car option {key}: expected a number")
-    if value <= low:
-        raise ValueError(f"car option {key}: must be > {low:g}")
-    return float(value)
-
-
-def _flag(options: Mapping[str, Any], key: str) -> bool:
-    # Strict: bool("false") is True, and a YAML/JSON slip must not fit an arm or a sensor.
-    value = options.get(key, False)
-    if not isinstance(value, bool):
-        raise ValueError(f"car option {key}: expected true or false")
-    return value
-
-
-@dataclass(frozen=True)
-class CarConfig:
-    """The adapter's options, checked. See ``docs/vehicles/car.md`` for each one."""
-
-    simulate: bool | None = None
-    pin_factory: str | None = None
-    left: MotorWiring = field(
-        default_factory=lambda: DualPinMotorWiring(*DEFAULT_DUAL_PINS["left"])
-    )
-    right: MotorWiring = field(
-        default_factory=lambda: DualPinMotorWiring(*DEFAULT_DUAL_PINS["right"])
-    )
-    camera_arm: bool = False
-    camera_pan_pin: PinName = 12
-    camera_tilt_pin: PinName = 13
-    camera_range_deg: float = 180.0
-    camera_pan_reversed: bool = False
-    camera_tilt_reversed: bool = False
-    servo_min_pulse_s: float = 0.0005
-    servo_max_pulse_s: float = 0.0025
-    distance_sensor: bool = False
-    distance_trigger_pin: PinName = 17
-    distance_echo_pin: PinName = 18
-    distance_max_m: float = 4.0
-    distance_queue_len: int = 3
-    obstacle_stop_m: float = 0.25
-    watch_hz: float = 25.0
-    max_speed_mps: float = 0.5
-    track_width_m: float = 0.15
-    origin: tuple[float, float] | None = None
-    heading_deg: float = 0.0
-    # simulation only
-    body_radius_m: float = 0.12
-    battery_pct: float = 100.0
-    battery_drain_pct_per_s: float = 0.05
-    sim_hz: float = 50.0
-    obstacles: tuple[Any, ...] = field(default_factory=tuple)
-
-    @classmethod
-    def from_options(cls, options: Mapping[str, Any]) -> CarConfig:
-        """Check ``options``; raises ValueError naming the first bad one."""
-        simulate = options.get("simulate")
-        if simulate is not None and not isinstance(simulate, bool):
-            raise ValueError("car option simulate: expected true, false or null")
-        factory = options.get("pin_factory")
-        if factory is not None and not isinstance(factory, str):
-            raise ValueError("car option pin_factory: expected a gpiozero pin factory name")
-
-        driver = options.get("motor_driver", "dual")
-        left: MotorWiring
-        right: MotorWiring
-        if driver == "dual":
-            lf, lb = _pair(options.get("left_motor_pins", DEFAULT_DUAL_PINS["left"]), "left")
-            rf, rb = _pair(options.get("right_motor_pins", DEFAULT_DUAL_PINS["right"]), "right")
-            le, re_ = options.get("left_enable_pin"), options.get("right_enable_pin")
-            left = DualPinMotorWiring(lf, lb, None if le is None else _pin(le, "left_enable"))
-            right = DualPinMotorWiring(rf, rb, None if re_ is None else _pin(re_, "right_enable"))
-        elif driver == "phase_enable":
-            left = PhaseEnableMotorWiring(
-                *_pair(options.get("left_motor_pins", DEFAULT_PHASE_ENABLE_PINS["left"]), "left")
-            )
-            right = PhaseEnableMotorWiring(
-                *_pair(options.get("right_motor_pins", DEFAULT_PHASE_ENABLE_PINS["right"]), "right")
-            )
-        else:
-            raise ValueError("car option motor_driver: expected 'dual' or 'phase_enable'")
-
-        origin = OptionReader("car", options).origin()
-
-        queue_len = options.get("distance_queue_len", 3)
-        if isinstance(queue_len, bool) or not isinstance(queue_len, int) or queue_len < 1:
-            raise ValueError("car option distance_queue_len: expected an integer >= 1")
-        watch_hz = _number(options, "watch_hz", 25.0)
-        if watch_hz < 20:
-            raise ValueError("car option watch_hz: the obstacle watch must run at >= 20 Hz")
-        heading = options.get("heading_deg", 0.0)
-        if isinstance(heading, bool) or not isinstance(heading, int | float):
-            raise ValueError("car option heading_deg: expected a number")
-        battery = _number(options, "battery_pct", 100.0, low=-1e-9)
-        if battery > 100:
-            raise ValueError("car option battery_pct: at most 100")
-        min_pulse = _number(options, "servo_min_pulse_s", 0.0005)
-        max_pulse = _number(options, "servo_max_pulse_s", 0.0025)
-        if not min_pulse < max_pulse < 0.02:
-            raise ValueError("car options servo_*_pulse_s: need min < max < 20 ms")
-        camera_range = _number(options, "camera_range_deg", 180.0)
-        if camera_range > 360:
-            raise ValueError("car option camera_range_deg: at most 360")
-        obstacles = options.get("obstacles", ())
-        obstacles_from_spec(obstacles)  # validate now; built when the world is
-
-        config = cls(
-            simulate=simulate,
-            pin_factory=factory,
-            left=left,
-            right=right,
-            camera_arm=_flag(options, "camera_arm"),
-            camera_pan_pin=_pin(options.get("camera_pan_pin", 12), "camera_pan_pin"),
-            camera_tilt_pin=_pin(options.get("camera_tilt_pin", 13), "camera_tilt_pin"),
-            camera_range_deg=camera_range,
-            camera_pan_reversed=_flag(options, "camera_pan_reversed"),
-            camera_tilt_reversed=_flag(options, "camera_tilt_reversed"),
-            servo_min_pulse_s=min_pulse,
-            servo_max_pulse_s=max_pulse,
-            distance_sensor=_flag(options, "distance_sensor"),
-            distance_trigger_pin=_pin(options.get("distance_trigger_pin", 17), "trigger"),
-            distance_echo_pin=_pin(options.get("distance_echo_pin", 18), "echo"),
-            distance_max_m=_number(options, "distance_max_m", 4.0),
-            distance_queue_len=queue_len,
-            obstacle_stop_m=_number(options, "obstacle_stop_m", 0.25),
-            watch_hz=watch_hz,
-            max_speed_mps=_number(options, "max_speed_mps", 0.5),
-            track_width_m=_number(options, "track_width_m", 0.15),
-            origin=origin,
-            heading_deg=float(heading),
-            body_radius_m=_number(options, "body_radius_m", 0.12),
-            battery_pct=battery,
-            battery_drain_pct_per_s=_number(options, "battery_drain_pct_per_s", 0.05, low=-1e-9),
-            sim_hz=_number(options, "sim_hz", 50.0, low=-1e-9),
-            obstacles=tuple(obstacles),
-        )
-        config._check_pin_conflicts()
-        unknown = set(options) - KNOWN_OPTIONS - AGENT_OPTIONS
-        if unknown:
-            # Warn rather than refuse (the options object is shared with the agent), but
-            # loudly: a misspelt "distance_sensor" silently disables the obstacle stop.
-            logger.warning("car: unknown options ignored: %s", ", ".join(sorted(unknown)))
-        return config
-
-    def _check_pin_conflicts(self) -> None:
-        # gpiozero would refuse too, but only at start() and naming its own devices.
-        used: dict[str, str] = {}
-
-        def claim(pin: PinName | None, role: str) -> None:
-            if pin is None:
-                return
-            key = str(pin).upper().removeprefix("GPIO")
-            if key in used:
-                raise ValueError(f"car options: pin {pin} is both {used[key]} and {role}")
-            used[key] = role
-
-        for side, wiring in (("left", self.left), ("right", self.right)):
-            if isinstance(wiring, DualPinMotorWiring):
-                claim(wiring.forward, f"{side} motor forward")
-                claim(wiring.backward, f"{side} motor backward")
-                claim(wiring.enable, f"{side} motor enable")
-            else:
-                claim(wiring.phase, f"{side} motor phase")
-                claim(wiring.enable, f"{side} motor enable")
-        if self.camera_arm:
-            claim(self.camera_pan_pin, "camera pan servo")
-            claim(self.camera_tilt_pin, "camera tilt servo")
-        if self.distance_sensor:
-            claim(self.distance_trigger_pin, "distance sensor trigger")
-            claim(self.distance_echo_pin, "distance sensor echo")
-
-
-#: Every option :meth:`CarConfig.from_options` reads.
-KNOWN_OPTIONS = frozenset(
-    {
-        "simulate",
-        "pin_factory",
-        "motor_driver",
-        "left_motor_pins",
-        "right_motor_pins",
-        "left_enable_pin",
-        "right_enable_pin",
-        "camera_arm",
-        "camera_pan_pin",
-        "camera_tilt_pin",
-        "camera_range_deg",
-        "camera_pan_reversed",
-        "camera_tilt_reversed",
-        "servo_min_pulse_s",
-        "servo_max_pulse_s",
-        "distance_sensor",
-        "distance_trigger_pin",
-        "distance_echo_pin",
-        "distance_max_m",
-        "distance_queue_len",
-        "obstacle_stop_m",
-        "watch_hz",
-        "max_speed_mps",
-        "track_width_m",
-        "origin",
-        "heading_deg",
-        "body_radius_m",
-        "battery_pct",
-        "battery_drain_pct_per_s",
-        "sim_hz",
-        "obstacles",
-    }
-)
 
 
 def _load_pin_factory(name: str | None) -> Any:
@@ -365,11 +87,11 @@ class CarAdapter(Adapter):
 
     Construction only checks the options (ValueError on a bad one); :meth:`start` opens
     the GPIO devices (AdapterError ``hardware`` if it cannot) and starts the obstacle
-    watch and, when simulating, the world.
+    watch.
 
     Public attributes for diagnostics and tests, None until started or when absent:
     ``robot``, ``pan_servo``, ``tilt_servo``, ``sensor`` (the gpiozero devices),
-    ``pin_factory``, ``world`` (simulation only) and ``simulated``.
+    ``pin_factory`` and ``sensors`` (the ``sensors`` option).
     """
 
     name = "car"
@@ -377,9 +99,8 @@ class CarAdapter(Adapter):
     def __init__(self, options: Mapping[str, Any]) -> None:
         super().__init__(options)
         self.config = CarConfig.from_options(options)
-        self.simulated = False
         self.pin_factory: Any = None
-        self.world: CarWorld | None = None
+        self.sensors = self.config.sensors
         self.robot: Any = None
         self.pan_servo: Any = None
         self.tilt_servo: Any = None
@@ -394,45 +115,23 @@ class CarAdapter(Adapter):
 
     # --- lifecycle ---------------------------------------------------------------------
     async def start(self) -> None:
-        """Open the devices, wait (up to 2 s) for the first distance reading, start the
-        watch loop and, when simulating, the world. Raises AdapterError ``hardware``
-        when there is no GPIO and ``simulate`` is false, or a device cannot be opened."""
+        """Open the devices, wait (up to 2 s) for the first distance reading and start the
+        watch loop. Raises AdapterError ``hardware`` when no pin factory loads (not a Pi:
+        run the car on its simulator with ``python -m agents sim fleet``) or a device
+        cannot be opened."""
         if self.robot is not None:
             return
         cfg = self.config
-        factory: Any
-        if cfg.simulate:
-            factory = None
-        else:
+        factory: Any = cfg.pin_factory
+        if factory is None or isinstance(factory, str):
             try:
-                factory = _load_pin_factory(cfg.pin_factory)
+                factory = _load_pin_factory(factory)
             except RuntimeError as exc:
-                if cfg.simulate is False:
-                    raise AdapterError(f"no usable GPIO: {exc}", code="hardware") from None
-                logger.warning("no GPIO on this machine (%s): simulating the car", exc)
-                factory = None
-        if factory is None:
-            self.simulated = True
-            # One factory per car: its pins and reservations are its own, so several
-            # simulated cars can share a process (gpiozero's global factory is untouched).
-            factory = MockFactory(pin_class=MockPWMPin)
-            self.world = CarWorld(
-                factory,
-                left=cfg.left,
-                right=cfg.right,
-                origin=cfg.origin or SIM_ORIGIN,
-                pose=Pose(heading_deg=cfg.heading_deg),
-                max_speed_mps=cfg.max_speed_mps,
-                track_width_m=cfg.track_width_m,
-                body_radius_m=cfg.body_radius_m,
-                battery_pct=cfg.battery_pct,
-                battery_drain_pct_per_s=cfg.battery_drain_pct_per_s,
-                sensor_max_range_m=cfg.distance_max_m,
-                obstacles=obstacles_from_spec(cfg.obstacles),
-            )
-            if cfg.distance_sensor:
-                self.world.attach_distance_sensor(cfg.distance_trigger_pin, cfg.distance_echo_pin)
-        else:
+                raise AdapterError(
+                    f"no usable GPIO: {exc} (no Raspberry Pi here? `python -m agents sim "
+                    "fleet` runs the car on its simulator)",
+                    code="hardware",
+                ) from None
             self._own_factory = True
         self.pin_factory = factory
 
@@ -444,9 +143,6 @@ class CarAdapter(Adapter):
                 f"cannot open the car's GPIO devices: {exc}", code="hardware"
             ) from exc
 
-        if self.world is not None and cfg.sim_hz > 0:
-            # sim_hz 0: nothing steps the world but the caller (deterministic tests).
-            self._tasks.append(asyncio.create_task(self.world.run(cfg.sim_hz), name="car-world"))
         if self.sensor is not None:
             deadline = time.monotonic() + 2.0
             # Readiness is two threading.Events set in gpiozero's sensor thread;
@@ -478,8 +174,9 @@ class CarAdapter(Adapter):
             self.tilt_servo = self._servo(cfg.camera_tilt_pin, cfg.camera_tilt_reversed)
         if cfg.distance_sensor:
             with warnings.catch_warnings():
-                if self.simulated:
-                    # Advice to use pigpio for accurate timing: moot on mock pins.
+                if not self._own_factory:
+                    # Advice to use pigpio for accurate timing: moot on a factory handed
+                    # over (the simulator's mock pins).
                     warnings.simplefilter("ignore", gpiozero.PWMSoftwareFallback)
                 self.sensor = gpiozero.DistanceSensor(
                     echo=cfg.distance_echo_pin,
@@ -537,56 +234,7 @@ class CarAdapter(Adapter):
     # --- vocabulary -----------------------------------------------------------------
     def commands(self) -> list[CommandSpec]:
         """Driving commands, plus the camera arm's when ``camera_arm`` is set."""
-        out = [
-            CommandSpec(
-                "forward",
-                "Drive forwards (refused when an obstacle is close ahead)",
-                group="movement",
-                args=SPEED_ARG,
-                motion=True,
-                speed_arg="speed",
-                key="ArrowUp",
-            ),
-            CommandSpec(
-                "backward",
-                "Drive backwards",
-                group="movement",
-                args=SPEED_ARG,
-                motion=True,
-                speed_arg="speed",
-                key="ArrowDown",
-            ),
-            CommandSpec(
-                "left",
-                "Turn left on the spot",
-                group="movement",
-                args=SPEED_ARG,
-                motion=True,
-                speed_arg="speed",
-                key="ArrowLeft",
-            ),
-            CommandSpec(
-                "right",
-                "Turn right on the spot",
-                group="movement",
-                args=SPEED_ARG,
-                motion=True,
-                speed_arg="speed",
-                key="ArrowRight",
-            ),
-            # Not a motion command: it moves nothing, and must pass every limit anyway.
-            CommandSpec("stop", "Stop the motors", group="movement", key="Space"),
-        ]
-        if self.config.camera_arm:
-            for name, text, key in (
-                ("camera_up", "Tilt the camera up", "w"),
-                ("camera_down", "Tilt the camera down", "s"),
-                ("camera_left", "Pan the camera left", "a"),
-                ("camera_right", "Pan the camera right", "d"),
-            ):
-                out.append(CommandSpec(name, text, group="camera", args=STEP_ARG, key=key))
-            out.append(CommandSpec("camera_center", "Centre the camera", group="camera", key="c"))
-        return out
+        return car_vocabulary(self.config)
 
     def telemetry_topics(self) -> list[str]:
         return list(TELEMETRY_TOPICS)
@@ -599,32 +247,32 @@ class CarAdapter(Adapter):
         return (float(left), float(right))
 
     def _pose(self) -> tuple[tuple[float, float] | None, float | None]:
-        """((lat, lon) or None, heading or None) from the world or dead reckoning."""
-        if self.world is not None:
-            return self.world.position, self.world.heading_deg
+        """((lat, lon) or None, heading or None) from the sensors or dead reckoning."""
+        if self.sensors is not None:
+            return self.sensors.position, self.sensors.heading_deg
         if self.config.origin is None:
             return None, None
         pose = self._odometry
         return offset(self.config.origin, pose.north_m, pose.east_m), pose.heading_deg
 
     def _speed_mps(self) -> float | None:
-        if self.world is not None:
-            return self.world.speed_mps
+        if self.sensors is not None:
+            return self.sensors.speed_mps
         values = self._motor_values()
         if values is None:
             return None
         return abs(values[0] + values[1]) / 2 * self.config.max_speed_mps
 
     def state(self) -> VehicleState:
-        """Position and heading (simulated, or dead-reckoned from ``origin``; None when
-        unknown), ground speed, and battery (simulation only)."""
+        """Position and heading (from the sensors, or dead-reckoned from ``origin``; None
+        when unknown), ground speed, and battery (from the sensors only)."""
         position, heading = self._pose()
         return VehicleState(
             lat=None if position is None else position[0],
             lon=None if position is None else position[1],
             heading_deg=heading,
             speed_mps=self._speed_mps(),
-            battery=None if self.world is None else self.world.battery_pct,
+            battery=self._battery(),
         )
 
     def telemetry(self) -> dict[str, Any]:
@@ -633,7 +281,7 @@ class CarAdapter(Adapter):
         speed = self._speed_mps()
         motors = self._motor_values()
         return {
-            "battery_level": None if self.world is None else round(self.world.battery_pct, 2),
+            "battery_level": None if (battery := self._battery()) is None else round(battery, 2),
             "location": None
             if position is None
             else {"lat": round(position[0], 7), "lon": round(position[1], 7)},
@@ -646,6 +294,9 @@ class CarAdapter(Adapter):
             if motors is None
             else {"left": round(motors[0], 3), "right": round(motors[1], 3)},
         }
+
+    def _battery(self) -> float | None:
+        return None if self.sensors is None else self.sensors.battery_pct
 
     @staticmethod
     def _servo_angle(servo: Any) -> float | None:
@@ -772,7 +423,7 @@ class CarAdapter(Adapter):
 
     def _watch_once(self) -> None:
         motors = self._motor_values()
-        if self.world is None:
+        if self.sensors is None:
             self._dead_reckon(motors)
         if self.sensor is None or motors is None:
             return

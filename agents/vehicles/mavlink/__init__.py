@@ -6,7 +6,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from agents.vehicles.base import Adapter, CommandSpec
+from agents.vehicles.base import Adapter
+from agents.vehicles.mavlink.vocabulary import mavlink_commands
 from agents.vehicles.registry import Integration
 
 
@@ -17,14 +18,10 @@ def _create(options: Mapping[str, Any]) -> Adapter:
     return MavlinkAdapter(options)
 
 
-def _commands(options: Mapping[str, Any]) -> list[CommandSpec]:
-    return _create(options).commands()
-
-
 INTEGRATION = Integration(
     name="mavlink",
     title="MAVLink autopilot (pymavlink)",
     create=_create,
-    commands=_commands,
-    simulator="agents.vehicles.mavlink.sim.autopilot",
+    commands=mavlink_commands,
+    simulator="agents.vehicles.mavlink.sim",
 )

@@ -55,14 +55,11 @@ import math
 import os
 import queue
 import socket
-import subprocess
-import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any
 
 # pymavlink picks its wire protocol from the environment when first imported: MAVLink 2.
@@ -79,7 +76,8 @@ from agents.vehicles.base import (
     Projection,
     VehicleState,
 )
-from agents.vehicles.kit import OptionReader
+from agents.vehicles.mavlink.config import VELOCITY_FRAMES, MavlinkConfig
+from agents.vehicles.mavlink.vocabulary import TELEMETRY_TOPICS, mavlink_vocabulary
 
 mavutil.set_dialect("ardupilotmega")
 #: The MAVLink module of the ArduPilot dialect (message classes and constants).
@@ -122,25 +120,6 @@ MASK_VELOCITY_YAW = 0b0000_1001_1100_0111
 #: SET_POSITION_TARGET_GLOBAL_INT: position only.
 MASK_POSITION = 0b0000_1101_1111_1000
 
-#: Velocity frames the ``velocity_frame`` option accepts.
-VELOCITY_FRAMES = {
-    "body_offset_ned": 9,  # MAV_FRAME_BODY_OFFSET_NED: ArduCopter rotates by heading
-    "body_ned": 8,  # MAV_FRAME_BODY_NED: the same in ArduCopter, body velocity in PX4
-    "body_frd": 12,  # MAV_FRAME_BODY_FRD: newer firmware only
-}
-
-#: Telemetry streams asked for with MAV_CMD_SET_MESSAGE_INTERVAL, in Hz.
-DEFAULT_STREAM_RATES_HZ: dict[str, float] = {
-    "GLOBAL_POSITION_INT": 10.0,
-    "ATTITUDE": 10.0,
-    "VFR_HUD": 4.0,
-    "SYS_STATUS": 2.0,
-    "GPS_RAW_INT": 2.0,
-    "EXTENDED_SYS_STATE": 2.0,
-    "BATTERY_STATUS": 1.0,
-    "EKF_STATUS_REPORT": 1.0,
-    "HOME_POSITION": 0.5,
-}
 #: The REQUEST_DATA_STREAM fallback for autopilots without SET_MESSAGE_INTERVAL:
 #: (stream id, the messages in it), rate = the fastest of those messages.
 DATA_STREAMS = (
@@ -151,20 +130,6 @@ DATA_STREAMS = (
     (12, ("BATTERY_STATUS", "EKF_STATUS_REPORT")),  # EXTRA3
 )
 
-TELEMETRY_TOPICS = [
-    "battery_level",
-    "altitude",
-    "location",
-    "speed",
-    "heading",
-    "flight_mode",
-    "is_armed",
-    "number_of_gps_satellites",
-    "autopilot_link",
-    "gps_fix",
-    "ekf_ok",
-    "in_air",
-]
 
 #: FS_GCS_ENABLE values (ArduCopter 4.x) -> what the autopilot does on GCS loss.
 FS_GCS_WORDS = {
@@ -195,18 +160,6 @@ GPS_FIX_3D = 3
 #: what stands in for one, e.g. an external navigation system).
 EKF_POS_HORIZ_ABS = 0x10
 
-SIM_ORIGIN = (40.6306, -8.6588)
-#: Parameters a simulated drone starts with unless ``simulator.params`` says otherwise:
-#: what an operator would set on a real one (the agent's heartbeat loss -> RTL).
-SIM_DEFAULT_PARAMS = {"FS_GCS_ENABLE": 1.0}
-#: Settings a simulated drone starts with unless ``simulator`` says otherwise: no
-#: telemetry until the agent asks for it, as ArduCopter ships (its stream rates are 0),
-#: so that the agent's own stream requests are what the tests fly on.
-SIM_DEFAULTS: dict[str, Any] = {"stream_rate_hz": 0}
-
-#: Keys of the agent config's ``adapter_options`` that the agent itself reads.
-AGENT_OPTIONS = frozenset({"vehicle_type", "attributes"})
-
 
 def command_name(command: int) -> str:
     """``MAV_CMD_NAV_TAKEOFF`` for 22; the number if the dialect does not know it."""
@@ -218,222 +171,6 @@ def mode_name(mode: int | None) -> str | None:
     if mode is None:
         return None
     return COPTER_MODES.get(mode, f"MODE_{mode}")
-
-
-# --------------------------------------------------------------------------------------
-# Options
-# --------------------------------------------------------------------------------------
-
-
-def _number(
-    options: Mapping[str, Any], key: str, default: float, *, low: float = 0.0, high: float = 1e9
-) -> float:
-    value = options.get(key, default)
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise ValueError(f"mavlink option {key}: expected a number")
-    if not low < value <= high:
-        raise ValueError(f"mavlink option {key}: must be > {low:g} and <= {high:g}")
-    return float(value)
-
-
-def _optional_id(options: Mapping[str, Any], key: str) -> int | None:
-    value = options.get(key)
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 255:
-        raise ValueError(f"mavlink option {key}: expected an id 0..255")
-    return value
-
-
-@dataclass(frozen=True)
-class MavlinkConfig:
-    """The adapter's options, checked; see ``docs/vehicles/quadcopter.md``."""
-
-    connection: str = "udpin:0.0.0.0:14550"
-    simulate: bool = False
-    simulator: Mapping[str, Any] = field(default_factory=dict)
-    origin: tuple[float, float] | None = None
-    source_system: int = 255
-    source_component: int = 190  # MAV_COMP_ID_MISSIONPLANNER: a GCS
-    target_system: int | None = None
-    target_component: int | None = None
-    baud: int = 57600
-    command_timeout_s: float = 3.0
-    resend_s: float = 1.0
-    heartbeat_timeout_s: float = 3.0
-    connect_timeout_s: float = 10.0
-    low_battery_pct: float = 25.0
-    takeoff_default_m: float = 5.0
-    max_takeoff_m: float = 120.0
-    move_speed_mps: float = 1.0
-    max_speed_mps: float = 10.0
-    rotate_default_deg: float = 15.0
-    rotate_rate_deg_s: float = 45.0
-    setpoint_hold_s: float = 1.0
-    velocity_frame: str = "body_offset_ned"
-    stream_rates_hz: Mapping[str, float] = field(
-        default_factory=lambda: dict(DEFAULT_STREAM_RATES_HZ)
-    )
-    close_action: str = "return_to_home"
-    #: How a payload is dropped, if the drone carries one: {"method": "gripper"} or
-    #: {"method": "servo", "servo": 9, "pwm": 1900}; None: no ``release_payload``.
-    payload: Mapping[str, Any] | None = None
-
-    @classmethod
-    def from_options(cls, options: Mapping[str, Any]) -> MavlinkConfig:
-        """Check ``options``; raises ValueError naming the first bad one."""
-        simulate = options.get("simulate", False)
-        if simulate is None:
-            simulate = False
-        if not isinstance(simulate, bool):
-            raise ValueError("mavlink option simulate: expected true or false")
-        connection = options.get("connection", "udpin:0.0.0.0:14550")
-        if not isinstance(connection, str) or not connection:
-            raise ValueError("mavlink option connection: expected a pymavlink connection string")
-        simulator = options.get("simulator") or {}
-        if not isinstance(simulator, Mapping):
-            raise ValueError("mavlink option simulator: expected an object")
-        _check_simulator(simulator)
-        origin = OptionReader("mavlink", options).origin()
-        source = _optional_id(options, "source_system")
-        frame = options.get("velocity_frame", "body_offset_ned")
-        if frame not in VELOCITY_FRAMES:
-            raise ValueError(f"mavlink option velocity_frame: one of {', '.join(VELOCITY_FRAMES)}")
-        rates = dict(DEFAULT_STREAM_RATES_HZ)
-        custom = options.get("stream_rates_hz") or {}
-        if not isinstance(custom, Mapping):
-            raise ValueError("mavlink option stream_rates_hz: expected {MESSAGE: Hz}")
-        for name in custom:
-            if name not in DEFAULT_STREAM_RATES_HZ:
-                raise ValueError(f"mavlink option stream_rates_hz: unknown message {name}")
-            rates[name] = _number(custom, name, 1.0, low=0.0, high=50.0)
-        close_action = options.get("close_action", "return_to_home")
-        if close_action not in ("return_to_home", "land", "stop", "none"):
-            raise ValueError("mavlink option close_action: return_to_home, land, stop or none")
-        baud = options.get("baud", 57600)
-        if isinstance(baud, bool) or not isinstance(baud, int) or baud <= 0:
-            raise ValueError("mavlink option baud: expected a positive integer")
-        payload = options.get("payload")
-        if payload is not None:
-            _check_payload(payload)
-        config = cls(
-            connection=connection,
-            simulate=simulate,
-            simulator=dict(simulator),
-            origin=origin,
-            source_system=255 if source is None else source,
-            source_component=_optional_id(options, "source_component") or 190,
-            target_system=_optional_id(options, "target_system"),
-            target_component=_optional_id(options, "target_component"),
-            baud=baud,
-            command_timeout_s=_number(options, "command_timeout_s", 3.0, high=60),
-            resend_s=_number(options, "resend_s", 1.0, high=60),
-            heartbeat_timeout_s=_number(options, "heartbeat_timeout_s", 3.0, high=60),
-            connect_timeout_s=_number(options, "connect_timeout_s", 10.0, high=600),
-            low_battery_pct=_number(options, "low_battery_pct", 25.0, low=-1e-9, high=100),
-            takeoff_default_m=_number(options, "takeoff_default_m", 5.0, high=1000),
-            max_takeoff_m=_number(options, "max_takeoff_m", 120.0, high=1000),
-            move_speed_mps=_number(options, "move_speed_mps", 1.0, high=50),
-            max_speed_mps=_number(options, "max_speed_mps", 10.0, high=50),
-            rotate_default_deg=_number(options, "rotate_default_deg", 15.0, high=180),
-            rotate_rate_deg_s=_number(options, "rotate_rate_deg_s", 45.0, high=360),
-            setpoint_hold_s=_number(options, "setpoint_hold_s", 1.0, high=3.0),
-            velocity_frame=frame,
-            stream_rates_hz=rates,
-            close_action=close_action,
-            payload=None if payload is None else dict(payload),
-        )
-        if config.takeoff_default_m > config.max_takeoff_m:
-            raise ValueError("mavlink option takeoff_default_m: above max_takeoff_m")
-        if config.move_speed_mps > config.max_speed_mps:
-            raise ValueError("mavlink option move_speed_mps: above max_speed_mps")
-        unknown = set(options) - KNOWN_OPTIONS - AGENT_OPTIONS
-        if unknown:
-            logger.warning("mavlink: unknown options ignored: %s", ", ".join(sorted(unknown)))
-        return config
-
-
-#: Every option :meth:`MavlinkConfig.from_options` reads.
-KNOWN_OPTIONS = frozenset(
-    {
-        "connection",
-        "simulate",
-        "simulator",
-        "origin",
-        "source_system",
-        "source_component",
-        "target_system",
-        "target_component",
-        "baud",
-        "command_timeout_s",
-        "resend_s",
-        "heartbeat_timeout_s",
-        "connect_timeout_s",
-        "low_battery_pct",
-        "takeoff_default_m",
-        "max_takeoff_m",
-        "move_speed_mps",
-        "max_speed_mps",
-        "rotate_default_deg",
-        "rotate_rate_deg_s",
-        "setpoint_hold_s",
-        "velocity_frame",
-        "stream_rates_hz",
-        "close_action",
-        "payload",
-    }
-)
-#: Keys of the ``simulator`` option (the simulator's command line, see
-#: agents.vehicles.mavlink.sim.autopilot).
-SIMULATOR_KEYS = frozenset(
-    {
-        "speedup",
-        "battery_pct",
-        "drain_pct_per_min",
-        "gps",
-        "satellites",
-        "heading_deg",
-        "home_alt_m",
-        "sysid",
-        "params",
-        "gps_fix_after_s",
-        "firmware",
-        "stream_rate_hz",
-    }
-)
-
-
-def _check_payload(payload: Any) -> None:
-    if not isinstance(payload, Mapping) or payload.get("method") not in ("gripper", "servo"):
-        raise ValueError('mavlink option payload: {"method": "gripper"} or "servo"')
-    if payload["method"] == "servo":
-        servo, pwm = payload.get("servo"), payload.get("pwm")
-        if not isinstance(servo, int) or isinstance(servo, bool) or not 1 <= servo <= 32:
-            raise ValueError("mavlink option payload.servo: a servo output 1..32")
-        if not isinstance(pwm, int) or isinstance(pwm, bool) or not 800 <= pwm <= 2200:
-            raise ValueError("mavlink option payload.pwm: a pulse width 800..2200 us")
-
-
-def _check_simulator(sim: Mapping[str, Any]) -> None:
-    unknown = set(sim) - SIMULATOR_KEYS
-    if unknown:
-        raise ValueError(f"mavlink option simulator: unknown keys {', '.join(sorted(unknown))}")
-    numbers = ("speedup", "battery_pct", "drain_pct_per_min", "heading_deg", "home_alt_m")
-    for key in (*numbers, "gps_fix_after_s", "stream_rate_hz"):
-        if key in sim:
-            value = sim[key]
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise ValueError(f"mavlink option simulator.{key}: expected a number")
-    if sim.get("gps", "3d") not in ("3d", "2d", "none"):
-        raise ValueError("mavlink option simulator.gps: 3d, 2d or none")
-    if sim.get("firmware", "4.5") not in ("4.5", "4.7"):
-        raise ValueError("mavlink option simulator.firmware: 4.5 or 4.7")
-    params = sim.get("params", {})
-    if not isinstance(params, Mapping) or not all(
-        isinstance(k, str) and isinstance(v, int | float) and not isinstance(v, bool)
-        for k, v in params.items()
-    ):
-        raise ValueError("mavlink option simulator.params: expected {NAME: number}")
 
 
 # --------------------------------------------------------------------------------------
@@ -487,7 +224,6 @@ class MavlinkAdapter(Adapter):
         super().__init__(options)
         self.config = MavlinkConfig.from_options(options)
         self.conn: Any = None
-        self.sim_process: subprocess.Popen[bytes] | None = None
         self.t = _Telemetry()
         self.target: tuple[int, int] | None = None
         if self.config.target_system is not None:
@@ -533,23 +269,18 @@ class MavlinkAdapter(Adapter):
 
     # --- lifecycle ---------------------------------------------------------------------
     async def start(self) -> None:
-        """Open the link (spawning the simulator if ``simulate``), start the receiver
-        and writer threads, heartbeats and watchdogs, wait up to ``connect_timeout_s``
-        for the autopilot's first heartbeat and ask for the telemetry streams.
+        """Open the link, start the receiver and writer threads, heartbeats and
+        watchdogs, wait up to ``connect_timeout_s`` for the autopilot's first heartbeat
+        and ask for the telemetry streams.
 
-        A real autopilot that does not answer in time is not an error (it may boot
-        later): the link is reported ``lost`` until it does. A simulator that does not
-        come up raises RuntimeError. Raises AdapterError ``hardware`` when the port
-        cannot be opened.
+        An autopilot that does not answer in time is not an error (it may boot later):
+        the link is reported ``lost`` until it does. Raises AdapterError ``hardware``
+        when the port cannot be opened.
         """
         self._loop = asyncio.get_running_loop()
         cfg = self.config
         try:
-            if cfg.simulate:
-                self.conn = await asyncio.to_thread(self._open, "udpin:127.0.0.1:0")
-                self._spawn_simulator(self.local_port())
-            else:
-                self.conn = await asyncio.to_thread(self._open, cfg.connection)
+            self.conn = await asyncio.to_thread(self._open, cfg.connection)
         except (OSError, ValueError, RuntimeError) as exc:
             await self.close()
             raise AdapterError(f"cannot open the MAVLink link: {exc}", code="hardware") from exc
@@ -563,9 +294,8 @@ class MavlinkAdapter(Adapter):
             asyncio.create_task(self._heartbeats(), name="mavlink-heartbeats"),
             asyncio.create_task(self._watch(), name="mavlink-watch"),
         ]
-        wait_s = max(cfg.connect_timeout_s, 20.0) if cfg.simulate else cfg.connect_timeout_s
         try:
-            await self._wait_first_heartbeat(wait_s)
+            await self._wait_first_heartbeat(cfg.connect_timeout_s)
         except Exception:
             await self.close()
             raise
@@ -596,58 +326,11 @@ class MavlinkAdapter(Adapter):
             return int(port.getsockname()[1])
         return None
 
-    def _spawn_simulator(self, port: int | None) -> None:
-        """Start ``python -m agents sim mavlink`` as a separate process sending to our
-        UDP port (it dies with us: ``--parent-pid``)."""
-        if port is None:
-            raise RuntimeError("no local UDP port for the simulator")
-        sim = {**SIM_DEFAULTS, **self.config.simulator}
-        origin = self.config.origin or SIM_ORIGIN
-        params = {**SIM_DEFAULT_PARAMS, **dict(sim.get("params", {}))}
-        args = [
-            sys.executable, "-m", "agents", "sim", "mavlink",
-            "--connect", f"udpout:127.0.0.1:{port}",
-            "--home", f"{origin[0]},{origin[1]}",
-            "--parent-pid", str(os.getpid()),
-        ]  # fmt: skip
-        flags = {
-            "speedup": "--speedup",
-            "battery_pct": "--battery",
-            "drain_pct_per_min": "--drain",
-            "gps": "--gps",
-            "satellites": "--satellites",
-            "heading_deg": "--heading",
-            "home_alt_m": "--home-alt",
-            "sysid": "--sysid",
-            "gps_fix_after_s": "--gps-fix-after",
-            "firmware": "--firmware",
-            "stream_rate_hz": "--stream-rate",
-        }
-        for key, flag in flags.items():
-            if key in sim:
-                args += [flag, str(sim[key])]
-        for name, value in params.items():
-            args += ["--param", f"{name}={value}"]
-        root = str(Path(__file__).resolve().parents[3])
-        env = {
-            **os.environ,
-            "PYTHONPATH": os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p),
-        }
-        self.sim_process = subprocess.Popen(
-            args, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, env=env, cwd=root
-        )
-
     async def _wait_first_heartbeat(self, wait_s: float) -> None:
         deadline = time.monotonic() + wait_s
         while not self._first_heartbeat.is_set():
-            if self.sim_process is not None and self.sim_process.poll() is not None:
-                raise RuntimeError(
-                    f"the MAVLink simulator exited with code {self.sim_process.returncode}"
-                )
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                if self.sim_process is not None:
-                    raise RuntimeError("the MAVLink simulator sent no heartbeat")
                 logger.warning(
                     "mavlink: no autopilot heartbeat on %s after %.0f s; waiting on",
                     self.config.connection,
@@ -661,11 +344,10 @@ class MavlinkAdapter(Adapter):
 
     async def close(self) -> None:
         """Leave the drone safe (``close_action`` if it is flying and reachable), then
-        stop the loops and threads, close the link and the simulator. Idempotent."""
+        stop the loops and threads and close the link. Idempotent."""
         if (
             self.conn is not None
             and self.config.close_action != "none"
-            and self.sim_process is None
             and self._link_ok
             and self._in_air()
         ):
@@ -693,15 +375,6 @@ class MavlinkAdapter(Adapter):
             if not pending.future.done():
                 pending.future.cancel()
         self._pending.clear()
-        if self.sim_process is not None:
-            if self.sim_process.poll() is None:
-                self.sim_process.terminate()
-                try:
-                    await asyncio.to_thread(self.sim_process.wait, 5.0)
-                except subprocess.TimeoutExpired:
-                    self.sim_process.kill()
-                    await asyncio.to_thread(self.sim_process.wait)
-            self.sim_process = None
 
     # --- threads -------------------------------------------------------------------------
     def _receive(self) -> None:
@@ -1061,88 +734,7 @@ class MavlinkAdapter(Adapter):
 
     # --- vocabulary --------------------------------------------------------------------
     def commands(self) -> list[CommandSpec]:
-        cfg = self.config
-        speed = {
-            "speed_mps": {
-                "type": "number",
-                "min": 0.1,
-                "max": cfg.max_speed_mps,
-                "default": cfg.move_speed_mps,
-                "unit": "m/s",
-            }
-        }
-        angle = {
-            "angle_deg": {
-                "type": "number",
-                "min": 1,
-                "max": 180,
-                "default": cfg.rotate_default_deg,
-                "unit": "deg",
-            }
-        }
-
-        def move(name: str, text: str, group: str, key: str) -> CommandSpec:
-            return CommandSpec(
-                name, text, group=group, args=speed, motion=True, speed_arg="speed_mps", key=key
-            )
-
-        return [
-            CommandSpec("arm", "Arm the motors (in GUIDED)", group="setup"),
-            CommandSpec("disarm", "Disarm the motors (on the ground)", group="setup"),
-            CommandSpec(
-                "take_off",
-                "Take off and hover",
-                group="setup",
-                args={
-                    "altitude_m": {
-                        "type": "number",
-                        "min": 1,
-                        "max": cfg.max_takeoff_m,
-                        "default": cfg.takeoff_default_m,
-                        "unit": "m",
-                    }
-                },
-                key="t",
-            ),
-            move("up", "Climb", "left", "w"),
-            move("down", "Descend", "left", "s"),
-            CommandSpec("rotate_left", "Yaw left", group="left", args=angle, motion=True, key="a"),
-            CommandSpec(
-                "rotate_right", "Yaw right", group="left", args=angle, motion=True, key="d"
-            ),
-            move("front", "Fly forward", "right", "ArrowUp"),
-            move("back", "Fly backward", "right", "ArrowDown"),
-            move("left", "Fly left", "right", "ArrowLeft"),
-            move("right", "Fly right", "right", "ArrowRight"),
-            CommandSpec("stop", "Stop and hover", group="middle", key="Space"),
-            CommandSpec("land", "Land where it is", group="middle", key="l"),
-            CommandSpec(
-                "return_to_home", "Fly back to the take-off point and land", group="middle", key="h"
-            ),
-            *(
-                [CommandSpec("release_payload", "Drop the payload", group="mission", key="r")]
-                if cfg.payload is not None
-                else []
-            ),
-            CommandSpec(
-                "go_to_waypoint",
-                "Fly to a position",
-                group="mission",
-                args={
-                    "lat": {"type": "number", "min": -90, "max": 90, "unit": "deg"},
-                    "lon": {"type": "number", "min": -180, "max": 180, "unit": "deg"},
-                    "alt_m": {"type": "number", "min": 1, "max": cfg.max_takeoff_m, "unit": "m"},
-                    # 0: the autopilot's own cruise speed (WPNAV_SPEED).
-                    "speed_mps": {
-                        "type": "number",
-                        "min": 0,
-                        "max": cfg.max_speed_mps,
-                        "default": 0,
-                        "unit": "m/s",
-                    },
-                },
-            ),
-        ]
+        return mavlink_vocabulary(self.config)
 
     # --- the envelope ------------------------------------------------------------------
     def project(self, name: str, args: Mapping[str, Any]) -> Projection | None:

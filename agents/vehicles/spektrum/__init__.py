@@ -1,13 +1,19 @@
 """The Spektrum-fed VTOL plane (the paper's 4.2.3): DSMX frames on a serial port; see
-``docs/vehicles/vtol.md``."""
+``docs/vehicles/vtol.md``.
+
+Files: ``frames`` (the wire format), ``report`` (the return line), ``config`` (options),
+``vocabulary`` (commands, telemetry), ``controls`` (the virtual transmitter), ``pump``
+(frames out on time), ``adapter`` (pyserial), ``sim/`` (a flight controller on a pty).
+"""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from typing import Any
 
-from agents.vehicles.base import Adapter, CommandSpec
+from agents.vehicles.base import Adapter
 from agents.vehicles.registry import Integration
+from agents.vehicles.spektrum.vocabulary import spektrum_commands
 
 
 def _create(options: Mapping[str, Any]) -> Adapter:
@@ -17,14 +23,10 @@ def _create(options: Mapping[str, Any]) -> Adapter:
     return SpektrumAdapter(options)
 
 
-def _commands(options: Mapping[str, Any]) -> list[CommandSpec]:
-    return _create(options).commands()
-
-
 INTEGRATION = Integration(
     name="spektrum",
     title="Spektrum receiver (serial)",
     create=_create,
-    commands=_commands,
-    simulator="agents.vehicles.spektrum.sim.simulator",
+    commands=spektrum_commands,
+    simulator="agents.vehicles.spektrum.sim",
 )

@@ -31,7 +31,7 @@ from kinds.rescue_at_sea.request import rescue_request
 from services.demo import CASTAWAY, agent_configs_write, demo_seed
 from services.models import Assignment, Notice, Service, Session
 from tests.browser import chromium_browser, needs_chromium
-from tests.servers import celery_worker_process, db, platform_process, until
+from tests.servers import agent_started, celery_worker_process, db, platform_process, until
 
 pytestmark = [
     pytest.mark.postgres,
@@ -69,12 +69,12 @@ class Sea:
             await task
 
 
-def _agent(path: Path, base: str, *, video: bool = False) -> Agent:
+def _agent(path: Path, base: str, *, video: bool = False) -> AgentConfig:
     config = AgentConfig.load(path)
-    config = dataclasses.replace(
+    return dataclasses.replace(
         config,
         platform_url=base.replace("http://", "ws://"),
-        adapter_options={**config.adapter_options, "simulate": True, "simulator": SIM},
+        adapter_options={**config.adapter_options, "simulator": SIM},
         video=(
             {**(config.video or {}), "ice_host_addresses": ["127.0.0.1"]}
             if video and config.video
@@ -82,7 +82,6 @@ def _agent(path: Path, base: str, *, video: bool = False) -> Agent:
         ),
         reconnect_min_s=0.2,
     )
-    return Agent(config)
 
 
 def _spare_search_drone(directory: Path) -> None:
@@ -110,8 +109,13 @@ async def sea(
         "EMAIL_FILE_PATH": str(mail_dir),
     }
     with platform_process(extra_env=env) as base, celery_worker_process(extra_env=env) as worker:
-        agents = {name: _agent(tmp_path / f"{name}.json", base, video=video) for name in names}
-        tasks = {name: asyncio.create_task(a.run()) for name, a in agents.items()}
+        # Each agent on its simulator: cancelling its task stops both.
+        started = {
+            name: await agent_started(_agent(tmp_path / f"{name}.json", base, video=video))
+            for name in names
+        }
+        agents = {name: agent for name, (agent, _) in started.items()}
+        tasks = {name: task for name, (_, task) in started.items()}
 
         async def online() -> bool:
             idle = Vehicle.objects.filter(name__in=names, status="idle")

@@ -1,19 +1,16 @@
-"""A small kinematic world for simulated Raspberry Pi cars.
+"""A small kinematic world for a simulated Raspberry Pi car.
 
 The car adapter drives the very same gpiozero devices in simulation as on a Pi, only on
-gpiozero's mock pins. This module is the "physics" wired to those pins:
+gpiozero's mock pins (:mod:`agents.vehicles.car.sim.pins`). This module is the physics
+wired to those pins:
 
-* a differential-drive model that reads the motor driver inputs back from the mock pins
-  (PWM duty cycles and direction levels), so what moves the simulated car is exactly
-  what gpiozero told the motor driver;
+* a differential-drive model (:func:`~agents.vehicles.car.kinematics.diff_drive_step`)
+  moved by the motor efforts read back from the pins;
 * the car's pose as metres north/east of an origin (lat, lon) plus a compass heading;
 * battery drain proportional to motor effort (an empty battery stops the wheels);
 * obstacles (circles and axis-aligned boxes in local metres) that tests can place, move
   and remove; the car's body is a circle that cannot pass through them;
-* an HC-SR04 on the front: :class:`RangingTriggerPin` answers each trigger pulse of
-  gpiozero's ``DistanceSensor`` with an echo pulse ``2 * distance / 343.26`` s long,
-  where the distance is ray-cast to the nearest obstacle in the sensor's beam at the
-  moment of the ping (no echo, i.e. the sensor's 38 ms time-out pulse, past 4 m).
+* the HC-SR04's view: the distance ray-cast to the nearest obstacle in its beam.
 
 Threads: gpiozero reads the distance sensor in its own thread, so the ray cast runs
 there while :meth:`CarWorld.step` runs on the asyncio loop; a lock guards the pose and
@@ -30,47 +27,28 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, TypeAlias
 
-from gpiozero.pins.mock import (  # type: ignore[import-untyped, unused-ignore]
-    MockPWMPin,
-    MockTriggerPin,
+from agents.geo import offset
+from agents.vehicles.car.config import MotorWiring, PinName
+from agents.vehicles.car.kinematics import Pose, diff_drive_step, normalize_heading
+from agents.vehicles.car.sim.pins import (
+    HC_SR04_BEAM_HALF_ANGLE_DEG,
+    HC_SR04_MAX_RANGE_M,
+    HC_SR04_MIN_RANGE_M,
+    EchoPin,
+    MotorInputs,
+    RangingTriggerPin,
 )
 
-from agents.geo import offset
-
 logger = logging.getLogger(__name__)
-
-#: The speed of sound gpiozero's DistanceSensor converts echo times with (m/s).
-SPEED_OF_SOUND_MPS = 343.26
-#: HC-SR04 datasheet: 2 cm to 4 m, a beam of about 15 degrees, and an echo line that
-#: stays high for about 38 ms when nothing answers.
-HC_SR04_MIN_RANGE_M = 0.02
-HC_SR04_MAX_RANGE_M = 4.0
-HC_SR04_BEAM_HALF_ANGLE_DEG = 7.5
-HC_SR04_NO_ECHO_S = 0.038
-#: Delay between the end of the trigger pulse and the echo rising (the sensor first
-#: sends its 8-cycle 40 kHz burst).
-HC_SR04_BURST_S = 0.0005
-
-#: A GPIO pin as gpiozero names it: a BCM number (17) or a name ("GPIO17", "BOARD11").
-PinName: TypeAlias = int | str
 
 
 # --------------------------------------------------------------------------------------
 # Geometry
 # --------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Pose:
-    """Where the car is: metres north/east of the origin, compass heading in degrees."""
-
-    north_m: float = 0.0
-    east_m: float = 0.0
-    heading_deg: float = 0.0
 
 
 @dataclass
@@ -93,34 +71,6 @@ class Box:
 
 
 Obstacle: TypeAlias = Circle | Box
-
-
-def normalize_heading(deg: float) -> float:
-    """``deg`` folded into [0, 360)."""
-    out = deg % 360.0
-    return 0.0 if out >= 360.0 else out  # -1e-17 % 360 == 360.0 in floating point
-
-
-def diff_drive_step(
-    pose: Pose, left_mps: float, right_mps: float, *, track_width_m: float, dt: float
-) -> Pose:
-    """Advance a differential-drive (skid-steer) vehicle by ``dt`` seconds.
-
-    ``left_mps``/``right_mps`` are the wheel ground speeds (negative: backwards). The
-    vehicle moves at their mean along its heading and turns at their difference over the
-    track width; the heading is integrated at the interval's midpoint, which is accurate
-    to well under a millimetre per step at 50 Hz. Returns the new pose.
-    """
-    v = (left_mps + right_mps) / 2.0
-    # Positive omega turns anticlockwise (left), i.e. decreases the compass heading.
-    omega = (right_mps - left_mps) / track_width_m
-    turn_deg = math.degrees(omega * dt)
-    mid = math.radians(pose.heading_deg - turn_deg / 2.0)
-    return Pose(
-        north_m=pose.north_m + v * dt * math.cos(mid),
-        east_m=pose.east_m + v * dt * math.sin(mid),
-        heading_deg=normalize_heading(pose.heading_deg - turn_deg),
-    )
 
 
 def _ray_circle(on: float, oe: float, dn: float, de: float, c: Circle) -> float | None:
@@ -196,134 +146,6 @@ def obstacles_from_spec(spec: Iterable[Any]) -> list[Obstacle]:
 
 
 # --------------------------------------------------------------------------------------
-# Mock pins wired to the world
-# --------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class DualPinMotorWiring:
-    """An H-bridge driven by two PWM inputs (L298N, L9110S, CamJam EduKit 3 board), with
-    an optional enable input when it is not jumpered high (gpiozero ``Motor``)."""
-
-    forward: PinName
-    backward: PinName
-    enable: PinName | None = None
-
-
-@dataclass(frozen=True)
-class PhaseEnableMotorWiring:
-    """A phase/enable driver (DRV8835 in PHASE/ENABLE mode; gpiozero
-    ``PhaseEnableMotor``): the phase level selects the direction, enable's PWM the
-    power."""
-
-    phase: PinName
-    enable: PinName
-
-
-MotorWiring: TypeAlias = DualPinMotorWiring | PhaseEnableMotorWiring
-
-
-class _MotorInputs:
-    """The driver inputs of one motor, read back as an effort in [-1, 1]."""
-
-    def __init__(self, factory: Any, wiring: MotorWiring) -> None:
-        # Pins are created (as PWM-capable mock pins) or looked up once; gpiozero's
-        # devices later get these very objects from the same factory.
-        self.wiring = wiring
-        self._b: Any
-        self._en: Any
-        if isinstance(wiring, DualPinMotorWiring):
-            self._a = factory.pin(wiring.forward)
-            self._b = factory.pin(wiring.backward)
-            self._en = None if wiring.enable is None else factory.pin(wiring.enable)
-        else:
-            self._a = factory.pin(wiring.phase)
-            self._b = None
-            self._en = factory.pin(wiring.enable)
-
-    def effort(self) -> float:
-        if self._b is not None:  # dual-pin H-bridge
-            value = float(self._a.state) - float(self._b.state)
-            if self._en is not None:
-                value *= float(self._en.state)
-        else:  # phase/enable: phase high means backwards
-            value = float(self._en.state) * (-1.0 if self._a.state else 1.0)
-        return max(-1.0, min(1.0, value))
-
-
-class EchoPin(MockPWMPin):  # type: ignore[misc]
-    """The HC-SR04 ECHO line as a mock input pin whose edges can carry exact times.
-
-    gpiozero's DistanceSensor times the echo pulse from the timestamps of the pin's
-    edges. Mock pins stamp an edge with the time the driving thread got round to it,
-    and under the GIL that can be milliseconds late (a millisecond is 17 cm of range):
-    good enough for a demo, too noisy for tests of a 25 cm stop distance. Real pins
-    read by pigpio's DMA sampler are accurate to microseconds, so the simulation stamps
-    the falling edge exactly ``echo_time`` after the rising one.
-
-    It subclasses MockPWMPin only so that a MockFactory whose default pin class is
-    MockPWMPin accepts it when the DistanceSensor asks for the pin.
-    """
-
-    def __init__(self, factory: Any, info: Any) -> None:
-        super().__init__(factory, info)
-        self._stamp: float | None = None
-
-    def drive_at(self, level: bool, ticks: float) -> None:
-        """Drive the (input) pin to ``level`` with the edge stamped at ``ticks``."""
-        self._stamp = ticks
-        try:
-            if level:
-                self.drive_high()
-            else:
-                self.drive_low()
-        finally:
-            self._stamp = None
-
-    def _change_state(self, value: Any) -> bool:
-        changed: bool = super()._change_state(value)
-        if changed and self._stamp is not None:
-            # MockPin reports _last_change to the edge callback as the edge's ticks.
-            self._last_change = self._stamp
-        return changed
-
-
-class RangingTriggerPin(MockTriggerPin, MockPWMPin):  # type: ignore[misc]
-    """The HC-SR04 TRIG line: each trigger pulse is answered on ``echo_pin`` with a
-    pulse ``2 * distance / SPEED_OF_SOUND_MPS`` long, ``distance`` coming from
-    ``ranger()`` at the moment of the ping (None: nothing in range, a 38 ms pulse).
-
-    This is gpiozero's MockTriggerPin with a live echo time. Like EchoPin it is also a
-    MockPWMPin so a MockFactory(pin_class=MockPWMPin) hands it to the sensor.
-    """
-
-    def __init__(
-        self,
-        factory: Any,
-        info: Any,
-        echo_pin: EchoPin,
-        ranger: Callable[[], float | None],
-    ) -> None:
-        super().__init__(factory, info, echo_pin=echo_pin, echo_time=HC_SR04_NO_ECHO_S)
-        self.ranger = ranger
-
-    def _echo(self) -> None:  # runs in MockTriggerPin's per-ping thread
-        try:
-            distance = self.ranger()
-        except Exception:  # a broken ranger must not kill the sensor thread silently
-            logger.exception("simulated distance sensor failed to range")
-            distance = None
-        self.echo_time = (
-            HC_SR04_NO_ECHO_S if distance is None else 2.0 * distance / SPEED_OF_SOUND_MPS
-        )
-        time.sleep(HC_SR04_BURST_S)
-        rise = time.monotonic()
-        self.echo_pin.drive_at(True, rise)
-        time.sleep(self.echo_time)
-        self.echo_pin.drive_at(False, rise + self.echo_time)
-
-
-# --------------------------------------------------------------------------------------
 # The world
 # --------------------------------------------------------------------------------------
 
@@ -367,8 +189,8 @@ class CarWorld:
         self.body_radius_m = body_radius_m
         self.battery_drain_pct_per_s = battery_drain_pct_per_s
         self.sensor_max_range_m = min(sensor_max_range_m, HC_SR04_MAX_RANGE_M)
-        self._left = _MotorInputs(factory, left)
-        self._right = _MotorInputs(factory, right)
+        self._left = MotorInputs(factory, left)
+        self._right = MotorInputs(factory, right)
         self._lock = threading.RLock()
         self._pose = pose or Pose()
         self._obstacles: list[Obstacle] = list(obstacles)

@@ -1,1 +1,160 @@
-"""The mavlink simulator (never imported by production code: see agents.simulation)."""
+"""The MAVLink simulator: an ArduPilot-like autopilot in a process of its own.
+
+:func:`simulation` is the integration's simulator hook (see
+:class:`~agents.vehicles.base.Simulation`): it starts ``python -m agents sim mavlink``
+listening on a free UDP port of the loopback, waits for it to say ``READY``, and yields
+the adapter options with ``connection`` pointing there; the process (a
+``subprocess.Popen``) is the ``simulator``, and it stops when the block ends (or when
+its parent process dies). Only :mod:`agents.simulation` and tests import this;
+:func:`cli` is ``python -m agents sim mavlink`` (see :mod:`.autopilot`).
+
+The simulator's parameters (the ``simulator`` option) are its command line's:
+
+``speedup``, ``battery_pct``, ``drain_pct_per_min``, ``gps`` (3d, 2d, none),
+``satellites``, ``heading_deg``, ``home_alt_m``, ``sysid``, ``params`` ({NAME:
+number}), ``gps_fix_after_s``, ``firmware`` (4.5, 4.7) and ``stream_rate_hz``; it
+starts at the adapter's ``origin`` (else :data:`SIM_ORIGIN`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import subprocess
+import sys
+from collections.abc import AsyncIterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from agents.vehicles.base import Simulation
+from agents.vehicles.kit import OptionReader, simulator_split
+from agents.vehicles.mavlink.config import MavlinkConfig
+from agents.vehicles.mavlink.sim.autopilot import FIRMWARES, cli
+
+__all__ = ["SIM_ORIGIN", "cli", "simulation"]
+
+#: Where a simulated vehicle starts when the options give no ``origin`` (the campus).
+SIM_ORIGIN = (40.6306, -8.6588)
+#: Parameters a simulated autopilot starts with unless ``simulator.params`` says
+#: otherwise: what an operator would set on a real one (the agent's heartbeat loss ->
+#: its fail-safe).
+SIM_DEFAULT_PARAMS = {"FS_GCS_ENABLE": 1.0}
+#: The simulator's command line flag for each parameter.
+FLAGS = {
+    "speedup": "--speedup",
+    "battery_pct": "--battery",
+    "drain_pct_per_min": "--drain",
+    "gps": "--gps",
+    "satellites": "--satellites",
+    "heading_deg": "--heading",
+    "home_alt_m": "--home-alt",
+    "sysid": "--sysid",
+    "gps_fix_after_s": "--gps-fix-after",
+    "firmware": "--firmware",
+    "stream_rate_hz": "--stream-rate",
+}
+#: How long the simulator may take to say READY (a loaded machine imports slowly).
+READY_WITHIN_S = 30.0
+
+ROOT = Path(__file__).resolve().parents[4]
+
+
+def simulator_command(params: Mapping[str, Any], *, home: tuple[float, float]) -> list[str]:
+    """The command line of a simulator with ``params`` (the ``simulator`` option),
+    listening on a free loopback port. Raises ValueError naming a bad parameter.
+
+    Unless ``params`` say otherwise it ships no telemetry until the agent asks for it,
+    as ArduCopter does (stream rate 0), so that the agent's own stream requests are
+    what the tests fly on."""
+    o = OptionReader("mavlink", params, prefix="simulator.")
+    args = [
+        sys.executable, "-m", "agents", "sim", "mavlink",
+        "--listen", "udpin:127.0.0.1:0",
+        "--home", f"{home[0]},{home[1]}",
+        "--parent-pid", str(os.getpid()),
+    ]  # fmt: skip
+    values: dict[str, Any] = {"stream_rate_hz": 0}
+    for key in ("speedup", "battery_pct", "drain_pct_per_min", "heading_deg", "home_alt_m"):
+        if o.has(key):
+            values[key] = o.number(key, 0)
+    for key in ("gps_fix_after_s", "stream_rate_hz"):
+        if o.has(key):
+            values[key] = o.number(key, 0, min=0)
+    for key in ("satellites", "sysid"):
+        if o.has(key):
+            values[key] = o.integer(key, 0, min=0, max=255)
+    if o.has("gps"):
+        values["gps"] = o.choice("gps", "3d", ("3d", "2d", "none"))
+    if o.has("firmware"):
+        values["firmware"] = o.choice("firmware", "4.5", FIRMWARES)
+    extra = o.mapping("params")
+    if not all(
+        isinstance(k, str) and isinstance(v, int | float) and not isinstance(v, bool)
+        for k, v in extra.items()
+    ):
+        raise o.error("params", "expected {NAME: number}")
+    o.finish()
+    for key, value in values.items():
+        args += [FLAGS[key], str(value)]
+    for name, value in {**SIM_DEFAULT_PARAMS, **extra}.items():
+        args += ["--param", f"{name}={value}"]
+    return args
+
+
+@contextlib.asynccontextmanager
+async def simulation(options: Mapping[str, Any]) -> AsyncIterator[Simulation]:
+    """Start a simulated autopilot for ``options`` (see the module docstring); yields
+    the adapter options that connect to it. Raises ValueError naming a bad option, or
+    RuntimeError when the simulator does not come up."""
+    adapter_options, params = simulator_split(options)
+    config = MavlinkConfig.from_options(adapter_options)
+    args = simulator_command(params, home=config.origin or SIM_ORIGIN)
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p),
+    }
+
+    def spawn() -> subprocess.Popen[bytes]:
+        return subprocess.Popen(
+            args, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, env=env, cwd=ROOT
+        )
+
+    process = await asyncio.to_thread(spawn)
+    try:
+        port = await _ready_port(process)
+        yield Simulation(
+            options={
+                **adapter_options,
+                "connection": f"udpout:127.0.0.1:{port}",
+                # A simulated vehicle is left where it is when its agent stops, as
+                # before the simulator hook existed; a config may still ask otherwise.
+                "close_action": adapter_options.get("close_action", "none"),
+            },
+            simulator=process,
+        )
+    finally:
+        if process.poll() is None:
+            process.terminate()
+            try:
+                await asyncio.to_thread(process.wait, 5.0)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                await asyncio.to_thread(process.wait)
+        if process.stdout is not None:
+            process.stdout.close()
+
+
+async def _ready_port(process: subprocess.Popen[bytes]) -> int:
+    """The UDP port of ``READY udpin:127.0.0.1:PORT``, the simulator's first line."""
+    assert process.stdout is not None
+    try:
+        line = await asyncio.wait_for(asyncio.to_thread(process.stdout.readline), READY_WITHIN_S)
+    except TimeoutError:
+        process.kill()  # ends the blocked read too
+        raise RuntimeError(f"the MAVLink simulator did not start in {READY_WITHIN_S:g} s") from None
+    text = line.decode(errors="replace").strip()
+    if not text.startswith("READY "):
+        code = process.wait()
+        raise RuntimeError(f"the MAVLink simulator exited with code {code}: {text!r}")
+    return int(text.rsplit(":", 1)[1])
