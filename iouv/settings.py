@@ -61,6 +61,14 @@ if not SECRET_KEY:
 ALLOWED_HOSTS = env_list("ALLOWED_HOSTS", ["127.0.0.1", "localhost", "[::1]", "testserver"])
 CSRF_TRUSTED_ORIGINS = env_list("CSRF_TRUSTED_ORIGINS", [])
 
+# Service kinds (services.kinds): every folder under kinds/ is one, an app of its own,
+# so a new kind of service is one folder. IOUV_SERVICE_KINDS (names, comma separated)
+# installs only those.
+SERVICE_KINDS = env_list("IOUV_SERVICE_KINDS", []) or sorted(
+    path.name for path in (BASE_DIR / "kinds").iterdir() if (path / "apps.py").is_file()
+)
+SERVICE_KIND_APPS = [f"kinds.{name}" for name in SERVICE_KINDS]
+
 INSTALLED_APPS = [
     "daphne",
     "django.contrib.admin",
@@ -73,10 +81,7 @@ INSTALLED_APPS = [
     "accounts",
     "fleet",
     "services",
-    # Service kinds (services.kinds): one app each.
-    "kinds.manual_control",
-    "kinds.spectate",
-    "kinds.rescue_at_sea",
+    *SERVICE_KIND_APPS,
 ]
 
 MIDDLEWARE = [
@@ -300,6 +305,11 @@ IOUV_MISSION_TICK_S = env_float("IOUV_MISSION_TICK_S", 2.0)
 # Map tiles for the mission map, e.g. "https://tile.openstreetmap.org/{z}/{x}/{y}.png"
 # (mind the tile server's usage policy). Empty: no tiles, the map draws a grid.
 IOUV_MAP_TILES_URL = env_str("IOUV_MAP_TILES_URL", "")
+# Where people reach the portal from outside (links in e-mails: a parcel's tracking
+# page).
+IOUV_PUBLIC_URL = env_str("IOUV_PUBLIC_URL", "http://127.0.0.1:8000")
+# Parcel delivery: a parcel no vehicle could take within this long fails.
+IOUV_PARCEL_WAIT_S = env_int("IOUV_PARCEL_WAIT_S", 1800)
 # Rescue team webhooks: how long one delivery attempt may take.
 IOUV_WEBHOOK_TIMEOUT_S = env_float("IOUV_WEBHOOK_TIMEOUT_S", 5.0)
 

@@ -115,6 +115,15 @@ def log_lines(session: Session) -> list[dict[str, Any]]:
     return lines
 
 
+def session_watched(request: HttpRequest, session_id: str) -> Session:
+    """The session if the request's user may watch it (its own user, or a monitor);
+    404 otherwise, so others' sessions are not even confirmed to exist."""
+    session = get_object_or_404(Session.objects.select_related("service"), pk=session_id)
+    if session.user_id != request.user.pk and not request.user.has_perm("fleet.view_fleet"):
+        raise Http404("no such session")
+    return session
+
+
 def _own_session(request: HttpRequest, session_id: str) -> Session:
     session = get_object_or_404(Session.objects.select_related("service"), pk=session_id)
     if session.user_id != request.user.pk:

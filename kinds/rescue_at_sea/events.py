@@ -7,7 +7,6 @@ means (``workflow``).
 
 from __future__ import annotations
 
-import contextlib
 from typing import Any
 
 from django.db import transaction
@@ -17,8 +16,8 @@ from kinds.rescue_at_sea.coverage import point_in_area
 from kinds.rescue_at_sea.models import DELIVERY, FINAL_MISSION, SEARCH, Mission
 from kinds.rescue_at_sea.tasks import mission_schedule
 from services.eventlog import event_append
-from services.models import Assignment, Session
-from services.sessions import SessionStateError, session_transition
+from services.models import Assignment
+from services.workflow import session_task_accepted
 
 MISSION_EVENTS = frozenset(
     {"mission_progress", "person_detected", "search_complete", "payload_released", "mission_failed"}
@@ -106,12 +105,8 @@ def _latlon(data: dict[str, Any]) -> tuple[float, float] | None:
 
 def mission_task_accepted(*, assignment: Assignment) -> None:
     """A vehicle of a rescue accepted its task: the session is under way."""
-    session = assignment.session
-    if session.state == Session.State.ASSIGNED and assignment.active:
-        with contextlib.suppress(SessionStateError):  # moved on meanwhile
-            session_transition(
-                session=session,
-                to=Session.State.ACTIVE,
-                reason=f"{assignment.vehicle.name} accepted its {assignment.role} task",
-            )
-    mission_schedule(session.pk)
+    session_task_accepted(
+        assignment=assignment,
+        reason=f"{assignment.vehicle.name} accepted its {assignment.role} task",
+    )
+    mission_schedule(assignment.session_id)

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-from datetime import timedelta
 from typing import Any
 
 from django.conf import settings
@@ -30,10 +29,19 @@ from kinds.rescue_at_sea.models import DELIVERY, FINAL_MISSION, SEARCH, Mission
 from kinds.rescue_at_sea.notifications import mission_alert, notices_create
 from kinds.rescue_at_sea.presentation import timeline
 from services.assignment import AssignmentError, role_assign
-from services.deployment import session_end, vehicle_release, vehicle_task_deploy
+from services.deployment import vehicle_task_deploy
 from services.eventlog import event_append
 from services.models import Assignment, Session
-from services.sessions import FINAL, SessionStateError, session_transition
+from services.sessions import FINAL, session_transition
+from services.workflow import (
+    assignment_release,
+    session_close,
+    steps_run,
+    task_redeploy_if_unaccepted,
+    vehicle_trouble,
+    vehicles_unfit,
+    workflow_state_set,
+)
 
 log = logging.getLogger(__name__)
 
@@ -45,10 +53,6 @@ _ALERTED = frozenset({S.WAITING_SEARCH, S.WAITING_DELIVERY, S.TIMED_OUT, S.NOT_F
 HOME_RADIUS_M = 30.0
 #: After this long the mission stops waiting for its vehicles to land and completes.
 RETURN_WAIT_S = 900
-
-#: Why a vehicle left a mission. One that went offline may come back and fly again; one
-#: that failed or ran low is not asked again for this mission.
-OFFLINE, LOW_BATTERY, FAILED = "offline", "low_battery", "failed"
 
 
 def mission_advance(session_id: Any) -> str | None:
@@ -92,17 +96,11 @@ def _step(mission: Mission) -> None:
 
 def _set(mission: Mission, state: str, text: str, **data: Any) -> None:
     """Move the mission to ``state`` and log it (nothing when nothing changes)."""
-    if mission.state == state and mission.status_text == text:
-        return
-    previous = mission.state
-    mission.state = state
-    mission.status_text = text[:300]
-    mission.save(update_fields=["state", "status_text", "updated_at"])
-    event_append(
-        session=mission.session,
-        kind="mission_state",
-        data={"from": previous, "to": state, "text": mission.status_text, **data},
+    changed = workflow_state_set(
+        mission, session=mission.session, state=state, text=text, log_kind="mission_state", **data
     )
+    if not changed:
+        return
     if state in _ALERTED:
         mission_alert(mission, topic=f"mission_{state}", text=mission.status_text)
 
@@ -138,7 +136,7 @@ def _assign_search(mission: Mission) -> None:
     pattern_m = sum(
         distance_m((a[0], a[1]), (b[0], b[1])) for a, b in itertools.pairwise(remaining)
     )
-    tried = _unfit(mission, SEARCH)
+    tried = vehicles_unfit(mission.session, role=SEARCH)
     try:
         with transaction.atomic():
             assignment = role_assign(
@@ -184,75 +182,6 @@ def _assign_search(mission: Mission) -> None:
     )
 
 
-def _vehicle_trouble(assignment: Assignment) -> tuple[str, str] | None:
-    """Why this vehicle cannot go on with its role, as (cause, words), or None."""
-    vehicle = Vehicle.objects.get(pk=assignment.vehicle_id)
-    now = timezone.now()
-    grace = timedelta(seconds=settings.IOUV_MISSION_OFFLINE_GRACE_S)
-    # Offline means the platform lost it (its uplink closed, or the sweep found it
-    # silent), for longer than the grace. Late heartbeats alone, on a loaded platform,
-    # are no reason to call back a drone carrying a life jacket.
-    if vehicle.status == Vehicle.Status.OFFLINE:
-        seen = vehicle.last_seen or assignment.created_at
-        if now - seen > grace:
-            return OFFLINE, f"{vehicle.name} went offline"
-    if (
-        vehicle.battery is not None
-        and vehicle.battery < settings.IOUV_MISSION_LOW_BATTERY_PCT
-        and assignment.role == SEARCH
-    ):
-        return LOW_BATTERY, f"{vehicle.name} is low on battery ({vehicle.battery:.0f} %)"
-    failed = (
-        assignment.session.events.filter(
-            kind__in=("mission_failed", "task_refused"),
-            data__vehicle=str(vehicle.pk),
-            created_at__gte=assignment.created_at,
-        )
-        .order_by("-seq")
-        .first()
-    )
-    if failed is not None:
-        reason = failed.data.get("reason", "no reason given")
-        return FAILED, f"{vehicle.name} could not go on: {reason}"
-    return None
-
-
-def _unfit(mission: Mission, role: str) -> list[Any]:
-    """Vehicles not to ask again for ``role``: released because they failed or ran low.
-    One that only went offline is asked again once it is back and idle: a mission must
-    not wait for ever for a vehicle that is standing by."""
-    released = mission.session.events.filter(kind="vehicle_released", data__role=role)
-    return [
-        e.data["vehicle"]
-        for e in released
-        if isinstance(e.data, dict) and e.data.get("cause") != OFFLINE and "vehicle" in e.data
-    ]
-
-
-def _release(mission: Mission, assignment: Assignment, trouble: tuple[str, str]) -> None:
-    """Take ``assignment``'s vehicle off the mission; it returns to its station."""
-    cause, words = trouble
-    reason = f"replaced: {words}"
-    Assignment.objects.filter(pk=assignment.pk).update(active=False, released_at=timezone.now())
-    vehicle_release(
-        vehicle_id=assignment.vehicle_id,
-        session_id=mission.pk,
-        message={"type": "end_task", "session_id": str(mission.pk), "reason": reason[:120]},
-    )
-    event_append(
-        session=mission.session,
-        kind="vehicle_released",
-        data={
-            "vehicle": str(assignment.vehicle_id),
-            "vehicle_name": assignment.vehicle.name,
-            "role": assignment.role,
-            "reason": reason,
-            "cause": cause,
-            "progress": mission.progress,
-        },
-    )
-
-
 def _supervise_search(mission: Mission) -> None:
     assignment = _active(mission, SEARCH)
     if mission.detection is not None:
@@ -274,13 +203,18 @@ def _supervise_search(mission: Mission) -> None:
         return
     if _timed_out(mission):
         return
-    trouble = _vehicle_trouble(assignment)
+    trouble = vehicle_trouble(assignment)
     if trouble:
-        _release(mission, assignment, trouble)
-        _set(mission, S.WAITING_SEARCH, f"{trouble[1]}: handing its remaining lines to another")
+        assignment_release(
+            session=mission.session,
+            assignment=assignment,
+            trouble=trouble,
+            data={"progress": mission.progress},
+        )
+        _set(mission, S.WAITING_SEARCH, f"{trouble.words}: handing its remaining lines to another")
         _assign_search(mission)
         return
-    _redeploy_if_unaccepted(mission, assignment)
+    task_redeploy_if_unaccepted(session=mission.session, assignment=assignment)
 
 
 def _assign_delivery(mission: Mission) -> None:
@@ -291,7 +225,7 @@ def _assign_delivery(mission: Mission) -> None:
     detection = mission.detection or {}
     target = (detection["lat"], detection["lon"])
     role = session.service.roles.get(name=DELIVERY)
-    tried = _unfit(mission, DELIVERY)
+    tried = vehicles_unfit(mission.session, role=DELIVERY)
     busy = Assignment.objects.filter(session_id=mission.pk, active=True).values_list(
         "vehicle_id", flat=True
     )
@@ -321,43 +255,25 @@ def _supervise_delivery(mission: Mission) -> None:
         _set(mission, S.WAITING_DELIVERY, "looking for a delivery vehicle")
         _assign_delivery(mission)
         return
-    trouble = _vehicle_trouble(assignment)
+    # A delivery vehicle low on battery finishes the short trip it is on.
+    trouble = vehicle_trouble(assignment, watch_battery=False)
     if trouble:
-        _release(mission, assignment, trouble)
-        _set(mission, S.WAITING_DELIVERY, f"{trouble[1]}: looking for another delivery vehicle")
+        assignment_release(
+            session=mission.session,
+            assignment=assignment,
+            trouble=trouble,
+            data={"progress": mission.progress},
+        )
+        _set(mission, S.WAITING_DELIVERY, f"{trouble.words}: looking for another delivery vehicle")
         _assign_delivery(mission)
         return
-    _redeploy_if_unaccepted(mission, assignment)
-
-
-def _redeploy_if_unaccepted(mission: Mission, assignment: Assignment) -> None:
-    """Send the task again if the vehicle has not accepted it by its deadline (the
-    push may have been lost with a worker); the agent recognises the mission id."""
-    events = mission.session.events
-    vehicle = str(assignment.vehicle_id)
-    deployed = events.filter(kind="task_deployed", data__vehicle=vehicle).order_by("-seq").first()
-    if deployed is None:
-        vehicle_task_deploy(session=mission.session, assignment=assignment)
-        return
-    if events.filter(kind="task_accepted", data__vehicle=vehicle, seq__gt=deployed.seq).exists():
-        return
-    if deployed.data.get("exp", 0) < timezone.now().timestamp():
-        vehicle_task_deploy(session=mission.session, assignment=assignment)
+    task_redeploy_if_unaccepted(session=mission.session, assignment=assignment)
 
 
 def _end(mission: Mission, state: str, text: str) -> None:
     """Close the session (every vehicle gets ``end_task`` and returns to its station,
     the service's fail-safe action) and move the mission to ``state``."""
-    session = mission.session
-    if session.state not in FINAL:
-        try:
-            if session.state == Session.State.REQUESTED:
-                session_transition(session=session, to=Session.State.FAILED, reason=text)
-            else:
-                session_end(session=session, reason=text, by_user=False)
-        except SessionStateError:
-            log.info("mission %s: session already closed", mission.pk)
-        session.refresh_from_db()
+    session_close(session=mission.session, reason=text)
     _set(mission, state, text)
 
 
@@ -383,11 +299,6 @@ def _check_returned(mission: Mission) -> None:
 
 def missions_tick() -> int:
     """One step for every unfinished mission (Celery beat): time-outs, waiting for a
-    vehicle, vehicles gone quiet, lost pushes, notices to retry. Returns how many ran."""
-    ids = list(Mission.objects.exclude(state__in=FINAL_MISSION).values_list("pk", flat=True))
-    for pk in ids:
-        try:
-            mission_advance(pk)
-        except Exception:  # one broken mission must not stop the others' timers
-            log.exception("mission %s: step failed", pk)
-    return len(ids)
+    vehicle, vehicles gone quiet, lost messages. Returns how many ran."""
+    ids = Mission.objects.exclude(state__in=FINAL_MISSION).values_list("pk", flat=True)
+    return steps_run(list(ids), mission_advance, what="mission")

@@ -8,8 +8,7 @@
  *     the vehicles where they are now, the stations and the person once found, kept
  *     current by polling the mission's JSON every second.
  *
- * Without IOUV_MAP_TILES_URL the map has no background imagery: a latitude/longitude
- * grid gives scale and orientation, so it works on a closed network.
+ * The map itself, the grid and the station markers come from static/js/map-base.js.
  */
 (function () {
   "use strict";
@@ -24,65 +23,7 @@
     station: "#e6edf3",
   };
 
-  function jsonScript(id) {
-    const node = document.getElementById(id);
-    return node ? JSON.parse(node.textContent) : null;
-  }
-
-  function makeMap(node, tiles) {
-    const map = L.map(node, { attributionControl: Boolean(tiles), zoomSnap: 0.5 });
-    if (tiles) {
-      L.tileLayer(tiles, { maxZoom: 19, attribution: "map tiles" }).addTo(map);
-    } else {
-      graticule(map);
-    }
-    L.control.scale({ imperial: false }).addTo(map);
-    return map;
-  }
-
-  /* A lat/lon grid, redrawn at a spacing that suits the zoom. */
-  function graticule(map) {
-    const layer = L.layerGroup().addTo(map);
-    const steps = [0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10];
-    function draw() {
-      layer.clearLayers();
-      const b = map.getBounds();
-      const span = Math.max(b.getNorth() - b.getSouth(), b.getEast() - b.getWest());
-      const step = steps.find((s) => span / s <= 10) || 10;
-      const style = { color: "#1f3b57", weight: 1, interactive: false };
-      for (let lat = Math.ceil(b.getSouth() / step) * step; lat <= b.getNorth(); lat += step) {
-        L.polyline([[lat, b.getWest()], [lat, b.getEast()]], style).addTo(layer);
-        L.marker([lat, b.getWest()], {
-          interactive: false,
-          icon: L.divIcon({ className: "grid-label", html: lat.toFixed(4), iconAnchor: [-4, 12] }),
-        }).addTo(layer);
-      }
-      for (let lon = Math.ceil(b.getWest() / step) * step; lon <= b.getEast(); lon += step) {
-        L.polyline([[b.getSouth(), lon], [b.getNorth(), lon]], style).addTo(layer);
-      }
-    }
-    map.on("moveend zoomend resize", draw);
-    map.whenReady(draw);
-  }
-
-  function label(text) {
-    return L.divIcon({ className: "map-label", html: text, iconAnchor: [-8, 8] });
-  }
-
-  function escapeHtml(text) {
-    const div = document.createElement("div");
-    div.textContent = String(text);
-    return div.innerHTML;
-  }
-
-  function stationMarkers(map, stations) {
-    for (const s of stations || []) {
-      L.circleMarker([s.lat, s.lon], {
-        radius: 6, color: COLORS.station, weight: 2, fillOpacity: 0.2, className: "station-marker",
-      }).addTo(map);
-      L.marker([s.lat, s.lon], { icon: label(escapeHtml(s.name)), interactive: false }).addTo(map);
-    }
-  }
+  const { makeMap, stationMarkers, label, escapeHtml, jsonScript } = window.IoUVMap;
 
   /* Approximate area of a polygon in m² (equirectangular, fine for a few km). */
   function areaM2(points) {
