@@ -1,0 +1,75 @@
+"""Parcel delivery, as a service kind: what the core asks of it."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from django import forms
+from django.conf import settings
+from django.contrib.auth.models import AbstractBaseUser
+from django.http import HttpRequest
+
+from kinds.parcel_delivery.events import PARCEL_EVENTS, delivery_event, delivery_task_accepted
+from kinds.parcel_delivery.forms import ParcelRequestForm
+from kinds.parcel_delivery.missions import vehicle_mission
+from kinds.parcel_delivery.models import KIND, Delivery
+from kinds.parcel_delivery.notifications import tracking_url
+from kinds.parcel_delivery.presentation import delivery_json
+from kinds.parcel_delivery.request import params_clean, parcel_request
+from services.kinds import EventHandler, Opened, Request, ServiceKind
+from services.models import Assignment, Service, Session
+
+
+def _on(name: str) -> EventHandler:
+    def handler(assignment: Assignment, data: dict[str, Any]) -> None:
+        delivery_event(assignment=assignment, name=name, data=data)
+
+    return handler
+
+
+class ParcelDelivery(ServiceKind):
+    """A user picks a pickup and a drop-off and a weight; the vehicle that can carry it
+    and arrives first (a drone, or a boat when both points are on water) collects it,
+    brings it, releases it and goes home, while the user and the recipient follow it
+    on the map with an ETA. Lost or low mid-way, it hands over to another vehicle."""
+
+    name = KIND
+    label = "Parcel delivery"
+    user_drives = False
+    accepts = frozenset()
+    form_class = ParcelRequestForm
+    request_template = "parcel_delivery/request.html"
+    session_template = "parcel_delivery/session.html"
+    urls = "kinds.parcel_delivery.urls"
+    event_handlers = {name: _on(name) for name in sorted(PARCEL_EVENTS)}
+
+    def params_clean(self, params: Mapping[str, Any]) -> dict[str, Any]:
+        return params_clean(params)
+
+    def request_from_form(self, form: forms.Form) -> Request:
+        assert isinstance(form, ParcelRequestForm)
+        return Request(params=form.params())
+
+    def open(self, *, service: Service, user: AbstractBaseUser, request: Request) -> Opened:
+        return Opened(session=parcel_request(user=user, service=service, params=request.params))
+
+    def session_context(self, *, request: HttpRequest, session: Session) -> dict[str, Any]:
+        delivery = Delivery.objects.filter(pk=session.pk).first()
+        if delivery is None:
+            return {"delivery": None}
+        return {
+            "delivery": delivery_json(delivery),
+            "tracking_url": tracking_url(delivery),
+            "tiles": settings.IOUV_MAP_TILES_URL,
+        }
+
+    def session_data(self, session: Session) -> dict[str, Any] | None:
+        delivery = Delivery.objects.filter(pk=session.pk).first()
+        return delivery_json(delivery) if delivery is not None else None
+
+    def vehicle_mission(self, *, assignment: Assignment) -> dict[str, Any] | None:
+        return vehicle_mission(assignment=assignment)
+
+    def task_accepted(self, *, assignment: Assignment) -> None:
+        delivery_task_accepted(assignment=assignment)

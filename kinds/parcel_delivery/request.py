@@ -1,0 +1,142 @@
+"""Requesting a parcel delivery: two points, a weight, who receives it."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+from django.contrib.auth.models import AbstractBaseUser
+from django.core.exceptions import ValidationError
+from django.core.validators import EmailValidator, URLValidator
+from django.db import transaction
+
+from agents.geo import distance_m
+from kinds.parcel_delivery.models import KIND, Delivery
+from kinds.parcel_delivery.planning import MAX_TRIP_M, MAX_WEIGHT_KG, over_water
+from kinds.parcel_delivery.tasks import delivery_schedule
+from services.assignment import session_open
+from services.eventlog import event_append
+from services.kinds import RequestError
+from services.models import Service, Session
+
+#: The closest pickup and drop-off may be: nearer, it is not a delivery.
+MIN_TRIP_M = 20.0
+
+
+def _point(value: Any, field: str) -> tuple[float, float]:
+    if not isinstance(value, Mapping) or set(value) - {"lat", "lon"} or len(value) != 2:
+        raise RequestError('must be {"lat": ..., "lon": ...}', field=field)
+    lat, lon = value["lat"], value["lon"]
+    for name, number, limit in (("lat", lat, 90), ("lon", lon, 180)):
+        if (
+            isinstance(number, bool)
+            or not isinstance(number, int | float)
+            or not math.isfinite(number)
+            or abs(number) > limit
+        ):
+            raise RequestError(
+                f"must be a number from {-limit} to {limit}", field=f"{field}.{name}"
+            )
+    return (float(lat), float(lon))
+
+
+def params_clean(params: Mapping[str, Any]) -> dict[str, Any]:
+    """A delivery request's ``params``, validated (the one validation for the portal's
+    form and the API); raises RequestError naming the field."""
+    unknown = sorted(set(params) - {"pickup", "dropoff", "weight_kg", "recipient"})
+    if unknown:
+        raise RequestError("unknown field", field=f"params.{unknown[0]}")
+    for name in ("pickup", "dropoff", "weight_kg"):
+        if name not in params:
+            raise RequestError("is required", field=f"params.{name}")
+    pickup = _point(params["pickup"], "params.pickup")
+    dropoff = _point(params["dropoff"], "params.dropoff")
+    trip = distance_m(pickup, dropoff)
+    if not MIN_TRIP_M <= trip <= MAX_TRIP_M:
+        raise RequestError(
+            f"is {trip:.0f} m from the pickup; a delivery goes {MIN_TRIP_M:g} m to "
+            f"{MAX_TRIP_M / 1000:g} km",
+            field="params.dropoff",
+        )
+    weight = params["weight_kg"]
+    if (
+        isinstance(weight, bool)
+        or not isinstance(weight, int | float)
+        or not 0 < weight <= MAX_WEIGHT_KG
+    ):
+        raise RequestError(
+            f"must be more than 0 and at most {MAX_WEIGHT_KG:g} kg", field="params.weight_kg"
+        )
+    recipient = params.get("recipient") or {}
+    if not isinstance(recipient, Mapping):
+        raise RequestError("must be an object", field="params.recipient")
+    extra = sorted(set(recipient) - {"name", "email", "webhook"})
+    if extra:
+        raise RequestError("unknown field", field=f"params.recipient.{extra[0]}")
+    cleaned_recipient: dict[str, str] = {}
+    for name, check, limit in (
+        ("name", None, 100),
+        ("email", EmailValidator(), 254),
+        ("webhook", URLValidator(schemes=["http", "https"]), 300),
+    ):
+        value = recipient.get(name)
+        if value in (None, ""):
+            continue
+        if not isinstance(value, str) or len(value) > limit:
+            raise RequestError(
+                f"must be text of at most {limit} characters", field=f"params.recipient.{name}"
+            )
+        if check is not None:
+            try:
+                check(value)
+            except ValidationError:
+                raise RequestError(
+                    f"is not a valid {name}", field=f"params.recipient.{name}"
+                ) from None
+        cleaned_recipient[name] = value
+    return {
+        "pickup": {"lat": pickup[0], "lon": pickup[1]},
+        "dropoff": {"lat": dropoff[0], "lon": dropoff[1]},
+        "weight_kg": float(weight),
+        "recipient": cleaned_recipient,
+    }
+
+
+def parcel_request(
+    *, user: AbstractBaseUser, service: Service, params: Mapping[str, Any]
+) -> Session:
+    """Open a delivery of ``params`` (cleaned by :func:`params_clean`) and start its
+    workflow. Raises services.assignment.AssignmentError when the user may not use the
+    service or is at its session limit; RequestError for another kind of service."""
+    if service.kind != KIND:
+        raise RequestError(f"{service.name!r} is not a parcel delivery service", field="service")
+    pickup = (params["pickup"]["lat"], params["pickup"]["lon"])
+    dropoff = (params["dropoff"]["lat"], params["dropoff"]["lon"])
+    recipient = params.get("recipient") or {}
+    with transaction.atomic():
+        session = session_open(user=user, service=service, target=pickup, params=dict(params))
+        delivery = Delivery.objects.create(
+            session=session,
+            pickup_lat=pickup[0],
+            pickup_lon=pickup[1],
+            dropoff_lat=dropoff[0],
+            dropoff_lon=dropoff[1],
+            weight_kg=params["weight_kg"],
+            over_water=over_water(pickup, dropoff),
+            recipient_name=recipient.get("name", ""),
+            recipient_email=recipient.get("email", ""),
+            recipient_webhook=recipient.get("webhook", ""),
+            status_text="looking for a vehicle",
+        )
+        event_append(
+            session=session,
+            kind="delivery_planned",
+            data={
+                "trip_m": round(distance_m(pickup, dropoff)),
+                "weight_kg": delivery.weight_kg,
+                "over_water": delivery.over_water,
+            },
+        )
+        delivery_schedule(delivery.pk)
+    return session
