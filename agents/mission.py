@@ -14,6 +14,12 @@ vehicle's ordinary commands and reports what happens as session events. Two kind
     take off if needed, fly to ``target`` at ``altitude_m``, descend to
     ``drop_altitude_m``, release the payload once (``payload_released``), climb back
     and hold.
+``parcel``
+    take off if needed, fly to ``pickup``, descend to ``load_altitude_m`` and wait
+    ``load_s`` for the parcel to be put on board (``parcel_loaded``), fly it to
+    ``dropoff``, descend to ``drop_altitude_m``, release it once
+    (``payload_released``) and return home. A vehicle on the surface (a boat: no
+    ``take_off``, no altitude) sails it, without the climbs and descents.
 
 Every command goes through :meth:`agents.control.ControlHub.mission_execute`: the same
 lock as users' commands and fail-safes (never interleaved), the task's ceiling and
@@ -104,7 +110,22 @@ class DeliveryMission:
     kind: str = "delivery"
 
 
-Mission: TypeAlias = SearchMission | DeliveryMission
+@dataclass(frozen=True)
+class ParcelMission:
+    """Collect a parcel at ``pickup``, release it at ``dropoff``, go home."""
+
+    id: str
+    pickup: LatLon
+    dropoff: LatLon
+    altitude_m: float
+    load_altitude_m: float
+    load_s: float
+    drop_altitude_m: float
+    speed_mps: float
+    kind: str = "parcel"
+
+
+Mission: TypeAlias = SearchMission | DeliveryMission | ParcelMission
 
 _FIELDS: Final = {
     "search": {
@@ -117,7 +138,20 @@ _FIELDS: Final = {
         "min_confidence",
     },
     "delivery": {"kind", "id", "target", "altitude_m", "drop_altitude_m", "speed_mps"},
+    "parcel": {
+        "kind",
+        "id",
+        "pickup",
+        "dropoff",
+        "altitude_m",
+        "load_altitude_m",
+        "load_s",
+        "drop_altitude_m",
+        "speed_mps",
+    },
 }
+#: The longest a parcel may take to be put on board.
+MAX_LOAD_S: Final = 600.0
 
 
 def _num(raw: Mapping[str, Any], key: str, default: float | None, lo: float, hi: float) -> float:
@@ -156,7 +190,7 @@ def mission_parse(raw: Any) -> Mission:
         raise MissionError("mission: must be an object")
     kind = raw.get("kind")
     if kind not in _FIELDS:
-        raise MissionError("mission.kind: must be 'search' or 'delivery'")
+        raise MissionError(f"mission.kind: must be one of {', '.join(sorted(_FIELDS))}")
     unknown = set(raw) - _FIELDS[kind]
     if unknown:
         raise MissionError(f"mission: unknown field(s) {', '.join(sorted(unknown))}")
@@ -165,6 +199,21 @@ def mission_parse(raw: Any) -> Mission:
         raise MissionError("mission.id: a non-empty string of at most 100 characters")
     altitude = _num(raw, "altitude_m", None, 1.0, MAX_ALTITUDE_M)
     speed = _num(raw, "speed_mps", 10.0, 0.1, MAX_SPEED_MPS)
+    if kind == "parcel":
+        load = _num(raw, "load_altitude_m", 2.0, 0.5, MAX_ALTITUDE_M)
+        drop = _num(raw, "drop_altitude_m", 3.0, 0.5, MAX_ALTITUDE_M)
+        if max(load, drop) > altitude:
+            raise MissionError("mission: load and drop altitudes must not be above altitude_m")
+        return ParcelMission(
+            id=mission_id,
+            pickup=_point(raw.get("pickup"), "mission.pickup"),
+            dropoff=_point(raw.get("dropoff"), "mission.dropoff"),
+            altitude_m=altitude,
+            load_altitude_m=load,
+            load_s=_num(raw, "load_s", 10.0, 0.0, MAX_LOAD_S),
+            drop_altitude_m=drop,
+            speed_mps=speed,
+        )
     if kind == "delivery":
         drop = _num(raw, "drop_altitude_m", 5.0, 0.5, MAX_ALTITUDE_M)
         if drop > altitude:
@@ -316,6 +365,8 @@ class MissionRunner:
         try:
             if isinstance(self.mission, SearchMission):
                 await self._search(self.mission)
+            elif isinstance(self.mission, ParcelMission):
+                await self._parcel(self.mission)
             else:
                 await self._deliver(self.mission)
         except _Interrupted as exc:
@@ -357,18 +408,25 @@ class MissionRunner:
 
     def _within_declared(self, name: str, args: Mapping[str, Any]) -> dict[str, Any]:
         """``args`` with a speed above the vehicle's declared top speed lowered to it
-        (the plan may ask for more than this airframe does), and a speed argument the
-        vehicle does not declare dropped (it flies at its own cruise speed)."""
+        (the plan may ask for more than this airframe does), and the arguments the
+        vehicle does not declare dropped (a boat's waypoint takes no altitude; one
+        without a speed argument goes at its own cruise speed)."""
         spec = next((c.args for c in self.adapter.commands() if c.name == name), None)
-        out = dict(args)
-        if spec is None or "speed_mps" not in out:
-            return out
+        if spec is None:
+            return dict(args)
+        out = {key: value for key, value in args.items() if key in spec}
         declared = spec.get("speed_mps")
-        if declared is None:
-            del out["speed_mps"]
-        elif isinstance(declared.get("max"), int | float):
+        if (
+            "speed_mps" in out
+            and declared is not None
+            and isinstance(declared.get("max"), int | float)
+        ):
             out["speed_mps"] = min(float(out["speed_mps"]), float(declared["max"]))
         return out
+
+    def _on_surface(self) -> bool:
+        """A vehicle that cannot take off (a boat, a car): no climbs, no descents."""
+        return not any(c.name == "take_off" for c in self.adapter.commands())
 
     def _check_interference(self) -> None:
         if self.cancelled:
@@ -382,6 +440,8 @@ class MissionRunner:
             raise _Interrupted(f"the vehicle switched to {mode} by itself")
 
     async def _take_off_if_needed(self, altitude: float) -> None:
+        if self._on_surface():
+            return
         st = self.adapter.state()
         in_air = self.adapter.telemetry().get("in_air")
         if in_air is None:  # an adapter without the topic: judge by the altitude
@@ -418,7 +478,7 @@ class MissionRunner:
         st = self.adapter.state()
         here = st.position
         distance = distance_m(here, point) if here is not None else 1000.0
-        climb = abs(altitude - (st.alt or 0.0))
+        climb = 0.0 if self._on_surface() else abs(altitude - (st.alt or 0.0))
 
         def arrived(s: VehicleState) -> bool:
             if s.position is None or distance_m(s.position, point) > self.arrive_m:
@@ -535,27 +595,76 @@ class MissionRunner:
         self._progress("transit")
         await self._fly_to(m.target, m.altitude_m, speed=m.speed_mps, settle=True)
         self._progress("delivery")
-        await self._fly_to(m.target, m.drop_altitude_m, speed=m.speed_mps, settle=True)
+        await self._release_over(m.target, m.id, m.altitude_m, m.drop_altitude_m, m.speed_mps)
+        self._progress("hold")
+
+    async def _descend(self, point: LatLon, high: float, low: float, speed: float) -> None:
+        """Down to ``low`` over ``point`` (nothing for a vehicle on the surface)."""
+        if self._on_surface():
+            return
+        await self._fly_to(point, low, speed=speed, settle=True)
         await self._until(
-            lambda s: s.alt is not None and s.alt <= m.drop_altitude_m + ALTITUDE_TOLERANCE_M,
-            timeout_s=LEG_MARGIN_S + (m.altitude_m - m.drop_altitude_m) / VERTICAL_RATE_MPS,
-            what=f"the descent to {m.drop_altitude_m:g} m",
+            lambda s: s.alt is not None and s.alt <= low + ALTITUDE_TOLERANCE_M,
+            timeout_s=LEG_MARGIN_S + (high - low) / VERTICAL_RATE_MPS,
+            what=f"the descent to {low:g} m",
         )
-        if m.id in self.release_attempted:
+
+    async def _climb(self, point: LatLon, low: float, high: float, speed: float) -> None:
+        """Back up to ``high`` over ``point`` (nothing for a vehicle on the surface)."""
+        if self._on_surface():
+            return
+        await self._fly_to(point, high, speed=speed)
+        await self._until(
+            lambda s: s.alt is not None and s.alt >= high - ALTITUDE_TOLERANCE_M,
+            timeout_s=LEG_MARGIN_S + (high - low) / VERTICAL_RATE_MPS,
+            what=f"the climb back to {high:g} m",
+        )
+
+    async def _release_over(
+        self, point: LatLon, mission_id: str, high: float, low: float, speed: float
+    ) -> None:
+        """Descend over ``point``, release the payload once ever for ``mission_id``
+        (``payload_released``), climb back."""
+        await self._descend(point, high, low, speed)
+        if mission_id in self.release_attempted:
             raise _StepFailed("this mission's payload release was already attempted")
         # Recorded before sending: whatever the answer, it is never sent twice.
-        self.release_attempted.add(m.id)
+        self.release_attempted.add(mission_id)
         await self._command("release_payload", {})
         where = self._where()
-        self.released[m.id] = {"mission": m.id, "lat": where["lat"], "lon": where["lon"]}
+        self.released[mission_id] = {
+            "mission": mission_id,
+            "lat": where["lat"],
+            "lon": where["lon"],
+        }
         self._report("payload_released", lat=where["lat"], lon=where["lon"])
-        await self._fly_to(m.target, m.altitude_m, speed=m.speed_mps)
+        await self._climb(point, low, high, speed)
+
+    async def _wait(self, seconds: float) -> None:
+        """Stay put for ``seconds``, still watching for interference."""
+        until = time.monotonic() + seconds
         await self._until(
-            lambda s: s.alt is not None and s.alt >= m.altitude_m - ALTITUDE_TOLERANCE_M,
-            timeout_s=LEG_MARGIN_S + (m.altitude_m - m.drop_altitude_m) / VERTICAL_RATE_MPS,
-            what=f"the climb back to {m.altitude_m:g} m",
+            lambda _s: time.monotonic() >= until,
+            timeout_s=seconds + LEG_MARGIN_S,
+            what=f"a wait of {seconds:g} s",
         )
-        self._progress("hold")
+
+    # --- parcel --------------------------------------------------------------------------
+    async def _parcel(self, m: ParcelMission) -> None:
+        await self._take_off_if_needed(m.altitude_m)
+        self._progress("to_pickup")
+        await self._fly_to(m.pickup, m.altitude_m, speed=m.speed_mps, settle=True)
+        self._progress("loading")
+        await self._descend(m.pickup, m.altitude_m, m.load_altitude_m, m.speed_mps)
+        await self._wait(m.load_s)
+        self._report("parcel_loaded", **self._where())
+        await self._climb(m.pickup, m.load_altitude_m, m.altitude_m, m.speed_mps)
+        self._progress("to_dropoff")
+        await self._fly_to(m.dropoff, m.altitude_m, speed=m.speed_mps, settle=True)
+        self._progress("delivery")
+        await self._release_over(m.dropoff, m.id, m.altitude_m, m.drop_altitude_m, m.speed_mps)
+        self._progress("returning")
+        await self._command("return_to_home", {})
 
 
 class MissionControl:

@@ -41,8 +41,9 @@ from agents.protocol import (
 from agents.safety import CommandGate, Refusal
 from agents.simulation import simulator_running
 from agents.vehicles.base import AdapterError
-from agents.vehicles.mavlink.adapter import MAV, MavlinkAdapter, mavutil
+from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.mavlink.config import MavlinkConfig
+from agents.vehicles.mavlink.dialect import MAV, mavutil
 from agents.vehicles.mavlink.sim import simulator_command
 from agents.vehicles.registry import adapter_create
 from tests.agents.test_control import command, recv
@@ -412,7 +413,7 @@ async def test_bad_bytes_from_the_autopilot_side_never_crash_the_agent(rig: Rig)
                 s.sendto(chunk, ("127.0.0.1", port))
         await asyncio.sleep(0.5)
     assert drone.bad_frames > 20
-    assert all(thread.is_alive() for thread in drone._threads)
+    assert all(thread.is_alive() for thread in drone.link.threads)
     assert drone.link_ok
     # Still flying normally: commands are acknowledged, telemetry is fresh.
     await drone.execute("arm", {})

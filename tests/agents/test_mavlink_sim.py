@@ -16,7 +16,7 @@ from contextlib import contextmanager
 from typing import Any
 
 from agents.geo import distance_m
-from agents.vehicles.mavlink.adapter import MAV, mavutil
+from agents.vehicles.mavlink.dialect import MAV, mavutil
 from tests.agents.test_mavlink import HOME, ROOT, start_simulator
 
 GCS_SYSID = 255

@@ -111,7 +111,7 @@ def drone_options(**overrides: Any) -> dict[str, Any]:
 def releases(drone: MavlinkAdapter) -> int:
     """Payload releases the autopilot performed: it says so in a STATUSTEXT each time
     (the adapter keeps the recent ones)."""
-    return sum(1 for _, _, text in drone._texts if text == "Gripper load released")
+    return sum(1 for _, _, text in drone.texts if text == "Gripper load released")
 
 
 async def until_near(

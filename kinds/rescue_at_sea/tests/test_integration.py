@@ -283,7 +283,7 @@ async def test_worker_killed_mid_step_completes_without_duplicates(tmp_path: Pat
             assert deliveries == 1
             await _assert_rescued_and_home(session.pk)
             lifeguard = world.agents["lifeguard-1"].adapter
-            released = sum(1 for *_, text in lifeguard._texts if text == "Gripper load released")
+            released = sum(1 for *_, text in lifeguard.texts if text == "Gripper load released")
             assert released == 1
     finally:
         _SlowHook.release.set()

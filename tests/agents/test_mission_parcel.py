@@ -1,0 +1,80 @@
+"""The ``parcel`` mission (agents.mission) flown on the MAVLink simulator: collect a
+parcel at the pickup, bring it to the drop-off, release it once, go home."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from agents.geo import distance_m, offset
+from agents.mission import MissionError, ParcelMission, mission_parse
+from tests.agents.test_mission import HOME, make_rig, make_task, releases  # noqa: F401
+
+PICKUP = offset(HOME, 30, 0)
+DROPOFF = offset(HOME, 30, 60)
+
+
+def parcel(mission_id: str = "m-parcel", **overrides: Any) -> dict[str, Any]:
+    return {
+        "kind": "parcel",
+        "id": mission_id,
+        "pickup": list(PICKUP),
+        "dropoff": list(DROPOFF),
+        "altitude_m": 15,
+        "load_altitude_m": 2,
+        "load_s": 1,
+        "drop_altitude_m": 3,
+        "speed_mps": 8,
+        **overrides,
+    }
+
+
+async def until(done: Callable[[], bool], *, within: float) -> None:
+    deadline = time.monotonic() + within
+    while not done():
+        assert time.monotonic() < deadline, "not reached in time"
+        await asyncio.sleep(0.05)
+
+
+def test_a_parcel_mission_is_validated() -> None:
+    mission = mission_parse(parcel())
+    assert isinstance(mission, ParcelMission) and mission.pickup == PICKUP
+    with pytest.raises(MissionError, match="dropoff"):
+        mission_parse(parcel(dropoff=[95, 0]))
+    with pytest.raises(MissionError, match="above altitude_m"):
+        mission_parse(parcel(drop_altitude_m=20))
+    with pytest.raises(MissionError, match="load_s"):
+        mission_parse(parcel(load_s=-1))
+    with pytest.raises(MissionError, match="unknown field"):
+        mission_parse(parcel(colour="red"))
+
+
+async def test_the_drone_collects_brings_releases_once_and_goes_home(
+    make_rig,  # noqa: F811 - the fixture imported above
+) -> None:
+    rig = await make_rig()
+    rig.accept(make_task(parcel()))
+    loaded = await rig.event("parcel_loaded", within=90)
+    assert distance_m((loaded["lat"], loaded["lon"]), PICKUP) < 5
+    assert loaded["alt"] < 4  # it came down to have it put on board
+    released = await rig.event("payload_released", within=90)
+    assert distance_m((released["lat"], released["lon"]), DROPOFF) < 5
+    assert releases(rig.drone) == 1
+    phases = [phase for phase, _ in rig.progress()]
+    assert phases[:1] == ["takeoff"]
+    assert [p for p in phases if p != "takeoff"][:4] == [
+        "to_pickup",
+        "loading",
+        "to_dropoff",
+        "delivery",
+    ]
+    await until(lambda: "returning" in [p for p, _ in rig.progress()], within=30)
+    await until(lambda: rig.drone.state().mode == "RTL", within=30)  # on its way home
+    # The same task again (a resend): nothing is flown or released again.
+    rig.accept(make_task(parcel()))
+    assert releases(rig.drone) == 1
+    assert [e for e, _ in rig.events()].count("payload_released") == 2  # told, not redone
