@@ -48,20 +48,7 @@ class UUIDSearchMixin:
 class StationAdmin(admin.ModelAdmin):
     list_display = ("name", "lat", "lon", "environments", "vehicle_count")
     search_fields = ("name",)
-    fieldsets = (
-        (None, {"fields": ("name", "lat", "lon", "environments")}),
-        (
-            "Rescue team",
-            {
-                "fields": (
-                    "rescue_team_name",
-                    "rescue_team_email",
-                    "rescue_team_phone",
-                    "rescue_team_webhook",
-                )
-            },
-        ),
-    )
+    fields = ("name", "lat", "lon", "environments")
 
     def get_queryset(self, request: HttpRequest) -> QuerySet[Station]:
         return super().get_queryset(request).annotate(_vehicle_count=Count("vehicles"))

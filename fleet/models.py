@@ -27,10 +27,6 @@ class Station(models.Model):
         validators=[ChoiceListValidator("environments", ENVIRONMENTS)],
         help_text="Any of land, sea, air.",
     )
-    rescue_team_name = models.CharField(max_length=100, blank=True)
-    rescue_team_email = models.EmailField(blank=True)
-    rescue_team_phone = models.CharField(max_length=40, blank=True)
-    rescue_team_webhook = models.URLField(blank=True)
 
     class Meta:
         ordering = ["name"]

@@ -30,6 +30,7 @@ from agents.vehicles.registry import integration
 from fleet.attributes import attributes_clean
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Station, Vehicle, VehicleType
+from services.kinds import DemoService, kinds
 from services.models import Service, ServiceGrant, ServiceRole
 from services.signing import platform_public_key_pem
 
@@ -45,21 +46,12 @@ CAMPUS = "Campus station"
 COSTA_NOVA = "Costa Nova station"
 
 #: Where the simulated person in the water is, about 900 m off Costa Nova's beach: a
-#: rescue whose area covers this point finds them (``bin/demo --rescue`` asks for one).
+#: search whose area covers this point finds them (``bin/demo --rescue`` asks for one).
 CASTAWAY = (40.6441, -8.7561)
 
 STATIONS: dict[str, dict[str, Any]] = {
     CAMPUS: {"lat": 40.6306, "lon": -8.6588, "environments": ["land", "air"]},
-    COSTA_NOVA: {
-        "lat": 40.6443,
-        "lon": -8.7455,
-        "environments": ["sea", "air"],
-        # Fictitious contact details: the demo must never page a real team.
-        "rescue_team_name": "Costa Nova lifeguards",
-        "rescue_team_email": "lifeguards@costanova.example",
-        "rescue_team_phone": "+351 234 000 000",
-        "rescue_team_webhook": "",
-    },
+    COSTA_NOVA: {"lat": 40.6443, "lon": -8.7455, "environments": ["sea", "air"]},
 }
 
 # --------------------------------------------------------------------------------------
@@ -81,6 +73,9 @@ CAR_COMMANDS = _declared("car", {"camera_arm": True, "distance_sensor": True})
 QUADCOPTER_COMMANDS = _declared("mavlink")
 VTOL_COMMANDS = _declared("spektrum")
 RESCUE_DRONE_COMMANDS = _declared("mavlink", PAYLOAD_OPTIONS)
+#: ArduPilot Rover with its boat frame, on the same MAVLink integration.
+BOAT_OPTIONS: dict[str, Any] = {"vehicle_class": "boat"}
+BOAT_COMMANDS = _declared("mavlink", {**BOAT_OPTIONS, **PAYLOAD_OPTIONS})
 
 
 def command_names(commands: list[dict[str, Any]]) -> list[str]:
@@ -96,6 +91,7 @@ CAR = "Raspberry Pi car"
 QUADCOPTER = "MAVLink quadcopter"
 VTOL = "Spektrum VTOL plane"
 RESCUE_DRONE = "Rescue payload drone"
+BOAT = "MAVLink boat"
 
 K = VehicleType.Kind
 A = VehicleType.Adapter
@@ -125,7 +121,16 @@ VEHICLE_TYPES: dict[str, dict[str, Any]] = {
         "description": "MAVLink multicopter carrying a releasable rescue buoy.",
         "commands": RESCUE_DRONE_COMMANDS,
     },
+    BOAT: {
+        "kind": K.AQUATIC,
+        "adapter": A.MAVLINK,
+        "description": "Surface boat with an ArduPilot Rover autopilot and a release hook.",
+        "commands": BOAT_COMMANDS,
+    },
 }
+#: Adapter options a vehicle type's agents start with, besides those derived from
+#: each vehicle's attributes (see vehicle_agent_config).
+TYPE_OPTIONS: dict[str, dict[str, Any]] = {BOAT: BOAT_OPTIONS}
 
 
 def _car(features: list[str]) -> dict[str, Any]:
@@ -211,113 +216,42 @@ VEHICLES: dict[str, dict[str, Any]] = {
             "features": ["payload_release", "gps"],
         },
     },
+    "boat-1": {
+        "vehicle_type": BOAT,
+        "station": COSTA_NOVA,
+        # Moored 200 m west of the station, on the water.
+        "origin": offset((STATIONS[COSTA_NOVA]["lat"], STATIONS[COSTA_NOVA]["lon"]), 0, -200),
+        "attributes": {
+            "endurance_min": 120,
+            "max_range_m": 15000,
+            "max_altitude_m": 0,
+            "max_speed_mps": 4,
+            "max_payload_kg": 20,
+            "cameras": ["rgb"],
+            "camera_range_m": 50,
+            "environments": ["sea"],
+            "features": ["payload_release", "gps"],
+        },
+    },
 }
 
 # --------------------------------------------------------------------------------------
-# Services
+# Services: each kind offers its own (ServiceKind.demo_services)
 # --------------------------------------------------------------------------------------
 
-_MANUAL: dict[str, Any] = {
-    "kind": "manual_control",
-    "link_loss_timeout_ms": 500,
-    "latency_soft_ms": 150,
-    "latency_hard_ms": 400,
-}
 
-# Each service: its fields, and its roles as (name, fields) pairs.
-SERVICES: dict[str, dict[str, Any]] = {
-    "drive-car": {
-        "fields": {
-            **_MANUAL,
-            "name": "Manual control of a car",
-            "description": "Drive a robot car on campus from the browser, with live video.",
-            "allowed_commands": command_names(CAR_COMMANDS),
-            "failsafe_action": Service.Failsafe.STOP,
-            "session_time_limit_s": 900,
-            "max_speed_mps": 1.5,
-        },
-        "roles": {
-            "vehicle": {"kinds": [K.GROUND], "adapters": [A.CAR], "cameras": ["rgb"]},
-        },
-    },
-    "fly-drone": {
-        "fields": {
-            **_MANUAL,
-            "name": "Manual control of a drone",
-            "description": "Fly a quadcopter inside a geofence around its station.",
-            # Listed explicitly so a payload drone matched by this role cannot drop
-            # its buoy during a joyride.
-            "allowed_commands": command_names(QUADCOPTER_COMMANDS),
-            "failsafe_action": Service.Failsafe.RETURN_TO_HOME,
-            "session_time_limit_s": 600,
-            "max_altitude_m": 30,
-            "geofence_radius_m": 200,
-        },
-        "roles": {
-            "vehicle": {"kinds": [K.AERIAL], "adapters": [A.MAVLINK], "cameras": ["rgb"]},
-        },
-    },
-    "fly-vtol": {
-        "fields": {
-            **_MANUAL,
-            "name": "Manual control of the VTOL",
-            "description": "Fly the VTOL plane with two virtual sticks.",
-            "allowed_commands": command_names(VTOL_COMMANDS),
-            "failsafe_action": Service.Failsafe.LAND,
-            "session_time_limit_s": 600,
-            "max_altitude_m": 60,
-            "geofence_radius_m": 500,
-        },
-        "roles": {
-            "vehicle": {"kinds": [K.HYBRID], "adapters": [A.SPEKTRUM], "cameras": ["rgb"]},
-        },
-    },
-    "spectate": {
-        "fields": {
-            "name": "Spectate a vehicle",
-            "description": "Watch a vehicle's camera; no control.",
-            "kind": "spectate",
-            # View only: spectating grants the viewer role, never control.
-            "allowed_commands": [],
-            "failsafe_action": Service.Failsafe.STOP,
-            "link_loss_timeout_ms": 500,
-            "session_time_limit_s": 600,
-        },
-        "roles": {"vehicle": {"cameras": ["rgb"], "min_battery": 0}},
-    },
-    "rescue-at-sea": {
-        "fields": {
-            "name": "Person rescue at sea",
-            "description": (
-                "Report a person in the water: a thermal-camera drone searches the area, "
-                "then a payload drone drops a buoy and the rescue team is alerted."
-            ),
-            "kind": "rescue_at_sea",
-            "allowed_commands": [],
-            "failsafe_action": Service.Failsafe.RETURN_TO_HOME,
-            "link_loss_timeout_ms": 500,
-            "session_time_limit_s": 1800,
-        },
-        "roles": {
-            "search": {
-                "kinds": [K.AERIAL, K.HYBRID],
-                "cameras": ["rgb", "thermal"],
-                "environments": ["sea"],
-                "selection": ServiceRole.Selection.FASTEST,
-                "required": True,
-            },
-            "delivery": {
-                "kinds": [K.AERIAL, K.AQUATIC],
-                "environments": ["sea"],
-                "features": ["payload_release"],
-                "min_attributes": {"max_payload_kg": 1.0},
-                "selection": ServiceRole.Selection.FASTEST,
-                # Assigned by the workflow once the person has been found.
-                "required": False,
-            },
-        },
-    },
-}
+def demo_services() -> dict[str, DemoService]:
+    """Every installed kind's demo services, by slug, with their ``kind`` filled in."""
+    services: dict[str, DemoService] = {}
+    for kind in kinds():
+        for slug, spec in kind.demo_services().items():
+            if slug in services:
+                raise ValueError(f"demo service {slug!r} is offered by two kinds")
+            services[slug] = DemoService(
+                fields={**spec.fields, "kind": kind.name}, roles=spec.roles
+            )
+    return services
+
 
 # Role fields reset to their defaults when a demo role does not mention them, so an
 # edit made in the admin does not survive a re-seed half-applied.
@@ -407,20 +341,23 @@ def vehicles_seed(
 
 
 def services_seed(*, client_group: Group) -> dict[str, Service]:
-    """Create or update the demo services, their roles and their grant to ``client_group``.
+    """Create or update every kind's demo services (after the kinds' own demo rows),
+    their roles and their grant to ``client_group``.
 
     The demo services are owned by the seed: roles not in the definition are removed.
     """
+    for kind in kinds():
+        kind.demo_seed()
     services = {}
-    for slug, spec in SERVICES.items():
+    for slug, spec in demo_services().items():
         service, _ = Service.objects.update_or_create(
-            slug=slug, defaults={**_SERVICE_DEFAULTS, **spec["fields"]}
+            slug=slug, defaults={**_SERVICE_DEFAULTS, **spec.fields}
         )
-        for role_name, role_fields in spec["roles"].items():
+        for role_name, role_fields in spec.roles.items():
             ServiceRole.objects.update_or_create(
                 service=service, name=role_name, defaults={**_ROLE_DEFAULTS, **role_fields}
             )
-        service.roles.exclude(name__in=list(spec["roles"])).delete()
+        service.roles.exclude(name__in=list(spec.roles)).delete()
         ServiceGrant.objects.get_or_create(service=service, group=client_group)
         services[slug] = service
     return services
@@ -455,8 +392,11 @@ def vehicle_agent_config(
     """
     attrs = vehicle.attributes
     index = sum(1 for _ in vehicle.station.vehicles.filter(name__lt=vehicle.name))
-    origin = offset((vehicle.station.lat, vehicle.station.lon), 0.0, 3.0 * index)
+    origin = VEHICLES.get(vehicle.name, {}).get("origin") or offset(
+        (vehicle.station.lat, vehicle.station.lon), 0.0, 3.0 * index
+    )
     options: dict[str, Any] = {
+        **TYPE_OPTIONS.get(vehicle.vehicle_type.name, {}),
         "origin": [round(origin[0], 7), round(origin[1], 7)],
         "vehicle_type": vehicle.vehicle_type.name,
     }
@@ -464,7 +404,8 @@ def vehicle_agent_config(
         options.update(PAYLOAD_OPTIONS)
     if vehicle.vehicle_type.adapter == VehicleType.Adapter.MAVLINK:
         options["max_speed_mps"] = attrs.get("max_speed_mps", 10)
-        options["max_takeoff_m"] = attrs.get("max_altitude_m", 120)
+        if vehicle.vehicle_type.kind != VehicleType.Kind.AQUATIC:
+            options["max_takeoff_m"] = attrs.get("max_altitude_m", 120)
     if vehicle.vehicle_type.adapter == VehicleType.Adapter.CAR:
         options["camera_arm"] = "camera_arm" in vehicle.features
         options["distance_sensor"] = "obstacle_sensor" in vehicle.features

@@ -23,7 +23,10 @@ What a kind declares:
 * **the platform task**: :meth:`ServiceKind.open` (what a request sets going), the
   agent events it handles (:attr:`ServiceKind.event_handlers`), what an accepted task
   means (:meth:`ServiceKind.task_accepted`); Celery steps and timers live in its own
-  ``tasks.py``.
+  ``tasks.py``;
+* **its part of the demo world**: the services it offers there
+  (:meth:`ServiceKind.demo_services`) and any rows of its own they need
+  (:meth:`ServiceKind.demo_seed`).
 """
 
 from __future__ import annotations
@@ -81,6 +84,15 @@ class Opened:
 
     session: Session
     task: UserTask | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class DemoService:
+    """A service the demo world offers: the ``Service`` row's fields (``kind`` is
+    filled in) and its roles, name -> ``ServiceRole`` fields."""
+
+    fields: Mapping[str, Any]
+    roles: Mapping[str, Mapping[str, Any]]
 
 
 #: An agent event handler: (the reporting vehicle's assignment, the event's data).
@@ -164,6 +176,16 @@ class ServiceKind:
 
     def task_accepted(self, *, assignment: Assignment) -> None:
         """A vehicle of one of this kind's sessions accepted its task."""
+
+    # --- the demo world ------------------------------------------------------------------
+    def demo_services(self) -> Mapping[str, DemoService]:
+        """The services of this kind the demo offers (``manage.py seed_demo``), by
+        slug. They may use the demo fleet's names and vocabularies (services.demo)."""
+        return {}
+
+    def demo_seed(self) -> None:
+        """Write the rows of the kind's own its demo services need; called after the
+        demo fleet is seeded, inside the same transaction, and must be idempotent."""
 
 
 _REGISTRY: dict[str, ServiceKind] = {}

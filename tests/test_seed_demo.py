@@ -15,18 +15,28 @@ from django.core.management.base import CommandError
 
 from accounts.roles import user_roles
 from agents.config import AgentConfig
+from agents.geography import is_water
 from fleet.attributes import attributes_clean
 from fleet.credentials import vehicle_authenticate
 from fleet.forms import commands_validate
 from fleet.models import Station, Vehicle, VehicleType
-from services.demo import SERVICES, VEHICLE_TYPES, VEHICLES, demo_seed
+from services.demo import VEHICLE_TYPES, VEHICLES, demo_seed, demo_services
 from services.grants import services_for_user
 from services.models import Service, ServiceGrant, ServiceRole
 from services.signing import platform_public_key_pem
 
 pytestmark = pytest.mark.django_db
 
-DEMO_SLUGS = {"drive-car", "fly-drone", "fly-vtol", "spectate", "rescue-at-sea"}
+#: Every kind's demo services (each kind offers its own: ServiceKind.demo_services).
+DEMO_SLUGS = {
+    "drive-car",
+    "fly-drone",
+    "fly-vtol",
+    "drive-boat",
+    "spectate",
+    "rescue-at-sea",
+    "parcel-delivery",
+}
 
 
 @pytest.fixture(autouse=True)
@@ -54,11 +64,11 @@ def test_seed_twice_changes_nothing_structurally() -> None:
     assert _counts() == first
     assert first == {
         "stations": 2,
-        "types": 4,
-        "vehicles": 8,
-        "services": 5,
-        "roles": 6,
-        "grants": 5,
+        "types": 5,
+        "vehicles": 9,
+        "services": 7,
+        "roles": 8,
+        "grants": 7,
         "users": 4,
     }
 
@@ -82,17 +92,32 @@ def test_command_vocabularies_follow_the_protocol(type_name: str) -> None:
 
 
 def test_manual_services_allow_only_their_vehicles_commands() -> None:
+    services = demo_services()
     for slug, type_name in (
         ("drive-car", "Raspberry Pi car"),
         ("fly-drone", "MAVLink quadcopter"),
         ("fly-vtol", "Spektrum VTOL plane"),
     ):
         declared = {c["name"] for c in VEHICLE_TYPES[type_name]["commands"]}
-        assert set(SERVICES[slug]["fields"]["allowed_commands"]) == declared
-    assert "release_payload" not in SERVICES["fly-drone"]["fields"]["allowed_commands"]
+        assert set(services[slug].fields["allowed_commands"]) == declared
+    assert "release_payload" not in services["fly-drone"].fields["allowed_commands"]
+    # The boat is steered, but its release hook is the rescue's and the parcels'.
+    boat = {c["name"] for c in VEHICLE_TYPES["MAVLink boat"]["commands"]}
+    assert set(services["drive-boat"].fields["allowed_commands"]) == boat - {"release_payload"}
+    assert {"forward", "left", "return_to_home", "release_payload"} <= boat
+    assert "take_off" not in boat
 
 
-def test_client_sees_exactly_the_five_services_and_monitor_none() -> None:
+def test_every_demo_service_names_the_kind_that_offers_it() -> None:
+    kinds = {slug: spec.fields["kind"] for slug, spec in demo_services().items()}
+    assert kinds["drive-boat"] == "manual_control"
+    assert kinds["parcel-delivery"] == "parcel_delivery"
+    demo_seed(password="pw")
+    for slug, kind in kinds.items():
+        assert Service.objects.get(slug=slug).kind == kind
+
+
+def test_client_sees_exactly_the_demo_services_and_monitor_none() -> None:
     demo_seed(password="pw")
     User = get_user_model()
     client = User.objects.get(username="client")
@@ -109,18 +134,6 @@ def test_one_user_per_role() -> None:
     assert User.objects.get(username="admin").is_superuser
     assert not User.objects.get(username="client").is_staff
     assert User.objects.get(username="operator").is_staff
-
-
-def test_rescue_roles() -> None:
-    demo_seed(password="pw")
-    roles = {r.name: r for r in Service.objects.get(slug="rescue-at-sea").roles.all()}
-    assert set(roles) == {"search", "delivery"}
-    assert roles["search"].required and not roles["delivery"].required
-    assert roles["delivery"].min_attributes == {"max_payload_kg": 1.0}
-    assert roles["delivery"].features == ["payload_release"]
-    # Only the coastal quadcopter has the thermal camera the search needs.
-    thermal = [v.name for v in Vehicle.objects.all() if "thermal" in v.cameras]
-    assert thermal == ["search-1"]
 
 
 def test_random_passwords_are_fresh_on_every_run() -> None:
@@ -168,6 +181,10 @@ def test_credentials_dir_writes_working_private_configs(tmp_path: Path) -> None:
         )
         assert vehicle is not None and vehicle.name == config["vehicle_name"] == path.stem
         assert config["adapter"] == vehicle.vehicle_type.adapter
+    # The boat is a MAVLink boat, moored on the water.
+    boat = json.loads((target / "boat-1.json").read_text())["adapter_options"]
+    assert boat["vehicle_class"] == "boat" and is_water(*boat["origin"])
+    assert "max_takeoff_m" not in boat
     # A run without the option leaves the credentials alone.
     demo_seed(password="pw")
     config = json.loads((target / "car-1.json").read_text())

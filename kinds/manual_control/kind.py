@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 from django import forms
@@ -10,7 +11,7 @@ from django.contrib.auth.models import AbstractBaseUser
 from kinds.manual_control.forms import SessionRequestForm
 from services.assignment import session_request
 from services.deployment import session_deploy
-from services.kinds import Opened, Request, ServiceKind
+from services.kinds import DemoService, Opened, Request, ServiceKind
 from services.models import Service
 
 
@@ -48,3 +49,9 @@ class ManualControl(ServiceKind):
     def params_clean(self, params: Any) -> dict[str, Any]:
         # Free-form, kept with the session (the API limits their depth and size).
         return dict(params)
+
+    def demo_services(self) -> Mapping[str, DemoService]:
+        # Imported here: only the seed reads the demo world's vocabularies.
+        from kinds.manual_control.demo import demo_services
+
+        return demo_services()

@@ -33,7 +33,11 @@ class ParcelRequestForm(forms.Form):
         help_text="They get the tracking link when the parcel is on its way.",
     )
     recipient_webhook = forms.URLField(
-        label="Recipient's webhook (optional)", required=False, max_length=300
+        label="Recipient's webhook (optional)",
+        required=False,
+        max_length=300,
+        # A scheme-less address is taken as https, never plain http.
+        assume_scheme="https",
     )
 
     def clean_pickup(self) -> dict[str, Any]:

@@ -17,7 +17,7 @@ from kinds.parcel_delivery.models import KIND, Delivery
 from kinds.parcel_delivery.notifications import tracking_url
 from kinds.parcel_delivery.presentation import delivery_json
 from kinds.parcel_delivery.request import params_clean, parcel_request
-from services.kinds import EventHandler, Opened, Request, ServiceKind
+from services.kinds import DemoService, EventHandler, Opened, Request, ServiceKind
 from services.models import Assignment, Service, Session
 
 
@@ -73,3 +73,9 @@ class ParcelDelivery(ServiceKind):
 
     def task_accepted(self, *, assignment: Assignment) -> None:
         delivery_task_accepted(assignment=assignment)
+
+    def demo_services(self) -> Mapping[str, DemoService]:
+        # Imported here: only the seed reads the demo world.
+        from kinds.parcel_delivery.demo import demo_services
+
+        return demo_services()

@@ -16,7 +16,7 @@ from kinds.rescue_at_sea.missions import vehicle_mission
 from kinds.rescue_at_sea.models import KIND, Mission
 from kinds.rescue_at_sea.presentation import mission_json
 from kinds.rescue_at_sea.request import MAX_ALTITUDE_M, MIN_ALTITUDE_M, rescue_request
-from services.kinds import EventHandler, Opened, Request, RequestError, ServiceKind
+from services.kinds import DemoService, EventHandler, Opened, Request, RequestError, ServiceKind
 from services.models import Assignment, Service, Session
 
 
@@ -93,3 +93,14 @@ class RescueAtSea(ServiceKind):
 
     def task_accepted(self, *, assignment: Assignment) -> None:
         mission_task_accepted(assignment=assignment)
+
+    def demo_services(self) -> Mapping[str, DemoService]:
+        # Imported here: only the seed reads the demo world.
+        from kinds.rescue_at_sea.demo import demo_services
+
+        return demo_services()
+
+    def demo_seed(self) -> None:
+        from kinds.rescue_at_sea.demo import demo_seed
+
+        demo_seed()

@@ -4,7 +4,25 @@ from __future__ import annotations
 
 from django.db import models
 
+from fleet.models import Station
 from services.models import Session
+
+
+class RescueTeam(models.Model):
+    """The people a station's rescues call when the person is found: the dashboard
+    always, and this team by e-mail and webhook where it has them."""
+
+    station = models.OneToOneField(
+        Station, on_delete=models.CASCADE, primary_key=True, related_name="rescue_team"
+    )
+    name = models.CharField(max_length=100, blank=True)
+    email = models.EmailField(blank=True)
+    phone = models.CharField(max_length=40, blank=True)
+    #: Receives a JSON POST per person found (see docs/rescue.md).
+    webhook = models.URLField(blank=True)
+
+    def __str__(self) -> str:
+        return self.name or f"rescue team of {self.station}"
 
 
 class Mission(models.Model):

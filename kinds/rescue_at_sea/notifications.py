@@ -9,8 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from fleet.models import Station
-from kinds.rescue_at_sea.models import SEARCH, Mission
+from kinds.rescue_at_sea.models import SEARCH, Mission, RescueTeam
 from services.models import Assignment, Notice
 from services.notices import notice_create
 
@@ -18,22 +17,26 @@ from services.notices import notice_create
 PERSON_IN_WATER = "person_in_water"
 
 
-def _team_station(mission: Mission) -> Station | None:
-    """The station whose rescue team is told: the first search vehicle's."""
+def _team(mission: Mission) -> tuple[str | None, RescueTeam | None]:
+    """The station whose rescue team is told (the first search vehicle's), and its
+    team if it has one."""
     first = (
         Assignment.objects.filter(session_id=mission.pk, role=SEARCH)
         .select_related("vehicle__station")
         .order_by("created_at")
         .first()
     )
-    return first.vehicle.station if first is not None else None
+    if first is None:
+        return None, None
+    station = first.vehicle.station
+    return station.name, RescueTeam.objects.filter(station=station).first()
 
 
 def notices_create(mission: Mission) -> None:
     """The person is found: owe the monitors' dashboard and the rescue team (by
     e-mail and webhook, where its station has them) the position."""
     detection = mission.detection or {}
-    station = _team_station(mission)
+    station, team = _team(mission)
     lat, lon = detection.get("lat"), detection.get("lon")
     confidence = detection.get("confidence")
     text = (
@@ -49,14 +52,14 @@ def notices_create(mission: Mission) -> None:
         "lon": lon,
         "confidence": confidence,
         "detected_at": mission.detected_at.isoformat() if mission.detected_at else None,
-        "station": station.name if station else None,
-        "team": station.rescue_team_name if station else None,
+        "station": station,
+        "team": team.name if team else None,
     }
     channels = [(Notice.Channel.DASHBOARD, "")]
-    if station is not None and station.rescue_team_email:
-        channels.append((Notice.Channel.EMAIL, station.rescue_team_email))
-    if station is not None and station.rescue_team_webhook:
-        channels.append((Notice.Channel.WEBHOOK, station.rescue_team_webhook))
+    if team is not None and team.email:
+        channels.append((Notice.Channel.EMAIL, team.email))
+    if team is not None and team.webhook:
+        channels.append((Notice.Channel.WEBHOOK, team.webhook))
     for channel, target in channels:
         notice_create(
             session=mission.session,

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from django.urls import reverse
 
-from services.kinds import ServiceKind
+from services.kinds import DemoService, ServiceKind
 from services.models import Service
 
 
@@ -22,3 +24,9 @@ class Spectate(ServiceKind):
 
     def entry_url(self, service: Service) -> str:
         return reverse("spectate")
+
+    def demo_services(self) -> Mapping[str, DemoService]:
+        # Imported here: only the seed reads the demo world.
+        from kinds.spectate.demo import demo_services
+
+        return demo_services()

@@ -25,8 +25,8 @@ from playwright.async_api import expect
 from agents.config import AgentConfig
 from agents.geo import distance_m, offset
 from agents.runtime import Agent
-from fleet.models import Station, Vehicle
-from kinds.rescue_at_sea.models import Mission
+from fleet.models import Vehicle
+from kinds.rescue_at_sea.models import Mission, RescueTeam
 from kinds.rescue_at_sea.request import rescue_request
 from services.demo import CASTAWAY, agent_configs_write, demo_seed
 from services.models import Assignment, Notice, Service, Session
@@ -251,8 +251,8 @@ async def test_worker_killed_mid_step_completes_without_duplicates(tmp_path: Pat
         async with sea(tmp_path, ("search-1", "lifeguard-1")) as world:
             hook = f"http://127.0.0.1:{server.server_port}/alerts"
             await db(
-                lambda: Station.objects.filter(name="Costa Nova station").update(
-                    rescue_team_webhook=hook
+                lambda: RescueTeam.objects.filter(station__name="Costa Nova station").update(
+                    webhook=hook
                 )
             )
             session = await db(_request, search_area())

@@ -19,10 +19,10 @@ from django.utils import timezone
 
 from agents.geo import offset
 from agents.protocol import parse_message
-from fleet.models import Station, Vehicle
+from fleet.models import Vehicle
 from fleet.signals import agent_message
 from kinds.rescue_at_sea.missions import vehicle_mission
-from kinds.rescue_at_sea.models import Mission
+from kinds.rescue_at_sea.models import Mission, RescueTeam
 from kinds.rescue_at_sea.notifications import notices_create
 from kinds.rescue_at_sea.presentation import mission_json
 from kinds.rescue_at_sea.request import RescueError, rescue_request
@@ -416,8 +416,8 @@ def test_webhook_is_retried_until_it_succeeds_and_sent_once(world, client_user, 
     threading.Thread(target=server.serve_forever, daemon=True).start()
     _Hook.seen, _Hook.status = [], 503
     try:
-        Station.objects.filter(name="Costa Nova station").update(
-            rescue_team_webhook=f"http://127.0.0.1:{server.server_port}/alerts"
+        RescueTeam.objects.filter(station__name="Costa Nova station").update(
+            webhook=f"http://127.0.0.1:{server.server_port}/alerts"
         )
         session = rescue_request(user=client_user, service=world, area=area())
         step(session)
