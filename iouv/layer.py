@@ -4,16 +4,18 @@ Everything the platform pushes (tasks to agents, session and fleet feeds) goes t
 :func:`group_send_after_commit`. With Redis every process reaches every consumer. In
 embedded mode the in-memory layer only reaches consumers of its own process, so a Celery
 worker (another process) would push into the void: there, messages are written to the
-database instead (``fleet.LayerMessage``, in the sender's transaction) and the ASGI
-process relays them to its consumers (:func:`relay_run`). Nothing else changes between
-the two modes.
+database instead (in the sender's transaction) and the ASGI process relays them to its
+consumers (:func:`relay_run`). Nothing else changes between the two modes.
+
+The table is an app's (``fleet.LayerMessage``): that app registers it here when it is
+ready (:func:`relay_store_set`), so this project-level helper depends on no app's model.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-from typing import Any
+from typing import Any, Protocol
 
 from asgiref.sync import async_to_sync
 from channels.db import database_sync_to_async
@@ -33,6 +35,31 @@ RELAY_POLL_S = 0.25
 _relay_task: asyncio.Task[None] | None = None
 
 
+class RelayStore(Protocol):
+    """Where a worker's group messages wait for the ASGI process (embedded mode)."""
+
+    def put(self, group: str, message: dict[str, Any]) -> None:
+        """Store one message, in the caller's transaction."""
+
+    def take(self, limit: int) -> list[tuple[str, dict[str, Any]]]:
+        """Remove and return up to ``limit`` stored messages, oldest first."""
+
+
+_relay_store: RelayStore | None = None
+
+
+def relay_store_set(store: RelayStore) -> None:
+    """Use ``store`` for relayed messages (called by the app that owns the table)."""
+    global _relay_store
+    _relay_store = store
+
+
+def _store() -> RelayStore:
+    if _relay_store is None:
+        raise RuntimeError("iouv.layer: no relay store registered (is the fleet app installed?)")
+    return _relay_store
+
+
 def in_memory() -> bool:
     """True when the channel layer only reaches this process's consumers."""
     backend = settings.CHANNEL_LAYERS.get("default", {}).get("BACKEND", "")
@@ -44,9 +71,7 @@ def group_send_after_commit(group: str, message: dict[str, Any]) -> None:
     outside one); in a worker process of an embedded platform, relay it through the
     database instead, written in the same transaction."""
     if CROSS_PROCESS and in_memory():
-        from fleet.models import LayerMessage
-
-        LayerMessage.objects.create(group=group, message=message)
+        _store().put(group, message)
         return
 
     def send() -> None:
@@ -61,13 +86,7 @@ def group_send_after_commit(group: str, message: dict[str, Any]) -> None:
 
 
 def _take_relayed(limit: int = 200) -> list[tuple[str, dict[str, Any]]]:
-    from fleet.models import LayerMessage
-
-    with transaction.atomic():
-        rows = list(LayerMessage.objects.order_by("pk")[:limit])
-        if rows:
-            LayerMessage.objects.filter(pk__in=[r.pk for r in rows]).delete()
-    return [(r.group, r.message) for r in rows]
+    return _store().take(limit)
 
 
 async def relay_run() -> None:
