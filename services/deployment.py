@@ -258,8 +258,8 @@ def grant_issue(
     """A fresh grant for ``user`` on ``session``'s primary vehicle (e.g. after a reload).
 
     ``controller``: only the session's own user. ``viewer``: the session's user or anyone
-    allowed to use the service (or ``allowed_by``, e.g. the spectate service); a viewer's
-    grant allows no command. Raises
+    allowed to use the service (or ``allowed_by``, e.g. a service for watching others'
+    sessions); a viewer's grant allows no command. Raises
     DeploymentError when the session is final or not yet assigned, the user may not
     have that role, or the role is unknown.
     """

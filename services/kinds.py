@@ -1,6 +1,6 @@
 """Service kinds: what a kind of service declares, and the registry the core asks.
 
-A *service kind* (manual control, spectate, rescue at sea, parcel delivery, ...) is one
+A *service kind* (live control, watching, an autonomous search, a delivery, ...) is one
 folder under ``kinds/``: a Django app whose ``ready()`` registers one
 :class:`ServiceKind`. A ``Service`` row (an offer to users: its limits, roles, grants)
 names its kind in ``Service.kind``. The core (assignment, deployment, supervision,

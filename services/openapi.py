@@ -178,7 +178,7 @@ SERVICE = obj(
         "mode": string(
             "sync: the user controls live; async: a workflow runs it.", enum=["sync", "async"]
         ),
-        "kind": string("The service's kind: manual_control, rescue_at_sea, ... (services.kinds)."),
+        "kind": string("The service's kind: the name of an installed kind (services.kinds)."),
         "commands": array(string(), "Commands a controller may send; empty = view only."),
         "roles": array(ref("ServiceRole")),
         "limits": ref("Limits"),
@@ -464,8 +464,8 @@ PATHS: dict[str, Schema] = {
             body_required=True,
             description="A synchronous service is deployed at once: the response carries "
             "the user task (control URL and grant). An asynchronous service returns the "
-            "session only; its workflow runs it (a rescue at sea takes `params.area`, "
-            "[[lat, lon], ...], and optionally `params.altitude_m`). 422 names the "
+            "session only; its workflow runs it, reading its kind's own `params` (docs/api.md "
+            "lists them). 422 names the "
             "requirement no vehicle met; 409 `session_limit` says the user already holds "
             "as many live sessions of the service as it allows.",
         )

@@ -1,7 +1,7 @@
 """What every workflow of an autonomous service needs: its vehicles' trouble, their
 release and replacement, tasks that never arrived, closing the session.
 
-The kinds that run sessions by themselves (rescue at sea, parcel delivery) keep their
+The kinds that run sessions by themselves (a search, a delivery) keep their
 own state machines; these are the steps they share.
 """
 
