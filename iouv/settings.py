@@ -295,22 +295,18 @@ IOUV_HTTP_CONCURRENCY = env_int("IOUV_HTTP_CONCURRENCY", 4)
 # Embedded mode: a worker process pushes through the database to the ASGI process.
 IOUV_LAYER_RELAY = env_bool("IOUV_LAYER_RELAY", True)
 
-# Rescue missions (kinds.rescue_at_sea): how long a search may last, how long a search
-# vehicle may be silent before another takes over its remaining lines, the battery
-# level at which it is replaced, and how often the workflow's timer runs.
-IOUV_MISSION_SEARCH_TIMEOUT_S = env_int("IOUV_MISSION_SEARCH_TIMEOUT_S", 1200)
+# Autonomous workflows (services.workflow): how long a vehicle of a mission may be
+# silent before another takes over, the battery level at which it is replaced, and how
+# often the workflows' timers run. A kind's own settings are read by the kind.
 IOUV_MISSION_OFFLINE_GRACE_S = env_float("IOUV_MISSION_OFFLINE_GRACE_S", 10.0)
 IOUV_MISSION_LOW_BATTERY_PCT = env_float("IOUV_MISSION_LOW_BATTERY_PCT", 25.0)
 IOUV_MISSION_TICK_S = env_float("IOUV_MISSION_TICK_S", 2.0)
-# Map tiles for the mission map, e.g. "https://tile.openstreetmap.org/{z}/{x}/{y}.png"
+# Map tiles for the maps, e.g. "https://tile.openstreetmap.org/{z}/{x}/{y}.png"
 # (mind the tile server's usage policy). Empty: no tiles, the map draws a grid.
 IOUV_MAP_TILES_URL = env_str("IOUV_MAP_TILES_URL", "")
-# Where people reach the portal from outside (links in e-mails: a parcel's tracking
-# page).
+# Where people reach the portal from outside (links in e-mails and notices).
 IOUV_PUBLIC_URL = env_str("IOUV_PUBLIC_URL", "http://127.0.0.1:8000")
-# Parcel delivery: a parcel no vehicle could take within this long fails.
-IOUV_PARCEL_WAIT_S = env_int("IOUV_PARCEL_WAIT_S", 1800)
-# Rescue team webhooks: how long one delivery attempt may take.
+# Notices' webhooks (services.notices): how long one delivery attempt may take.
 IOUV_WEBHOOK_TIMEOUT_S = env_float("IOUV_WEBHOOK_TIMEOUT_S", 5.0)
 
 # --- Content-Security-Policy (django-csp, on every response) ------------------------------

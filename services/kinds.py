@@ -109,7 +109,7 @@ class ServiceKind:
     label: ClassVar[str]
     #: A user controls a vehicle live; otherwise the platform runs the session.
     user_drives: ClassVar[bool] = False
-    #: Requested as a session of its own (spectating is not: it watches others').
+    #: Requested as a session of its own (a kind that only watches others' is not).
     requestable: ClassVar[bool] = True
     #: Request fields besides ``params`` the kind reads; a request giving others is
     #: refused, so nothing a user asks is silently ignored.

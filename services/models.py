@@ -47,7 +47,6 @@ class Service(models.Model):
     description = models.TextField(blank=True)
     kind = models.CharField(
         max_length=40,
-        default="manual_control",
         validators=[_kind_installed],
         help_text="What kind of service this is (services.kinds): what a request sets "
         "going, what the user and the vehicles get.",
@@ -171,7 +170,7 @@ class ServiceRole(models.Model):
     required = models.BooleanField(
         default=True,
         help_text="Assigned when the session is requested. Unrequired roles are assigned "
-        "later by the workflow (e.g. the rescue's delivery vehicle).",
+        "later by the workflow (e.g. a vehicle chosen once something is found).",
     )
 
     class Meta:
@@ -312,8 +311,8 @@ class SessionEvent(models.Model):
 
 
 class Notice(models.Model):
-    """One message to people outside the session (a rescue team, a parcel's
-    recipient, the monitors' dashboard) about one moment of a session, on one channel:
+    """One message to people outside the session (a team to alert, a recipient, the
+    monitors' dashboard) about one moment of a session, on one channel:
     sent until it succeeds, once (services.notices)."""
 
     class Channel(models.TextChoices):
@@ -328,8 +327,7 @@ class Notice(models.Model):
 
     session = models.ForeignKey(Session, on_delete=models.CASCADE, related_name="notices")
     channel = models.CharField(max_length=10, choices=Channel.choices)
-    #: What it is about, one per session and channel: ``person_in_water``,
-    #: ``parcel_dispatched``...
+    #: What it is about, one per session and channel, named by the kind.
     topic = models.SlugField(max_length=40)
     #: The e-mail address or webhook URL ("" for the dashboard).
     target = models.CharField(max_length=300, blank=True)

@@ -1,7 +1,7 @@
 """Notices: telling people outside a session what happened, once, whatever fails.
 
 A kind decides *what* to tell and to whom (:func:`notice_create`, in the transaction
-that records the moment: a person found, a parcel on its way); this module makes sure
+that records the moment: something found, a delivery on its way); this module makes sure
 it is told exactly once per channel:
 
 * each notice is one row per (session, channel, topic): a step that runs twice pages

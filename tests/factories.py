@@ -91,7 +91,9 @@ def service(
     grant_clients: bool = True,
     **kw: Any,
 ) -> Service:
-    """A service with the given role constraints, granted to the client role."""
+    """A service with the given role constraints, granted to the client role; of the
+    manual-control kind unless ``kind`` says otherwise."""
+    kw.setdefault("kind", "manual_control")
     svc = Service.objects.create(slug=slug or f"svc-{next(_counter)}", name=slug or "svc", **kw)
     for spec in roles if roles is not None else [{"name": "vehicle"}]:
         ServiceRole.objects.create(service=svc, **spec)

@@ -75,7 +75,10 @@ def _action_names(client: Client, changelist: str = CHANGELIST) -> set[str]:
 def test_vehicle_changelist_lists_the_fleet(as_admin: Client) -> None:
     response = as_admin.get(reverse(CHANGELIST))
     assert response.status_code == 200
-    names = {"car-1", "car-2", "car-3", "car-4", "quad-1", "vtol-1", "search-1", "lifeguard-1"}
+    names = {
+        *("car-1", "car-2", "car-3", "car-4", "quad-1", "vtol-1"),
+        *("search-1", "lifeguard-1", "boat-1"),
+    }
     assert _names(response) == names
     for name in names:
         assert name in response.content.decode()
@@ -85,7 +88,7 @@ def test_vehicle_filters_by_station_and_status(as_admin: Client) -> None:
     coast = Station.objects.get(name="Costa Nova station")
     response = as_admin.get(reverse(CHANGELIST), {"station__id__exact": coast.pk})
     assert response.status_code == 200
-    assert _names(response) == {"search-1", "lifeguard-1"}
+    assert _names(response) == {"search-1", "lifeguard-1", "boat-1"}
 
     Vehicle.objects.filter(name="quad-1").update(status=Vehicle.Status.IDLE)
     response = as_admin.get(reverse(CHANGELIST), {"status__exact": "idle"})
@@ -99,6 +102,7 @@ def test_vehicle_search_by_name_station_and_id(as_admin: Client) -> None:
     assert _names(as_admin.get(reverse(CHANGELIST), {"q": "Costa"})) == {
         "search-1",
         "lifeguard-1",
+        "boat-1",
     }
     assert _names(as_admin.get(reverse(CHANGELIST), {"q": str(quad.pk)})) == {"quad-1"}
 

@@ -18,10 +18,10 @@ import logging
 from datetime import timedelta
 from typing import Any
 
-from django.conf import settings
 from django.db import transaction
 from django.utils import timezone
 
+from kinds.parcel_delivery.conf import parcel_wait_s
 from kinds.parcel_delivery.models import CARRIER, FINAL_DELIVERY, Delivery
 from kinds.parcel_delivery.notifications import parcel_notices
 from kinds.parcel_delivery.planning import carrier_assign
@@ -103,10 +103,11 @@ def _carrier(delivery: Delivery) -> Assignment | None:
 
 
 def _waited_too_long(delivery: Delivery) -> bool:
-    limit = timedelta(seconds=settings.IOUV_PARCEL_WAIT_S)
+    limit = timedelta(seconds=parcel_wait_s())
     if timezone.now() - delivery.session.created_at < limit:
         return False
-    _end(delivery, S.FAILED, f"no vehicle could take the parcel within {limit.seconds // 60} min")
+    minutes = limit.total_seconds() / 60
+    _end(delivery, S.FAILED, f"no vehicle could take the parcel within {minutes:g} min")
     return True
 
 

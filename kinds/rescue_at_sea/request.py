@@ -9,11 +9,11 @@ from __future__ import annotations
 from datetime import timedelta
 from typing import Any
 
-from django.conf import settings
 from django.contrib.auth.models import AbstractBaseUser
 from django.db import transaction
 from django.utils import timezone
 
+from kinds.rescue_at_sea.conf import search_timeout_s
 from kinds.rescue_at_sea.coverage import (
     DEFAULT_HFOV_DEG,
     area_centroid,
@@ -85,8 +85,7 @@ def rescue_request(
             speed_mps=SEARCH_SPEED_MPS,
             spacing_m=round(plan.spacing_m, 2),
             path=[list(p) for p in plan.waypoints],
-            search_deadline=timezone.now()
-            + timedelta(seconds=settings.IOUV_MISSION_SEARCH_TIMEOUT_S),
+            search_deadline=timezone.now() + timedelta(seconds=search_timeout_s()),
             status_text="looking for a search vehicle",
         )
         event_append(

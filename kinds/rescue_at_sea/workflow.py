@@ -19,12 +19,12 @@ import itertools
 import logging
 from typing import Any
 
-from django.conf import settings
 from django.db import transaction
 from django.utils import timezone
 
 from agents.geo import distance_m
 from fleet.models import Vehicle
+from kinds.rescue_at_sea.conf import search_timeout_s
 from kinds.rescue_at_sea.models import DELIVERY, FINAL_MISSION, SEARCH, Mission
 from kinds.rescue_at_sea.notifications import mission_alert, notices_create
 from kinds.rescue_at_sea.presentation import timeline
@@ -116,7 +116,7 @@ def _active(mission: Mission, role: str) -> Assignment | None:
 def _timed_out(mission: Mission) -> bool:
     if mission.search_deadline is None or timezone.now() < mission.search_deadline:
         return False
-    minutes = settings.IOUV_MISSION_SEARCH_TIMEOUT_S / 60
+    minutes = search_timeout_s() / 60
     _end(mission, S.TIMED_OUT, f"search timed out after {minutes:g} min without finding the person")
     return True
 

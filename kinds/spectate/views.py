@@ -66,6 +66,6 @@ def spectate_session(request: HttpRequest, session_id: str) -> HttpResponse:
             "summary": session_summary(session),
             "user_task": user_task_json(task, request=request),
             "events": log_lines(session),
-            "spectating": True,
+            "watching": True,
         },
     )

@@ -262,7 +262,7 @@
       if (this.ui.role) this.ui.role.textContent = role === "controller" ? "in control" : "watching";
       this.root.classList.toggle("viewer", role !== "controller");
       const take = this.root.querySelector("[data-take-control]");
-      if (take) take.hidden = role === "controller" || this.options.spectating;
+      if (take) take.hidden = role === "controller" || this.options.watching;
     }
 
     // --- controls --------------------------------------------------------------------
@@ -272,7 +272,7 @@
       const box = this.ui.controls;
       if (!box) return;
       box.textContent = "";
-      if (this.options.spectating) return;
+      if (this.options.watching) return;
       const groups = new Map();
       for (const c of commands) {
         if (!c.allowed) continue;
@@ -544,7 +544,7 @@
     new Controller(root, task, {
       grantUrl: root.dataset.grantUrl,
       feedUrl: root.dataset.feedUrl,
-      spectating: root.dataset.spectating === "true",
+      watching: root.dataset.watching === "true",
     }).start();
   });
 })();

@@ -21,6 +21,7 @@ from agents.geo import offset
 from agents.protocol import parse_message
 from fleet.models import Vehicle
 from fleet.signals import agent_message
+from kinds.rescue_at_sea.conf import search_timeout_s
 from kinds.rescue_at_sea.missions import vehicle_mission
 from kinds.rescue_at_sea.models import Mission, RescueTeam
 from kinds.rescue_at_sea.notifications import notices_create
@@ -332,7 +333,7 @@ def test_a_delivery_vehicle_that_failed_is_not_asked_again(world, client_user) -
 def test_search_times_out_and_everyone_is_told(world, client_user, settings) -> None:
     session = rescue_request(user=client_user, service=world, area=area())
     step(session)
-    later = timezone.now() + timedelta(seconds=settings.IOUV_MISSION_SEARCH_TIMEOUT_S + 5)
+    later = timezone.now() + timedelta(seconds=search_timeout_s() + 5)
     with time_machine.travel(later):
         online("search-1", "lifeguard-1")  # still heard from
         assert step(session) == Mission.State.TIMED_OUT
