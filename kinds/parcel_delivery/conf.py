@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from django.conf import settings
 
-from iouv.env import env_int
+from iouv.env import env_float, env_int
 
 
 def parcel_wait_s() -> int:
@@ -15,3 +15,12 @@ def parcel_wait_s() -> int:
     if configured is not None:
         return int(configured)
     return env_int("IOUV_PARCEL_WAIT_S", 1800)
+
+
+def load_s() -> float:
+    """How long the carrier waits at the pickup for the parcel to be put on board
+    (``IOUV_PARCEL_LOAD_S``, default 15 s)."""
+    configured = getattr(settings, "IOUV_PARCEL_LOAD_S", None)
+    if configured is not None:
+        return float(configured)
+    return env_float("IOUV_PARCEL_LOAD_S", 15.0)

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 from typing import Any
 
+from kinds.parcel_delivery.conf import load_s
 from kinds.parcel_delivery.models import CARRIER, Delivery
 from kinds.parcel_delivery.planning import (
     CRUISE_ALTITUDE_M,
     DROP_ALTITUDE_M,
     LOAD_ALTITUDE_M,
-    LOAD_S,
 )
 from services.models import Assignment
 
@@ -32,7 +32,7 @@ def vehicle_mission(*, assignment: Assignment) -> dict[str, Any] | None:
         "dropoff": list(delivery.dropoff),
         "altitude_m": CRUISE_ALTITUDE_M,
         "load_altitude_m": LOAD_ALTITUDE_M,
-        "load_s": LOAD_S,
+        "load_s": load_s(),
         "drop_altitude_m": DROP_ALTITUDE_M,
         "speed_mps": speed,
     }

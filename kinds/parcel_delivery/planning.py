@@ -26,8 +26,6 @@ MAX_TRIP_M = 30_000.0
 CRUISE_ALTITUDE_M = 30.0
 LOAD_ALTITUDE_M = 2.0
 DROP_ALTITUDE_M = 3.0
-#: How long the carrier waits at the pickup for the parcel to be put on board.
-LOAD_S = 15.0
 
 
 def over_water(a: tuple[float, float], b: tuple[float, float]) -> bool:

@@ -8,9 +8,9 @@ from typing import Any
 from django.utils import timezone
 
 from agents.geo import distance_m
+from kinds.parcel_delivery.conf import load_s
 from kinds.parcel_delivery.missions import DEFAULT_SPEED_MPS
 from kinds.parcel_delivery.models import CARRIER, FINAL_DELIVERY, Delivery
-from kinds.parcel_delivery.planning import LOAD_S
 from services.models import Assignment
 
 #: The log entries the timeline shows.
@@ -38,7 +38,7 @@ def _eta_s(delivery: Delivery, carrier: dict[str, Any] | None) -> float | None:
         return distance_m(here, delivery.dropoff) / speed
     return (distance_m(here, delivery.pickup) + distance_m(delivery.pickup, delivery.dropoff)) / (
         speed
-    ) + LOAD_S
+    ) + load_s()
 
 
 def delivery_json(delivery: Delivery, *, public: bool = False) -> dict[str, Any]:
