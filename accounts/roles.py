@@ -14,8 +14,10 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
-from django.contrib.auth.models import AbstractBaseUser, AnonymousUser, Group, Permission
+from django.contrib.auth.models import AnonymousUser, Group, Permission
 from django.db import transaction
+
+from accounts.users import User
 
 CLIENT = "client"
 MONITOR = "monitor"
@@ -83,7 +85,7 @@ def roles_ensure_on_migrate(**kwargs: Any) -> None:
     roles_ensure()
 
 
-def user_set_roles(*, user: AbstractBaseUser, roles: Iterable[str]) -> None:
+def user_set_roles(*, user: User, roles: Iterable[str]) -> None:
     """Give ``user`` exactly ``roles``; staff roles also open the Django admin.
 
     Raises ValueError for a name that is not a role.
@@ -94,20 +96,20 @@ def user_set_roles(*, user: AbstractBaseUser, roles: Iterable[str]) -> None:
         raise ValueError(f"unknown role(s): {', '.join(sorted(unknown))}")
     groups = roles_ensure()
     with transaction.atomic():
-        user.groups.set([groups[role] for role in wanted])  # type: ignore[attr-defined]
-        user.is_staff = bool(wanted & STAFF_ROLES)  # type: ignore[attr-defined]
-        user.is_superuser = ADMIN in wanted  # type: ignore[attr-defined]
+        user.groups.set([groups[role] for role in wanted])
+        user.is_staff = bool(wanted & STAFF_ROLES)
+        user.is_superuser = ADMIN in wanted
         user.save(update_fields=["is_staff", "is_superuser"])
 
 
-def user_roles(user: AbstractBaseUser | AnonymousUser) -> set[str]:
+def user_roles(user: User | AnonymousUser) -> set[str]:
     """The role names ``user`` holds (empty for anonymous users)."""
     if not user.is_authenticated:
         return set()
-    return set(user.groups.filter(name__in=ROLES).values_list("name", flat=True))  # type: ignore[union-attr]
+    return set(user.groups.filter(name__in=ROLES).values_list("name", flat=True))
 
 
-def user_has_role(user: AbstractBaseUser | AnonymousUser, role: str) -> bool:
+def user_has_role(user: User | AnonymousUser, role: str) -> bool:
     """True when ``user`` holds ``role``; superusers hold every role."""
     if getattr(user, "is_superuser", False):
         return True

@@ -12,13 +12,13 @@ import hashlib
 import hmac
 import secrets
 from datetime import timedelta
-from typing import Any
 
 from django.db import IntegrityError, transaction
 from django.db.models import Q
 from django.utils import timezone
 
 from accounts.models import ApiToken
+from accounts.users import User
 
 SCHEME = "iouv"
 PREFIX_BYTES = 5  # 10 hex digits: room for about a million tokens without retries
@@ -51,7 +51,7 @@ def token_parse(raw: str) -> tuple[str, str] | None:
     return prefix, secret
 
 
-def token_issue(*, user: Any, name: str) -> str:
+def token_issue(*, user: User, name: str) -> str:
     """Make a new API token for ``user`` and return it as ``iouv_<prefix>_<secret>``.
 
     The plain value exists only in the return value: show it once. Raises ValueError
@@ -74,7 +74,7 @@ def token_issue(*, user: Any, name: str) -> str:
     raise RuntimeError("could not find a free token prefix")  # pragma: no cover
 
 
-def token_authenticate(raw: str) -> Any | None:
+def token_authenticate(raw: str) -> User | None:
     """The active user ``raw`` belongs to, else None (never raises on bad input).
 
     None for a malformed, unknown, forged or revoked token and for an inactive user.

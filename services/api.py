@@ -17,13 +17,13 @@ from collections.abc import Callable
 from functools import wraps
 from typing import Any
 
-from django.contrib.auth.models import AbstractBaseUser
 from django.core.exceptions import RequestDataTooBig
 from django.http import HttpRequest, JsonResponse
 from django.utils.cache import add_never_cache_headers
 from django.views.decorators.csrf import csrf_exempt
 
 from accounts.tokens import token_authenticate
+from accounts.users import AuthenticatedHttpRequest, User
 from fleet.attributes import CAMERAS
 from fleet.models import Vehicle
 from fleet.status import fleet_snapshot
@@ -67,7 +67,7 @@ class ApiError(Exception):
         message: str,
         *,
         headers: dict[str, str] | None = None,
-        **extra: str,
+        **extra: str | None,
     ) -> None:
         super().__init__(message)
         self.status = status
@@ -83,7 +83,12 @@ class ApiError(Exception):
 
 
 def error_response(
-    status: int, code: str, message: str, *, headers: dict[str, str] | None = None, **extra: str
+    status: int,
+    code: str,
+    message: str,
+    *,
+    headers: dict[str, str] | None = None,
+    **extra: str | None,
 ) -> JsonResponse:
     """The error envelope ``{"error": {"code", "message", ...}}`` with ``status``."""
     response = JsonResponse({"error": {"code": code, "message": message, **extra}}, status=status)
@@ -97,7 +102,7 @@ def field_error(field: str, message: str) -> ApiError:
     return ApiError(400, "invalid_field", f"{field}: {message}", field=field)
 
 
-def _authenticate(request: HttpRequest) -> AbstractBaseUser:
+def _authenticate(request: HttpRequest) -> User:
     header = request.headers.get("Authorization", "")
     scheme, _, raw = header.partition(" ")
     if not header:
@@ -440,7 +445,7 @@ def session_json(session: Session) -> dict[str, Any]:
 # --- lookups ---------------------------------------------------------------------------------
 
 
-def _visible_session(request: HttpRequest, session_id: Any) -> Session:
+def _visible_session(request: AuthenticatedHttpRequest, session_id: Any) -> Session:
     """The session if the user owns it or may view every session; 404 otherwise, so
     that other users' sessions are not even confirmed to exist."""
     session = Session.objects.select_related("service", "user").filter(pk=session_id).first()
@@ -452,14 +457,14 @@ def _visible_session(request: HttpRequest, session_id: Any) -> Session:
     return session
 
 
-def _owned_session(request: HttpRequest, session_id: Any, action: str) -> Session:
+def _owned_session(request: AuthenticatedHttpRequest, session_id: Any, action: str) -> Session:
     session = _visible_session(request, session_id)
     if session.user_id != request.user.pk:
         raise ApiError(403, "permission_denied", f"only the session's user may {action} it")
     return session
 
 
-def _require_perm(request: HttpRequest, perm: str, what: str) -> None:
+def _require_perm(request: AuthenticatedHttpRequest, perm: str, what: str) -> None:
     if not request.user.has_perm(perm):
         raise ApiError(403, "permission_denied", f"your account may not {what}")
 
@@ -468,14 +473,14 @@ def _require_perm(request: HttpRequest, perm: str, what: str) -> None:
 
 
 @api_view("GET")
-def services_list(request: HttpRequest) -> JsonResponse:
+def services_list(request: AuthenticatedHttpRequest) -> JsonResponse:
     """The services the token's user may request (empty without the client role)."""
     services = services_for_user(request.user).prefetch_related("roles")
     return JsonResponse({"services": [service_json(s) for s in services]})
 
 
 @api_view("POST")
-def sessions_create(request: HttpRequest) -> JsonResponse:
+def sessions_create(request: AuthenticatedHttpRequest) -> JsonResponse:
     """Request a session, as the portal does (services.request): a service its user
     drives is deployed at once (201 with the user task); one the platform runs is left
     to its kind's workflow (201, task null)."""
@@ -517,13 +522,13 @@ def sessions_create(request: HttpRequest) -> JsonResponse:
 
 
 @api_view("GET")
-def session_read(request: HttpRequest, session_id: Any) -> JsonResponse:
+def session_read(request: AuthenticatedHttpRequest, session_id: Any) -> JsonResponse:
     """One session, for its owner or a monitor."""
     return JsonResponse(session_json(_visible_session(request, session_id)))
 
 
 @api_view("POST")
-def session_grant(request: HttpRequest, session_id: Any) -> JsonResponse:
+def session_grant(request: AuthenticatedHttpRequest, session_id: Any) -> JsonResponse:
     """A fresh controller grant for the session's owner, e.g. to reconnect."""
     session = _owned_session(request, session_id, "control")
     if session.service.mode != "sync":
@@ -536,7 +541,7 @@ def session_grant(request: HttpRequest, session_id: Any) -> JsonResponse:
 
 
 @api_view("POST")
-def session_finish(request: HttpRequest, session_id: Any) -> JsonResponse:
+def session_finish(request: AuthenticatedHttpRequest, session_id: Any) -> JsonResponse:
     """The owner ends the session on purpose; the vehicles are released."""
     session = _owned_session(request, session_id, "end")
     reason = _reason(json_body(request, required=False), "ended by the user")
@@ -548,7 +553,7 @@ def session_finish(request: HttpRequest, session_id: Any) -> JsonResponse:
 
 
 @api_view("POST")
-def session_stop(request: HttpRequest, session_id: Any) -> JsonResponse:
+def session_stop(request: AuthenticatedHttpRequest, session_id: Any) -> JsonResponse:
     """A monitor's kill switch: the agent drops the user and performs the service's
     fail-safe action; the session is aborted."""
     session = _visible_session(request, session_id)
@@ -567,7 +572,7 @@ def session_stop(request: HttpRequest, session_id: Any) -> JsonResponse:
 
 
 @api_view("GET", query=("status", "station"))
-def vehicles_list(request: HttpRequest) -> JsonResponse:
+def vehicles_list(request: AuthenticatedHttpRequest) -> JsonResponse:
     """The fleet for monitors, optionally by ``status`` and ``station`` (its name)."""
     _require_perm(request, "fleet.view_fleet", "watch the fleet")
     vehicles = Vehicle.objects.all()

@@ -25,9 +25,9 @@ from datetime import datetime
 from typing import Any
 
 from django.contrib.auth import get_user_model
-from django.contrib.auth.models import AbstractBaseUser
 from django.db import IntegrityError, transaction
 
+from accounts.users import User
 from agents.geo import distance_m
 from fleet.attributes import DeclaredAttributes
 from fleet.feed import fleet_notify
@@ -158,6 +158,11 @@ def _range_ok(c: Candidate) -> bool:
     return c.trip_m / speed <= (_attr(v, "endurance_min") or 0.0) * 60 * charge
 
 
+def _at_least(name: str, minimum: float) -> Callable[[Facts], bool]:
+    """A test: the vehicle's attribute ``name`` (0 when not declared) is ``minimum`` or more."""
+    return lambda v: (_attr(v, name) or 0.0) >= minimum
+
+
 def _requirements(role: ServiceRole) -> list[tuple[str, Callable[[Facts], bool]]]:
     """(description, test) pairs, checked in order; descriptions are user-facing."""
     checks: list[tuple[str, Callable[[Facts], bool]]] = []
@@ -192,12 +197,7 @@ def _requirements(role: ServiceRole) -> list[tuple[str, Callable[[Facts], bool]]
             )
         )
     for name, minimum in sorted(role.min_attributes.items()):
-        checks.append(
-            (
-                f"{name} ≥ {minimum:g}",
-                lambda v, n=name, m=minimum: (_attr(v, n) or 0.0) >= m,
-            )
-        )
+        checks.append((f"{name} ≥ {minimum:g}", _at_least(name, minimum)))
     checks.append(
         (
             f"battery ≥ {role.min_battery:g}%",
@@ -326,7 +326,7 @@ def role_tightened(role: ServiceRole, preferences: dict[str, Any]) -> ServiceRol
 
 def session_open(
     *,
-    user: AbstractBaseUser,
+    user: User,
     service: Service,
     target: tuple[float, float] | None = None,
     params: dict[str, Any] | None = None,
@@ -377,7 +377,7 @@ def session_open(
 
 def session_request(
     *,
-    user: AbstractBaseUser,
+    user: User,
     service: Service,
     target: tuple[float, float] | None = None,
     params: dict[str, Any] | None = None,

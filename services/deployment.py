@@ -17,10 +17,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from django.conf import settings
-from django.contrib.auth.models import AbstractBaseUser
 from django.db import transaction
 from django.http import HttpRequest
 
+from accounts.users import User
 from agents.protocol import FAILSAFE_ACTIONS, Limits, ProtocolError, UserGrant, VehicleTask
 from fleet.feed import fleet_notify
 from fleet.models import Vehicle
@@ -169,9 +169,7 @@ def vehicle_task_deploy(*, session: Session, assignment: Assignment) -> VehicleT
     return task
 
 
-def _user_task(
-    *, session: Session, assignment: Assignment, user: AbstractBaseUser, role: str
-) -> UserTask:
+def _user_task(*, session: Session, assignment: Assignment, user: User, role: str) -> UserTask:
     vehicle: Vehicle = assignment.vehicle
     allowed = tuple(session.service.allowed_commands) if role == "controller" else ()
     now = time.time()
@@ -251,7 +249,7 @@ def session_deploy(*, session: Session) -> UserTask:
 def grant_issue(
     *,
     session: Session,
-    user: AbstractBaseUser,
+    user: User,
     role: str = "controller",
     allowed_by: Service | None = None,
 ) -> UserTask:

@@ -37,9 +37,9 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 if TYPE_CHECKING:
     from django import forms
-    from django.contrib.auth.models import AbstractBaseUser
     from django.http import HttpRequest
 
+    from accounts.users import User
     from services.deployment import UserTask
     from services.models import Assignment, Service, Session
 
@@ -139,7 +139,7 @@ class ServiceKind:
         cleaned: :meth:`params_clean` does that for both paths)."""
         raise NotImplementedError(f"{self.name} has no portal form")
 
-    def open(self, *, service: Service, user: AbstractBaseUser, request: Request) -> Opened:
+    def open(self, *, service: Service, user: User, request: Request) -> Opened:
         """Set a request going: reserve, deploy, start the workflow. ``request`` has
         been checked against :attr:`accepts` and its params cleaned.
 

@@ -8,15 +8,14 @@ meets the same refusals, in the same words, on the page and through the API.
 
 from __future__ import annotations
 
-from django.contrib.auth.models import AbstractBaseUser
-
+from accounts.users import User
 from services.assignment import AssignmentError
 from services.grants import user_can_use
 from services.kinds import Opened, Request, RequestError, UnknownKind, kind_of
 from services.models import Service
 
 
-def service_request(*, user: AbstractBaseUser, service: Service, request: Request) -> Opened:
+def service_request(*, user: User, service: Service, request: Request) -> Opened:
     """Open a session of ``service`` for ``user`` as ``request`` asks.
 
     Raises AssignmentError when the user may not use the service (``session`` None),

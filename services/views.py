@@ -14,6 +14,7 @@ from django.views.decorators.cache import never_cache
 from django.views.decorators.http import require_POST
 
 from accounts.roles import user_roles
+from accounts.users import AuthenticatedHttpRequest
 from fleet.models import Station
 from services.assignment import AssignmentError
 from services.deployment import (
@@ -39,7 +40,7 @@ def _kind(service: Service) -> ServiceKind:
 
 
 @login_required
-def catalog(request: HttpRequest) -> HttpResponse:
+def catalog(request: AuthenticatedHttpRequest) -> HttpResponse:
     """The services this user may request, and their own live sessions."""
     entries = []
     for service in services_for_user(request.user).prefetch_related("roles"):
@@ -59,7 +60,7 @@ def catalog(request: HttpRequest) -> HttpResponse:
 
 
 @login_required
-def service_request_page(request: HttpRequest, slug: str) -> HttpResponse:
+def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpResponse:
     """The request page of one service (its kind's form); a valid POST opens the
     session (services.request: the same path as the API) and shows its page."""
     service = get_object_or_404(Service, slug=slug, is_active=True)
@@ -115,7 +116,7 @@ def log_lines(session: Session) -> list[dict[str, Any]]:
     return lines
 
 
-def session_watched(request: HttpRequest, session_id: str) -> Session:
+def session_watched(request: AuthenticatedHttpRequest, session_id: str) -> Session:
     """The session if the request's user may watch it (its own user, or a monitor);
     404 otherwise, so others' sessions are not even confirmed to exist."""
     session = get_object_or_404(Session.objects.select_related("service"), pk=session_id)
@@ -124,7 +125,7 @@ def session_watched(request: HttpRequest, session_id: str) -> Session:
     return session
 
 
-def _own_session(request: HttpRequest, session_id: str) -> Session:
+def _own_session(request: AuthenticatedHttpRequest, session_id: str) -> Session:
     session = get_object_or_404(Session.objects.select_related("service"), pk=session_id)
     if session.user_id != request.user.pk:
         raise Http404("no such session")
@@ -136,7 +137,7 @@ def _own_session(request: HttpRequest, session_id: str) -> Session:
 # used, by someone else, until it expires.
 @never_cache
 @login_required
-def session_page(request: HttpRequest, session_id: str) -> HttpResponse:
+def session_page(request: AuthenticatedHttpRequest, session_id: str) -> HttpResponse:
     """The user task: the page the session's kind opens on, with a fresh grant."""
     session = _own_session(request, session_id)
     kind = _kind(session.service)
@@ -166,7 +167,7 @@ def session_page(request: HttpRequest, session_id: str) -> HttpResponse:
 @never_cache
 @login_required
 @require_POST
-def session_grant(request: HttpRequest, session_id: str) -> JsonResponse:
+def session_grant(request: AuthenticatedHttpRequest, session_id: str) -> JsonResponse:
     """A fresh grant to reconnect (JSON for the controller script)."""
     session = _own_session(request, session_id)
     try:
@@ -179,7 +180,7 @@ def session_grant(request: HttpRequest, session_id: str) -> JsonResponse:
 
 @login_required
 @require_POST
-def session_finish(request: HttpRequest, session_id: str) -> HttpResponse:
+def session_finish(request: AuthenticatedHttpRequest, session_id: str) -> HttpResponse:
     """The user ends the session on purpose."""
     session = _own_session(request, session_id)
     if session.state not in FINAL:
@@ -191,7 +192,7 @@ def session_finish(request: HttpRequest, session_id: str) -> HttpResponse:
 @login_required
 @permission_required("services.stop_session", raise_exception=True)
 @require_POST
-def session_stop(request: HttpRequest, session_id: str) -> HttpResponse:
+def session_stop(request: AuthenticatedHttpRequest, session_id: str) -> HttpResponse:
     """A monitor's kill switch: revoke the grant, the vehicle performs its safe action."""
     session = get_object_or_404(Session.objects.select_related("service"), pk=session_id)
     if session.state not in FINAL:
@@ -207,7 +208,7 @@ def session_stop(request: HttpRequest, session_id: str) -> HttpResponse:
 
 @login_required
 @permission_required("fleet.view_fleet", raise_exception=True)
-def monitor(request: HttpRequest) -> HttpResponse:
+def monitor(request: AuthenticatedHttpRequest) -> HttpResponse:
     """The live fleet and every live session, with a stop button per session."""
     return render(
         request,

@@ -6,8 +6,8 @@ from collections.abc import Mapping
 from typing import Any
 
 from django import forms
-from django.contrib.auth.models import AbstractBaseUser
 
+from accounts.users import User
 from kinds.manual_control.forms import SessionRequestForm
 from services.assignment import session_request
 from services.deployment import session_deploy
@@ -35,7 +35,7 @@ class ManualControl(ServiceKind):
             preferences=form.preferences(),
         )
 
-    def open(self, *, service: Service, user: AbstractBaseUser, request: Request) -> Opened:
+    def open(self, *, service: Service, user: User, request: Request) -> Opened:
         session = session_request(
             user=user,
             service=service,

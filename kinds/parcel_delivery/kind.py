@@ -7,9 +7,9 @@ from typing import Any
 
 from django import forms
 from django.conf import settings
-from django.contrib.auth.models import AbstractBaseUser
 from django.http import HttpRequest
 
+from accounts.users import User
 from kinds.parcel_delivery.events import PARCEL_EVENTS, delivery_event, delivery_task_accepted
 from kinds.parcel_delivery.forms import ParcelRequestForm
 from kinds.parcel_delivery.missions import vehicle_mission
@@ -51,7 +51,7 @@ class ParcelDelivery(ServiceKind):
         assert isinstance(form, ParcelRequestForm)
         return Request(params=form.params())
 
-    def open(self, *, service: Service, user: AbstractBaseUser, request: Request) -> Opened:
+    def open(self, *, service: Service, user: User, request: Request) -> Opened:
         return Opened(session=parcel_request(user=user, service=service, params=request.params))
 
     def session_context(self, *, request: HttpRequest, session: Session) -> dict[str, Any]:

@@ -6,11 +6,11 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from django.contrib.auth.models import AbstractBaseUser
 from django.core.exceptions import ValidationError
 from django.core.validators import EmailValidator, URLValidator
 from django.db import transaction
 
+from accounts.users import User
 from agents.geo import distance_m
 from kinds.parcel_delivery.models import KIND, Delivery
 from kinds.parcel_delivery.planning import MAX_TRIP_M, MAX_WEIGHT_KG, over_water
@@ -103,9 +103,7 @@ def params_clean(params: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
-def parcel_request(
-    *, user: AbstractBaseUser, service: Service, params: Mapping[str, Any]
-) -> Session:
+def parcel_request(*, user: User, service: Service, params: Mapping[str, Any]) -> Session:
     """Open a delivery of ``params`` (cleaned by :func:`params_clean`) and start its
     workflow. Raises services.assignment.AssignmentError when the user may not use the
     service or is at its session limit; RequestError for another kind of service."""

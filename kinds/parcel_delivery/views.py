@@ -8,13 +8,14 @@ from django.http import Http404, HttpRequest, HttpResponse, JsonResponse
 from django.shortcuts import get_object_or_404, render
 from django.views.decorators.cache import never_cache
 
+from accounts.users import AuthenticatedHttpRequest
 from kinds.parcel_delivery.models import Delivery
 from kinds.parcel_delivery.presentation import delivery_json
 from services.views import session_watched
 
 
 @login_required
-def delivery_state(request: HttpRequest, session_id: str) -> JsonResponse:
+def delivery_state(request: AuthenticatedHttpRequest, session_id: str) -> JsonResponse:
     """The delivery's live state (its user, or a monitor)."""
     session_watched(request, session_id)
     delivery = get_object_or_404(Delivery.objects.select_related("session"), pk=session_id)

@@ -7,9 +7,9 @@ from typing import Any
 
 from django import forms
 from django.conf import settings
-from django.contrib.auth.models import AbstractBaseUser
 from django.http import HttpRequest
 
+from accounts.users import User
 from kinds.rescue_at_sea.events import MISSION_EVENTS, mission_event, mission_task_accepted
 from kinds.rescue_at_sea.forms import RescueRequestForm
 from kinds.rescue_at_sea.missions import vehicle_mission
@@ -68,7 +68,7 @@ class RescueAtSea(ServiceKind):
             params["altitude_m"] = data["altitude_m"]
         return Request(params=params)
 
-    def open(self, *, service: Service, user: AbstractBaseUser, request: Request) -> Opened:
+    def open(self, *, service: Service, user: User, request: Request) -> Opened:
         session = rescue_request(
             user=user,
             service=service,

@@ -9,10 +9,10 @@ from __future__ import annotations
 from datetime import timedelta
 from typing import Any
 
-from django.contrib.auth.models import AbstractBaseUser
 from django.db import transaction
 from django.utils import timezone
 
+from accounts.users import User
 from kinds.rescue_at_sea.conf import search_timeout_s
 from kinds.rescue_at_sea.coverage import (
     DEFAULT_HFOV_DEG,
@@ -45,7 +45,7 @@ class RescueError(RequestError):
 
 def rescue_request(
     *,
-    user: AbstractBaseUser,
+    user: User,
     service: Service,
     area: Any,
     altitude_m: float | None = None,

@@ -5,10 +5,11 @@ from __future__ import annotations
 from django.contrib import messages
 from django.contrib.auth.decorators import login_required
 from django.db.models import QuerySet
-from django.http import Http404, HttpRequest, HttpResponse
+from django.http import Http404, HttpResponse
 from django.shortcuts import get_object_or_404, redirect, render
 from django.views.decorators.cache import never_cache
 
+from accounts.users import AuthenticatedHttpRequest
 from kinds.spectate.kind import Spectate
 from services.deployment import DeploymentError, grant_issue, user_task_json
 from services.grants import user_can_use
@@ -33,7 +34,7 @@ def sessions_spectatable() -> QuerySet[Session]:
     )
 
 
-def _spectate_service(request: HttpRequest) -> Service:
+def _spectate_service(request: AuthenticatedHttpRequest) -> Service:
     service = Service.objects.filter(kind=Spectate.name, is_active=True).first()
     if service is None or not user_can_use(request.user, service):
         raise Http404("spectating is not open to you")
@@ -41,7 +42,7 @@ def _spectate_service(request: HttpRequest) -> Service:
 
 
 @login_required
-def spectate(request: HttpRequest) -> HttpResponse:
+def spectate(request: AuthenticatedHttpRequest) -> HttpResponse:
     """Vehicles streaming video in a live session, to watch."""
     _spectate_service(request)
     return render(request, "spectate/list.html", {"sessions": sessions_spectatable()})
@@ -49,7 +50,7 @@ def spectate(request: HttpRequest) -> HttpResponse:
 
 @never_cache  # the page carries a signed grant: no cache may keep it
 @login_required
-def spectate_session(request: HttpRequest, session_id: str) -> HttpResponse:
+def spectate_session(request: AuthenticatedHttpRequest, session_id: str) -> HttpResponse:
     """Watch one session's vehicle: video and telemetry, view-only."""
     service = _spectate_service(request)
     session = get_object_or_404(sessions_spectatable(), pk=session_id)
