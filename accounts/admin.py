@@ -47,14 +47,14 @@ _ISSUED_PAGE = """{% extends "admin/base_site.html" %}
 """
 
 
-class ApiTokenIssueForm(forms.ModelForm):
+class ApiTokenIssueForm(forms.ModelForm[ApiToken]):
     class Meta:
         model = ApiToken
         fields = ("user", "name")
 
 
 @admin.register(ApiToken)
-class ApiTokenAdmin(admin.ModelAdmin):
+class ApiTokenAdmin(admin.ModelAdmin[ApiToken]):
     list_display = ("name", "user", "display", "created_at", "last_used_at", "revoked_at")
     list_filter = (("revoked_at", admin.EmptyFieldListFilter),)
     list_select_related = ("user",)
@@ -63,10 +63,12 @@ class ApiTokenAdmin(admin.ModelAdmin):
     actions = ("revoke",)
     readonly_fields = ("user", "name", "display", "created_at", "last_used_at", "revoked_at")
 
-    def get_form(self, request: HttpRequest, obj: Any = None, **kwargs: Any) -> Any:
+    def get_form(
+        self, request: HttpRequest, obj: ApiToken | None = None, change: bool = False, **kwargs: Any
+    ) -> type[forms.ModelForm[ApiToken]]:
         if obj is None:
             kwargs["form"] = ApiTokenIssueForm
-        return super().get_form(request, obj, **kwargs)
+        return super().get_form(request, obj, change, **kwargs)
 
     def get_readonly_fields(self, request: HttpRequest, obj: Any = None) -> Any:
         # Issuing asks for a user and a name; an issued token is never edited.

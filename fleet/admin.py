@@ -45,7 +45,7 @@ class UUIDSearchMixin:
 
 
 @admin.register(Station)
-class StationAdmin(admin.ModelAdmin):
+class StationAdmin(admin.ModelAdmin[Station]):
     list_display = ("name", "lat", "lon", "environments", "vehicle_count")
     search_fields = ("name",)
     fields = ("name", "lat", "lon", "environments")
@@ -55,11 +55,12 @@ class StationAdmin(admin.ModelAdmin):
 
     @admin.display(description="vehicles", ordering="_vehicle_count")
     def vehicle_count(self, obj: Station) -> int:
-        return obj._vehicle_count  # type: ignore[attr-defined]
+        count: int = obj._vehicle_count  # type: ignore[attr-defined]  # get_queryset's annotation
+        return count
 
 
 @admin.register(VehicleType)
-class VehicleTypeAdmin(admin.ModelAdmin):
+class VehicleTypeAdmin(admin.ModelAdmin[VehicleType]):
     form = VehicleTypeAdminForm
     list_display = ("name", "kind", "adapter", "command_count")
     list_filter = ("kind", "adapter")
@@ -79,7 +80,7 @@ class IssuedCredential:
 
 
 @admin.register(Vehicle)
-class VehicleAdmin(UUIDSearchMixin, admin.ModelAdmin):
+class VehicleAdmin(UUIDSearchMixin, admin.ModelAdmin[Vehicle]):
     form = VehicleAdminForm
     list_display = (
         "name",

@@ -25,7 +25,7 @@ def attributes_help() -> str:
     return "A JSON object with " + "; ".join(parts) + "."
 
 
-class VehicleAdminForm(forms.ModelForm):
+class VehicleAdminForm(forms.ModelForm[Vehicle]):
     """The declared part of a vehicle. ``attributes`` is validated by ``Vehicle.clean``
     (``fleet.attributes.attributes_clean``) during model validation, whose messages each
     name the offending attribute; it is not checked a second time here so each problem
@@ -72,7 +72,7 @@ def commands_validate(commands: Any) -> None:
         raise ValidationError(exc.message.removeprefix("welcome message: ")) from None
 
 
-class VehicleTypeAdminForm(forms.ModelForm):
+class VehicleTypeAdminForm(forms.ModelForm[VehicleType]):
     """A vehicle type, with its declared command vocabulary checked against the protocol."""
 
     class Meta:

@@ -31,7 +31,7 @@ class ReadOnlyAdminMixin:
         return False
 
 
-class ServiceRoleInline(admin.StackedInline):
+class ServiceRoleInline(admin.StackedInline[ServiceRole, Service]):
     model = ServiceRole
     extra = 0
     fields = (
@@ -42,7 +42,7 @@ class ServiceRoleInline(admin.StackedInline):
     )
 
 
-class ServiceGrantInline(admin.TabularInline):
+class ServiceGrantInline(admin.TabularInline[ServiceGrant, Service]):
     model = ServiceGrant
     extra = 0
     fields = ("group", "user")
@@ -50,7 +50,7 @@ class ServiceGrantInline(admin.TabularInline):
 
 
 @admin.register(Service)
-class ServiceAdmin(admin.ModelAdmin):
+class ServiceAdmin(admin.ModelAdmin[Service]):
     list_display = ("slug", "name", "kind", "is_active")
     list_filter = ("kind", "is_active")
     search_fields = ("slug", "name")
@@ -73,14 +73,14 @@ class ServiceAdmin(admin.ModelAdmin):
     )
 
 
-class AssignmentInline(ReadOnlyAdminMixin, admin.TabularInline):
+class AssignmentInline(ReadOnlyAdminMixin, admin.TabularInline[Assignment, Session]):
     model = Assignment
     extra = 0
     fields = ("role", "vehicle", "active", "distance_m", "created_at", "released_at")
     readonly_fields = fields
 
 
-class SessionEventInline(ReadOnlyAdminMixin, admin.TabularInline):
+class SessionEventInline(ReadOnlyAdminMixin, admin.TabularInline[SessionEvent, Session]):
     model = SessionEvent
     extra = 0
     fields = ("seq", "kind", "event_data", "created_at", "hash")
@@ -93,7 +93,7 @@ class SessionEventInline(ReadOnlyAdminMixin, admin.TabularInline):
 
 
 @admin.register(Session)
-class SessionAdmin(UUIDSearchMixin, ReadOnlyAdminMixin, admin.ModelAdmin):
+class SessionAdmin(UUIDSearchMixin, ReadOnlyAdminMixin, admin.ModelAdmin[Session]):
     list_display = ("id", "service", "user", "state", "reason", "created_at")
     list_filter = ("state", "service")
     list_select_related = ("service", "user")
@@ -127,7 +127,7 @@ class SessionAdmin(UUIDSearchMixin, ReadOnlyAdminMixin, admin.ModelAdmin):
 
 
 @admin.register(SessionEvent)
-class SessionEventAdmin(UUIDSearchMixin, ReadOnlyAdminMixin, admin.ModelAdmin):
+class SessionEventAdmin(UUIDSearchMixin, ReadOnlyAdminMixin, admin.ModelAdmin[SessionEvent]):
     list_display = ("session", "seq", "kind", "created_at")
     list_filter = ("kind",)
     list_select_related = ("session__service", "session__user")
@@ -138,7 +138,7 @@ class SessionEventAdmin(UUIDSearchMixin, ReadOnlyAdminMixin, admin.ModelAdmin):
 
 
 @admin.register(Assignment)
-class AssignmentAdmin(UUIDSearchMixin, ReadOnlyAdminMixin, admin.ModelAdmin):
+class AssignmentAdmin(UUIDSearchMixin, ReadOnlyAdminMixin, admin.ModelAdmin[Assignment]):
     list_display = ("vehicle", "role", "session", "active", "created_at", "released_at")
     list_filter = ("active", "role")
     list_select_related = ("vehicle", "session__service", "session__user")

@@ -37,7 +37,8 @@ class SessionRequestForm(forms.Form):
     )
 
     def clean(self) -> dict[str, Any]:
-        data = super().clean()
+        super().clean()
+        data = self.cleaned_data
         lat, lon = data.get("lat"), data.get("lon")
         if (lat is None) != (lon is None):
             raise forms.ValidationError("Give both latitude and longitude, or neither.")

@@ -8,6 +8,6 @@ from kinds.rescue_at_sea.models import RescueTeam
 
 
 @admin.register(RescueTeam)
-class RescueTeamAdmin(admin.ModelAdmin):
+class RescueTeamAdmin(admin.ModelAdmin[RescueTeam]):
     list_display = ("station", "name", "email", "phone", "webhook")
     search_fields = ("station__name", "name", "email")
