@@ -220,7 +220,7 @@ def agent_messages_owed(*, session_id: Any) -> list[AgentMessage]:
 
 
 def _retry_after(attempts: int) -> float:
-    return min(RETRY_MAX_S, RETRY_S * 2 ** max(0, attempts - 1))
+    return min(RETRY_MAX_S, RETRY_S * 2.0 ** max(0, attempts - 1))
 
 
 def _take_due(*, vehicle_ids: Sequence[str], fresh: Sequence[str], now: datetime) -> list[Any]:

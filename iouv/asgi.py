@@ -18,17 +18,20 @@ from channels.auth import AuthMiddlewareStack  # noqa: E402
 from channels.routing import ProtocolTypeRouter, URLRouter  # noqa: E402
 from channels.security.websocket import AllowedHostsOriginValidator  # noqa: E402
 from django.conf import settings  # noqa: E402
-from django.urls import re_path  # noqa: E402
 
-from iouv.concurrency import HttpConcurrencyLimit  # noqa: E402
+from iouv.concurrency import ASGIApp, HttpConcurrencyLimit  # noqa: E402
 from iouv.http_limits import daphne_use_limited_channel  # noqa: E402
-from iouv.routing import browser_websocket_urlpatterns, self_authenticating_websocket_urlpatterns  # noqa: E402
+from iouv.routing import (  # noqa: E402
+    browser_websocket_urlpatterns,
+    self_authenticating_websocket_urlpatterns,
+    websocket_path,
+)
 
 # daphne answers an oversized request line or header with a 414 or 431 instead of
 # dropping the connection without a word.
 daphne_use_limited_channel()
 
-http_app = HttpConcurrencyLimit(django_asgi_app, limit=settings.IOUV_HTTP_CONCURRENCY)
+http_app: ASGIApp = HttpConcurrencyLimit(django_asgi_app, limit=settings.IOUV_HTTP_CONCURRENCY)
 if settings.SERVE_STATIC:
     from django.contrib.staticfiles.handlers import ASGIStaticFilesHandler
 
@@ -43,11 +46,12 @@ application = ProtocolTypeRouter(
             [
                 *self_authenticating_websocket_urlpatterns,
                 # Everything else is opened by browsers: origin-checked, cookie-authenticated.
-                re_path(
+                websocket_path(
                     r"^",
                     AllowedHostsOriginValidator(
                         AuthMiddlewareStack(URLRouter(browser_websocket_urlpatterns))
                     ),
+                    regex=True,
                 ),
             ]
         ),

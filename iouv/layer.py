@@ -62,7 +62,7 @@ def _store() -> RelayStore:
 
 def in_memory() -> bool:
     """True when the channel layer only reaches this process's consumers."""
-    backend = settings.CHANNEL_LAYERS.get("default", {}).get("BACKEND", "")
+    backend = str(settings.CHANNEL_LAYERS.get("default", {}).get("BACKEND", ""))
     return backend.endswith("InMemoryChannelLayer")
 
 
@@ -92,6 +92,8 @@ def _take_relayed(limit: int = 200) -> list[tuple[str, dict[str, Any]]]:
 async def relay_run() -> None:
     """Deliver relayed messages to this process's consumers, forever."""
     layer = get_channel_layer()
+    if layer is None:  # no channel layer configured: nobody to deliver to
+        return
     take = database_sync_to_async(_take_relayed)
     while True:
         try:

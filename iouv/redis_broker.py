@@ -35,7 +35,8 @@ class Channel(kombu_redis.Channel):
         again: the worker opens a new connection with new channels)."""
         if self.connection.client is None:
             raise RedisConnectionError("the broker connection of this channel was closed")
-        params: dict[str, Any] = super()._connparams(asynchronous=asynchronous)
+        # kombu's redis Channel has _connparams; its stubs leave it out.
+        params: dict[str, Any] = super()._connparams(asynchronous=asynchronous)  # type: ignore[misc]
         return params
 
 

@@ -30,7 +30,7 @@ TRANSITIONS: dict[str, set[str]] = {
     S.ABORTED: set(),
 }
 FINAL = {S.ENDED, S.FAILED, S.ABORTED}
-TIMESTAMP = {S.ASSIGNED: "assigned_at", S.ACTIVE: "started_at"}
+TIMESTAMP: dict[str, str] = {S.ASSIGNED: "assigned_at", S.ACTIVE: "started_at"}
 
 
 class SessionStateError(Exception):

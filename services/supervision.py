@@ -674,7 +674,10 @@ def sessions_expire_time_limit(*, now: datetime | None = None) -> list[str]:
         started_at__isnull=False,
     ).select_related("service")
     for session in active:
-        deadline = session.started_at + timedelta(seconds=session.service.session_time_limit_s)
+        started, limit_s = session.started_at, session.service.session_time_limit_s
+        if started is None or limit_s is None:  # the query leaves these out
+            continue
+        deadline = started + timedelta(seconds=limit_s)
         if deadline > now:
             continue
         try:
