@@ -28,7 +28,7 @@ from agents.runtime import Agent
 from fleet.models import Vehicle
 from kinds.parcel_delivery.models import Delivery
 from services.demo import agent_configs_write, demo_seed
-from services.kinds import Request
+from services.kinds import Opened, Request
 from services.models import Assignment, Service, Session
 from services.request import service_request
 from tests.browser import chromium_browser, needs_chromium
@@ -211,7 +211,7 @@ async def test_user_sends_a_parcel_from_the_map_and_both_follow_it(tmp_path: Pat
         # Live: the carrier on the map, moving, with an arrival time.
         marker = page.locator("path.carrier-marker")
         await expect(marker).to_have_count(1, timeout=30000)
-        await expect(page.locator("[data-eta]")).not_to_have_text("–", timeout=30000)
+        await expect(page.locator("[data-eta]")).not_to_have_text("–", timeout=30000)  # noqa: RUF001
         eta = await page.locator("[data-eta]").inner_text()
         assert re.search(r"\d", eta), eta
         before = await page.evaluate("() => window.iouvMap.state().vehicles?.[0]?.lat ?? null")
@@ -266,7 +266,7 @@ async def test_user_sends_a_parcel_from_the_map_and_both_follow_it(tmp_path: Pat
 async def test_a_carrier_lost_with_the_parcel_hands_it_over_where_it_is(tmp_path: Path) -> None:
     async with fleet(tmp_path, ("lifeguard-1", "lifeguard-2")) as world:
 
-        def request() -> Session:
+        def request() -> Opened:
             from django.contrib.auth import get_user_model
 
             client = get_user_model().objects.get(username="client")
