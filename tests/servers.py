@@ -317,7 +317,8 @@ async def agent_started(config: AgentConfig) -> tuple[Agent, asyncio.Task[None]]
             await agent.run()
 
     task = asyncio.create_task(run())
-    done, _ = await asyncio.wait([built, task], return_when=asyncio.FIRST_COMPLETED)
+    started: list[asyncio.Future[Any]] = [built, task]
+    done, _ = await asyncio.wait(started, return_when=asyncio.FIRST_COMPLETED)
     if built not in done:
         task.result()  # the simulator did not start: raise why
     return built.result(), task

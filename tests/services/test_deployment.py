@@ -7,6 +7,7 @@ the same group the uplink consumer of the vehicle listens on.
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import pytest
 from django.conf import settings
@@ -37,7 +38,7 @@ COMMANDS = [
     {"name": "stop", "args": {}},
 ]
 TARGET = (40.6310, -8.6590)
-LIMITS = {
+LIMITS: dict[str, Any] = {
     "max_altitude_m": 50.0,
     "geofence_radius_m": 300.0,
     "max_speed_mps": 5.0,

@@ -282,7 +282,7 @@ async def test_worker_killed_mid_step_completes_without_duplicates(tmp_path: Pat
             )
             assert deliveries == 1
             await _assert_rescued_and_home(session.pk)
-            lifeguard = world.agents["lifeguard-1"].adapter
+            lifeguard: Any = world.agents["lifeguard-1"].adapter  # a MAVLink adapter
             released = sum(1 for *_, text in lifeguard.texts if text == "Gripper load released")
             assert released == 1
     finally:
@@ -366,7 +366,8 @@ async def test_user_draws_the_area_and_watches_the_mission_on_the_map(tmp_path: 
         drawn = json.loads(await page.input_value("input[name=area]"))
         assert len(drawn) == 4
         assert all(
-            distance_m(tuple(p), tuple(q)) < 3 for p, q in zip(drawn, search_area(), strict=True)
+            distance_m((p[0], p[1]), (q[0], q[1])) < 3
+            for p, q in zip(drawn, search_area(), strict=True)
         )
         await page.fill("#id_altitude_m", "30")
         await page.click("#request-button")

@@ -79,7 +79,7 @@ def mission(session: Session) -> Mission:
     return Mission.objects.get(pk=session.pk)
 
 
-def step(session: Session) -> str:
+def step(session: Session) -> str | None:
     """One step, then the notice task it scheduled, as a worker runs both."""
     state = mission_advance(session.pk)
     notifications_send(session.pk)
