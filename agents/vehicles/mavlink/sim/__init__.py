@@ -1,19 +1,25 @@
-"""The MAVLink simulator: an ArduPilot-like autopilot in a process of its own.
+"""The MAVLink simulator: an ArduPilot-like autopilot in a process of its own, playing
+an ArduCopter quadcopter.
+
+Files: ``autopilot`` (the wire: heartbeats, streams, parameters, commands, the GCS
+fail-safe's clock), ``messages`` (the telemetry it sends), ``vehicle`` (what every
+simulated vehicle shares), ``copter`` (its modes and kinematics),
+``params`` (each firmware's parameters), ``cli`` (``python -m agents sim mavlink``).
 
 :func:`simulation` is the integration's simulator hook (see
 :class:`~agents.vehicles.base.Simulation`): it starts ``python -m agents sim mavlink``
 listening on a free UDP port of the loopback, waits for it to say ``READY``, and yields
 the adapter options with ``connection`` pointing there; the process (a
 ``subprocess.Popen``) is the ``simulator``, and it stops when the block ends (or when
-its parent process dies). Only :mod:`agents.simulation` and tests import this;
-:func:`cli` is ``python -m agents sim mavlink`` (see :mod:`.autopilot`).
+its parent process dies). Only :mod:`agents.simulation` and tests import this.
 
 The simulator's parameters (the ``simulator`` option) are its command line's:
 
 ``speedup``, ``battery_pct``, ``drain_pct_per_min``, ``gps`` (3d, 2d, none),
 ``satellites``, ``heading_deg``, ``home_alt_m``, ``sysid``, ``params`` ({NAME:
-number}), ``gps_fix_after_s``, ``firmware`` (4.5, 4.7) and ``stream_rate_hz``; it
-starts at the adapter's ``origin`` (else :data:`SIM_ORIGIN`).
+number}, names of the simulated firmware), ``gps_fix_after_s``, ``firmware`` (4.5,
+4.7) and ``stream_rate_hz``; it starts at the adapter's ``origin`` (else
+:data:`SIM_ORIGIN`).
 """
 
 from __future__ import annotations
@@ -29,17 +35,22 @@ from typing import Any
 
 from agents.vehicles.base import Simulation
 from agents.vehicles.kit import OptionReader, simulator_split
+from agents.vehicles.mavlink.classes import VEHICLE_CLASSES
 from agents.vehicles.mavlink.config import MavlinkConfig
-from agents.vehicles.mavlink.sim.autopilot import FIRMWARES, cli
+from agents.vehicles.mavlink.sim.autopilot import VEHICLES
+from agents.vehicles.mavlink.sim.cli import cli
+from agents.vehicles.mavlink.sim.params import DEFAULT_FIRMWARE, FIRMWARES, firmware_params
 
-__all__ = ["SIM_ORIGIN", "cli", "simulation"]
+__all__ = ["SIM_ORIGIN", "cli", "simulation", "simulator_command"]
 
-#: Where a simulated vehicle starts when the options give no ``origin`` (the campus).
+#: Where a simulated copter starts when the options give no ``origin`` (the campus).
 SIM_ORIGIN = (40.6306, -8.6588)
 #: Parameters a simulated autopilot starts with unless ``simulator.params`` says
-#: otherwise: what an operator would set on a real one (the agent's heartbeat loss ->
-#: its fail-safe).
-SIM_DEFAULT_PARAMS = {"FS_GCS_ENABLE": 1.0}
+#: otherwise: what an operator would set on a real one. The copter: the agent's
+#: heartbeat loss -> its GCS fail-safe (RTL).
+SIM_DEFAULT_PARAMS: Mapping[str, Mapping[str, float]] = {
+    "copter": {"FS_GCS_ENABLE": 1.0},
+}
 #: The simulator's command line flag for each parameter.
 FLAGS = {
     "speedup": "--speedup",
@@ -60,17 +71,31 @@ READY_WITHIN_S = 30.0
 ROOT = Path(__file__).resolve().parents[4]
 
 
-def simulator_command(params: Mapping[str, Any], *, home: tuple[float, float]) -> list[str]:
-    """The command line of a simulator with ``params`` (the ``simulator`` option),
-    listening on a free loopback port. Raises ValueError naming a bad parameter.
+def simulator_command(
+    params: Mapping[str, Any],
+    *,
+    home: tuple[float, float],
+    vehicle_class: str = "copter",
+    defaults: Mapping[str, float] | None = None,
+) -> list[str]:
+    """The command line of a simulated ``vehicle_class`` with ``params`` (the
+    ``simulator`` option), listening on a free loopback port; ``defaults`` are
+    autopilot parameters it starts with unless ``params["params"]`` says otherwise.
+    Raises ValueError naming a bad parameter (or a class the simulator does not play).
 
     Unless ``params`` say otherwise it ships no telemetry until the agent asks for it,
     as ArduCopter does (stream rate 0), so that the agent's own stream requests are
     what the tests fly on."""
+    if vehicle_class not in VEHICLES:
+        raise ValueError(
+            f"mavlink option vehicle_class: the simulator plays a {' or a '.join(VEHICLES)}, "
+            f"not a {vehicle_class}"
+        )
     o = OptionReader("mavlink", params, prefix="simulator.")
     args = [
         sys.executable, "-m", "agents", "sim", "mavlink",
         "--listen", "udpin:127.0.0.1:0",
+        "--vehicle-class", vehicle_class,
         "--home", f"{home[0]},{home[1]}",
         "--parent-pid", str(os.getpid()),
     ]  # fmt: skip
@@ -87,17 +112,23 @@ def simulator_command(params: Mapping[str, Any], *, home: tuple[float, float]) -
     if o.has("gps"):
         values["gps"] = o.choice("gps", "3d", ("3d", "2d", "none"))
     if o.has("firmware"):
-        values["firmware"] = o.choice("firmware", "4.5", FIRMWARES)
+        values["firmware"] = o.choice("firmware", DEFAULT_FIRMWARE, FIRMWARES)
     extra = o.mapping("params")
     if not all(
         isinstance(k, str) and isinstance(v, int | float) and not isinstance(v, bool)
         for k, v in extra.items()
     ):
         raise o.error("params", "expected {NAME: number}")
+    firmware = values.get("firmware", DEFAULT_FIRMWARE)
+    unknown = sorted(set(extra) - set(firmware_params(firmware, vehicle_class)))
+    if unknown:
+        name = VEHICLE_CLASSES[vehicle_class].firmware
+        raise o.error("params", f"{name} {firmware} has no parameter {', '.join(unknown)}")
     o.finish()
     for key, value in values.items():
         args += [FLAGS[key], str(value)]
-    for name, value in {**SIM_DEFAULT_PARAMS, **extra}.items():
+    start = {**SIM_DEFAULT_PARAMS[vehicle_class], **(defaults or {}), **extra}
+    for name, value in start.items():
         args += ["--param", f"{name}={value}"]
     return args
 
@@ -109,7 +140,9 @@ async def simulation(options: Mapping[str, Any]) -> AsyncIterator[Simulation]:
     RuntimeError when the simulator does not come up."""
     adapter_options, params = simulator_split(options)
     config = MavlinkConfig.from_options(adapter_options)
-    args = simulator_command(params, home=config.origin or SIM_ORIGIN)
+    args = simulator_command(
+        params, home=config.origin or SIM_ORIGIN, vehicle_class=config.vehicle_class.name
+    )
     env = {
         **os.environ,
         "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p),

@@ -1,0 +1,463 @@
+"""The simulated multicopter: ArduCopter's flight modes and kinematics, no I/O.
+
+GUIDED (take-off, velocity and position setpoints, CONDITION_YAW, DO_REPOSITION),
+LAND (fast then slow descent, disarm on touchdown), RTL (climb to ``RTL_ALT``, fly
+home, loiter ``RTL_LOIT_TIME``, land, disarm), BRAKE/LOITER (hold); velocity and
+acceleration limits (``WPNAV_*``), ground contact, auto-disarm after ``DISARM_DELAY`` s
+armed on the ground, battery drain (faster when flying). As in ArduCopter a velocity
+setpoint lapses after ``GUID_TIMEOUT`` s, and one that ignores both yaw and yaw rate
+hands yaw to ``WP_YAW_BEHAVIOR`` (by default the nose turns into the direction of
+travel). The GCS fail-safe acts after ``FS_GCS_TIMEOUT`` s as ``FS_GCS_ENABLE`` says.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from agents.geo import local_offset_m
+from agents.vehicles.mavlink.classes import COPTER
+from agents.vehicles.mavlink.dialect import MAV
+from agents.vehicles.mavlink.sim.vehicle import (
+    BODY_FRAMES,
+    OFFSET_FRAMES,
+    TYPE_MASK_POS,
+    TYPE_MASK_VEL,
+    TYPE_MASK_YAW,
+    TYPE_MASK_YAW_RATE,
+    CommandResult,
+    PositionTarget,
+    SimVehicle,
+    approach,
+    clamp_norm,
+    wrap180,
+    wrap360,
+)
+
+STABILIZE, ALT_HOLD, AUTO, GUIDED, LOITER, RTL, LAND = 0, 2, 3, 4, 5, 6, 9
+POSHOLD, BRAKE, SMART_RTL = 16, 17, 21
+#: FS_GCS_ENABLE (Copter 4.x) -> the mode its GCS fail-safe switches to.
+FS_GCS_MODES = {1: RTL, 2: RTL, 3: RTL, 4: LAND, 5: LAND, 6: RTL, 7: BRAKE}
+DEFAULT_YAW_RATE_DEG_S = 60.0
+
+
+@dataclass
+class Copter(SimVehicle):
+    """State and flight logic of the simulated copter; :meth:`step` advances it (see
+    the module docstring; units as in :mod:`.vehicle`, parameters as ArduCopter's)."""
+
+    VEHICLE_CLASS = COPTER
+    MAV_TYPE = int(MAV.MAV_TYPE_QUADROTOR)
+    #: Modes that need a position estimate (refused while armed without one).
+    POSITION_MODES = frozenset({AUTO, GUIDED, LOITER, RTL, 7, POSHOLD, BRAKE, SMART_RTL, 23})
+    #: Modes ArduCopter will not arm in.
+    NOT_ARMABLE = frozenset({AUTO, RTL, 7, LAND, SMART_RTL, 27})
+
+    landed: bool = True
+    # GUIDED sub-mode: "idle" (hold), "takeoff", "velocity", "position"
+    guided: str = "idle"
+    hold: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    target_vel: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    target_vel_wall: float = 0.0
+    target_pos: tuple[float, float, float] | None = None
+    target_speed: float | None = None
+    takeoff_alt: float = 0.0
+    target_yaw: float | None = None
+    yaw_dir: int = 0  # 1 clockwise, -1 counter-clockwise, 0 shortest
+    yaw_speed: float = DEFAULT_YAW_RATE_DEG_S
+    rate_cmd: float | None = None  # deg/s from a setpoint's yaw_rate
+    look_ahead: bool = False  # WP_YAW_BEHAVIOR: face the direction of travel
+    rtl_stage: str = ""
+    rtl_loiter_until: float = 0.0
+    landed_since: float = 0.0
+
+    # --- state ------------------------------------------------------------------------
+    @property
+    def flying(self) -> bool:
+        return self.armed and not self.landed
+
+    @property
+    def active(self) -> bool:
+        return self.flying
+
+    def _hold_here(self) -> None:
+        self.hold = (self.north, self.east, self.up)
+
+    # --- modes and arming -------------------------------------------------------------
+    def _entered(self, mode: str) -> None:
+        self._hold_here()
+        self.guided = "idle"
+        self.target_yaw = None
+        self.rate_cmd = None
+        self.look_ahead = False
+        if mode in ("RTL", "SMART_RTL"):
+            self.rtl_stage = "climb"
+
+    def _on_armed(self) -> None:
+        self.landed = True
+        self.landed_since = self.sim_time
+        self._hold_here()
+
+    def _disarm_refusal(self) -> str | None:
+        return "Disarm: vehicle is flying" if self.flying else None
+
+    def _on_disarmed(self) -> None:
+        self.guided = "idle"
+
+    # --- commands ---------------------------------------------------------------------
+    def command(
+        self, command: int, p: tuple[float, ...], z: float, frame: int | None
+    ) -> CommandResult:
+        """NAV_TAKEOFF, NAV_LAND, CONDITION_YAW, DO_REPOSITION, DO_CHANGE_SPEED, and
+        the shared ones (see :meth:`SimVehicle.command`)."""
+        ok, failed = MAV.MAV_RESULT_ACCEPTED, MAV.MAV_RESULT_FAILED
+        if command == MAV.MAV_CMD_NAV_TAKEOFF:
+            error = self.takeoff(float(z))
+            return (failed, error) if error else (ok, None)
+        if command == MAV.MAV_CMD_NAV_LAND:
+            error = self.set_mode(LAND)
+            return (failed, error) if error else (ok, None)
+        if command == MAV.MAV_CMD_CONDITION_YAW:
+            if self.condition_yaw(p[0], p[1], int(p[2]), bool(p[3])):
+                return ok, None
+            return failed, "Yaw: bad parameters"
+        if command == MAV.MAV_CMD_DO_REPOSITION:
+            if frame is None:
+                return MAV.MAV_RESULT_COMMAND_INT_ONLY, None
+            if self.mode != GUIDED and not int(p[1]) & 1:
+                return failed, "Reposition: not in GUIDED"
+            alt = float(z) if frame in (3, 6) else float(z) - self.home_alt_amsl
+            error = self.reposition(p[4], p[5], alt, p[0] if p[0] > 0 else None)
+            return (failed, error) if error else (ok, None)
+        if command == MAV.MAV_CMD_DO_CHANGE_SPEED:
+            if p[1] > 0:
+                self.params["WPNAV_SPEED"] = min(2000.0, p[1] * 100.0)
+            return ok, None
+        return super().command(command, p, z, frame)
+
+    def takeoff(self, altitude: float) -> str | None:
+        if self.mode != GUIDED:
+            return f"Takeoff: not in GUIDED ({self.modes.get(self.mode, self.mode)})"
+        if not self.armed:
+            return "Takeoff: motors not armed"
+        if not self.landed:
+            return "Takeoff: already flying"
+        if not 0 < altitude <= 1000:
+            return f"Takeoff: bad altitude {altitude:g} m"
+        self.guided = "takeoff"
+        self.takeoff_alt = altitude
+        self.landed = False
+        self._hold_here()
+        return None
+
+    def condition_yaw(self, angle: float, speed: float, direction: int, relative: bool) -> bool:
+        if not (0 <= angle <= 360 and direction in (-1, 0, 1)):
+            return False
+        if relative:
+            # Relative to the rotation under way, if any (repeated commands add up).
+            step = angle * (direction if direction != 0 else 1)
+            base = self.target_yaw if self.target_yaw is not None else self.yaw
+            self.target_yaw = wrap360(base + step)
+            # The direction gave the offset its sign; the turn itself takes the short
+            # way unless the target is half a turn or more away.
+            left = wrap180(self.target_yaw - self.yaw)
+            self.yaw_dir = 0 if abs(left) < 179 else (1 if step > 0 else -1)
+        else:
+            self.target_yaw = wrap360(angle)
+            self.yaw_dir = direction
+        self.yaw_speed = speed if speed > 0 else DEFAULT_YAW_RATE_DEG_S
+        self.rate_cmd = None
+        self.look_ahead = False
+        return True
+
+    def reposition(self, lat: float, lon: float, alt: float, speed: float | None) -> str | None:
+        if not self.flying:
+            return "Reposition: not flying"
+        north, east = local_offset_m(self.home, (lat, lon))
+        if math.hypot(north, east) > 50_000:
+            return "Reposition: target too far"
+        if self.mode != GUIDED:
+            error = self.set_mode(GUIDED)
+            if error:
+                return error
+        self.guided_position(north, east, alt, yaw=None, yaw_rate=None)
+        self.target_speed = speed if speed and speed > 0 else None
+        return None
+
+    # --- setpoints --------------------------------------------------------------------
+    def guided_velocity(
+        self,
+        vn: float,
+        ve: float,
+        vd: float,
+        *,
+        wall: float,
+        yaw: float | None,
+        yaw_rate: float | None,
+    ) -> None:
+        """A velocity setpoint in NED (already rotated from the body frame)."""
+        if self.mode != GUIDED or not self.flying or self.guided == "takeoff":
+            return
+        self.guided = "velocity"
+        self.target_vel = (vn, ve, -vd)
+        self.target_vel_wall = wall
+        self._setpoint_yaw(yaw, yaw_rate)
+
+    def guided_position(
+        self, north: float, east: float, up: float, *, yaw: float | None, yaw_rate: float | None
+    ) -> bool:
+        if self.mode != GUIDED or not self.flying:
+            return False
+        self.guided = "position"
+        self.target_pos = (north, east, max(0.0, up))
+        self._setpoint_yaw(yaw, yaw_rate)
+        return True
+
+    def _setpoint_yaw(self, yaw: float | None, yaw_rate: float | None) -> None:
+        if yaw is not None:
+            self.target_yaw, self.yaw_dir = wrap360(yaw), 0
+            self.yaw_speed, self.rate_cmd, self.look_ahead = DEFAULT_YAW_RATE_DEG_S, None, False
+        elif yaw_rate is not None:
+            self.target_yaw, self.rate_cmd, self.look_ahead = None, yaw_rate, False
+        else:
+            # ArduCopter: a setpoint without yaw or yaw rate resets yaw to the default
+            # behaviour, WP_YAW_BEHAVIOR (1: face the direction of travel).
+            self.target_yaw, self.rate_cmd = None, None
+            self.look_ahead = self.p("WP_YAW_BEHAVIOR") != 0
+
+    def _target_yaw(
+        self, target: PositionTarget, *, body: bool
+    ) -> tuple[float | None, float | None]:
+        yaw = None if target.type_mask & TYPE_MASK_YAW else math.degrees(target.yaw)
+        if yaw is not None and body:
+            yaw += self.yaw  # ArduCopter: yaw in a body frame is relative
+        rate = None if target.type_mask & TYPE_MASK_YAW_RATE else math.degrees(target.yaw_rate)
+        return yaw, rate
+
+    def local_target(self, target: PositionTarget, wall: float) -> None:
+        frame, mask = target.frame, target.type_mask
+        if frame not in (1, 7, 8, 9, 12):
+            return  # ArduCopter ignores other frames
+        yaw, yaw_rate = self._target_yaw(target, body=frame in BODY_FRAMES)
+        heading = math.radians(self.yaw)
+
+        def to_ned(x: float, y: float) -> tuple[float, float]:
+            if frame not in BODY_FRAMES:
+                return x, y
+            return (
+                x * math.cos(heading) - y * math.sin(heading),
+                x * math.sin(heading) + y * math.cos(heading),
+            )
+
+        if not mask & TYPE_MASK_VEL and mask & TYPE_MASK_POS == TYPE_MASK_POS:
+            vn, ve = to_ned(target.vx, target.vy)
+            self.guided_velocity(vn, ve, target.vz, wall=wall, yaw=yaw, yaw_rate=yaw_rate)
+        elif not mask & TYPE_MASK_POS:
+            north, east = to_ned(target.x, target.y)
+            up = -target.z
+            if frame in OFFSET_FRAMES:
+                north, east, up = north + self.north, east + self.east, up + self.up
+            self.guided_position(north, east, up, yaw=yaw, yaw_rate=yaw_rate)
+
+    def global_target(self, target: PositionTarget, wall: float) -> None:
+        mask = target.type_mask
+        if target.frame not in (0, 3, 5, 6, 10, 11):
+            return
+        yaw, yaw_rate = self._target_yaw(target, body=False)
+        if not mask & TYPE_MASK_POS:
+            north, east = local_offset_m(self.home, (target.x, target.y))
+            relative = target.frame in (3, 6, 10, 11)
+            alt = target.z if relative else target.z - self.home_alt_amsl
+            self.guided_position(north, east, alt, yaw=yaw, yaw_rate=yaw_rate)
+        elif not mask & TYPE_MASK_VEL:
+            self.guided_velocity(
+                target.vx, target.vy, target.vz, wall=wall, yaw=yaw, yaw_rate=yaw_rate
+            )
+
+    # --- the GCS fail-safe --------------------------------------------------------------
+    def gcs_failsafe_after_s(self) -> float | None:
+        """FS_GCS_TIMEOUT, while FS_GCS_ENABLE is not 0."""
+        return None if self.p("FS_GCS_ENABLE") == 0 else self.p("FS_GCS_TIMEOUT")
+
+    def gcs_failsafe(self) -> bool:
+        """On the ground: disarm; flying: the mode FS_GCS_ENABLE names, else LAND."""
+        self.say(MAV.MAV_SEVERITY_CRITICAL, "GCS Failsafe")
+        if self.landed:
+            self.disarm(force=True)
+            return True
+        mode = FS_GCS_MODES.get(int(self.p("FS_GCS_ENABLE")), LAND)
+        if self.set_mode(mode) is not None:
+            self.set_mode(LAND)
+        return True
+
+    # --- physics ----------------------------------------------------------------------
+    def step(self, dt: float, wall: float) -> None:
+        """Advance the flight by ``dt`` seconds of flight time (``wall``: wall clock)."""
+        self.sim_time += dt
+        self._origin_check()
+        self._battery(dt, 1.0 if self.flying else 0.2)
+        if not self.armed:
+            self.vn = self.ve = 0.0
+            self.vu = -5.0 if self.up > 0 else 0.0  # disarmed in the air: it falls
+            self._integrate(dt)
+            return
+        desired = self._desired_velocity(wall)
+        horizontal_accel = self.p("WPNAV_ACCEL") / 100.0 * (2.0 if self.mode == BRAKE else 1.0)
+        dv = horizontal_accel * dt
+        self.vn = approach(self.vn, desired[0], dv)
+        self.ve = approach(self.ve, desired[1], dv)
+        self.vu = approach(self.vu, desired[2], 5.0 * dt)
+        self._integrate(dt)
+        self._yaw(dt)
+        self._ground(desired[2])
+        self._auto_disarm()
+
+    def _integrate(self, dt: float) -> None:
+        self.north += self.vn * dt
+        self.east += self.ve * dt
+        self.up += self.vu * dt
+        if self.up <= 0.0:
+            self.up = 0.0
+            self.vu = max(self.vu, 0.0)
+
+    def _ground(self, climb_wanted: float) -> None:
+        if self.up <= 0.02 and climb_wanted <= 0.0:
+            if not self.landed:
+                self.landed = True
+                self.landed_since = self.sim_time
+                self.vn = self.ve = 0.0
+                if self.mode in (LAND, RTL, SMART_RTL):
+                    self._disarm("Land complete, disarming")
+        elif self.up > 0.2:
+            self.landed = False
+
+    def _auto_disarm(self) -> None:
+        # ArduCopter disarms a copter left armed on the ground (DISARM_DELAY seconds).
+        delay = self.p("DISARM_DELAY")
+        if (
+            self.armed
+            and self.landed
+            and self.guided != "takeoff"
+            and delay > 0
+            and self.sim_time - self.landed_since > delay
+        ):
+            self._disarm("Auto disarm: landed")
+
+    def _speed_limits(self) -> tuple[float, float, float]:
+        horizontal = self.p("WPNAV_SPEED") / 100.0
+        return horizontal, self.p("WPNAV_SPEED_UP") / 100.0, self.p("WPNAV_SPEED_DN") / 100.0
+
+    def _towards(
+        self, target: tuple[float, float, float], speed: float | None = None
+    ) -> tuple[float, float, float]:
+        """A velocity that flies to ``target`` and slows down on arrival."""
+        h_max, up_max, down_max = self._speed_limits()
+        if speed is not None:
+            h_max = min(h_max, speed) if speed > 0 else h_max
+        gain = 1.0  # 1/s: the last metre is flown at under 1 m/s
+        vn, ve = clamp_norm((target[0] - self.north) * gain, (target[1] - self.east) * gain, h_max)
+        vu = max(-down_max, min(up_max, (target[2] - self.up) * gain))
+        return vn, ve, vu
+
+    def _desired_velocity(self, wall: float) -> tuple[float, float, float]:
+        if self.landed and not (self.mode == GUIDED and self.guided == "takeoff"):
+            return (0.0, 0.0, 0.0)
+        mode = self.mode
+        if mode == GUIDED:
+            return self._guided(wall)
+        if mode == LAND:
+            return self._land()
+        if mode in (RTL, SMART_RTL):
+            return self._rtl()
+        return self._towards(self.hold)  # LOITER, BRAKE, POSHOLD, ALT_HOLD, ...
+
+    def _guided(self, wall: float) -> tuple[float, float, float]:
+        h_max, up_max, down_max = self._speed_limits()
+        if self.guided == "takeoff":
+            target = (self.hold[0], self.hold[1], self.takeoff_alt)
+            if self.up >= self.takeoff_alt - 0.05:
+                self.guided = "idle"
+                self.hold = target
+            vn, ve, _ = self._towards(target)
+            return vn, ve, min(up_max, max(0.3, (self.takeoff_alt - self.up) * 1.5))
+        if self.guided == "velocity":
+            if wall - self.target_vel_wall > self.p("GUID_TIMEOUT"):
+                # ArduCopter: no setpoint for GUID_TIMEOUT seconds -> stop.
+                self.guided = "idle"
+                self.rate_cmd = None
+                self._hold_here()
+                return self._towards(self.hold)
+            vn, ve = clamp_norm(self.target_vel[0], self.target_vel[1], h_max)
+            vu = max(-down_max, min(up_max, self.target_vel[2]))
+            return vn, ve, vu
+        if self.guided == "position" and self.target_pos is not None:
+            return self._towards(self.target_pos, self.target_speed)
+        return self._towards(self.hold)
+
+    def _land(self) -> tuple[float, float, float]:
+        high = self.p("LAND_SPEED_HIGH") or self.p("WPNAV_SPEED_DN")
+        speed = high if self.up > self.p("LAND_ALT_LOW") / 100.0 else self.p("LAND_SPEED")
+        vn, ve, _ = self._towards(self.hold)
+        return vn, ve, -speed / 100.0
+
+    def _rtl(self) -> tuple[float, float, float]:
+        rtl_alt = max(self.p("RTL_ALT") / 100.0, self.up + self.p("RTL_CLIMB_MIN") / 100.0)
+        if self.rtl_stage == "climb":
+            if math.hypot(self.north, self.east) < 2.0:
+                self.rtl_stage = "loiter"  # already home: no need to climb
+                self.rtl_loiter_until = self.sim_time + self.p("RTL_LOIT_TIME") / 1000.0
+            elif self.up >= rtl_alt - 0.2:
+                self.rtl_stage = "return"
+                self.hold = (0.0, 0.0, self.up)
+            else:
+                self.hold = (self.north, self.east, rtl_alt)
+                return self._towards(self.hold)
+        if self.rtl_stage == "return":
+            speed = self.p("RTL_SPEED") / 100.0 or None
+            if math.hypot(self.north, self.east) < 0.3:
+                self.rtl_stage = "loiter"
+                self.rtl_loiter_until = self.sim_time + self.p("RTL_LOIT_TIME") / 1000.0
+            return self._towards(self.hold, speed)
+        if self.rtl_stage == "loiter":
+            self.hold = (0.0, 0.0, self.up)
+            if self.sim_time >= self.rtl_loiter_until:
+                self.rtl_stage = "land"
+            return self._towards(self.hold)
+        return self._land()
+
+    def _yaw(self, dt: float) -> None:
+        before = self.yaw
+        if self.target_yaw is not None:
+            error = wrap180(self.target_yaw - self.yaw)
+            if self.yaw_dir > 0 and error < 0 and abs(error) > 1:
+                error += 360.0
+            elif self.yaw_dir < 0 and error > 0 and abs(error) > 1:
+                error -= 360.0
+            step = self.yaw_speed * dt
+            if abs(error) <= step:
+                self.yaw = self.target_yaw
+                self.target_yaw = None
+            else:
+                self.yaw = wrap360(self.yaw + math.copysign(step, error))
+        elif self.rate_cmd is not None and self.guided == "velocity":
+            self.yaw = wrap360(self.yaw + self.rate_cmd * dt)
+        elif (
+            self.look_ahead
+            and self.guided == "velocity"
+            and math.hypot(self.vn, self.ve) > 0.05 * self.p("WPNAV_SPEED") / 100.0
+        ):
+            course = math.degrees(math.atan2(self.ve, self.vn))
+            error = wrap180(course - self.yaw)
+            step = DEFAULT_YAW_RATE_DEG_S * dt
+            self.yaw = wrap360(self.yaw + max(-step, min(step, error)))
+        self.yaw_rate = wrap180(self.yaw - before) / dt if dt > 0 else 0.0
+
+    # --- what the autopilot reports ---------------------------------------------------
+    def landed_state(self) -> int:
+        if not self.armed or self.landed:
+            return int(MAV.MAV_LANDED_STATE_ON_GROUND)
+        if self.mode == GUIDED and self.guided == "takeoff":
+            return int(MAV.MAV_LANDED_STATE_TAKEOFF)
+        if self.mode == LAND or (self.mode == RTL and self.rtl_stage == "land"):
+            return int(MAV.MAV_LANDED_STATE_LANDING)
+        return int(MAV.MAV_LANDED_STATE_IN_AIR)

@@ -1,0 +1,75 @@
+"""The simulated autopilots' parameters, as each release names them.
+
+A table maps a name to ``(default, is_integer)``, in the units and with the defaults the
+firmware ships (ArduCopter: cm, cm/s, ms), in the order the
+autopilot indexes them (PARAM_VALUE's ``param_index``). Only the parameters the
+simulator acts on, and those the agent or a ground station reads, are here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+#: ArduCopter 4.5.
+COPTER_PARAMS: Mapping[str, tuple[float, bool]] = {
+    "SYSID_THISMAV": (1, True),
+    "SYSID_MYGCS": (255, True),
+    "FS_GCS_ENABLE": (0, True),
+    "FS_GCS_TIMEOUT": (5.0, False),
+    "FS_OPTIONS": (0, True),
+    "RTL_ALT": (1500, True),
+    "RTL_ALT_FINAL": (0, True),
+    "RTL_CLIMB_MIN": (0, True),
+    "RTL_LOIT_TIME": (5000, True),
+    "RTL_SPEED": (0, True),
+    "WPNAV_SPEED": (500.0, False),
+    "WPNAV_SPEED_UP": (250.0, False),
+    "WPNAV_SPEED_DN": (150.0, False),
+    "WPNAV_ACCEL": (250.0, False),
+    "LAND_SPEED": (50, True),
+    "LAND_SPEED_HIGH": (0, True),
+    "LAND_ALT_LOW": (1000, True),
+    "DISARM_DELAY": (10, True),
+    "GUID_TIMEOUT": (3.0, False),
+    "WP_YAW_BEHAVIOR": (1, True),
+    "ARMING_CHECK": (1, True),
+    "BATT_CAPACITY": (5200, True),
+    "BATT_ARM_VOLT": (0.0, False),
+    "PILOT_TKOFF_ALT": (0.0, False),
+}
+
+#: The simulated vehicles (a ``vehicle_class`` of :mod:`..classes`) -> their firmware's
+#: parameters at 4.5.
+VEHICLE_PARAMS: Mapping[str, Mapping[str, tuple[float, bool]]] = {
+    "copter": COPTER_PARAMS,
+}
+
+#: ArduPilot 4.7 moved the MAVLink ids into the MAV_ namespace (a parameter conversion
+#: of March 2025): old name -> new name. SYSID_MYGCS no longer exists there.
+RENAMED_IN_4_7 = {"SYSID_THISMAV": "MAV_SYSID", "SYSID_MYGCS": "MAV_GCS_SYSID"}
+#: ... and added an upper end: GCS ids MAV_GCS_SYSID..MAV_GCS_SYSID_HI when HI >= the id.
+ADDED_IN_4_7: Mapping[str, Mapping[str, tuple[float, bool]]] = {
+    "copter": {"MAV_GCS_SYSID_HI": (0, True)},
+}
+#: The simulated releases: ``--firmware`` -> AUTOPILOT_VERSION's flight_sw_version
+#: (major, minor, patch, type: 255 official, 0 development).
+FIRMWARES = {"4.5": (4, 5, 7, 255), "4.7": (4, 7, 0, 0)}
+#: The simulated release by default: 4.5.7, official.
+DEFAULT_FIRMWARE = "4.5"
+
+
+def firmware_params(firmware: str, vehicle: str = "copter") -> dict[str, tuple[float, bool]]:
+    """The parameter table of ``vehicle``'s firmware (``copter``) at release
+    ``firmware`` (a key of :data:`FIRMWARES`), in index order."""
+    params = dict(VEHICLE_PARAMS[vehicle])
+    if firmware == "4.5":
+        return params
+    table = {RENAMED_IN_4_7.get(name, name): spec for name, spec in params.items()}
+    return {**table, **ADDED_IN_4_7[vehicle]}
+
+
+#: Every parameter name some simulated firmware has (what ``--param`` accepts before the
+#: vehicle and the release are known).
+KNOWN_PARAMS = frozenset(
+    name for f in FIRMWARES for v in VEHICLE_PARAMS for name in firmware_params(f, v)
+)
