@@ -1,9 +1,9 @@
 """The MAVLink simulator: an ArduPilot-like autopilot in a process of its own, playing
-an ArduCopter quadcopter.
+an ArduCopter quadcopter or an ArduRover boat (the adapter options' ``vehicle_class``).
 
 Files: ``autopilot`` (the wire: heartbeats, streams, parameters, commands, the GCS
 fail-safe's clock), ``messages`` (the telemetry it sends), ``vehicle`` (what every
-simulated vehicle shares), ``copter`` (its modes and kinematics),
+simulated vehicle shares), ``copter`` and ``boat`` (their modes and kinematics),
 ``params`` (each firmware's parameters), ``cli`` (``python -m agents sim mavlink``).
 
 :func:`simulation` is the integration's simulator hook (see
@@ -18,8 +18,9 @@ The simulator's parameters (the ``simulator`` option) are its command line's:
 ``speedup``, ``battery_pct``, ``drain_pct_per_min``, ``gps`` (3d, 2d, none),
 ``satellites``, ``heading_deg``, ``home_alt_m``, ``sysid``, ``params`` ({NAME:
 number}, names of the simulated firmware), ``gps_fix_after_s``, ``firmware`` (4.5,
-4.7) and ``stream_rate_hz``; it starts at the adapter's ``origin`` (else
-:data:`SIM_ORIGIN`).
+4.7), ``stream_rate_hz``, and a boat's ``current_mps`` and ``current_towards_deg``; it
+starts at the adapter's ``origin`` (else :data:`SIM_ORIGIN`, or :data:`BOAT_SIM_ORIGIN`
+for a boat).
 """
 
 from __future__ import annotations
@@ -41,15 +42,20 @@ from agents.vehicles.mavlink.sim.autopilot import VEHICLES
 from agents.vehicles.mavlink.sim.cli import cli
 from agents.vehicles.mavlink.sim.params import DEFAULT_FIRMWARE, FIRMWARES, firmware_params
 
-__all__ = ["SIM_ORIGIN", "cli", "simulation", "simulator_command"]
+__all__ = ["BOAT_SIM_ORIGIN", "SIM_ORIGIN", "cli", "simulation", "simulator_command"]
 
 #: Where a simulated copter starts when the options give no ``origin`` (the campus).
 SIM_ORIGIN = (40.6306, -8.6588)
+#: ... and a boat: at sea off Barra beach, west of the demo's Costa Nova station.
+BOAT_SIM_ORIGIN = (40.6443, -8.7540)
 #: Parameters a simulated autopilot starts with unless ``simulator.params`` says
 #: otherwise: what an operator would set on a real one. The copter: the agent's
-#: heartbeat loss -> its GCS fail-safe (RTL).
+#: heartbeat loss -> its GCS fail-safe (RTL). The boat: the same, FS_ACTION RTL (else
+#: Hold), and (see :func:`simulation`) WP_SPEED at the adapter's ``max_speed_mps``,
+#: without which ArduRover caps every speed at its 2 m/s default.
 SIM_DEFAULT_PARAMS: Mapping[str, Mapping[str, float]] = {
     "copter": {"FS_GCS_ENABLE": 1.0},
+    "boat": {"FS_GCS_ENABLE": 1.0, "FS_ACTION": 1.0},
 }
 #: The simulator's command line flag for each parameter.
 FLAGS = {
@@ -113,6 +119,11 @@ def simulator_command(
         values["gps"] = o.choice("gps", "3d", ("3d", "2d", "none"))
     if o.has("firmware"):
         values["firmware"] = o.choice("firmware", DEFAULT_FIRMWARE, FIRMWARES)
+    if vehicle_class == "boat":
+        speed = o.number("current_mps", 0.0, min=0, max=5)
+        towards = o.number("current_towards_deg", 0.0, min=0, max=360)
+        if speed:
+            args += ["--current", f"{speed},{towards}"]
     extra = o.mapping("params")
     if not all(
         isinstance(k, str) and isinstance(v, int | float) and not isinstance(v, bool)
@@ -140,8 +151,13 @@ async def simulation(options: Mapping[str, Any]) -> AsyncIterator[Simulation]:
     RuntimeError when the simulator does not come up."""
     adapter_options, params = simulator_split(options)
     config = MavlinkConfig.from_options(adapter_options)
+    vehicle_class = config.vehicle_class.name
+    boat = vehicle_class == "boat"
     args = simulator_command(
-        params, home=config.origin or SIM_ORIGIN, vehicle_class=config.vehicle_class.name
+        params,
+        home=config.origin or (BOAT_SIM_ORIGIN if boat else SIM_ORIGIN),
+        vehicle_class=vehicle_class,
+        defaults={"WP_SPEED": config.max_speed_mps} if boat else None,
     )
     env = {
         **os.environ,

@@ -1,8 +1,8 @@
 """An ArduPilot-like MAVLink autopilot for one simulated vehicle: the wire and the
-protocol, apart from the vehicle model (:mod:`.copter`).
+protocol, apart from the vehicle models (:mod:`.copter`, :mod:`.boat`).
 
 It speaks MAVLink 2 through pymavlink the way ArduPilot does for the command set the
-IoUV agent uses (``docs/vehicles/quadcopter.md``):
+IoUV agent uses (``docs/vehicles/quadcopter.md``, ``docs/vehicles/boat.md``):
 
 * HEARTBEAT at 1 Hz: the vehicle's MAV_TYPE, ``MAV_AUTOPILOT_ARDUPILOTMEGA``, base_mode
   flags (custom mode enabled, guided, armed), ``custom_mode`` = the firmware's mode
@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from agents.vehicles.mavlink.dialect import MAV, mavutil, param_name
+from agents.vehicles.mavlink.sim.boat import Boat
 from agents.vehicles.mavlink.sim.copter import Copter
 from agents.vehicles.mavlink.sim.messages import STREAMABLE, Clocks, heartbeat, message
 from agents.vehicles.mavlink.sim.params import DEFAULT_FIRMWARE, FIRMWARES, firmware_params
@@ -56,7 +57,7 @@ from agents.vehicles.mavlink.sim.vehicle import CommandResult, PositionTarget, S
 log = logging.getLogger(__name__)
 
 #: The simulated vehicles by class name (``--vehicle-class``).
-VEHICLES: Mapping[str, type[Copter]] = {"copter": Copter}
+VEHICLES: Mapping[str, type[Copter] | type[Boat]] = {"copter": Copter, "boat": Boat}
 
 #: REQUEST_DATA_STREAM stream ids -> the messages ArduPilot sends in them (those of
 #: them this simulator has), as GCS_MAVLink_Parameters.cpp groups them.
@@ -88,7 +89,7 @@ class SimOptions:
 
     address: str
     home: tuple[float, float]
-    #: The vehicle: ``copter`` (ArduCopter).
+    #: The vehicle: ``copter`` (ArduCopter) or ``boat`` (ArduRover, FRAME_CLASS 2).
     vehicle: str = "copter"
     home_alt_amsl: float = 50.0
     heading_deg: float = 0.0
@@ -107,6 +108,8 @@ class SimOptions:
     gps_fix_after_s: float = 0.0
     #: The simulated release, a key of :data:`~.params.FIRMWARES` (its parameter names).
     firmware: str = DEFAULT_FIRMWARE
+    #: A boat's water current: (m/s, the direction it flows towards in degrees).
+    current: tuple[float, float] = (0.0, 0.0)
 
 
 def vehicle_create(options: SimOptions, params: dict[str, float]) -> SimVehicle:
@@ -121,6 +124,10 @@ def vehicle_create(options: SimOptions, params: dict[str, float]) -> SimVehicle:
         "gps_fix": options.gps_fix,
         "satellites": options.satellites,
     }
+    if options.vehicle == "boat":
+        speed, towards = options.current
+        flow = math.radians(towards)
+        return Boat(**common, current=(speed * math.cos(flow), speed * math.sin(flow)))
     return Copter(**common)
 
 

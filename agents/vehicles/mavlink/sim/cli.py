@@ -1,8 +1,9 @@
 """``python -m agents sim mavlink``: a simulated ArduPilot vehicle on a MAVLink link.
 
 ``python -m agents sim mavlink --listen udpin:127.0.0.1:14550 --home LAT,LON`` serves a
-simulated ArduCopter quadcopter. Point the agent's mavlink adapter, MAVProxy, MAVSDK
-or QGroundControl at it. :func:`cli` prints ``READY <address>`` once the link is open.
+simulated ArduCopter quadcopter; ``--vehicle-class boat`` an ArduRover boat
+(FRAME_CLASS 2). Point the agent's mavlink adapter, MAVProxy, MAVSDK or QGroundControl
+at it. :func:`cli` prints ``READY <address>`` once the link is open.
 """
 
 from __future__ import annotations
@@ -28,8 +29,9 @@ from agents.vehicles.mavlink.sim.params import (
     firmware_params,
 )
 
-#: Where a vehicle sits at start (AMSL, m) unless ``--home-alt`` says otherwise.
-HOME_ALT_M = {"copter": 50.0}
+#: Where a vehicle sits at start (AMSL, m) unless ``--home-alt`` says otherwise: a
+#: copter's field, a boat's sea level.
+HOME_ALT_M = {"copter": 50.0, "boat": 0.0}
 
 
 def _latlon(text: str) -> tuple[float, float]:
@@ -62,14 +64,25 @@ def _positive(text: str) -> float:
     return value
 
 
+def _current(text: str) -> tuple[float, float]:
+    try:
+        speed_s, towards_s = text.split(",")
+        speed, towards = float(speed_s), float(towards_s)
+    except ValueError:
+        raise argparse.ArgumentTypeError("expected SPEED,TOWARDS: m/s and degrees") from None
+    if not (0 <= speed <= 5 and math.isfinite(towards)):
+        raise argparse.ArgumentTypeError("the speed must be within 0..5 m/s")
+    return speed, towards
+
+
 def parse_args(argv: Iterable[str]) -> SimOptions:
     """Parse the command line into :class:`~.autopilot.SimOptions` (argparse exits on
     errors, naming the option)."""
     parser = argparse.ArgumentParser(
         prog="python -m agents sim mavlink",
-        description="Simulated ArduPilot vehicle, an ArduCopter quadcopter (MAVLink 2 over "
-        "UDP, TCP or serial). Point the agent's mavlink adapter, MAVProxy, MAVSDK or "
-        "QGroundControl at it.",
+        description="Simulated ArduPilot vehicle, an ArduCopter quadcopter or an ArduRover "
+        "boat (MAVLink 2 over UDP, TCP or serial). Point the agent's mavlink adapter, "
+        "MAVProxy, MAVSDK or QGroundControl at it.",
     )
     where = parser.add_mutually_exclusive_group()
     where.add_argument(
@@ -86,11 +99,12 @@ def parse_args(argv: Iterable[str]) -> SimOptions:
         "--vehicle-class",
         choices=tuple(VEHICLES),
         default="copter",
-        help="copter: ArduCopter (a quadcopter)",
+        help="copter: ArduCopter (a quadcopter); boat: ArduRover with FRAME_CLASS 2, kept "
+        "on water by the packaged land mask",
     )
     parser.add_argument("--home", type=_latlon, default=(40.6306, -8.6588), help="LAT,LON")
     parser.add_argument(
-        "--home-alt", type=float, default=None, help="home altitude AMSL, m (default 50)"
+        "--home-alt", type=float, default=None, help="home altitude AMSL, m (copter 50, boat 0)"
     )
     parser.add_argument("--heading", type=float, default=0.0, help="initial heading, degrees")
     parser.add_argument("--speedup", type=_positive, default=1.0, help="flight time factor")
@@ -114,7 +128,7 @@ def parse_args(argv: Iterable[str]) -> SimOptions:
         default=DEFAULT_FIRMWARE,
         help="the ArduPilot release simulated: its version and parameter names (4.7 has "
         "MAV_GCS_SYSID, MAV_GCS_SYSID_HI and MAV_SYSID instead of SYSID_MYGCS and "
-        "SYSID_THISMAV)",
+        "SYSID_THISMAV, and ArduRover its FS_GCS_TIMEOUT)",
     )
     parser.add_argument("--sysid", type=int, default=1, help="MAVLink system id")
     parser.add_argument(
@@ -128,6 +142,14 @@ def parse_args(argv: Iterable[str]) -> SimOptions:
         "like ArduPilot's SRn_ parameters; default 1 (ArduPlane's and ArduRover's default), "
         "0: only the streams a ground station asks for (ArduCopter's default)",
     )
+    parser.add_argument(
+        "--current",
+        type=_current,
+        default=(0.0, 0.0),
+        metavar="SPEED,TOWARDS",
+        help="a boat's water current: m/s, and the direction it flows towards in degrees "
+        "(a boat in HOLD drifts with it; LOITER holds against it)",
+    )
     parser.add_argument("--parent-pid", type=int, default=None, help="stop when it exits")
     parser.add_argument("--log-level", default="WARNING")
     args = parser.parse_args(list(argv))
@@ -138,6 +160,8 @@ def parse_args(argv: Iterable[str]) -> SimOptions:
     if not (math.isfinite(args.gps_fix_after) and args.gps_fix_after >= 0):
         parser.error("--gps-fix-after must be 0 or more seconds")
     vehicle = args.vehicle_class
+    if args.current != (0.0, 0.0) and vehicle != "boat":
+        parser.error("--current is a boat's (--vehicle-class boat)")
     params = dict(args.param)
     unknown = set(params) - set(firmware_params(args.firmware, vehicle))
     if unknown:
@@ -166,6 +190,7 @@ def parse_args(argv: Iterable[str]) -> SimOptions:
         stream_rate_hz=max(0.0, args.stream_rate),
         gps_fix_after_s=args.gps_fix_after,
         firmware=args.firmware,
+        current=args.current,
     )
 
 
