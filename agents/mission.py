@@ -19,7 +19,8 @@ vehicle's ordinary commands and reports what happens as session events. Two kind
     ``load_s`` for the parcel to be put on board (``parcel_loaded``), fly it to
     ``dropoff``, descend to ``drop_altitude_m``, release it once
     (``payload_released``) and return home. A vehicle on the surface (a boat: no
-    ``take_off``, no altitude) sails it, without the climbs and descents.
+    ``take_off``, no altitude) sails it, armed first instead of taking off, without
+    the climbs and descents.
 
 Every command goes through :meth:`agents.control.ControlHub.mission_execute`: the same
 lock as users' commands and fail-safes (never interleaved), the task's ceiling and
@@ -441,6 +442,7 @@ class MissionRunner:
 
     async def _take_off_if_needed(self, altitude: float) -> None:
         if self._on_surface():
+            await self._arm_if_needed()
             return
         st = self.adapter.state()
         in_air = self.adapter.telemetry().get("in_air")
@@ -461,6 +463,14 @@ class MissionRunner:
             timeout_s=LEG_MARGIN_S + target / VERTICAL_RATE_MPS,
             what=f"the climb to {target:g} m",
         )
+
+    async def _arm_if_needed(self) -> None:
+        """A vehicle on the surface has nothing to take off, but its autopilot drives
+        only armed (a boat's ArduRover refuses a waypoint before): arm it. Nothing when
+        it is armed already, or has no ``arm`` command (it needs none)."""
+        if self.adapter.state().armed or not any(c.name == "arm" for c in self.adapter.commands()):
+            return
+        await self._command("arm", {})
 
     async def _fly_to(
         self,

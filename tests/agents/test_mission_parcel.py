@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 
 from agents.geo import distance_m, offset
+from agents.geography import land_at
 from agents.mission import MissionError, ParcelMission, mission_parse
 from tests.agents.test_mission import HOME, make_rig, make_task, releases  # noqa: F401
 
@@ -78,3 +79,42 @@ async def test_the_drone_collects_brings_releases_once_and_goes_home(
     rig.accept(make_task(parcel()))
     assert releases(rig.drone) == 1
     assert [e for e, _ in rig.events()].count("payload_released") == 2  # told, not redone
+
+
+#: A boat at sea off Barra beach (the demo's Costa Nova station is 720 m east); the
+#: pickup, the drop-off and the way between them are water.
+BOAT_HOME = (40.6443, -8.7540)
+BOAT_PICKUP = offset(BOAT_HOME, 60, 0)
+BOAT_DROPOFF = offset(BOAT_HOME, 60, 80)
+
+
+async def test_a_boat_sails_the_parcel_mission_on_the_water(
+    make_rig,  # noqa: F811 - the fixture imported above
+) -> None:
+    """No take-off, no descents: the boat is armed, sails to the pickup, waits to be
+    loaded there, sails to the drop-off, releases once, and goes home, where it holds."""
+    rig = await make_rig(vehicle_class="boat", origin=list(BOAT_HOME), simulator={"speedup": 6})
+    assert all(land_at(*p) is False for p in (BOAT_HOME, BOAT_PICKUP, BOAT_DROPOFF))
+    assert rig.drone.state().armed is False
+    rig.accept(make_task(parcel("m-boat", pickup=list(BOAT_PICKUP), dropoff=list(BOAT_DROPOFF))))
+    loaded = await rig.event("parcel_loaded", within=60)
+    assert distance_m((loaded["lat"], loaded["lon"]), BOAT_PICKUP) < 5
+    assert loaded["alt"] is None  # on the surface: nothing to come down from
+    released = await rig.event("payload_released", within=60)
+    assert distance_m((released["lat"], released["lon"]), BOAT_DROPOFF) < 5
+    assert releases(rig.drone) == 1
+    phases = [phase for phase, _ in rig.progress()]
+    assert phases == ["to_pickup", "loading", "to_dropoff", "delivery", "returning"]
+
+    def home_and_holding() -> bool:
+        st = rig.drone.state()
+        return (
+            st.position is not None
+            and distance_m(st.position, BOAT_HOME) < 4
+            and (st.speed_mps or 0) < 0.2
+        )
+
+    await until(home_and_holding, within=60)
+    st = rig.drone.state()
+    assert st.mode == "RTL" and st.armed is True  # a boat holds at home, it does not land
+    assert not rig.events("mission_failed")
