@@ -371,8 +371,9 @@ async def test_a_released_key_stops_the_boat_at_once(make_rig: RigFactory):
     await hold_until(ws, forward, lambda d: d["speed"] > 2.9, 10, 2, "3 m/s")
     released = time.monotonic()
     await watch(ws, lambda d: d["speed"] < 0.05, 3, "the boat to stop")
-    # Hold time, then 3 m/s at 1 m/s/s and 4x: 0.3 + 0.75 s, and a telemetry period.
-    assert time.monotonic() - released < 2.0
+    # Hold time, then 3 m/s at 1 m/s/s and 4x: 0.3 + 0.75 s and a telemetry period;
+    # ArduRover's own timeout could not have stopped it before 3 s.
+    assert time.monotonic() - released < 3.0
     assert rig.texts("target not received last 3secs, stopping") == 0
     await ws.close()
 
