@@ -30,6 +30,8 @@ log = logging.getLogger(__name__)
 
 #: Relayed browsers one agent serves at once (each is a viewer or the controller).
 MAX_RELAYED = 64
+#: Faster than this (m/s) with no task, a vehicle is still on its way home by itself.
+UNDER_WAY_MPS = 0.5
 
 
 class Agent:
@@ -167,8 +169,8 @@ class Agent:
         hub = self.hub
         if hub is not None and hub.task is not None:
             return "in_service"
-        if self._airborne():
-            return "returning"  # still flying home or landing on its own
+        if self._airborne() or self._under_way():
+            return "returning"  # still flying or sailing home, or landing, on its own
         return "idle"
 
     def _airborne(self) -> bool:
@@ -179,6 +181,12 @@ class Agent:
             return True
         altitude = telemetry.get("altitude")
         return isinstance(altitude, int | float) and altitude > 0.5
+
+    def _under_way(self) -> bool:
+        """True while a vehicle on the surface still moves by itself after its task
+        (a boat sailing home): it is not free for another session until it stops."""
+        speed = self.adapter.state().speed_mps
+        return speed is not None and speed > UNDER_WAY_MPS
 
     def _position(self) -> dict[str, float] | None:
         state = self.adapter.state()

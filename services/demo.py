@@ -218,9 +218,9 @@ VEHICLES: dict[str, dict[str, Any]] = {
     },
     "boat-1": {
         "vehicle_type": BOAT,
+        # Launched from the beach at the station, like the lifeguards' own boats; the
+        # sea is to the west.
         "station": COSTA_NOVA,
-        # Moored 200 m west of the station, on the water.
-        "origin": offset((STATIONS[COSTA_NOVA]["lat"], STATIONS[COSTA_NOVA]["lon"]), 0, -200),
         "attributes": {
             "endurance_min": 120,
             "max_range_m": 15000,
@@ -392,9 +392,7 @@ def vehicle_agent_config(
     """
     attrs = vehicle.attributes
     index = sum(1 for _ in vehicle.station.vehicles.filter(name__lt=vehicle.name))
-    origin = VEHICLES.get(vehicle.name, {}).get("origin") or offset(
-        (vehicle.station.lat, vehicle.station.lon), 0.0, 3.0 * index
-    )
+    origin = offset((vehicle.station.lat, vehicle.station.lon), 0.0, 3.0 * index)
     options: dict[str, Any] = {
         **TYPE_OPTIONS.get(vehicle.vehicle_type.name, {}),
         "origin": [round(origin[0], 7), round(origin[1], 7)],

@@ -79,8 +79,9 @@ def demo_services() -> dict[str, DemoService]:
                 "allowed_commands": [
                     name for name in command_names(BOAT_COMMANDS) if name != "release_payload"
                 ],
-                # A boat cannot land; on link loss it holds where it is (LOITER).
-                "failsafe_action": Service.Failsafe.STOP,
+                # A boat cannot land: on link loss it sails home, which is also what
+                # its autopilot's own fail-safe does (FS_ACTION 1) if the agent dies.
+                "failsafe_action": Service.Failsafe.RETURN_TO_HOME,
                 "session_time_limit_s": 900,
                 "max_speed_mps": 3,
                 "geofence_radius_m": 500,

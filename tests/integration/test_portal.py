@@ -116,7 +116,8 @@ async def request_car(world: World, page: Page, *, relay: bool = False) -> str:
 
 async def drive_forward(world: World, page: Page, seconds: float = 1.0) -> float:
     """Hold ArrowUp; returns how far the simulated car moved (metres)."""
-    car = world.agents["car-1"].adapter.sensors  # the simulated world
+    adapter: Any = world.agents["car-1"].adapter  # the car's adapter, on mock pins
+    car = adapter.sensors  # the simulated world
     start = car.pose
     await page.keyboard.down("ArrowUp")
     await asyncio.sleep(seconds)

@@ -1,0 +1,101 @@
+"""The boat, driven from the browser: the demo's "Manual control of a boat" with the
+platform under daphne and the boat's real agent on its ArduRover-like simulator."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+from playwright.async_api import expect
+
+from agents.geo import distance_m
+from agents.geography import is_water
+from fleet.models import Vehicle
+from services.demo import demo_seed
+from services.models import Session
+from tests.browser import chromium_browser, needs_chromium
+from tests.integration.test_portal import PASSWORD, World, controller, demo_agent, wait_for
+from tests.servers import db, platform_process, until
+
+pytestmark = [pytest.mark.django_db(transaction=True), needs_chromium]
+
+
+@pytest.fixture
+async def world(tmp_path: Path) -> AsyncIterator[World]:
+    await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path)
+    with platform_process() as base:
+        async with contextlib.AsyncExitStack() as running:
+            agent, _ = await running.enter_async_context(demo_agent(tmp_path / "boat-1.json", base))
+
+            async def online() -> bool:
+                ready = Vehicle.objects.filter(name="boat-1", status="idle", lat__isnull=False)
+                return await db(ready.exists)
+
+            await until(online, within=30, what="boat-1 online with a position")
+            async with chromium_browser(webrtc_loopback=True) as browser:
+                yield World(base, browser, {"boat-1": agent})
+
+
+async def test_client_steers_the_boat_from_the_browser(world: World) -> None:
+    page = await world.login("client")
+    await page.click("[data-service=drive-boat] a.button")
+    await page.select_option("#id_station", label="Costa Nova station")
+    await page.click("#request-button")
+    await page.wait_for_url("**/sessions/*/")
+    session_id = page.url.rstrip("/").rsplit("/", 1)[-1]
+    await wait_for(page, "c.role === 'controller' && c.stats.framesDecoded > 3")
+    boat = world.agents["boat-1"].adapter
+    # A boat's page: no take-off, no altitude; the arrows steer it.
+    assert await page.locator("[data-command=take_off]").count() == 0
+    assert await page.locator("[data-command=release_payload]").count() == 0
+    assert await page.locator("[data-topic=altitude]").count() == 0
+
+    await page.click("[data-command=arm]")
+    for _ in range(100):
+        if boat.state().armed:
+            break
+        await asyncio.sleep(0.1)
+    assert boat.state().armed
+
+    start = boat.state().position
+    heading = boat.state().heading_deg
+    await page.keyboard.down("ArrowUp")
+    # Held: it gets under way ahead of it.
+    for _ in range(100):
+        if (boat.state().speed_mps or 0) > 1.0:
+            break
+        await asyncio.sleep(0.1)
+    await page.keyboard.down("ArrowLeft")  # and curves to port while both are held
+    await asyncio.sleep(1.5)
+    await page.keyboard.up("ArrowLeft")
+    await page.keyboard.up("ArrowUp")
+    moved = boat.state().position
+    assert start is not None and moved is not None
+    assert distance_m(start, moved) > 2.0
+    turned = ((boat.state().heading_deg or 0) - (heading or 0) + 540) % 360 - 180
+    assert turned < -5, turned  # left: the heading went down
+    # Released: "stop" went out and the boat comes to rest where it is, on the water.
+    for _ in range(80):
+        if (boat.state().speed_mps or 0) < 0.3:
+            break
+        await asyncio.sleep(0.1)
+    assert (boat.state().speed_mps or 0) < 0.3
+    here = boat.state().position
+    assert here is not None and is_water(*here)
+    await expect(page.locator("[data-topic=speed] .value")).not_to_have_text("\u2013")
+    assert await controller(page, "c.stats.refused") == 0
+
+    await page.click("[data-end-session]")
+    await page.wait_for_url(f"{world.base}/")
+    session = await db(Session.objects.get, pk=session_id)
+    assert session.state == Session.State.ENDED
+
+    async def free() -> bool:
+        v = await db(Vehicle.objects.get, name="boat-1")
+        return v.status == Vehicle.Status.IDLE
+
+    # Free again once its agent confirmed the end and it is back, at rest.
+    await until(free, within=60, what="the boat to be free again")
