@@ -423,6 +423,7 @@ def world_build(*, light: int, cars: int, clients: int, link_loss_timeout_ms: in
     light_service = Service.objects.create(
         slug=LIGHT_SERVICE,
         name="Bench assignment",
+        kind="manual_control",
         allowed_commands=["stop"],
         max_sessions_per_user=100_000,
     )
@@ -432,6 +433,7 @@ def world_build(*, light: int, cars: int, clients: int, link_loss_timeout_ms: in
     car_service = Service.objects.create(
         slug=CAR_SERVICE,
         name="Bench drive",
+        kind="manual_control",
         allowed_commands=CAR_COMMANDS,
         link_loss_timeout_ms=link_loss_timeout_ms,
         failsafe_action="stop",
