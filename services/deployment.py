@@ -41,6 +41,11 @@ class DeploymentError(Exception):
     """The session cannot be deployed or joined now; the message says why."""
 
 
+class NotAssignedYet(DeploymentError):
+    """The session is open but holds no vehicle at the moment (an autonomous kind's
+    workflow has not assigned one yet, or is between vehicles): ask again later."""
+
+
 class InvalidTaskError(DeploymentError):
     """The service's settings (limits, mission) cannot make a valid vehicle task.
     ``session``: the session failed for it, once one was."""
@@ -258,8 +263,8 @@ def grant_issue(
     ``controller``: only the session's own user. ``viewer``: the session's user or anyone
     allowed to use the service (or ``allowed_by``, e.g. a service for watching others'
     sessions); a viewer's grant allows no command. Raises
-    DeploymentError when the session is final or not yet assigned, the user may not
-    have that role, or the role is unknown.
+    NotAssignedYet while the open session holds no vehicle, and DeploymentError when the
+    session is final, the user may not have that role, or the role is unknown.
     """
     if role not in ("controller", "viewer"):
         raise DeploymentError(f"unknown role {role!r}")
@@ -270,7 +275,7 @@ def grant_issue(
         if session.state in FINAL:
             raise DeploymentError(f"the session has {session.state}: {session.reason}")
         if session.state not in LIVE:
-            raise DeploymentError("the session has no vehicle yet")
+            raise NotAssignedYet("the session has no vehicle yet")
         owner = user.pk == session.user_id
         if role == "controller" and not owner:
             raise DeploymentError("only the session's user may control its vehicle")
@@ -279,7 +284,7 @@ def grant_issue(
             raise DeploymentError(f"you may not use the service {permit.name!r}")
         assignments = _active_assignments(session)
         if not assignments:
-            raise DeploymentError("the session has no vehicle")
+            raise NotAssignedYet("the session has no vehicle at the moment")
         return _user_task(session=session, assignment=_primary(assignments), user=user, role=role)
 
 

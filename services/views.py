@@ -19,6 +19,7 @@ from fleet.models import Station
 from services.assignment import AssignmentError
 from services.deployment import (
     DeploymentError,
+    NotAssignedYet,
     grant_issue,
     session_end,
     session_revoke,
@@ -158,6 +159,8 @@ def session_page(request: AuthenticatedHttpRequest, session_id: str) -> HttpResp
             "session": session,
             "summary": session_summary(session),
             "user_task": task,
+            # Open but no vehicle yet: the page asks for its grant once one is assigned.
+            "session_open": session.state not in FINAL,
             "events": log_lines(session),
             **kind.session_context(request=request, session=session),
         },
@@ -174,6 +177,9 @@ def session_grant(request: AuthenticatedHttpRequest, session_id: str) -> JsonRes
         role = _kind(session.service).grant_role(session)
         task = grant_issue(session=session, user=request.user, role=role)
         return JsonResponse(user_task_json(task, request=request))
+    except NotAssignedYet as exc:
+        # The page waits and asks again: the kind's workflow is still finding a vehicle.
+        return JsonResponse({"error": {"code": "no_vehicle_yet", "message": str(exc)}}, status=409)
     except DeploymentError as exc:
         return JsonResponse({"error": {"code": "session_over", "message": str(exc)}}, status=409)
 

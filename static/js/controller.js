@@ -142,6 +142,10 @@
           credentials: "same-origin",
         });
         const body = await response.json();
+        if (!response.ok && body.error && body.error.code === "no_vehicle_yet") {
+          this.reconnect(); // between vehicles: the next one's grant comes soon
+          return;
+        }
         if (!response.ok) {
           this.endSession(body.error ? body.error.message : "the session is over");
           return;
@@ -535,11 +539,42 @@
 
   window.IoUV = { Controller };
 
-  document.addEventListener("DOMContentLoaded", () => {
+  // An open session whose workflow has not assigned a vehicle yet (an autonomous kind
+  // finds one after the request): ask the platform for a grant until it has one, then
+  // connect, so the page needs no reload. Resolves null once the session is over.
+  async function awaitTask(root) {
+    let delay = 1000;
+    for (;;) {
+      try {
+        const response = await fetch(root.dataset.grantUrl, {
+          method: "POST",
+          headers: { "X-CSRFToken": csrfToken(), Accept: "application/json" },
+          credentials: "same-origin",
+        });
+        const body = await response.json();
+        if (response.ok) return body;
+        if (!body.error || body.error.code !== "no_vehicle_yet") return null;
+      } catch (e) {
+        // The platform is unreachable for now: keep asking, a little less often.
+      }
+      await new Promise((r) => setTimeout(r, delay));
+      delay = Math.min(3000, delay + 500);
+    }
+  }
+
+  document.addEventListener("DOMContentLoaded", async () => {
     const root = document.getElementById("controller");
     const data = document.getElementById("user-task");
     if (!root || !data) return;
-    const task = JSON.parse(data.textContent);
+    let task = JSON.parse(data.textContent);
+    if (!task && root.dataset.awaitVehicle === "true") {
+      task = await awaitTask(root);
+      if (!task) {
+        const note = root.querySelector("[data-video-note]");
+        if (note) note.textContent = "No live video.";
+        return;
+      }
+    }
     if (!task) return;
     new Controller(root, task, {
       grantUrl: root.dataset.grantUrl,

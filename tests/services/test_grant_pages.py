@@ -57,3 +57,19 @@ def test_a_fresh_grant_to_reconnect_is_not_stored(client, live) -> None:
     answer = client.post(reverse("session_grant", args=[session.pk]))
     _uncacheable(answer)
     UserGrant.verify(answer.json()["grant"], platform_public_key(), vehicle_id=vehicle_id)
+
+
+def test_a_session_still_waiting_for_its_vehicle_says_so_and_then_the_session_over(
+    client, live
+) -> None:
+    # An autonomous kind's page asks for its grant until a vehicle is assigned: it must
+    # tell "not yet" (ask again) from "over" (stop asking).
+    session, _ = live
+    Session.objects.filter(pk=session.pk).update(state=Session.State.REQUESTED)
+    answer = client.post(reverse("session_grant", args=[session.pk]))
+    assert answer.status_code == 409
+    assert answer.json()["error"]["code"] == "no_vehicle_yet"
+    Session.objects.filter(pk=session.pk).update(state=Session.State.ENDED, reason="done")
+    answer = client.post(reverse("session_grant", args=[session.pk]))
+    assert answer.status_code == 409
+    assert answer.json()["error"]["code"] == "session_over"
