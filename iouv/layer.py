@@ -14,10 +14,13 @@ ready (:func:`relay_store_set`), so this project-level helper depends on no app'
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import logging
+import os
+import time
 from typing import Any, Protocol
 
-from asgiref.sync import async_to_sync
+from asgiref.sync import SyncToAsync, async_to_sync
 from channels.db import database_sync_to_async
 from channels.layers import get_channel_layer
 from django.conf import settings
@@ -31,6 +34,8 @@ CROSS_PROCESS = False
 
 #: How often the ASGI process looks for relayed messages (embedded mode only).
 RELAY_POLL_S = 0.25
+#: How long a push from a worker thread of the ASGI server waits for the server's loop.
+PUSH_TIMEOUT_S = 5.0
 
 _relay_task: asyncio.Task[None] | None = None
 
@@ -77,12 +82,55 @@ def group_send_after_commit(group: str, message: dict[str, Any]) -> None:
     def send() -> None:
         layer = get_channel_layer()
         if layer is not None:
-            async_to_sync(layer.group_send)(group, message)
+            _push(layer, group, message)
 
     # Robust: a push that fails (Redis away, its connections all in use) is logged and
     # lost like any best-effort push; it must not turn the committed change into an
     # error for the caller, nor stop the callbacks after it.
     transaction.on_commit(send, robust=True)
+
+
+def _server_loop() -> asyncio.AbstractEventLoop | None:
+    """The ASGI server's event loop when this thread runs for it (sync_to_async)."""
+    if getattr(SyncToAsync.threadlocal, "main_event_loop_pid", None) != os.getpid():
+        return None
+    loop: asyncio.AbstractEventLoop | None = getattr(
+        SyncToAsync.threadlocal, "main_event_loop", None
+    )
+    return loop
+
+
+def _push(layer: Any, group: str, message: dict[str, Any]) -> None:
+    """``layer.group_send`` from synchronous code.
+
+    In a worker thread of the ASGI server the send runs on the server's loop, as
+    ``async_to_sync`` would run it, but the wait ends if that loop stops: a server
+    shutting down stops its loop while consumers' database work (a closing uplink's
+    "offline", say) is still in threads, and ``async_to_sync`` would then wait for
+    ever, holding the process until it is killed. Elsewhere (a Celery worker, a
+    command) ``async_to_sync`` runs it on a loop of its own.
+    """
+    loop = _server_loop()
+    if loop is None:
+        async_to_sync(layer.group_send)(group, message)
+        return
+    if not loop.is_running():
+        log.info("layer: push to %s dropped, the server is stopping", group)
+        return
+    future = asyncio.run_coroutine_threadsafe(layer.group_send(group, message), loop)
+    deadline = time.monotonic() + PUSH_TIMEOUT_S
+    while True:
+        try:
+            future.result(timeout=0.1)
+            return
+        except concurrent.futures.TimeoutError:
+            if not loop.is_running():
+                future.cancel()
+                log.info("layer: push to %s dropped, the server is stopping", group)
+                return
+            if time.monotonic() > deadline:
+                future.cancel()
+                raise
 
 
 def _take_relayed(limit: int = 200) -> list[tuple[str, dict[str, Any]]]:

@@ -49,3 +49,39 @@ def test_the_server_itself_sends_directly(django_capture_on_commit_callbacks) ->
     with django_capture_on_commit_callbacks(execute=False) as callbacks:
         layer.group_send_after_commit("fleet", {"type": "fleet.changed", "ids": []})
     assert len(callbacks) == 1 and not LayerMessage.objects.exists()
+
+
+@override_settings(CHANNEL_LAYERS=IN_MEMORY)
+async def test_a_push_from_a_server_thread_reaches_a_consumer() -> None:
+    from asgiref.sync import sync_to_async
+
+    channel_layer = get_channel_layer()
+    channel = await channel_layer.new_channel()
+    await channel_layer.group_add("feed-x", channel)
+    # A consumer's synchronous work (in a thread) pushes to the server's loop.
+    await sync_to_async(layer._push)(channel_layer, "feed-x", {"type": "feed.update"})
+    assert (await asyncio.wait_for(channel_layer.receive(channel), 5))["type"] == "feed.update"
+
+
+@override_settings(CHANNEL_LAYERS=IN_MEMORY)
+def test_a_push_while_the_server_stops_is_dropped_instead_of_holding_the_thread() -> None:
+    # A server shutting down stops its loop while a closing uplink's database work is
+    # still in a thread: its push must give up, or the process waits for ever to exit.
+    import threading
+
+    from asgiref.sync import SyncToAsync
+
+    stopped = asyncio.new_event_loop()  # the server's loop, no longer running
+    done = threading.Event()
+
+    def consumer_thread() -> None:
+        SyncToAsync.threadlocal.main_event_loop = stopped
+        SyncToAsync.threadlocal.main_event_loop_pid = __import__("os").getpid()
+        layer._push(get_channel_layer(), "feed-x", {"type": "feed.update"})
+        done.set()
+
+    thread = threading.Thread(target=consumer_thread, daemon=True)
+    thread.start()
+    thread.join(timeout=30)
+    stopped.close()
+    assert done.is_set(), "the push held its thread after the server's loop stopped"
