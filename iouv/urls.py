@@ -1,12 +1,16 @@
 """Root URLs."""
 
 from django.contrib import admin
+from django.templatetags.static import static
 from django.urls import include, path
+from django.views.generic.base import RedirectView
 
 admin.site.site_header = "IoUV administration"
 admin.site.site_title = "IoUV"
 
 urlpatterns = [
+    # Pages that do not name an icon (the admin's) make browsers ask for this one.
+    path("favicon.ico", RedirectView.as_view(url=static("img/favicon.svg"), permanent=True)),
     path("admin/", admin.site.urls),
     path("accounts/", include("accounts.urls")),
     path("api/", include("services.api_urls")),

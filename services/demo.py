@@ -35,8 +35,15 @@ from services.models import Service, ServiceGrant, ServiceRole
 from services.signing import platform_public_key_pem
 
 DEFAULT_PLATFORM_URL = "ws://127.0.0.1:8000"
-LOGIN_URL = "http://127.0.0.1:8000/accounts/login/"
-ADMIN_URL = "http://127.0.0.1:8000/admin/"
+
+
+def site_url(platform_url: str) -> str:
+    """The portal's address for the agents' ``platform_url`` (same host and port)."""
+    for socket_scheme, web_scheme in (("wss://", "https://"), ("ws://", "http://")):
+        if platform_url.startswith(socket_scheme):
+            return web_scheme + platform_url[len(socket_scheme) :].rstrip("/")
+    return platform_url.rstrip("/")
+
 
 # --------------------------------------------------------------------------------------
 # Stations
@@ -282,6 +289,8 @@ _SERVICE_DEFAULTS: dict[str, Any] = {
 
 USERS: dict[str, tuple[str, ...]] = {
     "client": (CLIENT,),
+    # A second client: someone to spectate the first one's vehicle.
+    "client2": (CLIENT,),
     "monitor": (MONITOR,),
     "operator": (OPERATOR,),
     "admin": (ADMIN,),

@@ -69,7 +69,7 @@ def test_seed_twice_changes_nothing_structurally() -> None:
         "services": 7,
         "roles": 8,
         "grants": 7,
-        "users": 4,
+        "users": 5,
     }
 
 
@@ -125,12 +125,13 @@ def test_client_sees_exactly_the_demo_services_and_monitor_none() -> None:
     assert not services_for_user(User.objects.get(username="monitor")).exists()
 
 
-def test_one_user_per_role() -> None:
+def test_one_user_per_role_and_a_second_client_to_spectate() -> None:
     seed = demo_seed(password="pw")
     User = get_user_model()
     for username in ("client", "monitor", "operator", "admin"):
         assert user_roles(User.objects.get(username=username)) == {username}
         assert seed.roles[username] == (username,)
+    assert user_roles(User.objects.get(username="client2")) == {"client"}
     assert User.objects.get(username="admin").is_superuser
     assert not User.objects.get(username="client").is_staff
     assert User.objects.get(username="operator").is_staff
@@ -139,8 +140,8 @@ def test_one_user_per_role() -> None:
 def test_random_passwords_are_fresh_on_every_run() -> None:
     first = demo_seed().passwords
     second = demo_seed().passwords
-    assert set(first) == {"client", "monitor", "operator", "admin"}
-    assert len(set(second.values())) == 4
+    assert set(first) == {"client", "client2", "monitor", "operator", "admin"}
+    assert len(set(second.values())) == 5
     for username, secret in second.items():
         assert first[username] != secret
         assert authenticate(username=username, password=secret) is not None
@@ -150,12 +151,32 @@ def test_random_passwords_are_fresh_on_every_run() -> None:
 def test_password_option_sets_every_user() -> None:
     out = StringIO()
     call_command("seed_demo", password="same-demo-pw", stdout=out, stderr=StringIO())
-    for username in ("client", "monitor", "operator", "admin"):
+    for username in ("client", "client2", "monitor", "operator", "admin"):
         assert authenticate(username=username, password="same-demo-pw") is not None
     text = out.getvalue()
     assert "http://127.0.0.1:8000/accounts/login/" in text
     assert "/admin/" in text
     assert "operator" in text and "same-demo-pw" in text
+
+
+def test_the_logins_name_the_port_the_platform_is_on() -> None:
+    # PORT=8100 bin/demo: the agents and the people are sent to the same port.
+    out = StringIO()
+    call_command("seed_demo", password="pw", platform_url="ws://127.0.0.1:8100", stdout=out)
+    assert "Log in at http://127.0.0.1:8100/accounts/login/" in out.getvalue()
+    assert ":8000" not in out.getvalue()
+
+
+def test_the_logins_can_go_to_a_private_file_instead_of_the_terminal(tmp_path: Path) -> None:
+    # bin/demo shows them last, once its servers are up, instead of in the seed's output.
+    logins = tmp_path / "logins.txt"
+    out = StringIO()
+    call_command("seed_demo", password="file-pw-123", logins_file=logins, stdout=out)
+    assert "file-pw-123" not in out.getvalue()
+    assert stat.S_IMODE(logins.stat().st_mode) == 0o600
+    text = logins.read_text()
+    assert "client2" in text and "file-pw-123" in text
+    assert "http://127.0.0.1:8000/accounts/login/" in text
 
 
 def test_credentials_dir_writes_working_private_configs(tmp_path: Path) -> None:

@@ -9,13 +9,13 @@ from django.contrib.auth.password_validation import validate_password
 from django.core.exceptions import ValidationError
 from django.core.management.base import BaseCommand, CommandError, CommandParser
 
-from services.demo import ADMIN_URL, DEFAULT_PLATFORM_URL, LOGIN_URL, demo_seed
+from services.demo import DEFAULT_PLATFORM_URL, demo_seed, site_url
 
 
 class Command(BaseCommand):
     help = (
         "Create or update the demo world: two stations near Aveiro, the paper's fleet, "
-        "five services and one user per role. Safe to run again."
+        "its services and one user per role (two clients). Safe to run again."
     )
 
     def add_arguments(self, parser: CommandParser) -> None:
@@ -33,6 +33,12 @@ class Command(BaseCommand):
             "--platform-url",
             default=DEFAULT_PLATFORM_URL,
             help=f"Platform URL written into the agent configs (default {DEFAULT_PLATFORM_URL}).",
+        )
+        parser.add_argument(
+            "--logins-file",
+            type=Path,
+            help="Write the users and their passwords into this file (mode 0600) instead "
+            "of printing them, for a caller that shows them once its servers are up.",
         )
 
     def handle(self, *args: Any, **options: Any) -> None:
@@ -55,12 +61,21 @@ class Command(BaseCommand):
             raise CommandError(str(exc)) from exc
 
         self.stdout.write(self.style.SUCCESS("Demo world ready."))
+        site = site_url(options["platform_url"])
         width = max(len("username"), *(len(name) for name in seed.passwords))
-        self.stdout.write(f"\n{'username':<{width}}  {'roles':<10}  password")
+        lines = [f"{'username':<{width}}  {'roles':<10}  password"]
         for username, secret in seed.passwords.items():
             roles = ", ".join(seed.roles.get(username, ()))
-            self.stdout.write(f"{username:<{width}}  {roles:<10}  {secret}")
-        self.stdout.write(f"\nLog in at {LOGIN_URL} (clients) or {ADMIN_URL} (staff).")
+            lines.append(f"{username:<{width}}  {roles:<10}  {secret}")
+        lines.append(f"\nLog in at {site}/accounts/login/ (clients) or {site}/admin/ (staff).")
+        logins: Path | None = options["logins_file"]
+        if logins is not None:
+            logins.parent.mkdir(parents=True, exist_ok=True)
+            logins.touch(mode=0o600)
+            logins.chmod(0o600)  # passwords: readable by this user only
+            logins.write_text("\n".join(lines) + "\n")
+        else:
+            self.stdout.write("\n" + "\n".join(lines))
         if seed.config_paths:
             self.stdout.write(f"\nAgent configs ({len(seed.config_paths)}, fresh credentials):")
             for path in seed.config_paths:
