@@ -289,7 +289,7 @@ _SERVICE_DEFAULTS: dict[str, Any] = {
 
 USERS: dict[str, tuple[str, ...]] = {
     "client": (CLIENT,),
-    # A second client: someone to spectate the first one's vehicle.
+    # A second client, to watch the first one's vehicle while it drives.
     "client2": (CLIENT,),
     "monitor": (MONITOR,),
     "operator": (OPERATOR,),

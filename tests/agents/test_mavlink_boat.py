@@ -357,7 +357,10 @@ async def test_right_turns_on_the_spot_and_forward_with_left_is_a_curve(rig: Rig
     # The chord of a left curve points left of where it started, right of where it ends.
     chord = wrap180(bearing(p0, data["location"]) - h0)
     assert wrap180(data["heading"] - h0) - 5 < chord < -5, (h0, data["heading"], chord)
-    assert distance_m(point(p0), point(data["location"])) > 3
+    # Under way, not turning on the spot (which moves it less than a metre, above): from
+    # rest at ArduRover's 1 m/s/s, 45 degrees at 20 deg/s covers about 3 m, less when
+    # a loaded machine spaces the held keys' repeats.
+    assert distance_m(point(p0), point(data["location"])) > 1.5
     await ws.close()
 
 
