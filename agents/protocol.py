@@ -311,6 +311,21 @@ def _check_action(value: Any, path: str) -> str:
     return str(value)
 
 
+#: The longest description of a safe action a profile may carry (shown in a sentence).
+_MAX_SAFE_ACTION_WORDS: Final = 160
+
+
+def _check_safe_actions(value: Any, path: str) -> dict[str, str]:
+    """What each fail-safe action does to the vehicle, in words: ``{action: words}``."""
+    if not isinstance(value, dict):
+        raise _bad(path, "must be an object")
+    for action, words in value.items():
+        _check_action(action, f"{path}.{action}")
+        if not isinstance(words, str) or not 0 < len(words) <= _MAX_SAFE_ACTION_WORDS:
+            raise _bad(f"{path}.{action}", f"must be 1 to {_MAX_SAFE_ACTION_WORDS} characters")
+    return value
+
+
 def _check_role(value: Any, path: str) -> str:
     if not isinstance(value, str) or value not in ROLES:
         raise _bad(path, f"must be one of {sorted(ROLES)}")
@@ -417,6 +432,7 @@ _TYPES: Final[dict[str, Checker]] = {
     "position": _check_position,
     "battery": _check_battery,
     "action": _check_action,
+    "safe_actions": _check_safe_actions,
     "role": _check_role,
     "rate_hz": _check_rate_hz,
     "control_url": _check_control_url,
@@ -446,6 +462,9 @@ _SCHEMAS: Final[dict[str, dict[str, dict[str, str]]]] = {
             "video": "bool",
             "position": "position|null",
             "battery": "battery|null",
+            # What each fail-safe action does to this vehicle, in words the platform
+            # shows before a user ends a session or a monitor stops it.
+            "safe_actions": "safe_actions?",
             # What the agent is doing as it (re)registers, so the platform can converge
             # it: the session of the task it runs, whether a user controls it, and its
             # status word (as in heartbeats).

@@ -150,6 +150,7 @@ class Agent:
             "telemetry": self.adapter.telemetry_topics(),
             "control_url": self.control_url,
             "video": self.video is not None,
+            "safe_actions": dict(self.adapter.safe_action_words),
             "position": self._position(),
             "battery": state.battery,
             "session_id": task.session_id if task is not None else None,

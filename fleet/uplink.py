@@ -250,6 +250,9 @@ def vehicle_record_profile(*, vehicle_id: Any, profile: dict[str, Any], now: dat
                 "video",
             )
         }
+        # Optional: an agent of an earlier release sends no words for its safe actions.
+        if "safe_actions" in profile:
+            vehicle.profile["safe_actions"] = profile["safe_actions"]
         _set_position(vehicle, profile["position"])
         vehicle.battery = profile["battery"]
         vehicle.last_seen = now

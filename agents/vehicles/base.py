@@ -147,6 +147,14 @@ class Adapter(abc.ABC):
     """
 
     name: ClassVar[str]
+    #: What each fail-safe action (:meth:`safe_action`) does to this vehicle, in words
+    #: that finish "<vehicle> will ...": the platform shows them to a user about to end
+    #: a session and to a monitor about to stop one (sent in the agent's profile).
+    safe_action_words: ClassVar[Mapping[str, str]] = {
+        "stop": "stop",
+        "land": "land where it is",
+        "return_to_home": "go back to its home point",
+    }
 
     def __init__(self, options: Mapping[str, Any]) -> None:
         self.options = dict(options)

@@ -306,7 +306,10 @@ async def test_agent_searches_finds_the_person_and_holds_over_them() -> None:
     thermal = {"source": "synthetic", "persons": [list(PERSON)], "seed": 2}
     video = {"source": "thermal", "ice_host_addresses": ["127.0.0.1"]}
     async with agent_with_platform(thermal, video) as (agent, platform):
-        assert platform.of_type("profile")[0]["video"] is True
+        profile = platform.of_type("profile")[0]
+        assert profile["video"] is True
+        # What its fail-safes do, in the copter's words, for the platform's pages.
+        assert profile["safe_actions"]["land"] == "land where it is"
         await platform.task(search())
         found = await platform.wait(lambda: platform.events("person_detected"), 35, "detection")
         hold = await platform.wait(

@@ -518,6 +518,7 @@ FULL: list[tuple[str, str, dict[str, Any]]] = [
             "session_id": "s-1",
             "controller": True,
             "status": "in_service",
+            "safe_actions": {"stop": "stop where it is", "land": "land where it is"},
         },
     ),
     ("uplink_to_agent", "revoke", {**MINIMAL["uplink_to_agent"]["revoke"], "id": "m-2"}),
@@ -659,6 +660,33 @@ def test_mistyped_field_is_named(
                 "control_url": "http://x",
             },
             "control_url",
+        ),
+        (
+            "uplink_to_platform",
+            {
+                **MINIMAL["uplink_to_platform"]["profile"],
+                "type": "profile",
+                "safe_actions": {"dance": "dance a jig"},
+            },
+            "safe_actions.dance",
+        ),
+        (
+            "uplink_to_platform",
+            {
+                **MINIMAL["uplink_to_platform"]["profile"],
+                "type": "profile",
+                "safe_actions": {"stop": "x" * 161},
+            },
+            "safe_actions.stop",
+        ),
+        (
+            "uplink_to_platform",
+            {
+                **MINIMAL["uplink_to_platform"]["profile"],
+                "type": "profile",
+                "safe_actions": {"land": 3},
+            },
+            "safe_actions.land",
         ),
         (
             "uplink_to_platform",

@@ -46,6 +46,7 @@ PROFILE: dict[str, Any] = {
     "telemetry": ["position", "battery"],
     "control_url": "ws://10.0.0.7:8765/control",
     "video": True,
+    "safe_actions": {"return_to_home": "fly back to its home point and land"},
     "position": {"lat": 40.63, "lon": -8.65, "alt": 12.5},
     "battery": 88,
 }
@@ -214,6 +215,7 @@ async def test_profile_makes_the_vehicle_idle_with_its_control_url():
         assert stored.profile["commands"] == PROFILE["commands"]
         assert stored.profile["telemetry"] == ["position", "battery"]
         assert stored.profile["video"] is True and stored.profile["adapter"] == "sim_drone"
+        assert stored.profile["safe_actions"] == PROFILE["safe_actions"]
         assert (stored.lat, stored.lon, stored.alt, stored.battery) == (40.63, -8.65, 12.5, 88)
         assert connected == [
             {

@@ -95,6 +95,7 @@ class CarAdapter(Adapter):
     """
 
     name = "car"
+    safe_action_words = dict.fromkeys(("stop", "land", "return_to_home"), "stop where it is")
 
     def __init__(self, options: Mapping[str, Any]) -> None:
         super().__init__(options)

@@ -68,6 +68,12 @@ BODY_AXES: dict[str, tuple[float, float, float]] = {
 class CopterAdapter(MavlinkAdapter):
     """An ArduCopter multicopter; see the module docstring."""
 
+    safe_action_words = {
+        "stop": "stop and hover where it is",
+        "land": "land where it is",
+        "return_to_home": "climb to its return altitude, fly back to its home point and land",
+    }
+
     def __init__(self, options: Mapping[str, Any]) -> None:
         super().__init__(options)
         self._takeoff_at = 0.0

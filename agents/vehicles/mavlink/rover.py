@@ -60,6 +60,13 @@ UNDER_WAY_MPS = 0.3
 class RoverAdapter(MavlinkAdapter):
     """An ArduRover rover or boat; see the module docstring."""
 
+    # It cannot land: "land" holds it, as "stop" does.
+    safe_action_words = {
+        "stop": "stop and hold its position",
+        "land": "stop and hold its position",
+        "return_to_home": "go back to its home point and hold there",
+    }
+
     def __init__(self, options: Mapping[str, Any]) -> None:
         super().__init__(options)
         self.hold_mode = self._mode(self.vehicle_class.hold_mode)

@@ -83,6 +83,10 @@ class SpektrumAdapter(Adapter):
     """
 
     name = "spektrum"
+    # A plane cannot stop in the air, nor find its way home over the receiver line.
+    safe_action_words = dict.fromkeys(
+        ("stop", "land", "return_to_home"), "hover in VTOL mode and land where it is"
+    )
 
     def __init__(self, options: Mapping[str, Any]) -> None:
         super().__init__(options)
