@@ -560,7 +560,7 @@ def session_stop(request: AuthenticatedHttpRequest, session_id: Any) -> JsonResp
     _require_perm(request, "services.stop_session", "stop sessions")
     reason = _reason(
         json_body(request, required=False),
-        f"stopped by monitor {request.user.get_username()}",
+        f"stopped by a monitor ({request.user.get_username()})",
     )
     try:
         session = session_revoke(

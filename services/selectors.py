@@ -10,8 +10,26 @@ from services.models import Service, Session
 from services.sessions import FINAL
 
 
+def vehicle_consequence(vehicle: Vehicle, action: str) -> str:
+    """What ``vehicle`` does when its task ends with the fail-safe ``action``, as
+    "<name> will <words>", in the words its agent declared (profile ``safe_actions``),
+    else the action's own name."""
+    words = (vehicle.profile or {}).get("safe_actions", {}).get(action)
+    return f"{vehicle.name} will {words or action.replace('_', ' ')}"
+
+
+def session_consequence(session: Session, vehicles: list[Vehicle]) -> str:
+    """What ending or stopping ``session`` makes its ``vehicles`` do, in one sentence
+    for the person about to press the button."""
+    if not vehicles:
+        return "No vehicle has been sent out for it yet."
+    action = session.service.failsafe_action
+    return "; ".join(vehicle_consequence(v, action) for v in vehicles) + "."
+
+
 def session_summary(session: Session) -> dict[str, Any]:
     """A session as JSON for feeds and the monitor dashboard."""
+    active = list(session.assignments.select_related("vehicle").filter(active=True))
     return {
         "id": str(session.pk),
         "service": session.service.slug,
@@ -25,9 +43,9 @@ def session_summary(session: Session) -> dict[str, Any]:
         "started_at": session.started_at.isoformat() if session.started_at else None,
         "ended_at": session.ended_at.isoformat() if session.ended_at else None,
         "vehicles": [
-            {"role": a.role, "id": str(a.vehicle_id), "name": a.vehicle.name}
-            for a in session.assignments.select_related("vehicle").filter(active=True)
+            {"role": a.role, "id": str(a.vehicle_id), "name": a.vehicle.name} for a in active
         ],
+        "consequence": session_consequence(session, [a.vehicle for a in active]),
         "delivery": session_delivery(session) if session.state in FINAL else [],
     }
 

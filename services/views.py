@@ -204,7 +204,7 @@ def session_stop(request: AuthenticatedHttpRequest, session_id: str) -> HttpResp
     if session.state not in FINAL:
         session_revoke(
             session=session,
-            reason=f"stopped by monitor {request.user.get_username()}",
+            reason=f"stopped by a monitor ({request.user.get_username()})",
             action=session.service.failsafe_action,
         )
     if request.headers.get("accept", "").startswith("application/json"):

@@ -12,6 +12,7 @@ from kinds.parcel_delivery.conf import load_s
 from kinds.parcel_delivery.missions import DEFAULT_SPEED_MPS
 from kinds.parcel_delivery.models import CARRIER, FINAL_DELIVERY, Delivery
 from services.models import Assignment
+from services.selectors import session_consequence
 
 #: The log entries the timeline shows.
 SHOWN = (
@@ -47,7 +48,10 @@ def delivery_json(delivery: Delivery, *, public: bool = False) -> dict[str, Any]
     session = delivery.session
     vehicles = []
     carrier = None
-    for a in Assignment.objects.filter(session_id=delivery.pk).select_related("vehicle__station"):
+    carriers = list(
+        Assignment.objects.filter(session_id=delivery.pk).select_related("vehicle__station")
+    )
+    for a in carriers:
         v = a.vehicle
         entry = {
             "id": str(v.pk),
@@ -84,6 +88,9 @@ def delivery_json(delivery: Delivery, *, public: bool = False) -> dict[str, Any]
         "vehicles": vehicles,
     }
     if not public:
+        # What cancelling now makes the carrier do, for the user's confirmation.
+        active = [a.vehicle for a in carriers if a.active]
+        out["consequence"] = session_consequence(session, active)
         out["timeline"] = [
             {"seq": e.seq, "at": e.created_at.isoformat(), "kind": e.kind, "data": e.data}
             for e in session.events.filter(kind__in=SHOWN).order_by("seq")

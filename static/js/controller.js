@@ -479,6 +479,10 @@
           const s = msg.session;
           const tag = this.root.querySelector("[data-session-state]");
           if (s && tag) { tag.textContent = s.state; tag.className = `tag state-${s.state}`; }
+          if (s && s.consequence) {
+            // What ending it would make the vehicles do now (they change in a mission).
+            for (const form of document.querySelectorAll("form[data-confirm]")) form.dataset.consequence = s.consequence;
+          }
           if (s && ["ended", "failed", "aborted"].includes(s.state)) this.endSession(s.reason);
         };
         feed.onclose = () => { if (!this.over) setTimeout(connect, 2000); };
@@ -498,11 +502,27 @@
       if (this.over) return;
       this.over = true;
       this.releaseAll(false);
-      this.showBanner(`Session over: ${reason || "ended"}`, "info");
+      this.showBanner(`Session over: ${reason || "ended"}.`, "info");
       this.setState("ended");
       this.root.classList.add("over");
       if (this.ws) this.ws.close(1000, "session over");
       this.closeVideo();
+      // Take away what no longer applies: nothing to end, steer or take over, no live
+      // picture; the telemetry stays, marked as the last values received.
+      for (const form of document.querySelectorAll("form[data-confirm]")) form.remove();
+      const take = this.root.querySelector("[data-take-control]");
+      if (take) take.hidden = true;
+      if (this.ui.role) this.ui.role.textContent = "–";
+      if (this.ui.video) this.ui.video.srcObject = null;
+      if (this.ui.videoNote) this.ui.videoNote.textContent = "The session is over: no live video.";
+      if (this.ui.telemetry) {
+        this.ui.telemetry.classList.add("stale");
+        this.ui.telemetry.dataset.stale = "true";
+        this.ui.telemetry.title = "The last values received before the session ended";
+      }
+      for (const [id, text] of [["rtt", "–"], ["interval", "–"]]) {
+        if (this.ui[id]) this.ui[id].textContent = text;
+      }
     }
 
     // --- UI helpers ------------------------------------------------------------------

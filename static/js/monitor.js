@@ -94,9 +94,8 @@
 
   async function stopSession(id, button) {
     const s = sessions.get(id) || {};
-    const names = (s.vehicles || []).map((v) => v.name).join(", ") || "the vehicle";
-    const action = (s.failsafe_action || "stop").replace(/_/g, " ");
-    if (!window.confirm(`Stop ${s.user || "this user"}'s session? ${names} will ${action}, and the user loses control.`)) return;
+    const consequence = s.consequence || "Its vehicles perform their fail-safe.";
+    if (!window.confirm(`Stop ${s.user || "this user"}'s session? ${consequence} The user loses control.`)) return;
     button.disabled = true;
     const token = root.parentElement.querySelector("[name=csrfmiddlewaretoken]").value;
     const response = await fetch(`/sessions/${id}/stop`, {

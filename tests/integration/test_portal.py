@@ -126,6 +126,30 @@ async def drive_forward(world: World, page: Page, seconds: float = 1.0) -> float
     return moved
 
 
+async def end_session(page: Page, *, first_dismiss: bool = False) -> str:
+    """Press End session and confirm (after saying Cancel once, if ``first_dismiss``);
+    returns what the confirmation asked."""
+    asked: list[str] = []
+
+    async def answer(dialog: Any) -> None:
+        asked.append(dialog.message)
+        if first_dismiss and len(asked) == 1:
+            await dialog.dismiss()
+        else:
+            await dialog.accept()
+
+    page.on("dialog", answer)
+    try:
+        if first_dismiss:
+            await page.click("[data-end-session]")
+            await expect(page.locator("[data-end-session]")).to_be_visible()
+        await page.click("[data-end-session]")
+        await page.wait_for_url(re.compile(r"^https?://[^/]+/$"))  # the catalog
+    finally:
+        page.remove_listener("dialog", answer)
+    return asked[-1]
+
+
 async def hold(page: Page, key: str, seconds: float) -> None:
     await page.keyboard.down(key)
     await asyncio.sleep(seconds)
@@ -154,8 +178,11 @@ async def test_client_flies_the_drone_from_the_browser(world: World):
     await expect(page.locator("[data-rtt]")).to_have_text(re.compile(r"\d+\.\d ms"))
     assert await controller(page, "c.stats.refused") == 0
 
-    await page.click("[data-end-session]")
-    await page.wait_for_url(f"{world.base}/")
+    asked = await end_session(page)
+    assert asked == (
+        "End the session? quad-1 will climb to its return altitude, fly back to its home "
+        "point and land."
+    ), asked
     # No longer reserved: "releasing" until its agent confirms the end, then it flies
     # home on its own and shows "returning" until it has landed, when its agent reports
     # it idle again.
@@ -192,8 +219,9 @@ async def test_client_requests_drives_sees_video_and_ends(world: World):
     await expect(page.locator("[data-topic=battery_level] .value")).not_to_have_text("\u2013")
     assert await controller(page, "c.stats.refused") == 0
 
-    await page.click("[data-end-session]")
-    await page.wait_for_url(f"{world.base}/")
+    # Asked first, with what the car will do; Cancel leaves the session as it was.
+    asked = await end_session(page, first_dismiss=True)
+    assert asked == "End the session? car-1 will stop where it is.", asked
     session = await db(Session.objects.get, pk=session_id)
     assert session.state == Session.State.ENDED
 
@@ -261,15 +289,26 @@ async def test_monitor_stops_a_running_session(world: World):
     await row.locator("[data-stop]").click()
 
     await expect(client.locator("[data-banner]")).to_contain_text(
-        "stopped by monitor", timeout=10000
+        "Session over: stopped by a monitor (monitor).", timeout=10000
     )
     await client.keyboard.up("ArrowUp")
+    # The driver's page no longer offers what does not apply: nothing to end or steer,
+    # no live picture, the telemetry marked as the last values received.
+    await expect(client.locator("[data-end-session]")).to_have_count(0)
+    await expect(client.locator("[data-controls]")).to_be_hidden()
+    await expect(client.locator("[data-video-note]")).to_have_text(
+        "The session is over: no live video."
+    )
+    await expect(client.locator("[data-telemetry]")).to_have_attribute("data-stale", "true")
+    await expect(client.locator("[data-session-state]")).to_have_text("aborted")
     assert world.agents["car-1"].adapter.telemetry()["motors"] == {"left": 0.0, "right": 0.0}
     session = await db(Session.objects.get, pk=session_id)
     assert session.state == Session.State.ABORTED and "monitor" in session.reason
     await expect(row).to_have_count(0, timeout=10000)
     # The monitor was told what the car would do, and sees that the stop reached it.
-    assert asked and "car-1 will stop" in asked[0]
+    assert asked == [
+        "Stop client's session? car-1 will stop where it is. The user loses control."
+    ], asked
     delivered = monitor.locator(f"[data-ended-session='{session_id}'] [data-delivery]")
     await expect(delivered).to_contain_text("The stop reached car-1", timeout=10000)
     await expect(delivered).to_have_attribute("data-delivery", "delivered")

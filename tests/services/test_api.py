@@ -414,13 +414,13 @@ def test_a_monitor_stops_a_session_with_the_failsafe(requested, monitor, drone, 
     response = call("POST", f"/sessions/{sid}/stop", token=monitor)
     assert response.status_code == 200
     assert response.json()["state"] == "aborted"
-    assert response.json()["reason"] == "stopped by monitor mona"
+    assert response.json()["reason"] == "stopped by a monitor (mona)"
     (sending,) = response.json()["delivery"]
     assert sending["state"] == "sending" and sending["vehicle"]["name"] == "drone-1"
     revoke = {
         "type": "revoke",
         "session_id": sid,
-        "reason": "stopped by monitor mona",
+        "reason": "stopped by a monitor (mona)",
         "action": "land",
     }
     assert take() == [revoke]

@@ -14,6 +14,7 @@ from django.test import Client
 from django.urls import reverse
 
 from agents.protocol import UserGrant
+from fleet.models import Vehicle
 from services.assignment import session_request
 from services.models import Session
 from services.signing import platform_public_key
@@ -73,3 +74,18 @@ def test_a_session_still_waiting_for_its_vehicle_says_so_and_then_the_session_ov
     answer = client.post(reverse("session_grant", args=[session.pk]))
     assert answer.status_code == 409
     assert answer.json()["error"]["code"] == "session_over"
+
+
+def test_ending_asks_with_what_the_vehicle_will_do_in_its_own_words(client, live) -> None:
+    # The service's fail-safe is "land": the page says what that means for this vehicle,
+    # in the words its agent declared, else by the action's name.
+    session, vehicle_id = live
+    vehicle = Vehicle.objects.get(pk=vehicle_id)
+    html = client.get(reverse("session", args=[session.pk])).content.decode()
+    assert 'data-confirm="End the session?"' in html
+    assert f'data-consequence="{vehicle.name} will land."' in html
+
+    profile = {**vehicle.profile, "safe_actions": {"land": "hover and land where it is"}}
+    Vehicle.objects.filter(pk=vehicle_id).update(profile=profile)
+    html = client.get(reverse("session", args=[session.pk])).content.decode()
+    assert f'data-consequence="{vehicle.name} will hover and land where it is."' in html

@@ -17,7 +17,14 @@ from fleet.models import Vehicle
 from services.demo import demo_seed
 from services.models import Session
 from tests.browser import chromium_browser, needs_chromium
-from tests.integration.test_portal import PASSWORD, World, controller, demo_agent, wait_for
+from tests.integration.test_portal import (
+    PASSWORD,
+    World,
+    controller,
+    demo_agent,
+    end_session,
+    wait_for,
+)
 from tests.servers import db, platform_process, until
 
 pytestmark = [pytest.mark.django_db(transaction=True), needs_chromium]
@@ -88,8 +95,8 @@ async def test_client_steers_the_boat_from_the_browser(world: World) -> None:
     await expect(page.locator("[data-topic=speed] .value")).not_to_have_text("\u2013")
     assert await controller(page, "c.stats.refused") == 0
 
-    await page.click("[data-end-session]")
-    await page.wait_for_url(f"{world.base}/")
+    asked = await end_session(page)
+    assert asked == "End the session? boat-1 will go back to its home point and hold there."
     session = await db(Session.objects.get, pk=session_id)
     assert session.state == Session.State.ENDED
 

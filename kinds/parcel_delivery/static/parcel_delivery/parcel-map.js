@@ -132,10 +132,9 @@
         tag.textContent = state.session.state;
         tag.className = `tag state-${state.session.state}`;
       }
-      if (state.final) {
-        const cancel = document.querySelector("[data-cancel-form]");
-        if (cancel) cancel.remove();
-      }
+      const cancel = document.querySelector("[data-cancel-form]");
+      if (cancel && state.final) cancel.remove();
+      else if (cancel && state.consequence) cancel.dataset.consequence = state.consequence;
       const list = document.querySelector("[data-delivery-vehicles]");
       if (list) {
         list.replaceChildren(...state.vehicles.map((v) => {
