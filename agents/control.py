@@ -519,6 +519,7 @@ class ControlHub:
                     for c in self.adapter.commands()
                 ],
                 "telemetry": self.adapter.telemetry_topics(),
+                "telemetry_info": self.adapter.telemetry_info(),
             },
         )
         self.report("user_connected", task.session_id, {"user": grant.user, "role": client.role})

@@ -524,6 +524,8 @@ _SCHEMAS: Final[dict[str, dict[str, dict[str, str]]]] = {
             "vehicle": "object",
             "commands": "commands",
             "telemetry": "list[id]",
+            # How to show each topic: {topic: {label, unit?, decimals?, yes?, no?}}.
+            "telemetry_info": "object?",
         },
         "ack": {"seq": "uint", "ok": "bool", "error": "str|null", "code": "str|null?"},
         "telemetry": {"t": "number", "data": "object"},

@@ -35,6 +35,8 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, ClassVar, Self
 
+from agents.telemetry import TopicInfo, topics_info
+
 logger = logging.getLogger(__name__)
 
 #: Commands that make a vehicle safer; they pass every latency limit.
@@ -190,6 +192,15 @@ class Adapter(abc.ABC):
     @abc.abstractmethod
     def telemetry_topics(self) -> list[str]:
         """Names of the telemetry values :meth:`telemetry` returns."""
+
+    #: How a page shows this integration's own topics (label, unit, precision); the
+    #: generic ones (battery level, altitude, ...) are described in agents.telemetry.
+    telemetry_labels: ClassVar[Mapping[str, TopicInfo]] = {}
+
+    def telemetry_info(self) -> dict[str, dict[str, Any]]:
+        """Every topic of :meth:`telemetry_topics` in words: the ``telemetry_info`` the
+        agent sends browsers with its ``welcome``."""
+        return topics_info(self.telemetry_topics(), self.telemetry_labels)
 
     @abc.abstractmethod
     def telemetry(self) -> dict[str, Any]:

@@ -40,15 +40,25 @@
     return m ? decodeURIComponent(m[1]) : "";
   }
 
-  function formatValue(value) {
+  // A telemetry value in a person's words, by the agent's description of its topic
+  // (telemetry_info: label, unit, decimals, yes/no words): "12.3 m", "armed", "82 %".
+  function formatValue(value, info = {}) {
     if (value === null || value === undefined) return "–";
-    if (typeof value === "number") return Number.isInteger(value) ? String(value) : value.toFixed(2);
-    if (typeof value === "boolean") return value ? "yes" : "no";
-    if (typeof value === "object") {
-      if ("lat" in value && "lon" in value) return `${value.lat.toFixed(6)}, ${value.lon.toFixed(6)}`;
-      return Object.entries(value).map(([k, v]) => `${k} ${formatValue(v)}`).join(" · ");
+    const unit = info.unit ? (info.unit === "°" ? "°" : ` ${info.unit}`) : "";
+    if (typeof value === "number") {
+      const digits = info.decimals ?? (Number.isInteger(value) ? 0 : 2);
+      return `${value.toFixed(digits)}${unit}`;
     }
-    return String(value);
+    if (typeof value === "boolean") return value ? (info.yes || "yes") : (info.no || "no");
+    if (typeof value === "object") {
+      if ("lat" in value && "lon" in value) {
+        const ns = value.lat >= 0 ? "N" : "S";
+        const ew = value.lon >= 0 ? "E" : "W";
+        return `${Math.abs(value.lat).toFixed(5)}° ${ns}, ${Math.abs(value.lon).toFixed(5)}° ${ew}`;
+      }
+      return Object.entries(value).map(([k, v]) => `${k.replace(/_/g, " ")} ${formatValue(v, info)}`).join(" · ");
+    }
+    return String(value).replace(/_/g, " ");
   }
 
   class Controller {
@@ -70,6 +80,7 @@
       this.reconnects = 0;
       this.stats = { acks: 0, refused: 0, telemetry: 0, framesDecoded: 0, failsafes: 0 };
       this.lastRefusal = null;
+      this.telemetryInfo = {}; // topic -> {label, unit, decimals, yes, no}
       this.pc = null;
       this.timers = [];
       this.ui = {
@@ -187,6 +198,7 @@
       this.hideBanner();
       this.setRole(msg.role);
       this.buildControls(msg.commands);
+      this.telemetryInfo = msg.telemetry_info || {};
       if (msg.telemetry.length) {
         this.send({ type: "subscribe", topics: msg.telemetry, rate_hz: TELEMETRY_HZ });
       }
@@ -230,13 +242,16 @@
       const box = this.ui.telemetry;
       if (!box) return;
       for (const [topic, value] of Object.entries(msg.data)) {
+        const info = this.telemetryInfo[topic] || {};
         let row = box.querySelector(`[data-topic="${topic}"]`);
         if (!row) {
+          const plain = topic.replace(/_/g, " ");
+          const label = info.label || plain.charAt(0).toUpperCase() + plain.slice(1);
           row = el("div", { class: "telemetry-row", "data-topic": topic },
-            el("span", { class: "topic" }, topic.replace(/_/g, " ")), el("span", { class: "value" }));
+            el("span", { class: "topic" }, label), el("span", { class: "value" }));
           box.append(row);
         }
-        row.querySelector(".value").textContent = formatValue(value);
+        row.querySelector(".value").textContent = formatValue(value, info);
       }
     }
 

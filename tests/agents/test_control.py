@@ -195,6 +195,18 @@ async def test_controller_drives_the_car_and_acks_carry_seq(rig: Rig):
     await ws.close()
 
 
+async def test_the_welcome_describes_every_topic_in_words(rig: Rig):
+    # The page shows "Battery 82 %", not "battery_level 82.0391": each topic comes with
+    # a label, and numbers with their unit and precision.
+    ws, welcome = await join(rig)
+    info = welcome["telemetry_info"]
+    assert set(info) == set(welcome["telemetry"])
+    assert info["battery_level"] == {"label": "Battery", "unit": "%", "decimals": 0}
+    assert info["distance_ahead"] == {"label": "Obstacle ahead", "unit": "m", "decimals": 2}
+    assert all(entry["label"] and "_" not in entry["label"] for entry in info.values())
+    await ws.close()
+
+
 async def test_telemetry_arrives_at_the_subscribed_rate(rig: Rig):
     ws, _ = await join(rig)
     await ws.send(

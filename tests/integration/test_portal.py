@@ -217,6 +217,15 @@ async def test_client_requests_drives_sees_video_and_ends(world: World):
 
     await expect(page.locator("[data-rtt]")).to_have_text(re.compile(r"\d+\.\d ms"))
     await expect(page.locator("[data-topic=battery_level] .value")).not_to_have_text("\u2013")
+    # Telemetry in words, with units and sensible rounding (the agent describes its topics).
+    battery = page.locator("[data-topic=battery_level]")
+    await expect(battery.locator(".topic")).to_have_text("Battery")
+    await expect(battery.locator(".value")).to_have_text(re.compile(r"^\d+ %$"))
+    await expect(page.locator("[data-topic=distance_ahead] .topic")).to_have_text("Obstacle ahead")
+    await expect(page.locator("[data-topic=heading] .value")).to_have_text(re.compile(r"^\d+°$"))
+    await expect(page.locator("[data-topic=location] .value")).to_have_text(
+        re.compile(r"^\d+\.\d{5}° N, \d+\.\d{5}° W$")
+    )
     assert await controller(page, "c.stats.refused") == 0
 
     # Asked first, with what the car will do; Cancel leaves the session as it was.

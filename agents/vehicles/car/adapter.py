@@ -40,6 +40,7 @@ from typing import Any
 import gpiozero  # type: ignore[import-untyped, unused-ignore]
 
 from agents.geo import offset
+from agents.telemetry import TopicInfo
 from agents.vehicles.base import (
     Adapter,
     AdapterError,
@@ -96,6 +97,12 @@ class CarAdapter(Adapter):
 
     name = "car"
     safe_action_words = dict.fromkeys(("stop", "land", "return_to_home"), "stop where it is")
+    telemetry_labels = {
+        "distance_ahead": TopicInfo("Obstacle ahead", "m", 2),
+        "camera_pan": TopicInfo("Camera pan", "°", 0),
+        "camera_tilt": TopicInfo("Camera tilt", "°", 0),
+        "motors": TopicInfo("Motor power (left, right)", decimals=2),
+    }
 
     def __init__(self, options: Mapping[str, Any]) -> None:
         super().__init__(options)

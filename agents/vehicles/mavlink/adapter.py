@@ -40,6 +40,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from agents.telemetry import TopicInfo
 from agents.vehicles.base import Adapter, AdapterError, CommandSpec, VehicleState
 from agents.vehicles.mavlink.config import MavlinkConfig
 from agents.vehicles.mavlink.dialect import (
@@ -89,6 +90,10 @@ class MavlinkAdapter(Adapter, abc.ABC):
     projections, :meth:`_busy` and :meth:`_stop_moving`."""
 
     name = "mavlink"
+    telemetry_labels = {
+        "autopilot_link": TopicInfo("Autopilot link", yes="up", no="lost"),
+        "ekf_ok": TopicInfo("Position estimate", yes="healthy", no="not healthy"),
+    }
 
     def __init__(self, options: Mapping[str, Any]) -> None:
         super().__init__(options)

@@ -34,6 +34,7 @@ from typing import Any
 import serial  # type: ignore[import-untyped, unused-ignore]
 
 from agents.geo import offset
+from agents.telemetry import TopicInfo
 from agents.vehicles.base import (
     Adapter,
     AdapterError,
@@ -83,6 +84,12 @@ class SpektrumAdapter(Adapter):
     """
 
     name = "spektrum"
+    telemetry_labels = {
+        "throttle": TopicInfo("Throttle (0 to 1)", decimals=2),
+        "channels": TopicInfo("Receiver channels", "µs", 0),
+        "frame_period_ms": TopicInfo("Receiver frame period", "ms", 1),
+        "landing": TopicInfo("Landing", yes="landing", no="no"),
+    }
     # A plane cannot stop in the air, nor find its way home over the receiver line.
     safe_action_words = dict.fromkeys(
         ("stop", "land", "return_to_home"), "hover in VTOL mode and land where it is"
