@@ -5,11 +5,11 @@ from __future__ import annotations
 import pytest
 
 from agents.telemetry import GENERIC_TOPICS, TopicInfo, topics_info
-from agents.vehicles.car.vocabulary import TELEMETRY_TOPICS as CAR_TOPICS
-from agents.vehicles.mavlink.vocabulary import ROVER_TELEMETRY_TOPICS, TELEMETRY_TOPICS
 from agents.vehicles.base import Adapter
 from agents.vehicles.car.adapter import CarAdapter
+from agents.vehicles.car.vocabulary import TELEMETRY_TOPICS as CAR_TOPICS
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
+from agents.vehicles.mavlink.vocabulary import ROVER_TELEMETRY_TOPICS, TELEMETRY_TOPICS
 from agents.vehicles.spektrum.adapter import SpektrumAdapter
 from agents.vehicles.spektrum.vocabulary import TELEMETRY_TOPICS as VTOL_TOPICS
 
