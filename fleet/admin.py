@@ -88,7 +88,7 @@ class VehicleAdmin(UUIDSearchMixin, admin.ModelAdmin[Vehicle]):
         "station",
         "status",
         "maintenance",
-        "battery",
+        "battery_level",
         "last_seen",
     )
     list_filter = ("station", "vehicle_type", "status", "maintenance")
@@ -102,7 +102,7 @@ class VehicleAdmin(UUIDSearchMixin, admin.ModelAdmin[Vehicle]):
         "credential_issued_at",
         "status",
         "maintenance",
-        "battery",
+        "battery_level",
         "position",
         "last_seen",
         "control_url",
@@ -117,7 +117,7 @@ class VehicleAdmin(UUIDSearchMixin, admin.ModelAdmin[Vehicle]):
                 "fields": (
                     "status",
                     "maintenance",
-                    "battery",
+                    "battery_level",
                     "position",
                     "last_seen",
                     "control_url",
@@ -126,6 +126,11 @@ class VehicleAdmin(UUIDSearchMixin, admin.ModelAdmin[Vehicle]):
             },
         ),
     )
+
+    @admin.display(description="battery", ordering="battery")
+    def battery_level(self, vehicle: Vehicle) -> str:
+        # Agents report a float (99.59783016905): a person reads whole percents.
+        return "–" if vehicle.battery is None else f"{vehicle.battery:.0f} %"
 
     @admin.display(description="position")
     def position(self, obj: Vehicle) -> str:

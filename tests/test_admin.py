@@ -84,6 +84,15 @@ def test_vehicle_changelist_lists_the_fleet(as_admin: Client) -> None:
         assert name in response.content.decode()
 
 
+def test_the_battery_reads_in_whole_percents(as_admin: Client) -> None:
+    Vehicle.objects.filter(name="quad-1").update(battery=99.59783016905)
+    page = as_admin.get(reverse(CHANGELIST)).content.decode()
+    assert "100 %" in page and "99.597" not in page
+    quad = Vehicle.objects.get(name="quad-1")
+    detail = as_admin.get(reverse("admin:fleet_vehicle_change", args=[quad.pk])).content.decode()
+    assert "100 %" in detail and "99.597" not in detail
+
+
 def test_vehicle_filters_by_station_and_status(as_admin: Client) -> None:
     coast = Station.objects.get(name="Costa Nova station")
     response = as_admin.get(reverse(CHANGELIST), {"station__id__exact": coast.pk})
