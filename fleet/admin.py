@@ -130,7 +130,7 @@ class VehicleAdmin(UUIDSearchMixin, admin.ModelAdmin[Vehicle]):
     @admin.display(description="battery", ordering="battery")
     def battery_level(self, vehicle: Vehicle) -> str:
         # Agents report a float (99.59783016905): a person reads whole percents.
-        return "–" if vehicle.battery is None else f"{vehicle.battery:.0f} %"
+        return "\u2013" if vehicle.battery is None else f"{vehicle.battery:.0f} %"
 
     @admin.display(description="position")
     def position(self, obj: Vehicle) -> str:
