@@ -106,9 +106,10 @@ def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpRe
 
 
 def log_lines(session: Session) -> list[dict[str, Any]]:
-    """The newest log events, as the session pages list them."""
+    """The latest log events, oldest first (the session's story, in order), as the
+    session pages list them; the page adds newer ones at the end."""
     lines = []
-    for event in session.events.order_by("-seq")[:30]:
+    for event in list(session.events.order_by("-seq")[:30])[::-1]:
         data = event.data if isinstance(event.data, dict) else {}
         detail = data.get("reason") or data.get("cause") or data.get("to") or ""
         lines.append(

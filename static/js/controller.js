@@ -509,7 +509,8 @@
     logEvent(event) {
       if (!this.ui.log) return;
       const detail = event.data && (event.data.reason || event.data.cause || event.data.to || "");
-      this.ui.log.prepend(el("li", {}, el("span", { class: "muted" }, new Date(event.at).toLocaleTimeString()),
+      // In order, the newest last: the log reads as the story of the session.
+      this.ui.log.append(el("li", {}, el("time", { class: "muted", dateTime: event.at }, window.IoUV.clock(event.at)),
         " ", event.kind.replace(/_/g, " "), detail ? ` — ${detail}` : ""));
     }
 
@@ -572,7 +573,7 @@
     }
   }
 
-  window.IoUV = { Controller };
+  window.IoUV = Object.assign(window.IoUV || {}, { Controller });
 
   // An open session whose workflow has not assigned a vehicle yet (an autonomous kind
   // finds one after the request): ask the platform for a grant until it has one, then

@@ -28,7 +28,7 @@
         cell(v.status.replace("_", " "), `status-${v.status}`),
         cell(v.battery === null ? "–" : `${v.battery.toFixed(0)} %`),
         cell(v.position ? `${v.position.lat.toFixed(5)}, ${v.position.lon.toFixed(5)}` : "–"),
-        cell(v.last_seen ? new Date(v.last_seen).toLocaleTimeString() : "never"),
+        cell(v.last_seen ? window.IoUV.clock(v.last_seen) : "never"),
       );
       body.append(tr);
     }
@@ -84,7 +84,7 @@
         const line = document.createElement("div");
         line.className = `delivery delivery-${d.state}`;
         line.dataset.delivery = d.state;
-        const at = d.at ? ` at ${new Date(d.at).toLocaleTimeString()}` : "";
+        const at = d.at ? ` at ${window.IoUV.clock(d.at)}` : "";
         line.textContent = `${d.text}${at}`;
         item.append(line);
       }
@@ -129,7 +129,7 @@
     item.dataset.topic = data.topic || "";
     const where = Number.isFinite(data.lat) && Number.isFinite(data.lon)
       ? ` (${Number(data.lat).toFixed(5)}, ${Number(data.lon).toFixed(5)})` : "";
-    item.textContent = `${new Date(event.at || Date.now()).toLocaleTimeString()} · ${data.message || data.topic}${where}`;
+    item.textContent = `${window.IoUV.clock(event.at || new Date())} · ${data.message || data.topic}${where}`;
     box.prepend(item);
     box.hidden = false;
   }

@@ -12,6 +12,7 @@ import dataclasses
 import math
 import re
 from collections.abc import AsyncIterator
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -227,6 +228,15 @@ async def test_client_requests_drives_sees_video_and_ends(world: World):
         re.compile(r"^\d+\.\d{5}° N, \d+\.\d{5}° W$")
     )
     assert await controller(page, "c.stats.refused") == 0
+    # The session log: one time format (24-hour, local), in order, the newest last,
+    # whether the line came with the page or live from the feed.
+    await expect(page.locator("[data-log] li")).not_to_have_count(0)
+    times = await page.locator("[data-log] li time").evaluate_all(
+        "nodes => nodes.map(n => [n.textContent, n.getAttribute('datetime')])"
+    )
+    assert all(re.fullmatch(r"\d\d:\d\d:\d\d", text) for text, _ in times), times
+    stamps = [iso for _, iso in times]
+    assert stamps == sorted(stamps, key=lambda iso: datetime.fromisoformat(iso)), stamps
 
     # Asked first, with what the car will do; Cancel leaves the session as it was.
     asked = await end_session(page, first_dismiss=True)

@@ -149,7 +149,7 @@
         timeline.replaceChildren(...state.timeline.map((e) => {
           const li = document.createElement("li");
           li.dataset.kind = e.kind;
-          li.innerHTML = `<span class="muted">${escapeHtml(new Date(e.at).toLocaleTimeString())}</span> ${escapeHtml(describe(e))}`;
+          li.innerHTML = `<span class="muted">${escapeHtml(window.IoUV.clock(e.at))}</span> ${escapeHtml(describe(e))}`;
           return li;
         }));
       }

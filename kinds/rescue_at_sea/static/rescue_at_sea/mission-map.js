@@ -200,7 +200,7 @@
         timeline.replaceChildren(
           ...mission.timeline.map((e) => {
             const li = document.createElement("li");
-            const at = new Date(e.at).toLocaleTimeString();
+            const at = window.IoUV.clock(e.at);
             li.innerHTML = `<span class="muted">${escapeHtml(at)}</span> ${escapeHtml(describe(e))}`;
             li.dataset.kind = e.kind;
             return li;
