@@ -79,3 +79,32 @@ def test_wrong_password_is_refused(client):
     response = client.post("/accounts/login/", {"username": "carla", "password": "nope"})
     assert response.status_code == 200
     assert "didn't match" in response.content.decode()
+
+
+@pytest.mark.parametrize(
+    "role, says, links",
+    [
+        (MONITOR, "you are monitor", ["/monitor/"]),
+        (OPERATOR, "you are operator", ["/admin/"]),
+        (None, "Ask an administrator to grant you the client role", []),
+    ],
+)
+def test_an_empty_catalog_says_why_and_where_to_go(client, role, says, links):
+    f.service("drive-car")
+    user = f.user("someone", roles=(role,) if role else ())
+    client.force_login(user)
+    page = client.get("/").content.decode()
+    assert "data-empty-catalog" in page and "No service is open to you." in page
+    assert says in page
+    for link in links:
+        assert f'href="{link}"' in page
+
+
+def test_a_page_that_is_not_there_or_not_yours_answers_in_the_portals_words(client, settings):
+    settings.DEBUG = False
+    client.force_login(f.user("carla"))
+    answer = client.get("/spectate/")  # spectating is not granted to carla
+    assert answer.status_code == 404
+    page = answer.content.decode()
+    assert "data-not-found" in page and "not open to your account (carla)" in page
+    assert 'href="/"' in page
