@@ -23,7 +23,7 @@
     const node = document.createElement(tag);
     for (const [k, v] of Object.entries(attrs || {})) {
       if (k === "class") node.className = v;
-      else if (k.startsWith("data-")) node.setAttribute(k, v);
+      else if (k.includes("-")) node.setAttribute(k, v); // data-*, aria-*
       else node[k] = v;
     }
     for (const child of children) node.append(child);
@@ -306,8 +306,13 @@
           el("h4", {}, group.replace(/_/g, " ")));
         for (const c of list) {
           const label = c.name.replace(/_/g, " ");
-          const button = el("button", { type: "button", class: c.motion ? "cmd motion" : "cmd", "data-command": c.name, title: c.description || label },
-            label, c.key ? el("kbd", {}, c.key === " " ? "Space" : c.key) : "");
+          const keyLabel = c.key === " " ? "Space" : c.key;
+          const button = el("button", {
+            type: "button", class: c.motion ? "cmd motion" : "cmd", "data-command": c.name,
+            title: c.description || label,
+            "aria-label": c.key ? `${label} (key ${keyLabel})` : label,
+          }, label, c.key ? el("kbd", {}, keyLabel) : "");
+          if (c.key) button.setAttribute("aria-keyshortcuts", keyLabel);
           const needed = Object.entries(c.args || {}).filter(([, spec]) => !("default" in spec));
           if (needed.length) {
             // Arguments without a default (a waypoint, say): ask for them beside the button.
@@ -337,14 +342,33 @@
     }
 
     bindInputs() {
+      // A focused on-screen button works from the keyboard as under a finger: Enter or
+      // Space presses it, and a motion is held until the key is let go.
+      const focusedCommand = (e) => {
+        if (e.key !== "Enter" && e.key !== " ") return null;
+        const button = e.target.closest && e.target.closest("button.cmd[data-command]");
+        // Buttons with arguments beside them keep their own click (the form's check).
+        return button && !button.closest(".args") ? button.dataset.command : null;
+      };
       window.addEventListener("keydown", (e) => {
         if (e.target.closest && e.target.closest("input, textarea, select")) return;
+        const focused = focusedCommand(e);
+        if (focused) {
+          e.preventDefault();
+          if (!e.repeat) this.press(focused);
+          return;
+        }
         const name = this.keys.get(keyName(e.key));
         if (!name) return;
         e.preventDefault();
         if (!e.repeat) this.press(name);
       });
       window.addEventListener("keyup", (e) => {
+        const focused = focusedCommand(e);
+        if (focused) {
+          this.release(focused);
+          return;
+        }
         const name = this.keys.get(keyName(e.key));
         if (name) this.release(name);
       });

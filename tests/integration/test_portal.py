@@ -166,6 +166,16 @@ async def test_client_flies_the_drone_from_the_browser(world: World):
     await hold(page, "w", 1.5)  # climb while held
     assert drone.telemetry()["altitude"] > before + 0.5
 
+    # The on-screen buttons work from the keyboard too: the "up" button, focused, climbs
+    # while Enter is held, and says its key to a screen reader.
+    up = page.locator("[data-command=up]")
+    assert await up.get_attribute("aria-label") == "up (key w)"
+    await up.focus()
+    before = drone.telemetry()["altitude"]
+    await hold(page, "Enter", 1.5)
+    assert drone.telemetry()["altitude"] > before + 0.5
+    await up.blur()
+
     start = drone.state().position
     await hold(page, "ArrowUp", 2.0)  # forward while held
     moved = drone.state().position
