@@ -40,6 +40,16 @@
     return m ? decodeURIComponent(m[1]) : "";
   }
 
+  const GAMEPAD_DEAD_ZONE = 0.15;
+  // [axis, key when pushed to the negative side, key when pushed to the positive side]
+  const GAMEPAD_AXES = [[1, "w", "s"], [0, "a", "d"], [3, "ArrowUp", "ArrowDown"], [2, "ArrowLeft", "ArrowRight"]];
+  const GAMEPAD_DPAD = [[12, "ArrowUp"], [13, "ArrowDown"], [14, "ArrowLeft"], [15, "ArrowRight"]];
+  // [button, commands it presses, the first the vehicle has]
+  const GAMEPAD_BUTTONS = [
+    [0, ["land", "stop"]], [1, ["return_to_home"]], [2, ["stop"]], [3, ["take_off"]],
+    [8, ["disarm"]], [9, ["arm"]],
+  ];
+
   // A telemetry value in a person's words, by the agent's description of its topic
   // (telemetry_info: label, unit, decimals, yes/no words): "12.3 m", "armed", "82 %".
   function formatValue(value, info = {}) {
@@ -423,7 +433,7 @@
       for (const [name, hold] of this.held) {
         // Repeat a held command once its last one was acknowledged and the interval
         // passed: on a slow link the rate drops instead of commands piling up.
-        if (!hold.inFlight && now - hold.lastSent >= every) this.command(name);
+        if (!hold.inFlight && now - hold.lastSent >= every) this.command(name, this.heldArgs(name, hold.amount));
       }
       // Forget acks that never came (a dropped relay frame) so holds can continue.
       for (const [seq, sent] of this.pending) {
@@ -445,28 +455,54 @@
       this.send({ type: "ping", t: performance.now() });
     }
 
-    // Gamepad: left stick = w/a/s/d, right stick and d-pad = arrows, A = Space.
+    // Gamepad, in the Standard Gamepad layout. The sticks are proportional: past a dead
+    // zone, a stick held part way sends its commands at that part of the key's own
+    // value (speed, amount, angle), full deflection being the key; left stick = w/a/s/d,
+    // right stick = the arrows (mode 2: throttle and yaw left, pitch and roll right), and
+    // the d-pad = the arrows at full. Buttons act by command: A land (or stop), B return
+    // home, X stop, Y take off, Back disarm, Start arm.
     pollGamepad() {
       const pads = navigator.getGamepads ? navigator.getGamepads() : [];
       const pad = pads && [...pads].find(Boolean);
       if (!pad) return;
-      const dead = 0.5;
-      const want = new Set();
-      const [lx, ly, rx, ry] = pad.axes;
-      if (ly < -dead) want.add("w"); if (ly > dead) want.add("s");
-      if (lx < -dead) want.add("a"); if (lx > dead) want.add("d");
-      if (ry < -dead) want.add("ArrowUp"); if (ry > dead) want.add("ArrowDown");
-      if (rx < -dead) want.add("ArrowLeft"); if (rx > dead) want.add("ArrowRight");
+      const want = new Map(); // command name -> deflection 0..1
+      const byKey = (key, amount) => {
+        const name = this.keys.get(keyName(key));
+        if (name && amount > (want.get(name) || 0)) want.set(name, amount);
+      };
+      for (const [axis, negative, positive] of GAMEPAD_AXES) {
+        const v = pad.axes[axis] || 0;
+        const amount = (Math.abs(v) - GAMEPAD_DEAD_ZONE) / (1 - GAMEPAD_DEAD_ZONE);
+        if (amount > 0) byKey(v < 0 ? negative : positive, Math.min(1, amount));
+      }
       const b = pad.buttons;
-      if (b[12] && b[12].pressed) want.add("ArrowUp");
-      if (b[13] && b[13].pressed) want.add("ArrowDown");
-      if (b[14] && b[14].pressed) want.add("ArrowLeft");
-      if (b[15] && b[15].pressed) want.add("ArrowRight");
-      if (b[0] && b[0].pressed) want.add("Space");
-      this.gamepadKeys = this.gamepadKeys || new Set();
-      for (const key of want) if (!this.gamepadKeys.has(key) && this.keys.has(key)) this.press(this.keys.get(key));
-      for (const key of this.gamepadKeys) if (!want.has(key) && this.keys.has(key)) this.release(this.keys.get(key));
-      this.gamepadKeys = want;
+      for (const [index, key] of GAMEPAD_DPAD) if (b[index] && b[index].pressed) byKey(key, 1);
+      for (const [index, names] of GAMEPAD_BUTTONS) {
+        const name = names.find((n) => this.commands.has(n));
+        if (name && b[index] && b[index].pressed) want.set(name, 1);
+      }
+      this.gamepadHeld = this.gamepadHeld || new Map();
+      for (const [name, amount] of want) {
+        if (!this.gamepadHeld.has(name)) this.press(name);
+        const hold = this.held.get(name);
+        if (hold) hold.amount = amount;
+      }
+      for (const name of this.gamepadHeld.keys()) if (!want.has(name)) this.release(name);
+      this.gamepadHeld = want;
+    }
+
+    // A held command's arguments at ``amount`` (0..1) of each number's default, never
+    // below its minimum; none (the defaults) for a key or a full deflection.
+    heldArgs(name, amount) {
+      if (amount === undefined || amount >= 0.999) return undefined;
+      const spec = this.commands.get(name) || {};
+      const args = {};
+      for (const [arg, a] of Object.entries(spec.args || {})) {
+        if (typeof a.default !== "number") continue;
+        const value = a.default * amount;
+        args[arg] = typeof a.min === "number" ? Math.max(a.min, value) : value;
+      }
+      return args;
     }
 
     // --- video -----------------------------------------------------------------------

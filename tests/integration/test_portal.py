@@ -21,6 +21,7 @@ from playwright.async_api import Browser, Page, expect
 
 from accounts.roles import CLIENT
 from agents.config import AgentConfig
+from agents.geo import distance_m
 from agents.runtime import Agent
 from fleet.models import Vehicle
 from services.demo import demo_seed
@@ -277,6 +278,67 @@ async def request_drone(world: World, page: Page) -> Any:
         await asyncio.sleep(0.1)
     assert drone.telemetry()["altitude"] > 4.5
     return drone
+
+
+#: A gamepad in the Standard Gamepad layout that the test moves (navigator.getGamepads).
+FAKE_GAMEPAD = """
+window.testPad = {
+  id: "test pad", index: 0, connected: true, mapping: "standard",
+  axes: [0, 0, 0, 0],
+  buttons: Array.from({ length: 17 }, () => ({ pressed: false, value: 0 })),
+};
+navigator.getGamepads = () => [window.testPad];
+window.sentCommands = [];
+const send = WebSocket.prototype.send;
+WebSocket.prototype.send = function (data) {
+  const msg = JSON.parse(data);
+  if (msg.type === "command") window.sentCommands.push(msg);
+  return send.call(this, data);
+};
+"""
+
+
+async def test_a_gamepad_flies_the_drone_in_proportion_and_its_buttons_act(world: World):
+    page = await world.login("client")
+    await page.context.add_init_script(FAKE_GAMEPAD)
+    drone = await request_drone(world, page)  # the pages it opens have the pad
+    sent = "(() => window.sentCommands.filter(m => m.name === {!r}).map(m => m.args))()"
+
+    # The right stick pushed about half way forward (past the dead zone): "front" at
+    # half the key's speed; all the way, at the key's own.
+    await page.evaluate("() => { window.testPad.axes[3] = -0.575; }")
+    await page.wait_for_function(f"() => {sent.format('front')}.length >= 3")
+    half = await page.evaluate(f"() => {sent.format('front')}")
+    assert all(abs(args["speed_mps"] - 0.5) < 0.01 for args in half), half
+    start = drone.state().position
+    await page.evaluate("() => { window.testPad.axes[3] = -1; }")
+    await page.wait_for_function(
+        f"() => {sent.format('front')}.some(a => Object.keys(a).length === 0)"
+    )
+    await asyncio.sleep(1.0)
+    await page.evaluate("() => { window.testPad.axes[3] = 0; }")  # let go: the drone stops
+    await page.wait_for_function(f"() => {sent.format('stop')}.length >= 1")
+    moved = drone.state().position
+    assert start is not None and moved is not None and distance_m(start, moved) > 0.05
+    assert await controller(page, "c.stats.refused") == 0
+
+    # A stick inside the dead zone sends nothing.
+    count = await page.evaluate("() => window.sentCommands.length")
+    await page.evaluate("() => { window.testPad.axes[1] = 0.1; }")
+    await page.wait_for_timeout(300)
+    assert await page.evaluate("() => window.sentCommands.length") == count
+
+    # B: return home, once however long it is held.
+    await page.evaluate("() => { window.testPad.buttons[1].pressed = true; }")
+    await page.wait_for_function(f"() => {sent.format('return_to_home')}.length === 1")
+    await page.wait_for_timeout(200)
+    await page.evaluate("() => { window.testPad.buttons[1].pressed = false; }")
+    assert len(await page.evaluate(f"() => {sent.format('return_to_home')}")) == 1
+
+    async def flying_home() -> bool:
+        return drone.telemetry().get("flight_mode") == "RTL"
+
+    await until(flying_home, within=10, what="the drone to fly home (RTL)")
 
 
 async def test_second_user_spectates_the_drone_but_cannot_steer(world: World):
