@@ -6,7 +6,9 @@ from typing import Any
 
 from django.utils import timezone
 
-from kinds.rescue_at_sea.models import FINAL_MISSION, WORKING, Mission
+from agents.geo import distance_m
+from kinds.rescue_at_sea.missions import SEARCH_SPEED_MPS
+from kinds.rescue_at_sea.models import DELIVERY, FINAL_MISSION, SEARCH, WORKING, Mission
 from services.models import Assignment
 
 
@@ -19,6 +21,74 @@ def timeline(mission: Mission) -> dict[str, str]:
             marks[kind] = first.created_at.isoformat()
     marks["completed"] = timezone.now().isoformat()
     return marks
+
+
+def _speed(assignment: Assignment, cap: float | None = None) -> float:
+    """How fast ``assignment``'s vehicle flies its part (as its mission tells it to)."""
+    top = float(assignment.vehicle.attributes.get("max_speed_mps") or SEARCH_SPEED_MPS)
+    return max(0.5, min(top, cap) if cap is not None else top)
+
+
+def _where(assignment: Assignment) -> tuple[float, float] | None:
+    v = assignment.vehicle
+    return (v.lat, v.lon) if v.lat is not None and v.lon is not None else None
+
+
+def mission_phase(mission: Mission, assignments: list[Assignment]) -> dict[str, Any]:
+    """What is happening now, honestly, with how far there is to go and when it should
+    be done: on the way to the area (not "0 of 12 waypoints"), searching with the
+    pattern left, bringing the life jacket, flying home. ``eta_s`` is None when nothing
+    is moving towards a goal (waiting, over) or the vehicle has not said where it is.
+    """
+    active = {a.role: a for a in assignments if a.active}
+    state = mission.state
+    total = len(mission.path)
+    label, detail, remaining = Mission.State(state).label, "", None
+    speed = SEARCH_SPEED_MPS
+    search = active.get(SEARCH)
+    if state == Mission.State.SEARCHING and search is not None and total:
+        speed = _speed(search, mission.speed_mps)
+        here = _where(search)
+        nxt = max(0, mission.progress + 1)
+        if here is not None and nxt < total:
+            legs = sum(
+                distance_m(tuple(mission.path[i]), tuple(mission.path[i + 1]))
+                for i in range(nxt, total - 1)
+            )
+            to_next = distance_m(here, tuple(mission.path[nxt]))
+            if mission.progress < 0:
+                label = "on the way to the search area"
+                detail = f"{to_next:,.0f} m to the first of {total} waypoints"
+            else:
+                label = "searching"
+                detail = f"waypoint {mission.progress + 1} of {total} reached"
+            remaining = to_next + legs
+    delivery = active.get(DELIVERY)
+    if state == Mission.State.DELIVERING and delivery is not None and mission.detection:
+        speed = _speed(delivery)
+        here = _where(delivery)
+        if here is not None:
+            label = "bringing the life jacket"
+            remaining = distance_m(here, (mission.detection["lat"], mission.detection["lon"]))
+            detail = f"{delivery.vehicle.name} is {remaining:,.0f} m from the person"
+    if state == Mission.State.RETURNING:
+        away = []
+        for a in assignments:
+            here, station = _where(a), (a.vehicle.station.lat, a.vehicle.station.lon)
+            if here is not None and distance_m(here, station) > 30:
+                away.append((a, distance_m(here, station)))
+        if away:
+            farthest, remaining = max(away, key=lambda item: item[1])
+            speed = _speed(farthest)
+            label = "flying home"
+            detail = ", ".join(f"{a.vehicle.name} {d:,.0f} m from its station" for a, d in away)
+    eta = remaining / speed if remaining is not None else None
+    return {
+        "label": label,
+        "detail": detail,
+        "remaining_m": round(remaining) if remaining is not None else None,
+        "eta_s": round(eta) if eta is not None else None,
+    }
 
 
 def mission_json(mission: Mission) -> dict[str, Any]:
@@ -76,5 +146,6 @@ def mission_json(mission: Mission) -> dict[str, Any]:
         "detection": mission.detection,
         "released": mission.released_at is not None,
         "vehicles": vehicles,
+        "phase": mission_phase(mission, assignments),
         "timeline": timeline,
     }

@@ -404,6 +404,17 @@ async def test_user_draws_the_area_and_watches_the_mission_on_the_map(tmp_path: 
             "() => { const v = document.querySelector('video'); return v && v.videoWidth > 0; }",
             timeout=30000,
         )
+        # What is happening, in words, with the time left, not "0 of 12 waypoints".
+        # (Read together: at 10x the phases follow each other quickly.)
+        await page.wait_for_function(
+            """() => {
+              const now = document.querySelector("[data-mission-progress]").textContent;
+              const left = document.querySelector("[data-mission-eta]").textContent;
+              return /^(On the way to the search area|Searching|Bringing the life jacket) — /
+                .test(now) && /^about \\d+ (s|min) \\(\\d\\d:\\d\\d\\)$/.test(left);
+            }""",
+            timeout=20000,
+        )
         await expect(page.locator("path.detection-marker")).to_have_count(1, timeout=90000)
         await expect(page.locator("[data-mission-detection]")).to_contain_text("confidence")
         await expect(page.locator("path.vehicle-delivery")).to_have_count(1, timeout=30000)

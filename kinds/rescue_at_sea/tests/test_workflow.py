@@ -504,3 +504,39 @@ def test_a_rescue_requested_through_the_api_runs_its_workflow(world, client_user
     )
     assert bad.status_code == 400 and bad.json()["error"]["field"] == "params.area"
     assert Session.objects.count() == 1
+
+
+def test_the_page_says_what_is_happening_and_how_long_it_will_take(world, client_user) -> None:
+    # Not "0 of 12 waypoints" for minutes: on the way to the area, with the distance and
+    # the time; then searching with the pattern left; then the life jacket on its way.
+    from agents.geo import distance_m
+
+    session = rescue_request(user=client_user, service=world, area=area())
+    step(session)
+    m = mission(session)
+    search = Assignment.objects.get(session=session, role="search").vehicle
+    phase = mission_json(m)["phase"]
+    assert phase["label"] == "on the way to the search area"
+    assert search.lat is not None and search.lon is not None
+    first = distance_m((search.lat, search.lon), tuple(m.path[0]))
+    assert phase["detail"] == f"{first:,.0f} m to the first of {len(m.path)} waypoints"
+    speed = min(search.attributes["max_speed_mps"], m.speed_mps)
+    assert phase["eta_s"] == pytest.approx(phase["remaining_m"] / speed, abs=1)
+    assert phase["remaining_m"] > first  # the whole pattern after it
+
+    # Over the third waypoint: what is left is the rest of the pattern.
+    Mission.objects.filter(pk=m.pk).update(progress=2)
+    Vehicle.objects.filter(pk=search.pk).update(lat=m.path[2][0], lon=m.path[2][1])
+    m = mission(session)
+    phase = mission_json(m)["phase"]
+    assert phase["label"] == "searching"
+    assert phase["detail"] == f"waypoint 3 of {len(m.path)} reached"
+    left = sum(
+        distance_m(tuple(m.path[i]), tuple(m.path[i + 1])) for i in range(2, len(m.path) - 1)
+    )
+    assert phase["remaining_m"] == pytest.approx(left, abs=1)
+
+    # Waiting is not a countdown.
+    Mission.objects.filter(pk=m.pk).update(state=Mission.State.WAITING_DELIVERY)
+    phase = mission_json(mission(session))["phase"]
+    assert phase["eta_s"] is None and "waiting" in phase["label"]

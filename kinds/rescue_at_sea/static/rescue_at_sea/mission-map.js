@@ -176,8 +176,10 @@
         tag.textContent = mission.session.state;
         tag.className = `tag state-${mission.session.state}`;
       }
-      const total = mission.path.length;
-      set("[data-mission-progress]", total ? `${Math.max(0, mission.progress + 1)} of ${total} waypoints` : "–");
+      const phase = mission.phase || {};
+      const detail = phase.detail ? ` — ${phase.detail}` : "";
+      set("[data-mission-progress]", phase.label ? `${phase.label.charAt(0).toUpperCase()}${phase.label.slice(1)}${detail}` : "–");
+      set("[data-mission-eta]", phase.eta_s != null ? `about ${duration(phase.eta_s)} (${window.IoUV.clock(new Date(Date.now() + phase.eta_s * 1000)).slice(0, 5)})` : "–");
       const d = mission.detection;
       set(
         "[data-mission-detection]",
@@ -208,6 +210,12 @@
         );
       }
       node.dataset.missionState = mission.state;
+    }
+
+    function duration(seconds) {
+      if (seconds < 60) return `${Math.max(1, Math.round(seconds / 5) * 5)} s`;
+      const minutes = Math.round(seconds / 60);
+      return minutes < 60 ? `${minutes} min` : `${Math.floor(minutes / 60)} h ${minutes % 60} min`;
     }
 
     function describe(e) {
