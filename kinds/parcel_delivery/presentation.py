@@ -48,10 +48,10 @@ def delivery_json(delivery: Delivery, *, public: bool = False) -> dict[str, Any]
     session = delivery.session
     vehicles = []
     carrier = None
-    carriers = list(
+    assignments = list(
         Assignment.objects.filter(session_id=delivery.pk).select_related("vehicle__station")
     )
-    for a in carriers:
+    for a in assignments:
         v = a.vehicle
         entry = {
             "id": str(v.pk),
@@ -89,7 +89,7 @@ def delivery_json(delivery: Delivery, *, public: bool = False) -> dict[str, Any]
     }
     if not public:
         # What cancelling now makes the carrier do, for the user's confirmation.
-        active = [a.vehicle for a in carriers if a.active]
+        active = [a.vehicle for a in assignments if a.active]
         out["consequence"] = session_consequence(session, active)
         out["timeline"] = [
             {"seq": e.seq, "at": e.created_at.isoformat(), "kind": e.kind, "data": e.data}

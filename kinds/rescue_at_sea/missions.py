@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from fleet.models import Vehicle
 from kinds.rescue_at_sea.models import DELIVERY, SEARCH, Mission
 from services.models import Assignment
 
@@ -16,6 +17,12 @@ DROP_ALTITUDE_M = 4.0
 MIN_CONFIDENCE = 0.6
 
 
+def vehicle_speed(vehicle: Vehicle, cap: float | None = None) -> float:
+    """How fast ``vehicle`` is told to fly its part: its top speed, under ``cap``."""
+    top = float(vehicle.attributes.get("max_speed_mps") or SEARCH_SPEED_MPS)
+    return min(top, cap) if cap is not None else top
+
+
 def vehicle_mission(*, assignment: Assignment) -> dict[str, Any] | None:
     """The ``mission`` signed into ``assignment``'s vehicle task, from the recorded
     state, so a re-sent task carries the same mission (and the same id) as the first.
@@ -24,7 +31,6 @@ def vehicle_mission(*, assignment: Assignment) -> dict[str, Any] | None:
     if mission is None:
         return None
     vehicle = assignment.vehicle
-    top_speed = float(vehicle.attributes.get("max_speed_mps") or SEARCH_SPEED_MPS)
     # The id names the session, the role and this assignment: the agent keeps one
     # running mission per id and never repeats it.
     mission_id = f"{assignment.session_id}-{assignment.role}-{assignment.pk}"
@@ -34,7 +40,7 @@ def vehicle_mission(*, assignment: Assignment) -> dict[str, Any] | None:
             "kind": "search",
             "id": mission_id,
             "altitude_m": mission.altitude_m,
-            "speed_mps": min(top_speed, mission.speed_mps),
+            "speed_mps": vehicle_speed(vehicle, mission.speed_mps),
             "waypoints": mission.path,
             "start_index": start,
             "min_confidence": MIN_CONFIDENCE,
@@ -46,7 +52,7 @@ def vehicle_mission(*, assignment: Assignment) -> dict[str, Any] | None:
             "target": [mission.detection["lat"], mission.detection["lon"]],
             "altitude_m": DELIVERY_ALTITUDE_M,
             "drop_altitude_m": DROP_ALTITUDE_M,
-            "speed_mps": top_speed,
+            "speed_mps": vehicle_speed(vehicle),
         }
     return None
 

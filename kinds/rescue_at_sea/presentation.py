@@ -7,7 +7,7 @@ from typing import Any
 from django.utils import timezone
 
 from agents.geo import distance_m
-from kinds.rescue_at_sea.missions import SEARCH_SPEED_MPS
+from kinds.rescue_at_sea.missions import SEARCH_SPEED_MPS, vehicle_speed
 from kinds.rescue_at_sea.models import DELIVERY, FINAL_MISSION, SEARCH, WORKING, Mission
 from services.models import Assignment
 
@@ -24,9 +24,9 @@ def timeline(mission: Mission) -> dict[str, str]:
 
 
 def _speed(assignment: Assignment, cap: float | None = None) -> float:
-    """How fast ``assignment``'s vehicle flies its part (as its mission tells it to)."""
-    top = float(assignment.vehicle.attributes.get("max_speed_mps") or SEARCH_SPEED_MPS)
-    return max(0.5, min(top, cap) if cap is not None else top)
+    """How fast ``assignment``'s vehicle flies its part, as its mission tells it to
+    (never taken as standing still, whatever its declared speed)."""
+    return max(0.5, vehicle_speed(assignment.vehicle, cap))
 
 
 def _where(assignment: Assignment) -> tuple[float, float] | None:
@@ -75,8 +75,9 @@ def mission_phase(mission: Mission, assignments: list[Assignment]) -> dict[str, 
         away = []
         for a in assignments:
             here, station = _where(a), (a.vehicle.station.lat, a.vehicle.station.lon)
-            if here is not None and distance_m(here, station) > 30:
-                away.append((a, distance_m(here, station)))
+            home_m = distance_m(here, station) if here is not None else 0.0
+            if home_m > 30:
+                away.append((a, home_m))
         if away:
             farthest, remaining = max(away, key=lambda item: item[1])
             speed = _speed(farthest)

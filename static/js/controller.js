@@ -50,6 +50,17 @@
     [8, ["disarm"]], [9, ["arm"]],
   ];
 
+  // A fresh grant for this page's session (a grant is single-use): whether the platform
+  // gave one, and its answer (the user task, or {error: {code, message}}).
+  async function grantFetch(url) {
+    const response = await fetch(url, {
+      method: "POST",
+      headers: { "X-CSRFToken": csrfToken(), Accept: "application/json" },
+      credentials: "same-origin",
+    });
+    return { ok: response.ok, body: await response.json() };
+  }
+
   // A telemetry value in a person's words, by the agent's description of its topic
   // (telemetry_info: label, unit, decimals, yes/no words): "12.3 m", "armed", "82 %".
   function formatValue(value, info = {}) {
@@ -157,17 +168,12 @@
       await new Promise((r) => setTimeout(r, delay));
       if (this.over) return;
       try {
-        const response = await fetch(this.options.grantUrl, {
-          method: "POST",
-          headers: { "X-CSRFToken": csrfToken(), Accept: "application/json" },
-          credentials: "same-origin",
-        });
-        const body = await response.json();
-        if (!response.ok && body.error && body.error.code === "no_vehicle_yet") {
+        const { ok, body } = await grantFetch(this.options.grantUrl);
+        if (!ok && body.error && body.error.code === "no_vehicle_yet") {
           this.reconnect(); // between vehicles: the next one's grant comes soon
           return;
         }
-        if (!response.ok) {
+        if (!ok) {
           this.endSession(body.error ? body.error.message : "the session is over");
           return;
         }
@@ -642,13 +648,8 @@
     let delay = 1000;
     for (;;) {
       try {
-        const response = await fetch(root.dataset.grantUrl, {
-          method: "POST",
-          headers: { "X-CSRFToken": csrfToken(), Accept: "application/json" },
-          credentials: "same-origin",
-        });
-        const body = await response.json();
-        if (response.ok) return body;
+        const { ok, body } = await grantFetch(root.dataset.grantUrl);
+        if (ok) return body;
         if (!body.error || body.error.code !== "no_vehicle_yet") return null;
       } catch (e) {
         // The platform is unreachable for now: keep asking, a little less often.
