@@ -18,6 +18,7 @@ urlpatterns = [
     path("sessions/<uuid:session_id>/end", views.session_finish, name="session_end"),
     path("sessions/<uuid:session_id>/stop", views.session_stop, name="session_stop"),
     path("monitor/", views.monitor, name="monitor"),
+    path("map/land.geo.json", views.land_map, name="land_map"),
     path("healthz", views.healthz, name="healthz"),
     *_kind_urls(),
 ]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 from django.conf import settings
@@ -10,11 +11,12 @@ from django.contrib.auth.decorators import login_required, permission_required
 from django.db import connection
 from django.http import Http404, HttpRequest, HttpResponse, JsonResponse
 from django.shortcuts import get_object_or_404, redirect, render
-from django.views.decorators.cache import never_cache
-from django.views.decorators.http import require_POST
+from django.views.decorators.cache import cache_control, never_cache
+from django.views.decorators.http import require_GET, require_POST
 
 from accounts.roles import user_roles
 from accounts.users import AuthenticatedHttpRequest
+from agents.geography import MASK_PATH
 from fleet.models import Station
 from services.assignment import AssignmentError
 from services.deployment import (
@@ -216,12 +218,40 @@ def session_stop(request: AuthenticatedHttpRequest, session_id: str) -> HttpResp
 @login_required
 @permission_required("fleet.view_fleet", raise_exception=True)
 def monitor(request: AuthenticatedHttpRequest) -> HttpResponse:
-    """The live fleet and every live session, with a stop button per session."""
+    """The live fleet (a table and a map) and every live session, with a stop button per
+    session."""
+    stations = Station.objects.order_by("name")
     return render(
         request,
         "services/monitor.html",
-        {"can_stop": request.user.has_perm("services.stop_session")},
+        {
+            "can_stop": request.user.has_perm("services.stop_session"),
+            "map": {
+                "stations": [{"name": s.name, "lat": s.lat, "lon": s.lon} for s in stations],
+                "tiles": settings.IOUV_MAP_TILES_URL,
+            },
+        },
     )
+
+
+#: How long browsers and proxies may keep the land mask: it changes only with a release
+#: of the platform (a new ``agents/geography/data/land.geo.json``).
+LAND_MAP_MAX_AGE_S = 7 * 24 * 3600
+
+
+@functools.cache
+def _land_map_bytes() -> bytes:
+    # Read once per process: the file is part of the installed code.
+    return MASK_PATH.read_bytes()
+
+
+@cache_control(public=True, max_age=LAND_MAP_MAX_AGE_S)
+@require_GET
+def land_map(request: HttpRequest) -> HttpResponse:
+    """The packaged land mask (GeoJSON: a region's box and its land polygons, © OpenStreetMap
+    contributors, ODbL) that the maps draw as land and sea when no tile server is
+    configured. Public, like any map tile: the recipient's tracking page shows it too."""
+    return HttpResponse(_land_map_bytes(), content_type="application/geo+json")
 
 
 def healthz(request: HttpRequest) -> JsonResponse:

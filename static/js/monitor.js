@@ -1,5 +1,6 @@
-/* IoUV monitor dashboard: the live fleet (/ws/fleet/) and live sessions (/ws/sessions/),
- * with a stop button per session for monitors allowed to stop one. */
+/* IoUV monitor dashboard: the live fleet (/ws/fleet/) as a table and on a map, and live
+ * sessions (/ws/sessions/), with a stop button per session for monitors allowed to stop
+ * one. */
 (function () {
   "use strict";
   const root = document.getElementById("monitor");
@@ -33,6 +34,79 @@
       body.append(tr);
     }
   }
+
+  /* The fleet map: the stations, and every vehicle with a position where it last
+   * reported it, coloured and labelled by its status (map-base.js places the labels so
+   * that none hides another). Offline vehicles stay, greyed, at their last position. */
+  const STATUS_COLORS = {
+    idle: "#2ecc71", reserved: "#2f9bff", in_service: "#2f9bff", releasing: "#f5a623",
+    returning: "#f5a623", maintenance: "#f5a623", failsafe: "#ff5d5d", offline: "#6e7681",
+  };
+  function fleetMap() {
+    const node = root.querySelector("[data-fleet-map]");
+    if (!node || !window.IoUVMap || !window.L) return null;
+    const { makeMap, labels, stationMarkers, escapeHtml, jsonScript } = window.IoUVMap;
+    const config = jsonScript("map-config") || {};
+    const stations = config.stations || [];
+    const map = makeMap(node, config.tiles);
+    if (stations.length) {
+      map.fitBounds(L.latLngBounds(stations.map((s) => [s.lat, s.lon])).pad(0.3), { maxZoom: 15 });
+    } else {
+      map.setView([0, 0], 2);
+    }
+    stationMarkers(map, stations);
+    const shown = new Map();
+    let framed = false;
+
+    function update(list) {
+      const seen = new Set();
+      for (const v of list) {
+        if (!v.position) continue;
+        seen.add(v.id);
+        const at = [v.position.lat, v.position.lon];
+        const color = STATUS_COLORS[v.status] || STATUS_COLORS.offline;
+        const text = `${escapeHtml(v.name)} · ${escapeHtml(v.status.replace("_", " "))}`;
+        let entry = shown.get(v.id);
+        if (!entry) {
+          entry = {
+            dot: L.circleMarker(at, { radius: 7, weight: 2, className: "vehicle-marker" }).addTo(map),
+            tag: labels(map).add(at, text, { group: "vehicle", radius: 7 }),
+          };
+          shown.set(v.id, entry);
+        }
+        entry.dot.setLatLng(at);
+        entry.dot.setStyle({ color, fillColor: color, fillOpacity: v.status === "offline" ? 0.3 : 0.85 });
+        entry.tag.setLatLng(at);
+        entry.tag.setHtml(text);
+        const tagClasses = entry.tag.element.classList;
+        for (const c of [...tagClasses]) if (c.startsWith("status-")) tagClasses.remove(c);
+        tagClasses.add(`status-${v.status}`);
+        const el = entry.dot.getElement();
+        if (el) {
+          // Not data-vehicle: that names the vehicle's row in the fleet table.
+          el.dataset.mapVehicle = v.name;
+          el.dataset.status = v.status;
+          el.dataset.latlon = `${at[0].toFixed(6)},${at[1].toFixed(6)}`;
+        }
+      }
+      for (const [id, entry] of shown) {
+        if (seen.has(id)) continue;
+        entry.dot.remove();
+        entry.tag.remove();
+        shown.delete(id);
+      }
+      if (!framed && shown.size) {
+        // Once, when the first positions arrive: the stations and every vehicle.
+        const bounds = L.latLngBounds(stations.map((s) => [s.lat, s.lon]));
+        for (const e of shown.values()) bounds.extend(e.dot.getLatLng());
+        map.fitBounds(bounds.pad(0.3), { maxZoom: 15 });
+        framed = true;
+      }
+    }
+    window.iouvMap = { map, vehicles: shown };
+    return { update };
+  }
+  const fleetOnMap = fleetMap();
 
   function renderSessions() {
     renderEnded();
@@ -139,6 +213,7 @@
     if (msg.full) vehicles.clear();
     for (const v of msg.vehicles) vehicles.set(v.id, v);
     renderFleet();
+    if (fleetOnMap) fleetOnMap.update([...vehicles.values()]);
   });
   feed("/ws/sessions/", (msg) => {
     if (msg.type === "sessions") {

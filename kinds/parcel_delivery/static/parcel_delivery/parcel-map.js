@@ -10,16 +10,17 @@
 (function () {
   "use strict";
 
-  const { makeMap, stationMarkers, label, escapeHtml, jsonScript, distanceM } = window.IoUVMap;
+  const { makeMap, labels, stationMarkers, escapeHtml, jsonScript, distanceM } = window.IoUVMap;
   const COLORS = { pickup: "#d29922", dropoff: "#3fb950", carrier: "#a371f7", route: "#9fb3c8" };
 
-  function pin(point, color, cls, text) {
-    const group = L.layerGroup();
-    L.circleMarker(point, {
+  /* A point with its name; its label is placed with the map's others (map-base.js), so
+   * it leaves the map with the point (removeFrom). */
+  function pin(map, point, color, cls, text) {
+    const dot = L.circleMarker(point, {
       radius: 9, color, weight: 3, fillColor: color, fillOpacity: 0.5, className: cls,
-    }).addTo(group);
-    L.marker(point, { icon: label(escapeHtml(text)), interactive: false }).addTo(group);
-    return group;
+    }).addTo(map);
+    const tag = labels(map).add(point, escapeHtml(text), { group: "pin", radius: 9 });
+    return { removeFrom() { dot.remove(); tag.remove(); } };
   }
 
   // --- the request page: pick the two points ------------------------------------------
@@ -35,6 +36,7 @@
     };
     const info = document.querySelector("[data-pick-info]");
     const layer = L.layerGroup().addTo(map);
+    let pins = [];
     let points = [];
     for (const name of ["pickup", "dropoff"]) {
       try {
@@ -45,9 +47,11 @@
 
     function update() {
       layer.clearLayers();
-      if (points[0]) pin(points[0], COLORS.pickup, "pickup-marker", "pickup").addTo(layer);
+      for (const p of pins) p.removeFrom();
+      pins = [];
+      if (points[0]) pins.push(pin(map, points[0], COLORS.pickup, "pickup-marker", "pickup"));
       if (points[1]) {
-        pin(points[1], COLORS.dropoff, "dropoff-marker", "drop-off").addTo(layer);
+        pins.push(pin(map, points[1], COLORS.dropoff, "dropoff-marker", "drop-off"));
         L.polyline(points, { color: COLORS.route, weight: 2, dashArray: "4 6" }).addTo(layer);
       }
       fields.pickup.value = points[0] ? JSON.stringify(points[0]) : "";
@@ -70,8 +74,8 @@
     let state = jsonScript("delivery-data");
     const map = makeMap(node, jsonScript("map-tiles"));
     map.fitBounds(L.latLngBounds([state.pickup, state.dropoff]).pad(0.5));
-    pin(state.pickup, COLORS.pickup, "pickup-marker", "pickup").addTo(map);
-    pin(state.dropoff, COLORS.dropoff, "dropoff-marker", "drop-off").addTo(map);
+    pin(map, state.pickup, COLORS.pickup, "pickup-marker", "pickup");
+    pin(map, state.dropoff, COLORS.dropoff, "dropoff-marker", "drop-off");
     L.polyline([state.pickup, state.dropoff], { color: COLORS.route, weight: 2, dashArray: "4 6" }).addTo(map);
     const vehicles = new Map();
     const stations = new Set();
@@ -92,7 +96,7 @@
               radius: 8, color: COLORS.carrier, weight: 3, fillColor: COLORS.carrier,
               fillOpacity: 0.8, className: "vehicle-marker carrier-marker",
             }).addTo(map),
-            tag: L.marker([v.lat, v.lon], { icon: label(escapeHtml(v.name)), interactive: false }).addTo(map),
+            tag: labels(map).add([v.lat, v.lon], escapeHtml(v.name), { group: "vehicle" }),
           };
           vehicles.set(v.id, entry);
         }
@@ -102,9 +106,9 @@
         entry.dot.getElement()?.setAttribute("data-vehicle", v.name);
       }
       if (state.waiting_at && !waiting) {
-        waiting = pin(state.waiting_at, COLORS.pickup, "handover-marker", "parcel waits here").addTo(map);
+        waiting = pin(map, state.waiting_at, COLORS.pickup, "handover-marker", "parcel waits here");
       } else if (!state.waiting_at && waiting) {
-        map.removeLayer(waiting);
+        waiting.removeFrom();
         waiting = null;
       }
       panel();

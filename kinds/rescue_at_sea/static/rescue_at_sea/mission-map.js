@@ -8,7 +8,8 @@
  *     the vehicles where they are now, the stations and the person once found, kept
  *     current by polling the mission's JSON every second.
  *
- * The map itself, the grid and the station markers come from static/js/map-base.js.
+ * The map itself, the land and sea (or tiles), the station markers and the placing of
+ * labels so that none overlaps another come from static/js/map-base.js.
  */
 (function () {
   "use strict";
@@ -23,7 +24,7 @@
     station: "#e6edf3",
   };
 
-  const { makeMap, stationMarkers, label, escapeHtml, jsonScript } = window.IoUVMap;
+  const { makeMap, labels, stationMarkers, escapeHtml, jsonScript } = window.IoUVMap;
 
   /* Approximate area of a polygon in m² (equirectangular, fine for a few km). */
   function areaM2(points) {
@@ -132,7 +133,7 @@
               radius: 8, color, weight: 3, fillColor: color, fillOpacity: 0.8,
               className: `vehicle-marker vehicle-${v.role}`,
             }).addTo(map),
-            tag: L.marker([v.lat, v.lon], { icon: label(escapeHtml(v.name)), interactive: false }).addTo(map),
+            tag: labels(map).add([v.lat, v.lon], escapeHtml(v.name), { group: "vehicle" }),
           };
           vehicles.set(v.id, entry);
         }
@@ -147,10 +148,13 @@
           radius: 11, color: COLORS.person, weight: 3, fillColor: COLORS.person, fillOpacity: 0.5,
           className: "detection-marker",
         }).addTo(map);
-        detection.bindTooltip(
-          `Person · ${d.lat.toFixed(5)}, ${d.lon.toFixed(5)}` +
-            (d.confidence != null ? ` · confidence ${d.confidence.toFixed(2)}` : ""),
-          { permanent: true, direction: "right", className: "map-label" },
+        labels(map).add(
+          [d.lat, d.lon],
+          escapeHtml(
+            `Person · ${d.lat.toFixed(5)}, ${d.lon.toFixed(5)}` +
+              (d.confidence != null ? ` · confidence ${d.confidence.toFixed(2)}` : ""),
+          ),
+          { group: "alert", radius: 11, className: "map-label detection-label" },
         );
       }
       if (!fitted && vehicles.size) {
