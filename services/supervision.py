@@ -527,6 +527,37 @@ def _gone_reason(event: SessionEvent) -> str:
     return f"the user left and did not come back within {grace:g} s"
 
 
+def session_situation(session: Session) -> dict[str, Any]:
+    """What is happening in a live session now, in a person's words, from its log.
+
+    ``live`` is False while nobody controls its vehicle (a fail-safe, the user gone)
+    and ``ends_at`` then says when the session ends unless the controller comes back;
+    ``text`` says which, e.g. "The driver's link was lost: the vehicle performed stop
+    on its own. The session ends unless the driver reconnects." A session's state
+    alone ("active") would hide that.
+    """
+    gone = _controller_gone(session)
+    if gone is None:
+        if session.state == Session.State.ASSIGNED:
+            return {"live": True, "text": "Waiting for the driver to connect.", "ends_at": None}
+        driver = session.user.get_username()
+        return {"live": True, "text": f"{driver} is in control.", "ends_at": None}
+    data = gone.data if isinstance(gone.data, dict) else {}
+    ends_at = gone.created_at + timedelta(seconds=settings.IOUV_RECONNECT_GRACE_S)
+    if gone.kind == "unintentional_end":
+        cause = str(data.get("cause", "unknown")).replace("_", " ")
+        action = str(data.get("action", "its fail-safe")).replace("_", " ")
+        text = (
+            f"Nobody is in control ({cause}): the vehicle performed {action} on its own. "
+            "The session ends unless the driver reconnects."
+        )
+    elif gone.kind == "control_released":
+        text = "The driver released control. The session ends unless they take it back."
+    else:
+        text = "The driver left. The session ends unless they come back."
+    return {"live": False, "text": text, "ends_at": ends_at}
+
+
 def sessions_expire_grace(
     *, now: datetime | None = None, session_ids: Iterable[Any] | None = None
 ) -> list[str]:

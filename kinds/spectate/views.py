@@ -16,6 +16,7 @@ from services.grants import user_can_use
 from services.models import Service, Session
 from services.selectors import session_summary
 from services.sessions import FINAL
+from services.supervision import session_situation
 from services.views import log_lines
 
 
@@ -45,7 +46,8 @@ def _spectate_service(request: AuthenticatedHttpRequest) -> Service:
 def spectate(request: AuthenticatedHttpRequest) -> HttpResponse:
     """Vehicles streaming video in a live session, to watch."""
     _spectate_service(request)
-    return render(request, "spectate/list.html", {"sessions": sessions_spectatable()})
+    sessions = [(s, session_situation(s)) for s in sessions_spectatable()]
+    return render(request, "spectate/list.html", {"sessions": sessions})
 
 
 @never_cache  # the page carries a signed grant: no cache may keep it

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from datetime import timedelta
+
 import pytest
+from django.conf import settings
 from django.test import Client
 from django.urls import reverse
 
 from services.assignment import session_request
+from services.eventlog import event_append
 from services.models import Session
 from tests import factories as f
 from tests.services.test_deployment import TARGET, _registered_vehicle, _service
@@ -42,3 +46,40 @@ def test_the_spectators_page_carries_a_viewer_grant_and_is_not_stored(client, wa
 def test_spectating_is_not_requested_as_a_session(client, watched) -> None:
     response = client.get(reverse("service_request", args=["spectate"]))
     assert response.status_code == 302 and response["Location"] == reverse("spectate")
+
+
+def test_the_list_says_when_nobody_controls_the_vehicle_and_when_the_session_ends(
+    client, watched
+) -> None:
+    session, _ = watched
+    card = _card(client.get(reverse("spectate")).content.decode(), session)
+    assert ">live<" in card and "Waiting for the driver to connect." in card
+    Session.objects.filter(pk=session.pk).update(state=Session.State.ACTIVE)
+    event_append(session=session, kind="user_connected", data={"role": "controller"})
+    card = _card(client.get(reverse("spectate")).content.decode(), session)
+    assert ">live<" in card and "alice is in control." in card
+
+    # The driver's link dropped and the car stopped on its own: still an "active"
+    # session, but nobody drives it, and it ends after the grace unless they return.
+    gone = event_append(
+        session=session, kind="unintentional_end", data={"cause": "link_lost", "action": "stop"}
+    )
+    card = _card(client.get(reverse("spectate")).content.decode(), session)
+    assert ">live<" not in card and "nobody in control" in card
+    assert "the vehicle performed stop on its own" in card
+    ends = gone.created_at + timedelta(seconds=settings.IOUV_RECONNECT_GRACE_S)
+    assert f'datetime="{ends.isoformat()}"' in card
+
+    event_append(session=session, kind="link_recovered", data={})
+    card = _card(client.get(reverse("spectate")).content.decode(), session)
+    assert ">live<" in card and "nobody in control" not in card
+
+
+def test_the_list_follows_the_server_without_a_reload(client, watched) -> None:
+    page = client.get(reverse("spectate")).content.decode()
+    assert 'id="spectatable" data-refresh-s=' in page and "js/refresh.js" in page
+
+
+def _card(page: str, session: Session) -> str:
+    start = page.index(f'data-spectate="{session.pk}"')
+    return page[start : page.index("</article>", start)]
