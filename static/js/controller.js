@@ -18,6 +18,8 @@
   const MAX_INTERVAL_MS = 1000;
   const TELEMETRY_HZ = 4;
   const KEY_ALIASES = { " ": "Space", Spacebar: "Space" };
+  // How a key is written on its button (the arrows as arrows).
+  const KEY_SHOWN = { ArrowUp: "↑", ArrowDown: "↓", ArrowLeft: "←", ArrowRight: "→", " ": "Space" };
 
   function el(tag, attrs, ...children) {
     const node = document.createElement(tag);
@@ -35,6 +37,15 @@
     return k.length === 1 ? k.toLowerCase() : k;
   }
 
+  // An argument in words: "altitude (m)" for alt_m in metres, "latitude (deg)" for lat.
+  const ARG_WORDS = { lat: "latitude", lon: "longitude", alt: "altitude" };
+  function argLabel(arg, spec) {
+    const unit = spec.unit || "";
+    let name = unit && arg.endsWith(`_${unit}`) ? arg.slice(0, -unit.length - 1) : arg;
+    name = ARG_WORDS[name] || name.replace(/_/g, " ");
+    return unit ? `${name} (${unit})` : name;
+  }
+
   function csrfToken() {
     const m = document.cookie.match(/(?:^|; )csrftoken=([^;]+)/);
     return m ? decodeURIComponent(m[1]) : "";
@@ -43,6 +54,13 @@
   const GAMEPAD_DEAD_ZONE = 0.15;
   // [axis, key when pushed to the negative side, key when pushed to the positive side]
   const GAMEPAD_AXES = [[1, "w", "s"], [0, "a", "d"], [3, "ArrowUp", "ArrowDown"], [2, "ArrowLeft", "ArrowRight"]];
+  // The on-screen sticks of a touch screen: the gamepad's two sticks, by the same axes
+  // and keys, so a vehicle's vocabulary maps the same way to both.
+  const STICKS = [
+    { side: "left", x: 0, y: 1, keys: { up: "w", down: "s", left: "a", right: "d" } },
+    { side: "right", x: 2, y: 3, keys: { up: "ArrowUp", down: "ArrowDown", left: "ArrowLeft", right: "ArrowRight" } },
+  ];
+  const STICK_KEYS = new Set(STICKS.flatMap((s) => Object.values(s.keys).map(keyName)));
   const GAMEPAD_DPAD = [[12, "ArrowUp"], [13, "ArrowDown"], [14, "ArrowLeft"], [15, "ArrowRight"]];
   // [button, commands it presses, the first the vehicle has]
   const GAMEPAD_BUTTONS = [
@@ -104,6 +122,14 @@
       this.telemetryInfo = {}; // topic -> {label, unit, decimals, yes, no}
       this.pc = null;
       this.timers = [];
+      this.commandList = [];
+      this.stickAxes = [0, 0, 0, 0]; // the on-screen sticks, as gamepad axes
+      this.stickHeld = new Map(); // command name -> deflection, from sticks of any kind
+      // What the person steers with, for the layout and the hints: "touch", "keys" or
+      // "gamepad"; a touch screen starts with touch, and the last input used wins.
+      const coarse = window.matchMedia && window.matchMedia("(pointer: coarse)").matches;
+      this.inputMode = coarse ? "touch" : "keys";
+      root.dataset.input = this.inputMode;
       this.ui = {
         state: root.querySelector("[data-conn-state]"),
         role: root.querySelector("[data-role]"),
@@ -111,6 +137,8 @@
         interval: root.querySelector("[data-interval]"),
         telemetry: root.querySelector("[data-telemetry]"),
         controls: root.querySelector("[data-controls]"),
+        overlay: root.querySelector("[data-overlay-actions]"),
+        sticks: root.querySelector("[data-sticks]"),
         banner: root.querySelector("[data-banner]"),
         toast: root.querySelector("[data-toast]"),
         video: root.querySelector("video"),
@@ -302,17 +330,30 @@
 
     // --- controls --------------------------------------------------------------------
     buildControls(commands) {
+      this.commandList = commands;
       this.commands.clear();
       this.keys.clear();
       const box = this.ui.controls;
       if (!box) return;
       box.textContent = "";
+      if (this.ui.overlay) this.ui.overlay.textContent = "";
+      if (this.ui.sticks) this.ui.sticks.textContent = "";
       if (this.options.watching) return;
+      // On a touch screen the keys of the two sticks are steered by on-screen sticks
+      // over the picture, and the other plain commands sit on the picture too.
+      const touch = this.inputMode === "touch";
       const groups = new Map();
+      const overlay = [];
       for (const c of commands) {
         if (!c.allowed) continue;
         this.commands.set(c.name, c);
         if (c.key) this.keys.set(keyName(c.key), c.name);
+        const onStick = c.key && STICK_KEYS.has(keyName(c.key));
+        if (touch && onStick) continue;
+        if (touch && !this.neededArgs(c).length && this.ui.overlay) {
+          overlay.push(c);
+          continue;
+        }
         const g = c.group || "other";
         if (!groups.has(g)) groups.set(g, []);
         groups.get(g).push(c);
@@ -321,19 +362,13 @@
         const pad = el("div", { class: `pad pad-${group}`, "data-group": group },
           el("h4", {}, group.replace(/_/g, " ")));
         for (const c of list) {
-          const label = c.name.replace(/_/g, " ");
-          const keyLabel = c.key === " " ? "Space" : c.key;
-          const button = el("button", {
-            type: "button", class: c.motion ? "cmd motion" : "cmd", "data-command": c.name,
-            title: c.description || label,
-            "aria-label": c.key ? `${label} (key ${keyLabel})` : label,
-          }, label, c.key ? el("kbd", {}, keyLabel) : "");
-          if (c.key) button.setAttribute("aria-keyshortcuts", keyLabel);
-          const needed = Object.entries(c.args || {}).filter(([, spec]) => !("default" in spec));
+          const needed = this.neededArgs(c);
           if (needed.length) {
             // Arguments without a default (a waypoint, say): ask for them beside the button.
+            const button = this.commandButton(c, false);
             const inputs = needed.map(([arg, spec]) => el("input", {
-              type: "number", step: "any", placeholder: `${arg}${spec.unit ? ` (${spec.unit})` : ""}`,
+              type: "number", step: "any", placeholder: argLabel(arg, spec),
+              "aria-label": `${c.name.replace(/_/g, " ")}: ${argLabel(arg, spec)}`,
               min: spec.min ?? "", max: spec.max ?? "", "data-arg": arg, required: true,
             }));
             button.addEventListener("click", () => {
@@ -347,14 +382,107 @@
             pad.append(el("span", { class: "args" }, button, ...inputs));
             continue;
           }
-          button.addEventListener("pointerdown", (e) => { e.preventDefault(); this.press(c.name); });
-          for (const ev of ["pointerup", "pointerleave", "pointercancel"]) {
-            button.addEventListener(ev, () => this.release(c.name));
-          }
-          pad.append(button);
+          pad.append(this.commandButton(c, true));
         }
         box.append(pad);
       }
+      if (touch) {
+        for (const c of overlay) this.ui.overlay.append(this.commandButton(c, true));
+        for (const stick of STICKS) {
+          const bound = Object.entries(stick.keys)
+            .map(([dir, key]) => [dir, this.commands.get(this.keys.get(keyName(key)))])
+            .filter(([, c]) => c);
+          if (bound.length && this.ui.sticks) this.ui.sticks.append(this.stickPad(stick, bound));
+        }
+      }
+    }
+
+    neededArgs(c) {
+      return Object.entries(c.args || {}).filter(([, spec]) => !("default" in spec));
+    }
+
+    // One command as a real button: pressed (and, for a motion, held) by a pointer, and
+    // by Enter or Space when focused (see bindInputs); named for screen readers.
+    commandButton(c, pressable) {
+      const label = c.name.replace(/_/g, " ");
+      const keyLabel = c.key === " " ? "Space" : c.key;
+      // Its name is what it shows ("up w"), so speech input can say it; the key is also
+      // given as its shortcut.
+      const button = el("button", {
+        type: "button", class: c.motion ? "cmd motion" : "cmd", "data-command": c.name,
+        title: c.description || label,
+      }, label, ...(c.key ? [" ", el("kbd", { title: keyLabel }, KEY_SHOWN[c.key] || keyLabel)] : []));
+      if (c.key) button.setAttribute("aria-keyshortcuts", keyLabel);
+      if (pressable) {
+        button.addEventListener("pointerdown", (e) => { e.preventDefault(); this.press(c.name); });
+        for (const ev of ["pointerup", "pointerleave", "pointercancel"]) {
+          button.addEventListener(ev, () => this.release(c.name));
+        }
+      }
+      return button;
+    }
+
+    // An on-screen stick: a knob dragged inside a ring gives the stick's two axes in
+    // -1..1 (up and left negative, as on a gamepad), read with the gamepad's each tick,
+    // so a half push sends half the commands' speed. Letting go centres it: a stop.
+    stickPad(stick, bound) {
+      const knob = el("span", { class: "stick-knob" });
+      const names = bound.map(([, c]) => c.name.replace(/_/g, " "));
+      // Words all four share ("camera up", "camera left", ...) become the stick's caption.
+      const words = names.map((n) => n.split(" "));
+      let shared = 0;
+      while (words.every((w) => w.length > shared + 1 && w[shared] === words[0][shared])) shared += 1;
+      const caption = words[0].slice(0, shared).join(" ");
+      const ring = el("div", {
+        class: `stick stick-at-${stick.side}`, role: "group", "data-stick": stick.side,
+        "aria-label": `${stick.side} stick: ${names.join(", ")}`,
+      }, knob, ...bound.map(([dir], i) => el("span", { class: `stick-label stick-${dir}`, "aria-hidden": "true" },
+        words[i].slice(shared).join(" "))));
+      if (caption) ring.append(el("span", { class: "stick-caption", "aria-hidden": "true" }, caption));
+      let pointer = null;
+      const move = (e) => {
+        const r = ring.getBoundingClientRect();
+        const radius = r.width / 2;
+        let x = (e.clientX - r.left - radius) / radius;
+        let y = (e.clientY - r.top - radius) / radius;
+        const length = Math.hypot(x, y);
+        if (length > 1) { x /= length; y /= length; }
+        this.stickAxes[stick.x] = x;
+        this.stickAxes[stick.y] = y;
+        knob.style.transform = `translate(${(x * radius * 0.55).toFixed(1)}px, ${(y * radius * 0.55).toFixed(1)}px)`;
+      };
+      const end = (e) => {
+        if (e.pointerId !== pointer) return;
+        pointer = null;
+        this.stickAxes[stick.x] = 0;
+        this.stickAxes[stick.y] = 0;
+        knob.style.transform = "";
+        ring.classList.remove("active");
+      };
+      ring.addEventListener("pointerdown", (e) => {
+        e.preventDefault();
+        pointer = e.pointerId;
+        if (ring.setPointerCapture) ring.setPointerCapture(pointer);
+        ring.classList.add("active");
+        move(e);
+      });
+      ring.addEventListener("pointermove", (e) => { if (e.pointerId === pointer) move(e); });
+      ring.addEventListener("pointerup", end);
+      ring.addEventListener("pointercancel", end);
+      return ring;
+    }
+
+    // The layout and hints follow the input in use: a touch on the screen, a key, or a
+    // gamepad's stick or button. Switching lets go of everything held first.
+    setInputMode(mode) {
+      if (mode === this.inputMode) return;
+      const relayout = (mode === "touch") !== (this.inputMode === "touch");
+      this.inputMode = mode;
+      this.root.dataset.input = mode;
+      if (!relayout) return;
+      this.releaseAll(true);
+      this.stickAxes.fill(0);
+      if (this.commandList.length) this.buildControls(this.commandList);
     }
 
     bindInputs() {
@@ -366,8 +494,12 @@
         // Buttons with arguments beside them keep their own click (the form's check).
         return button && !button.closest(".args") ? button.dataset.command : null;
       };
+      window.addEventListener("pointerdown", (e) => {
+        if (e.pointerType === "touch") this.setInputMode("touch");
+      }, true);
       window.addEventListener("keydown", (e) => {
         if (e.target.closest && e.target.closest("input, textarea, select")) return;
+        if (!["Tab", "Shift", "Control", "Alt", "Meta"].includes(e.key)) this.setInputMode("keys");
         const focused = focusedCommand(e);
         if (focused) {
           e.preventDefault();
@@ -392,7 +524,10 @@
       window.addEventListener("blur", () => this.releaseAll(true));
       const take = this.root.querySelector("[data-take-control]");
       if (take) take.addEventListener("click", () => this.send({ type: "take_control" }));
-      window.addEventListener("gamepadconnected", () => this.toast("Gamepad connected", "ok"));
+      window.addEventListener("gamepadconnected", () => {
+        this.toast("Gamepad connected", "ok");
+        this.setInputMode("gamepad");
+      });
     }
 
     press(name) {
@@ -413,6 +548,7 @@
     releaseAll(sendStop) {
       const wasHeld = this.held.size > 0;
       this.held.clear();
+      this.stickHeld.clear(); // a stick still pushed presses again on the next tick
       this.root.querySelectorAll(".cmd.active").forEach((b) => b.classList.remove("active"));
       if (sendStop && wasHeld && this.commands.has("stop")) this.command("stop");
     }
@@ -432,7 +568,7 @@
     }
 
     tick() {
-      this.pollGamepad();
+      this.pollSticks();
       if (this.role !== "controller") return;
       const now = performance.now();
       const every = this.interval();
@@ -461,40 +597,47 @@
       this.send({ type: "ping", t: performance.now() });
     }
 
-    // Gamepad, in the Standard Gamepad layout. The sticks are proportional: past a dead
-    // zone, a stick held part way sends its commands at that part of the key's own
-    // value (speed, amount, angle), full deflection being the key; left stick = w/a/s/d,
-    // right stick = the arrows (mode 2: throttle and yaw left, pitch and roll right), and
-    // the d-pad = the arrows at full. Buttons act by command: A land (or stop), B return
-    // home, X stop, Y take off, Back disarm, Start arm.
-    pollGamepad() {
+    // Sticks: a gamepad in the Standard Gamepad layout, and the on-screen sticks of a
+    // touch screen, read the same way. The sticks are proportional: past a dead zone, a
+    // stick held part way sends its commands at that part of the key's own value
+    // (speed, amount, angle), full deflection being the key; left stick = w/a/s/d,
+    // right stick = the arrows (mode 2: throttle and yaw left, pitch and roll right),
+    // and the d-pad = the arrows at full. Buttons act by command: A land (or stop),
+    // B return home, X stop, Y take off, Back disarm, Start arm.
+    pollSticks() {
       const pads = navigator.getGamepads ? navigator.getGamepads() : [];
       const pad = pads && [...pads].find(Boolean);
-      if (!pad) return;
       const want = new Map(); // command name -> deflection 0..1
       const byKey = (key, amount) => {
         const name = this.keys.get(keyName(key));
         if (name && amount > (want.get(name) || 0)) want.set(name, amount);
       };
+      let padUsed = false;
       for (const [axis, negative, positive] of GAMEPAD_AXES) {
-        const v = pad.axes[axis] || 0;
+        const fromPad = pad ? pad.axes[axis] || 0 : 0;
+        const fromScreen = this.stickAxes[axis] || 0;
+        const v = Math.abs(fromScreen) > Math.abs(fromPad) ? fromScreen : fromPad;
         const amount = (Math.abs(v) - GAMEPAD_DEAD_ZONE) / (1 - GAMEPAD_DEAD_ZONE);
         if (amount > 0) byKey(v < 0 ? negative : positive, Math.min(1, amount));
+        if (Math.abs(fromPad) > GAMEPAD_DEAD_ZONE) padUsed = true;
       }
-      const b = pad.buttons;
-      for (const [index, key] of GAMEPAD_DPAD) if (b[index] && b[index].pressed) byKey(key, 1);
+      const b = pad ? pad.buttons : [];
+      for (const [index, key] of GAMEPAD_DPAD) {
+        if (b[index] && b[index].pressed) { byKey(key, 1); padUsed = true; }
+      }
       for (const [index, names] of GAMEPAD_BUTTONS) {
         const name = names.find((n) => this.commands.has(n));
+        if (b[index] && b[index].pressed) padUsed = true;
         if (name && b[index] && b[index].pressed) want.set(name, 1);
       }
-      this.gamepadHeld = this.gamepadHeld || new Map();
+      if (padUsed) this.setInputMode("gamepad");
       for (const [name, amount] of want) {
-        if (!this.gamepadHeld.has(name)) this.press(name);
+        if (!this.stickHeld.has(name)) this.press(name);
         const hold = this.held.get(name);
         if (hold) hold.amount = amount;
       }
-      for (const name of this.gamepadHeld.keys()) if (!want.has(name)) this.release(name);
-      this.gamepadHeld = want;
+      for (const name of this.stickHeld.keys()) if (!want.has(name)) this.release(name);
+      this.stickHeld = want;
     }
 
     // A held command's arguments at ``amount`` (0..1) of each number's default, never
