@@ -341,12 +341,19 @@ class Boat(SimVehicle):
         north, east = self.north, self.east
         for i in range(1, pieces + 1):
             n, e = self.north + dn * i / pieces, self.east + de * i / pieces
-            if self.land_at(*offset(self.home, n, e)):
+            if self._on_land(*offset(self.home, n, e)):
                 self._run_aground(north, east)
                 return
             north, east = n, e
         self.north, self.east = north, east
         self.aground = False
+
+    def _on_land(self, lat: float, lon: float) -> bool:
+        """Land here, or where the position is reported: GLOBAL_POSITION_INT carries
+        1e-7 degrees, so a point a few millimetres off the shore could be reported on
+        the other side of it."""
+        reported = (round(lat * 1e7) / 1e7, round(lon * 1e7) / 1e7)
+        return bool(self.land_at(lat, lon) or self.land_at(*reported))
 
     def _run_aground(self, north: float, east: float) -> None:
         self.north, self.east = north, east
