@@ -35,6 +35,7 @@ from tests.integration.test_portal import (
     demo_agent,
     request_car,
     request_drone,
+    sign_in,
     wait_for,
 )
 from tests.servers import agent_configured, celery_worker_process, db, platform_process, until
@@ -116,11 +117,7 @@ async def signed_in(tour: Tour, viewport: str, username: str) -> Page:
         return page
     context = await tour.browser.new_context(**VIEWPORTS[viewport])
     page = await context.new_page()
-    await page.goto(f"{tour.base}/accounts/login/")
-    await page.fill("#id_username", username)
-    await page.fill("#id_password", PASSWORD)
-    await page.click("button[type=submit]")
-    await page.wait_for_url(f"{tour.base}/")
+    await sign_in(page, tour.base, username)
     tour.logins[username] = await context.storage_state()
     return page
 

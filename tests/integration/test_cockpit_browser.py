@@ -21,7 +21,7 @@ from playwright.async_api import FloatRect, Page
 
 from tests.browser import needs_chromium
 from tests.integration import test_portal
-from tests.integration.test_portal import PASSWORD, World, request_car, request_drone, wait_for
+from tests.integration.test_portal import World, request_car, request_drone, wait_for
 
 pytestmark = [
     pytest.mark.postgres,
@@ -53,15 +53,7 @@ WebSocket.prototype.send = function (data) {
 
 
 async def login(world: World, username: str, device: dict[str, Any]) -> Page:
-    context = await world.browser.new_context(**device)
-    await context.add_init_script(RECORD_COMMANDS)
-    page = await context.new_page()
-    await page.goto(f"{world.base}/accounts/login/")
-    await page.fill("#id_username", username)
-    await page.fill("#id_password", PASSWORD)
-    await page.click("button[type=submit]")
-    await page.wait_for_url(f"{world.base}/")
-    return page
+    return await world.login(username, init_script=RECORD_COMMANDS, **device)
 
 
 async def rect(page: Page, selector: str) -> FloatRect:

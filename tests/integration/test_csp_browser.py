@@ -29,7 +29,7 @@ from services.demo import demo_seed
 from services.deployment import session_deploy
 from services.models import Service, Session
 from tests.browser import chromium_browser, needs_chromium
-from tests.integration.test_portal import PASSWORD, demo_agent, wait_for
+from tests.integration.test_portal import PASSWORD, demo_agent, sign_in, wait_for
 from tests.servers import db, platform_process, until
 
 pytestmark = [
@@ -102,11 +102,7 @@ class Portal:
         await context.add_init_script(script=LISTEN_FOR_VIOLATIONS)
         page = await context.new_page()
         page.on("console", self._console)
-        await page.goto(f"{self.base}/accounts/login/")
-        await page.fill("#id_username", username)
-        await page.fill("#id_password", PASSWORD)
-        await page.click("button[type=submit]")
-        await page.wait_for_url(f"{self.base}/")
+        await sign_in(page, self.base, username)
         return page
 
     def _console(self, message: Any) -> None:

@@ -30,10 +30,10 @@ from agents.runtime import Agent
 from agents.vehicles.car.kinematics import Pose
 from fleet.models import Vehicle
 from kinds.rescue_at_sea.tests.test_integration import _request, sea, search_area
-from services.demo import CASTAWAY, demo_seed
+from services.demo import CASTAWAY
 from tests.browser import chromium_browser, needs_chromium
-from tests.integration.test_portal import PASSWORD, demo_agent
-from tests.servers import db, platform_process, until
+from tests.integration.test_portal import demo_world, sign_in
+from tests.servers import db, until
 
 pytestmark = [
     pytest.mark.postgres,
@@ -65,11 +65,7 @@ async def login(browser: Browser, base: str, username: str, screen: str) -> tupl
     page = await context.new_page()
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
-    await page.goto(f"{base}/accounts/login/")
-    await page.fill("#id_username", username)
-    await page.fill("#id_password", PASSWORD)
-    await page.click("button[type=submit]")
-    await page.wait_for_url(f"{base}/")
+    await sign_in(page, base, username)
     return page, errors
 
 
@@ -257,23 +253,8 @@ async def assert_labels_apart(page: Page, sel: str, *, expected: set[str]) -> No
 async def campus(tmp_path: Path) -> AsyncIterator[tuple[str, dict[str, Agent], Browser]]:
     """The demo world with car-1 and quad-1 online at the campus station (one spot: three
     labels that a naive map piles on one another)."""
-    await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path)
-    with platform_process() as base:
-        async with contextlib.AsyncExitStack() as running:
-            agents: dict[str, Agent] = {}
-            for name in ("car-1", "quad-1"):
-                agent, _ = await running.enter_async_context(
-                    demo_agent(tmp_path / f"{name}.json", base)
-                )
-                agents[name] = agent
-
-            async def online() -> bool:
-                ready = Vehicle.objects.filter(name__in=agents, status="idle", lat__isnull=False)
-                return await db(ready.count) == len(agents)
-
-            await until(online, within=30, what="car-1 and quad-1 online with a position")
-            async with chromium_browser() as browser:
-                yield base, agents, browser
+    async with demo_world(tmp_path, webrtc_loopback=False) as world:
+        yield world.base, world.agents, world.browser
 
 
 def _position(name: str) -> tuple[float, float]:

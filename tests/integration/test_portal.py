@@ -45,15 +45,32 @@ class World:
     browser: Browser
     agents: dict[str, Agent]
 
-    async def login(self, username: str, password: str = PASSWORD) -> Page:
-        context = await self.browser.new_context()
+    async def login(
+        self,
+        username: str,
+        password: str = PASSWORD,
+        *,
+        init_script: str | None = None,
+        **context_options: Any,
+    ) -> Page:
+        """A new browser context (Playwright's ``new_context`` options: a viewport, a
+        phone's touch...) signed in as ``username``; ``init_script`` runs in each of its
+        pages first. Returns its page, on the catalog."""
+        context = await self.browser.new_context(**context_options)
+        if init_script:
+            await context.add_init_script(init_script)
         page = await context.new_page()
-        await page.goto(f"{self.base}/accounts/login/")
-        await page.fill("#id_username", username)
-        await page.fill("#id_password", password)
-        await page.click("button[type=submit]")
-        await page.wait_for_url(f"{self.base}/")
+        await sign_in(page, self.base, username, password)
         return page
+
+
+async def sign_in(page: Page, base: str, username: str, password: str = PASSWORD) -> None:
+    """Sign ``page`` in as ``username`` through the login form; it ends on the catalog."""
+    await page.goto(f"{base}/accounts/login/")
+    await page.fill("#id_username", username)
+    await page.fill("#id_password", password)
+    await page.click("button[type=submit]")
+    await page.wait_for_url(f"{base}/")
 
 
 def demo_agent(path: Path, base: str) -> contextlib.AbstractAsyncContextManager[Any]:
@@ -72,6 +89,15 @@ def demo_agent(path: Path, base: str) -> contextlib.AbstractAsyncContextManager[
 
 @pytest.fixture
 async def world(tmp_path: Path) -> AsyncIterator[World]:
+    async with demo_world(tmp_path) as running:
+        yield running
+
+
+@contextlib.asynccontextmanager
+async def demo_world(tmp_path: Path, *, webrtc_loopback: bool = True) -> AsyncIterator[World]:
+    """The seeded demo under daphne, car-1's and quad-1's agents online with a position
+    (their configs in ``tmp_path``), and Chromium (``webrtc_loopback``: able to take
+    their video)."""
     await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path)
     with platform_process() as base:
         async with contextlib.AsyncExitStack() as running:
@@ -90,7 +116,7 @@ async def world(tmp_path: Path) -> AsyncIterator[World]:
 
             await until(online, within=30, what="car-1 and quad-1 online with a position")
             # The agents stop (cancelled, then their simulators) after the browser.
-            async with chromium_browser(webrtc_loopback=True) as browser:
+            async with chromium_browser(webrtc_loopback=webrtc_loopback) as browser:
                 yield World(base, browser, agents)
 
 
