@@ -28,6 +28,7 @@ from agents.protocol import (
     UserGrant,
     VehicleTask,
     WrongTargetError,
+    documents,
     encode_message,
     error_message,
     generate_keypair,
@@ -134,11 +135,11 @@ def test_token_format_is_two_unpadded_base64url_parts_over_canonical_json() -> N
     token = make_grant().sign(PRIVATE)
     body, sig = token.split(".")
     assert "=" not in token
-    raw = protocol._b64url_decode(body, "payload")
+    raw = documents._b64url_decode(body, "payload")
     payload = json.loads(raw)
     assert raw == json.dumps(payload, sort_keys=True, separators=(",", ":")).encode()
     assert payload["kind"] == "user_grant" and payload["v"] == PROTOCOL_VERSION
-    assert len(protocol._b64url_decode(sig, "signature")) == 64
+    assert len(documents._b64url_decode(sig, "signature")) == 64
     # Same payload, same token: signing is deterministic.
     assert make_grant(nonce="n").sign(PRIVATE) == make_grant(nonce="n").sign(PRIVATE)
 
@@ -153,9 +154,9 @@ def test_signature_from_other_key_refused() -> None:
 def test_tampered_payload_refused() -> None:
     token = make_task().sign(PRIVATE)
     body, sig = token.split(".")
-    payload = json.loads(protocol._b64url_decode(body, "payload"))
+    payload = json.loads(documents._b64url_decode(body, "payload"))
     payload["limits"]["max_speed_mps"] = 50.0
-    forged_body = protocol._b64url_encode(protocol._canonical_json(payload))
+    forged_body = documents._b64url_encode(documents._canonical_json(payload))
     with pytest.raises(SignatureError):
         VehicleTask.verify(f"{forged_body}.{sig}", PUBLIC, vehicle_id="car-7", now=NOW)
 
@@ -220,8 +221,8 @@ def test_sign_document_refuses_bad_headers(payload: dict[str, Any], code: str) -
 
 
 def test_verify_refuses_other_version_even_if_signed() -> None:
-    body = protocol._canonical_json({"v": 2, "kind": "user_grant", "exp": NOW + 5})
-    token = protocol._b64url_encode(body) + "." + protocol._b64url_encode(PRIVATE.sign(body))
+    body = documents._canonical_json({"v": 2, "kind": "user_grant", "exp": NOW + 5})
+    token = documents._b64url_encode(body) + "." + documents._b64url_encode(PRIVATE.sign(body))
     with pytest.raises(ProtocolError) as info:
         verify_document(token, PUBLIC, now=NOW)
     assert info.value.code == "bad_version"
@@ -1019,7 +1020,7 @@ def test_fuzz_verify_document_text(token: str) -> None:
 def test_fuzz_verify_document_validly_signed_garbage(body: bytes) -> None:
     # Past the signature check the payload is trusted bytes; a platform bug there must
     # still surface as ProtocolError, never as a crash in the agent.
-    token = protocol._b64url_encode(body) + "." + protocol._b64url_encode(PRIVATE.sign(body))
+    token = documents._b64url_encode(body) + "." + documents._b64url_encode(PRIVATE.sign(body))
     with contextlib.suppress(ProtocolError):
         verify_document(token, PUBLIC, now=NOW)
 
@@ -1037,7 +1038,7 @@ def test_fuzz_signed_document_fields(extra: dict[str, Any], base: str) -> None:
     payload = (make_task() if base == "task" else make_grant()).to_payload()
     payload.update(extra)
     body = json.dumps(payload, sort_keys=True).encode()
-    token = protocol._b64url_encode(body) + "." + protocol._b64url_encode(PRIVATE.sign(body))
+    token = documents._b64url_encode(body) + "." + documents._b64url_encode(PRIVATE.sign(body))
     for cls in (VehicleTask, UserGrant):
         with contextlib.suppress(ProtocolError):
             cls.verify(token, PUBLIC, vehicle_id="car-7", now=NOW, replay_guard=ReplayGuard())

@@ -1,0 +1,94 @@
+"""Wire protocol shared by the IoUV platform and the vehicle agent.
+
+This module is the only code the Django platform and the vehicle agent have in common, so it
+imports nothing but the standard library and ``cryptography``: the agent runs on small
+companion computers without Django.
+
+It provides:
+
+* signed documents (the *vehicle task* and the *user grant*) in a compact token format,
+  signed with the platform's Ed25519 private key and verified offline by the agent, which
+  holds only the public key;
+* :class:`ReplayGuard`, which makes each document nonce single-use;
+* parsing and validation of the JSON messages of the four WebSocket channels;
+* validation of command arguments against a vehicle's declared command vocabulary.
+
+Every refusal is a :class:`ProtocolError` (or a subclass) carrying a short machine ``code``
+and a message naming the offending field, so callers can answer the peer with
+:func:`error_message` without inspecting exception types. ``docs/protocol.md`` describes the
+protocol for people integrating vehicles and writing clients.
+"""
+
+from agents.protocol.base import (
+    ARG_TYPES,
+    CHANNELS,
+    CLOCK_SKEW_S,
+    DEFAULT_LINK_LOSS_TIMEOUT_MS,
+    FAILSAFE_ACTIONS,
+    KINDS,
+    MAX_MESSAGE_BYTES,
+    PROTOCOL_VERSION,
+    REPLAY_GUARD_MAX_ENTRIES,
+    ROLES,
+    Channel,
+    ExpiredError,
+    Kind,
+    ProtocolError,
+    ReplayError,
+    SignatureError,
+    WrongTargetError,
+)
+from agents.protocol.documents import (
+    Limits,
+    ReplayGuard,
+    UserGrant,
+    VehicleTask,
+    generate_keypair,
+    load_private_key,
+    load_public_key,
+    new_nonce,
+    sign_document,
+    verify_document,
+)
+from agents.protocol.messages import (
+    MESSAGE_TYPES,
+    encode_message,
+    error_message,
+    parse_message,
+    validate_command_args,
+)
+
+__all__ = [
+    "ARG_TYPES",
+    "CHANNELS",
+    "CLOCK_SKEW_S",
+    "DEFAULT_LINK_LOSS_TIMEOUT_MS",
+    "FAILSAFE_ACTIONS",
+    "KINDS",
+    "MAX_MESSAGE_BYTES",
+    "MESSAGE_TYPES",
+    "PROTOCOL_VERSION",
+    "REPLAY_GUARD_MAX_ENTRIES",
+    "ROLES",
+    "Channel",
+    "ExpiredError",
+    "Kind",
+    "Limits",
+    "ProtocolError",
+    "ReplayError",
+    "ReplayGuard",
+    "SignatureError",
+    "UserGrant",
+    "VehicleTask",
+    "WrongTargetError",
+    "encode_message",
+    "error_message",
+    "generate_keypair",
+    "load_private_key",
+    "load_public_key",
+    "new_nonce",
+    "parse_message",
+    "sign_document",
+    "validate_command_args",
+    "verify_document",
+]
