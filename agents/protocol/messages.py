@@ -127,6 +127,9 @@ _SCHEMAS: Final[dict[str, dict[str, dict[str, str]]]] = {
             "v": "version",
             "heartbeat_interval_s": "positive_number",
             "platform_public_key": "str?",
+            # The platform's signing keys as a JWKS (RFC 7517): during a key rotation it
+            # holds both keys, so a task signed with either verifies on the agent.
+            "platform_jwks": "object?",
         },
         # These three carry an id and are sent again until the agent acknowledges it.
         "task": {"token": "id", "id": "id?"},
