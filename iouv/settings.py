@@ -84,6 +84,8 @@ INSTALLED_APPS = [
     "django.contrib.messages",
     "django.contrib.staticfiles",
     "channels",
+    # For its templates and vendored Swagger UI assets (/api/v1/docs loads no CDN).
+    "ninja",
     "accounts",
     "fleet",
     "services",

@@ -1,15 +1,19 @@
 """The JSON API, driven over HTTP through the test client and fuzzed against its own
-OpenAPI document with schemathesis."""
+(generated) OpenAPI document with schemathesis: operation by operation, and in
+sequences that follow the document's links from a created session to the operations
+on it."""
 
 from __future__ import annotations
 
 import asyncio
 import json
+import re
 import uuid
 from typing import Any
 
 import pytest
 import schemathesis
+from django.contrib.staticfiles import finders
 from django.core.handlers.wsgi import WSGIHandler
 from django.core.signals import request_finished, request_started
 from django.db import close_old_connections
@@ -281,6 +285,9 @@ def test_spectating_is_not_requested_as_a_session(drone, alice):
         ({"service": "fly", "preferences": {"cameras": ["x-ray"]}}, "preferences.cameras"),
         ({"service": "fly", "preferences": {"min_battery": 101}}, "preferences.min_battery"),
         ({"service": "fly", "preferences": {"speed": 1}}, "preferences.speed"),
+        ({"service": "fly", "preferences": None}, "preferences"),
+        ({"service": "fly", "preferences": {"cameras": ["rgb", "rgb"]}}, "preferences.cameras"),
+        ({"service": "fly", "params": {"\ud800": 1}}, "params"),
         ({"service": "fly", "serivce": "typo"}, "serivce"),
     ],
 )
@@ -288,6 +295,12 @@ def test_invalid_fields_are_400_naming_the_field(drone, fly, alice, body, field)
     error = _error(call("POST", "/sessions", token=alice, body=body), 400, "invalid_field")
     assert error["field"] == field and field in error["message"]
     assert not Session.objects.exists()
+
+
+def test_a_number_too_large_for_a_float_is_400(drone, fly, alice):
+    raw = '{"service": "fly", "target": {"lat": 1e999, "lon": 0}}'  # parses as infinity
+    error = _error(call("POST", "/sessions", token=alice, raw=raw), 400, "invalid_field")
+    assert error["field"] == "target.lat"
 
 
 def test_params_nested_too_deep_are_400(drone, fly, alice):
@@ -388,6 +401,9 @@ def test_ending_without_a_body_uses_a_default_reason(requested, alice):
         ({"reason": ""}, "reason"),
         ({"reason": 3}, "reason"),
         ({"reason": "x" * 301}, "reason"),
+        ({"reason": None}, "reason"),
+        ({"reason": "   "}, "reason"),
+        ({"reason": "nul\x00"}, "reason"),
         ({"why": "x"}, "why"),
     ],
 )
@@ -610,26 +626,75 @@ def test_a_bug_is_a_json_500(monkeypatch, alice, caplog):
 
 
 def _api_routes() -> set[str]:
-    """Every /api/v1 route of the URLconf, in OpenAPI's path syntax."""
+    """Every /api/v1 operation route of the URLconf, in OpenAPI's path syntax (the
+    document, its page and ninja's root are not operations)."""
     (api_resolver,) = [
         p for p in get_resolver().url_patterns if isinstance(p, URLResolver) and "api" in str(p)
     ]
+    (v1,) = [p for p in api_resolver.url_patterns if isinstance(p, URLResolver)]
     routes = set()
-    for pattern in api_resolver.url_patterns:
-        if isinstance(pattern, URLPattern) and str(pattern.pattern).startswith("v1/"):
-            route = str(pattern.pattern).removeprefix("v1").replace("<uuid:", "{")
+    for pattern in v1.url_patterns:
+        if isinstance(pattern, URLPattern) and pattern.name not in NOT_OPERATIONS:
+            route = "/" + re.sub(r"<\w+:", "{", str(pattern.pattern))
             routes.add(route.replace(">", "}"))
     return routes
+
+
+NOT_OPERATIONS = {"openapi-json", "openapi-view", "api-root"}
 
 
 def test_the_document_is_served_without_a_token_and_is_valid_openapi_3_1():
     response = Client().get("/api/v1/openapi.json")
     assert response.status_code == 200 and response["Content-Type"] == "application/json"
+    assert response["Cache-Control"] == "public, max-age=300"
     document = response.json()
     assert document["openapi"] == "3.1.0"
     openapi_validate(document)  # raises on an invalid document
+    assert document["servers"] == [{"url": "/api/v1"}]
     assert set(document["paths"]) == _api_routes()
-    assert document["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
+    (scheme,) = document["components"]["securitySchemes"].values()
+    assert scheme["type"] == "http" and scheme["scheme"] == "bearer"
+
+
+def test_the_document_describes_the_errors_and_links_the_created_session():
+    document = Client().get("/api/v1/openapi.json").json()
+    create = document["paths"]["/sessions"]["post"]
+    assert set(create["responses"]) == {"201", "400", "401", "403", "409", "413", "422", "500"}
+    assert create["responses"]["400"]["content"]["application/json"]["schema"] == {
+        "$ref": "#/components/schemas/Error"
+    }
+    links = create["responses"]["201"]["links"]
+    assert {link["operationId"] for link in links.values()} == {
+        "session_read",
+        "session_grant",
+        "session_end",
+        "session_stop",
+    }
+    assert "WWW-Authenticate" in create["responses"]["401"]["headers"]
+    request = document["components"]["schemas"]["SessionRequest"]
+    assert request["additionalProperties"] is False and request["required"] == ["service"]
+    reason = document["components"]["schemas"]["EndRequest"]["properties"]["reason"]
+    assert api.REASON_MAX == 300 and "300" in json.dumps(reason)
+
+
+def test_the_interactive_docs_are_served_from_vendored_assets():
+    page = Client().get("/api/v1/docs")
+    assert page.status_code == 200
+    # The portal's own policy, unrelaxed: the page needs no exception.
+    policy = dict(d.strip().split(" ", 1) for d in page["Content-Security-Policy"].split(";"))
+    assert policy["script-src"] == policy["style-src"] == "'self'"
+    html = page.content.decode()
+    assert "/static/ninja/swagger-ui-bundle.js" in html
+    assert "/api/v1/openapi.json" in html
+    assert "validator.swagger.io" not in html and '"validatorUrl": null' in html
+    # Every URL on the page is the platform's own: no CDN.
+    assert not re.findall(r"(?:src|href)=\"(?:https?:)?//", html)
+    for asset in re.findall(r"(?:src|href)=\"(/static/[^\"]+)\"", html):
+        assert finders.find(asset.removeprefix("/static/")), asset
+    # No inline script (the policy would block it): only the page's settings, as data.
+    inline = re.findall(r"<script(?![^>]*\bsrc=)([^>]*)>", html)
+    assert inline == [' type="application/json" id="swagger-settings"']
+    assert Client().post("/api/v1/docs").status_code == 405
 
 
 # --- fuzzing the live API against its schema -----------------------------------------------
@@ -746,3 +811,59 @@ def test_the_live_api_conforms_to_its_schema(wsgi_app, drone, fly, mode, setting
     if mode.is_positive:
         failing = {op: codes for op, codes in statuses.items() if not codes & {200, 201}}
         assert not failing, f"operations that never succeeded: {failing}"
+
+
+#: The operations a created session's id leads to (the document's links).
+SESSION_ID_OPERATIONS = {
+    "GET /sessions/{session_id}",
+    "POST /sessions/{session_id}/grant",
+    "POST /sessions/{session_id}/end",
+    "POST /sessions/{session_id}/stop",
+}
+
+
+def test_sequences_that_follow_the_links_conform_too(wsgi_app, fly, settings):
+    """Schemathesis' state machine chains the calls through the document's links: a
+    created session's id feeds the session-id endpoints, which then answer for real
+    sessions in every state (assigned, ended, stopped) with no 5xx and only documented
+    answers."""
+    settings.IOUV_OFFLINE_AFTER_S = 3600  # as above: the vehicles stay online
+    Service.objects.filter(pk=fly.pk).update(max_sessions_per_user=1000)
+    token = _token("fuzzer", CLIENT, MONITOR)
+    auth = {"Authorization": f"Bearer {token}"}
+    schema = schemathesis.openapi.from_wsgi("/api/v1/openapi.json", wsgi_app)
+    schema.config.generation.update(with_security_parameters=False)
+    statuses: dict[str, set[int]] = {}
+
+    class Workflow(schema.as_state_machine()):  # type: ignore[misc]
+        def before_call(self, case: Any) -> None:
+            if case.operation.path == "/sessions" and isinstance(case.body, dict):
+                # A real service and a vehicle free to serve it, anywhere (see _naming).
+                case.body["service"] = "fly"
+                case.body.pop("target", None)
+                case.body.pop("preferences", None)
+                f.vehicle(station=f.station(), vtype=f.vehicle_type())
+
+        def get_call_kwargs(self, case: Any) -> dict[str, Any]:
+            return {"headers": auth}
+
+        def validate_response(self, response: Any, case: Any, **kwargs: Any) -> None:
+            label = f"{case.operation.method.upper()} {case.operation.path}"
+            statuses.setdefault(label, set()).add(response.status_code)
+            case.validate_response(response, checks=CHECKS, headers=auth)
+
+    Workflow.run(
+        settings=settings_for_machines(max_examples=25, stateful_step_count=6),
+    )
+    reached = {op: codes for op, codes in statuses.items() if op in SESSION_ID_OPERATIONS}
+    assert set(reached) == SESSION_ID_OPERATIONS, statuses
+    # Through the links the ids are real: answered for the session, not a 404.
+    assert all(codes - {404} for codes in reached.values()), reached
+    assert 200 in reached["GET /sessions/{session_id}"], reached
+
+
+def settings_for_machines(**options: Any) -> Any:
+    """Hypothesis settings for a state machine: the same sequences every run."""
+    return settings(
+        deadline=None, derandomize=True, suppress_health_check=list(HealthCheck), **options
+    )
