@@ -7,6 +7,7 @@ Example::
       "vehicle_id": "5f0c...",
       "credential": "...",                      # issued once in the platform's admin
       "platform_public_key_file": "platform.pub.pem",
+      "platform_jwks_url": "https://iouv.example.org/.well-known/jwks.json",
       "adapter": "car",
       "adapter_options": {"distance_sensor": true},
       "control": {"host": "0.0.0.0", "port": 8765, "public_url": "wss://car-1.example.org"},
@@ -17,16 +18,33 @@ A search drone adds its thermal camera, ``"thermal": {"source": "v4l2", "device"
 "/dev/video1"}`` (see :func:`agents.thermal.thermal_source_create` and
 docs/rescue-agent.md), and ``"video": {"source": "thermal"}`` shows it to users.
 
+The platform's public keys come from any of ``platform_public_key`` (PEM text),
+``platform_public_key_file`` (a PEM file), ``platform_jwks_file`` (a JWKS file) and
+``platform_jwks_url`` (a JWKS fetched once when the config is loaded: https, or http on
+loopback only); the agent trusts all the keys given. Once connected it adopts the key set
+the platform's ``welcome`` carries (a key rotation), unless
+``"platform_jwks_from_welcome": false`` pins the configured keys.
+
 Relative paths are taken from the config file's folder.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import json
+import urllib.error
+import urllib.request
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
+from urllib.parse import urlsplit
+
+from agents.protocol import KeySet, ProtocolError
+
+#: Bounds on fetching ``platform_jwks_url``: a JWKS is a few hundred bytes.
+JWKS_FETCH_TIMEOUT_S: Final = 10.0
+JWKS_MAX_BYTES: Final = 64 * 1024
 
 
 class ConfigError(Exception):
@@ -49,7 +67,8 @@ class AgentConfig:
     platform_url: str
     vehicle_id: str
     credential: str
-    platform_public_key: str  # PEM
+    #: PEM text (one or more keys); may be empty when ``platform_jwks`` is given.
+    platform_public_key: str
     adapter: str
     adapter_options: Mapping[str, Any] = field(default_factory=dict)
     control: ControlConfig = field(default_factory=ControlConfig)
@@ -58,10 +77,35 @@ class AgentConfig:
     name: str = ""
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 30.0
+    #: A JWK Set (parsed JSON) of further trusted platform keys, from a file or a URL.
+    platform_jwks: Mapping[str, Any] | None = None
+    #: Adopt the key set the platform's ``welcome`` carries (how rotations reach agents).
+    platform_jwks_from_welcome: bool = True
 
     @property
     def uplink_url(self) -> str:
         return self.platform_url.rstrip("/") + "/ws/agent/"
+
+    def platform_keys(self) -> KeySet:
+        """Every platform key this config trusts (PEM keys, then JWKS keys).
+
+        Raises ConfigError naming the field when a key is unusable or there is none.
+        """
+        keys = None
+        if self.platform_public_key:
+            try:
+                keys = KeySet.from_pem(self.platform_public_key)
+            except ProtocolError as exc:
+                raise ConfigError(f"platform_public_key: {exc.message}") from None
+        if self.platform_jwks is not None:
+            try:
+                from_jwks = KeySet.from_jwks(self.platform_jwks)
+            except ProtocolError as exc:
+                raise ConfigError(f"platform_jwks: {exc.message}") from None
+            keys = from_jwks if keys is None else keys.union(from_jwks)
+        if keys is None:
+            raise ConfigError("platform_public_key: a PEM public key or a JWKS is required")
+        return keys
 
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any], *, base_dir: Path | None = None) -> AgentConfig:
@@ -86,8 +130,17 @@ class AgentConfig:
                 key = (base / key_file).read_text()
             except OSError as exc:
                 raise ConfigError(f"platform_public_key_file: cannot read: {exc}") from None
-        if not isinstance(key, str) or "PUBLIC KEY" not in key:
-            raise ConfigError("platform_public_key: a PEM public key (or _file) is required")
+        jwks = _jwks_configured(data, base)
+        if jwks is None and (not isinstance(key, str) or "PUBLIC KEY" not in key):
+            raise ConfigError(
+                "platform_public_key: a PEM public key (or _file), or platform_jwks_file or "
+                "platform_jwks_url, is required"
+            )
+        if not isinstance(key, str):
+            key = ""
+        from_welcome = data.get("platform_jwks_from_welcome", True)
+        if not isinstance(from_welcome, bool):
+            raise ConfigError("platform_jwks_from_welcome: must be true or false")
         options = data.get("adapter_options", {})
         if not isinstance(options, Mapping):
             raise ConfigError("adapter_options: must be an object")
@@ -113,7 +166,7 @@ class AgentConfig:
                 raise ConfigError(str(exc)) from None
         if video is not None and video.get("source") == "thermal" and thermal is None:
             raise ConfigError("video: the thermal source needs a thermal section")
-        return cls(
+        config = cls(
             platform_url=url,
             vehicle_id=text("vehicle_id"),
             credential=text("credential"),
@@ -128,7 +181,11 @@ class AgentConfig:
             video=dict(video) if video is not None else None,
             thermal=dict(thermal) if thermal is not None else None,
             name=str(data.get("vehicle_name") or data.get("name") or ""),
+            platform_jwks=jwks,
+            platform_jwks_from_welcome=from_welcome,
         )
+        config.platform_keys()  # refuse unusable keys now, naming the field
+        return config
 
     @classmethod
     def load(cls, path: str | Path) -> AgentConfig:
@@ -141,3 +198,83 @@ class AgentConfig:
         except json.JSONDecodeError as exc:
             raise ConfigError(f"{p}: not JSON: {exc}") from None
         return cls.from_mapping(data, base_dir=p.parent)
+
+
+def _jwks_configured(data: Mapping[str, Any], base: Path) -> dict[str, Any] | None:
+    """The JWKS named by ``platform_jwks_file`` or ``platform_jwks_url``, if either is set
+    (both together is ambiguous and refused). Raises ConfigError naming the field."""
+    jwks_file = data.get("platform_jwks_file")
+    jwks_url = data.get("platform_jwks_url")
+    if jwks_file is not None and jwks_url is not None:
+        raise ConfigError("platform_jwks_file: give it or platform_jwks_url, not both")
+    if jwks_file is not None:
+        if not isinstance(jwks_file, str) or not jwks_file:
+            raise ConfigError("platform_jwks_file: must be a file name")
+        try:
+            text = (base / jwks_file).read_text()
+        except OSError as exc:
+            raise ConfigError(f"platform_jwks_file: cannot read: {exc}") from None
+        return _jwks_parsed(text, "platform_jwks_file")
+    if jwks_url is not None:
+        if not isinstance(jwks_url, str) or not jwks_url:
+            raise ConfigError("platform_jwks_url: must be a URL")
+        return jwks_fetch(jwks_url)
+    return None
+
+
+def _jwks_parsed(text: str, name: str) -> dict[str, Any]:
+    try:
+        jwks = json.loads(text)
+    except ValueError as exc:
+        raise ConfigError(f"{name}: not JSON: {exc}") from None
+    try:
+        KeySet.from_jwks(jwks)
+    except ProtocolError as exc:
+        raise ConfigError(f"{name}: {exc.message}") from None
+    return dict(jwks)
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def jwks_fetch(
+    url: str, *, timeout_s: float = JWKS_FETCH_TIMEOUT_S, max_bytes: int = JWKS_MAX_BYTES
+) -> dict[str, Any]:
+    """Fetch the platform's JWKS from ``url`` (its ``/.well-known/jwks.json``).
+
+    The keys are trusted from then on, so the server must be authenticated: ``https://``
+    only, or ``http://`` to a loopback address (a platform on the same machine). Returns
+    the JWKS (validated: every key a public Ed25519 key). Raises ConfigError naming
+    ``platform_jwks_url`` for another scheme, a network failure or timeout, a non-200
+    answer, a body over ``max_bytes``, or a body that is not such a JWKS.
+    """
+    parts = urlsplit(url)
+    if not (
+        parts.scheme == "https" or (parts.scheme == "http" and _is_loopback(parts.hostname or ""))
+    ):
+        raise ConfigError("platform_jwks_url: must be https:// (or http:// on loopback)")
+    request = urllib.request.Request(url, headers={"Accept": "application/json"})
+    # No proxies: the platform is reached directly, as by the uplink.
+    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
+    try:
+        with opener.open(request, timeout=timeout_s) as response:
+            if response.status != 200:
+                raise ConfigError(f"platform_jwks_url: answered {response.status}")
+            body = response.read(max_bytes + 1)
+    except urllib.error.HTTPError as exc:
+        raise ConfigError(f"platform_jwks_url: answered {exc.code}") from None
+    except (urllib.error.URLError, OSError, TimeoutError) as exc:
+        raise ConfigError(f"platform_jwks_url: cannot fetch: {exc}") from None
+    if len(body) > max_bytes:
+        raise ConfigError(f"platform_jwks_url: answer is over {max_bytes} bytes")
+    try:
+        text = body.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ConfigError("platform_jwks_url: answer is not UTF-8") from None
+    return _jwks_parsed(text, "platform_jwks_url")

@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, Protocol, Self
 
-from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+import msgspec
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
@@ -49,12 +49,36 @@ from agents.envelope import EnvelopeWatch
 from agents.protocol import (
     MAX_MESSAGE_BYTES,
     ProtocolError,
+    PublicKeys,
     ReplayGuard,
     UserGrant,
     VehicleTask,
     encode_message,
     error_message,
     parse_message,
+)
+from agents.protocol.messages import (
+    Auth,
+    ClientEvent,
+    ClientPong,
+    ClientWelcome,
+    Command,
+    CommandAck,
+    CommandSpec,
+    Keepalive,
+    Message,
+    Ping,
+    Pong,
+    ReleaseControl,
+    RoleChange,
+    Subscribe,
+    TakeControl,
+    Telemetry,
+    Unsubscribe,
+    WebrtcAnswer,
+    WebrtcOffer,
+    WebrtcRequest,
+    message_type,
 )
 from agents.safety import CommandGate, Refusal
 from agents.vehicles.base import SAFE_COMMANDS, Adapter, AdapterError, Breach
@@ -161,7 +185,7 @@ class ClientLink(Protocol):
 
     id: str
 
-    async def send(self, message: Mapping[str, Any]) -> None:
+    async def send(self, message: Message) -> None:
         """Send one control_to_client message; raises ConnectionError when gone."""
 
     async def close(self, code: int, reason: str) -> None:
@@ -178,9 +202,7 @@ class _Client:
     refill_at: float = field(default_factory=time.monotonic)
     refused: list[float] = field(default_factory=list)
     telemetry: asyncio.Task[None] | None = None
-    commands: asyncio.Queue[dict[str, Any]] = field(
-        default_factory=lambda: asyncio.Queue(COMMAND_QUEUE)
-    )
+    commands: asyncio.Queue[Command] = field(default_factory=lambda: asyncio.Queue(COMMAND_QUEUE))
     worker: asyncio.Task[None] | None = None
 
     def allow(self) -> bool:
@@ -208,7 +230,7 @@ class ControlHub:
         *,
         vehicle_id: str,
         vehicle_name: str,
-        public_key: Ed25519PublicKey,
+        public_key: PublicKeys,
         adapter: Adapter,
         report: Reporter,
         video: Any | None = None,
@@ -216,6 +238,8 @@ class ControlHub:
     ) -> None:
         self.vehicle_id = vehicle_id
         self.vehicle_name = vehicle_name
+        #: The platform key(s) grants are verified with; the agent replaces it when the
+        #: platform announces new keys (a rotation).
         self.public_key = public_key
         self.adapter = adapter
         self.report = report
@@ -321,9 +345,7 @@ class ControlHub:
                 log.exception("on_task_end failed")
         for client in list(self.clients.values()):
             with contextlib.suppress(ConnectionError):
-                await client.link.send(
-                    {"type": "event", "event": "session_ended", "data": {"reason": reason}}
-                )
+                await client.link.send(ClientEvent(event="session_ended", data={"reason": reason}))
             await self._drop(client, CLOSE_FORBIDDEN, reason[:120])
         async with self._exec:
             await self.adapter.safe_action(action or task.limits.failsafe_action)
@@ -401,7 +423,7 @@ class ControlHub:
         self.report(event, task.session_id, data)
         for client in list(self.clients.values()):
             if client.role != "pending":
-                await self._send(client, {"type": "event", "event": event, "data": data})
+                await self._send(client, ClientEvent(event=event, data=data))
 
     async def _envelope_stop(self) -> None:
         watch, self._envelope = self._envelope, None
@@ -460,16 +482,16 @@ class ControlHub:
             if client.role == "pending":
                 await self._drop(client, CLOSE_UNAUTHORIZED, "authenticate first")
             return
-        kind = msg["type"]
         if client.role == "pending":
-            if kind != "auth":
+            if not isinstance(msg, Auth):
                 await self._send(client, error_message("unauthorized", "authenticate first"))
                 await self._drop(client, CLOSE_UNAUTHORIZED, "authenticate first")
                 return
-            await self._auth(client, msg["grant"])
+            await self._auth(client, msg.grant)
             return
-        handler = self._handlers.get(kind)
+        handler = self._handlers.get(type(msg))
         if handler is None:
+            kind = message_type(msg)
             await self._send(client, error_message("unexpected", f"{kind} is not expected now"))
             return
         with contextlib.suppress(ConnectionError):
@@ -500,10 +522,9 @@ class ControlHub:
             client.role = "viewer"
         await self._send(
             client,
-            {
-                "type": "welcome",
-                "role": client.role,
-                "vehicle": {
+            ClientWelcome(
+                role=client.role,  # type: ignore[arg-type]  # controller or viewer by now
+                vehicle={
                     "id": self.vehicle_id,
                     "name": self.vehicle_name,
                     "adapter": self.adapter.name,
@@ -511,16 +532,19 @@ class ControlHub:
                     "link_loss_timeout_ms": task.limits.link_loss_timeout_ms,
                     "video": self.video is not None,
                 },
-                "commands": [
-                    {
-                        **c.to_profile(),
-                        "allowed": c.name in task.allowed_commands or c.name in SAFE_COMMANDS,
-                    }
+                commands=[
+                    msgspec.convert(
+                        {
+                            **c.to_profile(),
+                            "allowed": c.name in task.allowed_commands or c.name in SAFE_COMMANDS,
+                        },
+                        CommandSpec,
+                    )
                     for c in self.adapter.commands()
                 ],
-                "telemetry": self.adapter.telemetry_topics(),
-                "telemetry_info": self.adapter.telemetry_info(),
-            },
+                telemetry=self.adapter.telemetry_topics(),
+                telemetry_info=self.adapter.telemetry_info(),
+            ),
         )
         self.report("user_connected", task.session_id, {"user": grant.user, "role": client.role})
 
@@ -529,7 +553,7 @@ class ControlHub:
             previous = self.controller
             previous.role = "viewer"
             with contextlib.suppress(ConnectionError):
-                await previous.link.send({"type": "role", "role": "viewer"})
+                await previous.link.send(RoleChange(role="viewer"))
         # Whoever held the sticks, the new holder starts from neutral; not while a
         # mission flies: zeroing the inputs would stop it mid-leg (a rescue user's page
         # joining as controller), and a user who really steers takes over anyway.
@@ -544,11 +568,11 @@ class ControlHub:
             client.worker = asyncio.create_task(self._run_commands(client))
 
     # --- message handlers --------------------------------------------------------------
-    async def _on_command(self, client: _Client, msg: dict[str, Any]) -> None:
-        name = msg["name"]
+    async def _on_command(self, client: _Client, msg: Command) -> None:
+        name = msg.name
         if client is not self.controller:
             await self._ack(
-                client, msg["seq"], "view_only", f"{name}: you are watching; take control first"
+                client, msg.seq, "view_only", f"{name}: you are watching; take control first"
             )
             return
         await self._heard(client)
@@ -556,14 +580,14 @@ class ControlHub:
             client.commands.put_nowait(msg)
         except asyncio.QueueFull:
             await self._ack(
-                client, msg["seq"], "busy", f"{name}: commands are arriving faster than applied"
+                client, msg.seq, "busy", f"{name}: commands are arriving faster than applied"
             )
 
     async def _run_commands(self, client: _Client) -> None:
         """Apply the controller's commands in order, one at a time."""
         while True:
             msg = await client.commands.get()
-            seq, name, args = msg["seq"], msg["name"], msg["args"]
+            seq, name, args = msg.seq, msg.name, msg.args
             if client is not self.controller or self.gate is None or self.task is None:
                 await self._ack(client, seq, "view_only", f"{name}: you no longer hold control")
                 continue
@@ -590,24 +614,24 @@ class ControlHub:
             self.stats["commands"] += 1
             self._input()
             with contextlib.suppress(ConnectionError):
-                await client.link.send({"type": "ack", "seq": seq, "ok": True, "error": None})
+                await client.link.send(CommandAck(seq=seq, ok=True, error=None))
 
-    async def _on_keepalive(self, client: _Client, msg: dict[str, Any]) -> None:
+    async def _on_keepalive(self, client: _Client, msg: Keepalive) -> None:
         if client is self.controller:
             await self._heard(client)
 
-    async def _on_ping(self, client: _Client, msg: dict[str, Any]) -> None:
+    async def _on_ping(self, client: _Client, msg: Ping) -> None:
         # Pings measure the link; only commands and keepalives show a user in control.
-        await self._send(client, {"type": "pong", "t": msg["t"], "server_t": time.time()})
+        await self._send(client, ClientPong(t=msg.t, server_t=time.time()))
 
-    async def _on_pong(self, client: _Client, msg: dict[str, Any]) -> None:
-        sent = float(msg["t"])
+    async def _on_pong(self, client: _Client, msg: Pong) -> None:
+        sent = msg.t
         now = time.monotonic()
         if 0 <= now - sent < 60:  # our own monotonic stamp echoed back
             client.rtt_ms = (now - sent) * 1000.0
 
-    async def _on_subscribe(self, client: _Client, msg: dict[str, Any]) -> None:
-        topics = list(dict.fromkeys(msg["topics"]))
+    async def _on_subscribe(self, client: _Client, msg: Subscribe) -> None:
+        topics = list(dict.fromkeys(msg.topics))
         known = set(self.adapter.telemetry_topics())
         unknown = [t for t in topics if t not in known]
         if unknown:
@@ -618,14 +642,14 @@ class ControlHub:
             return
         if client.telemetry:
             client.telemetry.cancel()
-        client.telemetry = asyncio.create_task(self._stream(client, topics, float(msg["rate_hz"])))
+        client.telemetry = asyncio.create_task(self._stream(client, topics, msg.rate_hz))
 
-    async def _on_unsubscribe(self, client: _Client, msg: dict[str, Any]) -> None:
+    async def _on_unsubscribe(self, client: _Client, msg: Unsubscribe) -> None:
         if client.telemetry:
             client.telemetry.cancel()
             client.telemetry = None
 
-    async def _on_take_control(self, client: _Client, msg: dict[str, Any]) -> None:
+    async def _on_take_control(self, client: _Client, msg: TakeControl) -> None:
         task = self.task
         if (
             client.grant is None
@@ -650,9 +674,9 @@ class ControlHub:
                     "role": "controller",
                 },
             )
-        await self._send(client, {"type": "role", "role": "controller"})
+        await self._send(client, RoleChange(role="controller"))
 
-    async def _on_release_control(self, client: _Client, msg: dict[str, Any]) -> None:
+    async def _on_release_control(self, client: _Client, msg: ReleaseControl) -> None:
         if client is self.controller:
             await self._set_controller(None)
             client.role = "viewer"
@@ -662,9 +686,10 @@ class ControlHub:
                     self.task.session_id,
                     {"user": client.grant.user, "from": client.link.id, "role": "controller"},
                 )
-        await self._send(client, {"type": "role", "role": client.role})
+        viewer = client.role == "viewer"
+        await self._send(client, RoleChange(role="viewer" if viewer else "controller"))
 
-    async def _on_webrtc_request(self, client: _Client, msg: dict[str, Any]) -> None:
+    async def _on_webrtc_request(self, client: _Client, msg: WebrtcRequest) -> None:
         if self.video is None:
             await self._send(client, error_message("no_video", "this vehicle has no camera"))
             return
@@ -673,40 +698,41 @@ class ControlHub:
         except Exception as exc:  # any video failure is reported to the user, not fatal
             await self._send(client, error_message("video", str(exc)))
             return
-        await self._send(client, {"type": "webrtc_offer", "sdp": sdp})
+        await self._send(client, WebrtcOffer(sdp=sdp))
 
-    async def _on_webrtc_answer(self, client: _Client, msg: dict[str, Any]) -> None:
+    async def _on_webrtc_answer(self, client: _Client, msg: WebrtcAnswer) -> None:
         if self.video is None:
             await self._send(client, error_message("no_video", "this vehicle has no camera"))
             return
         try:
-            await self.video.answer(client.link.id, msg["sdp"])
+            await self.video.answer(client.link.id, msg.sdp)
         except Exception as exc:  # as above
             await self._send(client, error_message("video", str(exc)))
 
-    async def _on_webrtc_offer(self, client: _Client, msg: dict[str, Any]) -> None:
+    async def _on_webrtc_offer(self, client: _Client, msg: WebrtcOffer) -> None:
         if self.video is None:
             await self._send(client, error_message("no_video", "this vehicle has no camera"))
             return
         try:
-            sdp = await self.video.accept_offer(client.link.id, msg["sdp"])
+            sdp = await self.video.accept_offer(client.link.id, msg.sdp)
         except Exception as exc:  # as above
             await self._send(client, error_message("video", str(exc)))
             return
-        await self._send(client, {"type": "webrtc_answer", "sdp": sdp})
+        await self._send(client, WebrtcAnswer(sdp=sdp))
 
-    _handlers: dict[str, Callable[[ControlHub, _Client, dict[str, Any]], Awaitable[None]]] = {
-        "command": _on_command,
-        "keepalive": _on_keepalive,
-        "ping": _on_ping,
-        "pong": _on_pong,
-        "subscribe": _on_subscribe,
-        "unsubscribe": _on_unsubscribe,
-        "take_control": _on_take_control,
-        "release_control": _on_release_control,
-        "webrtc_request": _on_webrtc_request,
-        "webrtc_answer": _on_webrtc_answer,
-        "webrtc_offer": _on_webrtc_offer,
+    # Each handler takes the struct of its key (typed per handler, hence Any here).
+    _handlers: dict[type[Message], Callable[[ControlHub, _Client, Any], Awaitable[None]]] = {
+        Command: _on_command,
+        Keepalive: _on_keepalive,
+        Ping: _on_ping,
+        Pong: _on_pong,
+        Subscribe: _on_subscribe,
+        Unsubscribe: _on_unsubscribe,
+        TakeControl: _on_take_control,
+        ReleaseControl: _on_release_control,
+        WebrtcRequest: _on_webrtc_request,
+        WebrtcAnswer: _on_webrtc_answer,
+        WebrtcOffer: _on_webrtc_offer,
     }
 
     # --- background loops --------------------------------------------------------------
@@ -717,11 +743,7 @@ class ControlHub:
             while True:
                 values = self.adapter.telemetry()
                 await client.link.send(
-                    {
-                        "type": "telemetry",
-                        "t": time.time(),
-                        "data": {t: values.get(t) for t in topics},
-                    }
+                    Telemetry(t=time.time(), data={t: values.get(t) for t in topics})
                 )
                 # Keep the rate even when a send was slow, without bursting to catch up.
                 next_at = max(next_at + period, time.monotonic())
@@ -735,7 +757,7 @@ class ControlHub:
             client = self.controller
             if client is not None:
                 with contextlib.suppress(ConnectionError):
-                    await client.link.send({"type": "ping", "t": time.monotonic()})
+                    await client.link.send(Ping(t=time.monotonic()))
 
     async def _watch(self) -> None:
         while True:
@@ -762,7 +784,7 @@ class ControlHub:
             log.warning("controller back after %d ms of silence", after_ms)
             if self.task is not None:
                 self.report("link_recovered", self.task.session_id, data)
-            await self._send(client, {"type": "event", "event": "link_recovered", "data": data})
+            await self._send(client, ClientEvent(event="link_recovered", data=data))
         self._input()
 
     async def _failsafe(self, cause: str) -> None:
@@ -783,11 +805,7 @@ class ControlHub:
         for client in list(self.clients.values()):
             with contextlib.suppress(ConnectionError):
                 await client.link.send(
-                    {
-                        "type": "event",
-                        "event": "failsafe",
-                        "data": {"cause": cause, "action": action},
-                    }
+                    ClientEvent(event="failsafe", data={"cause": cause, "action": action})
                 )
         self.report(
             "failsafe", task.session_id if task else None, {"cause": cause, "action": action}
@@ -796,11 +814,9 @@ class ControlHub:
     # --- helpers -----------------------------------------------------------------------
     async def _ack(self, client: _Client, seq: int, code: str, error: str) -> None:
         with contextlib.suppress(ConnectionError):
-            await client.link.send(
-                {"type": "ack", "seq": seq, "ok": False, "error": error, "code": code}
-            )
+            await client.link.send(CommandAck(seq=seq, ok=False, error=error, code=code))
 
-    async def _send(self, client: _Client, message: Mapping[str, Any]) -> None:
+    async def _send(self, client: _Client, message: Message) -> None:
         with contextlib.suppress(ConnectionError):
             await client.link.send(message)
 
@@ -831,7 +847,7 @@ class _WebSocketLink:
         self.ws = ws
         self.id = f"ws-{next(self._ids)}"
 
-    async def send(self, message: Mapping[str, Any]) -> None:
+    async def send(self, message: Message) -> None:
         try:
             await self.ws.send(encode_message(message))
         except ConnectionClosed as exc:

@@ -3,22 +3,43 @@
 from __future__ import annotations
 
 import asyncio
-import base64
 import contextlib
-import json
+import ipaddress
 import logging
 from collections.abc import Mapping
 from typing import Any
+from urllib.parse import urlsplit
+
+import msgspec
 
 from agents.config import AgentConfig
 from agents.control import ControlHub, ControlServer
 from agents.mission import MissionControl
 from agents.protocol import (
+    KeySet,
     ProtocolError,
     ReplayGuard,
     VehicleTask,
+    claimed_session,
     encode_message,
-    load_public_key,
+)
+from agents.protocol.messages import (
+    CommandSpec,
+    EndTask,
+    Error,
+    Event,
+    Heartbeat,
+    Message,
+    Position,
+    Profile,
+    RelayClose,
+    RelayToAgent,
+    RelayToPlatform,
+    Revoke,
+    Task,
+    TaskAccepted,
+    TaskRefused,
+    message_type,
 )
 from agents.safety import Refusal
 from agents.thermal import ThermalFeed, thermal_feed_create
@@ -44,7 +65,9 @@ class Agent:
 
     def __init__(self, config: AgentConfig, *, adapter: Adapter | None = None) -> None:
         self.config = config
-        self.public_key = load_public_key(config.platform_public_key)
+        #: The platform keys tasks and grants are verified with; replaced by the key set
+        #: of a trusted ``welcome`` (see :meth:`on_welcome`).
+        self.keys: KeySet = config.platform_keys()
         self.adapter = adapter or adapter_create(config.adapter, config.adapter_options)
         self.tasks_seen = ReplayGuard()
         self.ready = asyncio.Event()
@@ -75,7 +98,7 @@ class Agent:
             hub = ControlHub(
                 vehicle_id=self.config.vehicle_id,
                 vehicle_name=self.config.name,
-                public_key=self.public_key,
+                public_key=self.keys,
                 adapter=self.adapter,
                 report=self.report,
                 video=self.video,
@@ -102,6 +125,7 @@ class Agent:
                 heartbeat=self.heartbeat,
                 reconnect_min_s=self.config.reconnect_min_s,
                 reconnect_max_s=self.config.reconnect_max_s,
+                on_welcome=self.on_welcome,
             )
             self.ready.set()
             log.info(
@@ -134,37 +158,39 @@ class Agent:
         }
 
     # --- what the platform hears ---------------------------------------------------------
-    def profile(self) -> dict[str, Any]:
+    def profile(self) -> Profile:
         """The ``profile`` sent on every registration: what the vehicle is and offers,
         and what it is doing now (its task's session, whether a user controls it, its
         status), from which the platform converges it to what it should be doing."""
         state = self.adapter.state()
         hub = self.hub
         task = hub.task if hub is not None else None
-        return {
-            "type": "profile",
-            "vehicle_type": str(self.config.adapter_options.get("vehicle_type", self.adapter.name)),
-            "adapter": self.adapter.name,
-            "attributes": dict(self.config.adapter_options.get("attributes", {})),
-            "commands": [c.to_profile() for c in self.adapter.commands()],
-            "telemetry": self.adapter.telemetry_topics(),
-            "control_url": self.control_url,
-            "video": self.video is not None,
-            "safe_actions": dict(self.adapter.safe_action_words),
-            "position": self._position(),
-            "battery": state.battery,
-            "session_id": task.session_id if task is not None else None,
-            "controller": hub is not None and hub.controller is not None,
-            "status": self._status(),
-        }
+        return Profile(
+            vehicle_type=str(self.config.adapter_options.get("vehicle_type", self.adapter.name)),
+            adapter=self.adapter.name,
+            attributes=dict(self.config.adapter_options.get("attributes", {})),
+            commands=[
+                msgspec.convert(c.to_profile(), CommandSpec) for c in self.adapter.commands()
+            ],
+            telemetry=self.adapter.telemetry_topics(),
+            control_url=self.control_url,
+            video=self.video is not None,
+            safe_actions=dict(self.adapter.safe_action_words),
+            position=self._position(),
+            battery=state.battery,
+            session_id=task.session_id if task is not None else None,
+            controller=hub is not None and hub.controller is not None,
+            status=self._status(),
+        )
 
-    def heartbeat(self) -> dict[str, Any]:
-        return {
-            "type": "heartbeat",
-            "position": self._position(),
-            "battery": self.adapter.state().battery,
-            "status": self._status(),
-        }
+    def heartbeat(self) -> Heartbeat:
+        """The next heartbeat; the uplink numbers it (``seq``)."""
+        return Heartbeat(
+            seq=0,
+            position=self._position(),
+            battery=self.adapter.state().battery,
+            status=self._status(),
+        )
 
     def _status(self) -> str:
         hub = self.hub
@@ -189,66 +215,92 @@ class Agent:
         speed = self.adapter.state().speed_mps
         return speed is not None and speed > UNDER_WAY_MPS
 
-    def _position(self) -> dict[str, float] | None:
+    def _position(self) -> Position | None:
         state = self.adapter.state()
         if state.lat is None or state.lon is None:
             return None
-        pos = {"lat": state.lat, "lon": state.lon}
-        if state.alt is not None:
-            pos["alt"] = state.alt
-        return pos
+        return Position(lat=state.lat, lon=state.lon, alt=state.alt)
 
     def report(self, event: str, session_id: str | None, data: dict[str, Any]) -> None:
         """Tell the platform about a session event (queued while it is unreachable)."""
         if self.uplink is not None:
-            self.uplink.send(
-                {"type": "event", "session_id": session_id, "event": event, "data": data}
-            )
+            self.uplink.send(Event(session_id=session_id, event=event, data=data))
 
     # --- what the platform says ----------------------------------------------------------
-    async def on_platform_message(self, msg: dict[str, Any]) -> None:
-        kind = msg["type"]
+    def on_welcome(self, msg: Any) -> None:
+        """Adopt the key set the platform's ``welcome`` carries (``platform_jwks``), so a
+        key rotation reaches this agent without a new config.
+
+        Only over an uplink whose server is authenticated (``wss://``, or ``ws://`` on
+        loopback) and unless the config pins its keys; an unusable JWKS is logged and the
+        keys in use are kept.
+        """
+        # A parsed message may be a dict or a message struct (absent field: UNSET).
+        jwks = (
+            msg.get("platform_jwks")
+            if isinstance(msg, Mapping)
+            else getattr(msg, "platform_jwks", None)
+        )
+        if not isinstance(jwks, Mapping) or not self.config.platform_jwks_from_welcome:
+            return
+        if not _server_authenticated(self.config.uplink_url):
+            log.warning("ignored the welcome's platform keys: the uplink is not wss://")
+            return
+        try:
+            keys = KeySet.from_jwks(jwks)
+        except ProtocolError as exc:
+            log.warning("ignored the welcome's platform keys: %s", exc)
+            return
+        if keys != self.keys:
+            log.info("platform keys are now %s", keys.kids)
+            self.keys = keys
+            if self.hub is not None:
+                self.hub.public_key = keys
+
+    async def on_platform_message(self, msg: Message) -> None:
         hub = self.hub
         assert hub is not None and self.uplink is not None
-        if kind == "task":
-            self._task(msg["token"])
-        elif kind == "revoke":
-            await hub.task_end(msg["session_id"], reason=msg["reason"], action=msg["action"])
-        elif kind == "end_task":
-            await hub.task_end(msg["session_id"], reason=msg["reason"], action=None)
-        elif kind == "relay":
-            await self._relayed(msg)
-        elif kind == "relay_close":
-            link = self.relay_links.pop(msg["conn"], None)
-            if link is not None:
-                await hub.disconnected(link)
-        elif kind == "error":
-            log.warning("platform error %s: %s", msg["code"], msg["message"])
-        else:
-            log.info("ignored platform message %s", kind)
+        match msg:
+            case Task():
+                self._task(msg.token)
+            case Revoke():
+                await hub.task_end(msg.session_id, reason=msg.reason, action=msg.action)
+            case EndTask():
+                await hub.task_end(msg.session_id, reason=msg.reason, action=None)
+            case RelayToAgent():
+                await self._relayed(msg)
+            case RelayClose():
+                link = self.relay_links.pop(msg.conn, None)
+                if link is not None:
+                    await hub.disconnected(link)
+            case Error():
+                log.warning("platform error %s: %s", msg.code, msg.message)
+            case _:
+                log.info("ignored platform message %s", message_type(msg))
 
-    async def _relayed(self, msg: dict[str, Any]) -> None:
+    async def _relayed(self, msg: RelayToAgent) -> None:
         """A control message from a browser relayed by the platform: same hub, same
         checks as a direct socket, answers sent back over the uplink."""
         assert self.hub is not None and self.uplink is not None
-        conn = msg.get("conn")
+        conn = msg.conn
         if not conn:
             return
         link = self.relay_links.get(conn)
         if link is None:
             if len(self.relay_links) >= MAX_RELAYED:
                 return
-            link = _RelayLink(self, msg["session_id"], conn)
+            link = _RelayLink(self, msg.session_id, conn)
             self.relay_links[conn] = link
             await self.hub.connected(link)
-        await self.hub.received(link, encode_message(msg["payload"]))
+        # As text, so the hub's rate limit and parsing apply as on a direct socket.
+        await self.hub.received(link, encode_message(msg.payload))
 
     def _task(self, token: str) -> None:
         assert self.hub is not None and self.uplink is not None
         try:
             task = VehicleTask.verify(
                 token,
-                self.public_key,
+                self.keys,
                 vehicle_id=self.config.vehicle_id,
                 replay_guard=self.tasks_seen,
             )
@@ -256,15 +308,14 @@ class Agent:
         except (ProtocolError, Refusal) as exc:
             log.warning("refused a task: %s", exc)
             self.uplink.send(
-                {
-                    "type": "task_refused",
-                    "session_id": _claimed_session(token),
-                    "code": getattr(exc, "code", "refused"),
-                    "reason": str(exc),
-                }
+                TaskRefused(
+                    session_id=claimed_session(token),
+                    code=getattr(exc, "code", "refused"),
+                    reason=str(exc),
+                )
             )
             return
-        self.uplink.send({"type": "task_accepted", "session_id": task.session_id})
+        self.uplink.send(TaskAccepted(session_id=task.session_id))
         if self.missions is not None:
             # After task_accepted: the platform hears the task before its mission events.
             self.missions.task_accepted(task)
@@ -298,44 +349,37 @@ class _RelayLink:
         self.conn = conn
         self.id = f"relay-{conn}"
 
-    async def send(self, message: Mapping[str, Any]) -> None:
+    async def send(self, message: Message) -> None:
         if self.agent.relay_links.get(self.conn) is not self or self.agent.uplink is None:
             raise ConnectionError("relayed client is gone")
         if not self.agent.uplink.connected.is_set():
             # Relayed control needs the platform; without it this client is cut off.
             raise ConnectionError("platform unreachable")
+        payload: Any = message  # a control_to_client message: the hub sends no other
         self.agent.uplink.send(
-            {
-                "type": "relay",
-                "session_id": self.session_id,
-                "conn": self.conn,
-                "payload": dict(message),
-            }
+            RelayToPlatform(session_id=self.session_id, conn=self.conn, payload=payload)
         )
 
     async def close(self, code: int, reason: str) -> None:
         if self.agent.relay_links.pop(self.conn, None) is None or self.agent.uplink is None:
             return
         self.agent.uplink.send(
-            {
-                "type": "relay_close",
-                "session_id": self.session_id,
-                "conn": self.conn,
-                "code": code,
-                "reason": reason[:120],
-            }
+            RelayClose(session_id=self.session_id, conn=self.conn, code=code, reason=reason[:120])
         )
 
 
-def _claimed_session(token: str) -> str | None:
-    """The session a refused token claims to be for, so the platform can tell which
-    session failed. Unverified: used only to label the refusal."""
+def _server_authenticated(url: str) -> bool:
+    """Is the platform at ``url`` authenticated: TLS (``wss``), or on this machine?"""
+    parts = urlsplit(url)
+    if parts.scheme == "wss":
+        return True
+    host = parts.hostname or ""
+    if host == "localhost":
+        return True
     try:
-        payload = json.loads(base64.urlsafe_b64decode(token.split(".")[0] + "=="))
-        session = payload.get("session_id")
-    except (ValueError, AttributeError, TypeError):
-        return None
-    return session if isinstance(session, str) and 0 < len(session) <= 100 else None
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 async def agent_run(config: AgentConfig) -> None:

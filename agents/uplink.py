@@ -20,9 +20,10 @@ import contextlib
 import logging
 import random
 from collections import OrderedDict, deque
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable
 from typing import Any
 
+import msgspec
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
@@ -33,6 +34,7 @@ from agents.protocol import (
     encode_message,
     parse_message,
 )
+from agents.protocol.messages import Ack, Heartbeat, Hello, Message, Profile, Welcome, message_type
 
 log = logging.getLogger(__name__)
 
@@ -51,9 +53,10 @@ def backoff_delay(attempt: int, *, base: float, cap: float) -> float:
 class Uplink:
     """Keeps one authenticated WebSocket to the platform, reconnecting forever.
 
-    ``on_message`` gets every validated platform message except ``welcome``;
-    ``profile()`` and ``heartbeat()`` build the messages sent on connect and at the
-    interval the platform asks for.
+    ``on_message`` gets every validated platform message except ``welcome``, which goes
+    to ``on_welcome`` (if given) before the profile is sent; ``profile()`` and
+    ``heartbeat()`` build the messages sent on connect and at the interval the platform
+    asks for.
     """
 
     def __init__(
@@ -62,13 +65,15 @@ class Uplink:
         url: str,
         vehicle_id: str,
         credential: str,
-        on_message: Callable[[dict[str, Any]], Awaitable[None]],
-        profile: Callable[[], dict[str, Any]],
-        heartbeat: Callable[[], dict[str, Any]],
+        on_message: Callable[[Any], Awaitable[None]],
+        profile: Callable[[], Profile],
+        heartbeat: Callable[[], Heartbeat],
         reconnect_min_s: float = 0.5,
         reconnect_max_s: float = 30.0,
+        on_welcome: Callable[[Any], None] | None = None,
     ) -> None:
         self.url = url
+        self.on_welcome = on_welcome
         self.vehicle_id = vehicle_id
         self.credential = credential
         self.on_message = on_message
@@ -84,7 +89,7 @@ class Uplink:
         self._wake = asyncio.Event()
         self._hb_seq = 0
 
-    def send(self, message: Mapping[str, Any]) -> None:
+    def send(self, message: Message) -> None:
         """Queue a message for the platform (dropped oldest-first when the outbox is
         full during a long outage)."""
         self._outbox.append(encode_message(message))
@@ -122,20 +127,18 @@ class Uplink:
     async def _register(self, ws: ClientConnection) -> None:
         await ws.send(
             encode_message(
-                {
-                    "type": "hello",
-                    "v": PROTOCOL_VERSION,
-                    "vehicle_id": self.vehicle_id,
-                    "credential": self.credential,
-                }
+                Hello(v=PROTOCOL_VERSION, vehicle_id=self.vehicle_id, credential=self.credential)
             )
         )
         raw = await asyncio.wait_for(ws.recv(), WELCOME_TIMEOUT_S)
         msg = parse_message(raw, channel="uplink_to_agent")
-        if msg["type"] != "welcome":
+        if not isinstance(msg, Welcome):
             # The platform refused us (bad credential, version): wait and retry.
-            raise ProtocolError("refused", f"platform answered {msg['type']}: {msg}")
-        self.heartbeat_interval_s = float(msg["heartbeat_interval_s"])
+            raise ProtocolError("refused", f"platform answered {message_type(msg)}: {msg}")
+        self.heartbeat_interval_s = msg.heartbeat_interval_s
+        if self.on_welcome is not None:
+            # Before the profile: a task may follow at once and need the welcome's keys.
+            self.on_welcome(msg)
         await ws.send(encode_message(self.profile()))
         self.connections += 1
         self.connected.set()
@@ -167,12 +170,12 @@ class Uplink:
                 continue
             await self._handle(msg)
 
-    async def _handle(self, msg: dict[str, Any]) -> None:
+    async def _handle(self, msg: Message) -> None:
         """Hand ``msg`` to ``on_message`` (once per id) and acknowledge it if it has one."""
-        mid = msg.get("id")
+        mid = getattr(msg, "id", None)  # task, revoke, end_task; UNSET when absent
         if isinstance(mid, str) and mid in self._handled:
             self._handled.move_to_end(mid)
-            self.send({"type": "ack", "id": mid, "ok": True, "detail": "already handled"})
+            self.send(Ack(id=mid, ok=True, detail="already handled"))
             return
         ok, detail = True, ""
         try:
@@ -180,7 +183,7 @@ class Uplink:
         except Exception as exc:
             # A bug handling one message must not take the vehicle off the platform;
             # the platform hears that it failed instead of sending it for ever.
-            log.exception("handling platform message %s failed", msg.get("type"))
+            log.exception("handling platform message %s failed", message_type(msg))
             ok, detail = False, f"{type(exc).__name__}: {exc}"[:200]
         if isinstance(mid, str):
             self._handled[mid] = None
@@ -188,12 +191,13 @@ class Uplink:
                 self._handled.popitem(last=False)
             # Queued behind what handling it queued (task_accepted...), so the platform
             # hears the outcome before the acknowledgement.
-            self.send({"type": "ack", "id": mid, "ok": ok, "detail": detail})
+            self.send(Ack(id=mid, ok=ok, detail=detail))
 
     async def _heartbeats(self, ws: ClientConnection) -> None:
         while True:
             self._hb_seq += 1
-            await ws.send(encode_message({**self.heartbeat(), "seq": self._hb_seq}))
+            beat = msgspec.structs.replace(self.heartbeat(), seq=self._hb_seq)
+            await ws.send(encode_message(beat))
             await asyncio.sleep(self.heartbeat_interval_s)
 
     async def _flush(self, ws: ClientConnection) -> None:

@@ -74,6 +74,7 @@ from typing import Any
 from websockets.exceptions import ConnectionClosed, InvalidHandshake
 
 from agents.protocol import ProtocolError, ReplayGuard, VehicleTask, load_public_key
+from agents.protocol.messages import message_from_dict, message_to_dict
 from agents.uplink import Uplink
 from benchmarks.front_proxy import raise_open_files_limit
 
@@ -769,29 +770,35 @@ class LightAgent:
             reconnect_max_s=5.0,
         )
 
-    def profile(self) -> dict[str, Any]:
-        return {
-            "type": "profile",
-            "vehicle_type": "drone",
-            "adapter": "light",
-            "attributes": {},
-            "commands": LIGHT_COMMANDS,
-            "telemetry": [],
-            "control_url": "",
-            "video": False,
-            "position": self.position,
-            "battery": 90.0,
-        }
+    def profile(self) -> Any:
+        return _up(
+            {
+                "type": "profile",
+                "vehicle_type": "drone",
+                "adapter": "light",
+                "attributes": {},
+                "commands": LIGHT_COMMANDS,
+                "telemetry": [],
+                "control_url": "",
+                "video": False,
+                "position": self.position,
+                "battery": 90.0,
+            }
+        )
 
-    def heartbeat(self) -> dict[str, Any]:
-        return {
-            "type": "heartbeat",
-            "position": self.position,
-            "battery": 90.0,
-            "status": "in_service" if self.session else "idle",
-        }
+    def heartbeat(self) -> Any:
+        return _up(
+            {
+                "type": "heartbeat",
+                "seq": 0,
+                "position": self.position,
+                "battery": 90.0,
+                "status": "in_service" if self.session else "idle",
+            }
+        )
 
-    async def on_message(self, msg: dict[str, Any]) -> None:
+    async def on_message(self, message: Any) -> None:
+        msg = message_to_dict(message)  # these light agents keep to dicts
         kind = msg["type"]
         if kind == "task":
             try:
@@ -803,27 +810,29 @@ class LightAgent:
                 )
             except ProtocolError as exc:
                 self.uplink.send(
-                    {
-                        "type": "task_refused",
-                        "session_id": None,
-                        "code": exc.code,
-                        "reason": str(exc),
-                    }
+                    _up({"type": "task_refused", "code": exc.code, "reason": str(exc)})
                 )
                 return
             self.tasks.append((task.session_id, time.time()))
             self.session = task.session_id
-            self.uplink.send({"type": "task_accepted", "session_id": task.session_id})
+            self.uplink.send(_up({"type": "task_accepted", "session_id": task.session_id}))
         elif kind in ("end_task", "revoke") and msg["session_id"] == self.session:
             self.session = None
             self.uplink.send(
-                {
-                    "type": "event",
-                    "session_id": msg["session_id"],
-                    "event": "task_ended",
-                    "data": {"reason": msg["reason"]},
-                }
+                _up(
+                    {
+                        "type": "event",
+                        "session_id": msg["session_id"],
+                        "event": "task_ended",
+                        "data": {"reason": msg["reason"]},
+                    }
+                )
             )
+
+
+def _up(message: dict[str, Any]) -> Any:
+    """An uplink_to_platform message struct from its dict form."""
+    return message_from_dict(message, channel="uplink_to_platform")
 
 
 async def agent_worker(spec: dict[str, Any]) -> None:

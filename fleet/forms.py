@@ -8,7 +8,8 @@ from typing import Any
 from django import forms
 from django.core.exceptions import ValidationError
 
-from agents.protocol import ProtocolError, encode_message
+from agents.protocol import ProtocolError
+from agents.protocol.messages import encode_message_dict
 from fleet.attributes import ATTRIBUTES, FEATURES, ChoiceListAttribute
 from fleet.models import Vehicle, VehicleType
 
@@ -67,7 +68,7 @@ def commands_validate(commands: Any) -> None:
         "telemetry": [],
     }
     try:
-        encode_message(message, channel="control_to_client")
+        encode_message_dict(message, channel="control_to_client")
     except ProtocolError as exc:
         raise ValidationError(exc.message.removeprefix("welcome message: ")) from None
 

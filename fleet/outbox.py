@@ -38,7 +38,7 @@ from django.db import connection, transaction
 from django.db.models import F
 from django.utils import timezone
 
-from agents.protocol import encode_message
+from agents.protocol.messages import encode_message_dict
 from fleet.feed import fleet_notify
 from fleet.models import AgentMessage, Vehicle
 from iouv import layer
@@ -92,7 +92,7 @@ def agent_message_enqueue(
     if kind not in _KINDS:
         raise ValueError(f"only {sorted(_KINDS)} are delivered reliably, not {kind!r}")
     # Validated here, with an id as it will travel, so a sender's bug shows at the sender.
-    encode_message({**message, "id": "0"}, channel="uplink_to_agent")
+    encode_message_dict({**message, "id": "0"}, channel="uplink_to_agent")
     pk = uuid.UUID(str(vehicle_id))
     row = AgentMessage.objects.create(
         vehicle_id=pk,

@@ -53,6 +53,7 @@ from agents.protocol import (
     error_message,
     parse_message,
 )
+from agents.protocol.messages import Message, encode_message_dict, message_to_dict
 from fleet.credentials import vehicle_authenticate
 from fleet.feed import fleet_notify
 from fleet.models import Vehicle
@@ -149,7 +150,7 @@ async def avehicle_send(*, vehicle_id: Any, message: dict[str, Any]) -> None:
     effort, through the channel layer: for relayed control traffic, which is worthless
     late. Raises ProtocolError for an invalid message, ValueError for a bad id.
     """
-    encode_message(message, channel="uplink_to_agent")
+    encode_message_dict(message, channel="uplink_to_agent")
     layer = get_channel_layer()
     if layer is not None:
         await layer.group_send(
@@ -537,7 +538,7 @@ def _welcome(vehicle_id: str) -> dict[str, Any]:
     # Extras may add fields, never replace the required ones.
     full = {**extras, **welcome}
     try:
-        encode_message(full, channel="uplink_to_agent")
+        encode_message_dict(full, channel="uplink_to_agent")
     except ProtocolError as exc:
         log.error("uplink: dropping bad welcome extras %r: %s", sorted(extras), exc)
         return welcome
@@ -694,7 +695,9 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             self._hello_timer.cancel()
         try:
             # A binary frame is read as UTF-8 JSON (docs/protocol.md, Transports).
-            msg = parse_message(raw, channel="uplink_to_platform")  # type: ignore[arg-type]
+            # Still handled as a dict here: it travels on through Channels events, the
+            # database and the agent_message signal (message_to_dict is the bridge).
+            msg = message_to_dict(parse_message(raw, channel="uplink_to_platform"))  # type: ignore[arg-type]
         except ProtocolError as exc:
             if self.vehicle_id is None:
                 await self._bad_frame(exc.code, exc.message)
@@ -864,7 +867,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         if self._closed or self.vehicle_id is None:
             return
         try:
-            text = encode_message(event["message"], channel="uplink_to_agent")
+            text = encode_message_dict(event["message"], channel="uplink_to_agent")
         except (ProtocolError, KeyError) as exc:
             log.error("uplink %s: not sending a bad message: %s", self.vehicle_id, exc)
             return
@@ -911,8 +914,12 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
 
     # -- helpers ------------------------------------------------------------------------
 
-    async def _send_message(self, msg: dict[str, Any]) -> None:
-        await self.send(text_data=encode_message(msg, channel="uplink_to_agent"))
+    async def _send_message(self, msg: dict[str, Any] | Message) -> None:
+        if isinstance(msg, Message):
+            text = encode_message(msg, channel="uplink_to_agent")
+        else:
+            text = encode_message_dict(msg, channel="uplink_to_agent")
+        await self.send(text_data=text)
 
     async def _send_error(self, code: str, message: str) -> None:
         await self._send_message(error_message(code, message[:_ERROR_TEXT_MAX]))

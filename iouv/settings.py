@@ -272,6 +272,9 @@ IOUV_SIGNING_KEY = env_secret("IOUV_SIGNING_KEY")
 IOUV_SIGNING_KEY_PATH = VAR_DIR / "platform_signing_key.pem"
 if not IOUV_SIGNING_KEY and not DEV_SECRETS:
     raise ImproperlyConfigured("Set IOUV_SIGNING_KEY or IOUV_SIGNING_KEY_FILE in production")
+# During a key rotation: the previous keys' public PEMs (one or more blocks), still
+# accepted and published in /.well-known/jwks.json until their tokens have expired.
+IOUV_SIGNING_PREVIOUS_KEYS = env_secret("IOUV_SIGNING_PREVIOUS_KEYS")
 # A vehicle is offline when no heartbeat arrived for this long.
 IOUV_OFFLINE_AFTER_S = env_float("IOUV_OFFLINE_AFTER_S", 6.0)
 IOUV_HEARTBEAT_INTERVAL_S = env_float("IOUV_HEARTBEAT_INTERVAL_S", 2.0)

@@ -5,6 +5,8 @@ from django.templatetags.static import static
 from django.urls import include, path
 from django.views.generic.base import RedirectView
 
+from services.keys_views import jwks
+
 admin.site.site_header = "IoUV administration"
 admin.site.site_title = "IoUV"
 
@@ -12,6 +14,8 @@ urlpatterns = [
     # Pages that do not name an icon (the admin's) make browsers ask for this one.
     path("favicon.ico", RedirectView.as_view(url=static("img/favicon.svg"), permanent=True)),
     path("admin/", admin.site.urls),
+    # The platform's public keys (JWKS), where agents and clients conventionally look.
+    path(".well-known/jwks.json", jwks, name="jwks"),
     path("accounts/", include("accounts.urls")),
     path("api/", include("services.api_urls")),
     path("", include("services.urls")),

@@ -17,6 +17,7 @@ from agents.protocol import (
     error_message,
     parse_message,
 )
+from agents.protocol.messages import encode_message_dict, message_to_dict
 from fleet.uplink import avehicle_send, relay_group
 from iouv.consumers import DirectDispatch
 from iouv.layer import relay_ensure
@@ -165,7 +166,7 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
             return
         self.tokens -= 1
         try:
-            payload = parse_message(raw, channel="control_to_agent")
+            payload = message_to_dict(parse_message(raw, channel="control_to_agent"))
         except ProtocolError as exc:
             await self._error(exc.code, exc.message)
             if self.vehicle_id is None:
@@ -197,7 +198,9 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         if vehicle_id is None:
             return ("no_session", "this session is over or has no vehicle")
         try:
-            grant = UserGrant.verify(payload["grant"], await _public_key(), vehicle_id=vehicle_id)
+            grant = UserGrant.verify(
+                payload["grant"], await _platform_keys(), vehicle_id=vehicle_id
+            )
         except ProtocolError as exc:
             return (exc.code, exc.message)
         if grant.session_id != self.session_id:
@@ -211,7 +214,8 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
             return  # only the session's vehicle may answer on this connection
         message = event["message"]
         if message["type"] == "relay":
-            await self.send(text_data=encode_message(message["payload"]))
+            payload = encode_message_dict(message["payload"], channel="control_to_client")
+            await self.send(text_data=payload)
         else:  # relay_close: the agent dropped this client
             await self.close(code=message.get("code") or CLOSED_BY_AGENT)
 
@@ -236,7 +240,9 @@ def _session_vehicle(session_id: str) -> str | None:
 
 
 @database_sync_to_async
-def _public_key() -> Any:
-    from services.signing import platform_public_key
+def _platform_keys() -> Any:
+    # The current key and, during a rotation, the previous ones: a grant issued just before
+    # the switch still opens its relayed connection.
+    from services.signing import platform_keys
 
-    return platform_public_key()
+    return platform_keys()

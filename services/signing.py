@@ -5,6 +5,11 @@ The key comes from ``settings.IOUV_SIGNING_KEY`` (PEM, from the environment or a
 (``settings.DEV_SECRETS``: embedded mode and the test suite), a key is generated once
 into ``settings.IOUV_SIGNING_KEY_PATH`` with mode 0600 and reused from then on, so every
 process of one installation signs with the same key. Agents hold only the public half.
+
+During a key rotation ``settings.IOUV_SIGNING_PREVIOUS_KEYS`` lists the public PEMs of the
+keys signed with before: tokens they signed still verify (:func:`platform_keys`) and they
+stay in the published JWKS (:func:`platform_jwks`, served at ``/.well-known/jwks.json``)
+until they are dropped. docs/protocol.md, "Key rotation", gives the steps.
 """
 
 from __future__ import annotations
@@ -14,7 +19,6 @@ import os
 from pathlib import Path
 from typing import Any
 
-from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import (
     Ed25519PrivateKey,
     Ed25519PublicKey,
@@ -24,7 +28,15 @@ from django.core.exceptions import ImproperlyConfigured
 from django.core.signals import setting_changed
 from django.dispatch import receiver
 
-from agents.protocol import ProtocolError, generate_keypair, load_private_key
+from agents.protocol import (
+    KeySet,
+    ProtocolError,
+    generate_keypair,
+    jwks_from_keys,
+    load_private_key,
+    load_public_keys,
+    public_key_pem,
+)
 
 
 def _generated_pem(path: Path) -> str:
@@ -74,11 +86,35 @@ def platform_public_key() -> Ed25519PublicKey:
 
 def platform_public_key_pem() -> str:
     """The public key as SubjectPublicKeyInfo PEM text, for agents' configuration."""
-    return (
-        platform_public_key()
-        .public_bytes(serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo)
-        .decode("ascii")
-    )
+    return public_key_pem(platform_public_key())
+
+
+@functools.cache
+def platform_previous_keys() -> tuple[Ed25519PublicKey, ...]:
+    """The previous signing keys still accepted during a rotation (maybe none).
+
+    Raises ImproperlyConfigured when IOUV_SIGNING_PREVIOUS_KEYS holds anything but
+    Ed25519 public keys in PEM.
+    """
+    try:
+        keys = load_public_keys(settings.IOUV_SIGNING_PREVIOUS_KEYS or "")
+    except ProtocolError as exc:
+        raise ImproperlyConfigured(f"IOUV_SIGNING_PREVIOUS_KEYS: {exc.message}") from None
+    current = platform_public_key().public_bytes_raw()
+    # The current key listed as previous too (a half-done rotation) is listed once.
+    return tuple(k for k in keys if k.public_bytes_raw() != current)
+
+
+def platform_keys() -> KeySet:
+    """Every key a platform token may be signed with: the current one, then the previous
+    ones. What the platform itself verifies grants with."""
+    return KeySet.from_keys([platform_public_key(), *platform_previous_keys()])
+
+
+def platform_jwks() -> dict[str, Any]:
+    """The JWK Set of :func:`platform_keys` (RFC 7517), each key named by its RFC 7638
+    thumbprint, which is the ``kid`` of the tokens it signs."""
+    return jwks_from_keys([platform_public_key(), *platform_previous_keys()])
 
 
 @receiver(setting_changed)
@@ -86,3 +122,6 @@ def _forget_key(*, setting: str, **kwargs: Any) -> None:
     # Tests (and override_settings) may point at another key: drop the cached one.
     if setting in ("IOUV_SIGNING_KEY", "IOUV_SIGNING_KEY_PATH", "DEV_SECRETS"):
         platform_private_key.cache_clear()
+        platform_previous_keys.cache_clear()
+    if setting == "IOUV_SIGNING_PREVIOUS_KEYS":
+        platform_previous_keys.cache_clear()

@@ -53,7 +53,7 @@ from services.eventlog import event_append
 from services.kinds import ServiceKind, UnknownKind, kind_of, kinds_user_driven
 from services.models import Assignment, Service, Session, SessionEvent
 from services.sessions import SessionStateError, session_transition
-from services.signing import platform_public_key_pem
+from services.signing import platform_jwks, platform_public_key_pem
 
 log = logging.getLogger(__name__)
 
@@ -749,5 +749,6 @@ def receive_agent_disconnected(sender: Any, *, vehicle_id: Any, **kwargs: Any) -
 
 
 def receive_agent_welcome(sender: Any, **kwargs: Any) -> dict[str, Any]:
-    # Informational only: agents take the trusted key from their own configuration.
-    return {"platform_public_key": platform_public_key_pem()}
+    # The JWKS is how a key rotation reaches enrolled agents: they adopt it from the welcome
+    # of an uplink whose server they authenticated (wss, or loopback in development).
+    return {"platform_public_key": platform_public_key_pem(), "platform_jwks": platform_jwks()}

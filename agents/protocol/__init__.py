@@ -1,15 +1,15 @@
 """Wire protocol shared by the IoUV platform and the vehicle agent.
 
 This module is the only code the Django platform and the vehicle agent have in common, so it
-imports nothing but the standard library and ``cryptography``: the agent runs on small
-companion computers without Django.
+imports nothing but the standard library, ``cryptography`` and PyJWT: the agent runs on
+small companion computers without Django.
 
 It provides:
 
-* signed documents (the *vehicle task* and the *user grant*) in a compact token format,
-  signed with the platform's Ed25519 private key and verified offline by the agent, which
-  holds only the public key;
-* :class:`ReplayGuard`, which makes each document nonce single-use;
+* signed documents (the *vehicle task* and the *user grant*) as JWTs (EdDSA), signed
+  with the platform's Ed25519 private key and verified offline by the agent, which holds
+  only the public keys (:class:`KeySet`, from PEM or a JWKS);
+* :class:`ReplayGuard`, which makes each document id (``jti``) single-use;
 * parsing and validation of the JSON messages of the four WebSocket channels;
 * validation of command arguments against a vehicle's declared command vocabulary.
 
@@ -39,16 +39,26 @@ from agents.protocol.base import (
     WrongTargetError,
 )
 from agents.protocol.documents import (
+    ISSUER,
+    TOKEN_TYPES,
     Limits,
+    PublicKeys,
     ReplayGuard,
+    UnknownKeyError,
     UserGrant,
     VehicleTask,
+    claimed_session,
+    new_nonce,
+)
+from agents.protocol.keys import (
+    KeySet,
     generate_keypair,
+    jwks_from_keys,
+    key_thumbprint,
     load_private_key,
     load_public_key,
-    new_nonce,
-    sign_document,
-    verify_document,
+    load_public_keys,
+    public_key_pem,
 )
 from agents.protocol.messages import (
     MESSAGE_TYPES,
@@ -64,31 +74,39 @@ __all__ = [
     "CLOCK_SKEW_S",
     "DEFAULT_LINK_LOSS_TIMEOUT_MS",
     "FAILSAFE_ACTIONS",
+    "ISSUER",
     "KINDS",
     "MAX_MESSAGE_BYTES",
     "MESSAGE_TYPES",
     "PROTOCOL_VERSION",
     "REPLAY_GUARD_MAX_ENTRIES",
     "ROLES",
+    "TOKEN_TYPES",
     "Channel",
     "ExpiredError",
+    "KeySet",
     "Kind",
     "Limits",
     "ProtocolError",
+    "PublicKeys",
     "ReplayError",
     "ReplayGuard",
     "SignatureError",
+    "UnknownKeyError",
     "UserGrant",
     "VehicleTask",
     "WrongTargetError",
+    "claimed_session",
     "encode_message",
     "error_message",
     "generate_keypair",
+    "jwks_from_keys",
+    "key_thumbprint",
     "load_private_key",
     "load_public_key",
+    "load_public_keys",
     "new_nonce",
     "parse_message",
-    "sign_document",
+    "public_key_pem",
     "validate_command_args",
-    "verify_document",
 ]

@@ -12,7 +12,7 @@ from typing import Any, Final, Literal, TypeAlias
 
 #: Version of the wire protocol. It changes only for incompatible changes (see
 #: docs/protocol.md, "Versioning"); both ends refuse a peer or a document of another version.
-PROTOCOL_VERSION: Final = 1
+PROTOCOL_VERSION: Final = 2
 
 #: Largest accepted WebSocket message (UTF-8 bytes). Bounds the work a peer can cause.
 MAX_MESSAGE_BYTES: Final = 64 * 1024

@@ -1,32 +1,38 @@
-"""Signed documents (vehicle task, user grant), signing keys and replay protection."""
+"""Signed documents (vehicle task, user grant) as JWTs, and replay protection.
+
+A document is a compact JWS (RFC 7515) JWT (RFC 7519) signed by the platform with EdDSA
+over Ed25519 (RFC 8037) through PyJWT; this module writes no signature encoding of its
+own. The header names the signing key (``kid``, an RFC 7638 thumbprint) and the document's
+purpose by explicit typing (RFC 8725 §3.11): ``typ`` is ``iouv-task+jwt`` or
+``iouv-grant+jwt``, and one is never accepted as the other. Registered claims carry the
+issuer, the vehicle (``aud``), the user (``sub``), the validity window (``iat``, ``nbf``,
+``exp``) and a single-use id (``jti``); project claims carry the rest.
+"""
 
 from __future__ import annotations
 
-import base64
-import binascii
 import heapq
 import json
+import math
 import re
 import secrets
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Final, TypeAlias
 
-from cryptography.exceptions import InvalidSignature, UnsupportedAlgorithm
-from cryptography.hazmat.primitives import serialization
+import jwt
 from cryptography.hazmat.primitives.asymmetric.ed25519 import (
     Ed25519PrivateKey,
     Ed25519PublicKey,
 )
+from jwt.utils import base64url_decode, base64url_encode
 
 from agents.protocol.base import (
     _LINK_LOSS_RANGE_MS,
     _MAX_TOKEN_CHARS,
-    _SIGNATURE_BYTES,
     CLOCK_SKEW_S,
     DEFAULT_LINK_LOSS_TIMEOUT_MS,
-    KINDS,
     PROTOCOL_VERSION,
     REPLAY_GUARD_MAX_ENTRIES,
     Checker,
@@ -48,189 +54,173 @@ from agents.protocol.base import (
     _check_timestamp,
     _check_version,
 )
-from agents.protocol.messages import _loads
+from agents.protocol.keys import ALGORITHM, KeySet, key_thumbprint
 
-# --------------------------------------------------------------------------------------
-# Keys
-# --------------------------------------------------------------------------------------
+#: Who signs documents (the ``iss`` claim). Verifiers refuse any other issuer.
+ISSUER: Final = "iouv-platform"
 
+#: The ``typ`` header of each kind of document (RFC 8725 §3.11 explicit typing).
+TOKEN_TYPES: Final[dict[str, str]] = {
+    "vehicle_task": "iouv-task+jwt",
+    "user_grant": "iouv-grant+jwt",
+}
 
-def generate_keypair() -> tuple[str, str]:
-    """Create a new platform signing key.
+#: What a verifier accepts as the platform's key: one key, or a set named by ``kid``.
+PublicKeys: TypeAlias = Ed25519PublicKey | KeySet
 
-    Returns ``(private_pem, public_pem)``: PKCS#8 unencrypted private key and
-    SubjectPublicKeyInfo public key, both PEM text. Raises nothing.
-    """
-    private_key = Ed25519PrivateKey.generate()
-    private_pem = private_key.private_bytes(
-        serialization.Encoding.PEM,
-        serialization.PrivateFormat.PKCS8,
-        serialization.NoEncryption(),
-    ).decode("ascii")
-    public_pem = (
-        private_key.public_key()
-        .public_bytes(serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo)
-        .decode("ascii")
-    )
-    return private_pem, public_pem
+# Claims every document must carry; PyJWT refuses a token missing one.
+_REQUIRED: Final = ("exp", "nbf", "iat", "jti", "iss", "aud", "sub")
+_REGISTERED: Final = frozenset(_REQUIRED)
+
+# Three non-empty base64url segments. PyJWT's decoder skips foreign characters, so the
+# alphabet is checked first and one token never has many spellings.
+_COMPACT_JWS = re.compile(r"[A-Za-z0-9_-]+\.[A-Za-z0-9_-]+\.[A-Za-z0-9_-]+")
 
 
-def load_private_key(pem: str) -> Ed25519PrivateKey:
-    """Load an unencrypted PEM private key.
+class UnknownKeyError(SignatureError):
+    """The token names a key (``kid``) the verifier does not trust, or names none while
+    several keys are trusted. A SignatureError, so callers refusing bad signatures refuse
+    these too; its code is ``unknown_key``."""
 
-    Returns the key. Raises ProtocolError ``bad_key`` if the text is not a PEM private key
-    or the key is not Ed25519 (the only algorithm the agents accept).
-    """
-    try:
-        key = serialization.load_pem_private_key(pem.encode("utf-8"), password=None)
-    except (ValueError, TypeError, UnsupportedAlgorithm, AttributeError) as exc:
-        raise ProtocolError("bad_key", f"not a usable PEM private key: {exc}") from None
-    if not isinstance(key, Ed25519PrivateKey):
-        raise ProtocolError("bad_key", "private key is not an Ed25519 key")
-    return key
+    def __init__(self, message: str) -> None:
+        ProtocolError.__init__(self, "unknown_key", message, field="kid")
 
 
-def load_public_key(pem: str) -> Ed25519PublicKey:
-    """Load a PEM public key.
+def new_nonce() -> str:
+    """Return a fresh random token id (``jti``; 128 bits, URL-safe text)."""
+    return secrets.token_urlsafe(16)
 
-    Returns the key. Raises ProtocolError ``bad_key`` if the text is not a PEM public key or
-    the key is not Ed25519.
-    """
-    try:
-        key = serialization.load_pem_public_key(pem.encode("utf-8"))
-    except (ValueError, TypeError, UnsupportedAlgorithm, AttributeError) as exc:
-        raise ProtocolError("bad_key", f"not a usable PEM public key: {exc}") from None
-    if not isinstance(key, Ed25519PublicKey):
-        raise ProtocolError("bad_key", "public key is not an Ed25519 key")
-    return key
+
+def _with_field(exc: ProtocolError, path: str) -> ProtocolError:
+    # The base errors name the v1 field; documents now name the JWT claim.
+    exc.field = path
+    return exc
 
 
 # --------------------------------------------------------------------------------------
-# Signed documents
+# Signing and verification
 # --------------------------------------------------------------------------------------
 
-_B64URL = re.compile(r"[A-Za-z0-9_-]*")
+
+def _sign(claims: Mapping[str, Any], private_key: Ed25519PrivateKey, kind: Kind) -> str:
+    """Sign ``claims`` as a compact JWT of ``kind``, naming the key by its thumbprint."""
+    headers = {"kid": key_thumbprint(private_key), "typ": TOKEN_TYPES[kind]}
+    return jwt.encode(dict(claims), private_key, algorithm=ALGORITHM, headers=headers)
 
 
-def _b64url_encode(data: bytes) -> str:
-    return base64.urlsafe_b64encode(data).rstrip(b"=").decode("ascii")
-
-
-def _b64url_decode(text: str, part: str) -> bytes:
-    # Strict: Python's decoder silently skips foreign characters, which would give one
-    # document many spellings. Require the alphabet and the canonical encoding.
-    if not _B64URL.fullmatch(text) or len(text) % 4 == 1:
-        raise ProtocolError("bad_token", f"token {part} is not unpadded base64url")
-    try:
-        data = base64.urlsafe_b64decode(text + "=" * (-len(text) % 4))
-    except (binascii.Error, ValueError):
-        raise ProtocolError("bad_token", f"token {part} is not unpadded base64url") from None
-    if _b64url_encode(data) != text:
-        raise ProtocolError("bad_token", f"token {part} is not canonical base64url")
-    return data
-
-
-def _canonical_json(payload: Mapping[str, Any]) -> bytes:
-    """Deterministic JSON so one payload always yields the same token."""
-    return json.dumps(payload, sort_keys=True, separators=(",", ":"), allow_nan=False).encode(
-        "ascii"
-    )
-
-
-def _check_header(payload: Mapping[str, Any]) -> None:
-    """Check the fields every signed document carries: v, kind, exp."""
-    if "v" not in payload:
-        raise _bad("v", "is missing", code="bad_version")
-    _check_version(payload["v"], "v")
-    kind = payload.get("kind")
-    if not isinstance(kind, str) or kind not in KINDS:
-        raise _bad("kind", f"must be one of {sorted(KINDS)}")
-    if "exp" not in payload:
-        raise _bad("exp", "is missing")
-    _check_timestamp(payload["exp"], "exp")
-
-
-def sign_document(payload: Mapping[str, Any], private_key: Ed25519PrivateKey) -> str:
-    """Sign ``payload`` with the platform key.
-
-    ``payload`` must carry ``v`` (= :data:`PROTOCOL_VERSION`), ``kind`` (one of
-    :data:`KINDS`) and a finite ``exp`` (Unix seconds): a document that never expires or
-    whose purpose is ambiguous is refused rather than signed.
-
-    Returns the token ``base64url(canonical JSON) + "." + base64url(signature)`` (no
-    padding). Raises ProtocolError (``bad_field``/``bad_version``) for a missing or bad
-    header field or a payload that is not JSON-serialisable.
-    """
-    if not isinstance(payload, Mapping):
-        raise ProtocolError("bad_field", "payload must be a mapping")
-    _check_header(payload)
-    try:
-        body = _canonical_json(payload)
-    except (TypeError, ValueError, RecursionError) as exc:
-        raise ProtocolError("bad_field", f"payload is not JSON-serialisable: {exc}") from None
-    signature = private_key.sign(body)
-    return f"{_b64url_encode(body)}.{_b64url_encode(signature)}"
-
-
-def verify_document(
-    token: str,
-    public_key: Ed25519PublicKey,
-    *,
-    kind: Kind | None = None,
-    now: float | None = None,
-) -> dict[str, Any]:
-    """Verify a token made by :func:`sign_document` and return its payload.
-
-    Order: token shape, signature, JSON object, ``v``, ``kind``, ``exp``. The signature is
-    checked before the payload is even parsed, so unauthenticated bytes never reach the
-    JSON parser. With ``kind`` given, a document of the other kind is refused: a user
-    grant is never accepted as a vehicle task or the reverse.
-
-    ``now`` (Unix seconds, default ``time.time()``) is the verifier's clock; the document
-    is expired when ``now > exp + CLOCK_SKEW_S``.
-
-    Returns the payload dict. Raises only ProtocolError subclasses: SignatureError
-    (``bad_signature``), ExpiredError (``expired``), or ProtocolError with ``bad_token``
-    (malformed token), ``bad_version``, ``wrong_kind`` or ``bad_field``.
-    """
+def _check_shape(token: Any) -> None:
+    """Refuse before any parsing: not text, too long, not three canonical base64url parts."""
     if not isinstance(token, str):
         raise ProtocolError("bad_token", "token must be a string")
     if len(token) > _MAX_TOKEN_CHARS:
         raise ProtocolError("bad_token", "token is too long")
-    parts = token.split(".")
-    if len(parts) != 2:
-        raise ProtocolError("bad_token", "token must be two base64url parts joined by '.'")
-    body = _b64url_decode(parts[0], "payload")
-    signature = _b64url_decode(parts[1], "signature")
-    if len(signature) != _SIGNATURE_BYTES:
-        raise SignatureError("token signature has the wrong length")
+    if not _COMPACT_JWS.fullmatch(token):
+        raise ProtocolError("bad_token", "token must be three base64url parts joined by '.'")
+    for part in token.split("."):
+        try:
+            canonical = base64url_encode(base64url_decode(part)).decode("ascii") == part
+        except ValueError:  # binascii.Error: a length no encoding produces
+            canonical = False
+        if not canonical:
+            raise ProtocolError("bad_token", "token part is not canonical base64url")
+
+
+def _select_key(token: str, keys: PublicKeys) -> Ed25519PublicKey:
+    """The trusted key the (unverified) header names. Only picks; trusts nothing else."""
     try:
-        public_key.verify(signature, body)
-    except InvalidSignature:
+        header = jwt.get_unverified_header(token)
+    except jwt.PyJWTError:
+        raise ProtocolError("bad_token", "token header is not a JSON object") from None
+    if header.get("alg") != ALGORITHM:
+        # Refused before PyJWT sees it: no 'none', no HMAC keyed with the public key.
+        raise SignatureError(f"token alg must be {ALGORITHM}, not {header.get('alg')!r}")
+    kid = header.get("kid")
+    if kid is not None and not isinstance(kid, str):
+        raise UnknownKeyError("token kid must be text")
+    key_set = keys if isinstance(keys, KeySet) else KeySet.from_keys([keys])
+    key = key_set.select(kid)
+    if key is None:
+        if kid is None:
+            raise UnknownKeyError("token names no key (kid) and several keys are trusted")
+        raise UnknownKeyError(f"token key {kid!r} is not one of the platform's keys")
+    return key
+
+
+def _decode(
+    token: str,
+    keys: PublicKeys,
+    *,
+    kind: Kind,
+    vehicle_id: str,
+    issuer: str,
+    now: float | None,
+) -> dict[str, Any]:
+    """Verify ``token`` and return its claims; only ProtocolError subclasses escape.
+
+    Order: shape and size, key by ``kid``, signature (PyJWT, EdDSA only), required claims,
+    ``iss``, ``aud``; then ``typ``, ``v``, ``exp`` and ``nbf``/``iat`` against ``now``.
+    Nothing in the payload is looked at before the signature has been verified.
+    """
+    if not isinstance(vehicle_id, str) or not vehicle_id:
+        raise ValueError("vehicle_id must be the verifying agent's own non-empty id")
+    _check_shape(token)
+    key = _select_key(token, keys)
+    try:
+        decoded = jwt.decode_complete(
+            token,
+            key,
+            algorithms=[ALGORITHM],
+            audience=vehicle_id,
+            issuer=issuer,
+            # Times are checked below against the caller's clock (``now``), with floats.
+            options={
+                "require": list(_REQUIRED),
+                "verify_exp": False,
+                "verify_nbf": False,
+                "verify_iat": False,
+                "strict_aud": True,
+            },
+        )
+    except jwt.InvalidSignatureError:
         raise SignatureError("token signature does not match the platform key") from None
-    try:
-        payload = _loads(body.decode("utf-8"))
-    except (ValueError, RecursionError):
-        # Only reachable with a validly signed bad payload: a platform bug.
-        raise ProtocolError("bad_token", "token payload is not valid JSON") from None
-    if not isinstance(payload, dict):
-        raise ProtocolError("bad_token", "token payload must be a JSON object")
-    _check_header(payload)
-    if kind is not None and payload["kind"] != kind:
+    except (jwt.InvalidAlgorithmError, jwt.InvalidKeyError) as exc:
+        raise SignatureError(f"token cannot be verified: {exc}") from None
+    except jwt.MissingRequiredClaimError as exc:
+        raise _bad(exc.claim, "is missing") from None
+    except jwt.InvalidIssuerError:
+        err = ProtocolError("wrong_issuer", f"token is not issued by {issuer!r}", field="iss")
+        raise err from None
+    except jwt.InvalidAudienceError:
+        err = WrongTargetError(f"token is not addressed to vehicle {vehicle_id!r}")
+        raise _with_field(err, "aud") from None
+    except jwt.exceptions.InvalidSubjectError:
+        raise _bad("sub", "must be a string") from None
+    except jwt.exceptions.InvalidJTIError:
+        raise _bad("jti", "must be a string") from None
+    except jwt.PyJWTError as exc:
+        # DecodeError & co: only reachable past the signature with a bad platform payload.
+        raise ProtocolError("bad_token", f"token cannot be decoded: {exc}") from None
+    header: dict[str, Any] = decoded["header"]
+    claims: dict[str, Any] = decoded["payload"]
+    if header.get("typ") != TOKEN_TYPES[kind]:
         raise ProtocolError(
             "wrong_kind",
-            f"document is a {payload['kind']}, expected a {kind}",
-            field="kind",
+            f"token typ is {header.get('typ')!r}, expected {TOKEN_TYPES[kind]!r}",
+            field="typ",
         )
+    if "v" not in claims:
+        raise _bad("v", "is missing", code="bad_version")
+    _check_version(claims["v"], "v")
     current = time.time() if now is None else now
-    if current - CLOCK_SKEW_S > payload["exp"]:
-        raise ExpiredError(f"document expired at {payload['exp']} (now {current:.3f})")
-    return payload
-
-
-def new_nonce() -> str:
-    """Return a fresh random nonce (128 bits, URL-safe text) for a signed document."""
-    return secrets.token_urlsafe(16)
+    expires = _check_timestamp(claims["exp"], "exp")
+    if current - CLOCK_SKEW_S > expires:
+        raise ExpiredError(f"document expired at {expires} (now {current:.3f})")
+    starts = max(_check_timestamp(claims["nbf"], "nbf"), _check_timestamp(claims["iat"], "iat"))
+    if starts > current + CLOCK_SKEW_S:
+        raise ProtocolError(
+            "not_yet_valid", f"document is valid from {starts} (now {current:.3f})", field="nbf"
+        )
+    return claims
 
 
 # --------------------------------------------------------------------------------------
@@ -263,11 +253,20 @@ def _check_positive_int(value: Any, path: str) -> int:
     return int(value)
 
 
-def _check_times(issued_at: Any, expires_at: Any) -> None:
-    _check_timestamp(issued_at, "iat")
-    _check_timestamp(expires_at, "exp")
-    if expires_at < issued_at:
+def _whole_times(doc: VehicleTask | UserGrant) -> None:
+    """Validate ``issued_at``/``expires_at`` and floor them to whole seconds.
+
+    JWT verifiers commonly compare ``iat`` with their clock in whole seconds and no
+    leeway (joserfc does): a fractional ``iat`` would be "issued in the future" for up to
+    a second. Flooring moves ``iat`` earlier and ``exp`` sooner, never widening validity.
+    """
+    _check_timestamp(doc.issued_at, "iat")
+    _check_timestamp(doc.expires_at, "exp")
+    if doc.expires_at < doc.issued_at:
         raise _bad("exp", "must not be earlier than iat")
+    # Frozen dataclass: normalise in place, as Limits does for geofence_center.
+    object.__setattr__(doc, "issued_at", math.floor(doc.issued_at))
+    object.__setattr__(doc, "expires_at", math.floor(doc.expires_at))
 
 
 def _check_commands_tuple(value: Any, path: str) -> tuple[str, ...]:
@@ -378,18 +377,6 @@ class Limits:
         return cls(**{str(k): v for k, v in payload.items()})
 
 
-def _verify_common(
-    token: str,
-    public_key: Ed25519PublicKey,
-    kind: Kind,
-    vehicle_id: str,
-    now: float | None,
-) -> dict[str, Any]:
-    if not isinstance(vehicle_id, str) or not vehicle_id:
-        raise ValueError("vehicle_id must be the verifying agent's own non-empty id")
-    return verify_document(token, public_key, kind=kind, now=now)
-
-
 def _check_target(
     doc_vehicle: str,
     vehicle_id: str,
@@ -399,10 +386,45 @@ def _check_target(
     replay_guard: ReplayGuard | None,
 ) -> None:
     if doc_vehicle != vehicle_id:
-        raise WrongTargetError(f"document is for vehicle {doc_vehicle!r}, this is {vehicle_id!r}")
-    # Replay last: a document refused for another reason must not burn its nonce.
+        err = WrongTargetError(f"document is for vehicle {doc_vehicle!r}, this is {vehicle_id!r}")
+        raise _with_field(err, "aud")
+    # Replay last: a document refused for another reason must not burn its id.
     if replay_guard is not None:
         replay_guard.check_and_remember(nonce, expires_at, now=now)
+
+
+def _check_json(value: Any, path: str) -> None:
+    # PyJWT would write NaN/Infinity, which no other JSON parser reads back.
+    try:
+        json.dumps(value, allow_nan=False)
+    except (TypeError, ValueError, RecursionError):
+        raise _bad(path, "must be JSON-serialisable (no NaN/inf)") from None
+
+
+def _common_claims(doc: VehicleTask | UserGrant) -> dict[str, Any]:
+    """The registered claims and ``v``, shared by both kinds."""
+    return {
+        "iss": doc.issuer,
+        "aud": doc.vehicle_id,
+        "sub": doc.user,
+        "iat": doc.issued_at,
+        # Valid from its issue: a document is never post-dated.
+        "nbf": doc.issued_at,
+        "exp": doc.expires_at,
+        "jti": doc.nonce,
+        "v": PROTOCOL_VERSION,
+    }
+
+
+def _claims_checked(
+    payload: Any, allowed: frozenset[str], required: tuple[str, ...]
+) -> Mapping[str, Any]:
+    if not isinstance(payload, Mapping):
+        raise ProtocolError("bad_field", "document claims must be an object")
+    _check_keys(payload, allowed, "")
+    _require(payload, required)
+    _check_version(payload["v"], "v")
+    return payload
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -410,25 +432,20 @@ class VehicleTask:
     """What the platform asks one vehicle to do for one session (signed, pushed on uplink).
 
     Construction validates every field and raises ProtocolError (``bad_field``) naming the
-    field. ``issued_at``/``expires_at`` are Unix seconds and travel as ``iat``/``exp``.
+    claim it travels as. ``issued_at``/``expires_at`` are Unix seconds, floored to whole
+    seconds, and travel as ``iat`` (and ``nbf``)/``exp``; ``vehicle_id`` as ``aud``,
+    ``user`` as ``sub``, ``nonce`` as ``jti`` and ``issuer`` as ``iss``.
     """
 
     KIND: ClassVar[Kind] = "vehicle_task"
-    _FIELDS: ClassVar[frozenset[str]] = frozenset(
-        {
-            "v",
-            "kind",
-            "session_id",
-            "vehicle_id",
-            "user",
-            "allowed_commands",
-            "limits",
-            "iat",
-            "exp",
-            "nonce",
-            "mission",
-        }
-    )
+    #: Every claim a task may carry; any other is refused (fail closed).
+    CLAIMS: ClassVar[frozenset[str]] = _REGISTERED | {
+        "v",
+        "session_id",
+        "allowed_commands",
+        "limits",
+        "mission",
+    }
 
     session_id: str
     vehicle_id: str
@@ -441,11 +458,12 @@ class VehicleTask:
     nonce: str = field(default_factory=new_nonce)
     #: Free-form plan for autonomous tasks (e.g. waypoints); any JSON object.
     mission: dict[str, Any] | None = None
+    issuer: str = ISSUER
 
     def __post_init__(self) -> None:
         _check_id(self.session_id, "session_id")
-        _check_id(self.vehicle_id, "vehicle_id")
-        _check_id(self.user, "user")
+        _check_id(self.vehicle_id, "aud")
+        _check_id(self.user, "sub")
         object.__setattr__(
             self,
             "allowed_commands",
@@ -453,95 +471,81 @@ class VehicleTask:
         )
         if not isinstance(self.limits, Limits):
             raise _bad("limits", "must be a Limits object")
-        _check_times(self.issued_at, self.expires_at)
-        _check_id(self.nonce, "nonce")
+        _whole_times(self)
+        _check_id(self.nonce, "jti")
+        _check_id(self.issuer, "iss")
         if self.mission is not None:
             _check_object(self.mission, "mission")
-            try:
-                _canonical_json(self.mission)
-            except (TypeError, ValueError, RecursionError):
-                raise _bad("mission", "must be JSON-serialisable (no NaN/inf)") from None
+            _check_json(self.mission, "mission")
 
     def to_payload(self) -> dict[str, Any]:
-        """Return the document payload (with ``v`` and ``kind``) ready for signing."""
+        """Return the JWT claims (registered, ``v`` and the task's own) ready for signing."""
         return {
-            "v": PROTOCOL_VERSION,
-            "kind": self.KIND,
+            **_common_claims(self),
             "session_id": self.session_id,
-            "vehicle_id": self.vehicle_id,
-            "user": self.user,
             "allowed_commands": list(self.allowed_commands),
             "limits": self.limits.to_payload(),
-            "iat": self.issued_at,
-            "exp": self.expires_at,
-            "nonce": self.nonce,
             "mission": self.mission,
         }
 
     @classmethod
     def from_payload(cls, payload: Any) -> VehicleTask:
-        """Build a VehicleTask from a (verified) payload.
+        """Build a VehicleTask from (verified) claims.
 
-        Returns the task. Raises ProtocolError naming the field for a missing, unknown or
-        bad field, ``bad_version`` for another version and ``wrong_kind`` for a grant.
+        Returns the task. Raises ProtocolError naming the claim for a missing, unknown or
+        bad one, ``bad_version`` for another version.
         """
-        if not isinstance(payload, Mapping):
-            raise ProtocolError("bad_field", "document payload must be an object")
-        _check_keys(payload, cls._FIELDS, "")
-        _require(
+        claims = _claims_checked(
             payload,
-            (
-                "v",
-                "kind",
-                "session_id",
-                "vehicle_id",
-                "user",
-                "allowed_commands",
-                "limits",
-                "iat",
-                "exp",
-                "nonce",
-            ),
+            cls.CLAIMS,
+            (*_REQUIRED, "v", "session_id", "allowed_commands", "limits"),
         )
-        _check_version(payload["v"], "v")
-        if payload["kind"] != cls.KIND:
-            raise ProtocolError("wrong_kind", f"document kind must be {cls.KIND}", field="kind")
         return cls(
-            session_id=payload["session_id"],
-            vehicle_id=payload["vehicle_id"],
-            user=payload["user"],
-            allowed_commands=_check_commands_tuple(payload["allowed_commands"], "allowed_commands"),
-            limits=Limits.from_payload(payload["limits"]),
-            issued_at=payload["iat"],
-            expires_at=payload["exp"],
-            nonce=payload["nonce"],
-            mission=payload.get("mission"),
+            session_id=claims["session_id"],
+            vehicle_id=claims["aud"],
+            user=claims["sub"],
+            allowed_commands=_check_commands_tuple(claims["allowed_commands"], "allowed_commands"),
+            limits=Limits.from_payload(claims["limits"]),
+            issued_at=claims["iat"],
+            expires_at=claims["exp"],
+            nonce=claims["jti"],
+            mission=claims.get("mission"),
+            issuer=claims["iss"],
         )
 
     def sign(self, private_key: Ed25519PrivateKey) -> str:
-        """Return this task as a signed token (see :func:`sign_document`)."""
-        return sign_document(self.to_payload(), private_key)
+        """Return this task as a compact JWT signed with ``private_key`` (EdDSA), its
+        ``kid`` the key's thumbprint and its ``typ`` ``iouv-task+jwt``."""
+        return _sign(self.to_payload(), private_key, self.KIND)
 
     @classmethod
     def verify(
         cls,
         token: str,
-        public_key: Ed25519PublicKey,
+        keys: PublicKeys,
         *,
         vehicle_id: str,
+        issuer: str = ISSUER,
         now: float | None = None,
         replay_guard: ReplayGuard | None = None,
     ) -> VehicleTask:
         """Verify a task token on the agent whose id is ``vehicle_id``.
 
-        Order: :func:`verify_document` (shape, signature, version, kind, expiry), fields,
-        target vehicle, then, if ``replay_guard`` is given, the nonce.
+        ``keys`` is the platform key, or a :class:`KeySet` from which the token's ``kid``
+        picks one. ``now`` (Unix seconds, default ``time.time()``) is the verifier's clock;
+        ``CLOCK_SKEW_S`` is tolerated on ``exp``, ``nbf`` and ``iat``.
 
-        Returns the task. Raises SignatureError, ExpiredError, WrongTargetError,
-        ReplayError or ProtocolError; ValueError only for an empty ``vehicle_id`` argument.
+        Order: shape, key, signature, required claims, ``iss``, ``aud``, ``typ``, ``v``,
+        times, every claim's value, then, if ``replay_guard`` is given, the ``jti``.
+
+        Returns the task. Raises only ProtocolError subclasses: SignatureError
+        (``bad_signature``; UnknownKeyError ``unknown_key``), ExpiredError (``expired``),
+        WrongTargetError (``wrong_vehicle``), ReplayError (``replayed``) or ProtocolError
+        (``bad_token``, ``wrong_issuer``, ``wrong_kind``, ``bad_version``,
+        ``not_yet_valid``, ``bad_field``); ValueError only for an empty ``vehicle_id``.
         """
-        payload = _verify_common(token, public_key, cls.KIND, vehicle_id, now)
-        task = cls.from_payload(payload)
+        claims = _decode(token, keys, kind=cls.KIND, vehicle_id=vehicle_id, issuer=issuer, now=now)
+        task = cls.from_payload(claims)
         _check_target(task.vehicle_id, vehicle_id, task.nonce, task.expires_at, now, replay_guard)
         return task
 
@@ -551,24 +555,17 @@ class UserGrant:
     """Permission for one user to connect to one vehicle's control socket (signed).
 
     The browser presents it in ``auth``. Construction validates every field and raises
-    ProtocolError (``bad_field``) naming the field.
+    ProtocolError (``bad_field``) naming the claim (see :class:`VehicleTask`).
     """
 
     KIND: ClassVar[Kind] = "user_grant"
-    _FIELDS: ClassVar[frozenset[str]] = frozenset(
-        {
-            "v",
-            "kind",
-            "session_id",
-            "vehicle_id",
-            "user",
-            "role",
-            "allowed_commands",
-            "iat",
-            "exp",
-            "nonce",
-        }
-    )
+    #: Every claim a grant may carry; any other is refused (fail closed).
+    CLAIMS: ClassVar[frozenset[str]] = _REGISTERED | {
+        "v",
+        "session_id",
+        "role",
+        "allowed_commands",
+    }
 
     session_id: str
     vehicle_id: str
@@ -579,100 +576,94 @@ class UserGrant:
     issued_at: float
     expires_at: float
     nonce: str = field(default_factory=new_nonce)
+    issuer: str = ISSUER
 
     def __post_init__(self) -> None:
         _check_id(self.session_id, "session_id")
-        _check_id(self.vehicle_id, "vehicle_id")
-        _check_id(self.user, "user")
+        _check_id(self.vehicle_id, "aud")
+        _check_id(self.user, "sub")
         _check_role(self.role, "role")
         object.__setattr__(
             self,
             "allowed_commands",
             _check_commands_tuple(self.allowed_commands, "allowed_commands"),
         )
-        _check_times(self.issued_at, self.expires_at)
-        _check_id(self.nonce, "nonce")
+        _whole_times(self)
+        _check_id(self.nonce, "jti")
+        _check_id(self.issuer, "iss")
 
     def to_payload(self) -> dict[str, Any]:
-        """Return the document payload (with ``v`` and ``kind``) ready for signing."""
+        """Return the JWT claims (registered, ``v`` and the grant's own) ready for signing."""
         return {
-            "v": PROTOCOL_VERSION,
-            "kind": self.KIND,
+            **_common_claims(self),
             "session_id": self.session_id,
-            "vehicle_id": self.vehicle_id,
-            "user": self.user,
             "role": self.role,
             "allowed_commands": list(self.allowed_commands),
-            "iat": self.issued_at,
-            "exp": self.expires_at,
-            "nonce": self.nonce,
         }
 
     @classmethod
     def from_payload(cls, payload: Any) -> UserGrant:
-        """Build a UserGrant from a (verified) payload.
+        """Build a UserGrant from (verified) claims.
 
-        Returns the grant. Raises ProtocolError naming the field for a missing, unknown or
-        bad field, ``bad_version`` for another version and ``wrong_kind`` for a task.
+        Returns the grant. Raises ProtocolError naming the claim for a missing, unknown or
+        bad one, ``bad_version`` for another version.
         """
-        if not isinstance(payload, Mapping):
-            raise ProtocolError("bad_field", "document payload must be an object")
-        _check_keys(payload, cls._FIELDS, "")
-        _require(
+        claims = _claims_checked(
             payload,
-            (
-                "v",
-                "kind",
-                "session_id",
-                "vehicle_id",
-                "user",
-                "role",
-                "allowed_commands",
-                "iat",
-                "exp",
-                "nonce",
-            ),
+            cls.CLAIMS,
+            (*_REQUIRED, "v", "session_id", "role", "allowed_commands"),
         )
-        _check_version(payload["v"], "v")
-        if payload["kind"] != cls.KIND:
-            raise ProtocolError("wrong_kind", f"document kind must be {cls.KIND}", field="kind")
         return cls(
-            session_id=payload["session_id"],
-            vehicle_id=payload["vehicle_id"],
-            user=payload["user"],
-            role=payload["role"],
-            allowed_commands=_check_commands_tuple(payload["allowed_commands"], "allowed_commands"),
-            issued_at=payload["iat"],
-            expires_at=payload["exp"],
-            nonce=payload["nonce"],
+            session_id=claims["session_id"],
+            vehicle_id=claims["aud"],
+            user=claims["sub"],
+            role=claims["role"],
+            allowed_commands=_check_commands_tuple(claims["allowed_commands"], "allowed_commands"),
+            issued_at=claims["iat"],
+            expires_at=claims["exp"],
+            nonce=claims["jti"],
+            issuer=claims["iss"],
         )
 
     def sign(self, private_key: Ed25519PrivateKey) -> str:
-        """Return this grant as a signed token (see :func:`sign_document`)."""
-        return sign_document(self.to_payload(), private_key)
+        """Return this grant as a compact JWT signed with ``private_key`` (EdDSA), its
+        ``kid`` the key's thumbprint and its ``typ`` ``iouv-grant+jwt``."""
+        return _sign(self.to_payload(), private_key, self.KIND)
 
     @classmethod
     def verify(
         cls,
         token: str,
-        public_key: Ed25519PublicKey,
+        keys: PublicKeys,
         *,
         vehicle_id: str,
+        issuer: str = ISSUER,
         now: float | None = None,
         replay_guard: ReplayGuard | None = None,
     ) -> UserGrant:
         """Verify a grant presented to the agent whose id is ``vehicle_id``.
 
-        Same order and errors as :meth:`VehicleTask.verify`. With ``replay_guard`` the
-        grant's nonce is consumed: a grant opens one connection, a reconnect needs a fresh
-        grant from the platform.
+        Same arguments, order and errors as :meth:`VehicleTask.verify`. With
+        ``replay_guard`` the grant's ``jti`` is consumed: a grant opens one connection, a
+        reconnect needs a fresh grant from the platform.
         """
-        payload = _verify_common(token, public_key, cls.KIND, vehicle_id, now)
-        grant = cls.from_payload(payload)
+        claims = _decode(token, keys, kind=cls.KIND, vehicle_id=vehicle_id, issuer=issuer, now=now)
+        grant = cls.from_payload(claims)
         _check_target(
             grant.vehicle_id, vehicle_id, grant.nonce, grant.expires_at, now, replay_guard
         )
         return grant
+
+
+def claimed_session(token: Any) -> str | None:
+    """The ``session_id`` a token claims, **unverified**: only to label a refusal (which
+    session failed) for the platform. None when it cannot be read."""
+    try:
+        claims = jwt.decode(token, options={"verify_signature": False})
+    except (jwt.PyJWTError, ValueError, TypeError, AttributeError):
+        return None
+    session = claims.get("session_id")
+    return session if isinstance(session, str) and 0 < len(session) <= 100 else None
 
 
 # --------------------------------------------------------------------------------------
@@ -714,12 +705,12 @@ class ReplayGuard:
         nonce was seen and its document is still valid; ProtocolError ``bad_field`` for an
         empty nonce or a non-finite ``expires_at``.
         """
-        _check_id(nonce, "nonce")
+        _check_id(nonce, "jti")
         _check_timestamp(expires_at, "exp")
         current = time.time() if now is None else now
         self._prune(current)
         if nonce in self._forget_at:
-            raise ReplayError("document nonce was already used")
+            raise _with_field(ReplayError("document id (jti) was already used"), "jti")
         while len(self._forget_at) >= self._max_entries:
             del self._forget_at[next(iter(self._forget_at))]
         forget_at = float(expires_at) + CLOCK_SKEW_S

@@ -1,343 +1,608 @@
-"""The JSON messages of the four WebSocket channels, and command arguments."""
+"""The JSON messages of the four WebSocket channels, as typed structs, and command arguments.
+
+Every message type is a frozen :class:`msgspec.Struct` tagged by its ``type`` field; each
+channel is the tagged union of the structs it accepts, decoded and validated in one pass
+by a :class:`msgspec.json.Decoder` built once. Unknown fields are ignored, so a newer
+peer can add optional fields without breaking an older one (docs/protocol.md,
+"Versioning"). An optional field a peer left out is :data:`msgspec.UNSET` (falsy).
+The JSON Schema of each channel is generated from these structs by
+:mod:`agents.protocol.schema`.
+"""
 
 from __future__ import annotations
 
-import json
+import math
+import re
 from collections.abc import Mapping
-from typing import Any, Final
+from typing import TYPE_CHECKING, Annotated, Any, Final, Literal, TypeAlias, get_args
+
+import msgspec
+from msgspec import UNSET, Meta, UnsetType, field
 
 from agents.protocol.base import (
     MAX_MESSAGE_BYTES,
+    PROTOCOL_VERSION,
     Channel,
-    Checker,
     ProtocolError,
-    _bad,
     _bad_arg,
-    _check_action,
     _check_arg_value,
-    _check_battery,
-    _check_bool,
-    _check_commands,
-    _check_control_url,
-    _check_id,
-    _check_id_list,
-    _check_int,
-    _check_number,
-    _check_object,
-    _check_position,
-    _check_positive_number,
-    _check_rate_hz,
-    _check_role,
-    _check_safe_actions,
-    _check_str,
-    _check_uint,
-    _check_version,
+)
+
+# --------------------------------------------------------------------------------------
+# Field types: the limits of every field, readable by msgspec and by JSON Schema.
+# --------------------------------------------------------------------------------------
+
+Id = Annotated[str, Meta(min_length=1)]
+Uint = Annotated[int, Meta(ge=0)]
+# msgspec refuses NaN/Infinity (not JSON) and numbers beyond the float range.
+Number = float
+PositiveNumber = Annotated[float, Meta(gt=0)]
+Latitude = Annotated[float, Meta(ge=-90, le=90)]
+Longitude = Annotated[float, Meta(ge=-180, le=180)]
+Battery = Annotated[float, Meta(ge=0, le=100, description="Percent, 0..100")]
+RateHz = Annotated[float, Meta(gt=0, le=50)]
+if TYPE_CHECKING:
+    Version = int
+else:  # any other value is refused as bad_version
+    Version = Literal[PROTOCOL_VERSION]
+FailsafeAction = Literal["stop", "land", "return_to_home"]
+Role = Literal["controller", "viewer"]
+Object = dict[str, Any]
+# Empty means the vehicle cannot be reached directly; clients must use the relay.
+# (?![\s\S]) is "end of text" in both Python and ECMA regexes; $ would allow "\n".
+ControlUrl = Annotated[str, Meta(pattern=r"^(?:wss?://|(?![\s\S]))")]
+
+#: The longest description of a safe action a profile may carry (shown in a sentence).
+_MAX_SAFE_ACTION_WORDS: Final = 160
+_ACTIONS: Final = get_args(FailsafeAction)
+
+# Checked in Profile.__post_init__ so a refusal names the action; the schema says the same.
+SafeActions = Annotated[
+    dict[str, Any],
+    Meta(
+        description="What each fail-safe action does to this vehicle, in words",
+        extra_json_schema={
+            "propertyNames": {"enum": list(_ACTIONS)},
+            "additionalProperties": {
+                "type": "string",
+                "minLength": 1,
+                "maxLength": _MAX_SAFE_ACTION_WORDS,
+            },
+        },
+    ),
+]
+
+
+def _invalid(path: str, problem: str) -> ValueError:
+    """A refusal raised inside ``__post_init__``: msgspec appends where the struct sits,
+    :func:`_protocol_error` joins that with ``path`` (relative to the struct)."""
+    return ValueError(f"<{path}> {problem}")
+
+
+class Position(msgspec.Struct, frozen=True):
+    """Where the vehicle is; ground and surface vehicles may not know their altitude."""
+
+    lat: Latitude
+    lon: Longitude
+    alt: float | None = None
+
+
+class ArgSpec(msgspec.Struct, frozen=True):
+    """One command argument's declaration."""
+
+    type: Literal["number", "integer", "boolean", "string"]
+    min: float | UnsetType = UNSET
+    max: float | UnsetType = UNSET
+    default: bool | int | float | str | UnsetType = UNSET
+    unit: str | UnsetType = UNSET
+    description: str | UnsetType = UNSET
+
+    def __post_init__(self) -> None:
+        for bound in ("min", "max"):
+            value = getattr(self, bound)
+            if value is not UNSET and self.type not in ("number", "integer"):
+                raise _invalid(bound, "is only allowed for number and integer arguments")
+            if value is not UNSET and not math.isfinite(value):
+                raise _invalid(bound, "must be a finite number")
+        if self.min is not UNSET and self.max is not UNSET and self.min > self.max:
+            raise _invalid("min", "must not exceed max")
+        if self.default is not UNSET:
+            try:
+                _check_arg_value(msgspec.structs.asdict(self), self.default, "default")
+            except ProtocolError as exc:
+                raise _invalid("default", f"is invalid: {exc.message}") from None
+
+
+_ARGS_SCHEMA: Final = {
+    "propertyNames": {"minLength": 1},
+    "additionalProperties": {"$ref": "#/$defs/ArgSpec"},
+}
+
+
+class CommandSpec(msgspec.Struct, frozen=True):
+    """One command of the vehicle's vocabulary. ``args`` stays a dict of declarations
+    (each checked as an :class:`ArgSpec`) for :func:`validate_command_args`."""
+
+    name: Id
+    # dict[str, Any]: each value is checked in __post_init__ (so a refusal names the
+    # argument); the schema says what is checked.
+    args: Annotated[dict[str, Any], Meta(extra_json_schema=_ARGS_SCHEMA)]
+    description: str | UnsetType = UNSET
+    group: str | UnsetType = UNSET
+    # Moves the vehicle: repeated while a key is held, refused past the hard latency limit.
+    motion: bool | UnsetType = UNSET
+    key: str | UnsetType = UNSET  # default key binding for controllers, e.g. "ArrowUp"
+    # control_to_client welcome only: whether this user's session may send it.
+    allowed: bool | UnsetType = UNSET
+
+    def __post_init__(self) -> None:
+        for arg_name, spec in self.args.items():
+            if not arg_name:
+                raise _invalid("args", "has an argument with an empty name")
+            try:
+                msgspec.convert(spec, ArgSpec)
+            except msgspec.ValidationError as exc:
+                path, problem = _split(str(exc))
+                raise _invalid(_join(f"args.{arg_name}", path), problem) from None
+
+
+def _check_commands(commands: list[CommandSpec]) -> None:
+    seen: set[str] = set()
+    for i, command in enumerate(commands):
+        if command.name in seen:
+            raise _invalid(f"commands[{i}].name", f"repeats command '{command.name}'")
+        seen.add(command.name)
+
+
+# --------------------------------------------------------------------------------------
+# Messages, by channel. A trailing ``| UnsetType = UNSET`` marks an optional field,
+# ``| None`` allows JSON null.
+# --------------------------------------------------------------------------------------
+
+
+class Message(msgspec.Struct, frozen=True, tag_field="type"):
+    """Base of every message struct (not itself a message)."""
+
+
+# uplink_to_platform -------------------------------------------------------------------
+
+
+class Hello(Message, frozen=True, tag="hello"):
+    v: Version
+    vehicle_id: Id
+    credential: Id
+
+
+class Profile(Message, frozen=True, tag="profile"):
+    vehicle_type: Id
+    adapter: Id
+    attributes: Object
+    commands: list[CommandSpec]
+    telemetry: list[Id]
+    control_url: ControlUrl
+    video: bool
+    position: Position | None
+    battery: Battery | None
+    # What each fail-safe action does to this vehicle, in words the platform shows
+    # before a user ends a session or a monitor stops it.
+    safe_actions: SafeActions | UnsetType = UNSET
+    # What the agent is doing as it (re)registers, so the platform can converge it: the
+    # session of the task it runs, whether a user controls it, its status word.
+    session_id: Id | UnsetType | None = UNSET
+    controller: bool | UnsetType = UNSET
+    status: str | UnsetType = UNSET
+
+    def __post_init__(self) -> None:
+        _check_commands(self.commands)
+        for action, words in (self.safe_actions or {}).items():
+            if action not in _ACTIONS:
+                raise _invalid(f"safe_actions.{action}", f"must be one of {sorted(_ACTIONS)}")
+            if not isinstance(words, str) or not 0 < len(words) <= _MAX_SAFE_ACTION_WORDS:
+                raise _invalid(
+                    f"safe_actions.{action}", f"must be 1 to {_MAX_SAFE_ACTION_WORDS} characters"
+                )
+
+
+class Heartbeat(Message, frozen=True, tag="heartbeat"):
+    seq: Uint
+    position: Position | UnsetType | None = UNSET
+    battery: Battery | UnsetType | None = UNSET
+    status: str | UnsetType = UNSET
+    telemetry: Object | UnsetType = UNSET
+
+
+class TaskAccepted(Message, frozen=True, tag="task_accepted"):
+    session_id: Id
+
+
+class TaskRefused(Message, frozen=True, tag="task_refused"):
+    code: Id
+    reason: str
+    session_id: Id | UnsetType | None = UNSET
+
+
+class Ack(Message, frozen=True, tag="ack"):
+    """The agent handled the platform message carrying this id (see "Delivery")."""
+
+    id: Id
+    ok: bool
+    detail: str | UnsetType = UNSET
+
+
+class Event(Message, frozen=True, tag="event"):
+    session_id: Id | None
+    event: Id
+    data: Object
+
+
+class RelayClose(Message, frozen=True, tag="relay_close"):
+    """A relayed client went away or was dropped (both uplink directions)."""
+
+    session_id: Id
+    conn: Id
+    code: Uint | UnsetType = UNSET
+    reason: str | UnsetType = UNSET
+
+
+# uplink_to_agent ----------------------------------------------------------------------
+
+
+class Welcome(Message, frozen=True, tag="welcome"):
+    v: Version
+    heartbeat_interval_s: PositiveNumber
+    platform_public_key: str | UnsetType = UNSET
+    # The platform's signing keys as a JWKS (RFC 7517): during a key rotation it holds
+    # both keys, so a task signed with either verifies on the agent.
+    platform_jwks: Object | UnsetType = UNSET
+
+
+# These three carry an id and are sent again until the agent acknowledges it.
+class Task(Message, frozen=True, tag="task"):
+    token: Id
+    id: Id | UnsetType = UNSET
+
+
+class Revoke(Message, frozen=True, tag="revoke"):
+    session_id: Id
+    reason: str
+    action: FailsafeAction
+    id: Id | UnsetType = UNSET
+
+
+class EndTask(Message, frozen=True, tag="end_task"):
+    session_id: Id
+    reason: str
+    id: Id | UnsetType = UNSET
+
+
+class Error(Message, frozen=True, tag="error"):
+    """A refusal (uplink_to_agent and control_to_client); ``seq`` names the command."""
+
+    code: Id
+    message: str
+    seq: Uint | UnsetType = UNSET
+
+
+# control_to_agent ---------------------------------------------------------------------
+
+
+class Auth(Message, frozen=True, tag="auth"):
+    grant: Id
+
+
+class Command(Message, frozen=True, tag="command"):
+    seq: Uint
+    name: Id
+    args: Object = field(default_factory=dict)
+
+
+class Subscribe(Message, frozen=True, tag="subscribe"):
+    topics: list[Id]
+    rate_hz: RateHz
+
+
+class Unsubscribe(Message, frozen=True, tag="unsubscribe"):
+    topics: list[Id]
+
+
+class Ping(Message, frozen=True, tag="ping"):
+    t: Number
+
+
+class Pong(Message, frozen=True, tag="pong"):
+    """Answer to the agent's ping: lets the agent measure latency for its limits."""
+
+    t: Number
+
+
+class Keepalive(Message, frozen=True, tag="keepalive"):
+    pass
+
+
+class TakeControl(Message, frozen=True, tag="take_control"):
+    pass
+
+
+class ReleaseControl(Message, frozen=True, tag="release_control"):
+    pass
+
+
+class WebrtcRequest(Message, frozen=True, tag="webrtc_request"):
+    pass
+
+
+class WebrtcOffer(Message, frozen=True, tag="webrtc_offer"):
+    sdp: str
+
+
+class WebrtcAnswer(Message, frozen=True, tag="webrtc_answer"):
+    sdp: str
+
+
+# control_to_client --------------------------------------------------------------------
+
+
+class ClientWelcome(Message, frozen=True, tag="welcome"):
+    role: Role
+    vehicle: Object
+    commands: list[CommandSpec]
+    telemetry: list[Id]
+    # How to show each topic: {topic: {label, unit?, decimals?, yes?, no?}}.
+    telemetry_info: Object | UnsetType = UNSET
+
+    def __post_init__(self) -> None:
+        _check_commands(self.commands)
+
+
+class CommandAck(Message, frozen=True, tag="ack"):
+    seq: Uint
+    ok: bool
+    error: str | None
+    code: str | UnsetType | None = UNSET
+
+
+class Telemetry(Message, frozen=True, tag="telemetry"):
+    t: Number
+    data: Object
+
+
+class ClientPong(Message, frozen=True, tag="pong"):
+    t: Number
+    server_t: Number
+
+
+class ClientEvent(Message, frozen=True, tag="event"):
+    event: Id
+    data: Object
+
+
+class RoleChange(Message, frozen=True, tag="role"):
+    role: Role
+
+
+ControlToAgent: TypeAlias = (
+    Auth
+    | Command
+    | Subscribe
+    | Unsubscribe
+    | Ping
+    | Pong
+    | Keepalive
+    | TakeControl
+    | ReleaseControl
+    | WebrtcRequest
+    | WebrtcOffer
+    | WebrtcAnswer
+)
+ControlToClient: TypeAlias = (
+    ClientWelcome
+    | CommandAck
+    | Telemetry
+    | ClientPong
+    | Ping
+    | ClientEvent
+    | WebrtcOffer
+    | WebrtcAnswer
+    | Error
+    | RoleChange
 )
 
 
-def _nullable(checker: Checker) -> Checker:
-    def check(value: Any, path: str) -> Any:
-        return None if value is None else checker(value, path)
-
-    return check
-
-
-def _relay_payload(channel: Channel) -> Checker:
-    # A relayed payload is an ordinary control message; validate it as one so the relay
-    # path cannot carry anything the direct path would refuse.
-    def check(value: Any, path: str) -> dict[str, Any]:
-        return _validate_message(value, channel, prefix=f"{path}.")
-
-    return check
+# A relayed payload is an ordinary control message of the matching channel, so the relay
+# path cannot carry anything the direct path would refuse.
+class RelayToPlatform(Message, frozen=True, tag="relay"):
+    session_id: Id
+    payload: ControlToClient
+    conn: Id | UnsetType = UNSET
 
 
-# Type names used in the message table below.
-_TYPES: Final[dict[str, Checker]] = {
-    "str": _check_str,
-    "id": _check_id,
-    "int": _check_int,
-    "uint": _check_uint,
-    "number": _check_number,
-    "positive_number": _check_positive_number,
-    "bool": _check_bool,
-    "object": _check_object,
-    "list[id]": _check_id_list,
-    "version": _check_version,
-    "position": _check_position,
-    "battery": _check_battery,
-    "action": _check_action,
-    "safe_actions": _check_safe_actions,
-    "role": _check_role,
-    "rate_hz": _check_rate_hz,
-    "control_url": _check_control_url,
-    "commands": _check_commands,
-    "relay_to_agent": _relay_payload("control_to_agent"),
-    "relay_to_client": _relay_payload("control_to_client"),
+class RelayToAgent(Message, frozen=True, tag="relay"):
+    session_id: Id
+    payload: ControlToAgent
+    conn: Id | UnsetType = UNSET
+
+
+UplinkToPlatform: TypeAlias = (
+    Hello
+    | Profile
+    | Heartbeat
+    | TaskAccepted
+    | TaskRefused
+    | Ack
+    | Event
+    | RelayToPlatform
+    | RelayClose
+)
+UplinkToAgent: TypeAlias = Welcome | Task | Revoke | EndTask | RelayToAgent | RelayClose | Error
+
+#: channel -> the union of the message structs it accepts.
+CHANNEL_TYPES: Final[dict[str, Any]] = {
+    "uplink_to_platform": UplinkToPlatform,
+    "uplink_to_agent": UplinkToAgent,
+    "control_to_agent": ControlToAgent,
+    "control_to_client": ControlToClient,
 }
 
-# --------------------------------------------------------------------------------------
-# Message table
-#
-# channel -> message type -> field -> type name. A trailing "?" marks an optional field,
-# a "|null" suffix allows JSON null. Fields not listed are ignored, so a newer peer can add
-# optional fields without breaking an older one (see docs/protocol.md, "Versioning").
-# --------------------------------------------------------------------------------------
 
-_SCHEMAS: Final[dict[str, dict[str, dict[str, str]]]] = {
-    "uplink_to_platform": {
-        "hello": {"v": "version", "vehicle_id": "id", "credential": "id"},
-        "profile": {
-            "vehicle_type": "id",
-            "adapter": "id",
-            "attributes": "object",
-            "commands": "commands",
-            "telemetry": "list[id]",
-            "control_url": "control_url",
-            "video": "bool",
-            "position": "position|null",
-            "battery": "battery|null",
-            # What each fail-safe action does to this vehicle, in words the platform
-            # shows before a user ends a session or a monitor stops it.
-            "safe_actions": "safe_actions?",
-            # What the agent is doing as it (re)registers, so the platform can converge
-            # it: the session of the task it runs, whether a user controls it, and its
-            # status word (as in heartbeats).
-            "session_id": "id|null?",
-            "controller": "bool?",
-            "status": "str?",
-        },
-        "heartbeat": {
-            "seq": "uint",
-            "position": "position|null?",
-            "battery": "battery|null?",
-            "status": "str?",
-            "telemetry": "object?",
-        },
-        "task_accepted": {"session_id": "id"},
-        "task_refused": {"session_id": "id|null?", "code": "id", "reason": "str"},
-        # The agent handled the platform message carrying this id (see "Delivery").
-        "ack": {"id": "id", "ok": "bool", "detail": "str?"},
-        "event": {"session_id": "id|null", "event": "id", "data": "object"},
-        "relay": {"session_id": "id", "conn": "id?", "payload": "relay_to_client"},
-        # The agent dropped a relayed client (bad grant, revoked, flooding).
-        "relay_close": {"session_id": "id", "conn": "id", "code": "uint?", "reason": "str?"},
-    },
-    "uplink_to_agent": {
-        "welcome": {
-            "v": "version",
-            "heartbeat_interval_s": "positive_number",
-            "platform_public_key": "str?",
-            # The platform's signing keys as a JWKS (RFC 7517): during a key rotation it
-            # holds both keys, so a task signed with either verifies on the agent.
-            "platform_jwks": "object?",
-        },
-        # These three carry an id and are sent again until the agent acknowledges it.
-        "task": {"token": "id", "id": "id?"},
-        "revoke": {"session_id": "id", "reason": "str", "action": "action", "id": "id?"},
-        "end_task": {"session_id": "id", "reason": "str", "id": "id?"},
-        "relay": {"session_id": "id", "conn": "id?", "payload": "relay_to_agent"},
-        # The relayed browser went away: for the agent, that client's socket closed.
-        "relay_close": {"session_id": "id", "conn": "id", "code": "uint?", "reason": "str?"},
-        "error": {"code": "id", "message": "str"},
-    },
-    "control_to_agent": {
-        "auth": {"grant": "id"},
-        "command": {"seq": "uint", "name": "id", "args": "object?"},
-        "subscribe": {"topics": "list[id]", "rate_hz": "rate_hz"},
-        "unsubscribe": {"topics": "list[id]"},
-        "ping": {"t": "number"},
-        # Answer to the agent's ping: lets the agent measure latency for its limits.
-        "pong": {"t": "number"},
-        "keepalive": {},
-        "take_control": {},
-        "release_control": {},
-        "webrtc_request": {},
-        "webrtc_offer": {"sdp": "str"},
-        "webrtc_answer": {"sdp": "str"},
-    },
-    "control_to_client": {
-        "welcome": {
-            "role": "role",
-            "vehicle": "object",
-            "commands": "commands",
-            "telemetry": "list[id]",
-            # How to show each topic: {topic: {label, unit?, decimals?, yes?, no?}}.
-            "telemetry_info": "object?",
-        },
-        "ack": {"seq": "uint", "ok": "bool", "error": "str|null", "code": "str|null?"},
-        "telemetry": {"t": "number", "data": "object"},
-        "pong": {"t": "number", "server_t": "number"},
-        "ping": {"t": "number"},
-        "event": {"event": "id", "data": "object"},
-        "webrtc_offer": {"sdp": "str"},
-        "webrtc_answer": {"sdp": "str"},
-        "error": {"code": "id", "message": "str", "seq": "uint?"},
-        "role": {"role": "role"},
-    },
-}
+def message_type(msg: Message) -> str:
+    """The ``type`` tag of a message struct (``"heartbeat"``)."""
+    return str(msg.__struct_config__.tag)
 
-# Values filled in by parse_message when an optional field is absent.
-_DEFAULTS: Final[dict[tuple[str, str], dict[str, Any]]] = {
-    ("control_to_agent", "command"): {"args": {}},
-}
 
-#: channel -> the message types it accepts (read-only view of the table, for docs and tests).
+#: channel -> the message types it accepts.
 MESSAGE_TYPES: Final[dict[str, frozenset[str]]] = {
-    channel: frozenset(types) for channel, types in _SCHEMAS.items()
+    channel: frozenset(str(cls.__struct_config__.tag) for cls in get_args(union))
+    for channel, union in CHANNEL_TYPES.items()
 }
 
-
-def _resolve(type_spec: str) -> tuple[Checker, bool]:
-    """Turn ``"position|null?"`` into (checker, optional)."""
-    optional = type_spec.endswith("?")
-    name = type_spec.removesuffix("?")
-    if name.endswith("|null"):
-        return _nullable(_TYPES[name.removesuffix("|null")]), optional
-    return _TYPES[name], optional
-
-
-# Resolved once at import so a typo in the table fails loudly at start-up, not mid-session.
-_COMPILED: Final[dict[str, dict[str, dict[str, tuple[Checker, bool]]]]] = {
-    channel: {
-        msg_type: {name: _resolve(spec) for name, spec in fields.items()}
-        for msg_type, fields in types.items()
-    }
-    for channel, types in _SCHEMAS.items()
+_DECODERS: Final[dict[str, msgspec.json.Decoder[Any]]] = {
+    channel: msgspec.json.Decoder(union) for channel, union in CHANNEL_TYPES.items()
 }
+_ENCODER: Final = msgspec.json.Encoder()
 
 # --------------------------------------------------------------------------------------
-# Messages
+# Errors: msgspec's text -> ProtocolError(code, message, field)
+# --------------------------------------------------------------------------------------
+
+_WHERE = re.compile(r"^(?P<problem>.*?)(?: - at (?:`key` in )?`\$(?P<path>[^`]*)`)?$", re.S)
+_MISSING = re.compile(r"^Object missing required field `(?P<name>[^`]*)`$")
+_MARKED = re.compile(r"^<(?P<path>[^>]*)> (?P<problem>.*)$", re.S)
+
+
+def _join(outer: str, inner: str) -> str:
+    if not inner:
+        return outer
+    if not outer or inner.startswith("["):
+        return outer + inner
+    return f"{outer}.{inner}"
+
+
+def _split(text: str) -> tuple[str, str]:
+    """msgspec's ``"problem - at `$.a.b`"`` -> ``("a.b", "problem")``, folding in the
+    field a missing-field error names and the path a :func:`_invalid` refusal carries."""
+    where = _WHERE.match(text)
+    assert where is not None  # the pattern matches any text
+    problem, path = where["problem"], (where["path"] or "").removeprefix(".")
+    if missing := _MISSING.match(problem):
+        return _join(path, missing["name"]), "is missing"
+    if marked := _MARKED.match(problem):
+        return _join(path, marked["path"]), marked["problem"]
+    return path, problem
+
+
+def _protocol_error(exc: msgspec.ValidationError) -> ProtocolError:
+    path, problem = _split(str(exc))
+    if path in ("type", "payload.type"):
+        return ProtocolError("unknown_type", f"message type: {problem}", field=path)
+    if path == "":
+        return ProtocolError("bad_json", f"message must be a JSON object: {problem}")
+    if path == "v" and problem != "is missing":
+        problem = f"{problem} (this end speaks version {PROTOCOL_VERSION})"
+        return ProtocolError("bad_version", f"field 'v': {problem}", field="v")
+    return ProtocolError("bad_field", f"field '{path}': {problem}", field=path)
+
+
+# --------------------------------------------------------------------------------------
+# Codec
 # --------------------------------------------------------------------------------------
 
 
-def _reject_constant(name: str) -> Any:
-    # NaN and Infinity are not JSON; Python's json accepts them unless told otherwise.
-    raise ValueError(f"{name} is not valid JSON")
-
-
-def _loads(text: str) -> Any:
-    """Parse JSON strictly. Raises ValueError or RecursionError on bad input."""
-    return json.loads(text, parse_constant=_reject_constant)
-
-
-def _validate_message(msg: Any, channel: Channel, *, prefix: str = "") -> dict[str, Any]:
-    if not isinstance(msg, dict):
-        if prefix:  # a nested message (relay payload) is a field of the outer one
-            raise _bad(prefix.rstrip("."), "must be a message object")
-        raise ProtocolError("bad_json", "message must be a JSON object")
-    types = _COMPILED.get(channel)
-    if types is None:
-        # A caller bug, not peer input: fail like any other misuse of the API.
-        raise ValueError(f"unknown channel {channel!r}")
-    msg_type = msg.get("type")
-    if not isinstance(msg_type, str) or msg_type not in types:
-        raise ProtocolError(
-            "unknown_type",
-            f"{prefix}type {msg_type!r} is not a known {channel} message type",
-            field=f"{prefix}type",
-        )
-    out = dict(msg)
-    for name, default in _DEFAULTS.get((channel, msg_type), {}).items():
-        if name not in out:
-            # Copy so a caller mutating the result never alters the shared default.
-            out[name] = json.loads(json.dumps(default))
-    for name, (checker, optional) in types[msg_type].items():
-        if name not in out:
-            if optional:
-                continue
-            path = f"{prefix}{name}"
-            raise ProtocolError(
-                "bad_field", f"{msg_type} message: field '{path}' is missing", field=path
-            )
-        try:
-            out[name] = checker(out[name], f"{prefix}{name}")
-        except ProtocolError as exc:
-            # Name the message type too: the same field name exists in several types.
-            if exc.message.startswith(f"{msg_type} message: "):
-                raise
-            raise ProtocolError(
-                exc.code, f"{msg_type} message: {exc.message}", field=exc.field
-            ) from None
-    return out
-
-
-def parse_message(raw: str | bytes, *, channel: Channel) -> dict[str, Any]:
+def parse_message(raw: str | bytes, *, channel: Channel) -> Any:
     """Decode and validate one WebSocket message received on ``channel``.
 
-    Returns the message as a dict: validated fields normalised, absent optional fields with
-    a default filled in (``command.args`` -> ``{}``), unknown fields kept untouched.
-    A relayed ``payload`` is validated as a message of the matching control channel.
+    Returns the message struct of its type (one of the channel's union, e.g.
+    :class:`Heartbeat`); absent optional fields are :data:`msgspec.UNSET`, except
+    ``command.args`` which defaults to ``{}``. Unknown fields are dropped. A relayed
+    ``payload`` is a struct of the matching control channel.
 
     Raises ProtocolError with code ``too_large`` (over :data:`MAX_MESSAGE_BYTES`),
     ``bad_json`` (not UTF-8, not JSON, not an object), ``unknown_type`` (type not
-    accepted on this channel), ``bad_field`` (missing or mistyped field, named in the
-    message) or ``bad_version`` (a ``hello``/``welcome`` of another protocol version).
-    Raises ValueError only if ``channel`` itself is not one of :data:`CHANNELS`.
+    accepted on this channel), ``bad_field`` (missing or mistyped field, its path in
+    ``field``) or ``bad_version`` (a ``hello``/``welcome`` of another protocol version).
+    Raises KeyError only if ``channel`` itself is not one of the channels.
     """
+    decoder = _DECODERS[channel]
     if isinstance(raw, str):
         # A character is at least one UTF-8 byte: cheap early refusal before encoding.
         if len(raw) > MAX_MESSAGE_BYTES:
             raise ProtocolError("too_large", f"message exceeds {MAX_MESSAGE_BYTES} bytes")
         try:
-            size = len(raw.encode("utf-8"))
+            raw = raw.encode("utf-8")
         except UnicodeEncodeError:  # lone surrogates
             raise ProtocolError("bad_json", "message is not valid UTF-8 text") from None
-        text = raw
-    elif isinstance(raw, bytes):
-        size = len(raw)
-        text = ""
-    else:
+    elif not isinstance(raw, bytes):
         raise ProtocolError("bad_json", "message must be text or bytes")
-    if size > MAX_MESSAGE_BYTES:
+    if len(raw) > MAX_MESSAGE_BYTES:
         raise ProtocolError("too_large", f"message exceeds {MAX_MESSAGE_BYTES} bytes")
-    if isinstance(raw, bytes):
-        try:
-            text = raw.decode("utf-8")
-        except UnicodeDecodeError:
-            raise ProtocolError("bad_json", "message is not valid UTF-8 text") from None
     try:
-        msg = _loads(text)
-    except (ValueError, RecursionError) as exc:
+        return decoder.decode(raw)
+    except msgspec.ValidationError as exc:
+        raise _protocol_error(exc) from None
+    except (msgspec.DecodeError, UnicodeDecodeError, RecursionError) as exc:
         # RecursionError: deeply nested arrays fit easily in 64 KiB.
         raise ProtocolError("bad_json", f"message is not valid JSON: {exc}") from None
-    return _validate_message(msg, channel)
 
 
-def encode_message(msg: Mapping[str, Any], *, channel: Channel | None = None) -> str:
-    """Serialise ``msg`` to the JSON text sent on the wire.
+def encode_message(msg: Message, *, channel: Channel | None = None) -> str:
+    """Serialise a message struct to the JSON text sent on the wire.
 
-    With ``channel`` the message is first validated exactly as the receiver will, so a bug
-    on the sending side shows up where it happens.
+    Struct constructors do not check limits, so with ``channel`` the text is also
+    validated exactly as the receiver will, and a bug on the sending side shows up where
+    it happens. NaN and infinities encode as ``null`` (refused where a number is required).
 
-    Returns compact JSON text. Raises ProtocolError: ``bad_field`` if ``msg`` is not
-    JSON-serialisable (including NaN/inf) or lacks a string ``type``, ``too_large`` if
-    the result exceeds :data:`MAX_MESSAGE_BYTES`, and any :func:`parse_message` code when
-    ``channel`` is given and the message would be refused.
+    Returns compact JSON text. Raises ProtocolError: ``bad_field`` if ``msg`` is not a
+    message struct or holds a value msgspec cannot encode, ``too_large`` if the result
+    exceeds :data:`MAX_MESSAGE_BYTES`, and any :func:`parse_message` code when ``channel``
+    is given and the message would be refused.
     """
-    if not isinstance(msg, Mapping) or not isinstance(msg.get("type"), str):
-        raise ProtocolError("bad_field", "message needs a string field 'type'", field="type")
+    if not isinstance(msg, Message) or type(msg) is Message:
+        raise ProtocolError("bad_field", "only message structs can be encoded", field="type")
     try:
-        text = json.dumps(dict(msg), separators=(",", ":"), allow_nan=False)
-    except (TypeError, ValueError, RecursionError) as exc:
+        data = _ENCODER.encode(msg)
+    except (TypeError, ValueError, OverflowError, RecursionError) as exc:
         raise ProtocolError("bad_field", f"message is not JSON-serialisable: {exc}") from None
-    # ensure_ascii (json's default) keeps the text ASCII, so characters == bytes.
-    if len(text) > MAX_MESSAGE_BYTES:
+    if len(data) > MAX_MESSAGE_BYTES:
         raise ProtocolError("too_large", f"message exceeds {MAX_MESSAGE_BYTES} bytes")
     if channel is not None:
-        _validate_message(_loads(text), channel)
-    return text
+        parse_message(data, channel=channel)
+    return data.decode("utf-8")
 
 
-def error_message(code: str, message: str, *, seq: int | None = None) -> dict[str, Any]:
-    """Build an ``error`` message (both the uplink and the control channel use this shape).
+def message_from_dict(data: Mapping[str, Any], *, channel: Channel) -> Any:
+    """Bridge for callers holding a message as a dict (stored in the database, built
+    by a form): the struct :func:`parse_message` would return for its JSON text.
 
-    ``seq`` names the command being answered, when there is one. Returns the dict; it
-    raises nothing.
+    Raises ProtocolError exactly as :func:`parse_message` does."""
+    if not isinstance(data, Mapping):
+        raise ProtocolError("bad_json", "message must be a JSON object")
+    try:
+        return msgspec.convert(data, CHANNEL_TYPES[channel], strict=True)
+    except msgspec.ValidationError as exc:
+        raise _protocol_error(exc) from None
+
+
+def message_to_dict(msg: Message) -> dict[str, Any]:
+    """Bridge for callers that need plain JSON data (a Channels group message, a stored
+    row): the message as a dict with its ``type``, absent optional fields left out."""
+    out = msgspec.to_builtins(msg)
+    assert isinstance(out, dict)
+    return out
+
+
+def encode_message_dict(msg: Mapping[str, Any], *, channel: Channel) -> str:
+    """Bridge for platform code still holding messages as dicts (stored outbox rows,
+    Channels events): validate as ``channel`` and encode, as :func:`encode_message`.
+
+    Raises ProtocolError as :func:`message_from_dict` and :func:`encode_message` do."""
+    return encode_message(message_from_dict(msg, channel=channel), channel=channel)
+
+
+def error_message(code: str, message: str, *, seq: int | None = None) -> Error:
+    """Build an ``error`` message (the uplink and the control channel share this shape).
+
+    ``seq`` names the command being answered, when there is one. Raises nothing.
     """
-    msg: dict[str, Any] = {"type": "error", "code": code, "message": message}
-    if seq is not None:
-        msg["seq"] = seq
-    return msg
+    return Error(code=code, message=message, seq=UNSET if seq is None else seq)
 
 
 # --------------------------------------------------------------------------------------

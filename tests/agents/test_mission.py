@@ -27,6 +27,7 @@ from agents.control import ControlHub, ControlServer
 from agents.geo import distance_m, offset
 from agents.mission import MissionControl, MissionError, mission_parse
 from agents.protocol import (
+    PROTOCOL_VERSION,
     Limits,
     UserGrant,
     VehicleTask,
@@ -232,7 +233,9 @@ class FakePlatform:
     async def handle(self, ws: ServerConnection) -> None:
         hello = json.loads(await ws.recv())
         assert hello["type"] == "hello" and hello["vehicle_id"] == VEHICLE
-        await ws.send(json.dumps({"type": "welcome", "v": 1, "heartbeat_interval_s": 1}))
+        await ws.send(
+            json.dumps({"type": "welcome", "v": PROTOCOL_VERSION, "heartbeat_interval_s": 1})
+        )
         self.ws = ws
         with contextlib.suppress(Exception):
             async for raw in ws:

@@ -14,6 +14,7 @@ import pytest
 
 from agents.config import AgentConfig, ConfigError
 from agents.geo import distance_m, offset
+from agents.protocol import generate_keypair
 from agents.thermal import (
     DetectorSettings,
     SyntheticSeaThermal,
@@ -278,7 +279,8 @@ def test_agent_config_thermal_section() -> None:
         "platform_url": "ws://127.0.0.1:1",
         "vehicle_id": "v",
         "credential": "c",
-        "platform_public_key": "-----BEGIN PUBLIC KEY-----\n...",
+        # The config loads the key, so it must be a real one.
+        "platform_public_key": generate_keypair()[1],
         "adapter": "mavlink",
     }
     config = AgentConfig.from_mapping(

@@ -15,6 +15,8 @@ from typing import Any
 import pytest
 from websockets.asyncio.server import ServerConnection, serve
 
+from agents.protocol import PROTOCOL_VERSION
+from agents.protocol.messages import Heartbeat, Profile, Revoke
 from agents.uplink import Uplink
 
 SESSION = "5b0d6c0e-8a3c-4d7e-9a51-0c4f1f2b7a10"
@@ -31,7 +33,9 @@ class Platform:
     async def handler(self, ws: ServerConnection) -> None:
         hello = json.loads(await ws.recv())
         assert hello["type"] == "hello"
-        await ws.send(json.dumps({"type": "welcome", "v": 1, "heartbeat_interval_s": 30}))
+        await ws.send(
+            json.dumps({"type": "welcome", "v": PROTOCOL_VERSION, "heartbeat_interval_s": 30})
+        )
         await self.connections.put(ws)
         await ws.wait_closed()
 
@@ -53,12 +57,12 @@ async def platform() -> AsyncIterator[Platform]:
 
 
 @pytest.fixture
-async def agent(platform: Platform) -> AsyncIterator[tuple[Uplink, list[dict[str, Any]]]]:
-    handled: list[dict[str, Any]] = []
+async def agent(platform: Platform) -> AsyncIterator[tuple[Uplink, list[Revoke]]]:
+    handled: list[Revoke] = []
 
-    async def on_message(msg: dict[str, Any]) -> None:
+    async def on_message(msg: Revoke) -> None:
         handled.append(msg)
-        if msg.get("reason") == "explode":
+        if msg.reason == "explode":
             raise RuntimeError("the handler broke")
 
     uplink = Uplink(
@@ -66,8 +70,18 @@ async def agent(platform: Platform) -> AsyncIterator[tuple[Uplink, list[dict[str
         vehicle_id="v-1",
         credential="c",
         on_message=on_message,
-        profile=lambda: {"type": "profile"},
-        heartbeat=lambda: {"type": "heartbeat"},
+        profile=lambda: Profile(
+            vehicle_type="car",
+            adapter="sim",
+            attributes={},
+            commands=[],
+            telemetry=[],
+            control_url="",
+            video=False,
+            position=None,
+            battery=None,
+        ),
+        heartbeat=lambda: Heartbeat(seq=0),
         reconnect_min_s=0.05,
         reconnect_max_s=0.1,
     )
@@ -87,7 +101,7 @@ async def test_a_message_with_an_id_is_handled_once_and_acknowledged_every_time(
     await ws.send(json.dumps({**REVOKE, "id": "m-1"}))
     again = await next_of(ws, "ack")
     assert again["id"] == "m-1" and again["ok"] is True
-    assert [m["id"] for m in handled] == ["m-1"]
+    assert [m.id for m in handled] == ["m-1"]
 
 
 async def test_a_handler_failure_is_acknowledged_as_failed(platform, agent):
@@ -110,7 +124,7 @@ async def test_an_ack_the_link_lost_goes_out_on_the_next_connection(platform, ag
     handled_now = asyncio.Event()
     original = uplink.on_message
 
-    async def slow(msg: dict[str, Any]) -> None:
+    async def slow(msg: Revoke) -> None:
         await original(msg)
         await ws.close()
         handled_now.set()
@@ -121,4 +135,4 @@ async def test_an_ack_the_link_lost_goes_out_on_the_next_connection(platform, ag
     uplink.on_message = original
     back = await asyncio.wait_for(platform.connections.get(), 5)
     assert (await next_of(back, "ack"))["id"] == "m-4"
-    assert [m["id"] for m in handled] == ["m-4"]
+    assert [m.id for m in handled] == ["m-4"]

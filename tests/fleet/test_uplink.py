@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given
 from hypothesis import settings as hsettings
 from hypothesis import strategies as st
 
-from agents.protocol import MAX_MESSAGE_BYTES, MESSAGE_TYPES, ProtocolError
+from agents.protocol import MAX_MESSAGE_BYTES, MESSAGE_TYPES, PROTOCOL_VERSION, ProtocolError
 from fleet import uplink
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import AgentMessage, Vehicle
@@ -29,7 +29,7 @@ from fleet.outbox import outbox
 from fleet.signals import agent_connected, agent_disconnected, agent_message
 from fleet.uplink import avehicle_send, vehicle_record_disconnect, vehicle_send
 from iouv.asgi import application
-from services.signing import platform_public_key_pem
+from services.signing import platform_jwks, platform_public_key_pem
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db(transaction=True)
@@ -87,7 +87,12 @@ async def _agent(vehicle: Vehicle, credential: str) -> tuple[WebsocketCommunicat
     """An authenticated uplink and the platform's welcome."""
     comm = await _open()
     await comm.send_json_to(
-        {"type": "hello", "v": 1, "vehicle_id": str(vehicle.pk), "credential": credential}
+        {
+            "type": "hello",
+            "v": PROTOCOL_VERSION,
+            "vehicle_id": str(vehicle.pk),
+            "credential": credential,
+        }
     )
     welcome = await comm.receive_json_from(timeout=5)
     assert welcome["type"] == "welcome", welcome
@@ -141,9 +146,11 @@ def _collect(signal):
 async def test_good_hello_gets_welcome(settings):
     vehicle, credential = await _enrolled()
     comm, welcome = await _agent(vehicle, credential)
-    assert welcome["v"] == 1
+    assert welcome["v"] == PROTOCOL_VERSION
     assert welcome["heartbeat_interval_s"] == settings.IOUV_HEARTBEAT_INTERVAL_S
     assert welcome["platform_public_key"] == await database_sync_to_async(platform_public_key_pem)()
+    # The key set agents adopt (a key rotation reaches them this way).
+    assert welcome["platform_jwks"] == await database_sync_to_async(platform_jwks)()
     assert (await _get(vehicle)).last_seen is not None
     await comm.disconnect()
 
@@ -152,7 +159,12 @@ async def test_good_hello_gets_welcome(settings):
 async def test_bad_credential_is_closed_4401(which):
     vehicle, credential = await _enrolled()
     comm = await _open()
-    hello = {"type": "hello", "v": 1, "vehicle_id": str(vehicle.pk), "credential": credential}
+    hello = {
+        "type": "hello",
+        "v": PROTOCOL_VERSION,
+        "vehicle_id": str(vehicle.pk),
+        "credential": credential,
+    }
     if which == "credential":
         hello["credential"] = credential + "x"
     else:
@@ -169,8 +181,9 @@ async def test_bad_credential_is_closed_4401(which):
 async def test_wrong_version_is_closed_4400():
     vehicle, credential = await _enrolled()
     comm = await _open()
+    # A v1 agent (signed documents before JWTs) meeting this platform is refused at hello.
     await comm.send_json_to(
-        {"type": "hello", "v": 2, "vehicle_id": str(vehicle.pk), "credential": credential}
+        {"type": "hello", "v": 1, "vehicle_id": str(vehicle.pk), "credential": credential}
     )
     messages, code = await _closed(comm)
     assert code == 4400 and messages[0]["code"] == "bad_version"
@@ -181,7 +194,7 @@ async def test_wrong_version_is_closed_4400():
     [
         "not json",
         json.dumps({"type": "heartbeat", "seq": 1}),
-        json.dumps({"type": "hello", "v": 1}),
+        json.dumps({"type": "hello", "v": PROTOCOL_VERSION}),
     ],
     ids=["garbage", "heartbeat-first", "incomplete-hello"],
 )
@@ -503,7 +516,7 @@ async def test_a_stale_uplink_does_not_mark_a_reconnected_vehicle_offline():
         (
             {
                 "text_data": json.dumps(
-                    {"type": "hello", "v": 1, "vehicle_id": "a", "credential": "b"}
+                    {"type": "hello", "v": PROTOCOL_VERSION, "vehicle_id": "a", "credential": "b"}
                 )
             },
             "already_authenticated",
@@ -712,7 +725,12 @@ async def test_a_platform_failure_during_hello_closes_for_a_retry(monkeypatch):
     monkeypatch.setattr(uplink, "vehicle_authenticate", broken)
     comm = await _open()
     await comm.send_json_to(
-        {"type": "hello", "v": 1, "vehicle_id": str(vehicle.pk), "credential": credential}
+        {
+            "type": "hello",
+            "v": PROTOCOL_VERSION,
+            "vehicle_id": str(vehicle.pk),
+            "credential": credential,
+        }
     )
     messages, code = await _closed(comm)
     assert code == 1011 and messages[0]["code"] == "internal"

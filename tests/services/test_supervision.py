@@ -20,7 +20,8 @@ from django.conf import settings
 from django.db import connections
 from django.utils import timezone
 
-from agents.protocol import VehicleTask, parse_message
+from agents.protocol import PROTOCOL_VERSION, VehicleTask, parse_message
+from agents.protocol.messages import message_to_dict
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
 from fleet.signals import agent_connected, agent_disconnected, agent_message
@@ -66,7 +67,7 @@ def live(inbox, committing):
 
 def say(vehicle, msg, *, signal=agent_message):
     """Publish ``msg`` from ``vehicle``'s agent as the uplink does."""
-    message = parse_message(json.dumps(msg), channel="uplink_to_platform")
+    message = message_to_dict(parse_message(json.dumps(msg), channel="uplink_to_platform"))
     signal.send(sender=None, vehicle_id=str(vehicle.pk), message=message)
 
 
@@ -601,7 +602,12 @@ async def test_agent_flow_over_the_uplink(_close_worker_connections):
     agent = WebsocketCommunicator(application, "/ws/agent/")
     assert (await agent.connect())[0]
     await agent.send_json_to(
-        {"type": "hello", "v": 1, "vehicle_id": str(vehicle.pk), "credential": credential}
+        {
+            "type": "hello",
+            "v": PROTOCOL_VERSION,
+            "vehicle_id": str(vehicle.pk),
+            "credential": credential,
+        }
     )
     assert (await agent.receive_json_from(timeout=5))["type"] == "welcome"
     await agent.send_json_to(
