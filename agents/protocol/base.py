@@ -1,4 +1,4 @@
-"""Constants, errors and field checkers shared by the protocol's messages and documents."""
+"""Constants, errors and the field checkers of the signed documents and command arguments."""
 
 from __future__ import annotations
 
@@ -44,8 +44,6 @@ FAILSAFE_ACTIONS: Final[frozenset[str]] = frozenset({"stop", "land", "return_to_
 ROLES: Final[frozenset[str]] = frozenset({"controller", "viewer"})
 ARG_TYPES: Final[frozenset[str]] = frozenset({"number", "integer", "boolean", "string"})
 
-# Ed25519 signatures are always 64 bytes; anything else cannot verify, so refuse it early.
-_SIGNATURE_BYTES: Final = 64
 
 # A token travels inside a message, so it can never legitimately be larger than one.
 _MAX_TOKEN_CHARS: Final = MAX_MESSAGE_BYTES
@@ -113,8 +111,8 @@ def _bad(path: str, problem: str, code: str = "bad_field") -> ProtocolError:
 # Field checkers
 #
 # Each checker takes (value, path) and returns the (possibly normalised) value or raises
-# ProtocolError naming ``path``. They are shared by the message table and the dataclasses
-# so a rule is written once.
+# ProtocolError naming ``path``. The signed documents' dataclasses and command arguments
+# use them; messages are checked by their msgspec types (agents.protocol.messages).
 # --------------------------------------------------------------------------------------
 
 Checker: TypeAlias = Callable[[Any, str], Any]
@@ -148,12 +146,6 @@ def _check_int(value: Any, path: str) -> int:
     return value
 
 
-def _check_uint(value: Any, path: str) -> int:
-    if _check_int(value, path) < 0:
-        raise _bad(path, "must be an integer >= 0")
-    return int(value)
-
-
 def _check_number(value: Any, path: str) -> int | float:
     if not _is_number(value):
         raise _bad(path, "must be a finite number")
@@ -166,23 +158,9 @@ def _check_positive_number(value: Any, path: str) -> int | float:
     return value  # type: ignore[no-any-return]
 
 
-def _check_bool(value: Any, path: str) -> bool:
-    if not isinstance(value, bool):
-        raise _bad(path, "must be a boolean")
-    return value
-
-
 def _check_object(value: Any, path: str) -> dict[str, Any]:
     if not isinstance(value, dict):
         raise _bad(path, "must be an object")
-    return value
-
-
-def _check_id_list(value: Any, path: str) -> list[str]:
-    if not isinstance(value, list):
-        raise _bad(path, "must be a list of strings")
-    for i, item in enumerate(value):
-        _check_id(item, f"{path}[{i}]")
     return value
 
 
@@ -216,120 +194,16 @@ def _check_lon(value: Any, path: str) -> float:
     return float(value)
 
 
-def _check_position(value: Any, path: str) -> dict[str, Any]:
-    obj = _check_object(value, path)
-    for key in ("lat", "lon"):
-        if key not in obj:
-            raise _bad(f"{path}.{key}", "is missing")
-    out = dict(obj)
-    out["lat"] = _check_lat(obj["lat"], f"{path}.lat")
-    out["lon"] = _check_lon(obj["lon"], f"{path}.lon")
-    # Ground and surface vehicles may not know their altitude.
-    if obj.get("alt") is not None:
-        _check_number(obj["alt"], f"{path}.alt")
-    return out
-
-
-def _check_battery(value: Any, path: str) -> int | float:
-    if not _is_number(value) or not 0 <= value <= 100:
-        raise _bad(path, "must be a battery percentage, 0..100")
-    return value  # type: ignore[no-any-return]
-
-
 def _check_action(value: Any, path: str) -> str:
     if not isinstance(value, str) or value not in FAILSAFE_ACTIONS:
         raise _bad(path, f"must be one of {sorted(FAILSAFE_ACTIONS)}")
     return str(value)
 
 
-#: The longest description of a safe action a profile may carry (shown in a sentence).
-_MAX_SAFE_ACTION_WORDS: Final = 160
-
-
-def _check_safe_actions(value: Any, path: str) -> dict[str, str]:
-    """What each fail-safe action does to the vehicle, in words: ``{action: words}``."""
-    if not isinstance(value, dict):
-        raise _bad(path, "must be an object")
-    for action, words in value.items():
-        _check_action(action, f"{path}.{action}")
-        if not isinstance(words, str) or not 0 < len(words) <= _MAX_SAFE_ACTION_WORDS:
-            raise _bad(f"{path}.{action}", f"must be 1 to {_MAX_SAFE_ACTION_WORDS} characters")
-    return value
-
-
 def _check_role(value: Any, path: str) -> str:
     if not isinstance(value, str) or value not in ROLES:
         raise _bad(path, f"must be one of {sorted(ROLES)}")
     return str(value)
-
-
-def _check_rate_hz(value: Any, path: str) -> int | float:
-    if not _is_number(value) or not 0 < value <= 50:
-        raise _bad(path, "must be a rate in Hz, 0 < rate <= 50")
-    return value  # type: ignore[no-any-return]
-
-
-def _check_control_url(value: Any, path: str) -> str:
-    # Empty means the vehicle cannot be reached directly; clients must use the relay.
-    if not isinstance(value, str) or not (value == "" or value.startswith(("ws://", "wss://"))):
-        raise _bad(path, "must be a ws:// or wss:// URL, or empty for relay-only")
-    return value
-
-
-def _check_arg_spec(value: Any, path: str) -> dict[str, Any]:
-    """Validate one argument declaration ``{type, min?, max?, default?, unit?}``."""
-    spec = _check_object(value, path)
-    arg_type = spec.get("type")
-    if not isinstance(arg_type, str) or arg_type not in ARG_TYPES:
-        raise _bad(f"{path}.type", f"must be one of {sorted(ARG_TYPES)}")
-    for bound in ("min", "max"):
-        if bound in spec:
-            if arg_type not in ("number", "integer"):
-                raise _bad(f"{path}.{bound}", "is only allowed for number and integer arguments")
-            _check_number(spec[bound], f"{path}.{bound}")
-    if "min" in spec and "max" in spec and spec["min"] > spec["max"]:
-        raise _bad(f"{path}.min", "must not exceed max")
-    if "unit" in spec:
-        _check_str(spec["unit"], f"{path}.unit")
-    if "description" in spec:
-        _check_str(spec["description"], f"{path}.description")
-    if "default" in spec:
-        try:
-            _check_arg_value(spec, spec["default"], "default")
-        except ProtocolError as exc:
-            raise _bad(f"{path}.default", f"is invalid: {exc.message}") from exc
-    return spec
-
-
-def _check_command_spec(value: Any, path: str) -> dict[str, Any]:
-    """Validate one command declaration ``{name, args, description?, group?}``."""
-    spec = _check_object(value, path)
-    if "name" not in spec:
-        raise _bad(f"{path}.name", "is missing")
-    _check_id(spec["name"], f"{path}.name")
-    if "args" not in spec:
-        raise _bad(f"{path}.args", "is missing")
-    args = _check_object(spec["args"], f"{path}.args")
-    for arg_name, arg_spec in args.items():
-        if not arg_name:
-            raise _bad(f"{path}.args", "has an argument with an empty name")
-        _check_arg_spec(arg_spec, f"{path}.args.{arg_name}")
-    for key in ("description", "group"):
-        if key in spec:
-            _check_str(spec[key], f"{path}.{key}")
-    return spec
-
-
-def _check_commands(value: Any, path: str) -> list[dict[str, Any]]:
-    if not isinstance(value, list):
-        raise _bad(path, "must be a list of command declarations")
-    seen: set[str] = set()
-    for i, item in enumerate(value):
-        spec = _check_command_spec(item, f"{path}[{i}]")
-        if spec["name"] in seen:
-            raise _bad(f"{path}[{i}].name", f"repeats command '{spec['name']}'")
-        seen.add(spec["name"])
-    return value
 
 
 def _check_arg_value(arg_spec: Mapping[str, Any], value: Any, name: str) -> Any:
