@@ -234,7 +234,8 @@ def _jwks_parsed(text: str, name: str) -> dict[str, Any]:
     return dict(jwks)
 
 
-def _is_loopback(host: str) -> bool:
+def is_loopback_host(host: str) -> bool:
+    """Is ``host`` this machine (``localhost`` or a loopback address)?"""
     if host == "localhost":
         return True
     try:
@@ -255,9 +256,8 @@ def jwks_fetch(
     answer, a body over ``max_bytes``, or a body that is not such a JWKS.
     """
     parts = urlsplit(url)
-    if not (
-        parts.scheme == "https" or (parts.scheme == "http" and _is_loopback(parts.hostname or ""))
-    ):
+    local_http = parts.scheme == "http" and is_loopback_host(parts.hostname or "")
+    if not (parts.scheme == "https" or local_http):
         raise ConfigError("platform_jwks_url: must be https:// (or http:// on loopback)")
     request = urllib.request.Request(url, headers={"Accept": "application/json"})
     # No proxies: the platform is reached directly, as by the uplink.

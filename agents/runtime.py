@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ipaddress
 import logging
 from collections.abc import Mapping
 from typing import Any
@@ -12,7 +11,7 @@ from urllib.parse import urlsplit
 
 import msgspec
 
-from agents.config import AgentConfig
+from agents.config import AgentConfig, is_loopback_host
 from agents.control import ControlHub, ControlServer
 from agents.mission import MissionControl
 from agents.protocol import (
@@ -373,13 +372,7 @@ def _server_authenticated(url: str) -> bool:
     parts = urlsplit(url)
     if parts.scheme == "wss":
         return True
-    host = parts.hostname or ""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
+    return is_loopback_host(parts.hostname or "")
 
 
 async def agent_run(config: AgentConfig) -> None:
