@@ -93,13 +93,14 @@ class AgentInbox:
 
     def ack(self, message: dict[str, Any] | None = None, *, ok: bool = True) -> None:
         """Acknowledge ``message`` (one returned by ``take``), or every message taken."""
+        from agents.protocol.messages import Ack
         from fleet.models import AgentMessage
         from fleet.uplink import _acked
 
         rows = AgentMessage.objects.filter(pk__in=list(self._keys)).order_by("id")
         for row in rows:
             if message is None or row.message == message:
-                _acked(vehicle_id=str(self.vehicle.pk), key=self._keys[row.pk], ok=ok, detail="")
+                _acked(vehicle_id=str(self.vehicle.pk), ack=Ack(id=self._keys[row.pk], ok=ok))
 
 
 @pytest.fixture

@@ -71,10 +71,22 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import msgspec
 from websockets.exceptions import ConnectionClosed, InvalidHandshake
 
 from agents.protocol import ProtocolError, ReplayGuard, VehicleTask, load_public_key
-from agents.protocol.messages import message_from_dict, message_to_dict
+from agents.protocol.messages import (
+    CommandSpec,
+    EndTask,
+    Event,
+    Heartbeat,
+    Position,
+    Profile,
+    Revoke,
+    Task,
+    TaskAccepted,
+    TaskRefused,
+)
 from agents.uplink import Uplink
 from benchmarks.front_proxy import raise_open_files_limit
 
@@ -754,7 +766,7 @@ class LightAgent:
         self, spec: dict[str, Any], *, url: str, public_key: Any, tasks: list[Any]
     ) -> None:
         self.vehicle_id = spec["vehicle_id"]
-        self.position = {"lat": spec["lat"], "lon": spec["lon"]}
+        self.position = Position(lat=spec["lat"], lon=spec["lon"])
         self.public_key = public_key
         self.session: str | None = None
         self.tasks = tasks
@@ -770,69 +782,51 @@ class LightAgent:
             reconnect_max_s=5.0,
         )
 
-    def profile(self) -> Any:
-        return _up(
-            {
-                "type": "profile",
-                "vehicle_type": "drone",
-                "adapter": "light",
-                "attributes": {},
-                "commands": LIGHT_COMMANDS,
-                "telemetry": [],
-                "control_url": "",
-                "video": False,
-                "position": self.position,
-                "battery": 90.0,
-            }
+    def profile(self) -> Profile:
+        return Profile(
+            vehicle_type="drone",
+            adapter="light",
+            attributes={},
+            commands=msgspec.convert(LIGHT_COMMANDS, list[CommandSpec]),
+            telemetry=[],
+            control_url="",
+            video=False,
+            position=self.position,
+            battery=90.0,
         )
 
-    def heartbeat(self) -> Any:
-        return _up(
-            {
-                "type": "heartbeat",
-                "seq": 0,
-                "position": self.position,
-                "battery": 90.0,
-                "status": "in_service" if self.session else "idle",
-            }
+    def heartbeat(self) -> Heartbeat:
+        return Heartbeat(
+            seq=0,
+            position=self.position,
+            battery=90.0,
+            status="in_service" if self.session else "idle",
         )
 
-    async def on_message(self, message: Any) -> None:
-        msg = message_to_dict(message)  # these light agents keep to dicts
-        kind = msg["type"]
-        if kind == "task":
+    async def on_message(self, msg: Any) -> None:
+        if isinstance(msg, Task):
             try:
                 task = VehicleTask.verify(
-                    msg["token"],
+                    msg.token,
                     self.public_key,
                     vehicle_id=self.vehicle_id,
                     replay_guard=self.guard,
                 )
             except ProtocolError as exc:
-                self.uplink.send(
-                    _up({"type": "task_refused", "code": exc.code, "reason": str(exc)})
-                )
+                self.uplink.send(TaskRefused(code=exc.code, reason=str(exc)))
                 return
             self.tasks.append((task.session_id, time.time()))
             self.session = task.session_id
-            self.uplink.send(_up({"type": "task_accepted", "session_id": task.session_id}))
-        elif kind in ("end_task", "revoke") and msg["session_id"] == self.session:
+            self.uplink.send(TaskAccepted(session_id=task.session_id))
+        elif isinstance(msg, EndTask | Revoke) and msg.session_id == self.session:
             self.session = None
             self.uplink.send(
-                _up(
-                    {
-                        "type": "event",
-                        "session_id": msg["session_id"],
-                        "event": "task_ended",
-                        "data": {"reason": msg["reason"]},
-                    }
+                Event(
+                    session_id=msg.session_id,
+                    event="task_ended",
+                    data={"reason": msg.reason},
                 )
             )
-
-
-def _up(message: dict[str, Any]) -> Any:
-    """An uplink_to_platform message struct from its dict form."""
-    return message_from_dict(message, channel="uplink_to_platform")
 
 
 async def agent_worker(spec: dict[str, Any]) -> None:

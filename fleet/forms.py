@@ -9,7 +9,7 @@ from django import forms
 from django.core.exceptions import ValidationError
 
 from agents.protocol import ProtocolError
-from agents.protocol.messages import encode_message_dict
+from agents.protocol.messages import encode_message, message_from_dict
 from fleet.attributes import ATTRIBUTES, FEATURES, ChoiceListAttribute
 from fleet.models import Vehicle, VehicleType
 
@@ -68,7 +68,8 @@ def commands_validate(commands: Any) -> None:
         "telemetry": [],
     }
     try:
-        encode_message_dict(message, channel="control_to_client")
+        welcome = message_from_dict(message, channel="control_to_client")
+        encode_message(welcome, channel="control_to_client")  # and within the size limit
     except ProtocolError as exc:
         raise ValidationError(exc.message.removeprefix("welcome message: ")) from None
 

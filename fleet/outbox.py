@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any, Protocol
 
+import msgspec
 from asgiref.sync import async_to_sync
 from channels.db import database_sync_to_async
 from channels.layers import get_channel_layer
@@ -38,7 +39,15 @@ from django.db import connection, transaction
 from django.db.models import F
 from django.utils import timezone
 
-from agents.protocol.messages import encode_message_dict
+from agents.protocol.messages import (
+    EndTask,
+    Revoke,
+    Task,
+    encode_message,
+    message_from_dict,
+    message_to_dict,
+    message_type,
+)
 from fleet.feed import fleet_notify
 from fleet.models import AgentMessage, Vehicle
 from iouv import layer
@@ -79,29 +88,36 @@ def _db(func: Any) -> Any:
 
 
 def agent_message_enqueue(
-    *, vehicle_id: Any, message: dict[str, Any], session_id: Any = None
+    *, vehicle_id: Any, message: Task | Revoke | EndTask, session_id: Any = None
 ) -> AgentMessage:
     """Owe ``message`` (a ``task``, ``revoke`` or ``end_task``) to the vehicle's agent.
 
     Written in the current transaction, so a rolled back decision sends nothing; the
     holder of the uplink is woken once it commits. ``session_id`` defaults to the
-    message's own. Raises ProtocolError if ``message`` is not a valid uplink_to_agent
-    message, ValueError for another type or a ``vehicle_id`` that is not a UUID.
+    message's own. Raises ProtocolError if ``message`` breaks the protocol's limits,
+    ValueError for another type or a ``vehicle_id`` that is not a UUID.
     """
-    kind = message.get("type")
-    if kind not in _KINDS:
-        raise ValueError(f"only {sorted(_KINDS)} are delivered reliably, not {kind!r}")
-    # Validated here, with an id as it will travel, so a sender's bug shows at the sender.
-    encode_message_dict({**message, "id": "0"}, channel="uplink_to_agent")
+    if not isinstance(message, Task | Revoke | EndTask):
+        raise ValueError(f"only {sorted(_KINDS)} are delivered reliably, not {message!r:.80}")
+    # Checked here, with an id as it will travel, so a sender's bug shows at the sender
+    # (a struct's constructor checks no limits).
+    encode_message(msgspec.structs.replace(message, id="0"), channel="uplink_to_agent")
     pk = uuid.UUID(str(vehicle_id))
     row = AgentMessage.objects.create(
         vehicle_id=pk,
-        session_id=session_id or message.get("session_id"),
-        kind=kind,
-        message=dict(message),
+        session_id=session_id or getattr(message, "session_id", None),
+        kind=message_type(message),
+        message=message_to_dict(message),  # stored as the JSON it travels as
     )
     transaction.on_commit(lambda: outbox_nudge(pk), robust=True)
     return row
+
+
+def stored_message(data: dict[str, Any]) -> Task | Revoke | EndTask:
+    """A message read back from its row (it was checked when it was written)."""
+    message = message_from_dict(data, channel="uplink_to_agent")
+    assert isinstance(message, Task | Revoke | EndTask), message
+    return message
 
 
 def agent_messages_cancel(
@@ -150,7 +166,7 @@ class Acked:
     vehicle_id: str
     session_id: str | None
     kind: str
-    message: dict[str, Any]
+    message: Task | Revoke | EndTask
     ok: bool
     detail: str
     released: bool  # the vehicle left ``releasing`` with this acknowledgement
@@ -187,7 +203,7 @@ def agent_message_ack(*, vehicle_id: Any, key: str, ok: bool, detail: str = "") 
         vehicle_id=str(vehicle_id),
         session_id=str(row.session_id) if row.session_id else None,
         kind=row.kind,
-        message=row.message,
+        message=stored_message(row.message),
         ok=ok,
         detail=detail[:200],
         released=released,
@@ -293,7 +309,7 @@ class OutboxLink(Protocol):
     #: The credential generation the uplink authenticated under.
     credential_generation: int
 
-    async def outbox_send(self, message: dict[str, Any]) -> None:
+    async def outbox_send(self, message: Task | Revoke | EndTask) -> None:
         """Put one uplink_to_agent message on the socket; raises if it is gone."""
 
     async def outbox_credential_revoked(self) -> None:
@@ -368,7 +384,8 @@ class Outbox:
                 await _db(_disconnect_done)(row_id=row["id"], closed=older)
                 continue
             try:
-                await link.outbox_send({**row["message"], "id": str(row["key"])})
+                message = stored_message({**row["message"], "id": str(row["key"])})
+                await link.outbox_send(message)
                 sent += 1
             except Exception as exc:  # the socket closed: the next uplink resends it
                 log.info("outbox: vehicle %s gone while sending: %s", row["vehicle_id"], exc)

@@ -36,8 +36,9 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any
+from typing import Any, TypeVar
 
+import msgspec
 from channels.db import database_sync_to_async
 from channels.generic.websocket import AsyncWebsocketConsumer
 from channels.layers import get_channel_layer
@@ -45,6 +46,7 @@ from django.conf import settings
 from django.db import connection, transaction
 from django.dispatch import Signal
 from django.utils import timezone
+from msgspec import UNSET, UnsetType
 
 from agents.protocol import (
     PROTOCOL_VERSION,
@@ -53,7 +55,23 @@ from agents.protocol import (
     error_message,
     parse_message,
 )
-from agents.protocol.messages import Message, encode_message_dict, message_to_dict
+from agents.protocol.messages import (
+    Ack,
+    EndTask,
+    Hello,
+    Message,
+    Position,
+    Profile,
+    RelayClose,
+    RelayToAgent,
+    RelayToPlatform,
+    Revoke,
+    Task,
+    UplinkToPlatform,
+    Welcome,
+    message_type,
+)
+from agents.protocol.messages import Heartbeat as HeartbeatMessage
 from fleet.credentials import vehicle_authenticate
 from fleet.feed import fleet_notify
 from fleet.models import Vehicle
@@ -76,6 +94,8 @@ from iouv.layer import relay_ensure
 
 log = logging.getLogger(__name__)
 
+T = TypeVar("T")
+
 CLOSE_BAD_VERSION = 4400
 CLOSE_UNAUTHORIZED = 4401
 CLOSE_HELLO_TIMEOUT = 4408
@@ -92,9 +112,6 @@ _ERROR_TEXT_MAX = 300
 
 # Message types forwarded to other apps as fleet.signals.agent_message.
 _PUBLISHED = frozenset({"task_accepted", "task_refused", "event"})
-# Relay traffic goes straight to the relayed browser's group, not through signals:
-# it is on the control path and must not wait for a database thread.
-_RELAYED = frozenset({"relay", "relay_close"})
 
 #: Frames of one uplink waiting for its database work (profile, heartbeats, reports);
 #: past this the uplink stops reading until they are handled (backpressure).
@@ -132,30 +149,32 @@ def relay_group(conn: str) -> str:
     return f"relay-{conn}"
 
 
-def vehicle_send(*, vehicle_id: Any, message: dict[str, Any], session_id: Any = None) -> None:
+def vehicle_send(
+    *, vehicle_id: Any, message: Task | Revoke | EndTask, session_id: Any = None
+) -> None:
     """Tell the vehicle's agent ``message`` (a ``task``, ``revoke`` or ``end_task``),
     reliably: it is owed in the database from the current transaction on and delivered
     until the agent acknowledges it, whenever the agent is connected (fleet.outbox).
     ``session_id``: the session it is about (default: the message's own field; a
     ``task`` carries it only inside its token).
 
-    Raises ProtocolError if ``message`` is not a valid uplink_to_agent message,
-    ValueError for another type or if ``vehicle_id`` is not a UUID.
+    Raises ProtocolError if ``message`` breaks the protocol's limits, ValueError for
+    another type or if ``vehicle_id`` is not a UUID.
     """
     agent_message_enqueue(vehicle_id=vehicle_id, message=message, session_id=session_id)
 
 
-async def avehicle_send(*, vehicle_id: Any, message: dict[str, Any]) -> None:
-    """Send ``message`` (an uplink_to_agent message) to the vehicle's agent now, best
-    effort, through the channel layer: for relayed control traffic, which is worthless
-    late. Raises ProtocolError for an invalid message, ValueError for a bad id.
+async def avehicle_send(*, vehicle_id: Any, message: RelayToAgent | RelayClose) -> None:
+    """Send ``message`` to the vehicle's agent now, best effort, through the channel
+    layer: for relayed control traffic, which is worthless late. It travels as the
+    frame's text, checked and encoded once here. Raises ProtocolError for a message
+    the agent would refuse, ValueError for a bad id.
     """
-    encode_message_dict(message, channel="uplink_to_agent")
+    group = vehicle_group(vehicle_id)
+    text = encode_message(message, channel="uplink_to_agent")
     layer = get_channel_layer()
     if layer is not None:
-        await layer.group_send(
-            vehicle_group(vehicle_id), {"type": "agent.send", "message": dict(message)}
-        )
+        await layer.group_send(group, {"type": "agent.send", "text": text})
 
 
 # --------------------------------------------------------------------------------------
@@ -202,13 +221,17 @@ def _status_after(
     return current
 
 
-def _set_position(vehicle: Vehicle, position: dict[str, Any] | None) -> None:
+def _set_position(vehicle: Vehicle, position: Position | None) -> None:
     if position is None:
         vehicle.lat = vehicle.lon = vehicle.alt = None
     else:
-        vehicle.lat, vehicle.lon = position["lat"], position["lon"]
-        alt = position.get("alt")
-        vehicle.alt = float(alt) if alt is not None else None
+        vehicle.lat, vehicle.lon = position.lat, position.lon
+        vehicle.alt = float(position.alt) if position.alt is not None else None
+
+
+def _given(value: T | UnsetType) -> T | None:
+    """An optional field's value, None where the agent left it out."""
+    return None if value is UNSET else value
 
 
 def vehicle_record_hello(*, vehicle_id: Any, now: datetime) -> None:
@@ -221,7 +244,7 @@ def vehicle_record_hello(*, vehicle_id: Any, now: datetime) -> None:
         Vehicle.objects.filter(pk=vehicle_id).update(last_seen=now)
 
 
-def vehicle_record_profile(*, vehicle_id: Any, profile: dict[str, Any], now: datetime) -> None:
+def vehicle_record_profile(*, vehicle_id: Any, profile: Profile, now: datetime) -> None:
     """Store a validated ``profile`` message and make the vehicle available.
 
     Stores the control URL, the reported vocabulary, telemetry topics, video, type,
@@ -239,30 +262,27 @@ def vehicle_record_profile(*, vehicle_id: Any, profile: dict[str, Any], now: dat
         vehicle = Vehicle.objects.select_for_update().filter(pk=vehicle_id).first()
         if vehicle is None:
             return
-        vehicle.control_url = profile["control_url"]
+        vehicle.control_url = profile.control_url
         vehicle.profile = {
-            key: profile[key]
-            for key in (
-                "vehicle_type",
-                "adapter",
-                "attributes",
-                "commands",
-                "telemetry",
-                "video",
-            )
+            "vehicle_type": profile.vehicle_type,
+            "adapter": profile.adapter,
+            "attributes": profile.attributes,
+            "commands": msgspec.to_builtins(profile.commands),
+            "telemetry": profile.telemetry,
+            "video": profile.video,
         }
         # Optional: an agent of an earlier release sends no words for its safe actions.
-        if "safe_actions" in profile:
-            vehicle.profile["safe_actions"] = profile["safe_actions"]
-        _set_position(vehicle, profile["position"])
-        vehicle.battery = profile["battery"]
+        if profile.safe_actions is not UNSET:
+            vehicle.profile["safe_actions"] = profile.safe_actions
+        _set_position(vehicle, profile.position)
+        vehicle.battery = profile.battery
         vehicle.last_seen = now
         vehicle.status = _status_after(
             vehicle,
-            reported=profile.get("status"),
+            reported=_given(profile.status),
             registered=True,
             new_profile=True,
-            running=profile.get("session_id") is not None,
+            running=_given(profile.session_id) is not None,
         )
         vehicle.save(
             update_fields=[
@@ -281,24 +301,24 @@ def vehicle_record_profile(*, vehicle_id: Any, profile: dict[str, Any], now: dat
             agent_connected,
             vehicle_id=str(vehicle.pk),
             state={
-                "session_id": profile.get("session_id"),
-                "controller": bool(profile.get("controller")),
-                "status": profile.get("status"),
+                "session_id": _given(profile.session_id),
+                "controller": bool(profile.controller),
+                "status": _given(profile.status),
             },
         )
 
 
 @dataclass(frozen=True)
-class Heartbeat:
+class HeartbeatReport:
     """One validated heartbeat, as an uplink hands it to :class:`HeartbeatWriter`."""
 
     vehicle_id: str
-    message: dict[str, Any]
+    message: HeartbeatMessage
     now: datetime
     registered: bool  # the uplink has sent its profile (before that, status stays)
 
 
-def vehicle_record_heartbeats(beats: Sequence[Heartbeat]) -> list[str]:
+def vehicle_record_heartbeats(beats: Sequence[HeartbeatReport]) -> list[str]:
     """Store validated heartbeats of many vehicles in one short transaction.
 
     For each: last_seen, and position/battery/status if sent. ``registered`` says
@@ -313,7 +333,7 @@ def vehicle_record_heartbeats(beats: Sequence[Heartbeat]) -> list[str]:
     heartbeat decides again). Locking the rows instead made every reservation wait for
     whole batches.
     """
-    latest: dict[str, Heartbeat] = {}
+    latest: dict[str, HeartbeatReport] = {}
     for beat in beats:
         latest[str(uuid.UUID(str(beat.vehicle_id)))] = beat
     if not latest:
@@ -333,7 +353,7 @@ def vehicle_record_heartbeats(beats: Sequence[Heartbeat]) -> list[str]:
         for pk, vehicle in current.items():
             beat = latest[pk]
             status = _status_after(
-                vehicle, reported=beat.message.get("status"), registered=beat.registered
+                vehicle, reported=_given(beat.message.status), registered=beat.registered
             )
             if status != vehicle.status:
                 changed = Vehicle.objects.filter(pk=pk, status=vehicle.status).update(status=status)
@@ -349,26 +369,23 @@ def vehicle_record_heartbeats(beats: Sequence[Heartbeat]) -> list[str]:
     return written
 
 
-def _reported_fields(beat: Heartbeat) -> dict[str, Any]:
+def _reported_fields(beat: HeartbeatReport) -> dict[str, Any]:
     """The columns a heartbeat sets (those it carries, and last_seen)."""
     fields: dict[str, Any] = {"last_seen": beat.now}
-    if "position" in beat.message:
-        position = beat.message["position"]
-        if position is None:
-            fields.update(lat=None, lon=None, alt=None)
-        else:
-            alt = position.get("alt")
-            fields.update(
-                lat=position["lat"],
-                lon=position["lon"],
-                alt=float(alt) if alt is not None else None,
-            )
-    if "battery" in beat.message:
-        fields["battery"] = beat.message["battery"]
+    position = beat.message.position
+    if position is None:
+        fields.update(lat=None, lon=None, alt=None)
+    elif position is not UNSET:
+        alt = position.alt
+        fields.update(
+            lat=position.lat, lon=position.lon, alt=float(alt) if alt is not None else None
+        )
+    if beat.message.battery is not UNSET:
+        fields["battery"] = beat.message.battery
     return fields
 
 
-def _store_reports_postgresql(reports: Sequence[Heartbeat]) -> None:
+def _store_reports_postgresql(reports: Sequence[HeartbeatReport]) -> None:
     """One UPDATE ... FROM (VALUES ...) for the whole batch; a field a heartbeat did not
     carry keeps the stored value."""
     table = Vehicle._meta.db_table
@@ -404,10 +421,10 @@ def _store_reports_postgresql(reports: Sequence[Heartbeat]) -> None:
 
 
 def vehicle_record_heartbeat(
-    *, vehicle_id: Any, heartbeat: dict[str, Any], now: datetime, registered: bool
+    *, vehicle_id: Any, heartbeat: HeartbeatMessage, now: datetime, registered: bool
 ) -> None:
     """Store one validated ``heartbeat`` (see :func:`vehicle_record_heartbeats`)."""
-    vehicle_record_heartbeats([Heartbeat(str(vehicle_id), heartbeat, now, registered)])
+    vehicle_record_heartbeats([HeartbeatReport(str(vehicle_id), heartbeat, now, registered)])
 
 
 class HeartbeatWriter:
@@ -428,10 +445,10 @@ class HeartbeatWriter:
     ATTEMPTS = 3
 
     def __init__(self) -> None:
-        self._pending: dict[str, tuple[Heartbeat, list[asyncio.Future[None]]]] = {}
+        self._pending: dict[str, tuple[HeartbeatReport, list[asyncio.Future[None]]]] = {}
         self._flusher: asyncio.Task[None] | None = None
 
-    async def write(self, beat: Heartbeat) -> None:
+    async def write(self, beat: HeartbeatReport) -> None:
         """Return once ``beat`` (or a later heartbeat of its vehicle) is committed.
 
         Raises what the database raised if the batch holding it could not be written.
@@ -515,39 +532,40 @@ def _signal_send(signal: Signal, **kwargs: Any) -> list[tuple[Any, Any]]:
     responses = signal.send_robust(sender=AgentUplinkConsumer, **kwargs)
     for receiver, result in responses:
         if isinstance(result, Exception):
+            message = kwargs.get("message")
             log.error(
                 "uplink: receiver %r of %s failed",
                 receiver,
-                kwargs.get("message", {}).get("type", "signal"),
+                message_type(message) if isinstance(message, Message) else "signal",
                 exc_info=(type(result), result, result.__traceback__),
             )
     return responses
 
 
-def _welcome(vehicle_id: str) -> dict[str, Any]:
+def _welcome(vehicle_id: str) -> Welcome:
     """The ``welcome`` message, with the optional fields other apps contribute."""
-    welcome: dict[str, Any] = {
-        "type": "welcome",
-        "v": PROTOCOL_VERSION,
-        "heartbeat_interval_s": settings.IOUV_HEARTBEAT_INTERVAL_S,
-    }
+    welcome = Welcome(v=PROTOCOL_VERSION, heartbeat_interval_s=settings.IOUV_HEARTBEAT_INTERVAL_S)
     extras: dict[str, Any] = {}
     for _receiver, result in _signal_send(agent_welcome, vehicle_id=vehicle_id):
         if isinstance(result, dict):
             extras.update(result)
-    # Extras may add fields, never replace the required ones.
-    full = {**extras, **welcome}
+    # Extras may add optional fields, never replace the required ones; an unknown one
+    # is a receiver's bug, refused like a bad value.
+    optional = set(Welcome.__struct_fields__) - {"v", "heartbeat_interval_s"}
     try:
-        encode_message_dict(full, channel="uplink_to_agent")
+        if not set(extras) <= optional:
+            raise ProtocolError(
+                "bad_field", f"welcome has no fields {sorted(set(extras) - optional)}"
+            )
+        full = msgspec.structs.replace(welcome, **extras)
+        encode_message(full, channel="uplink_to_agent")
     except ProtocolError as exc:
         log.error("uplink: dropping bad welcome extras %r: %s", sorted(extras), exc)
         return welcome
     return full
 
 
-def _admit(
-    *, vehicle_id: str, credential: str, now: datetime
-) -> tuple[Vehicle, dict[str, Any]] | None:
+def _admit(*, vehicle_id: str, credential: str, now: datetime) -> tuple[Vehicle, Welcome] | None:
     """A hello's database work in one call: the vehicle if the credential is its own
     (last_seen recorded at ``now``) and the ``welcome`` to send it, else None."""
     vehicle = vehicle_authenticate(vehicle_id=vehicle_id, credential=credential)
@@ -557,9 +575,11 @@ def _admit(
     return vehicle, _welcome(str(vehicle.pk))
 
 
-def _acked(*, vehicle_id: str, key: str, ok: bool, detail: str | None) -> None:
+def _acked(*, vehicle_id: str, ack: Ack) -> None:
     """An ``ack`` from the agent: the message is delivered; other apps hear of it."""
-    acked = agent_message_ack(vehicle_id=vehicle_id, key=key, ok=ok, detail=detail or "")
+    acked = agent_message_ack(
+        vehicle_id=vehicle_id, key=ack.id, ok=ack.ok, detail=_given(ack.detail) or ""
+    )
     if acked is not None:
         _signal_send(agent_acked, vehicle_id=vehicle_id, acked=acked)
 
@@ -695,9 +715,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             self._hello_timer.cancel()
         try:
             # A binary frame is read as UTF-8 JSON (docs/protocol.md, Transports).
-            # Still handled as a dict here: it travels on through Channels events, the
-            # database and the agent_message signal (message_to_dict is the bridge).
-            msg = message_to_dict(parse_message(raw, channel="uplink_to_platform"))  # type: ignore[arg-type]
+            msg: UplinkToPlatform = parse_message(raw, channel="uplink_to_platform")  # type: ignore[arg-type]
         except ProtocolError as exc:
             if self.vehicle_id is None:
                 await self._bad_frame(exc.code, exc.message)
@@ -709,32 +727,30 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             if first:
                 await self._hello(msg)
             return
-        kind = msg["type"]
-        if kind in _RELAYED and msg.get("conn"):
-            # On the control path: sent now, whatever database work is queued. The
-            # relay checks the vehicle id, so an agent cannot talk into another
-            # vehicle's relayed session.
-            await self.channel_layer.group_send(
-                relay_group(msg["conn"]),
-                {"type": "relay.from_agent", "vehicle_id": self.vehicle_id, "message": msg},
-            )
+        if isinstance(msg, RelayToPlatform | RelayClose) and msg.conn:
+            # On the control path: sent now, whatever database work is queued, as the
+            # text the browser receives (encoded once, here). The relay checks the
+            # vehicle id, so an agent cannot talk into another vehicle's session.
+            event: dict[str, Any] = {"type": "relay.from_agent", "vehicle_id": self.vehicle_id}
+            if isinstance(msg, RelayToPlatform):
+                event["text"] = encode_message(msg.payload)
+            else:
+                event["close"] = _given(msg.code)
+            await self.channel_layer.group_send(relay_group(msg.conn), event)
         else:
             await self._later(lambda: self._handle(msg))
 
-    async def _handle(self, msg: dict[str, Any]) -> None:
+    async def _handle(self, msg: UplinkToPlatform) -> None:
         """What an authenticated agent's frame asks of the database, in arrival order."""
-        kind = msg["type"]
-        if kind == "profile":
+        if isinstance(msg, Profile):
             await self._profile(msg)
-        elif kind == "heartbeat":
+        elif isinstance(msg, HeartbeatMessage):
             await self._heartbeat(msg)
-        elif kind == "ack":
-            await _db(_acked)(
-                vehicle_id=self.vehicle_id, key=msg["id"], ok=msg["ok"], detail=msg.get("detail")
-            )
-        elif kind in _RELAYED:
+        elif isinstance(msg, Ack):
+            await _db(_acked)(vehicle_id=self.vehicle_id, ack=msg)
+        elif isinstance(msg, RelayToPlatform | RelayClose):
             await self._bad_frame("bad_field", "a relayed message needs its conn")
-        elif kind in _PUBLISHED:
+        elif message_type(msg) in _PUBLISHED:
             await _db(_signal_send)(agent_message, vehicle_id=self.vehicle_id, message=msg)
         else:  # hello again
             await self._bad_frame("already_authenticated", "this uplink already said hello")
@@ -779,18 +795,16 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             return
         await self._send_error(code, message)
 
-    async def _hello(self, msg: dict[str, Any]) -> None:
-        if msg["type"] != "hello":
+    async def _hello(self, msg: UplinkToPlatform) -> None:
+        if not isinstance(msg, Hello):
             await self._refuse(
                 "not_authenticated", "the first message must be hello", CLOSE_UNAUTHORIZED
             )
             return
         now = timezone.now()
-        admitted = await _db(_admit)(
-            vehicle_id=msg["vehicle_id"], credential=msg["credential"], now=now
-        )
+        admitted = await _db(_admit)(vehicle_id=msg.vehicle_id, credential=msg.credential, now=now)
         if admitted is None:
-            log.warning("uplink: refused hello for vehicle id %.40r", msg["vehicle_id"])
+            log.warning("uplink: refused hello for vehicle id %.40r", msg.vehicle_id)
             await self._refuse(
                 "bad_credential", "unknown vehicle or wrong credential", CLOSE_UNAUTHORIZED
             )
@@ -817,7 +831,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             return
         log.info("uplink: vehicle %s (%s) connected", vehicle.name, self.vehicle_id)
 
-    async def _profile(self, msg: dict[str, Any]) -> None:
+    async def _profile(self, msg: Profile) -> None:
         now = timezone.now()
         # Records the profile and converges the agent to what the platform wants (the
         # agent_connected receivers) in one transaction; only then does the outbox
@@ -845,7 +859,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             return
         self._grouped = True
 
-    async def _heartbeat(self, msg: dict[str, Any]) -> None:
+    async def _heartbeat(self, msg: HeartbeatMessage) -> None:
         await self._join_group()
         # At most two writes per heartbeat interval: an agent that heartbeats too fast
         # costs the database nothing more. A skipped heartbeat is superseded by the next.
@@ -857,19 +871,19 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         assert self.vehicle_id is not None
         # Awaited, so this agent's heartbeats are written in order and _last_seen is
         # only what was committed (the disconnect compares it with the stored one).
-        await heartbeat_writer().write(Heartbeat(self.vehicle_id, msg, now, self._registered))
+        await heartbeat_writer().write(HeartbeatReport(self.vehicle_id, msg, now, self._registered))
         self._last_seen = now
 
     # -- messages from the platform (channel layer) -------------------------------------
 
     async def agent_send(self, event: dict[str, Any]) -> None:
-        """Forward ``event["message"]`` (an uplink_to_agent message) to the agent."""
+        """Forward ``event["text"]`` (an uplink_to_agent frame that
+        :func:`avehicle_send` checked and encoded) to the agent."""
         if self._closed or self.vehicle_id is None:
             return
-        try:
-            text = encode_message_dict(event["message"], channel="uplink_to_agent")
-        except (ProtocolError, KeyError) as exc:
-            log.error("uplink %s: not sending a bad message: %s", self.vehicle_id, exc)
+        text = event.get("text")
+        if not isinstance(text, str):
+            log.error("uplink %s: not sending an event without its text", self.vehicle_id)
             return
         try:
             await self.send(text_data=text)
@@ -882,7 +896,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         if self.vehicle_id is not None and self._registered:
             outbox().wake()
 
-    async def outbox_send(self, message: dict[str, Any]) -> None:
+    async def outbox_send(self, message: Task | Revoke | EndTask) -> None:
         """Send one owed message (it carries its ``id``); raises if the uplink is gone."""
         if self._closed:
             raise ConnectionError("uplink closed")
@@ -914,12 +928,8 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
 
     # -- helpers ------------------------------------------------------------------------
 
-    async def _send_message(self, msg: dict[str, Any] | Message) -> None:
-        if isinstance(msg, Message):
-            text = encode_message(msg, channel="uplink_to_agent")
-        else:
-            text = encode_message_dict(msg, channel="uplink_to_agent")
-        await self.send(text_data=text)
+    async def _send_message(self, msg: Message) -> None:
+        await self.send(text_data=encode_message(msg, channel="uplink_to_agent"))
 
     async def _send_error(self, code: str, message: str) -> None:
         await self._send_message(error_message(code, message[:_ERROR_TEXT_MAX]))

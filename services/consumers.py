@@ -17,7 +17,7 @@ from agents.protocol import (
     error_message,
     parse_message,
 )
-from agents.protocol.messages import encode_message_dict, message_to_dict
+from agents.protocol.messages import Auth, ControlToAgent, RelayClose, RelayToAgent
 from fleet.uplink import avehicle_send, relay_group
 from iouv.consumers import DirectDispatch
 from iouv.layer import relay_ensure
@@ -148,12 +148,9 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         if code != CLOSED_BY_AGENT:
             await avehicle_send(
                 vehicle_id=self.vehicle_id,
-                message={
-                    "type": "relay_close",
-                    "session_id": self.session_id,
-                    "conn": self.conn,
-                    "reason": "client left",
-                },
+                message=RelayClose(
+                    session_id=self.session_id, conn=self.conn, reason="client left"
+                ),
             )
 
     async def receive(self, text_data: str | None = None, bytes_data: bytes | None = None) -> None:
@@ -166,7 +163,7 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
             return
         self.tokens -= 1
         try:
-            payload = message_to_dict(parse_message(raw, channel="control_to_agent"))
+            payload: ControlToAgent = parse_message(raw, channel="control_to_agent")
         except ProtocolError as exc:
             await self._error(exc.code, exc.message)
             if self.vehicle_id is None:
@@ -181,26 +178,19 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         assert self.vehicle_id is not None
         await avehicle_send(
             vehicle_id=self.vehicle_id,
-            message={
-                "type": "relay",
-                "session_id": self.session_id,
-                "conn": self.conn,
-                "payload": payload,
-            },
+            message=RelayToAgent(session_id=self.session_id, conn=self.conn, payload=payload),
         )
 
-    async def _admit(self, payload: dict[str, Any]) -> tuple[str, str] | None:
+    async def _admit(self, payload: ControlToAgent) -> tuple[str, str] | None:
         """Check the first frame's grant; on success join this connection's group.
         Returns (code, message) when refused."""
-        if payload["type"] != "auth":
+        if not isinstance(payload, Auth):
             return ("unauthorized", "authenticate first")
         vehicle_id = await _session_vehicle(self.session_id)
         if vehicle_id is None:
             return ("no_session", "this session is over or has no vehicle")
         try:
-            grant = UserGrant.verify(
-                payload["grant"], await _platform_keys(), vehicle_id=vehicle_id
-            )
+            grant = UserGrant.verify(payload.grant, await _platform_keys(), vehicle_id=vehicle_id)
         except ProtocolError as exc:
             return (exc.code, exc.message)
         if grant.session_id != self.session_id:
@@ -210,14 +200,14 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         return None
 
     async def relay_from_agent(self, event: dict[str, Any]) -> None:
+        """The agent's answer, as the frame's text (the uplink checked and encoded it),
+        or ``close`` (the agent dropped this client, with its close code or none)."""
         if event["vehicle_id"] != self.vehicle_id:
             return  # only the session's vehicle may answer on this connection
-        message = event["message"]
-        if message["type"] == "relay":
-            payload = encode_message_dict(message["payload"], channel="control_to_client")
-            await self.send(text_data=payload)
-        else:  # relay_close: the agent dropped this client
-            await self.close(code=message.get("code") or CLOSED_BY_AGENT)
+        if "text" in event:
+            await self.send(text_data=event["text"])
+        else:
+            await self.close(code=event.get("close") or CLOSED_BY_AGENT)
 
     async def _error(self, code: str, message: str) -> None:
         await self.send(text_data=encode_message(error_message(code, message)))

@@ -22,6 +22,7 @@ from django.http import HttpRequest
 
 from accounts.users import User
 from agents.protocol import FAILSAFE_ACTIONS, Limits, ProtocolError, UserGrant, VehicleTask
+from agents.protocol.messages import EndTask, Revoke, Task
 from fleet.feed import fleet_notify
 from fleet.models import Vehicle
 from fleet.outbox import agent_message_was_sent, agent_messages_cancel
@@ -168,9 +169,7 @@ def vehicle_task_deploy(*, session: Session, assignment: Assignment) -> VehicleT
                 "exp": task.expires_at,
             },
         )
-        vehicle_send(
-            vehicle_id=vehicle.pk, message={"type": "task", "token": token}, session_id=session.pk
-        )
+        vehicle_send(vehicle_id=vehicle.pk, message=Task(token=token), session_id=session.pk)
     return task
 
 
@@ -288,7 +287,7 @@ def grant_issue(
         return _user_task(session=session, assignment=_primary(assignments), user=user, role=role)
 
 
-def vehicle_release(*, vehicle_id: Any, session_id: Any, message: dict[str, Any]) -> bool:
+def vehicle_release(*, vehicle_id: Any, session_id: Any, message: EndTask | Revoke) -> bool:
     """Make the vehicle give up ``session_id``: its agent is told ``message`` (an
     ``end_task`` or a ``revoke``) reliably, and the vehicle is ``releasing`` until the
     agent confirms (fleet.outbox), so no one else is given a vehicle still busy with
@@ -323,7 +322,7 @@ def vehicle_release(*, vehicle_id: Any, session_id: Any, message: dict[str, Any]
 
 
 def _close(
-    *, session: Session, to: str, reason: str, message: dict[str, Any], data: dict[str, Any]
+    *, session: Session, to: str, reason: str, message: EndTask | Revoke, data: dict[str, Any]
 ) -> Session:
     with transaction.atomic():
         locked = Session.objects.select_for_update().get(pk=session.pk)
@@ -348,7 +347,7 @@ def session_end(*, session: Session, reason: str, by_user: bool) -> Session:
         session=session,
         to=Session.State.ENDED,
         reason=reason,
-        message={"type": "end_task", "session_id": str(session.pk), "reason": reason},
+        message=EndTask(session_id=str(session.pk), reason=reason),
         data={"by_user": by_user},
     )
 
@@ -368,12 +367,7 @@ def session_revoke(*, session: Session, reason: str, action: str) -> Session:
         session=session,
         to=Session.State.ABORTED,
         reason=reason,
-        message={
-            "type": "revoke",
-            "session_id": str(session.pk),
-            "reason": reason,
-            "action": action,
-        },
+        message=Revoke(session_id=str(session.pk), reason=reason, action=action),  # type: ignore[arg-type]
         data={"action": action},
     )
 
@@ -386,7 +380,7 @@ def session_fail(*, session: Session, reason: str) -> Session:
         session=session,
         to=Session.State.FAILED,
         reason=reason,
-        message={"type": "end_task", "session_id": str(session.pk), "reason": reason},
+        message=EndTask(session_id=str(session.pk), reason=reason),
         data={},
     )
 

@@ -38,9 +38,16 @@ from django.db.models import Q
 from django.utils import timezone
 
 from agents.protocol import CLOCK_SKEW_S
+from agents.protocol.messages import EndTask, Event, Revoke, TaskAccepted, TaskRefused
 from fleet.feed import fleet_notify
 from fleet.models import AgentMessage, Vehicle
-from fleet.outbox import ENDING, Acked, agent_messages_cancel, vehicle_release_if_settled
+from fleet.outbox import (
+    ENDING,
+    Acked,
+    agent_messages_cancel,
+    stored_message,
+    vehicle_release_if_settled,
+)
 from fleet.uplink import vehicle_send
 from services.deployment import (
     LIVE,
@@ -98,23 +105,22 @@ def _serving(assignment: Assignment) -> bool:
 # --------------------------------------------------------------------------------------
 
 
-def agent_message_handle(*, vehicle_id: Any, message: dict[str, Any]) -> None:
+def agent_message_handle(*, vehicle_id: Any, message: Any) -> None:
     """Log and act on one ``task_accepted``, ``task_refused`` or ``event`` message.
 
-    ``message`` was validated by the uplink (parse_message). Other types (``relay``)
-    are not the supervisor's and are ignored.
+    ``message`` is the struct the uplink parsed (and so validated). Other types are
+    not the supervisor's and are ignored.
     """
-    kind = message.get("type")
-    if kind == "task_accepted":
+    if isinstance(message, TaskAccepted):
         _task_accepted(vehicle_id=vehicle_id, message=message)
-    elif kind == "task_refused":
+    elif isinstance(message, TaskRefused):
         _task_refused(vehicle_id=vehicle_id, message=message)
-    elif kind == "event":
+    elif isinstance(message, Event):
         _agent_event(vehicle_id=vehicle_id, message=message)
 
 
-def _task_accepted(*, vehicle_id: Any, message: dict[str, Any]) -> None:
-    assignment = _assignment_for(vehicle_id=vehicle_id, session_id=message["session_id"])
+def _task_accepted(*, vehicle_id: Any, message: TaskAccepted) -> None:
+    assignment = _assignment_for(vehicle_id=vehicle_id, session_id=message.session_id)
     if assignment is None:
         return
     session = assignment.session
@@ -128,7 +134,7 @@ def _task_accepted(*, vehicle_id: Any, message: dict[str, Any]) -> None:
         _owe_end(vehicle_id=vehicle_id, session_id=session.pk)
 
 
-def _ending_message(*, vehicle_id: Any, session_id: Any) -> dict[str, Any]:
+def _ending_message(*, vehicle_id: Any, session_id: Any) -> EndTask | Revoke:
     """What makes the vehicle's agent give up ``session_id``: the revoke or end the
     platform already decided for it, else an ``end_task`` with the session's reason."""
     decided = (
@@ -137,13 +143,15 @@ def _ending_message(*, vehicle_id: Any, session_id: Any) -> dict[str, Any]:
         .first()
     )
     if decided is not None:
-        return dict(decided.message)
+        message = stored_message(decided.message)
+        assert isinstance(message, EndTask | Revoke), message
+        return message
     session = _stale_session(session_id)
     if session is None:
         reason = "the platform knows no such session"
     else:
         reason = session.reason or "this vehicle no longer serves the session"
-    return {"type": "end_task", "session_id": str(session_id), "reason": reason[:_REASON_MAX]}
+    return EndTask(session_id=str(session_id), reason=reason[:_REASON_MAX])
 
 
 def _owe_end(*, vehicle_id: Any, session_id: Any) -> None:
@@ -160,41 +168,40 @@ def _owe_end(*, vehicle_id: Any, session_id: Any) -> None:
     vehicle_send(vehicle_id=vehicle_id, message=message, session_id=session_id)
 
 
-def _task_refused(*, vehicle_id: Any, message: dict[str, Any]) -> None:
-    if message.get("session_id") is None:
+def _task_refused(*, vehicle_id: Any, message: TaskRefused) -> None:
+    if not message.session_id:  # absent or null: the agent could not read the task
         log.warning(
             "vehicle %s refused an unreadable task: %s (%s)",
             vehicle_id,
-            message["reason"][:_REASON_MAX],
-            message["code"],
+            message.reason[:_REASON_MAX],
+            message.code,
         )
         return
-    assignment = _assignment_for(vehicle_id=vehicle_id, session_id=message["session_id"])
+    assignment = _assignment_for(vehicle_id=vehicle_id, session_id=message.session_id)
     if assignment is None:
         return
     session = assignment.session
     event_append(
         session=session,
         kind="task_refused",
-        data={"vehicle": str(vehicle_id), "code": message["code"], "reason": message["reason"]},
+        data={"vehicle": str(vehicle_id), "code": message.code, "reason": message.reason},
     )
     if _serving(assignment):
         reason = (
             f"vehicle {assignment.vehicle.name} refused its task: "
-            f"{message['reason'] or 'no reason given'} ({message['code']})"
+            f"{message.reason or 'no reason given'} ({message.code})"
         )
         # Suppressed: someone else may have ended the session meanwhile.
         with contextlib.suppress(SessionStateError):
             session_fail(session=session, reason=reason[:_REASON_MAX])
 
 
-def _agent_event(*, vehicle_id: Any, message: dict[str, Any]) -> None:
-    name: str = message["event"]
-    data: dict[str, Any] = message["data"]
-    if message["session_id"] is None:
+def _agent_event(*, vehicle_id: Any, message: Event) -> None:
+    name, data = message.event, message.data
+    if message.session_id is None:
         log.info("vehicle %s: %.40s outside a session", vehicle_id, name)
         return
-    assignment = _assignment_for(vehicle_id=vehicle_id, session_id=message["session_id"])
+    assignment = _assignment_for(vehicle_id=vehicle_id, session_id=message.session_id)
     if assignment is None:
         return
     if name in _LIVE_ONLY and not _serving(assignment):
@@ -445,7 +452,7 @@ def agent_acked_handle(*, vehicle_id: Any, acked: Acked) -> None:
         data={
             "vehicle": str(vehicle_id),
             "vehicle_name": name,
-            "action": acked.message.get("action"),
+            "action": acked.message.action if isinstance(acked.message, Revoke) else None,
             "ok": acked.ok,
             "detail": acked.detail,
             "released": acked.released,

@@ -17,6 +17,7 @@ from typing import Any
 from django.conf import settings
 from django.utils import timezone
 
+from agents.protocol.messages import EndTask
 from fleet.models import Vehicle
 from services.deployment import session_end, vehicle_release, vehicle_task_deploy
 from services.eventlog import event_append
@@ -132,7 +133,7 @@ def assignment_release(
     vehicle_release(
         vehicle_id=assignment.vehicle_id,
         session_id=session.pk,
-        message={"type": "end_task", "session_id": str(session.pk), "reason": reason[:120]},
+        message=EndTask(session_id=str(session.pk), reason=reason[:120]),
     )
     event_append(
         session=session,

@@ -569,8 +569,8 @@ def encode_message(msg: Message, *, channel: Channel | None = None) -> str:
 
 
 def message_from_dict(data: Mapping[str, Any], *, channel: Channel) -> Any:
-    """Bridge for callers holding a message as a dict (stored in the database, built
-    by a form): the struct :func:`parse_message` would return for its JSON text.
+    """A message held as JSON data (a database row, a form's input) as the struct
+    :func:`parse_message` would return for its text.
 
     Raises ProtocolError exactly as :func:`parse_message` does."""
     if not isinstance(data, Mapping):
@@ -582,19 +582,11 @@ def message_from_dict(data: Mapping[str, Any], *, channel: Channel) -> Any:
 
 
 def message_to_dict(msg: Message) -> dict[str, Any]:
-    """Bridge for callers that need plain JSON data (a Channels group message, a stored
-    row): the message as a dict with its ``type``, absent optional fields left out."""
+    """The message as JSON data, to store it (a database row): a dict with its
+    ``type``, absent optional fields left out."""
     out = msgspec.to_builtins(msg)
     assert isinstance(out, dict)
     return out
-
-
-def encode_message_dict(msg: Mapping[str, Any], *, channel: Channel) -> str:
-    """Bridge for platform code still holding messages as dicts (stored outbox rows,
-    Channels events): validate as ``channel`` and encode, as :func:`encode_message`.
-
-    Raises ProtocolError as :func:`message_from_dict` and :func:`encode_message` do."""
-    return encode_message(message_from_dict(msg, channel=channel), channel=channel)
 
 
 def error_message(code: str, message: str, *, seq: int | None = None) -> Error:

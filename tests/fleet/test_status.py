@@ -7,6 +7,7 @@ from datetime import timedelta
 import pytest
 from django.utils import timezone
 
+from agents.protocol.messages import Heartbeat, Position
 from fleet.models import Vehicle
 from fleet.status import FleetError, vehicle_set_maintenance, vehicles_online
 from fleet.tasks import fleet_sweep_offline
@@ -51,13 +52,13 @@ def test_a_vehicle_still_flying_home_is_not_assignable_until_it_says_idle():
     from fleet.uplink import vehicle_record_heartbeat
 
     v = f.vehicle(station=f.station(), vtype=f.vehicle_type())
-    beat = {"type": "heartbeat", "seq": 1, "status": "returning"}
+    beat = Heartbeat(seq=1, status="returning")
     vehicle_record_heartbeat(vehicle_id=v.pk, heartbeat=beat, now=timezone.now(), registered=True)
     v.refresh_from_db()
     assert v.status == Vehicle.Status.RETURNING
     assert not vehicles_online().filter(status=Vehicle.Status.IDLE).exists()
 
-    beat = {"type": "heartbeat", "seq": 2, "status": "idle"}
+    beat = Heartbeat(seq=2, status="idle")
     later = timezone.now() + timedelta(seconds=5)  # past the heartbeat write throttle
     vehicle_record_heartbeat(vehicle_id=v.pk, heartbeat=beat, now=later, registered=True)
     v.refresh_from_db()
@@ -65,7 +66,7 @@ def test_a_vehicle_still_flying_home_is_not_assignable_until_it_says_idle():
 
 
 def test_heartbeats_of_many_vehicles_in_one_write():
-    from fleet.uplink import Heartbeat, vehicle_record_heartbeats
+    from fleet.uplink import HeartbeatReport, vehicle_record_heartbeats
 
     station, vtype = f.station(), f.vehicle_type()
     idle = f.vehicle(station=station, vtype=vtype, battery=90)
@@ -73,17 +74,14 @@ def test_heartbeats_of_many_vehicles_in_one_write():
     offline = f.vehicle(station=station, vtype=vtype, status=Vehicle.Status.OFFLINE)
     now = timezone.now()
     beats = [
-        Heartbeat(str(idle.pk), {"type": "heartbeat", "seq": 1, "battery": 80}, now, True),
+        HeartbeatReport(str(idle.pk), Heartbeat(seq=1, battery=80), now, True),
         # A vehicle's later heartbeat in the same batch wins.
-        Heartbeat(str(idle.pk), {"type": "heartbeat", "seq": 2, "battery": 79}, now, True),
-        Heartbeat(str(held.pk), {"type": "heartbeat", "seq": 1, "status": "idle"}, now, True),
-        Heartbeat(
-            str(offline.pk),
-            {"type": "heartbeat", "seq": 1, "position": {"lat": 40.1, "lon": -8.2}},
-            now,
-            True,
+        HeartbeatReport(str(idle.pk), Heartbeat(seq=2, battery=79), now, True),
+        HeartbeatReport(str(held.pk), Heartbeat(seq=1, status="idle"), now, True),
+        HeartbeatReport(
+            str(offline.pk), Heartbeat(seq=1, position=Position(lat=40.1, lon=-8.2)), now, True
         ),
-        Heartbeat("0" * 32, {"type": "heartbeat", "seq": 1}, now, True),  # deleted meanwhile
+        HeartbeatReport("0" * 32, Heartbeat(seq=1), now, True),  # deleted meanwhile
     ]
     written = vehicle_record_heartbeats(beats)
     assert sorted(written) == sorted(str(v.pk) for v in (idle, held, offline))

@@ -22,6 +22,16 @@ from hypothesis import settings as hsettings
 from hypothesis import strategies as st
 
 from agents.protocol import MAX_MESSAGE_BYTES, MESSAGE_TYPES, PROTOCOL_VERSION, ProtocolError
+from agents.protocol.messages import (
+    EndTask,
+    Event,
+    RelayClose,
+    Revoke,
+    Task,
+    TaskAccepted,
+    TaskRefused,
+    message_to_dict,
+)
 from fleet import uplink
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import AgentMessage, Vehicle
@@ -393,11 +403,11 @@ async def test_relay_traffic_does_not_wait_for_a_slow_database(monkeypatch, slow
             {"type": "relay", "session_id": "s-1", "conn": "c0ffee", "payload": answer}
         )
         event = await asyncio.wait_for(layer.receive(browser), 2)
-        assert event["message"]["payload"] == answer and not release.is_set()
+        assert json.loads(event["text"]) == answer and not release.is_set()
 
-        revoke = {"type": "revoke", "session_id": "s-1", "reason": "kill", "action": "stop"}
+        revoke = RelayClose(session_id="s-1", conn="c0ffee", reason="kill")
         await avehicle_send(vehicle_id=vehicle.pk, message=revoke)
-        assert await comm.receive_json_from(timeout=2) == revoke
+        assert await comm.receive_json_from(timeout=2) == message_to_dict(revoke)
         assert not release.is_set()  # the database work is still held
     finally:
         release.set()
@@ -570,9 +580,9 @@ async def test_second_connection_replaces_the_first():
     assert (await _get(vehicle)).status == "idle"
     # ... and messages for the vehicle reach the new uplink only.
     await avehicle_send(
-        vehicle_id=vehicle.pk, message={"type": "end_task", "session_id": "s-1", "reason": "done"}
+        vehicle_id=vehicle.pk, message=RelayClose(session_id="s-1", conn="c0ffee", reason="done")
     )
-    assert (await second.receive_json_from(timeout=5))["type"] == "end_task"
+    assert (await second.receive_json_from(timeout=5))["type"] == "relay_close"
     await second.disconnect()
     await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
 
@@ -581,11 +591,11 @@ async def test_second_connection_replaces_the_first():
 
 
 SESSION = "5b0d6c0e-8a3c-4d7e-9a51-0c4f1f2b7a10"
-REVOKE = {"type": "revoke", "session_id": SESSION, "reason": "kill switch", "action": "land"}
+REVOKE = Revoke(session_id=SESSION, reason="kill switch", action="land")
 
 
 @database_sync_to_async
-def _owe(vehicle: Vehicle, message: dict[str, Any]) -> None:
+def _owe(vehicle: Vehicle, message: Task | Revoke | EndTask) -> None:
     """Owe ``message`` to the vehicle's agent, committed (as a view or a worker does)."""
     vehicle_send(vehicle_id=vehicle.pk, message=message)
 
@@ -600,7 +610,7 @@ async def test_an_owed_message_reaches_the_agent_with_an_id_until_acknowledged()
     vehicle, comm = await _idle_agent()
     await _owe(vehicle, REVOKE)
     first = await comm.receive_json_from(timeout=5)
-    assert first == {**REVOKE, "id": first["id"]}
+    assert first == {**message_to_dict(REVOKE), "id": first["id"]}
     # Not acknowledged: it comes again, with the same id, so the agent can tell.
     again = await comm.receive_json_from(timeout=5)
     assert again == first
@@ -622,7 +632,7 @@ async def test_a_message_owed_while_the_agent_is_away_is_delivered_when_it_is_ba
     back, _ = await _agent(vehicle, credential)
     await back.send_json_to({**PROFILE, "session_id": SESSION})
     message = await back.receive_json_from(timeout=5)
-    assert message == {**REVOKE, "id": message["id"]}
+    assert message == {**message_to_dict(REVOKE), "id": message["id"]}
     # Until it confirms, the vehicle is busy with the session it still runs.
     assert (await _get(vehicle)).status == Vehicle.Status.RELEASING
     await back.send_json_to({"type": "ack", "id": message["id"], "ok": True})
@@ -657,10 +667,12 @@ def test_vehicle_send_refuses_a_bad_message():
     with pytest.raises(ProtocolError):
         vehicle_send(
             vehicle_id="00000000-0000-0000-0000-000000000001",
-            message={"type": "revoke", "session_id": "s", "reason": "r", "action": "explode"},
+            message=Revoke(session_id="s", reason="r", action="explode"),  # type: ignore[arg-type]
         )
     with pytest.raises(ValueError):
-        vehicle_send(vehicle_id="not-a-uuid", message={"type": "task", "token": "t"})
+        vehicle_send(vehicle_id="not-a-uuid", message=Task(token="t"))
+    with pytest.raises(ValueError):  # not one of the messages owed until acknowledged
+        vehicle_send(vehicle_id=SESSION, message=RelayClose(session_id="s", conn="c"))  # type: ignore[arg-type]
 
 
 async def test_session_messages_are_published_as_signals():
@@ -677,7 +689,11 @@ async def test_session_messages_are_published_as_signals():
             await comm.send_json_to(msg)
         await comm.send_to(text_data="sync")
         await comm.receive_json_from(timeout=5)
-        assert said == [{"vehicle_id": str(vehicle.pk), "message": msg} for msg in sent]
+        # As structs, each as the agent said it.
+        assert [(s["vehicle_id"], message_to_dict(s["message"])) for s in said] == [
+            (str(vehicle.pk), msg) for msg in sent
+        ]
+        assert [type(s["message"]) for s in said] == [TaskAccepted, TaskRefused, Event]
         await comm.disconnect()
     finally:
         stop()

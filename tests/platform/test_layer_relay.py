@@ -29,7 +29,7 @@ async def test_a_worker_message_reaches_a_consumer_of_the_server(worker_process)
     await channel_layer.group_add("vehicle-x", channel)
     # The worker side: the message is stored, not lost in the worker's own memory.
     await database_sync_to_async(layer.group_send_after_commit)(
-        "vehicle-x", {"type": "agent.send", "message": {"type": "end_task"}}
+        "vehicle-x", {"type": "agent.send", "text": '{"type":"end_task"}'}
     )
     assert await database_sync_to_async(LayerMessage.objects.count)() == 1
     # The server side: the relay delivers it once and forgets it.
@@ -39,7 +39,7 @@ async def test_a_worker_message_reaches_a_consumer_of_the_server(worker_process)
         received = await asyncio.wait_for(channel_layer.receive(channel), 5)
     finally:
         relay.cancel()
-    assert received["message"] == {"type": "end_task"}
+    assert received["text"] == '{"type":"end_task"}'
     assert await database_sync_to_async(LayerMessage.objects.count)() == 0
 
 

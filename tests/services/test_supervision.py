@@ -21,7 +21,7 @@ from django.db import connections
 from django.utils import timezone
 
 from agents.protocol import PROTOCOL_VERSION, VehicleTask, parse_message
-from agents.protocol.messages import message_to_dict
+from agents.protocol.messages import Heartbeat
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
 from fleet.signals import agent_connected, agent_disconnected, agent_message
@@ -67,7 +67,7 @@ def live(inbox, committing):
 
 def say(vehicle, msg, *, signal=agent_message):
     """Publish ``msg`` from ``vehicle``'s agent as the uplink does."""
-    message = message_to_dict(parse_message(json.dumps(msg), channel="uplink_to_platform"))
+    message = parse_message(json.dumps(msg), channel="uplink_to_platform")
     signal.send(sender=None, vehicle_id=str(vehicle.pk), message=message)
 
 
@@ -541,7 +541,7 @@ def test_a_vehicle_found_silent_and_heard_again_keeps_its_session(live):
     assert status(vehicle) == Vehicle.Status.OFFLINE
     vehicle_record_heartbeat(
         vehicle_id=vehicle.pk,
-        heartbeat={"type": "heartbeat", "seq": 9, "status": "in_service"},
+        heartbeat=Heartbeat(seq=9, status="in_service"),
         now=timezone.now(),
         registered=True,
     )

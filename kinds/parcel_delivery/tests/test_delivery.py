@@ -19,7 +19,6 @@ from django.utils import timezone
 
 from agents.geo import distance_m, offset
 from agents.protocol import parse_message
-from agents.protocol.messages import message_to_dict
 from fleet.models import Vehicle
 from fleet.signals import agent_message
 from kinds.parcel_delivery.missions import vehicle_mission
@@ -109,10 +108,8 @@ def step(session: Session) -> str | None:
 
 
 def say(vehicle: Vehicle, session: Session, msg: dict[str, Any]) -> None:
-    message = message_to_dict(
-        parse_message(
-            json.dumps({"session_id": str(session.pk), **msg}), channel="uplink_to_platform"
-        )
+    message = parse_message(
+        json.dumps({"session_id": str(session.pk), **msg}), channel="uplink_to_platform"
     )
     agent_message.send(sender=None, vehicle_id=str(vehicle.pk), message=message)
 

@@ -19,7 +19,6 @@ from django.utils import timezone
 
 from agents.geo import offset
 from agents.protocol import parse_message
-from agents.protocol.messages import message_to_dict
 from fleet.models import Vehicle
 from fleet.signals import agent_message
 from kinds.rescue_at_sea.conf import search_timeout_s
@@ -59,7 +58,7 @@ def online(*names: str) -> None:
 
 
 def say(vehicle: Vehicle, msg: dict) -> None:
-    message = message_to_dict(parse_message(json.dumps(msg), channel="uplink_to_platform"))
+    message = parse_message(json.dumps(msg), channel="uplink_to_platform")
     agent_message.send(sender=None, vehicle_id=str(vehicle.pk), message=message)
 
 
