@@ -128,6 +128,7 @@
     const entries = new Set();
     let order = 0;
     let scheduled = false;
+    let zooming = false; // a zoom animates: places unknown until it ends
 
     function schedule() {
       if (scheduled) return;
@@ -215,7 +216,9 @@
 
     function place() {
       scheduled = false;
-      if (!map._loaded) return; // placed on the first view
+      // Placed on the first view, and after a zoom: while Leaflet animates one, the
+      // labels slide with the map and their places are not yet known.
+      if (!map._loaded || zooming) return;
       const container = map.getContainer();
       const box = container.getBoundingClientRect();
       const size = { w: container.clientWidth, h: container.clientHeight };
@@ -296,9 +299,19 @@
           el.dataset.placed = "false";
         }
       }
+      container.classList.remove("labels-zooming");
       container.dataset.labelsPlaced = String(Number(container.dataset.labelsPlaced || 0) + 1);
     }
 
+    // Hidden while a zoom animates (they would pile up as the map shrinks), shown again
+    // once placed at the new zoom.
+    map.on("zoomstart", () => {
+      zooming = true;
+      map.getContainer().classList.add("labels-zooming");
+    });
+    map.on("zoomend", () => {
+      zooming = false;
+    });
     map.on("zoomend moveend resize viewreset", schedule);
     map.whenReady(schedule);
     map.iouvLabels = { add, place: schedule };

@@ -226,9 +226,16 @@ async def assert_sea_and_land_differ(page: Page, sel: str) -> None:
 async def assert_labels_apart(page: Page, sel: str, *, expected: set[str]) -> None:
     """No two visible labels of the map intersect, each of ``expected`` is shown (alone
     or counted on a neighbour's "+N"), and no grid label hides under the zoom control."""
-    # Placed after the last change (the placement runs once the page's script is done).
+    # Placed after the last change (the placement runs once the page's script is done),
+    # and no zoom under way (the map frames the vehicles with an animated zoom when they
+    # show, which hides the labels until they are placed again at its end).
     await page.wait_for_function(
-        "(sel) => Number(document.querySelector(sel).dataset.labelsPlaced || 0) > 0", arg=sel
+        """(sel) => {
+          const node = document.querySelector(sel);
+          return Number(node.dataset.labelsPlaced || 0) > 0
+            && !node.classList.contains("labels-zooming");
+        }""",
+        arg=sel,
     )
     found = await page.evaluate(OVERLAPS, sel)
     assert not found["bad"], found
