@@ -23,6 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from openapi_spec_validator import validate as openapi_validate
 from schemathesis.checks import not_a_server_error
+from schemathesis.core.parameters import ParameterLocation
 from schemathesis.generation import GenerationMode
 from schemathesis.specs.openapi.checks import (
     content_type_conformance,
@@ -751,10 +752,17 @@ def _naming(pair: tuple[Any, str]) -> Any:
     case, slug = pair
     if isinstance(case.body, dict):
         case.body["service"] = slug.removesuffix("-here")
-        if slug.endswith("-here"):
+        if slug.endswith("-here") and not _negative_body(case):
             case.body.pop("target", None)
             case.body.pop("preferences", None)
     return case
+
+
+def _negative_body(case: Any) -> bool:
+    """Whether the fuzzer made ``case``'s body break the schema on purpose. Such a
+    body keeps its fault: dropping the faulty ``target`` would make a valid request
+    that the fuzzer still expects to be refused."""
+    return case.meta is not None and case.meta.is_negative_at(ParameterLocation.BODY)
 
 
 def _fuzz(strategy: Any, *, headers: dict[str, str], seen: set[int]) -> None:
@@ -840,8 +848,9 @@ def test_sequences_that_follow_the_links_conform_too(wsgi_app, fly, settings):
             if case.operation.path == "/sessions" and isinstance(case.body, dict):
                 # A real service and a vehicle free to serve it, anywhere (see _naming).
                 case.body["service"] = "fly"
-                case.body.pop("target", None)
-                case.body.pop("preferences", None)
+                if not _negative_body(case):
+                    case.body.pop("target", None)
+                    case.body.pop("preferences", None)
                 f.vehicle(station=f.station(), vtype=f.vehicle_type())
 
         def get_call_kwargs(self, case: Any) -> dict[str, Any]:
