@@ -113,6 +113,10 @@ _ERROR_TEXT_MAX = 300
 # Message types forwarded to other apps as fleet.signals.agent_message.
 _PUBLISHED = frozenset({"task_accepted", "task_refused", "event"})
 
+#: Relayed browsers one uplink remembers the channel of (beyond this, the oldest are
+#: answered through their group again).
+RELAYS_MAX = 256
+
 #: Frames of one uplink waiting for its database work (profile, heartbeats, reports);
 #: past this the uplink stops reading until they are handled (backpressure).
 BACKLOG_MAX = 64
@@ -164,17 +168,37 @@ def vehicle_send(
     agent_message_enqueue(vehicle_id=vehicle_id, message=message, session_id=session_id)
 
 
-async def avehicle_send(*, vehicle_id: Any, message: RelayToAgent | RelayClose) -> None:
+async def avehicle_send(
+    *,
+    vehicle_id: Any,
+    message: RelayToAgent | RelayClose,
+    via: str | None = None,
+    reply_to: str | None = None,
+) -> None:
     """Send ``message`` to the vehicle's agent now, best effort, through the channel
     layer: for relayed control traffic, which is worthless late. It travels as the
-    frame's text, checked and encoded once here. Raises ProtocolError for a message
-    the agent would refuse, ValueError for a bad id.
+    frame's text, checked and encoded once here.
+
+    ``via``: the uplink's own channel, when the sender knows it (it comes with every
+    answer, see :class:`AgentUplinkConsumer`): one direct send instead of a group
+    lookup per command. ``reply_to``: the channel of the relayed browser, which the
+    uplink then answers directly. Raises ProtocolError for a message the agent would
+    refuse, ValueError for a bad id.
     """
     group = vehicle_group(vehicle_id)
-    text = encode_message(message, channel="uplink_to_agent")
+    event: dict[str, Any] = {
+        "type": "agent.send",
+        "text": encode_message(message, channel="uplink_to_agent"),
+        "conn": message.conn or None,
+        "reply": reply_to if isinstance(message, RelayToAgent) else None,
+    }
     layer = get_channel_layer()
-    if layer is not None:
-        await layer.group_send(group, {"type": "agent.send", "text": text})
+    if layer is None:
+        return
+    if via is not None:
+        await layer.send(via, event)
+    else:
+        await layer.group_send(group, event)
 
 
 # --------------------------------------------------------------------------------------
@@ -618,6 +642,9 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self.credential_generation = 0
         self._closed = False  # we closed (or were replaced): ignore what follows
         self._replaced = False
+        #: Relayed browsers this uplink has heard from: conn -> the relay's channel, so
+        #: the agent's answers go straight there (see :func:`avehicle_send`).
+        self._relays: dict[str, str] = {}
         self._last_seen: datetime | None = None  # the last last_seen this uplink wrote
         self._next_heartbeat_write = 0.0
         self._bad_frames: deque[float] = deque()
@@ -671,6 +698,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
                     # drop at once. The stale member only costs messages that expire
                     # unread; the vehicle must still be marked offline below.
                     log.warning("uplink %s: leaving its group failed: %s", self.vehicle_id, exc)
+            await self._tell_relays_gone()
             if self._backlog_task is not None and not self._backlog_task.done():
                 # What the agent said before it left is stored first: a heartbeat
                 # written after the offline mark would make the vehicle look alive.
@@ -728,17 +756,32 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
                 await self._hello(msg)
             return
         if isinstance(msg, RelayToPlatform | RelayClose) and msg.conn:
-            # On the control path: sent now, whatever database work is queued, as the
-            # text the browser receives (encoded once, here). The relay checks the
-            # vehicle id, so an agent cannot talk into another vehicle's session.
-            event: dict[str, Any] = {"type": "relay.from_agent", "vehicle_id": self.vehicle_id}
-            if isinstance(msg, RelayToPlatform):
-                event["text"] = encode_message(msg.payload)
-            else:
-                event["close"] = _given(msg.code)
-            await self.channel_layer.group_send(relay_group(msg.conn), event)
+            await self._relay_to_browser(msg)
         else:
             await self._later(lambda: self._handle(msg))
+
+    async def _relay_to_browser(self, msg: RelayToPlatform | RelayClose) -> None:
+        """On the control path: sent now, whatever database work is queued, as the text
+        the browser receives (encoded once, here), straight to the relay's channel when
+        this uplink knows it, else to the connection's group. With it goes this uplink's
+        channel, for the relay's next command. The relay checks the vehicle id, so an
+        agent cannot talk into another vehicle's session."""
+        conn = str(msg.conn)  # given: checked by the caller
+        event: dict[str, Any] = {
+            "type": "relay.from_agent",
+            "vehicle_id": self.vehicle_id,
+            "uplink": self.channel_name,
+        }
+        if isinstance(msg, RelayToPlatform):
+            event["text"] = encode_message(msg.payload)
+            reply = self._relays.get(conn)
+        else:
+            event["close"] = _given(msg.code)
+            reply = self._relays.pop(conn, None)
+        if reply is not None:
+            await self.channel_layer.send(reply, event)
+        else:
+            await self.channel_layer.group_send(relay_group(conn), event)
 
     async def _handle(self, msg: UplinkToPlatform) -> None:
         """What an authenticated agent's frame asks of the database, in arrival order."""
@@ -881,6 +924,15 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         :func:`avehicle_send` checked and encoded) to the agent."""
         if self._closed or self.vehicle_id is None:
             return
+        conn, reply = event.get("conn"), event.get("reply")
+        if isinstance(conn, str):
+            if isinstance(reply, str):
+                self._relays.pop(conn, None)  # re-inserted last: the oldest go first
+                self._relays[conn] = reply
+                while len(self._relays) > RELAYS_MAX:
+                    self._relays.pop(next(iter(self._relays)))
+            else:  # the browser left (relay_close)
+                self._relays.pop(conn, None)
         text = event.get("text")
         if not isinstance(text, str):
             log.error("uplink %s: not sending an event without its text", self.vehicle_id)
@@ -927,6 +979,18 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             log.exception("uplink %s: closing a replaced uplink failed", self.vehicle_id)
 
     # -- helpers ------------------------------------------------------------------------
+
+    async def _tell_relays_gone(self) -> None:
+        """The relays this uplink answered address it no more: their next commands
+        go to the vehicle's group, where the agent's next uplink hears them."""
+        relays, self._relays = set(self._relays.values()), {}
+        for reply in relays:
+            try:
+                await self.channel_layer.send(
+                    reply, {"type": "relay.uplink_gone", "uplink": self.channel_name}
+                )
+            except Exception as exc:  # best effort: the relay falls back on its own
+                log.info("uplink %s: telling a relay failed: %s", self.vehicle_id, exc)
 
     async def _send_message(self, msg: Message) -> None:
         await self.send(text_data=encode_message(msg, channel="uplink_to_agent"))

@@ -138,6 +138,9 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self.session_id = str(self.scope["url_route"]["kwargs"]["session_id"])
         self.vehicle_id: str | None = None
         self.conn = secrets.token_hex(8)
+        # The vehicle's uplink channel, once it has answered: commands go straight
+        # there, not through the vehicle's group (see fleet.uplink.avehicle_send).
+        self.uplink: str | None = None
         self.tokens, self.refill_at = RELAY_BURST, time.monotonic()
         await self.accept()
 
@@ -151,6 +154,7 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
                 message=RelayClose(
                     session_id=self.session_id, conn=self.conn, reason="client left"
                 ),
+                via=self.uplink,
             )
 
     async def receive(self, text_data: str | None = None, bytes_data: bytes | None = None) -> None:
@@ -179,6 +183,8 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         await avehicle_send(
             vehicle_id=self.vehicle_id,
             message=RelayToAgent(session_id=self.session_id, conn=self.conn, payload=payload),
+            via=self.uplink,
+            reply_to=self.channel_name,
         )
 
     async def _admit(self, payload: ControlToAgent) -> tuple[str, str] | None:
@@ -204,10 +210,17 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         or ``close`` (the agent dropped this client, with its close code or none)."""
         if event["vehicle_id"] != self.vehicle_id:
             return  # only the session's vehicle may answer on this connection
+        self.uplink = event.get("uplink") or self.uplink
         if "text" in event:
             await self.send(text_data=event["text"])
         else:
             await self.close(code=event.get("close") or CLOSED_BY_AGENT)
+
+    async def relay_uplink_gone(self, event: dict[str, Any]) -> None:
+        """The uplink that answered closed: back to the vehicle's group, where the
+        agent's next uplink hears the next command."""
+        if event.get("uplink") == self.uplink:
+            self.uplink = None
 
     async def _error(self, code: str, message: str) -> None:
         await self.send(text_data=encode_message(error_message(code, message)))

@@ -1,0 +1,184 @@
+"""The relay between a browser and a vehicle's agent, through the platform's consumers
+and the real channel layer (Redis): a relayed command reaches the agent and its answer
+the browser; once the agent has answered, the relay and the uplink address each other's
+channel directly (no group lookup per command); and the relayed browser keeps driving
+when the agent's uplink reconnects."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from collections.abc import AsyncIterator
+from typing import Any
+
+import pytest
+from channels import DEFAULT_CHANNEL_LAYER
+from channels.db import database_sync_to_async
+from channels.layers import channel_layers, get_channel_layer
+from channels.testing import WebsocketCommunicator
+from django.db import connections
+
+from agents.protocol import PROTOCOL_VERSION
+from fleet.credentials import vehicle_issue_credential
+from iouv.asgi import application
+from services.assignment import session_request
+from services.deployment import grant_issue, session_deploy
+from tests import factories as f
+
+pytestmark = [pytest.mark.redis, pytest.mark.django_db(transaction=True)]
+
+PROFILE: dict[str, Any] = {
+    "type": "profile",
+    "vehicle_type": "ground",
+    "adapter": "sim_car",
+    "attributes": {},
+    "commands": [{"name": "front", "args": {}}],
+    "telemetry": ["battery"],
+    "control_url": "",
+    "video": False,
+    "position": {"lat": 40.63, "lon": -8.65},
+    "battery": 88,
+}
+
+
+@pytest.fixture(autouse=True)
+async def _fresh_layer_and_connections() -> AsyncIterator[None]:
+    # Each test runs in its own event loop; a Redis layer that a consumer of an earlier
+    # test's loop was receiving on would refuse this one ("two event loops"), so each
+    # test gets its own layer. Sync ORM calls run on asgiref's worker thread; its
+    # connection must not outlive the test (it would keep the database from dropping).
+    channel_layers.backends.pop(DEFAULT_CHANNEL_LAYER, None)
+    yield
+    channel_layers.backends.pop(DEFAULT_CHANNEL_LAYER, None)
+    await database_sync_to_async(connections.close_all)()
+
+
+@database_sync_to_async
+def _relayed_session() -> tuple[str, str, str, str]:
+    """(vehicle id, its credential, session id, the owner's grant) of a deployed session
+    on a vehicle reachable only through the relay."""
+    vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type(kind="ground"))
+    credential = vehicle_issue_credential(vehicle=vehicle)
+    alice = f.user(username="alice")
+    service = f.service(allowed_commands=["front"])
+    session = session_request(user=alice, service=service)
+    session_deploy(session=session)
+    task = grant_issue(session=session, user=alice)
+    return str(vehicle.pk), credential, str(session.pk), task.grant
+
+
+async def _uplink(vehicle_id: str, credential: str) -> WebsocketCommunicator:
+    """The agent's uplink: hello, welcome, profile."""
+    comm = WebsocketCommunicator(application, "/ws/agent/")
+    connected, _ = await comm.connect()
+    assert connected
+    hello = {"type": "hello", "v": PROTOCOL_VERSION, "vehicle_id": vehicle_id}
+    await comm.send_json_to({**hello, "credential": credential})
+    assert (await comm.receive_json_from(timeout=10))["type"] == "welcome"
+    await comm.send_json_to(PROFILE)
+    return comm
+
+
+async def _relayed(agent: WebsocketCommunicator) -> dict[str, Any]:
+    """The next relayed frame the agent receives (what else the platform owes it, its
+    task, is skipped and acknowledged)."""
+    while True:
+        message = await agent.receive_json_from(timeout=10)
+        if message["type"] == "relay":
+            return message
+        if "id" in message:
+            await agent.send_json_to({"type": "ack", "id": message["id"], "ok": True})
+
+
+async def _answer(agent: WebsocketCommunicator, relayed: dict[str, Any], seq: int) -> None:
+    """The agent acknowledges command ``seq`` to the relayed browser."""
+    payload = {"type": "ack", "seq": seq, "ok": True, "error": None}
+    await agent.send_json_to(
+        {"type": "relay", "session_id": relayed["session_id"], "conn": relayed["conn"]}
+        | {"payload": payload}
+    )
+
+
+@contextlib.contextmanager
+def _group_sends() -> Any:
+    """What the channel layer sends to groups while the block runs: (group, type)."""
+    layer = get_channel_layer()
+    real = layer.group_send
+    groups: list[tuple[str, str]] = []
+
+    async def counted(group: str, message: dict[str, Any]) -> None:
+        groups.append((group, message["type"]))
+        await real(group, message)
+
+    layer.group_send = counted
+    try:
+        yield groups
+    finally:
+        layer.group_send = real
+
+
+async def _command(browser: WebsocketCommunicator, agent: WebsocketCommunicator, seq: int) -> None:
+    """One relayed command and its ack, end to end."""
+    await browser.send_json_to({"type": "command", "seq": seq, "name": "front", "args": {}})
+    relayed = await _relayed(agent)
+    assert relayed["payload"] == {"type": "command", "seq": seq, "name": "front", "args": {}}
+    await _answer(agent, relayed, seq)
+    assert json.loads(await browser.receive_from(timeout=10)) == {
+        "type": "ack",
+        "seq": seq,
+        "ok": True,
+        "error": None,
+    }
+
+
+async def test_relayed_commands_go_channel_to_channel_and_survive_an_uplink_reconnect() -> None:
+    vehicle_id, credential, session_id, grant = await _relayed_session()
+    agent = await _uplink(vehicle_id, credential)
+    browser = WebsocketCommunicator(application, f"/ws/relay/{session_id}/")
+    connected, _ = await browser.connect()
+    assert connected
+    try:
+        # The grant first: the relay checks it, then the agent does (it answers).
+        await browser.send_json_to({"type": "auth", "grant": grant})
+        relayed = await _relayed(agent)
+        assert relayed["payload"] == {"type": "auth", "grant": grant}
+        await _answer(agent, relayed, 0)
+        assert json.loads(await browser.receive_from(timeout=10))["seq"] == 0
+
+        # From now on each side knows the other's channel: no group lookups.
+        with _group_sends() as sends:
+            for seq in range(1, 6):
+                await _command(browser, agent, seq)
+        relayed = {"agent.send", "relay.from_agent"}
+        assert not [(g, kind) for g, kind in sends if kind in relayed], sends
+
+        # The agent's uplink drops and comes back: the browser's next command finds it.
+        await agent.disconnect()
+        agent = await _uplink(vehicle_id, credential)
+        await _command(browser, agent, 6)
+        await _command(browser, agent, 7)
+    finally:
+        await browser.disconnect()
+        await agent.disconnect()
+
+
+async def test_a_relay_that_never_heard_the_agent_still_reaches_it() -> None:
+    """Before any answer the relay knows no uplink: its frames go by the vehicle's group,
+    and a bad frame is refused by the relay itself without reaching the agent."""
+    vehicle_id, credential, session_id, grant = await _relayed_session()
+    agent = await _uplink(vehicle_id, credential)
+    browser = WebsocketCommunicator(application, f"/ws/relay/{session_id}/")
+    connected, _ = await browser.connect()
+    assert connected
+    try:
+        await browser.send_json_to({"type": "auth", "grant": grant})
+        await _relayed(agent)
+        await browser.send_to(text_data='{"type": "command", "seq": -1}')
+        refused = json.loads(await browser.receive_from(timeout=10))
+        assert refused["type"] == "error" and refused["code"] == "bad_field"
+        await browser.send_json_to({"type": "command", "seq": 1, "name": "front", "args": {}})
+        relayed = await _relayed(agent)
+        assert relayed["payload"]["seq"] == 1  # the refused frame never reached it
+    finally:
+        await browser.disconnect()
+        await agent.disconnect()
