@@ -1,9 +1,9 @@
-"""Constants, errors and the field checkers of the signed documents and command arguments."""
+"""Constants, errors and the checker of command arguments."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from typing import Any, Final, Literal, TypeAlias
 
 # --------------------------------------------------------------------------------------
@@ -108,14 +108,11 @@ def _bad(path: str, problem: str, code: str = "bad_field") -> ProtocolError:
 
 
 # --------------------------------------------------------------------------------------
-# Field checkers
+# Command arguments
 #
-# Each checker takes (value, path) and returns the (possibly normalised) value or raises
-# ProtocolError naming ``path``. The signed documents' dataclasses and command arguments
-# use them; messages are checked by their msgspec types (agents.protocol.messages).
+# Checked against the vehicle's own declarations (known only at run time), so by hand;
+# messages and signed documents are checked by their msgspec types.
 # --------------------------------------------------------------------------------------
-
-Checker: TypeAlias = Callable[[Any, str], Any]
 
 
 def _is_number(value: Any) -> bool:
@@ -126,84 +123,6 @@ def _is_number(value: Any) -> bool:
     if isinstance(value, int):
         return True
     return isinstance(value, float) and math.isfinite(value)
-
-
-def _check_str(value: Any, path: str) -> str:
-    if not isinstance(value, str):
-        raise _bad(path, "must be a string")
-    return value
-
-
-def _check_id(value: Any, path: str) -> str:
-    if not isinstance(value, str) or not value:
-        raise _bad(path, "must be a non-empty string")
-    return value
-
-
-def _check_int(value: Any, path: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise _bad(path, "must be an integer")
-    return value
-
-
-def _check_number(value: Any, path: str) -> int | float:
-    if not _is_number(value):
-        raise _bad(path, "must be a finite number")
-    return value  # type: ignore[no-any-return]
-
-
-def _check_positive_number(value: Any, path: str) -> int | float:
-    if _check_number(value, path) <= 0:
-        raise _bad(path, "must be a number > 0")
-    return value  # type: ignore[no-any-return]
-
-
-def _check_object(value: Any, path: str) -> dict[str, Any]:
-    if not isinstance(value, dict):
-        raise _bad(path, "must be an object")
-    return value
-
-
-def _check_version(value: Any, path: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise _bad(path, "must be an integer", code="bad_version")
-    if value != PROTOCOL_VERSION:
-        raise _bad(path, f"is {value}, this end speaks {PROTOCOL_VERSION}", code="bad_version")
-    return value
-
-
-# Unix seconds: anything beyond this is a bug, and it keeps float conversion from overflowing.
-_MAX_TIMESTAMP: Final = 1e12
-
-
-def _check_timestamp(value: Any, path: str) -> float:
-    if not _is_number(value) or not -_MAX_TIMESTAMP <= value <= _MAX_TIMESTAMP:
-        raise _bad(path, "must be a time in Unix seconds")
-    return float(value)
-
-
-def _check_lat(value: Any, path: str) -> float:
-    if not _is_number(value) or not -90 <= value <= 90:
-        raise _bad(path, "must be a latitude in degrees, -90..90")
-    return float(value)
-
-
-def _check_lon(value: Any, path: str) -> float:
-    if not _is_number(value) or not -180 <= value <= 180:
-        raise _bad(path, "must be a longitude in degrees, -180..180")
-    return float(value)
-
-
-def _check_action(value: Any, path: str) -> str:
-    if not isinstance(value, str) or value not in FAILSAFE_ACTIONS:
-        raise _bad(path, f"must be one of {sorted(FAILSAFE_ACTIONS)}")
-    return str(value)
-
-
-def _check_role(value: Any, path: str) -> str:
-    if not isinstance(value, str) or value not in ROLES:
-        raise _bad(path, f"must be one of {sorted(ROLES)}")
-    return str(value)
 
 
 def _check_arg_value(arg_spec: Mapping[str, Any], value: Any, name: str) -> Any:

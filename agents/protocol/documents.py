@@ -7,6 +7,10 @@ purpose by explicit typing (RFC 8725 §3.11): ``typ`` is ``iouv-task+jwt`` or
 ``iouv-grant+jwt``, and one is never accepted as the other. Registered claims carry the
 issuer, the vehicle (``aud``), the user (``sub``), the validity window (``iat``, ``nbf``,
 ``exp``) and a single-use id (``jti``); project claims carry the rest.
+
+:class:`Limits` and the documents are frozen :class:`msgspec.Struct` types whose fields
+travel under their claim names. msgspec checks every claim, whether it comes from a
+verified token or from code that builds a document.
 """
 
 from __future__ import annotations
@@ -16,17 +20,20 @@ import json
 import math
 import re
 import secrets
+import sys
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
-from typing import Any, ClassVar, Final, TypeAlias
+from contextvars import ContextVar
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Final, Self, TypeAlias, TypeVar
 
 import jwt
+import msgspec
 from cryptography.hazmat.primitives.asymmetric.ed25519 import (
     Ed25519PrivateKey,
     Ed25519PublicKey,
 )
 from jwt.utils import base64url_decode, base64url_encode
+from msgspec import Meta, field
 
 from agents.protocol.base import (
     _LINK_LOSS_RANGE_MS,
@@ -35,7 +42,6 @@ from agents.protocol.base import (
     DEFAULT_LINK_LOSS_TIMEOUT_MS,
     PROTOCOL_VERSION,
     REPLAY_GUARD_MAX_ENTRIES,
-    Checker,
     ExpiredError,
     Kind,
     ProtocolError,
@@ -43,18 +49,9 @@ from agents.protocol.base import (
     SignatureError,
     WrongTargetError,
     _bad,
-    _check_action,
-    _check_id,
-    _check_int,
-    _check_lat,
-    _check_lon,
-    _check_object,
-    _check_positive_number,
-    _check_role,
-    _check_timestamp,
-    _check_version,
 )
 from agents.protocol.keys import ALGORITHM, KeySet, key_thumbprint
+from agents.protocol.messages import Id, Latitude, Longitude, Version, _invalid, _protocol_error
 
 #: Who signs documents (the ``iss`` claim). Verifiers refuse any other issuer.
 ISSUER: Final = "iouv-platform"
@@ -70,7 +67,6 @@ PublicKeys: TypeAlias = Ed25519PublicKey | KeySet
 
 # Claims every document must carry; PyJWT refuses a token missing one.
 _REQUIRED: Final = ("exp", "nbf", "iat", "jti", "iss", "aud", "sub")
-_REGISTERED: Final = frozenset(_REQUIRED)
 
 # Three non-empty base64url segments. PyJWT's decoder skips foreign characters, so the
 # alphabet is checked first and one token never has many spellings.
@@ -98,14 +94,333 @@ def _with_field(exc: ProtocolError, path: str) -> ProtocolError:
 
 
 # --------------------------------------------------------------------------------------
-# Signing and verification
+# Field types and checking
+# --------------------------------------------------------------------------------------
+
+# Unix seconds: anything beyond this is a bug, and it keeps float conversion from overflowing.
+_MAX_TIMESTAMP: Final = 1e12
+Timestamp = Annotated[float, Meta(ge=-_MAX_TIMESTAMP, le=_MAX_TIMESTAMP)]
+# An int stays an int. msgspec lets infinity through a float; the finite bound does not.
+PositiveNumber = Annotated[int, Meta(gt=0)] | Annotated[float, Meta(gt=0, le=sys.float_info.max)]
+PositiveInt = Annotated[int, Meta(gt=0)]
+LinkLossMs = Annotated[int, Meta(ge=_LINK_LOSS_RANGE_MS[0], le=_LINK_LOSS_RANGE_MS[1])]
+if TYPE_CHECKING:  # callers hold these as plain text (a database column)
+    FailsafeAction = str
+    Role = str
+else:  # msgspec refuses any other value
+    from agents.protocol.messages import FailsafeAction, Role
+
+_T = TypeVar("_T")
+
+# True while msgspec builds a struct from values it has checked (see _Checked).
+_CONVERTING: Final[ContextVar[bool]] = ContextVar("iouv_documents_converting", default=False)
+
+# msgspec's refusal of an undeclared field, which messages (ignoring those) never meet.
+_UNKNOWN: Final = re.compile(r"^Object contains unknown field `(.*?)`(?= - at `\$[^`]*`$|$)", re.S)
+
+
+def _convert(data: Any, type_: type[_T]) -> _T:
+    """``data`` checked by msgspec and converted to ``type_``.
+
+    Raises ProtocolError as messages are refused (``bad_field`` naming the field's path,
+    ``bad_version`` for ``v``); an unknown field is refused naming it.
+    """
+    token = _CONVERTING.set(True)
+    try:
+        return msgspec.convert(data, type_)
+    except msgspec.ValidationError as exc:
+        # Marked as a refusal of that field, in the form the translation reads.
+        text = _UNKNOWN.sub(r"<\1> is not known", str(exc))
+        raise _protocol_error(msgspec.ValidationError(text)) from None
+    finally:
+        _CONVERTING.reset(token)
+
+
+def _check_json(value: Any, path: str) -> None:
+    # PyJWT would write NaN/Infinity, which no other JSON parser reads back.
+    try:
+        json.dumps(value, allow_nan=False)
+    except (TypeError, ValueError, RecursionError):
+        raise _invalid(path, "must be JSON-serialisable (no NaN/inf)") from None
+
+
+def _plain(obj: msgspec.Struct) -> dict[str, Any]:
+    """``obj`` as plain JSON data (lists, not tuples) under its fields' encoded names."""
+    data: dict[str, Any] = json.loads(json.dumps(msgspec.to_builtins(obj)))
+    return data
+
+
+class _Checked(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A struct whose constructor checks its fields as decoding does.
+
+    msgspec checks types and ``Meta`` constraints only when it decodes or converts, so a
+    struct constructed in code is converted into a checked copy whose (normalised) values
+    it takes. Either way a refusal is a ProtocolError naming the field as it travels, and
+    an invalid struct cannot exist.
+
+    Unknown fields are refused: signed documents fail closed, since a field this end does
+    not understand may be a limit it would fail to enforce.
+    """
+
+    def __post_init__(self) -> None:
+        if _CONVERTING.get():  # msgspec built this from checked values
+            self._check()
+            return
+        checked = self._checked_copy()
+        for name in self.__struct_fields__:
+            msgspec.structs.force_setattr(self, name, getattr(checked, name))
+
+    def _fields(self) -> dict[str, Any]:
+        # Not msgspec.structs.fields(): it resolves the type hints on every call.
+        names = zip(self.__struct_encode_fields__, self.__struct_fields__, strict=True)
+        return {claim: getattr(self, name) for claim, name in names}
+
+    def _checked_copy(self) -> _Checked:
+        return _convert(self._fields(), type(self))
+
+    def _check(self) -> None:
+        """Check across fields and normalise, once each field has been checked.
+
+        Raises ValueError (:func:`_invalid`), which msgspec reports at this struct's path.
+        """
+
+
+# --------------------------------------------------------------------------------------
+# Limits
 # --------------------------------------------------------------------------------------
 
 
-def _sign(claims: Mapping[str, Any], private_key: Ed25519PrivateKey, kind: Kind) -> str:
-    """Sign ``claims`` as a compact JWT of ``kind``, naming the key by its thumbprint."""
-    headers = {"kid": key_thumbprint(private_key), "typ": TOKEN_TYPES[kind]}
-    return jwt.encode(dict(claims), private_key, algorithm=ALGORITHM, headers=headers)
+class Limits(_Checked, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Safety limits the agent enforces for one session. ``None`` means "no limit".
+
+    Construction validates every field and raises ProtocolError (``bad_field``, naming
+    ``limits.<field>``) on a bad value, so an invalid Limits object cannot exist.
+    """
+
+    max_altitude_m: PositiveNumber | None = None
+    #: (latitude, longitude) in degrees; set together with geofence_radius_m.
+    geofence_center: tuple[Latitude, Longitude] | None = None
+    geofence_radius_m: PositiveNumber | None = None
+    max_speed_mps: PositiveNumber | None = None
+    #: Silence from the controlling user after which the agent runs failsafe_action.
+    link_loss_timeout_ms: LinkLossMs = DEFAULT_LINK_LOSS_TIMEOUT_MS
+    failsafe_action: FailsafeAction = "stop"
+    #: Past this round-trip latency the agent lowers the allowed speed.
+    latency_soft_ms: PositiveInt | None = None
+    #: Past this round-trip latency only stop / land / return_to_home are accepted.
+    latency_hard_ms: PositiveInt | None = None
+    session_time_limit_s: PositiveInt | None = None
+
+    def _check(self) -> None:
+        if (self.geofence_center is None) != (self.geofence_radius_m is None):
+            raise _invalid(
+                "geofence_center",
+                "and geofence_radius_m must be set together (a fence needs both)",
+            )
+        soft, hard = self.latency_soft_ms, self.latency_hard_ms
+        if soft is not None and hard is not None and soft > hard:
+            raise _invalid("latency_soft_ms", "must not exceed latency_hard_ms")
+
+    def _checked_copy(self) -> Limits:
+        return self.from_payload(self._fields())
+
+    def to_payload(self) -> dict[str, Any]:
+        """Return the JSON-ready dict (every field present, ``None`` as null)."""
+        return _plain(self)
+
+    @classmethod
+    def from_payload(cls, payload: Any) -> Limits:
+        """Build Limits from a payload dict; absent fields take their defaults.
+
+        Returns the Limits. Raises ProtocolError ``bad_field`` naming ``limits.<field>``
+        for a non-object, an unknown field, or a bad value.
+        """
+        return _convert({"limits": payload}, _InTask).limits
+
+
+class _InTask(msgspec.Struct):
+    """Limits where they travel, so that a refusal names ``limits.<field>``."""
+
+    limits: Limits
+
+
+# --------------------------------------------------------------------------------------
+# Documents
+# --------------------------------------------------------------------------------------
+
+
+class _Window(msgspec.Struct):
+    """A document's version and validity window, which verification checks first."""
+
+    v: Version
+    exp: Timestamp
+    nbf: Timestamp
+    iat: Timestamp
+
+
+class _Document(_Checked, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """What VehicleTask and UserGrant share: registered claims, signing, verification."""
+
+    KIND: ClassVar[Kind]
+    #: Every claim the document may carry; any other is refused (fail closed).
+    CLAIMS: ClassVar[frozenset[str]]
+
+    session_id: Id
+    vehicle_id: Id = field(name="aud")
+    user: Id = field(name="sub")
+    #: Command names (from the vehicle's vocabulary) that may be sent.
+    allowed_commands: tuple[Id, ...]
+    issued_at: Timestamp = field(name="iat")
+    expires_at: Timestamp = field(name="exp")
+    nonce: Id = field(default_factory=new_nonce, name="jti")
+    issuer: Id = field(default=ISSUER, name="iss")
+
+    def _check(self) -> None:
+        if self.expires_at < self.issued_at:
+            raise _invalid("exp", "must not be earlier than iat")
+        # JWT verifiers commonly compare ``iat`` with their clock in whole seconds and no
+        # leeway (joserfc does): a fractional ``iat`` would be "issued in the future" for
+        # up to a second. Flooring moves ``iat`` earlier and ``exp`` sooner, never
+        # widening validity.
+        msgspec.structs.force_setattr(self, "issued_at", math.floor(self.issued_at))
+        msgspec.structs.force_setattr(self, "expires_at", math.floor(self.expires_at))
+
+    def to_payload(self) -> dict[str, Any]:
+        """Return the JWT claims (registered, ``v`` and the document's own) ready for
+        signing."""
+        # Valid from its issue: a document is never post-dated.
+        return {**_plain(self), "nbf": self.issued_at, "v": PROTOCOL_VERSION}
+
+    @classmethod
+    def from_payload(cls, payload: Any) -> Self:
+        """Build the document from (verified) claims.
+
+        Returns the document. Raises ProtocolError naming the claim for a missing, unknown
+        or bad one, ``bad_version`` for another version.
+        """
+        if not isinstance(payload, Mapping):
+            raise ProtocolError("bad_field", "document claims must be an object")
+        for claim in payload:  # named here: the translation reserves some paths ("type")
+            if claim not in cls.CLAIMS:
+                raise _bad(str(claim), "is not known")
+        # Required even where the constructor has a default (``iss``, ``jti``).
+        for claim in (*_REQUIRED, "v"):
+            if claim not in payload:
+                raise _bad(claim, "is missing")
+        _convert({name: payload[name] for name in _Window.__struct_fields__}, _Window)
+        return _convert({k: v for k, v in payload.items() if k not in ("nbf", "v")}, cls)
+
+    def sign(self, private_key: Ed25519PrivateKey) -> str:
+        """Return the document as a compact JWT signed with ``private_key`` (EdDSA), its
+        ``kid`` the key's thumbprint and its ``typ`` the kind's (:data:`TOKEN_TYPES`)."""
+        headers = {"kid": key_thumbprint(private_key), "typ": TOKEN_TYPES[self.KIND]}
+        return jwt.encode(self.to_payload(), private_key, algorithm=ALGORITHM, headers=headers)
+
+    @classmethod
+    def verify(
+        cls,
+        token: str,
+        keys: PublicKeys,
+        *,
+        vehicle_id: str,
+        issuer: str = ISSUER,
+        now: float | None = None,
+        replay_guard: ReplayGuard | None = None,
+    ) -> Self:
+        """Verify a token of this kind on the agent whose id is ``vehicle_id``.
+
+        ``keys`` is the platform key, or a :class:`KeySet` from which the token's ``kid``
+        picks one. ``now`` (Unix seconds, default ``time.time()``) is the verifier's clock;
+        ``CLOCK_SKEW_S`` is tolerated on ``exp``, ``nbf`` and ``iat``.
+
+        Order: shape, key, signature, required claims, ``iss``, ``aud``, ``typ``, ``v``,
+        times, every claim's value, then, if ``replay_guard`` is given, the ``jti``.
+
+        Returns the document. Raises only ProtocolError subclasses: SignatureError
+        (``bad_signature``; UnknownKeyError ``unknown_key``), ExpiredError (``expired``),
+        WrongTargetError (``wrong_vehicle``), ReplayError (``replayed``) or ProtocolError
+        (``bad_token``, ``wrong_issuer``, ``wrong_kind``, ``bad_version``,
+        ``not_yet_valid``, ``bad_field``); ValueError only for an empty ``vehicle_id``.
+        """
+        claims = _decode(token, keys, kind=cls.KIND, vehicle_id=vehicle_id, issuer=issuer, now=now)
+        doc = cls.from_payload(claims)
+        if doc.vehicle_id != vehicle_id:  # PyJWT checked ``aud`` already; a second lock
+            err = WrongTargetError(
+                f"document is for vehicle {doc.vehicle_id!r}, this is {vehicle_id!r}"
+            )
+            raise _with_field(err, "aud")
+        # Replay last: a document refused for another reason must not burn its id.
+        if replay_guard is not None:
+            replay_guard.check_and_remember(doc.nonce, doc.expires_at, now=now)
+        return doc
+
+
+def _claims_of(cls: type[_Document]) -> frozenset[str]:
+    return frozenset(f.encode_name for f in msgspec.structs.fields(cls)) | {"nbf", "v"}
+
+
+class VehicleTask(_Document, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """What the platform asks one vehicle to do for one session (signed, pushed on uplink).
+
+    Construction validates every field and raises ProtocolError (``bad_field``) naming the
+    claim it travels as. ``issued_at``/``expires_at`` are Unix seconds, floored to whole
+    seconds, and travel as ``iat`` (and ``nbf``)/``exp``; ``vehicle_id`` as ``aud``,
+    ``user`` as ``sub``, ``nonce`` as ``jti`` and ``issuer`` as ``iss``.
+    """
+
+    KIND: ClassVar[Kind] = "vehicle_task"
+
+    limits: Limits
+    #: Free-form plan for autonomous tasks (e.g. waypoints); any JSON object.
+    mission: dict[str, Any] | None = None
+
+    def __post_init__(self) -> None:
+        # Converting would turn a dict into Limits; code must hand over checked Limits.
+        if not isinstance(self.limits, Limits):
+            raise _bad("limits", "must be a Limits object")
+        super().__post_init__()
+
+    def _check(self) -> None:
+        super()._check()
+        if self.mission is not None:
+            _check_json(self.mission, "mission")
+
+
+VehicleTask.CLAIMS = _claims_of(VehicleTask)
+
+
+class UserGrant(_Document, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Permission for one user to connect to one vehicle's control socket (signed).
+
+    The browser presents it in ``auth``. Construction validates every field and raises
+    ProtocolError (``bad_field``) naming the claim (see :class:`VehicleTask`). Verified
+    with a ``replay_guard``, a grant's ``jti`` is consumed: a grant opens one connection,
+    a reconnect needs a fresh grant from the platform. A viewer normally gets no
+    ``allowed_commands``.
+    """
+
+    KIND: ClassVar[Kind] = "user_grant"
+
+    role: Role
+
+
+UserGrant.CLAIMS = _claims_of(UserGrant)
+
+
+def claimed_session(token: Any) -> str | None:
+    """The ``session_id`` a token claims, **unverified**: only to label a refusal (which
+    session failed) for the platform. None when it cannot be read."""
+    try:
+        claims = jwt.decode(token, options={"verify_signature": False})
+    except (jwt.PyJWTError, ValueError, TypeError, AttributeError):
+        return None
+    session = claims.get("session_id")
+    return session if isinstance(session, str) and 0 < len(session) <= 100 else None
+
+
+# --------------------------------------------------------------------------------------
+# Verification
+# --------------------------------------------------------------------------------------
 
 
 def _check_shape(token: Any) -> None:
@@ -210,12 +525,11 @@ def _decode(
         )
     if "v" not in claims:
         raise _bad("v", "is missing", code="bad_version")
-    _check_version(claims["v"], "v")
+    window = _convert({name: claims[name] for name in _Window.__struct_fields__}, _Window)
     current = time.time() if now is None else now
-    expires = _check_timestamp(claims["exp"], "exp")
-    if current - CLOCK_SKEW_S > expires:
-        raise ExpiredError(f"document expired at {expires} (now {current:.3f})")
-    starts = max(_check_timestamp(claims["nbf"], "nbf"), _check_timestamp(claims["iat"], "iat"))
+    if current - CLOCK_SKEW_S > window.exp:
+        raise ExpiredError(f"document expired at {window.exp} (now {current:.3f})")
+    starts = max(window.nbf, window.iat)
     if starts > current + CLOCK_SKEW_S:
         raise ProtocolError(
             "not_yet_valid", f"document is valid from {starts} (now {current:.3f})", field="nbf"
@@ -224,451 +538,15 @@ def _decode(
 
 
 # --------------------------------------------------------------------------------------
-# Document dataclasses
-# --------------------------------------------------------------------------------------
-
-
-def _check_keys(payload: Mapping[str, Any], allowed: frozenset[str], prefix: str) -> None:
-    # Signed documents fail closed: a field this end does not understand may be a limit it
-    # would fail to enforce, so it is refused rather than ignored.
-    for key in payload:
-        if key not in allowed:
-            path = f"{prefix}{key}"
-            raise ProtocolError("bad_field", f"field '{path}' is not known", field=path)
-
-
-def _require(payload: Mapping[str, Any], keys: tuple[str, ...], prefix: str = "") -> None:
-    for key in keys:
-        if key not in payload:
-            raise _bad(f"{prefix}{key}", "is missing")
-
-
-def _check_optional(value: Any, path: str, checker: Checker) -> Any:
-    return None if value is None else checker(value, path)
-
-
-def _check_positive_int(value: Any, path: str) -> int:
-    if _check_int(value, path) <= 0:
-        raise _bad(path, "must be an integer > 0")
-    return int(value)
-
-
-def _whole_times(doc: VehicleTask | UserGrant) -> None:
-    """Validate ``issued_at``/``expires_at`` and floor them to whole seconds.
-
-    JWT verifiers commonly compare ``iat`` with their clock in whole seconds and no
-    leeway (joserfc does): a fractional ``iat`` would be "issued in the future" for up to
-    a second. Flooring moves ``iat`` earlier and ``exp`` sooner, never widening validity.
-    """
-    _check_timestamp(doc.issued_at, "iat")
-    _check_timestamp(doc.expires_at, "exp")
-    if doc.expires_at < doc.issued_at:
-        raise _bad("exp", "must not be earlier than iat")
-    # Frozen dataclass: normalise in place, as Limits does for geofence_center.
-    object.__setattr__(doc, "issued_at", math.floor(doc.issued_at))
-    object.__setattr__(doc, "expires_at", math.floor(doc.expires_at))
-
-
-def _check_commands_tuple(value: Any, path: str) -> tuple[str, ...]:
-    if not isinstance(value, (list, tuple)):
-        raise _bad(path, "must be a list of strings")
-    for i, item in enumerate(value):
-        _check_id(item, f"{path}[{i}]")
-    return tuple(value)
-
-
-@dataclass(frozen=True, kw_only=True)
-class Limits:
-    """Safety limits the agent enforces for one session. ``None`` means "no limit".
-
-    Construction validates every field and raises ProtocolError (``bad_field``, naming
-    ``limits.<field>``) on a bad value, so an invalid Limits object cannot exist.
-    """
-
-    max_altitude_m: float | None = None
-    #: (latitude, longitude) in degrees; set together with geofence_radius_m.
-    geofence_center: tuple[float, float] | None = None
-    geofence_radius_m: float | None = None
-    max_speed_mps: float | None = None
-    #: Silence from the controlling user after which the agent runs failsafe_action.
-    link_loss_timeout_ms: int = DEFAULT_LINK_LOSS_TIMEOUT_MS
-    failsafe_action: str = "stop"
-    #: Past this round-trip latency the agent lowers the allowed speed.
-    latency_soft_ms: int | None = None
-    #: Past this round-trip latency only stop / land / return_to_home are accepted.
-    latency_hard_ms: int | None = None
-    session_time_limit_s: int | None = None
-
-    _FIELDS: ClassVar[frozenset[str]] = frozenset(
-        {
-            "max_altitude_m",
-            "geofence_center",
-            "geofence_radius_m",
-            "max_speed_mps",
-            "link_loss_timeout_ms",
-            "failsafe_action",
-            "latency_soft_ms",
-            "latency_hard_ms",
-            "session_time_limit_s",
-        }
-    )
-
-    def __post_init__(self) -> None:
-        p = "limits."
-        _check_optional(self.max_altitude_m, p + "max_altitude_m", _check_positive_number)
-        _check_optional(self.geofence_radius_m, p + "geofence_radius_m", _check_positive_number)
-        _check_optional(self.max_speed_mps, p + "max_speed_mps", _check_positive_number)
-        center = self.geofence_center
-        if center is not None:
-            if not isinstance(center, (list, tuple)) or len(center) != 2:
-                raise _bad(p + "geofence_center", "must be [latitude, longitude]")
-            normalised = (
-                _check_lat(center[0], p + "geofence_center[0]"),
-                _check_lon(center[1], p + "geofence_center[1]"),
-            )
-            # Frozen dataclass: normalise a JSON list into the declared tuple type.
-            object.__setattr__(self, "geofence_center", normalised)
-        if (center is None) != (self.geofence_radius_m is None):
-            raise _bad(
-                p + "geofence_center",
-                "and geofence_radius_m must be set together (a fence needs both)",
-            )
-        low, high = _LINK_LOSS_RANGE_MS
-        timeout = _check_int(self.link_loss_timeout_ms, p + "link_loss_timeout_ms")
-        if not low <= timeout <= high:
-            raise _bad(p + "link_loss_timeout_ms", f"must be in {low}..{high}")
-        _check_action(self.failsafe_action, p + "failsafe_action")
-        _check_optional(self.latency_soft_ms, p + "latency_soft_ms", _check_positive_int)
-        _check_optional(self.latency_hard_ms, p + "latency_hard_ms", _check_positive_int)
-        if (
-            self.latency_soft_ms is not None
-            and self.latency_hard_ms is not None
-            and self.latency_soft_ms > self.latency_hard_ms
-        ):
-            raise _bad(p + "latency_soft_ms", "must not exceed latency_hard_ms")
-        _check_optional(self.session_time_limit_s, p + "session_time_limit_s", _check_positive_int)
-
-    def to_payload(self) -> dict[str, Any]:
-        """Return the JSON-ready dict (every field present, ``None`` as null)."""
-        return {
-            "max_altitude_m": self.max_altitude_m,
-            "geofence_center": (
-                list(self.geofence_center) if self.geofence_center is not None else None
-            ),
-            "geofence_radius_m": self.geofence_radius_m,
-            "max_speed_mps": self.max_speed_mps,
-            "link_loss_timeout_ms": self.link_loss_timeout_ms,
-            "failsafe_action": self.failsafe_action,
-            "latency_soft_ms": self.latency_soft_ms,
-            "latency_hard_ms": self.latency_hard_ms,
-            "session_time_limit_s": self.session_time_limit_s,
-        }
-
-    @classmethod
-    def from_payload(cls, payload: Any) -> Limits:
-        """Build Limits from a payload dict; absent fields take their defaults.
-
-        Returns the Limits. Raises ProtocolError ``bad_field`` naming ``limits.<field>``
-        for a non-object, an unknown field, or a bad value.
-        """
-        if not isinstance(payload, Mapping):
-            raise _bad("limits", "must be an object")
-        _check_keys(payload, cls._FIELDS, "limits.")
-        return cls(**{str(k): v for k, v in payload.items()})
-
-
-def _check_target(
-    doc_vehicle: str,
-    vehicle_id: str,
-    nonce: str,
-    expires_at: float,
-    now: float | None,
-    replay_guard: ReplayGuard | None,
-) -> None:
-    if doc_vehicle != vehicle_id:
-        err = WrongTargetError(f"document is for vehicle {doc_vehicle!r}, this is {vehicle_id!r}")
-        raise _with_field(err, "aud")
-    # Replay last: a document refused for another reason must not burn its id.
-    if replay_guard is not None:
-        replay_guard.check_and_remember(nonce, expires_at, now=now)
-
-
-def _check_json(value: Any, path: str) -> None:
-    # PyJWT would write NaN/Infinity, which no other JSON parser reads back.
-    try:
-        json.dumps(value, allow_nan=False)
-    except (TypeError, ValueError, RecursionError):
-        raise _bad(path, "must be JSON-serialisable (no NaN/inf)") from None
-
-
-def _common_claims(doc: VehicleTask | UserGrant) -> dict[str, Any]:
-    """The registered claims and ``v``, shared by both kinds."""
-    return {
-        "iss": doc.issuer,
-        "aud": doc.vehicle_id,
-        "sub": doc.user,
-        "iat": doc.issued_at,
-        # Valid from its issue: a document is never post-dated.
-        "nbf": doc.issued_at,
-        "exp": doc.expires_at,
-        "jti": doc.nonce,
-        "v": PROTOCOL_VERSION,
-    }
-
-
-def _claims_checked(
-    payload: Any, allowed: frozenset[str], required: tuple[str, ...]
-) -> Mapping[str, Any]:
-    if not isinstance(payload, Mapping):
-        raise ProtocolError("bad_field", "document claims must be an object")
-    _check_keys(payload, allowed, "")
-    _require(payload, required)
-    _check_version(payload["v"], "v")
-    return payload
-
-
-@dataclass(frozen=True, kw_only=True)
-class VehicleTask:
-    """What the platform asks one vehicle to do for one session (signed, pushed on uplink).
-
-    Construction validates every field and raises ProtocolError (``bad_field``) naming the
-    claim it travels as. ``issued_at``/``expires_at`` are Unix seconds, floored to whole
-    seconds, and travel as ``iat`` (and ``nbf``)/``exp``; ``vehicle_id`` as ``aud``,
-    ``user`` as ``sub``, ``nonce`` as ``jti`` and ``issuer`` as ``iss``.
-    """
-
-    KIND: ClassVar[Kind] = "vehicle_task"
-    #: Every claim a task may carry; any other is refused (fail closed).
-    CLAIMS: ClassVar[frozenset[str]] = _REGISTERED | {
-        "v",
-        "session_id",
-        "allowed_commands",
-        "limits",
-        "mission",
-    }
-
-    session_id: str
-    vehicle_id: str
-    user: str
-    #: Command names (from the vehicle's vocabulary) this session may send.
-    allowed_commands: tuple[str, ...]
-    limits: Limits
-    issued_at: float
-    expires_at: float
-    nonce: str = field(default_factory=new_nonce)
-    #: Free-form plan for autonomous tasks (e.g. waypoints); any JSON object.
-    mission: dict[str, Any] | None = None
-    issuer: str = ISSUER
-
-    def __post_init__(self) -> None:
-        _check_id(self.session_id, "session_id")
-        _check_id(self.vehicle_id, "aud")
-        _check_id(self.user, "sub")
-        object.__setattr__(
-            self,
-            "allowed_commands",
-            _check_commands_tuple(self.allowed_commands, "allowed_commands"),
-        )
-        if not isinstance(self.limits, Limits):
-            raise _bad("limits", "must be a Limits object")
-        _whole_times(self)
-        _check_id(self.nonce, "jti")
-        _check_id(self.issuer, "iss")
-        if self.mission is not None:
-            _check_object(self.mission, "mission")
-            _check_json(self.mission, "mission")
-
-    def to_payload(self) -> dict[str, Any]:
-        """Return the JWT claims (registered, ``v`` and the task's own) ready for signing."""
-        return {
-            **_common_claims(self),
-            "session_id": self.session_id,
-            "allowed_commands": list(self.allowed_commands),
-            "limits": self.limits.to_payload(),
-            "mission": self.mission,
-        }
-
-    @classmethod
-    def from_payload(cls, payload: Any) -> VehicleTask:
-        """Build a VehicleTask from (verified) claims.
-
-        Returns the task. Raises ProtocolError naming the claim for a missing, unknown or
-        bad one, ``bad_version`` for another version.
-        """
-        claims = _claims_checked(
-            payload,
-            cls.CLAIMS,
-            (*_REQUIRED, "v", "session_id", "allowed_commands", "limits"),
-        )
-        return cls(
-            session_id=claims["session_id"],
-            vehicle_id=claims["aud"],
-            user=claims["sub"],
-            allowed_commands=_check_commands_tuple(claims["allowed_commands"], "allowed_commands"),
-            limits=Limits.from_payload(claims["limits"]),
-            issued_at=claims["iat"],
-            expires_at=claims["exp"],
-            nonce=claims["jti"],
-            mission=claims.get("mission"),
-            issuer=claims["iss"],
-        )
-
-    def sign(self, private_key: Ed25519PrivateKey) -> str:
-        """Return this task as a compact JWT signed with ``private_key`` (EdDSA), its
-        ``kid`` the key's thumbprint and its ``typ`` ``iouv-task+jwt``."""
-        return _sign(self.to_payload(), private_key, self.KIND)
-
-    @classmethod
-    def verify(
-        cls,
-        token: str,
-        keys: PublicKeys,
-        *,
-        vehicle_id: str,
-        issuer: str = ISSUER,
-        now: float | None = None,
-        replay_guard: ReplayGuard | None = None,
-    ) -> VehicleTask:
-        """Verify a task token on the agent whose id is ``vehicle_id``.
-
-        ``keys`` is the platform key, or a :class:`KeySet` from which the token's ``kid``
-        picks one. ``now`` (Unix seconds, default ``time.time()``) is the verifier's clock;
-        ``CLOCK_SKEW_S`` is tolerated on ``exp``, ``nbf`` and ``iat``.
-
-        Order: shape, key, signature, required claims, ``iss``, ``aud``, ``typ``, ``v``,
-        times, every claim's value, then, if ``replay_guard`` is given, the ``jti``.
-
-        Returns the task. Raises only ProtocolError subclasses: SignatureError
-        (``bad_signature``; UnknownKeyError ``unknown_key``), ExpiredError (``expired``),
-        WrongTargetError (``wrong_vehicle``), ReplayError (``replayed``) or ProtocolError
-        (``bad_token``, ``wrong_issuer``, ``wrong_kind``, ``bad_version``,
-        ``not_yet_valid``, ``bad_field``); ValueError only for an empty ``vehicle_id``.
-        """
-        claims = _decode(token, keys, kind=cls.KIND, vehicle_id=vehicle_id, issuer=issuer, now=now)
-        task = cls.from_payload(claims)
-        _check_target(task.vehicle_id, vehicle_id, task.nonce, task.expires_at, now, replay_guard)
-        return task
-
-
-@dataclass(frozen=True, kw_only=True)
-class UserGrant:
-    """Permission for one user to connect to one vehicle's control socket (signed).
-
-    The browser presents it in ``auth``. Construction validates every field and raises
-    ProtocolError (``bad_field``) naming the claim (see :class:`VehicleTask`).
-    """
-
-    KIND: ClassVar[Kind] = "user_grant"
-    #: Every claim a grant may carry; any other is refused (fail closed).
-    CLAIMS: ClassVar[frozenset[str]] = _REGISTERED | {
-        "v",
-        "session_id",
-        "role",
-        "allowed_commands",
-    }
-
-    session_id: str
-    vehicle_id: str
-    user: str
-    role: str
-    #: Command names this user may send; a viewer normally gets an empty tuple.
-    allowed_commands: tuple[str, ...]
-    issued_at: float
-    expires_at: float
-    nonce: str = field(default_factory=new_nonce)
-    issuer: str = ISSUER
-
-    def __post_init__(self) -> None:
-        _check_id(self.session_id, "session_id")
-        _check_id(self.vehicle_id, "aud")
-        _check_id(self.user, "sub")
-        _check_role(self.role, "role")
-        object.__setattr__(
-            self,
-            "allowed_commands",
-            _check_commands_tuple(self.allowed_commands, "allowed_commands"),
-        )
-        _whole_times(self)
-        _check_id(self.nonce, "jti")
-        _check_id(self.issuer, "iss")
-
-    def to_payload(self) -> dict[str, Any]:
-        """Return the JWT claims (registered, ``v`` and the grant's own) ready for signing."""
-        return {
-            **_common_claims(self),
-            "session_id": self.session_id,
-            "role": self.role,
-            "allowed_commands": list(self.allowed_commands),
-        }
-
-    @classmethod
-    def from_payload(cls, payload: Any) -> UserGrant:
-        """Build a UserGrant from (verified) claims.
-
-        Returns the grant. Raises ProtocolError naming the claim for a missing, unknown or
-        bad one, ``bad_version`` for another version.
-        """
-        claims = _claims_checked(
-            payload,
-            cls.CLAIMS,
-            (*_REQUIRED, "v", "session_id", "role", "allowed_commands"),
-        )
-        return cls(
-            session_id=claims["session_id"],
-            vehicle_id=claims["aud"],
-            user=claims["sub"],
-            role=claims["role"],
-            allowed_commands=_check_commands_tuple(claims["allowed_commands"], "allowed_commands"),
-            issued_at=claims["iat"],
-            expires_at=claims["exp"],
-            nonce=claims["jti"],
-            issuer=claims["iss"],
-        )
-
-    def sign(self, private_key: Ed25519PrivateKey) -> str:
-        """Return this grant as a compact JWT signed with ``private_key`` (EdDSA), its
-        ``kid`` the key's thumbprint and its ``typ`` ``iouv-grant+jwt``."""
-        return _sign(self.to_payload(), private_key, self.KIND)
-
-    @classmethod
-    def verify(
-        cls,
-        token: str,
-        keys: PublicKeys,
-        *,
-        vehicle_id: str,
-        issuer: str = ISSUER,
-        now: float | None = None,
-        replay_guard: ReplayGuard | None = None,
-    ) -> UserGrant:
-        """Verify a grant presented to the agent whose id is ``vehicle_id``.
-
-        Same arguments, order and errors as :meth:`VehicleTask.verify`. With
-        ``replay_guard`` the grant's ``jti`` is consumed: a grant opens one connection, a
-        reconnect needs a fresh grant from the platform.
-        """
-        claims = _decode(token, keys, kind=cls.KIND, vehicle_id=vehicle_id, issuer=issuer, now=now)
-        grant = cls.from_payload(claims)
-        _check_target(
-            grant.vehicle_id, vehicle_id, grant.nonce, grant.expires_at, now, replay_guard
-        )
-        return grant
-
-
-def claimed_session(token: Any) -> str | None:
-    """The ``session_id`` a token claims, **unverified**: only to label a refusal (which
-    session failed) for the platform. None when it cannot be read."""
-    try:
-        claims = jwt.decode(token, options={"verify_signature": False})
-    except (jwt.PyJWTError, ValueError, TypeError, AttributeError):
-        return None
-    session = claims.get("session_id")
-    return session if isinstance(session, str) and 0 < len(session) <= 100 else None
-
-
-# --------------------------------------------------------------------------------------
 # Replay protection
 # --------------------------------------------------------------------------------------
+
+
+class _Use(msgspec.Struct):
+    """What a ReplayGuard is told of a document."""
+
+    jti: Id
+    exp: Timestamp
 
 
 class ReplayGuard:
@@ -705,17 +583,16 @@ class ReplayGuard:
         nonce was seen and its document is still valid; ProtocolError ``bad_field`` for an
         empty nonce or a non-finite ``expires_at``.
         """
-        _check_id(nonce, "jti")
-        _check_timestamp(expires_at, "exp")
+        use = _convert({"jti": nonce, "exp": expires_at}, _Use)
         current = time.time() if now is None else now
         self._prune(current)
-        if nonce in self._forget_at:
+        if use.jti in self._forget_at:
             raise _with_field(ReplayError("document id (jti) was already used"), "jti")
         while len(self._forget_at) >= self._max_entries:
             del self._forget_at[next(iter(self._forget_at))]
-        forget_at = float(expires_at) + CLOCK_SKEW_S
-        self._forget_at[nonce] = forget_at
-        heapq.heappush(self._heap, (forget_at, nonce))
+        forget_at = use.exp + CLOCK_SKEW_S
+        self._forget_at[use.jti] = forget_at
+        heapq.heappush(self._heap, (forget_at, use.jti))
         if len(self._heap) > 2 * self._max_entries:
             # Evicted nonces leave stale heap entries; rebuild so the heap stays bounded.
             self._heap = [(t, n) for n, t in self._forget_at.items()]

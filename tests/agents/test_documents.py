@@ -366,6 +366,43 @@ def test_bad_claim_values_refused_naming_the_claim(claim: str, value: Any) -> No
 
 
 @pytest.mark.parametrize(
+    "path, value",
+    [
+        ("limits.max_speed_mps", math.inf),  # PyJWT writes and reads "Infinity"
+        ("limits.max_speed_mps", True),
+        ("limits.link_loss_timeout_ms", 500.0),
+        ("limits.geofence_center", [43.7]),
+        ("limits.geofence_center.1", 181),
+        ("limits.failsafe_action", "explode"),
+        ("mission", {"x": math.nan}),
+        ("type", "task"),  # an unknown claim, whatever its name
+        ("", "x"),
+    ],
+)
+def test_bad_task_claims_refused_naming_the_path(path: str, value: Any) -> None:
+    claims = make_task().to_payload()
+    *outer, last = path.split(".")
+    target = claims
+    for key in outer:
+        target = target[key]
+    target[int(last) if isinstance(target, list) else last] = value
+    error = refused(pyjwt_token(claims, typ="iouv-task+jwt"), VehicleTask)
+    assert error.code == "bad_field"
+    assert error.field == path.replace(".1", "[1]")
+
+
+def test_constructed_values_normalised_as_verified_ones() -> None:
+    task = make_task(
+        allowed_commands=["drive"],
+        limits=Limits(geofence_center=[43, 7], geofence_radius_m=200, max_speed_mps=3),
+    )
+    assert task.allowed_commands == ("drive",)
+    assert task.limits.geofence_center == (43.0, 7.0)
+    assert type(task.limits.max_speed_mps) is int  # as written, not converted
+    assert VehicleTask.verify(task.sign(PRIVATE), PUBLIC, vehicle_id="car-7", now=NOW) == task
+
+
+@pytest.mark.parametrize(
     "token",
     ["", ".", "..", "a.b.c", "abc", "!!!.???.***", "YQ.YQ", "YQ==.YQ.YQ", "e30.e30.", 12, None],
 )
