@@ -464,8 +464,10 @@ class ControlHub:
                 # The controller's socket is gone: no need to wait for the timeout.
                 await self._failsafe("link_lost")
 
-    async def received(self, link: ClientLink, raw: str | bytes) -> None:
-        """Handle one frame from a user. Never raises for anything the user sent."""
+    async def received(self, link: ClientLink, raw: str | bytes | Message) -> None:
+        """Handle one frame from a user: its text, or the message struct already parsed
+        from it (a relayed frame, parsed with the uplink message that carried it). Never
+        raises for anything the user sent."""
         client = self.clients.get(link.id)
         if client is None:
             return
@@ -476,7 +478,9 @@ class ControlHub:
                 await self._send(client, error_message("rate_limited", "slow down"))
             return
         try:
-            msg = parse_message(raw, channel="control_to_agent")
+            msg = (
+                raw if isinstance(raw, Message) else parse_message(raw, channel="control_to_agent")
+            )
         except ProtocolError as exc:
             await self._send(client, error_message(exc.code, exc.message))
             if client.role == "pending":

@@ -20,7 +20,6 @@ from agents.protocol import (
     ReplayGuard,
     VehicleTask,
     claimed_session,
-    encode_message,
 )
 from agents.protocol.messages import (
     CommandSpec,
@@ -291,8 +290,9 @@ class Agent:
             link = _RelayLink(self, msg.session_id, conn)
             self.relay_links[conn] = link
             await self.hub.connected(link)
-        # As text, so the hub's rate limit and parsing apply as on a direct socket.
-        await self.hub.received(link, encode_message(msg.payload))
+        # The payload was parsed as a control_to_agent message with the uplink frame that
+        # carried it; the hub's rate limit applies as on a direct socket.
+        await self.hub.received(link, msg.payload)
 
     def _task(self, token: str) -> None:
         assert self.hub is not None and self.uplink is not None

@@ -177,18 +177,19 @@ async def avehicle_send(
 ) -> None:
     """Send ``message`` to the vehicle's agent now, best effort, through the channel
     layer: for relayed control traffic, which is worthless late. It travels as the
-    frame's text, checked and encoded once here.
+    frame's text, encoded once here and not parsed again on the way: a relayed payload
+    is a struct the relay parsed (and so checked), the rest is the platform's own.
 
     ``via``: the uplink's own channel, when the sender knows it (it comes with every
     answer, see :class:`AgentUplinkConsumer`): one direct send instead of a group
     lookup per command. ``reply_to``: the channel of the relayed browser, which the
-    uplink then answers directly. Raises ProtocolError for a message the agent would
-    refuse, ValueError for a bad id.
+    uplink then answers directly. Raises ProtocolError for a message that cannot be
+    encoded or is too large, ValueError for a bad id.
     """
     group = vehicle_group(vehicle_id)
     event: dict[str, Any] = {
         "type": "agent.send",
-        "text": encode_message(message, channel="uplink_to_agent"),
+        "text": encode_message(message),
         "conn": message.conn or None,
         "reply": reply_to if isinstance(message, RelayToAgent) else None,
     }
