@@ -22,7 +22,6 @@ from agents.protocol import (
     PROTOCOL_VERSION,
     Limits,
     ProtocolError,
-    UserGrant,
     VehicleTask,
     encode_message,
     error_message,
@@ -39,51 +38,15 @@ from agents.protocol.messages import (
     message_to_dict,
     message_type,
 )
+from tests.agents.test_documents import (
+    NOW,
+    PRIVATE_PEM,
+    PUBLIC_PEM,
+    make_grant,
+    make_task,
+)
 
-NOW = 1_700_000_000.0
-
-PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
-PRIVATE = load_private_key(PRIVATE_PEM)
-PUBLIC = load_public_key(PUBLIC_PEM)
-OTHER_PRIVATE = load_private_key(generate_keypair()[0])
-
-
-def make_task(**overrides: Any) -> VehicleTask:
-    values: dict[str, Any] = {
-        "session_id": "s-1",
-        "vehicle_id": "car-7",
-        "user": "alice",
-        "allowed_commands": ("drive", "stop"),
-        "limits": Limits(
-            max_speed_mps=3.0,
-            geofence_center=(43.7, 7.25),
-            geofence_radius_m=200.0,
-            link_loss_timeout_ms=800,
-            failsafe_action="stop",
-            latency_soft_ms=150,
-            latency_hard_ms=400,
-            session_time_limit_s=600,
-        ),
-        "issued_at": NOW,
-        "expires_at": NOW + 60,
-        "mission": {"waypoints": [[43.7, 7.25, 10], [43.71, 7.26, 10]]},
-    }
-    values.update(overrides)
-    return VehicleTask(**values)
-
-
-def make_grant(**overrides: Any) -> UserGrant:
-    values: dict[str, Any] = {
-        "session_id": "s-1",
-        "vehicle_id": "car-7",
-        "user": "alice",
-        "role": "controller",
-        "allowed_commands": ("drive", "stop"),
-        "issued_at": NOW,
-        "expires_at": NOW + 60,
-    }
-    values.update(overrides)
-    return UserGrant(**values)
+# The documents these tests sign, and the keys, are test_documents' own.
 
 
 # ---------------------------------------------------------------------------------------
