@@ -26,8 +26,9 @@ the platform's code. What is light is the load:
 
 Phases (the report names them):
 
-1. one daphne process behind :mod:`benchmarks.front_proxy`; CPU and memory idle, then
-   with N agents connected and heartbeating (and whether all N are online in the DB);
+1. one daphne process behind nginx (:mod:`benchmarks.nginx_proxy`); CPU and memory
+   idle, then with N agents connected and heartbeating (and whether all N are online in
+   the DB);
 2. assignment + deployment throughput under that load, with a relayed control session
    running beside it (command round trips through the platform);
 3. link loss to safe action, with the N agents still connected: a controller goes
@@ -88,7 +89,7 @@ from agents.protocol.messages import (
     TaskRefused,
 )
 from agents.uplink import Uplink
-from benchmarks.front_proxy import raise_open_files_limit
+from benchmarks.nginx_proxy import Backend, NginxProxy, Routes, Rule, raise_open_files_limit
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATABASE_URL = "postgres://postgres@127.0.0.1:5432/iouv_bench_scale"
@@ -639,21 +640,22 @@ async def daphne_start(name: str, *, env: dict[str, str], logs: Path) -> Child:
 async def proxy_start(
     *, port: int, routes: dict[str, int], default: int, env: dict[str, str], logs: Path, tag: str
 ) -> Child:
-    """Start :mod:`benchmarks.front_proxy` on ``port``; ``routes`` maps path prefixes
-    to backend ports."""
-    args = [sys.executable, "-m", "benchmarks.front_proxy", "--listen", f"127.0.0.1:{port}"]
-    for prefix, backend in routes.items():
-        args += ["--route", f"{prefix}=127.0.0.1:{backend}"]
-    args += ["--default", f"127.0.0.1:{default}"]
-    with _open_log(logs / f"proxy-{tag}.log") as log_file:
-        proc = await asyncio.create_subprocess_exec(
-            *args, cwd=ROOT, env=env, stdout=asyncio.subprocess.PIPE, stderr=log_file
-        )
-    assert proc.stdout is not None
-    line = await asyncio.wait_for(proc.stdout.readline(), 30)
-    if not line.startswith(b"listening on"):
-        raise RuntimeError(f"the front proxy did not start: {line!r}")
-    return Child("front proxy", proc, port)
+    """Start nginx (:mod:`benchmarks.nginx_proxy`) on ``port``; ``routes`` maps path
+    prefixes to backend ports. Its configuration, pid and access log stay in
+    ``logs/nginx-{tag}/``, its error log is ``logs/proxy-{tag}.log``; ``env`` is unused
+    (nginx needs none of the platform's settings)."""
+    proxy = NginxProxy(
+        Routes(
+            default=Backend("127.0.0.1", default),
+            rules=[Rule(prefix, Backend("127.0.0.1", p)) for prefix, p in routes.items()],
+        ),
+        port=port,
+        prefix=logs / f"nginx-{tag}",
+        log=logs / f"proxy-{tag}.log",
+    )
+    await proxy.start()
+    assert proxy.process is not None
+    return Child("front proxy", proxy.process, port)
 
 
 @dataclass
@@ -2133,8 +2135,9 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     add("car adapter on gpiozero mock pins with its simulated world). **Light**: the light")
     add("agents have no adapter and no video; they verify and accept tasks, and heartbeat.")
     add("**Not running**: the Celery worker and beat (periodic sweeps and supervision timers),")
-    add("which take no part in what is measured. All traffic went through")
-    add("`benchmarks.front_proxy` in both topologies, so both have the same path.")
+    add("which take no part in what is measured. All traffic went through nginx (Debian's")
+    add("package in one process, configured by `benchmarks.nginx_proxy`) in both topologies,")
+    add("so both have the same path.")
     add("")
 
     add(f"## 1. {p.agents} agents on uplinks")
@@ -2306,7 +2309,7 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     add("## 4. One platform process against two")
     add("")
     add(
-        "Two daphne processes behind `benchmarks.front_proxy` on one address, sharing "
+        "Two daphne processes behind nginx (`benchmarks.nginx_proxy`) on one address, sharing "
         "PostgreSQL and Redis: `/ws/agent/` to process 1, everything else (API, relay) to "
         "process 2. The agents reconnected through the restarted proxy by themselves (backoff "
         "with jitter). Assignment on process 2, deployment to agents held by process 1, the "

@@ -1,144 +1,293 @@
-"""benchmarks.scale in quick mode, end to end, and the front proxy it runs the platform
-behind.
+"""benchmarks.scale in quick mode, end to end, and the nginx front proxy it runs the
+platform behind (benchmarks.nginx_proxy).
 
-The end-to-end test runs the real platform (two daphne processes on the test database,
-the Redis channel layer), light agents in a worker process, two simulated cars and the
-API clients, then checks that every output exists and is well formed. It asserts
-nothing about timing: the machine may be busy.
+The proxy tests start a real nginx (Debian's, installed if missing; skipped with the
+reason when it cannot be) in front of real backends on loopback. The end-to-end test
+runs the real platform (two daphne processes on the test database, the Redis channel
+layer), light agents in a worker process, two simulated cars and the API clients, then
+checks that every output exists and is well formed. It asserts nothing about timing:
+the machine may be busy.
 """
 
 from __future__ import annotations
 
 import asyncio
 import csv
+import http.client
 import json
 import math
-import socket
-import struct
+from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from django.conf import settings
+from websockets.asyncio.client import connect
+from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.datastructures import Headers
+from websockets.exceptions import ConnectionClosed
+from websockets.http11 import Request, Response
 
 from benchmarks import scale
-from benchmarks.front_proxy import Backend, FrontProxy, Routes, Rule, request_path
+from benchmarks.nginx_proxy import (
+    CLIENT_MAX_BODY_BYTES,
+    AccessEntry,
+    Backend,
+    NginxProxy,
+    NginxUnavailable,
+    Routes,
+    Rule,
+    config_check,
+    nginx_binary,
+)
+from services.api_schemas import MAX_BODY_BYTES
+
+
+@pytest.fixture(scope="module")
+def nginx() -> Path:
+    try:
+        return nginx_binary()
+    except NginxUnavailable as exc:
+        pytest.skip(f"needs nginx: {exc}")
+
 
 # --------------------------------------------------------------------------------------
 # The front proxy
 # --------------------------------------------------------------------------------------
 
 
-def test_routes_pick_the_longest_matching_prefix_else_the_default() -> None:
-    agents, relay = Backend("127.0.0.1", 8001), Backend("127.0.0.1", 8003)
-    users = Backend("127.0.0.1", 8002)
-    routes = Routes(default=users, rules=[Rule("/ws/", relay), Rule("/ws/agent/", agents)])
-    assert routes.backend_for("/ws/agent/") == agents
-    assert routes.backend_for("/ws/agent/?v=1") == agents
-    assert routes.backend_for("/ws/relay/abc/") == relay
-    assert routes.backend_for("/api/v1/sessions") == users
-    assert routes.backend_for("/") == users
-    assert Routes(default=users).backend_for("/ws/agent/") == users
+def _seen(name: str, path: str, headers: Headers) -> dict[str, Any]:
+    """What a backend reports about a request it got."""
+    return {
+        "backend": name,
+        "path": path,
+        "host": headers.get("Host"),
+        "forwarded_for": headers.get("X-Forwarded-For"),
+        "forwarded_proto": headers.get("X-Forwarded-Proto"),
+    }
 
 
-def test_request_lines_and_cli_texts_are_parsed_strictly() -> None:
-    assert request_path(b"GET /ws/agent/ HTTP/1.1\r\n") == "/ws/agent/"
-    assert request_path(b"POST /api/v1/sessions?x=1 HTTP/1.0\r\n") == "/api/v1/sessions?x=1"
-    assert request_path(b"\x16\x03\x01 garbage\r\n") is None
-    assert request_path(b"GET /\r\n") is None
+class EchoBackend:
+    """A WebSocket server that answers a plain GET with what it saw (JSON) and, on a
+    WebSocket, first sends what it saw, then echoes each message prefixed with its
+    name; :attr:`close_codes` holds how each WebSocket ended, as the server saw it."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.close_codes: asyncio.Queue[int] = asyncio.Queue()
+        self.server: Server | None = None
+
+    @property
+    def backend(self) -> Backend:
+        assert self.server is not None
+        return Backend("127.0.0.1", self.server.sockets[0].getsockname()[1])
+
+    def _plain(self, connection: ServerConnection, request: Request) -> Response | None:
+        if request.headers.get("Upgrade"):
+            return None  # the WebSocket handshake goes on
+        return connection.respond(200, json.dumps(_seen(self.name, request.path, request.headers)))
+
+    async def _handle(self, ws: ServerConnection) -> None:
+        assert ws.request is not None
+        await ws.send(json.dumps(_seen(self.name, ws.request.path, ws.request.headers)))
+        try:
+            async for message in ws:
+                assert isinstance(message, str)
+                await ws.send(f"{self.name}:{message}")
+        except ConnectionClosed:
+            pass
+        # 1006 (abnormal closure) when the connection ended without a close frame.
+        await self.close_codes.put(ws.close_code or 0)
+
+    async def __aenter__(self) -> EchoBackend:
+        self.server = await serve(self._handle, "127.0.0.1", 0, process_request=self._plain)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        assert self.server is not None
+        self.server.close()
+        await self.server.wait_closed()
+
+
+def _request(port: int, method: str, path: str, body: bytes | None = None) -> tuple[int, bytes]:
+    connection = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    try:
+        connection.request(method, path, body=body)
+        response = connection.getresponse()
+        return response.status, response.read()
+    finally:
+        connection.close()
+
+
+async def _get(port: int, path: str) -> tuple[int, bytes]:
+    return await asyncio.to_thread(_request, port, "GET", path)
+
+
+@pytest.fixture
+async def backends(nginx: Path) -> AsyncIterator[dict[str, EchoBackend]]:
+    async with (
+        EchoBackend("agents") as agents,
+        EchoBackend("relay") as relay,
+        EchoBackend("users") as users,
+    ):
+        yield {"agents": agents, "relay": relay, "users": users}
+
+
+async def test_nginx_routes_by_the_longest_prefix_and_carries_websockets(
+    backends: dict[str, EchoBackend],
+) -> None:
+    by_address = {b.backend: name for name, b in backends.items()}
+    routes = Routes(
+        default=backends["users"].backend,
+        rules=[
+            Rule("/ws/", backends["relay"].backend),
+            Rule("/ws/agent/", backends["agents"].backend),
+        ],
+    )
+    async with NginxProxy(routes) as proxy:
+        front = f"127.0.0.1:{proxy.port}"
+        sockets = {
+            "/ws/agent/": "agents",
+            "/ws/agent/?v=1": "agents",
+            "/ws/relay/abc/": "relay",
+            "/ws/agents/": "relay",  # not under /ws/agent/, but under /ws/
+        }
+        for path, expected in sockets.items():
+            assert by_address[routes.backend_for(path)] == expected
+            async with connect(f"ws://{front}{path}", proxy=None) as ws:
+                seen = json.loads(await ws.recv())
+                assert seen == {
+                    "backend": expected,
+                    "path": path,
+                    "host": front,  # daphne builds URLs from it
+                    "forwarded_for": "127.0.0.1",
+                    "forwarded_proto": "http",
+                }
+                await ws.send("ping")
+                assert await ws.recv() == f"{expected}:ping"
+            # A polite close reaches the backend as one.
+            assert await asyncio.wait_for(backends[expected].close_codes.get(), 10) == 1000
+
+        for path in ("/api/v1/sessions?x=1", "/"):
+            status, body = await _get(proxy.port, path)
+            assert status == 200
+            assert json.loads(body)["backend"] == "users"
+            assert json.loads(body)["path"] == path
+        # nginx's own rule for a prefix ending in "/": the bare name is redirected to it.
+        assert (await _get(proxy.port, "/ws/agent"))[0] == 301
+
+        # nginx logs a WebSocket once it has ended; all of the above have.
+        assert proxy.requests() == [
+            *(AccessEntry("GET", path, 101, str(routes.backend_for(path))) for path in sockets),
+            AccessEntry("GET", "/api/v1/sessions?x=1", 200, str(backends["users"].backend)),
+            AccessEntry("GET", "/", 200, str(backends["users"].backend)),
+            AccessEntry("GET", "/ws/agent", 301, "-"),
+        ]
+
+
+async def test_a_client_that_vanishes_looks_dead_to_the_backend(
+    backends: dict[str, EchoBackend],
+) -> None:
+    """A browser whose socket dies without a close frame must look dead to the
+    platform too (code 1006, no close frame), not like a user who left."""
+    relay = backends["relay"]
+    async with NginxProxy(Routes(default=relay.backend)) as proxy:
+        ws = await connect(f"ws://127.0.0.1:{proxy.port}/ws/relay/x/", proxy=None)
+        await ws.recv()
+        ws.transport.abort()
+        assert await asyncio.wait_for(relay.close_codes.get(), 10) == 1006
+
+
+async def _http_server(handle: Any) -> tuple[asyncio.Server, Backend]:
+    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    return server, Backend("127.0.0.1", server.sockets[0].getsockname()[1])
+
+
+async def test_bodies_the_platform_accepts_or_answers_itself_pass_larger_ones_get_413(
+    nginx: Path,
+) -> None:
+    # nginx admits every body the platform accepts (the admin's forms: Django's limit)
+    # and the API's oversized ones, which the platform refuses in its own words.
+    assert CLIENT_MAX_BODY_BYTES >= settings.DATA_UPLOAD_MAX_MEMORY_SIZE > MAX_BODY_BYTES
+
+    async def body_length(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        head = (await reader.readuntil(b"\r\n\r\n")).decode().lower()
+        length = int(head.partition("content-length:")[2].split()[0])
+        answer = str(len(await reader.readexactly(length))).encode()
+        writer.write(b"HTTP/1.1 200 OK\r\nContent-Length: %d\r\n\r\n%s" % (len(answer), answer))
+        await writer.drain()
+        writer.close()
+
+    server, backend = await _http_server(body_length)
+    async with server, NginxProxy(Routes(default=backend)) as proxy:
+        for size in (MAX_BODY_BYTES + 1, CLIENT_MAX_BODY_BYTES):
+            # Bodies this large go through nginx's temporary files, under its prefix.
+            status, body = await asyncio.to_thread(
+                _request, proxy.port, "POST", "/api/v1/sessions", b"x" * size
+            )
+            assert (status, body) == (200, str(size).encode())
+        # One byte more is refused on the announced length alone, before any body.
+        reader, writer = await asyncio.open_connection("127.0.0.1", proxy.port)
+        writer.write(
+            b"POST /api/v1/sessions HTTP/1.1\r\nHost: x\r\nContent-Length: %d\r\n\r\n"
+            % (CLIENT_MAX_BODY_BYTES + 1)
+        )
+        assert (await asyncio.wait_for(reader.readline(), 10)).startswith(b"HTTP/1.1 413")
+        writer.close()
+
+
+async def test_an_unreachable_backend_gets_502_and_nginx_leaves_nothing_behind(
+    nginx: Path,
+) -> None:
+    proxy = NginxProxy(Routes(default=Backend("127.0.0.1", scale.free_port())))
+    async with proxy:
+        assert (await _get(proxy.port, "/api/v1/vehicles"))[0] == 502
+        assert proxy.process is not None and proxy.process.returncode is None
+    assert proxy.process.returncode is not None
+    assert not proxy.prefix.exists()
+    with pytest.raises(OSError):
+        await asyncio.open_connection("127.0.0.1", proxy.port)
+
+
+async def test_a_port_taken_by_another_program_fails_the_start_with_nginx_s_words(
+    nginx: Path,
+) -> None:
+    """Something else accepting on the port is not taken for nginx being ready."""
+    other, other_at = await _http_server(lambda reader, writer: writer.close())
+    async with other:
+        proxy = NginxProxy(Routes(default=other_at), port=other_at.port)
+        with pytest.raises(RuntimeError, match="Address already in use"):
+            async with proxy:
+                pass
+    assert proxy.process is not None and proxy.process.returncode is not None
+    assert not proxy.prefix.exists()
+
+
+def test_the_generated_configuration_passes_nginx_t(nginx: Path, tmp_path: Path) -> None:
+    routes = Routes(
+        default=Backend("127.0.0.1", 8002),
+        rules=[Rule("/ws/agent/", Backend("127.0.0.1", 8001)), Rule("/ws/", Backend("::1", 8003))],
+    )
+    NginxProxy(routes, port=8000, prefix=tmp_path).write_config()
+    assert "test is successful" in config_check(tmp_path, nginx)
+
+
+def test_addresses_and_rules_are_parsed_strictly() -> None:
     assert Rule.parse("/ws/agent/=127.0.0.1:8001") == Rule("/ws/agent/", Backend("127.0.0.1", 8001))
     assert Backend.parse("[::1]:8000") == Backend("::1", 8000)
+    assert str(Backend("::1", 8000)) == "[::1]:8000"
     assert Backend.parse("127.0.0.1:0", any_port=True).port == 0
     for bad in ("127.0.0.1", "127.0.0.1:0", "127.0.0.1:http", ":80"):
         with pytest.raises(ValueError):
             Backend.parse(bad)
-    for bad in ("ws/agent/=127.0.0.1:1", "/ws/agent/"):
+    # A prefix is written into nginx.conf: nothing that could end a directive.
+    for bad in ("ws/agent/=127.0.0.1:1", "/ws/agent/", "/ws/;x=127.0.0.1:1", "/a b=127.0.0.1:1"):
         with pytest.raises(ValueError):
             Rule.parse(bad)
-
-
-async def _backend(name: bytes) -> tuple[asyncio.Server, int, list[bytes]]:
-    """A server that answers each connection with ``name`` and then echoes it back;
-    the first bytes of each connection it got are kept in the list."""
-    seen: list[bytes] = []
-
-    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        first = await reader.readuntil(b"\r\n\r\n")
-        seen.append(first)
-        writer.write(name + b"|")
-        while data := await reader.read(1024):
-            writer.write(data)
-            await writer.drain()
-        writer.close()
-
-    server = await asyncio.start_server(handle, "127.0.0.1", 0)
-    return server, server.sockets[0].getsockname()[1], seen
-
-
-async def _exchange(port: int, request: bytes, then: bytes) -> bytes:
-    reader, writer = await asyncio.open_connection("127.0.0.1", port)
-    writer.write(request + then)
-    await writer.drain()
-    writer.write_eof()
-    answer = await asyncio.wait_for(reader.read(), 5)
-    writer.close()
-    return answer
-
-
-async def test_connections_are_routed_by_their_first_path_and_piped_both_ways() -> None:
-    agents_server, agents_port, agents_seen = await _backend(b"agents")
-    users_server, users_port, users_seen = await _backend(b"users")
-    routes = Routes(
-        default=Backend("127.0.0.1", users_port),
-        rules=[Rule("/ws/agent/", Backend("127.0.0.1", agents_port))],
-    )
-    async with agents_server, users_server, FrontProxy(routes) as proxy:
-        upgrade = b"GET /ws/agent/ HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\n\r\n"
-        assert await _exchange(proxy.port, upgrade, b"frames") == b"agents|frames"
-        api = b"POST /api/v1/sessions HTTP/1.1\r\nHost: x\r\n\r\n"
-        assert await _exchange(proxy.port, api, b"{}") == b"users|{}"
-        # Bytes reach the backend untouched, the request line included.
-        assert agents_seen == [upgrade]
-        assert users_seen == [api]
-        assert routes.counts == {f"127.0.0.1:{agents_port}": 1, f"127.0.0.1:{users_port}": 1}
-
-
-async def test_garbage_gets_400_and_an_unreachable_backend_502() -> None:
-    dead = scale.free_port()
-    async with FrontProxy(Routes(default=Backend("127.0.0.1", dead))) as proxy:
-        assert (await _exchange(proxy.port, b"\x16\x03\x01 hello\r\n", b"")).startswith(
-            b"HTTP/1.1 400"
-        )
-        assert (await _exchange(proxy.port, b"GET / HTTP/1.1\r\n\r\n", b"")).startswith(
-            b"HTTP/1.1 502"
-        )
-
-
-async def test_a_client_reset_is_passed_on_as_a_reset() -> None:
-    """A browser that dies must look dead to the platform too, not like a clean close."""
-    ended = asyncio.get_running_loop().create_future()
-
-    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        await reader.readuntil(b"\r\n\r\n")
-        writer.write(b"ok")
-        try:
-            while await reader.read(1024):
-                pass
-            ended.set_result("eof")
-        except ConnectionResetError:
-            ended.set_result("reset")
-        writer.close()
-
-    server = await asyncio.start_server(handle, "127.0.0.1", 0)
-    port = server.sockets[0].getsockname()[1]
-    async with server, FrontProxy(Routes(default=Backend("127.0.0.1", port))) as proxy:
-        reader, writer = await asyncio.open_connection("127.0.0.1", proxy.port)
-        writer.write(b"GET /ws/relay/x/ HTTP/1.1\r\n\r\n")
-        assert await asyncio.wait_for(reader.readexactly(2), 5) == b"ok"
-        # A zero linger time makes the kernel reset the connection instead of a FIN.
-        sock = writer.get_extra_info("socket")
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
-        writer.transport.abort()
-        assert await asyncio.wait_for(ended, 5) == "reset"
+    users = Backend("127.0.0.1", 8002)
+    for rules in ([Rule("/", users)], [Rule("/ws/", users), Rule("/ws/", users)]):
+        with pytest.raises(ValueError):
+            Routes(default=users, rules=rules)
 
 
 # --------------------------------------------------------------------------------------
@@ -172,7 +321,7 @@ def _number(text: str) -> float:
 @pytest.mark.postgres
 @pytest.mark.redis
 @pytest.mark.django_db(transaction=True)
-def test_quick_mode_writes_every_output(tmp_path: Path) -> None:
+def test_quick_mode_writes_every_output(nginx: Path, tmp_path: Path) -> None:
     params = scale.Params.quick_mode(agents=20)
     scale.run(params, out=tmp_path, command="pytest quick mode", database_url=_database_url())
 
