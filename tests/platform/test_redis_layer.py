@@ -7,6 +7,7 @@ import os
 import uuid
 
 import pytest
+from channels.exceptions import ChannelFull
 from channels_redis.core import RedisChannelLayer
 from redis.exceptions import MaxConnectionsError
 
@@ -67,3 +68,44 @@ async def test_channels_redis_own_pool_fails_the_same_burst() -> None:
         cleaner = _layer(WaitingRedisChannelLayer, prefix)
         await cleaner.flush()
         await cleaner.close_pools()
+
+
+@pytest.mark.asyncio
+async def test_a_send_to_a_channel_is_one_round_trip_and_keeps_the_layers_rules() -> None:
+    """Sends to process-local and general channels arrive in order; a full channel
+    refuses (ChannelFull) without storing; expired messages are dropped."""
+    prefix = f"test-{uuid.uuid4().hex[:8]}"
+    layer = WaitingRedisChannelLayer(
+        hosts=[{"address": REDIS_URL}], prefix=prefix, capacity=3, expiry=60
+    )
+    calls: list[str] = []
+    try:
+        local = await layer.new_channel()
+        connection = layer.connection(layer.consistent_hash(local))
+        real_execute = connection.execute_command
+
+        async def counted(*args: object, **options: object) -> object:
+            calls.append(str(args[0]))
+            return await real_execute(*args, **options)
+
+        connection.execute_command = counted
+        for n in range(3):
+            await layer.send(local, {"type": "relay.from_agent", "n": n})
+        assert calls == ["EVAL"] * 3  # one command each, not four
+        with pytest.raises(ChannelFull):
+            await layer.send(local, {"type": "relay.from_agent", "n": 3})
+        got = [await asyncio.wait_for(layer.receive(local), 5) for _ in range(3)]
+        assert [m["n"] for m in got] == [0, 1, 2]
+        assert all(m["type"] == "relay.from_agent" for m in got)
+
+        await layer.send("general", {"type": "x", "n": 9})
+        assert (await asyncio.wait_for(layer.receive("general"), 5))["n"] == 9
+
+        # A message older than the expiry is dropped by the next send to its channel.
+        key = prefix + layer.non_local_name(local)
+        await connection.zadd(key, {b"stale": 1.0})
+        await layer.send(local, {"type": "y", "n": 10})
+        assert await connection.zcount(key, "-inf", "+inf") == 1
+    finally:
+        await layer.flush()
+        await layer.close_pools()
