@@ -115,9 +115,6 @@ _T = TypeVar("_T")
 # True while msgspec builds a struct from values it has checked (see _Checked).
 _CONVERTING: Final[ContextVar[bool]] = ContextVar("iouv_documents_converting", default=False)
 
-# msgspec's refusal of an undeclared field, which messages (ignoring those) never meet.
-_UNKNOWN: Final = re.compile(r"^Object contains unknown field `(.*?)`(?= - at `\$[^`]*`$|$)", re.S)
-
 
 def _convert(data: Any, type_: type[_T]) -> _T:
     """``data`` checked by msgspec and converted to ``type_``.
@@ -129,9 +126,7 @@ def _convert(data: Any, type_: type[_T]) -> _T:
     try:
         return msgspec.convert(data, type_)
     except msgspec.ValidationError as exc:
-        # Marked as a refusal of that field, in the form the translation reads.
-        text = _UNKNOWN.sub(r"<\1> is not known", str(exc))
-        raise _protocol_error(msgspec.ValidationError(text)) from None
+        raise _protocol_error(exc) from None
     finally:
         _CONVERTING.reset(token)
 

@@ -467,6 +467,8 @@ _ENCODER: Final = msgspec.json.Encoder()
 _WHERE = re.compile(r"^(?P<problem>.*?)(?: - at (?:`key` in )?`\$(?P<path>[^`]*)`)?$", re.S)
 _MISSING = re.compile(r"^Object missing required field `(?P<name>[^`]*)`$")
 _MARKED = re.compile(r"^<(?P<path>[^>]*)> (?P<problem>.*)$", re.S)
+# Only structs that refuse unknown fields meet it (the signed documents); messages ignore them.
+_UNKNOWN = re.compile(r"^Object contains unknown field `(?P<name>.*)`$", re.S)
 
 
 def _join(outer: str, inner: str) -> str:
@@ -479,12 +481,15 @@ def _join(outer: str, inner: str) -> str:
 
 def _split(text: str) -> tuple[str, str]:
     """msgspec's ``"problem - at `$.a.b`"`` -> ``("a.b", "problem")``, folding in the
-    field a missing-field error names and the path a :func:`_invalid` refusal carries."""
+    field a missing or unknown field error names and the path a :func:`_invalid`
+    refusal carries."""
     where = _WHERE.match(text)
     assert where is not None  # the pattern matches any text
     problem, path = where["problem"], (where["path"] or "").removeprefix(".")
     if missing := _MISSING.match(problem):
         return _join(path, missing["name"]), "is missing"
+    if unknown := _UNKNOWN.match(problem):
+        return _join(path, unknown["name"]), "is not known"
     if marked := _MARKED.match(problem):
         return _join(path, marked["path"]), marked["problem"]
     return path, problem
