@@ -79,6 +79,14 @@ async def _uplink(vehicle_id: str, credential: str) -> WebsocketCommunicator:
     return comm
 
 
+async def _browser(session_id: str) -> WebsocketCommunicator:
+    """A browser's socket on the session's relay (not yet authenticated)."""
+    browser = WebsocketCommunicator(application, f"/ws/relay/{session_id}/")
+    connected, _ = await browser.connect()
+    assert connected
+    return browser
+
+
 async def _relayed(agent: WebsocketCommunicator) -> dict[str, Any]:
     """The next relayed frame the agent receives (what else the platform owes it, its
     task, is skipped and acknowledged)."""
@@ -134,9 +142,7 @@ async def _command(browser: WebsocketCommunicator, agent: WebsocketCommunicator,
 async def test_relayed_commands_go_channel_to_channel_and_survive_an_uplink_reconnect() -> None:
     vehicle_id, credential, session_id, grant = await _relayed_session()
     agent = await _uplink(vehicle_id, credential)
-    browser = WebsocketCommunicator(application, f"/ws/relay/{session_id}/")
-    connected, _ = await browser.connect()
-    assert connected
+    browser = await _browser(session_id)
     try:
         # The grant first: the relay checks it, then the agent does (it answers).
         await browser.send_json_to({"type": "auth", "grant": grant})
@@ -149,8 +155,8 @@ async def test_relayed_commands_go_channel_to_channel_and_survive_an_uplink_reco
         with _group_sends() as sends:
             for seq in range(1, 6):
                 await _command(browser, agent, seq)
-        relayed = {"agent.send", "relay.from_agent"}
-        assert not [(g, kind) for g, kind in sends if kind in relayed], sends
+        relay_kinds = {"agent.send", "relay.from_agent"}
+        assert not [(g, kind) for g, kind in sends if kind in relay_kinds], sends
 
         # The agent's uplink drops and comes back: the browser's next command finds it.
         await agent.disconnect()
@@ -167,9 +173,7 @@ async def test_a_relay_that_never_heard_the_agent_still_reaches_it() -> None:
     and a bad frame is refused by the relay itself without reaching the agent."""
     vehicle_id, credential, session_id, grant = await _relayed_session()
     agent = await _uplink(vehicle_id, credential)
-    browser = WebsocketCommunicator(application, f"/ws/relay/{session_id}/")
-    connected, _ = await browser.connect()
-    assert connected
+    browser = await _browser(session_id)
     try:
         await browser.send_json_to({"type": "auth", "grant": grant})
         await _relayed(agent)
