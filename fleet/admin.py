@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import uuid
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Any
 
 from django.contrib import admin, messages
@@ -15,6 +16,7 @@ from django.utils.html import format_html
 
 from fleet.credentials import vehicle_issue_credential
 from fleet.forms import VehicleAdminForm, VehicleTypeAdminForm, json_pretty
+from fleet.liveness import Live, vehicles_live
 from fleet.models import Station, Vehicle, VehicleType
 from fleet.status import FleetError, vehicle_set_maintenance
 
@@ -89,7 +91,7 @@ class VehicleAdmin(UUIDSearchMixin, admin.ModelAdmin[Vehicle]):
         "status",
         "maintenance",
         "battery_level",
-        "last_seen",
+        "last_heard",
     )
     list_filter = ("station", "vehicle_type", "status", "maintenance")
     list_select_related = ("vehicle_type", "station")
@@ -104,7 +106,7 @@ class VehicleAdmin(UUIDSearchMixin, admin.ModelAdmin[Vehicle]):
         "maintenance",
         "battery_level",
         "position",
-        "last_seen",
+        "last_heard",
         "control_url",
         "reported_profile",
     )
@@ -119,7 +121,7 @@ class VehicleAdmin(UUIDSearchMixin, admin.ModelAdmin[Vehicle]):
                     "maintenance",
                     "battery_level",
                     "position",
-                    "last_seen",
+                    "last_heard",
                     "control_url",
                     "reported_profile",
                 )
@@ -127,17 +129,34 @@ class VehicleAdmin(UUIDSearchMixin, admin.ModelAdmin[Vehicle]):
         ),
     )
 
+    # The live fields show what the agent last reported (fleet.liveness): the row is
+    # written only when the vehicle's state changes.
+
+    def _live(self, vehicle: Vehicle) -> Live | None:
+        if not hasattr(vehicle, "_admin_live"):
+            vehicle._admin_live = vehicles_live([vehicle.pk]).get(str(vehicle.pk))  # type: ignore[attr-defined]
+        return vehicle._admin_live  # type: ignore[attr-defined,no-any-return]
+
     @admin.display(description="battery", ordering="battery")
     def battery_level(self, vehicle: Vehicle) -> str:
+        live = self._live(vehicle)
+        battery = live.battery if live is not None else vehicle.battery
         # Agents report a float (99.59783016905): a person reads whole percents.
-        return "\u2013" if vehicle.battery is None else f"{vehicle.battery:.0f} %"
+        return "\u2013" if battery is None else f"{battery:.0f} %"
 
     @admin.display(description="position")
     def position(self, obj: Vehicle) -> str:
-        if obj.lat is None or obj.lon is None:
+        live = self._live(obj)
+        lat, lon, alt = (live.lat, live.lon, live.alt) if live else (obj.lat, obj.lon, obj.alt)
+        if lat is None or lon is None:
             return "not reported (at its station)"
-        alt = f", {obj.alt:g} m" if obj.alt is not None else ""
-        return f"{obj.lat:.6f}, {obj.lon:.6f}{alt}"
+        height = f", {alt:g} m" if alt is not None else ""
+        return f"{lat:.6f}, {lon:.6f}{height}"
+
+    @admin.display(description="last heard", ordering="last_seen")
+    def last_heard(self, obj: Vehicle) -> datetime | None:
+        live = self._live(obj)
+        return live.seen_at if live is not None else obj.last_seen
 
     @admin.display(description="profile")
     def reported_profile(self, obj: Vehicle) -> str:

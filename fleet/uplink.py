@@ -48,6 +48,7 @@ from django.dispatch import Signal
 from django.utils import timezone
 from msgspec import UNSET, UnsetType
 
+from agents.geo import distance_m
 from agents.protocol import (
     PROTOCOL_VERSION,
     ProtocolError,
@@ -74,6 +75,7 @@ from agents.protocol.messages import (
 from agents.protocol.messages import Heartbeat as HeartbeatMessage
 from fleet.credentials import vehicle_authenticate
 from fleet.feed import fleet_notify
+from fleet.liveness import Live, in_redis, liveness_writer
 from fleet.models import Vehicle
 from fleet.outbox import (
     agent_message_ack,
@@ -394,6 +396,46 @@ def vehicle_record_heartbeats(beats: Sequence[HeartbeatReport]) -> list[str]:
     return written
 
 
+def _live_after(previous: Live | None, msg: HeartbeatMessage | Profile, now: datetime) -> Live:
+    """What the agent has said by ``now``: ``msg`` over ``previous`` (a field ``msg``
+    leaves out keeps its value; ``null`` means not known)."""
+    battery = previous.battery if previous is not None else None
+    lat, lon, alt = (previous.lat, previous.lon, previous.alt) if previous else (None, None, None)
+    if msg.battery is not UNSET:
+        battery = msg.battery
+    position = msg.position
+    if position is None:
+        lat = lon = alt = None
+    elif position is not UNSET:
+        lat, lon = position.lat, position.lon
+        alt = float(position.alt) if position.alt is not None else None
+    return Live(now.timestamp(), battery, lat, lon, alt)
+
+
+def _row_outdated(stored: Live | None, live: Live) -> bool:
+    """True when the row's battery or position no longer says what the agent does: by
+    ``IOUV_LIVENESS_BATTERY_STEP_PCT`` or ``IOUV_LIVENESS_POSITION_STEP_M``, or a
+    reading gained or lost. Matching, workflows and pages read the row; finer news
+    lives in fleet.liveness."""
+    if stored is None:
+        return True
+    percent = float(settings.IOUV_LIVENESS_BATTERY_STEP_PCT)
+    metres = float(settings.IOUV_LIVENESS_POSITION_STEP_M)
+    if stored.battery is None or live.battery is None:
+        if stored.battery != live.battery:
+            return True
+    elif abs(live.battery - stored.battery) >= percent:
+        return True
+    if stored.position is None or live.position is None:
+        if stored.position != live.position:
+            return True
+    elif distance_m(stored.position, live.position) >= metres:
+        return True
+    if stored.alt is None or live.alt is None:
+        return stored.alt != live.alt
+    return abs(live.alt - stored.alt) >= metres
+
+
 def _reported_fields(beat: HeartbeatReport) -> dict[str, Any]:
     """The columns a heartbeat sets (those it carries, and last_seen)."""
     fields: dict[str, Any] = {"last_seen": beat.now}
@@ -531,23 +573,35 @@ def heartbeat_writer() -> HeartbeatWriter:
     return writer
 
 
-def vehicle_record_disconnect(*, vehicle_id: Any, last_seen: datetime | None) -> bool:
+def vehicle_record_disconnect(
+    *, vehicle_id: Any, last_seen: datetime | None, heard: datetime | None = None
+) -> bool:
     """Mark the vehicle offline (unless in maintenance) when its uplink closed.
 
-    ``last_seen`` is the last value this uplink wrote. If the stored one differs, a
-    newer uplink of the same vehicle has written since: the vehicle is not offline and
-    nothing changes. Returns True when this uplink was still the vehicle's.
+    ``last_seen`` is the last value this uplink wrote to the row. If the stored one
+    differs, a newer uplink of the same vehicle has written since: the vehicle is not
+    offline and nothing changes. ``heard``: when this uplink last heard from the agent
+    (its heartbeats went to fleet.liveness, not the row); stored as the row's
+    last_seen, which says how long an offline vehicle has been silent. Returns True
+    when this uplink was still the vehicle's.
     """
     with transaction.atomic():
         vehicle = Vehicle.objects.select_for_update().filter(pk=vehicle_id).first()
         if vehicle is None or vehicle.last_seen != last_seen:
             return False
+        fields = []
+        if heard is not None and (vehicle.last_seen is None or heard > vehicle.last_seen):
+            vehicle.last_seen = heard
+            fields.append("last_seen")
         if not vehicle.maintenance and vehicle.status not in (
             Vehicle.Status.OFFLINE,
             Vehicle.Status.MAINTENANCE,
         ):
             vehicle.status = Vehicle.Status.OFFLINE
-            vehicle.save(update_fields=["status"])
+            fields.append("status")
+        if fields:
+            vehicle.save(update_fields=fields)
+        if "status" in fields:
             fleet_notify([vehicle.pk])
     return True
 
@@ -609,10 +663,12 @@ def _acked(*, vehicle_id: str, ack: Ack) -> None:
         _signal_send(agent_acked, vehicle_id=vehicle_id, acked=acked)
 
 
-def _disconnected(*, vehicle_id: str, last_seen: datetime | None, code: int) -> None:
+def _disconnected(
+    *, vehicle_id: str, last_seen: datetime | None, heard: datetime | None, code: int
+) -> None:
     """A closed uplink's database work in one call: the vehicle is marked offline and
     the other apps told, if this uplink still was the vehicle's."""
-    if vehicle_record_disconnect(vehicle_id=vehicle_id, last_seen=last_seen):
+    if vehicle_record_disconnect(vehicle_id=vehicle_id, last_seen=last_seen, heard=heard):
         _signal_send(agent_disconnected, vehicle_id=vehicle_id, code=code)
 
 
@@ -647,6 +703,14 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         #: the agent's answers go straight there (see :func:`avehicle_send`).
         self._relays: dict[str, str] = {}
         self._last_seen: datetime | None = None  # the last last_seen this uplink wrote
+        self._heard: datetime | None = None  # when the agent was last heard from
+        # With liveness in Redis, heartbeats reach the row only on a state change:
+        # what the agent last reported, what the row was last given, the status the
+        # agent last reported, and whether the sweep marked the vehicle offline since.
+        self._live: Live | None = None
+        self._stored: Live | None = None
+        self._reported_status: str | None = None
+        self._row_stale = False
         self._next_heartbeat_write = 0.0
         self._bad_frames: deque[float] = deque()
         self._hello_timer: asyncio.Task[None] | None = None
@@ -708,7 +772,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             if self.vehicle_id is None or self._replaced:
                 return
             await _db(_disconnected)(
-                vehicle_id=self.vehicle_id, last_seen=self._last_seen, code=code
+                vehicle_id=self.vehicle_id, last_seen=self._last_seen, heard=self._heard, code=code
             )
         except Exception:
             log.exception("uplink %s: disconnect handling failed", self.vehicle_id)
@@ -856,7 +920,11 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         vehicle, welcome = admitted
         self.vehicle_id = str(vehicle.pk)
         self.credential_generation = vehicle.credential_generation
-        self._last_seen = now
+        self._last_seen = self._heard = now
+        self._live = self._stored = Live(
+            now.timestamp(), vehicle.battery, vehicle.lat, vehicle.lon, vehicle.alt
+        )
+        await self._write_live()
         self._group = vehicle_group(vehicle.pk)
         # A vehicle is one agent: tell an older uplink of this vehicle to go, before
         # joining the group so this one does not hear its own notice. (The older one
@@ -881,8 +949,11 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         # agent_connected receivers) in one transaction; only then does the outbox
         # deliver what the vehicle is owed on this uplink.
         await _db(vehicle_record_profile)(vehicle_id=self.vehicle_id, profile=msg, now=now)
-        self._last_seen = now
+        self._last_seen = self._heard = now
         self._registered = True
+        self._reported_status = _given(msg.status)
+        self._live = self._stored = _live_after(None, msg, now)
+        await self._write_live()
         if not self._closed:
             assert self.vehicle_id is not None
             outbox().register(self.vehicle_id, self)
@@ -913,10 +984,52 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self._next_heartbeat_write = mono + float(settings.IOUV_HEARTBEAT_INTERVAL_S) / 2
         now = timezone.now()
         assert self.vehicle_id is not None
-        # Awaited, so this agent's heartbeats are written in order and _last_seen is
-        # only what was committed (the disconnect compares it with the stored one).
-        await heartbeat_writer().write(HeartbeatReport(self.vehicle_id, msg, now, self._registered))
-        self._last_seen = now
+        live = self._live = _live_after(self._live, msg, now)
+        status = _given(msg.status)
+        if await self._write_live():
+            self._heard = now
+            changed = (
+                self._row_stale
+                or (status is not None and status != self._reported_status)
+                or _row_outdated(self._stored, live)
+            )
+            if not changed:
+                return
+            # The row gets all the agent has said since its last write, not only this
+            # heartbeat's fields (the ones before it went to Redis alone).
+            position = (
+                None
+                if live.lat is None or live.lon is None
+                else (Position(lat=live.lat, lon=live.lon, alt=live.alt))
+            )
+            msg = msgspec.structs.replace(msg, battery=live.battery, position=position)
+        # To the row: awaited, so this agent's heartbeats are written in order and
+        # _last_seen is only what was committed (the disconnect compares it with the
+        # stored one).
+        row_stale, self._row_stale = self._row_stale, False
+        try:
+            await heartbeat_writer().write(
+                HeartbeatReport(self.vehicle_id, msg, now, self._registered)
+            )
+        except BaseException:
+            self._row_stale = self._row_stale or row_stale
+            raise
+        self._last_seen = self._heard = now
+        self._stored = live
+        if status is not None:
+            self._reported_status = status
+
+    async def _write_live(self) -> bool:
+        """Put what the agent last reported in Redis (fleet.liveness); False when
+        liveness lives in the rows, or Redis failed (then the row is written)."""
+        if not in_redis() or self._live is None or self.vehicle_id is None:
+            return False
+        try:
+            await liveness_writer().write(self.vehicle_id, self._live)
+        except Exception as exc:
+            log.warning("uplink %s: liveness not written: %s", self.vehicle_id, exc)
+            return False
+        return True
 
     # -- messages from the platform (channel layer) -------------------------------------
 
@@ -942,6 +1055,19 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             await self.send(text_data=text)
         except Exception:
             log.exception("uplink %s: sending to the agent failed", self.vehicle_id)
+
+    async def uplink_marked_offline(self, event: dict[str, Any]) -> None:
+        """The sweep found this vehicle silent and marked its row offline (a half-open
+        socket that recovered, or a loaded platform): the next heartbeat goes to the
+        row, which brings the vehicle back. The row's last_seen is now the last time
+        this uplink heard the agent: still this uplink's, for its disconnect."""
+        self._row_stale = True
+        stored = event.get("last_seen")
+        if isinstance(stored, str) and self._heard is not None:
+            with contextlib.suppress(ValueError):
+                at = datetime.fromisoformat(stored)
+                if at <= self._heard:
+                    self._last_seen = at
 
     async def agent_outbox(self, event: dict[str, Any]) -> None:
         """Something was written for this vehicle (fleet.outbox): look now, not at the

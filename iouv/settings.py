@@ -278,6 +278,15 @@ IOUV_SIGNING_PREVIOUS_KEYS = env_secret("IOUV_SIGNING_PREVIOUS_KEYS")
 # A vehicle is offline when no heartbeat arrived for this long.
 IOUV_OFFLINE_AFTER_S = env_float("IOUV_OFFLINE_AFTER_S", 6.0)
 IOUV_HEARTBEAT_INTERVAL_S = env_float("IOUV_HEARTBEAT_INTERVAL_S", 2.0)
+# With Redis, heartbeats go to Redis (fleet.liveness) under this key prefix, and the
+# vehicle's row is written only when its state changes: a status, online or offline,
+# the battery by this many percentage points, the position by this many metres.
+IOUV_LIVENESS_PREFIX = env_str("IOUV_LIVENESS_PREFIX", env_str("CHANNELS_PREFIX", "iouv") + ":live")
+IOUV_LIVENESS_BATTERY_STEP_PCT = env_float("IOUV_LIVENESS_BATTERY_STEP_PCT", 1.0)
+IOUV_LIVENESS_POSITION_STEP_M = env_float("IOUV_LIVENESS_POSITION_STEP_M", 10.0)
+# How often a monitor's live fleet view is brought up to date with what the vehicles
+# last reported (last heard, battery, position), in seconds.
+IOUV_FLEET_FEED_LIVE_S = env_float("IOUV_FLEET_FEED_LIVE_S", 1.0)
 # How long a user grant stays valid; the platform issues a fresh one on reconnect.
 IOUV_GRANT_TTL_S = env_int("IOUV_GRANT_TTL_S", 300)
 # A vehicle task's delivery deadline (its ``exp``): the agent refuses it after this.

@@ -105,6 +105,8 @@ async def test_periodic_timers_run_again_after_a_redis_outage() -> None:
         before = await db(_silent_vehicle, "silent-before-the-outage")
         await until(lambda: db(_offline, before), within=30, what="the sweep before the outage")
 
+        # The sweep locks only the rows it found silent: give it one to lock.
+        during = await db(_silent_vehicle, "silent-during-the-outage")
         with vehicle_table_locked():
 
             async def sweep_alone_and_waiting() -> bool:
@@ -125,6 +127,7 @@ async def test_periodic_timers_run_again_after_a_redis_outage() -> None:
             await asyncio.sleep(OUTAGE_S)  # the outage itself, not a wait for a result
             broker.start()
 
+        await until(lambda: db(_offline, during), within=60, what="the sweep held up")
         after = await db(_silent_vehicle, "silent-after-the-outage")
         try:
             await until(lambda: db(_offline, after), within=60, what="a sweep after the outage")
