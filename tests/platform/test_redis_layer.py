@@ -102,10 +102,57 @@ async def test_a_send_to_a_channel_is_one_round_trip_and_keeps_the_layers_rules(
         assert (await asyncio.wait_for(layer.receive("general"), 5))["n"] == 9
 
         # A message older than the expiry is dropped by the next send to its channel.
-        key = prefix + layer.non_local_name(local)
+        key = prefix + "general"
         await connection.zadd(key, {b"stale": 1.0})
-        await layer.send(local, {"type": "y", "n": 10})
+        await layer.send("general", {"type": "y", "n": 10})
         assert await connection.zcount(key, "-inf", "+inf") == 1
+    finally:
+        await layer.flush()
+        await layer.close_pools()
+
+
+@pytest.mark.asyncio
+async def test_a_send_to_a_consumer_of_this_process_skips_redis() -> None:
+    """While a consumer receives on its channel here, a send reaches it without a
+    Redis command, as a copy, in order, and a full channel still refuses; once the
+    consumer is gone (its receive cancelled) sends go through Redis again."""
+    prefix = f"test-{uuid.uuid4().hex[:8]}"
+    layer = WaitingRedisChannelLayer(
+        hosts=[{"address": REDIS_URL}], prefix=prefix, capacity=2, expiry=60
+    )
+    calls: list[str] = []
+    try:
+        channel = await layer.new_channel()
+        connection = layer.connection(layer.consistent_hash(channel))
+        real_execute = connection.execute_command
+
+        async def counted(*args: object, **options: object) -> object:
+            calls.append(str(args[0]))
+            return await real_execute(*args, **options)
+
+        connection.execute_command = counted
+        waiting = asyncio.ensure_future(layer.receive(channel))
+        await asyncio.sleep(0)  # the consumer is in its receive
+        message = {"type": "agent.send", "text": "first"}
+        await layer.send(channel, message)
+        got = await asyncio.wait_for(waiting, 5)
+        assert got == message and got is not message
+        assert not [c for c in calls if c in ("EVAL", "ZADD")]  # no send went to Redis
+
+        await layer.send(channel, {"type": "agent.send", "text": "second"})
+        await layer.send(channel, {"type": "agent.send", "text": "third"})
+        with pytest.raises(ChannelFull):
+            await layer.send(channel, {"type": "agent.send", "text": "fourth"})
+        assert (await layer.receive(channel))["text"] == "second"
+        assert (await layer.receive(channel))["text"] == "third"
+
+        gone = asyncio.ensure_future(layer.receive(channel))
+        await asyncio.sleep(0)
+        gone.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await gone
+        await layer.send(channel, {"type": "agent.send", "text": "to redis"})
+        assert calls.count("EVAL") == 1
     finally:
         await layer.flush()
         await layer.close_pools()
