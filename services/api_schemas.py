@@ -383,12 +383,13 @@ class Session(Schema):
 
     @staticmethod
     def resolve_log(session: models.Session) -> dict[str, Any]:
-        check = session_log_verify(session=session)
+        events = list(session.events.order_by("seq"))  # read once: checked and shown
+        check = session_log_verify(session=session, events=events)
         return {
             "chain_ok": check.ok,
             "bad_seq": check.bad_seq,
             "problem": check.problem,
-            "events": session.events.order_by("seq"),
+            "events": events,
         }
 
 

@@ -1,12 +1,17 @@
 """Matching vehicles to a service's roles, and reserving them atomically.
 
-For each role, the online idle vehicles go through the role's requirements in a fixed
-order; the first requirement that leaves no vehicle is the one named in the refusal.
-The survivors are ranked (nearest, or first to arrive, then fullest battery) and the
-best is reserved with a conditional UPDATE ... WHERE status = 'idle': of two requests
-racing for one vehicle, the database lets exactly one update succeed, and a partial
-unique index on active assignments backs that up. No table lock is held, so requests
-for different vehicles do not wait on each other.
+For each role, one query reads the online idle vehicles that meet the requirements the
+database can check (kind, adapter, numeric minimums, battery, and on PostgreSQL the
+cameras, features and environments); the rows read go through all the role's
+requirements in a fixed order. When none is left, the whole online idle pool goes
+through them again, so that the first requirement that leaves no vehicle is the one
+named in the refusal. The survivors are ranked (nearest, or first to arrive, then
+fullest battery) and the best is locked (``SELECT ... FOR UPDATE SKIP LOCKED`` of that
+one row, still idle and holding no active assignment) and reserved: of two requests
+racing for one vehicle, one locks it and the other moves on to its next candidate; a
+partial unique index on active assignments backs that up. No table lock is held, so
+requests for different vehicles do not wait on each other. A vehicle whose agent has
+gone quiet since (fleet.liveness) is left and the next one tried.
 
 Which requests need a vehicle's position: those with a target. Their ranking, time to
 arrive and range (there, the work, and back to its station) are measured from where
@@ -18,25 +23,32 @@ vehicle (the work alone must fit its range) and may be given such a vehicle.
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import operator
+import uuid
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from datetime import datetime
+from functools import reduce
 from typing import Any
 
 from django.contrib.auth import get_user_model
-from django.db import IntegrityError, transaction
+from django.db import connection, transaction
+from django.db.models import Exists, OuterRef, Q
+from django.utils import timezone
 
 from accounts.users import User
 from agents.geo import distance_m
 from fleet.attributes import DeclaredAttributes
 from fleet.feed import fleet_notify
+from fleet.liveness import vehicles_fresh
 from fleet.models import Vehicle
 from fleet.status import vehicles_online
-from services.eventlog import event_append
+from services.eventlog import event_append, events_staged
 from services.grants import user_can_use
 from services.models import Assignment, Service, ServiceRole, Session
-from services.sessions import FINAL, session_transition
+from services.sessions import FINAL, session_transition_locked
 
 #: States of a session that holds (or is about to hold) vehicles.
 LIVE_STATES = [state for state in Session.State.values if state not in FINAL]
@@ -207,28 +219,53 @@ def _requirements(role: ServiceRole) -> list[tuple[str, Callable[[Facts], bool]]
     return checks
 
 
-def role_match(
-    *,
-    role: ServiceRole,
-    target: tuple[float, float] | None = None,
-    extra_distance_m: float = 0.0,
-    exclude: Iterable[Any] = (),
-    now: datetime | None = None,
-) -> Match:
-    """Rank the vehicles that can fill ``role`` now; nothing is written.
+def _capable(role: ServiceRole) -> Q:
+    """The role's requirements the database can check, exactly as :func:`_requirements`
+    checks them (it checks them all again on the rows read, so this only narrows)."""
+    q = Q(battery__gte=role.min_battery)  # also leaves out vehicles reporting none
+    if role.kinds:
+        q &= Q(vehicle_type__kind__in=list(role.kinds))
+    if role.adapters:
+        q &= Q(vehicle_type__adapter__in=list(role.adapters))
+    for name, minimum in sorted(role.min_attributes.items()):
+        if minimum > 0:  # an undeclared attribute counts as 0, which meets 0
+            q &= Q(**{f"attributes__{name}__gte": minimum})
+    if connection.features.supports_json_field_contains:  # PostgreSQL; not SQLite
+        if role.cameras:
+            q &= Q(attributes__cameras__contains=list(role.cameras))
+        if role.features:
+            q &= Q(attributes__features__contains=list(role.features))
+        if role.environments:
+            q &= reduce(
+                operator.or_,
+                (Q(attributes__environments__contains=[env]) for env in role.environments),
+            )
+    return q
 
-    ``extra_distance_m`` is work done at the target (a search pattern, say) that must
-    fit in the vehicle's range too. With a ``target``, only vehicles reporting their
-    position are ranked (see the module docstring). On no match, ``unmet`` names the
-    requirement.
-    """
-    pool = [
-        Facts.from_row(row)
-        for row in vehicles_online(now)
-        .filter(status=Vehicle.Status.IDLE)
-        .exclude(pk__in=list(exclude))
-        .values_list(*Facts.FIELDS)
-    ]
+
+def _pool(
+    *,
+    narrow: Q | None,
+    target: tuple[float, float] | None,
+    exclude: list[Any],
+    now: datetime | None,
+) -> list[Facts]:
+    """The online idle vehicles (meeting ``narrow``), as plain facts."""
+    rows = vehicles_online(now).filter(status=Vehicle.Status.IDLE).exclude(pk__in=exclude)
+    if narrow is not None:
+        rows = rows.filter(narrow)
+        if target is not None:  # measured from where the vehicle is (module docstring)
+            rows = rows.filter(lat__isnull=False, lon__isnull=False)
+    return [Facts.from_row(row) for row in rows.values_list(*Facts.FIELDS)]
+
+
+def _ranked(
+    role: ServiceRole,
+    pool: list[Facts],
+    target: tuple[float, float] | None,
+    extra_distance_m: float,
+) -> Match:
+    """``pool`` through the role's requirements, in order, then ranked."""
     if not pool:
         return Match(role, unmet="no vehicle is online and idle")
     for description, test in _requirements(role):
@@ -252,29 +289,120 @@ def role_match(
     return Match(role, candidates=reachable)
 
 
-def _reserve_first(*, session: Session, match: Match) -> tuple[Assignment, Facts] | None:
-    """Reserve the best candidate still free; None when every one was taken meanwhile."""
+def role_match(
+    *,
+    role: ServiceRole,
+    target: tuple[float, float] | None = None,
+    extra_distance_m: float = 0.0,
+    exclude: Iterable[Any] = (),
+    now: datetime | None = None,
+) -> Match:
+    """Rank the vehicles that can fill ``role`` now; nothing is written.
+
+    ``extra_distance_m`` is work done at the target (a search pattern, say) that must
+    fit in the vehicle's range too. With a ``target``, only vehicles reporting their
+    position are ranked (see the module docstring). On no match, ``unmet`` names the
+    requirement.
+    """
+    excluded = list(exclude)
+    match = _ranked(
+        role,
+        _pool(narrow=_capable(role), target=target, exclude=excluded, now=now),
+        target,
+        extra_distance_m,
+    )
+    if match.unmet:
+        # Which requirement failed first is told by the whole pool: read it (a refusal
+        # only; one read more).
+        match = _ranked(
+            role,
+            _pool(narrow=None, target=target, exclude=excluded, now=now),
+            target,
+            extra_distance_m,
+        )
+    return match
+
+
+#: Why no candidate could be reserved (for the refusal).
+TAKEN = "every matching vehicle was just taken by other requests"
+QUIET = "no vehicle is online and idle"
+
+
+def _reserve_first(
+    *, session: Session, match: Match, now: datetime | None = None
+) -> tuple[Assignment, Facts] | str:
+    """Reserve the best candidate still free and heard from; else say why none could
+    be: :data:`TAKEN` by other requests, or :data:`QUIET` when every one's agent has
+    gone quiet. Call it in a transaction: the chosen vehicle's row stays locked until
+    it ends. The assignment's ``vehicle`` is read, with its type and station (what its
+    task needs)."""
+    held = Assignment.objects.filter(vehicle_id=OuterRef("pk"), active=True)
+    why = QUIET if match.candidates else TAKEN
     for candidate in match.candidates:
-        vehicle = candidate.vehicle
-        try:
-            # One savepoint for both writes: if the insert fails, the status goes back too.
-            with transaction.atomic():
-                taken = Vehicle.objects.filter(
-                    pk=vehicle.pk, status=Vehicle.Status.IDLE, maintenance=False
-                ).update(status=Vehicle.Status.RESERVED)
-                if not taken:
-                    continue  # another request got it first
-                assignment = Assignment.objects.create(
-                    session=session,
-                    role=match.role.name,
-                    vehicle_id=vehicle.pk,
-                    distance_m=round(candidate.distance_m, 1),
-                )
-        except IntegrityError:
-            continue  # held by another session's active assignment
+        facts = candidate.vehicle
+        # The row lock on the chosen vehicle, if it is still idle: a request holding it
+        # is skipped (it is being reserved), not waited for. Not one still holding an
+        # active assignment (found silent, then heard from again): the unique index
+        # would refuse the assignment, and checking here needs no savepoint to go on.
+        vehicle = (
+            Vehicle.objects.select_for_update(skip_locked=True, of=("self",))
+            .select_related("vehicle_type", "station")
+            .filter(pk=facts.pk, status=Vehicle.Status.IDLE, maintenance=False)
+            .filter(~Exists(held))
+            .first()
+        )
+        if vehicle is None:
+            why = TAKEN  # another request got it first
+            continue
+        if str(vehicle.pk) not in vehicles_fresh([vehicle.pk], now):
+            # Its agent is not heard from (the sweep has not marked it offline yet):
+            # not this one. The lock ends with the transaction.
+            continue
+        # Conditional too: SQLite has no row locks (its writers take turns instead).
+        if not Vehicle.objects.filter(pk=vehicle.pk, status=Vehicle.Status.IDLE).update(
+            status=Vehicle.Status.RESERVED
+        ):
+            why = TAKEN
+            continue
+        vehicle.status = Vehicle.Status.RESERVED
+        assignment = Assignment.objects.create(
+            session=session,
+            role=match.role.name,
+            vehicle=vehicle,
+            distance_m=round(candidate.distance_m, 1),
+        )
         fleet_notify([vehicle.pk])
-        return assignment, vehicle
-    return None
+        return assignment, facts
+    return why
+
+
+def _role_reserve(
+    *,
+    session: Session,
+    role: ServiceRole,
+    target: tuple[float, float] | None,
+    extra_distance_m: float = 0.0,
+    exclude: Iterable[Any] = (),
+) -> tuple[Assignment, dict[str, Any]]:
+    """Reserve the best vehicle for ``role`` (in the caller's transaction); returns the
+    assignment and the ``assigned`` event's data, for the caller to log. Raises
+    AssignmentError as :func:`role_assign`."""
+    now = timezone.now()
+    match = role_match(
+        role=role, target=target, extra_distance_m=extra_distance_m, exclude=exclude, now=now
+    )
+    if match.unmet:
+        raise AssignmentError(f"{role.name}: {match.unmet}", session=session, role=role.name)
+    reserved = _reserve_first(session=session, match=match, now=now)
+    if isinstance(reserved, str):
+        raise AssignmentError(f"{role.name}: {reserved}", session=session, role=role.name)
+    assignment, vehicle = reserved
+    return assignment, {
+        "role": role.name,
+        "vehicle": str(assignment.vehicle_id),
+        "vehicle_name": vehicle.name,
+        "distance_m": assignment.distance_m,
+    }
 
 
 def role_assign(
@@ -290,28 +418,16 @@ def role_assign(
     Raises AssignmentError naming the unmet requirement, or saying that every matching
     vehicle was just taken.
     """
-    match = role_match(role=role, target=target, extra_distance_m=extra_distance_m, exclude=exclude)
-    if match.unmet:
-        raise AssignmentError(f"{role.name}: {match.unmet}", session=session, role=role.name)
-    with transaction.atomic():
-        reserved = _reserve_first(session=session, match=match)
-    if reserved is None:
-        raise AssignmentError(
-            f"{role.name}: every matching vehicle was just taken by other requests",
+    # No savepoint: a refusal is raised before anything is written.
+    with transaction.atomic(savepoint=False):
+        assignment, data = _role_reserve(
             session=session,
-            role=role.name,
+            role=role,
+            target=target,
+            extra_distance_m=extra_distance_m,
+            exclude=exclude,
         )
-    assignment, vehicle = reserved
-    event_append(
-        session=session,
-        kind="assigned",
-        data={
-            "role": role.name,
-            "vehicle": str(assignment.vehicle_id),
-            "vehicle_name": vehicle.name,
-            "distance_m": assignment.distance_m,
-        },
-    )
+        event_append(session=session, kind="assigned", data=data)
     return assignment
 
 
@@ -322,6 +438,62 @@ def role_tightened(role: ServiceRole, preferences: dict[str, Any]) -> ServiceRol
     tight.cameras = sorted(set(role.cameras) | set(preferences.get("cameras", [])))
     tight.min_battery = max(role.min_battery, float(preferences.get("min_battery") or 0))
     return tight
+
+
+def session_record(
+    *,
+    user: User,
+    service: Service,
+    target: tuple[float, float] | None = None,
+    params: dict[str, Any] | None = None,
+    relay: bool = False,
+    preferences: dict[str, Any] | None = None,
+    pk: Any = None,
+) -> Session:
+    """:func:`session_open` in the caller's transaction, without the grant check (the
+    caller made it): the cap is counted under the user's row lock, the session (``pk``
+    if given) is recorded and its ``requested`` event logged. Raises AssignmentError
+    (``over_cap``) before writing anything."""
+    # The user's row is the lock: two requests of one user are counted one after
+    # the other, so together they cannot pass the cap.
+    get_user_model().objects.select_for_update().filter(pk=user.pk).values_list("pk").first()
+    live = Session.objects.filter(user=user, service=service, state__in=LIVE_STATES).count()
+    cap = service.max_sessions_per_user
+    if live >= cap:
+        raise AssignmentError(
+            f"you already have {live} live session{'s' if live != 1 else ''} of "
+            f"{service.name!r} (at most {cap}); end one first",
+            over_cap=True,
+        )
+    session = Session(
+        service=service,
+        user=user,
+        target_lat=target[0] if target else None,
+        target_lon=target[1] if target else None,
+        params=params or {},
+        relay=relay,
+    )
+    if pk is not None:
+        session.pk = pk
+    session.save(force_insert=True)
+    event_append(
+        session=session,
+        kind="requested",
+        data={
+            "user": user.get_username(),
+            "target": list(target) if target else None,
+            "relay": relay,
+            "preferences": preferences or {},
+        },
+        locked=True,  # nobody else sees it before this transaction commits
+    )
+    return session
+
+
+def service_grant_require(*, user: User, service: Service) -> None:
+    """Raises AssignmentError when ``user`` may not use ``service`` (or it is off)."""
+    if not service.is_active or not user_can_use(user, service):
+        raise AssignmentError(f"you may not use the service {service.name!r}")
 
 
 def session_open(
@@ -340,39 +512,59 @@ def session_open(
     Raises AssignmentError (nothing recorded) when the user may not use the service,
     or when over the cap (``over_cap``).
     """
-    if not service.is_active or not user_can_use(user, service):
-        raise AssignmentError(f"you may not use the service {service.name!r}")
+    service_grant_require(user=user, service=service)
     with transaction.atomic():
-        # The user's row is the lock: two requests of one user are counted one after
-        # the other, so together they cannot pass the cap.
-        get_user_model().objects.select_for_update().filter(pk=user.pk).first()
-        live = Session.objects.filter(user=user, service=service, state__in=LIVE_STATES).count()
-        cap = service.max_sessions_per_user
-        if live >= cap:
-            raise AssignmentError(
-                f"you already have {live} live session{'s' if live != 1 else ''} of "
-                f"{service.name!r} (at most {cap}); end one first",
-                over_cap=True,
-            )
-        session = Session.objects.create(
-            service=service,
+        return session_record(
             user=user,
-            target_lat=target[0] if target else None,
-            target_lon=target[1] if target else None,
-            params=params or {},
+            service=service,
+            target=target,
+            params=params,
             relay=relay,
+            preferences=preferences,
         )
-        event_append(
-            session=session,
-            kind="requested",
-            data={
-                "user": user.get_username(),
-                "target": list(target) if target else None,
-                "relay": relay,
-                "preferences": preferences or {},
-            },
-        )
-    return session
+
+
+def session_roles_assign(
+    *,
+    session: Session,
+    service: Service,
+    target: tuple[float, float] | None = None,
+    preferences: dict[str, Any] | None = None,
+) -> list[Assignment]:
+    """Reserve ``service``'s required roles for ``session`` (just recorded, in the
+    caller's transaction) and move it to ``assigned``: all roles or none.
+
+    ``preferences`` (cameras, min_battery) tighten the requirements of every role.
+    When a role cannot be filled, the session fails with the reason (logged; no
+    vehicle stays reserved) and AssignmentError is raised: the caller catches it and
+    commits the failure. Returns the assignments, with their vehicles read.
+    """
+    roles = list(service.roles.filter(required=True))
+    reserved: list[tuple[Assignment, dict[str, Any]]] = []
+    # All roles or none. With one role nothing is written before a refusal; with more,
+    # a savepoint takes back the vehicles reserved for the roles before the one failing.
+    undo = transaction.atomic() if len(roles) > 1 else contextlib.nullcontext()
+    try:
+        with undo:
+            taken: list[Any] = []
+            for role in roles:
+                if preferences:
+                    role = role_tightened(role, preferences)
+                assignment, data = _role_reserve(
+                    session=session, role=role, target=target, exclude=taken
+                )
+                reserved.append((assignment, data))
+                taken.append(assignment.vehicle_id)
+    except AssignmentError as exc:
+        session_transition_locked(session=session, to=Session.State.FAILED, reason=str(exc))
+        raise AssignmentError(str(exc), session=session, role=exc.role) from None
+    # Logged once every role is filled: a rolled back role leaves no trace in the log.
+    for _, data in reserved:
+        event_append(session=session, kind="assigned", data=data, locked=True)
+    session_transition_locked(
+        session=session, to=Session.State.ASSIGNED, reason="vehicles reserved"
+    )
+    return [assignment for assignment, _ in reserved]
 
 
 def session_request(
@@ -393,26 +585,26 @@ def session_request(
     it (no session is recorded; ``over_cap`` says which), or a role cannot be filled
     (the session is recorded as failed with the reason, and no vehicle stays reserved).
     """
-    session = session_open(
-        user=user,
-        service=service,
-        target=target,
-        params=params,
-        relay=relay,
-        preferences=preferences,
-    )
-    try:
-        # All roles or none: a failure on the second role frees the first.
-        with transaction.atomic():
-            taken: list[Any] = []
-            for role in service.roles.filter(required=True):
-                if preferences:
-                    role = role_tightened(role, preferences)
-                assignment = role_assign(session=session, role=role, target=target, exclude=taken)
-                taken.append(assignment.vehicle_id)
-    except AssignmentError as exc:
-        session_transition(session=session, to=Session.State.FAILED, reason=str(exc))
-        raise AssignmentError(str(exc), session=session, role=exc.role) from None
-    return session_transition(
-        session=session, to=Session.State.ASSIGNED, reason="vehicles reserved"
-    )
+    service_grant_require(user=user, service=service)
+    refused: AssignmentError | None = None
+    pk = uuid.uuid4()
+    # One transaction, and the log written in one go at its end (services.eventlog).
+    with transaction.atomic(), events_staged(session_id=pk):
+        session = session_record(
+            user=user,
+            service=service,
+            target=target,
+            params=params,
+            relay=relay,
+            preferences=preferences,
+            pk=pk,
+        )
+        try:
+            session_roles_assign(
+                session=session, service=service, target=target, preferences=preferences
+            )
+        except AssignmentError as exc:
+            refused = exc  # the failed session is committed, then the refusal raised
+    if refused is not None:
+        raise refused
+    return session

@@ -61,6 +61,12 @@ class SessionFeedConsumer(DirectDispatch, AsyncJsonWebsocketConsumer):
         summary = await _session_for(self.scope.get("user"), self.session_id)
         await self.send_json({"type": "event", "event": message["event"], "session": summary})
 
+    async def session_events(self, message: dict[str, Any]) -> None:
+        # Several events of one transaction: the page sees them one by one, as ever.
+        summary = await _session_for(self.scope.get("user"), self.session_id)
+        for event in message["events"]:
+            await self.send_json({"type": "event", "event": event, "session": summary})
+
 
 class SessionsMonitorConsumer(DirectDispatch, AsyncJsonWebsocketConsumer):
     """Every live session for monitors: a snapshot, then each logged event.
@@ -87,6 +93,12 @@ class SessionsMonitorConsumer(DirectDispatch, AsyncJsonWebsocketConsumer):
     async def session_event(self, message: dict[str, Any]) -> None:
         summary = await _session_for(None, message["session_id"], monitor=True)
         await self.send_json({"type": "event", "event": message["event"], "session": summary})
+
+    async def session_events(self, message: dict[str, Any]) -> None:
+        # One read of the session for the whole batch (they were committed together).
+        summary = await _session_for(None, message["session_id"], monitor=True)
+        for event in message["events"]:
+            await self.send_json({"type": "event", "event": event, "session": summary})
 
 
 @database_sync_to_async

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import uuid
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,14 +25,20 @@ from accounts.users import User
 from agents.protocol import FAILSAFE_ACTIONS, Limits, ProtocolError, UserGrant, VehicleTask
 from agents.protocol.messages import EndTask, Revoke, Task
 from fleet.feed import fleet_notify
-from fleet.models import Vehicle
-from fleet.outbox import agent_message_was_sent, agent_messages_cancel
+from fleet.models import AgentMessage, Vehicle
+from fleet.outbox import agent_messages_cancel
 from fleet.uplink import vehicle_send
-from services.eventlog import event_append
+from services.assignment import (
+    AssignmentError,
+    service_grant_require,
+    session_record,
+    session_roles_assign,
+)
+from services.eventlog import event_append, events_staged
 from services.grants import user_can_use
 from services.kinds import UnknownKind, kind_of
 from services.models import Assignment, Service, Session
-from services.sessions import FINAL, session_transition
+from services.sessions import FINAL, session_transition, session_transition_locked
 from services.signing import platform_private_key
 
 #: Session states in which grants can be issued and agents serve the session.
@@ -128,14 +135,9 @@ def _mission_for(*, session: Session, assignment: Assignment) -> dict[str, Any] 
     return kind.vehicle_mission(assignment=assignment)
 
 
-def vehicle_task_deploy(*, session: Session, assignment: Assignment) -> VehicleTask:
-    """Sign a fresh task for ``assignment``'s vehicle, push it and log it.
-
-    Every call makes a new nonce: a task is never re-sent (docs/protocol.md, "Replay
-    rule"). The push happens after the surrounding transaction commits. Raises
-    InvalidTaskError when the service's limits or the mission its kind flies cannot go
-    into a task.
-    """
+def _vehicle_task_sign(*, session: Session, assignment: Assignment) -> tuple[VehicleTask, str]:
+    """A fresh signed task for ``assignment``'s vehicle (a new nonce every call), and its
+    token; nothing is written. Raises InvalidTaskError as :func:`vehicle_task_deploy`."""
     service = session.service
     vehicle = assignment.vehicle
     limits = service_limits(service=service, center=session.target or vehicle.position)
@@ -153,27 +155,60 @@ def vehicle_task_deploy(*, session: Session, assignment: Assignment) -> VehicleT
         )
     except ProtocolError as exc:
         raise InvalidTaskError(f"cannot make a vehicle task: {exc.message}") from None
-    token = task.sign(platform_private_key())
-    with transaction.atomic():
+    return task, task.sign(platform_private_key())
+
+
+def _vehicle_task_send(
+    *,
+    session: Session,
+    assignment: Assignment,
+    task: VehicleTask,
+    token: str,
+    supersede: bool = True,
+    locked: bool = False,
+) -> None:
+    """Owe the signed ``task`` to the vehicle's agent and log it, in the caller's
+    transaction. ``supersede``: withdraw a task still owed for this session first
+    (there is none for a session created in this transaction). ``locked``: the caller
+    holds the session's row lock."""
+    vehicle = assignment.vehicle
+    if supersede:
         # A fresh task supersedes one still owed for this session: delivered late, that
         # one's deadline could have passed, and the agent would refuse it.
         agent_messages_cancel(vehicle_id=vehicle.pk, kinds=["task"], session_id=session.pk)
-        event_append(
-            session=session,
-            kind="task_deployed",
-            data={
-                "vehicle": str(vehicle.pk),
-                "vehicle_name": vehicle.name,
-                "role": assignment.role,
-                "nonce": task.nonce,
-                "exp": task.expires_at,
-            },
-        )
-        vehicle_send(vehicle_id=vehicle.pk, message=Task(token=token), session_id=session.pk)
+    event_append(
+        session=session,
+        kind="task_deployed",
+        data={
+            "vehicle": str(vehicle.pk),
+            "vehicle_name": vehicle.name,
+            "role": assignment.role,
+            "nonce": task.nonce,
+            "exp": task.expires_at,
+        },
+        locked=locked,
+    )
+    vehicle_send(vehicle_id=vehicle.pk, message=Task(token=token), session_id=session.pk)
+
+
+def vehicle_task_deploy(*, session: Session, assignment: Assignment) -> VehicleTask:
+    """Sign a fresh task for ``assignment``'s vehicle, push it and log it.
+
+    Every call makes a new nonce: a task is never re-sent (docs/protocol.md, "Replay
+    rule"). The push happens after the surrounding transaction commits. Raises
+    InvalidTaskError when the service's limits or the mission its kind flies cannot go
+    into a task.
+    """
+    task, token = _vehicle_task_sign(session=session, assignment=assignment)
+    # No savepoint: nothing in here is caught and carried on from.
+    with transaction.atomic(savepoint=False):
+        _vehicle_task_send(session=session, assignment=assignment, task=task, token=token)
     return task
 
 
-def _user_task(*, session: Session, assignment: Assignment, user: User, role: str) -> UserTask:
+def _user_task(
+    *, session: Session, assignment: Assignment, user: User, role: str, locked: bool = False
+) -> UserTask:
     vehicle: Vehicle = assignment.vehicle
     allowed = tuple(session.service.allowed_commands) if role == "controller" else ()
     now = time.time()
@@ -197,6 +232,7 @@ def _user_task(*, session: Session, assignment: Assignment, user: User, role: st
             "nonce": grant.nonce,
             "exp": grant.expires_at,
         },
+        locked=locked,
     )
     declared = vehicle.profile.get("commands") or vehicle.vehicle_type.commands or []
     return UserTask(
@@ -235,19 +271,92 @@ def session_deploy(*, session: Session) -> UserTask:
             assignments = _active_assignments(session)
             if not assignments:
                 raise DeploymentError(f"session {session.pk} has no assigned vehicle")
-            for assignment in assignments:
-                vehicle_task_deploy(session=session, assignment=assignment)
-            return _user_task(
-                session=session,
-                assignment=_primary(assignments),
-                user=session.user,
-                role="controller",
-            )
+            return _tasks_deploy(session=session, assignments=assignments, supersede=True)
     except InvalidTaskError as exc:
         # The block above rolled back (no task went out); record why and free the vehicles.
         session_transition(session=session, to=Session.State.FAILED, reason=str(exc))
         exc.session = session
         raise
+
+
+def _tasks_deploy(*, session: Session, assignments: list[Assignment], supersede: bool) -> UserTask:
+    """Sign every vehicle's task, then owe and log them, then the controller's grant
+    (in the caller's transaction, which holds the session's row). Every task is signed
+    before anything is written: InvalidTaskError leaves nothing to take back."""
+    signed = [
+        (assignment, *_vehicle_task_sign(session=session, assignment=assignment))
+        for assignment in assignments
+    ]
+    for assignment, task, token in signed:
+        _vehicle_task_send(
+            session=session,
+            assignment=assignment,
+            task=task,
+            token=token,
+            supersede=supersede,
+            locked=True,
+        )
+    return _user_task(
+        session=session,
+        assignment=_primary(assignments),
+        user=session.user,
+        role="controller",
+        locked=True,
+    )
+
+
+def session_request_deploy(
+    *,
+    user: User,
+    service: Service,
+    target: tuple[float, float] | None = None,
+    params: dict[str, Any] | None = None,
+    relay: bool = False,
+    preferences: dict[str, Any] | None = None,
+    grant_checked: bool = False,
+) -> tuple[Session, UserTask]:
+    """:func:`services.assignment.session_request` then :func:`session_deploy`, in one
+    transaction, with the session's log written in one go at its end: the session, its
+    vehicles reserved and their signed tasks owed to their agents, and the controller's
+    user task. ``grant_checked``: the caller has just checked that ``user`` may use
+    ``service`` (services.request does), so it is not asked again.
+
+    Raises AssignmentError as session_request (a session that could not be assigned
+    is recorded as failed); InvalidTaskError (with ``session``) when the service's
+    settings cannot make a valid task: the session is recorded as assigned, then
+    failed with that reason, its vehicles released and nothing sent.
+    """
+    if not grant_checked:
+        service_grant_require(user=user, service=service)
+    refused: AssignmentError | InvalidTaskError | None = None
+    pk = uuid.uuid4()
+    with transaction.atomic(), events_staged(session_id=pk):
+        session = session_record(
+            user=user,
+            service=service,
+            target=target,
+            params=params,
+            relay=relay,
+            preferences=preferences,
+            pk=pk,
+        )
+        try:
+            assignments = session_roles_assign(
+                session=session, service=service, target=target, preferences=preferences
+            )
+            if not assignments:
+                raise DeploymentError(f"session {session.pk} has no assigned vehicle")
+            # A new session: no earlier task of it can be owed to supersede.
+            task = _tasks_deploy(session=session, assignments=assignments, supersede=False)
+        except AssignmentError as exc:
+            refused = exc  # the failed session is committed, then the refusal raised
+        except InvalidTaskError as exc:
+            session_transition_locked(session=session, to=Session.State.FAILED, reason=str(exc))
+            exc.session = session
+            refused = exc
+    if refused is not None:
+        raise refused
+    return session, task
 
 
 def grant_issue(
@@ -297,14 +406,14 @@ def vehicle_release(*, vehicle_id: Any, session_id: Any, message: EndTask | Revo
     Call it in the transaction that ends the vehicle's role. Returns True when the
     agent has to confirm, False when the vehicle was freed at once.
     """
-    agent_messages_cancel(vehicle_id=vehicle_id, kinds=["task"], session_id=session_id)
+    sent = _task_withdraw(vehicle_id=vehicle_id, session_id=session_id)
     held = [
         Vehicle.Status.RESERVED,
         Vehicle.Status.IN_SERVICE,
         Vehicle.Status.FAILSAFE,
         Vehicle.Status.IDLE,
     ]
-    if not agent_message_was_sent(vehicle_id=vehicle_id, session_id=session_id, kind="task"):
+    if not sent:
         # A vehicle the supervisor marked fail-safe is freed too: if its agent still
         # is in fail-safe, its next heartbeat says so and marks it again.
         if Vehicle.objects.filter(pk=vehicle_id, maintenance=False, status__in=held[:3]).update(
@@ -321,17 +430,42 @@ def vehicle_release(*, vehicle_id: Any, session_id: Any, message: EndTask | Revo
     return True
 
 
+def _task_withdraw(*, vehicle_id: Any, session_id: Any) -> bool:
+    """Withdraw the session's tasks still owed to the vehicle; True when one was ever
+    put on its uplink (its agent may have it).
+
+    The rows are locked first, as fleet.outbox takes them to send: a task being sent
+    right now is waited for, then counted as sent; one not yet taken is withdrawn and
+    the outbox skips it. One read for both questions (what to withdraw, and whether the
+    agent may have it); an update only when something is withdrawn.
+    """
+    tasks = list(
+        AgentMessage.objects.select_for_update()
+        .filter(vehicle_id=vehicle_id, session_id=session_id, kind=AgentMessage.Kind.TASK)
+        .values_list("pk", "state", "attempts")
+    )
+    pending = [pk for pk, state, _ in tasks if state == AgentMessage.State.PENDING]
+    if pending:
+        AgentMessage.objects.filter(pk__in=pending).update(state=AgentMessage.State.CANCELLED)
+    return any(attempts > 0 for _, _, attempts in tasks)
+
+
 def _close(
     *, session: Session, to: str, reason: str, message: EndTask | Revoke, data: dict[str, Any]
 ) -> Session:
     with transaction.atomic():
         locked = Session.objects.select_for_update().get(pk=session.pk)
-        vehicle_ids = [a.vehicle_id for a in Assignment.objects.filter(session=locked, active=True)]
         # The transition validates the move first: nothing is sent for a refused one.
-        session_transition(session=locked, to=to, reason=reason, data=data)
-        for vehicle_id in vehicle_ids:
+        # The vehicles it takes off the session are settled below, once each.
+        released = session_transition_locked(
+            session=locked, to=to, reason=reason, data=data, free_vehicles=False
+        )
+        for vehicle_id in released:
             vehicle_release(vehicle_id=vehicle_id, session_id=locked.pk, message=message)
-    session.refresh_from_db()
+    # The row as the locked read and the update left it (the caller's instance keeps
+    # its related service and user).
+    for column in Session._meta.concrete_fields:
+        setattr(session, column.attname, getattr(locked, column.attname))
     return session
 
 

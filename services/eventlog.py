@@ -3,20 +3,28 @@
 Each event stores the SHA-256 of its own canonical content plus the previous event's
 hash, so changing, removing or reordering a stored event breaks the chain from that
 point on, and ``session_log_verify`` names the first broken event.
+
+Appending locks the session's row and reads the log's tail, one event at a time. A
+session being created writes its first events in one go instead
+(:func:`events_staged`): nobody else can see it before its transaction commits, so
+there is no tail to read and no writer to wait for.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
+from dataclasses import dataclass, field
 from typing import Any
 
 from django.core.serializers.json import DjangoJSONEncoder
 from django.db import transaction
 from django.utils import timezone
 
-from services.feed import session_notify
+from services.feed import session_notify, session_notify_many
 from services.models import Session, SessionEvent
 
 GENESIS_HASH = "0" * 64
@@ -41,43 +49,118 @@ def _event_hash(
     return hashlib.sha256(canonical.encode()).hexdigest()
 
 
-def event_append(
-    *, session: Session, kind: str, data: dict[str, Any] | None = None
+def _event_new(
+    *, session: Session, seq: int, prev_hash: str, kind: str, data: dict[str, Any] | None
 ) -> SessionEvent:
-    """Append one event to ``session``'s log and return it.
-
-    The session row is locked so concurrent writers (the supervisor, a worker, a view)
-    get consecutive sequence numbers and a single chain.
-    """
+    """The event ``seq`` of ``session``'s log, hashed and not yet saved."""
     # Round-trip through JSON so the hash covers exactly what the database stores.
     payload = json.loads(json.dumps(data or {}, cls=DjangoJSONEncoder))
-    with transaction.atomic():
-        Session.objects.select_for_update().filter(pk=session.pk).first()
-        last = SessionEvent.objects.filter(session=session).order_by("-seq").first()
-        seq = last.seq + 1 if last else 1
-        prev_hash = last.hash if last else GENESIS_HASH
-        created_at = timezone.now()
-        event = SessionEvent(
-            session=session,
+    created_at = timezone.now()
+    return SessionEvent(
+        session=session,
+        seq=seq,
+        kind=kind,
+        data=payload,
+        created_at=created_at,
+        prev_hash=prev_hash,
+        hash=_event_hash(
+            session_id=str(session.pk),
             seq=seq,
             kind=kind,
             data=payload,
-            created_at=created_at,
+            created_at=created_at.isoformat(),
             prev_hash=prev_hash,
-            hash=_event_hash(
-                session_id=str(session.pk),
-                seq=seq,
-                kind=kind,
-                data=payload,
-                created_at=created_at.isoformat(),
-                prev_hash=prev_hash,
-            ),
+        ),
+    )
+
+
+def _feed_item(event: SessionEvent) -> dict[str, Any]:
+    """An event as the session feeds carry it."""
+    return {
+        "seq": event.seq,
+        "kind": event.kind,
+        "data": event.data,
+        "at": event.created_at.isoformat(),
+    }
+
+
+@dataclass
+class _Staged:
+    """Events of one new session waiting to be written (see :func:`events_staged`)."""
+
+    session_id: Any
+    events: list[SessionEvent] = field(default_factory=list)
+
+    @property
+    def tail(self) -> tuple[int, str]:
+        last = self.events[-1] if self.events else None
+        return (last.seq, last.hash) if last else (0, GENESIS_HASH)
+
+
+_staging: ContextVar[_Staged | None] = ContextVar("iouv_events_staged", default=None)
+
+
+@contextmanager
+def events_staged(*, session_id: Any) -> Iterator[list[SessionEvent]]:
+    """Within the block, :func:`event_append` for the session ``session_id`` stages its
+    events; when
+    the block ends without an error they are written with one INSERT, in order, and
+    announced to the monitors' feed in one message. Yields the staged events' list.
+
+    Only for a session created in the block's transaction, with no event logged yet:
+    nobody else can write to its log before the transaction commits, so no lock is
+    taken and no tail is read. Run the block inside that transaction: on an error the
+    staged events are dropped, as the transaction's other writes are rolled back.
+    Nothing in the block may read the session's log back (it is not written yet).
+    """
+    if _staging.get() is not None:
+        raise RuntimeError("events_staged blocks do not nest")
+    staged = _Staged(session_id=session_id)
+    token = _staging.set(staged)
+    try:
+        yield staged.events
+    finally:
+        _staging.reset(token)
+    if staged.events:
+        SessionEvent.objects.bulk_create(staged.events)
+        # The session is new: no page follows it yet (its id is not even known
+        # outside this transaction), so only the monitors' feed is told.
+        session_notify_many(
+            session_id=session_id, events=[_feed_item(e) for e in staged.events], new=True
         )
+
+
+def event_append(
+    *, session: Session, kind: str, data: dict[str, Any] | None = None, locked: bool = False
+) -> SessionEvent:
+    """Append one event to ``session``'s log and return it (unsaved while staged by
+    :func:`events_staged`, which writes it when its block ends).
+
+    The session row is locked so concurrent writers (the supervisor, a worker, a view)
+    get consecutive sequence numbers and a single chain; ``locked``: the caller already
+    holds that lock in the current transaction.
+    """
+    staged = _staging.get()
+    if staged is not None and staged.session_id == session.pk:
+        seq, prev_hash = staged.tail
+        event = _event_new(session=session, seq=seq + 1, prev_hash=prev_hash, kind=kind, data=data)
+        staged.events.append(event)
+        return event
+    # No savepoint: nothing here is caught and carried on from; outside a transaction
+    # this still makes one, so the lock is held until the event is written.
+    with transaction.atomic(savepoint=False):
+        if not locked:
+            Session.objects.select_for_update().filter(pk=session.pk).first()
+        last = (
+            SessionEvent.objects.filter(session=session)
+            .order_by("-seq")
+            .values_list("seq", "hash")
+            .first()
+        )
+        seq, prev_hash = last if last else (0, GENESIS_HASH)
+        event = _event_new(session=session, seq=seq + 1, prev_hash=prev_hash, kind=kind, data=data)
         event.save()
-        session_notify(
-            session_id=session.pk,
-            event={"seq": seq, "kind": kind, "data": payload, "at": created_at.isoformat()},
-        )
+        session_notify(session_id=session.pk, event=_feed_item(event))
     return event
 
 
@@ -91,11 +174,15 @@ class LogCheck:
     problem: str = ""
 
 
-def session_log_verify(*, session: Session) -> LogCheck:
-    """Recompute the chain of ``session``'s log from the stored rows."""
+def session_log_verify(
+    *, session: Session, events: Iterable[SessionEvent] | None = None
+) -> LogCheck:
+    """Recompute the chain of ``session``'s log from the stored rows, or from
+    ``events`` (those rows, already read in ``seq`` order)."""
     prev_hash = GENESIS_HASH
     count = 0
-    for expected_seq, event in enumerate(session.events.order_by("seq"), start=1):
+    rows = session.events.order_by("seq") if events is None else events
+    for expected_seq, event in enumerate(rows, start=1):
         count += 1
         if event.seq != expected_seq:
             return LogCheck(False, count, event.seq, f"expected event #{expected_seq} here")

@@ -19,3 +19,20 @@ def session_notify(*, session_id: Any, event: dict[str, Any]) -> None:
 
     group_send_after_commit(session_group(session_id), message)
     group_send_after_commit(SESSIONS_GROUP, message)
+
+
+def session_notify_many(
+    *, session_id: Any, events: list[dict[str, Any]], new: bool = False
+) -> None:
+    """After commit, send several logged events of one session, in order, in one
+    message per group (consumers show them one by one, as if sent singly).
+
+    ``new``: the session was created in the committing transaction, so no page can
+    follow it yet; only the monitors are told.
+    """
+    if not events:
+        return
+    message = {"type": "session.events", "session_id": str(session_id), "events": events}
+    if not new:
+        group_send_after_commit(session_group(session_id), message)
+    group_send_after_commit(SESSIONS_GROUP, message)

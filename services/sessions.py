@@ -49,43 +49,77 @@ def session_transition(
         raise SessionStateError(f"a session cannot become {to} without a reason")
     with transaction.atomic():
         locked = Session.objects.select_for_update().get(pk=session.pk)
-        if to not in TRANSITIONS[locked.state]:
-            raise SessionStateError(f"session {locked.pk} cannot go from {locked.state} to {to}")
-        previous = locked.state
-        locked.state = to
-        locked.reason = reason[:300]
-        now = timezone.now()
-        fields = ["state", "reason"]
-        if to in TIMESTAMP:
-            setattr(locked, TIMESTAMP[to], now)
-            fields.append(TIMESTAMP[to])
-        if to in FINAL:
-            locked.ended_at = now
-            fields.append("ended_at")
-            assignments_release(session=locked)
-        locked.save(update_fields=fields)
-        event_append(
-            session=locked,
-            kind="state",
-            data={"from": previous, "to": to, "reason": reason, **(data or {})},
-        )
-    session.refresh_from_db()
+        session_transition_locked(session=locked, to=to, reason=reason, data=data)
+    # What the locked read and the update left: the row as it is now, without reading
+    # it again.
+    for column in Session._meta.concrete_fields:
+        setattr(session, column.attname, getattr(locked, column.attname))
     return session
 
 
-def assignments_release(*, session: Session) -> list[Any]:
-    """End ``session``'s active assignments; vehicles still reserved or in service become
-    idle again. Returns the released vehicle ids."""
-    with transaction.atomic():
-        active = list(Assignment.objects.select_for_update().filter(session=session, active=True))
-        ids = [a.vehicle_id for a in active]
+def session_transition_locked(
+    *,
+    session: Session,
+    to: str,
+    reason: str = "",
+    data: dict[str, Any] | None = None,
+    free_vehicles: bool = True,
+) -> list[Any]:
+    """:func:`session_transition` for a caller that holds ``session``'s row (locked in
+    its transaction, or created there) and read it: nothing is read again, and no
+    savepoint is made. ``session`` is updated in place. On a final state its active
+    assignments end; with ``free_vehicles`` their vehicles become idle again, else the
+    caller settles them (see services.deployment.vehicle_release).
+
+    Returns the ids of the vehicles released. Raises SessionStateError, before any
+    write, as :func:`session_transition`.
+    """
+    if to in FINAL and not reason:
+        raise SessionStateError(f"a session cannot become {to} without a reason")
+    if to not in TRANSITIONS[session.state]:
+        raise SessionStateError(f"session {session.pk} cannot go from {session.state} to {to}")
+    previous = session.state
+    session.state = to
+    session.reason = reason[:300]
+    now = timezone.now()
+    fields = ["state", "reason"]
+    if to in TIMESTAMP:
+        setattr(session, TIMESTAMP[to], now)
+        fields.append(TIMESTAMP[to])
+    released: list[Any] = []
+    if to in FINAL:
+        session.ended_at = now
+        fields.append("ended_at")
+        released = assignments_release(session=session, free_vehicles=free_vehicles)
+    session.save(update_fields=fields)
+    event_append(
+        session=session,
+        kind="state",
+        data={"from": previous, "to": to, "reason": reason, **(data or {})},
+        locked=True,
+    )
+    return released
+
+
+def assignments_release(*, session: Session, free_vehicles: bool = True) -> list[Any]:
+    """End ``session``'s active assignments; with ``free_vehicles``, vehicles still
+    reserved or in service become idle again. Returns the released vehicle ids."""
+    # No savepoint: nothing is caught in here; outside a transaction it makes one.
+    with transaction.atomic(savepoint=False):
+        active = list(
+            Assignment.objects.select_for_update()
+            .filter(session=session, active=True)
+            .values_list("pk", "vehicle_id")
+        )
+        ids = [vehicle_id for _, vehicle_id in active]
         if not ids:
             return []
-        Assignment.objects.filter(pk__in=[a.pk for a in active]).update(
+        Assignment.objects.filter(pk__in=[pk for pk, _ in active]).update(
             active=False, released_at=timezone.now()
         )
-        Vehicle.objects.filter(
-            pk__in=ids, status__in=[Vehicle.Status.RESERVED, Vehicle.Status.IN_SERVICE]
-        ).update(status=Vehicle.Status.IDLE)
-        fleet_notify(ids)
+        if free_vehicles:
+            Vehicle.objects.filter(
+                pk__in=ids, status__in=[Vehicle.Status.RESERVED, Vehicle.Status.IN_SERVICE]
+            ).update(status=Vehicle.Status.IDLE)
+            fleet_notify(ids)
     return ids

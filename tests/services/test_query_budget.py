@@ -1,0 +1,156 @@
+"""What a session costs the database: requesting one through the API and ending it.
+
+The issue "control plane at fleet scale" asked for a lean request path. Before it,
+``POST /api/v1/sessions`` took 66 statements and 12 after-commit callbacks, and its
+end 32 statements and 3 callbacks. The budgets below are what the lean path takes,
+statement by statement, so that growth shows up here and is a decision, not a drift.
+
+Counted as PostgreSQL runs it in production: each request in its own transaction
+(``transaction=True``), so BEGIN and COMMIT are counted and a nested atomic block
+shows up as a SAVEPOINT. Not counted: the liveness check of the chosen vehicle
+(fleet.liveness), which reads Redis in production and only falls back to the
+vehicle's row for vehicles Redis has not heard of, as here.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import pytest
+from django.db import connection, transaction
+from django.test import Client
+from django.test.utils import CaptureQueriesContext
+
+from accounts.roles import CLIENT
+from accounts.tokens import token_issue
+from agents.protocol import VehicleTask
+from fleet.models import Vehicle
+from services import assignment
+from services.models import Session
+from services.signing import platform_public_key
+from tests import factories as f
+
+# Request: 21 statements.
+#   the API's own: the token (1), its last use (1, at most once a minute), the
+#   user's permissions (2), the service (1), the user's grant (1);
+#   one transaction (BEGIN, COMMIT: 2): the user's row locked for the cap (1), the
+#   live sessions counted (1), the session (1), its roles (1), the matching vehicles
+#   (1), the chosen one locked and read (1), reserved (1), its assignment (1), the
+#   session assigned (1), the task owed to the agent (1), the whole log (1);
+#   the answer: the assignments (1) and the log (1).
+REQUEST_QUERIES = 21
+#   Monitors' session feed (1 message for the whole log), fleet feed (1), the nudge
+#   to the vehicle's outbox (1).
+REQUEST_ON_COMMIT = 3
+
+# End: 16 statements.
+#   the API's own: the token (1), the session (1);
+#   one transaction (BEGIN, COMMIT: 2): the session locked (1), its assignments
+#   locked (1) and released (1), the session ended (1), the log's tail (1) and the
+#   event (1), the vehicle's task rows locked (1), the end owed to the agent (1), the
+#   vehicle releasing (1);
+#   the answer: the assignments (1), the end's delivery (1), the log (1).
+END_QUERIES = 16
+#   Session page and monitors (2), fleet feed (1), the outbox nudge (1).
+END_ON_COMMIT = 4
+
+COMMANDS = [{"name": "up", "args": {}}, {"name": "stop", "args": {}}]
+TARGET = {"lat": 40.6310, "lon": -8.6590}
+
+
+def _post(path: str, token: str, body: dict[str, Any]) -> Any:
+    return Client().post(
+        f"/api/v1{path}",
+        json.dumps(body),
+        content_type="application/json",
+        HTTP_AUTHORIZATION=f"Bearer {token}",
+    )
+
+
+class Meter:
+    """Statements and after-commit callbacks of one block, without the liveness reads."""
+
+    def __init__(self) -> None:
+        self.statements: list[str] = []
+        self.on_commit = 0
+
+    def __len__(self) -> int:
+        return len(self.statements)
+
+    def __str__(self) -> str:
+        return "\n".join(self.statements)
+
+
+@contextmanager
+def metered(monkeypatch: pytest.MonkeyPatch) -> Iterator[Meter]:
+    """Count what the block sends to the database and registers for after commit."""
+    meter = Meter()
+    fresh = assignment.vehicles_fresh
+    register: Callable[..., None] = transaction.on_commit
+    liveness: set[int] = set()  # indices of the statements the liveness check made
+
+    with CaptureQueriesContext(connection) as captured:
+
+        def vehicles_fresh(*args: Any, **kwargs: Any) -> set[str]:
+            before = len(captured.captured_queries)
+            try:
+                return fresh(*args, **kwargs)
+            finally:
+                liveness.update(range(before, len(captured.captured_queries)))
+
+        def on_commit(*args: Any, **kwargs: Any) -> None:
+            meter.on_commit += 1
+            register(*args, **kwargs)
+
+        with monkeypatch.context() as patch:
+            patch.setattr(assignment, "vehicles_fresh", vehicles_fresh)
+            patch.setattr(transaction, "on_commit", on_commit)
+            yield meter
+    meter.statements = [
+        q["sql"] for i, q in enumerate(captured.captured_queries) if i not in liveness
+    ]
+
+
+@pytest.mark.postgres
+@pytest.mark.django_db(transaction=True)
+def test_requesting_and_ending_a_session_stay_within_their_query_budget(inbox, monkeypatch):
+    vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type(), name="drone-1")
+    Vehicle.objects.filter(pk=vehicle.pk).update(
+        control_url="ws://10.0.0.7:8765/control", profile={"commands": COMMANDS}
+    )
+    f.service("fly", allowed_commands=["up", "stop"], max_altitude_m=30, geofence_radius_m=200)
+    token = token_issue(user=f.user(username="alice", roles=(CLIENT,)), name="tests")
+    agent = inbox(vehicle)
+
+    with metered(monkeypatch) as request:
+        created = _post("/sessions", token, {"service": "fly", "target": TARGET})
+    assert created.status_code == 201, created.content
+    session_id = created.json()["session"]["id"]
+    assert [e["kind"] for e in created.json()["session"]["log"]["events"]] == [
+        "requested",
+        "assigned",
+        "state",
+        "task_deployed",
+        "grant_issued",
+    ]
+    # The live agent's stand-in gets the signed task and acknowledges it.
+    (task,) = agent()
+    signed = VehicleTask.verify(task["token"], platform_public_key(), vehicle_id=str(vehicle.pk))
+    assert signed.session_id == session_id
+    agent.ack()
+
+    with metered(monkeypatch) as end:
+        ended = _post(f"/sessions/{session_id}/end", token, {"reason": "done"})
+    assert ended.status_code == 200, ended.content
+    assert ended.json()["state"] == Session.State.ENDED
+    assert agent() == [{"type": "end_task", "session_id": session_id, "reason": "done"}]
+
+    assert len(request) <= REQUEST_QUERIES, f"request: {len(request)} statements\n{request}"
+    assert request.on_commit <= REQUEST_ON_COMMIT
+    assert not any("SAVEPOINT" in sql for sql in request.statements), str(request)
+    assert len(end) <= END_QUERIES, f"end: {len(end)} statements\n{end}"
+    assert end.on_commit <= END_ON_COMMIT
+    assert not any("SAVEPOINT" in sql for sql in end.statements), str(end)
