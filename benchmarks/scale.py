@@ -1,14 +1,17 @@
-"""Scale of the platform: a thousand agents, assignment and deployment throughput,
-link loss to safe action, and one daphne process against two.
+"""Scale of the platform: thousands of agents, assignment and deployment throughput,
+link loss to safe action, and one platform process against two.
 
     python -m benchmarks.scale [--quick] [--agents 1000] [--out docs/benchmarks/scale]
+        [--server daphne|uvicorn] [--servers daphne,uvicorn] [--baseline REF]
+        [--phases all|one|heartbeats] [--heartbeat-s 1]
 
-Everything on the platform side is real: daphne serving ``iouv.asgi`` on PostgreSQL and
-Redis (its own database, ``iouv_bench_scale`` unless ``--database-url`` says otherwise,
-created, migrated and emptied at the start; Redis from ``REDIS_URL``, else database 4,
-with its own ``CHANNELS_PREFIX``), the platform's own signing key, vehicles registered
-in the database with real credentials, API tokens, sessions assigned and deployed by
-the platform's code. What is light is the load:
+Everything on the platform side is real: an ASGI server (daphne, the default, or
+uvicorn with the websockets library: ``--server``) serving ``iouv.asgi`` on PostgreSQL
+and Redis (its own database, ``iouv_bench_scale`` unless ``--database-url`` says
+otherwise, created, migrated and emptied at the start; Redis from ``REDIS_URL``, else
+database 4, with its own ``CHANNELS_PREFIX``), the platform's own signing key, vehicles
+registered in the database with real credentials, API tokens, sessions assigned and
+deployed by the platform's code. What is light is the load:
 
 * **Light agents**: each is the real :class:`agents.uplink.Uplink` client (hello,
   profile, heartbeats at the interval the platform's ``welcome`` asks for, websockets'
@@ -16,7 +19,8 @@ the platform's code. What is light is the load:
   public key and answered ``task_accepted``; ``end_task`` is answered ``task_ended``.
   There is no adapter and no video behind them. Many run per process, in a few
   ``--agent-worker`` processes, so the load generator is not the bottleneck (its CPU
-  is measured and reported).
+  is measured and reported). They count the heartbeats they send: the platform's CPU
+  per heartbeat is its CPU over a window divided by the heartbeats sent in it.
 * **Cars**: two full agents (:class:`agents.runtime.Agent`, the car adapter on
   gpiozero mock pins and its simulated world) in this process, for the link-loss
   trials and the relayed control session.
@@ -24,24 +28,34 @@ the platform's code. What is light is the load:
   bearer token, requesting a session (assignment, signed task deployed to a live
   light agent) and ending it, in a closed loop.
 
-Phases (the report names them):
+Phases (the report names them; ``--phases heartbeats`` runs the first only, ``one`` the
+first three):
 
-1. one daphne process behind nginx (:mod:`benchmarks.nginx_proxy`); CPU and memory
-   idle, then with N agents connected and heartbeating (and whether all N are online in
-   the DB);
+1. one platform process behind nginx (:mod:`benchmarks.nginx_proxy`); CPU and memory
+   idle, then with N agents connected and heartbeating (and whether all N are online as
+   the platform counts them);
 2. assignment + deployment throughput under that load, with a relayed control session
    running beside it (command round trips through the platform);
 3. link loss to safe action, with the N agents still connected: a controller goes
    silent (the agent's watchdog fires after the task's ``link_loss_timeout_ms``) or its
    socket dies (closed abruptly, no WebSocket close handshake), directly and through
    the relay;
-4. two daphne processes behind the same proxy (agents on one, users on the other,
+4. two platform processes behind the same proxy (agents on one, users on the other,
    sharing PostgreSQL and Redis): the agents reconnect through the restarted proxy,
    then phases 2 and the relayed part of 3 run again.
 
-Outputs in ``--out``: ``resources.csv``, ``api_requests.csv``, ``task_delivery.csv``,
-``relay_rtt.csv``, ``reaction_trials.csv``, ``summary.json`` and ``report.md``.
-No timing is asserted anywhere; ``--quick`` is the smoke test the suite runs.
+The platform's database is written and read by the platform's own code
+(:mod:`benchmarks.scale_probe`, in a child process), so ``--baseline REF`` can run the
+same benchmark against REF's platform, from a ``git worktree`` (same virtualenv, the
+database dropped and migrated by REF), then against the current code, and
+``--servers daphne,uvicorn`` under each server in turn: each run's outputs go to a
+folder of its own under ``--out`` and ``report.md`` there puts the runs side by side
+(:mod:`benchmarks.scale_compare`).
+
+Outputs of one run in ``--out``: ``resources.csv``, ``api_requests.csv``,
+``task_delivery.csv``, ``relay_rtt.csv``, ``reaction_trials.csv``, ``summary.json``
+and ``report.md``. No timing is asserted anywhere; ``--quick`` is the smoke test the
+suite runs.
 """
 
 from __future__ import annotations
@@ -58,15 +72,14 @@ import math
 import os
 import platform
 import random
+import re
 import signal
-import socket
 import statistics
+import subprocess
 import sys
 import threading
 import time
-import urllib.error
-import urllib.request
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -90,16 +103,27 @@ from agents.protocol.messages import (
 )
 from agents.uplink import Uplink
 from benchmarks.nginx_proxy import Backend, NginxProxy, Routes, Rule, raise_open_files_limit
+from benchmarks.scale_compare import compare_md
+from benchmarks.scale_platform import (
+    ROOT,
+    SERVERS,
+    Child,
+    PlatformQueries,
+    PlatformTree,
+    database_create,
+    free_port,
+    open_log,
+    platform_start,
+    worktree,
+)
+from benchmarks.scale_probe import CAR_SERVICE, HOME, LIGHT_SERVICE
 
-ROOT = Path(__file__).resolve().parents[1]
+__all__ = ["MODES", "Params", "free_port", "main", "run"]
+
 DEFAULT_DATABASE_URL = "postgres://postgres@127.0.0.1:5432/iouv_bench_scale"
 DEFAULT_REDIS_URL = "redis://127.0.0.1:6379/4"
-HOME = (40.6306, -8.6588)  # the demo's campus station; vehicles are spread around it
-LIGHT_TYPE = "Bench light drone"
-CAR_TYPE = "Bench car"
-LIGHT_SERVICE = "bench-assign"
-CAR_SERVICE = "bench-drive"
-CAR_COMMANDS = ["forward", "backward", "left", "right", "stop"]
+#: What ``--phases`` may ask for: phase 1; phases 1 to 3 (one process); all four.
+PHASES = ("heartbeats", "one", "all")
 MODES = ("direct_silent", "direct_closed", "relay_silent", "relay_closed")
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 #: A relayed command whose ack takes longer than this is counted as lost.
@@ -127,7 +151,20 @@ class Params:
     cars: int = 2
     drain_s: float = 2.5  # after the API load, for the last acceptances to arrive
     start_delay_s: float = 2.0  # for the API worker and the relayed session to be ready
+    server: str = SERVERS[0]  # the ASGI server the platform runs under
+    phases: str = "all"  # one of PHASES
     quick: bool = False
+
+    def __post_init__(self) -> None:
+        if self.server not in SERVERS:
+            raise ValueError(f"server must be one of {SERVERS}, not {self.server!r}")
+        if self.phases not in PHASES:
+            raise ValueError(f"phases must be one of {PHASES}, not {self.phases!r}")
+
+    @property
+    def cars_needed(self) -> int:
+        """Cars registered and run: none when only the heartbeat phase runs."""
+        return 0 if self.phases == "heartbeats" else self.cars
 
     def stages(self) -> list[int]:
         """Agent counts measured on the way up: a quarter, a half and all of them (only
@@ -337,7 +374,7 @@ def summary(values: Iterable[float]) -> dict[str, float]:
 
 
 # ======================================================================================
-# The world in the database (needs Django)
+# The world in the database (written by the platform's tree: benchmarks.scale_probe)
 # ======================================================================================
 
 
@@ -362,279 +399,21 @@ class World:
     client_tokens: list[str]
     driver_token: str
 
-
-def world_build(*, light: int, cars: int, clients: int, link_loss_timeout_ms: int) -> World:
-    """Register ``light`` drones and ``cars`` cars with fresh credentials, the two
-    benchmark services, ``clients`` API users and a driver, each with a token.
-
-    Light drones are spread at random within 2 km of HOME, so concurrent requests for
-    the nearest vehicle do not all race for the same one.
-    """
-    from django.contrib.auth import get_user_model
-
-    from accounts.roles import CLIENT, roles_ensure, user_set_roles
-    from accounts.tokens import token_issue
-    from agents.geo import offset
-    from fleet.credentials import vehicle_issue_credential
-    from fleet.models import Station, Vehicle, VehicleType
-    from services.models import Service, ServiceGrant, ServiceRole
-    from services.signing import platform_public_key_pem
-
-    rng = random.Random(7)
-    groups = roles_ensure()
-    station = Station.objects.create(
-        name="Bench station", lat=HOME[0], lon=HOME[1], environments=["land", "air"]
-    )
-    drone_type = VehicleType.objects.create(name=LIGHT_TYPE, kind="aerial", adapter="mavlink")
-    car_type = VehicleType.objects.create(name=CAR_TYPE, kind="ground", adapter="car")
-    drone_attrs = {
-        "endurance_min": 30,
-        "max_range_m": 10000,
-        "max_altitude_m": 120,
-        "max_speed_mps": 12,
-        "max_payload_kg": 0.5,
-        "cameras": ["rgb"],
-        "camera_range_m": 100,
-        "environments": ["air", "land"],
-        "features": ["gps"],
-    }
-    car_attrs = {**drone_attrs, "max_altitude_m": 0, "max_speed_mps": 1.5, "environments": ["land"]}
-    rows = []
-    for i in range(light):
-        distance, bearing = 2000 * math.sqrt(rng.random()), rng.uniform(0, 2 * math.pi)
-        lat, lon = offset(HOME, distance * math.cos(bearing), distance * math.sin(bearing))
-        rows.append(
-            Vehicle(
-                name=f"bench-light-{i:04d}",
-                vehicle_type=drone_type,
-                station=station,
-                attributes=drone_attrs,
-                battery=90.0,
-                lat=lat,
-                lon=lon,
-            )
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> World:
+        """The world ``scale_probe.world_build`` returned."""
+        return cls(
+            public_key=data["public_key"],
+            light=[AgentSpec(**a) for a in data["light"]],
+            cars=[AgentSpec(**a) for a in data["cars"]],
+            client_tokens=list(data["client_tokens"]),
+            driver_token=data["driver_token"],
         )
-    for i in range(cars):
-        rows.append(
-            Vehicle(
-                name=f"bench-car-{i}",
-                vehicle_type=car_type,
-                station=station,
-                attributes=car_attrs,
-                battery=90.0,
-                lat=HOME[0],
-                lon=HOME[1],
-            )
-        )
-    Vehicle.objects.bulk_create(rows, batch_size=500)
-    specs = [
-        AgentSpec(
-            str(v.pk), vehicle_issue_credential(vehicle=v), v.name, float(v.lat), float(v.lon)
-        )
-        for v in rows
-    ]
-    # The load's clients each hold many sessions at once: no per-user cap here.
-    light_service = Service.objects.create(
-        slug=LIGHT_SERVICE,
-        name="Bench assignment",
-        kind="manual_control",
-        allowed_commands=["stop"],
-        max_sessions_per_user=100_000,
-    )
-    ServiceRole.objects.create(
-        service=light_service, name="vehicle", kinds=["aerial"], min_battery=20
-    )
-    car_service = Service.objects.create(
-        slug=CAR_SERVICE,
-        name="Bench drive",
-        kind="manual_control",
-        allowed_commands=CAR_COMMANDS,
-        link_loss_timeout_ms=link_loss_timeout_ms,
-        failsafe_action="stop",
-        max_sessions_per_user=100_000,
-    )
-    ServiceRole.objects.create(service=car_service, name="vehicle", kinds=["ground"])
-    for service in (light_service, car_service):
-        ServiceGrant.objects.create(service=service, group=groups[CLIENT])
-
-    def client(username: str) -> str:
-        user = get_user_model().objects.create_user(username=username, password=None)
-        user_set_roles(user=user, roles=[CLIENT])
-        return token_issue(user=user, name="benchmark")
-
-    return World(
-        public_key=platform_public_key_pem(),
-        light=specs[:light],
-        cars=specs[light:],
-        client_tokens=[client(f"bench-client-{i}") for i in range(clients)],
-        driver_token=client("bench-driver"),
-    )
-
-
-def fleet_check(names: Sequence[str]) -> dict[str, Any]:
-    """How many of the vehicles named ``names`` the platform counts online (heard from
-    within IOUV_OFFLINE_AFTER_S and not offline), how old their last heartbeat write
-    is (seconds), the database connections open to this database, and how many vehicle
-    rows PostgreSQL has updated so far (its statistics counter)."""
-    from django.db import connection
-    from django.utils import timezone
-
-    from fleet.models import Vehicle
-    from fleet.status import vehicles_online
-
-    now = timezone.now()
-    online = vehicles_online(now).filter(name__in=names).count()
-    ages = [
-        (now - seen).total_seconds()
-        for seen in Vehicle.objects.filter(name__in=names, last_seen__isnull=False).values_list(
-            "last_seen", flat=True
-        )
-    ]
-    with connection.cursor() as cursor:
-        cursor.execute(
-            "SELECT count(*) FILTER (WHERE datname = current_database()), count(*) "
-            "FROM pg_stat_activity WHERE backend_type = 'client backend'"
-        )
-        connections, all_connections = (int(v) for v in cursor.fetchone())
-        # Rows updated in the vehicle table so far: heartbeats, profiles, status changes.
-        cursor.execute(
-            "SELECT n_tup_upd FROM pg_stat_user_tables WHERE relname = %s",
-            [Vehicle._meta.db_table],
-        )
-        row = cursor.fetchone()
-    return {
-        "online": online,
-        "of": len(names),
-        "heartbeat_age_s": summary(ages),
-        "db_conns": connections,
-        "db_conns_all": all_connections,
-        "vehicle_updates": int(row[0]) if row else 0,
-    }
-
-
-def sessions_check(session_ids: Sequence[str]) -> dict[str, int]:
-    """Of ``session_ids``: how many had a task deployed, accepted by the agent (in the
-    session log), and are over."""
-    from services.models import Session, SessionEvent
-    from services.sessions import FINAL
-
-    events = SessionEvent.objects.filter(session_id__in=session_ids)
-    return {
-        "sessions": len(session_ids),
-        "task_deployed": events.filter(kind="task_deployed").values("session").distinct().count(),
-        "task_accepted": events.filter(kind="task_accepted").values("session").distinct().count(),
-        "final": Session.objects.filter(pk__in=session_ids, state__in=FINAL).count(),
-    }
-
-
-def session_log_kinds(session_id: str) -> list[str]:
-    from services.models import SessionEvent
-
-    return list(
-        SessionEvent.objects.filter(session_id=session_id)
-        .order_by("seq")
-        .values_list("kind", flat=True)
-    )
-
-
-async def orm(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-    """Run ORM code in a thread; its connection closes after, so nothing lingers.
-
-    PostgreSQL is shared with other work on the machine and may refuse a connection
-    for a while ("too many clients"): such a call is retried for up to three minutes.
-    """
-    from django.db import OperationalError
-
-    def call() -> Any:
-        from django.db import connections
-
-        try:
-            return fn(*args, **kwargs)
-        finally:
-            connections.close_all()
-
-    deadline = time.monotonic() + 180
-    while True:
-        try:
-            return await asyncio.to_thread(call)
-        except OperationalError:
-            if time.monotonic() > deadline:
-                raise
-            await asyncio.sleep(1.0)
 
 
 # ======================================================================================
-# Child processes: daphne, the proxy, the workers
+# Child processes: the proxy, the workers (the platform's: benchmarks.scale_platform)
 # ======================================================================================
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@dataclass
-class Child:
-    """A process this run started; :meth:`stop` ends it (SIGTERM, then SIGKILL)."""
-
-    name: str
-    proc: asyncio.subprocess.Process
-    port: int = 0
-
-    @property
-    def pid(self) -> int:
-        return self.proc.pid
-
-    async def stop(self, grace_s: float = 10.0) -> None:
-        if self.proc.returncode is not None:
-            return
-        with contextlib.suppress(ProcessLookupError):
-            self.proc.terminate()
-        try:
-            await asyncio.wait_for(self.proc.wait(), grace_s)
-        except TimeoutError:
-            with contextlib.suppress(ProcessLookupError):
-                self.proc.kill()
-            await self.proc.wait()
-
-
-def _http_ok(url: str) -> bool:
-    try:
-        with urllib.request.urlopen(url, timeout=2) as response:
-            return bool(response.status == 200)
-    except (OSError, urllib.error.URLError):
-        return False
-
-
-async def daphne_start(name: str, *, env: dict[str, str], logs: Path) -> Child:
-    """Start ``daphne iouv.asgi:application`` on a free loopback port; returns once
-    ``/healthz`` answers. Raises RuntimeError (with the log's tail) if it does not."""
-    port = free_port()
-    log_path = logs / f"{name}.log"
-    with _open_log(log_path) as log_file:
-        proc = await asyncio.create_subprocess_exec(
-            sys.executable,
-            "-m",
-            "daphne",
-            "-b",
-            "127.0.0.1",
-            "-p",
-            str(port),
-            "iouv.asgi:application",
-            cwd=ROOT,
-            env=env,
-            stdout=log_file,
-            stderr=asyncio.subprocess.STDOUT,
-        )
-    child = Child(name, proc, port)
-    deadline = time.monotonic() + 60
-    while not await asyncio.to_thread(_http_ok, f"http://127.0.0.1:{port}/healthz"):
-        if proc.returncode is not None or time.monotonic() > deadline:
-            await child.stop()
-            raise RuntimeError(f"{name} did not start: {log_path.read_text()[-2000:]}")
-        await asyncio.sleep(0.2)
-    return child
 
 
 async def proxy_start(
@@ -655,7 +434,7 @@ async def proxy_start(
     )
     await proxy.start()
     assert proxy.process is not None
-    return Child("front proxy", proxy.process, port)
+    return Child("nginx (front proxy)", proxy.process, port)
 
 
 @dataclass
@@ -665,6 +444,8 @@ class WorkerState:
     connected: int = 0
     registrations: int = 0
     tasks: dict[str, float] = field(default_factory=dict)  # session id -> wall time
+    heartbeats: int = 0  # sent since the worker started
+    at: float = 0.0  # when it reported (time.monotonic(), one clock for the machine)
 
 
 class AgentWorkers:
@@ -703,7 +484,7 @@ class AgentWorkers:
                     }
                 )
             )
-            with _open_log(logs / f"agent-worker-{index}.log") as log_file:
+            with open_log(logs / f"agent-worker-{index}.log") as log_file:
                 proc = await asyncio.create_subprocess_exec(
                     sys.executable,
                     "-m",
@@ -730,6 +511,8 @@ class AgentWorkers:
                 state.connected = report["connected"]
                 state.registrations = report["registrations"]
                 state.tasks.update({sid: t for sid, t in report["tasks"]})
+                state.heartbeats = report["heartbeats"]
+                state.at = report["at"]
 
     @property
     def connected(self) -> int:
@@ -738,6 +521,21 @@ class AgentWorkers:
     @property
     def registrations(self) -> int:
         return sum(s.registrations for s in self.states)
+
+    def heartbeat_marks(self) -> list[tuple[int, float]]:
+        """Each worker's last report: (heartbeats sent so far, when it reported)."""
+        return [(s.heartbeats, s.at) for s in self.states]
+
+    @staticmethod
+    def heartbeat_rate(before: list[tuple[int, float]], after: list[tuple[int, float]]) -> float:
+        """Heartbeats sent per second between two :meth:`heartbeat_marks`, all workers
+        together. Each worker's rate is taken between its own reports (one a second),
+        not the caller's instants, so a short window is not off by a report's worth."""
+        rate = 0.0
+        for (n0, t0), (n1, t1) in zip(before, after, strict=False):
+            if t1 > t0:
+                rate += (n1 - n0) / (t1 - t0)
+        return rate
 
     def task_times(self) -> dict[str, float]:
         out: dict[str, float] = {}
@@ -772,6 +570,7 @@ class LightAgent:
         self.public_key = public_key
         self.session: str | None = None
         self.tasks = tasks
+        self.heartbeats = 0  # built for sending: the uplink sends each one at once
         self.guard = ReplayGuard(max_entries=1000)
         self.uplink = Uplink(
             url=url.rstrip("/") + "/ws/agent/",
@@ -798,6 +597,7 @@ class LightAgent:
         )
 
     def heartbeat(self) -> Heartbeat:
+        self.heartbeats += 1
         return Heartbeat(
             seq=0,
             position=self.position,
@@ -851,6 +651,8 @@ async def agent_worker(spec: dict[str, Any]) -> None:
                 "connected": sum(a.uplink.connected.is_set() for a in agents),
                 "registrations": sum(a.uplink.connections for a in agents),
                 "tasks": sent,
+                "heartbeats": sum(a.heartbeats for a in agents),
+                "at": time.monotonic(),
             }
             sys.stdout.write(json.dumps(line) + "\n")
             sys.stdout.flush()
@@ -1250,6 +1052,7 @@ async def reaction_trials(
     sessions: dict[bool, CarSession],
     results: Results,
     budget_s: float,
+    db: PlatformQueries,
 ) -> list[Trial]:
     """Link loss to safe action, ``n`` times per mode (at most ``budget_s`` seconds per
     mode), a fresh grant per trial as a reconnecting user gets.
@@ -1265,7 +1068,7 @@ async def reaction_trials(
     for mode in modes:
         session = sessions[mode.startswith("relay")]
         first = len(trials)
-        logged_before = await orm(_failsafes_logged, session.session_id)
+        logged_before = await db.call("failsafes_logged", session_id=session.session_id)
         budget_end = time.monotonic() + budget_s
         for i in range(n):
             if time.monotonic() > budget_end:
@@ -1296,17 +1099,13 @@ async def reaction_trials(
             await asyncio.sleep(0.2)
         done = len(trials) - first
         deadline = time.monotonic() + 15
-        count = await orm(_failsafes_logged, session.session_id) - logged_before
+        count = await db.call("failsafes_logged", session_id=session.session_id) - logged_before
         while count < done and time.monotonic() < deadline:
             await asyncio.sleep(0.5)
-            count = await orm(_failsafes_logged, session.session_id) - logged_before
+            count = await db.call("failsafes_logged", session_id=session.session_id) - logged_before
         for trial in trials[first : first + count]:
             trial.platform_logged = True
     return trials
-
-
-def _failsafes_logged(session_id: str) -> int:
-    return sum(kind == "unintentional_end" for kind in session_log_kinds(session_id))
 
 
 async def relay_session(
@@ -1392,11 +1191,12 @@ async def wait_online(
     workers: AgentWorkers,
     expect_uplinks: int,
     within: float,
+    db: PlatformQueries,
     registrations_at_least: int = 0,
 ) -> float | None:
     """Seconds until the workers report ``expect_uplinks`` connected uplinks (and at
     least ``registrations_at_least`` uplinks opened since they started) and the
-    database counts every vehicle of ``names`` online; None if that did not happen
+    platform counts every vehicle of ``names`` online; None if that did not happen
     ``within`` seconds (the run goes on: how many were online is itself a result).
 
     After a restart, pass the registrations so far plus the agents: right after the
@@ -1405,7 +1205,7 @@ async def wait_online(
     start = time.monotonic()
     while time.monotonic() - start < within:
         if workers.connected >= expect_uplinks and workers.registrations >= registrations_at_least:
-            check = await orm(fleet_check, names)
+            check = await db.call("fleet_check", names=list(names))
             if check["online"] == len(names):
                 return time.monotonic() - start
         await asyncio.sleep(0.5)
@@ -1420,29 +1220,35 @@ async def measure(
     pids: dict[str, list[int] | str],
     seconds: float,
     names: Sequence[str],
+    db: PlatformQueries,
+    workers: AgentWorkers,
 ) -> None:
-    """CPU and memory of ``pids`` over ``seconds``, and the fleet as the database sees
-    it: online count (sampled every 2 s), heartbeat age at the end, vehicle rows
-    updated per second."""
-    before = await orm(fleet_check, names)
+    """CPU and memory of ``pids`` over ``seconds``, the heartbeats the light agents sent
+    meanwhile (per second), and the fleet as the platform sees it: online count
+    (sampled every 2 s), heartbeat age at the end, vehicle rows updated per second."""
+    before = await db.call("fleet_check", names=list(names))
     window = Window(pids)
     window.start()
+    marks = workers.heartbeat_marks()
     end = time.monotonic() + seconds
     online = []
     while (remaining := end - time.monotonic()) > 0:
         await asyncio.sleep(min(2.0, remaining))
         if end - time.monotonic() > 0.5:
-            online.append((await orm(fleet_check, names))["online"])
+            online.append((await db.call("fleet_check", names=list(names)))["online"])
     usage = window.stop(phase=phase, topology=topology)
+    heartbeats_per_s = workers.heartbeat_rate(marks, workers.heartbeat_marks())
     results.usage += usage
-    after = await orm(fleet_check, names)
+    after = await db.call("fleet_check", names=list(names), ages=True)
     online.append(after["online"])
     results.fleet[f"{topology}/{phase}"] = {
-        **after,
+        **{k: v for k, v in after.items() if k != "ages"},
+        "heartbeat_age_s": summary(after["ages"]),
         "online_min": min(online),
         "online_mean": statistics.fmean(online),
         "vehicle_updates_per_s": (after["vehicle_updates"] - before["vehicle_updates"])
         / usage[0].window_s,
+        "heartbeats_per_s": heartbeats_per_s,
     }
 
 
@@ -1462,11 +1268,6 @@ def _read_api_rows(path: Path, topology: str, start_wall: float) -> list[dict[st
         ]
 
 
-def _open_log(path: Path) -> Any:
-    # A child's output file; the child keeps its own descriptor, ours is closed at once.
-    return open(path, "w")
-
-
 async def load_phase(
     *,
     topology: str,
@@ -1480,6 +1281,7 @@ async def load_phase(
     pids: dict[str, list[int] | str],
     names: Sequence[str],
     sessions: dict[bool, CarSession],
+    db: PlatformQueries,
 ) -> None:
     """API clients + a relayed control session for ``api_duration_s``, measuring CPU."""
     out = logs / f"api-{topology}.csv"
@@ -1515,7 +1317,7 @@ async def load_phase(
             }
         )
     )
-    with _open_log(logs / f"api-worker-{topology}.log") as log_file:
+    with open_log(logs / f"api-worker-{topology}.log") as log_file:
         proc = await asyncio.create_subprocess_exec(
             *(sys.executable, "-m", "benchmarks.scale", "--api-worker", str(spec)),
             cwd=ROOT,
@@ -1532,6 +1334,8 @@ async def load_phase(
         pids={**pids, "API clients": [proc.pid]},
         seconds=params.api_duration_s,
         names=names,
+        db=db,
+        workers=workers,
     )
     done.set()
     await proc.wait()
@@ -1551,10 +1355,10 @@ async def load_phase(
     await asyncio.sleep(params.drain_s)
     ids = [r["session_id"] for r in created]
     deadline = time.monotonic() + 15
-    check = await orm(sessions_check, ids)
+    check = await db.call("sessions_check", session_ids=ids)
     while check["task_accepted"] < check["task_deployed"] and time.monotonic() < deadline:
         await asyncio.sleep(1.0)
-        check = await orm(sessions_check, ids)
+        check = await db.call("sessions_check", session_ids=ids)
     results.sessions[topology] = check
     arrived = workers.task_times()
     for r in created:
@@ -1569,16 +1373,26 @@ async def load_phase(
 
 
 async def run_async(
-    params: Params, *, world: World, env: dict[str, str], logs: Path, results: Results
+    params: Params,
+    *,
+    world: World,
+    env: dict[str, str],
+    logs: Path,
+    results: Results,
+    tree: PlatformTree,
+    db: PlatformQueries,
 ) -> None:
-    """The phases in order (see the module docstring); children stopped on the way out."""
+    """The phases ``params.phases`` asks for, in order (see the module docstring), the
+    platform processes being ``tree`` under ``params.server``; children stopped on the
+    way out."""
     names = [s.name for s in world.light + world.cars]
     light = [s.name for s in world.light]
     # Long enough for a platform that keeps up; one that cannot is reported as such.
     within = 30 + params.agents / 20
     loaded = f"{params.agents} agents"
+    server = params.server
     workers = AgentWorkers()
-    # SIGTERM cancels the run, which unwinds the stack below: every daphne process,
+    # SIGTERM cancels the run, which unwinds the stack below: every platform process,
     # worker and proxy this run started is stopped.
     loop = asyncio.get_running_loop()
     main = asyncio.current_task()
@@ -1587,14 +1401,18 @@ async def run_async(
         loop.add_signal_handler(signal.SIGTERM, main.cancel)
     async with contextlib.AsyncExitStack() as stack:
         stack.push_async_callback(workers.stop)
-        with results.timed("start two daphne processes and the proxy"):
+        two = params.phases == "all"
+        with results.timed(f"start {'two' if two else 'one'} {server} process(es) and the proxy"):
             # Process 2 waits, idle, until phase 4: starting both now saves a start-up.
-            p1, p2 = await asyncio.gather(
-                daphne_start("platform-1", env=env, logs=logs),
-                daphne_start("platform-2", env=env, logs=logs),
+            started_processes = await asyncio.gather(
+                *(
+                    platform_start(name, server=server, tree=tree, env=env, logs=logs)
+                    for name in ("platform-1", "platform-2")[: 2 if two else 1]
+                )
             )
-            stack.push_async_callback(p1.stop)
-            stack.push_async_callback(p2.stop)
+            for child in started_processes:
+                stack.push_async_callback(child.stop)
+            p1 = started_processes[0]
             front = free_port()
             proxy = await proxy_start(
                 port=front, routes={}, default=p1.port, env=env, logs=logs, tag="one"
@@ -1612,13 +1430,17 @@ async def run_async(
                 pids={"platform-1": [p1.pid]},
                 seconds=params.window_s,
                 names=light,
+                db=db,
+                workers=workers,
             )
-        probes = await cars_start(stack, world=world, url=ws_url)
         cars = [s.name for s in world.cars]
-        await wait_online(names=cars, workers=workers, expect_uplinks=0, within=60)
-        sessions = await car_sessions_open(
-            base=base, token=world.driver_token, probes=probes, results=results
-        )
+        sessions: dict[bool, CarSession] = {}
+        if world.cars:
+            probes = await cars_start(stack, world=world, url=ws_url)
+            await wait_online(names=cars, workers=workers, expect_uplinks=0, within=60, db=db)
+            sessions = await car_sessions_open(
+                base=base, token=world.driver_token, probes=probes, results=results
+            )
 
         async def sessions_end() -> None:
             for session in sessions.values():
@@ -1646,7 +1468,7 @@ async def run_async(
                 wait = 30 + count / 20
                 key = f"one, {count} agents"
                 results.online_after_s[key] = await wait_online(
-                    names=stage + cars, workers=workers, expect_uplinks=count, within=wait
+                    names=stage + cars, workers=workers, expect_uplinks=count, within=wait, db=db
                 )
             if results.online_after_s[key] is None:
                 results.notes.append(
@@ -1655,9 +1477,12 @@ async def run_async(
                     "online counts)."
                 )
             helpers: dict[str, list[int] | str] = {
-                "front proxy": [proxy.pid],
+                "nginx (front proxy)": [proxy.pid],
                 "agent workers": [c.pid for c in workers.children],
-                "this process (2 cars, orchestration)": [os.getpid()],
+                f"this process ({len(cars)} cars, orchestration, queries)": [
+                    os.getpid(),
+                    db.pid,
+                ],
                 "postgres (all databases)": "postgres",
                 "redis-server": "redis-server",
             }
@@ -1671,7 +1496,11 @@ async def run_async(
                     pids=pids,
                     seconds=params.window_s,
                     names=stage,
+                    db=db,
+                    workers=workers,
                 )
+        if params.phases == "heartbeats":
+            return
 
         # --- 2 and 3 with one process --------------------------------------------------
         with results.timed("2. API load, one process"):
@@ -1687,6 +1516,7 @@ async def run_async(
                 pids=pids,
                 names=light,
                 sessions=sessions,
+                db=db,
             )
         with results.timed("3. link-loss trials, one process"):
             results.trials += await reaction_trials(
@@ -1698,9 +1528,13 @@ async def run_async(
                 sessions=sessions,
                 results=results,
                 budget_s=params.trial_budget_s,
+                db=db,
             )
+        if not two:
+            return
 
         # --- 4. two processes behind the proxy ----------------------------------------
+        p2 = started_processes[1]
         with results.timed("4. proxy restart, agents reconnect"):
             registered = workers.registrations
             await proxy.stop()
@@ -1713,12 +1547,13 @@ async def run_async(
                 tag="two",
             )
             stack.push_async_callback(proxy.stop)
-            helpers["front proxy"] = [proxy.pid]
+            helpers["nginx (front proxy)"] = [proxy.pid]
             results.online_after_s["two, all reconnect"] = await wait_online(
                 names=names,
                 workers=workers,
                 expect_uplinks=params.agents,
                 within=within,
+                db=db,
                 registrations_at_least=registered + params.agents,
             )
         if results.online_after_s["two, all reconnect"] is None:
@@ -1736,6 +1571,8 @@ async def run_async(
                 pids=pids,
                 seconds=params.window_s,
                 names=light,
+                db=db,
+                workers=workers,
             )
         with results.timed("4. API load, two processes"):
             await load_phase(
@@ -1750,6 +1587,7 @@ async def run_async(
                 pids=pids,
                 names=light,
                 sessions=sessions,
+                db=db,
             )
         with results.timed("4. relayed link-loss trials, two processes"):
             results.trials += await reaction_trials(
@@ -1761,18 +1599,22 @@ async def run_async(
                 sessions=sessions,
                 results=results,
                 budget_s=params.trial_budget_s,
+                db=db,
             )
 
 
-#: What to count in the platform processes' output (daphne's access log and Django's
-#: log): label -> text a line contains.
+#: What to count in the platform processes' output (the server's access or error log
+#: and Django's log): label -> a pattern matching daphne's line or uvicorn's.
 LOG_PATTERNS = {
-    "uplinks accepted (WSCONNECT /ws/agent/)": '"WSCONNECT /ws/agent/"',
-    "WebSocket handshakes rejected (WSREJECT)": '"WSREJECT ',
-    "Redis pool exhausted (MaxConnectionsError)": "redis.exceptions.MaxConnectionsError",
-    "errors logged (ERROR)": " ERROR ",
-    "tracebacks": "Traceback (most recent call last)",
-    "consumers slow to shut down": "took too long to shut down",
+    label: re.compile(pattern)
+    for label, pattern in {
+        "uplinks accepted": r'"WSCONNECT /ws/agent/"|"WebSocket /ws/agent/" \[accepted\]',
+        "WebSocket handshakes rejected": r'"WSREJECT |"WebSocket [^"]*" 403',
+        "Redis pool exhausted (MaxConnectionsError)": r"redis\.exceptions\.MaxConnectionsError",
+        "errors logged (ERROR)": r" ERROR |^ERROR:",
+        "tracebacks": r"Traceback \(most recent call last\)",
+        "consumers slow to shut down": r"took too long to shut down",
+    }.items()
 }
 
 
@@ -1781,56 +1623,109 @@ def log_counts(path: Path) -> dict[str, int]:
     counts = dict.fromkeys(LOG_PATTERNS, 0)
     with open(path, errors="replace") as f:
         for line in f:
-            for label, text in LOG_PATTERNS.items():
-                if text in line:
+            for label, pattern in LOG_PATTERNS.items():
+                if pattern.search(line):
                     counts[label] += 1
     return counts
 
 
-def run(params: Params, *, out: Path, command: str, database_url: str) -> Results:
-    """Run every phase and write the outputs to ``out``; returns the results.
+def _code_label(tree: PlatformTree) -> str:
+    """The platform's code as the report names it."""
+    if tree.commit:
+        return f"{tree.label} ({tree.commit[:10]}, a git worktree)"
+    done = subprocess.run(
+        ["git", "describe", "--always", "--dirty"], cwd=ROOT, capture_output=True, text=True
+    )
+    return f"the checkout ({done.stdout.strip() or 'not a git checkout'})"
 
-    Needs Django set up on an empty, migrated database whose URL (for the daphne
-    processes) is ``database_url``; REDIS_URL, CHANNELS_PREFIX and IOUV_VAR_DIR are
-    taken from the environment, which the children inherit.
+
+def run(
+    params: Params,
+    *,
+    out: Path,
+    command: str,
+    database_url: str,
+    tree: PlatformTree | None = None,
+    prepare: bool = False,
+) -> Results:
+    """Run the phases ``params`` asks for against ``tree``'s platform (default: this
+    checkout) and write the outputs to ``out``; returns the results.
+
+    The database ``database_url`` names must exist; with ``prepare`` the tree migrates
+    and empties it first, else it must be migrated and empty already. REDIS_URL,
+    CHANNELS_PREFIX and IOUV_VAR_DIR are taken from the environment, which the children
+    inherit. Raises :class:`benchmarks.scale_platform.PlatformQueryError` when the
+    tree's code cannot set the run up.
     """
-    from django.conf import settings
-
     raise_open_files_limit()
-    logs = Path(settings.VAR_DIR) / "bench-scale"
-    logs.mkdir(parents=True, exist_ok=True)
+    tree = tree or PlatformTree()
     env = {
         **os.environ,
         "DATABASE_URL": database_url,
         "PYTHONUNBUFFERED": "1",
         # Per-connection INFO lines would put a thousand log writes in the measurement.
         "LOG_LEVEL": os.environ.get("BENCH_LOG_LEVEL", "WARNING"),
+        # The settings' default is inside the tree: every tree must share the signing
+        # key and the logs.
+        "IOUV_VAR_DIR": os.environ.get("IOUV_VAR_DIR", str(ROOT / "var")),
     }
+    logs = (
+        Path(env["IOUV_VAR_DIR"])
+        / "bench-scale"
+        / f"{tree.label}-{params.server}".replace("/", "_")
+    )
+    logs.mkdir(parents=True, exist_ok=True)
     results = Results(
         params=params,
         machine=machine_info(),
         command=command,
         database=database_url.rsplit("@", 1)[-1],
     )
-    with results.timed("register vehicles, users and tokens"):
-        world = world_build(
-            light=params.agents,
-            cars=params.cars,
-            clients=params.api_clients,
-            link_loss_timeout_ms=params.link_loss_timeout_ms,
-        )
-    results.machine["db_conn_max_age"] = env.get("DB_CONN_MAX_AGE", "60 (default)")
-    results.machine["http_concurrency"] = settings.IOUV_HTTP_CONCURRENCY
-    results.machine["heartbeat_s"] = settings.IOUV_HEARTBEAT_INTERVAL_S
-    results.machine["offline_after_s"] = settings.IOUV_OFFLINE_AFTER_S
+    results.machine["server"] = params.server
+    results.machine["platform_code"] = _code_label(tree)
     try:
-        asyncio.run(run_async(params, world=world, env=env, logs=logs, results=results))
+        asyncio.run(
+            _run_with_queries(
+                params, tree=tree, env=env, logs=logs, results=results, prepare=prepare
+            )
+        )
     finally:
         for name in ("platform-1", "platform-2"):
             if (logs / f"{name}.log").exists():
                 results.log_counts[name] = log_counts(logs / f"{name}.log")
     write_outputs(results, out)
     return results
+
+
+async def _run_with_queries(
+    params: Params,
+    *,
+    tree: PlatformTree,
+    env: dict[str, str],
+    logs: Path,
+    results: Results,
+    prepare: bool,
+) -> None:
+    """Set the world up with the tree's own code, then run the phases."""
+    async with PlatformQueries(tree, env=env, log=logs / "queries.log") as db:
+        if prepare:
+            with results.timed("migrate and empty the database"):
+                await db.call("prepare")
+        with results.timed("register vehicles, users and tokens"):
+            world = World.from_json(
+                await db.call(
+                    "world_build",
+                    light=params.agents,
+                    cars=params.cars_needed,
+                    clients=params.api_clients,
+                    link_loss_timeout_ms=params.link_loss_timeout_ms,
+                )
+            )
+        platform_settings = await db.call("settings")
+        results.machine["db_conn_max_age"] = env.get("DB_CONN_MAX_AGE", "60 (default)")
+        for key in ("http_concurrency", "heartbeat_s", "offline_after_s"):
+            results.machine[key] = platform_settings[key]
+        await run_async(params, world=world, env=env, logs=logs, results=results, tree=tree, db=db)
 
 
 # ======================================================================================
@@ -1846,16 +1741,36 @@ def _write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[Any]])
             writer.writerow([f"{v:.3f}" if isinstance(v, float) else v for v in row])
 
 
+def _per_heartbeat_ms(cpu_pct: float, heartbeats_per_s: float) -> float | None:
+    """Milliseconds of CPU per heartbeat: CPU (percent of one core) over heartbeats per
+    second; None without heartbeats."""
+    return cpu_pct * 10 / heartbeats_per_s if heartbeats_per_s else None
+
+
+def topologies(params: Params) -> list[str]:
+    """The topologies the API phases ran in."""
+    return {"heartbeats": [], "one": ["one"], "all": ["one", "two"]}[params.phases]
+
+
 def figures(results: Results) -> dict[str, Any]:
-    """The aggregate figures the report shows (also written to summary.json)."""
-    p, m = results.params, results.machine
+    """The aggregate figures the report shows (also written to summary.json).
+
+    ``cpu_ms_per_heartbeat``: all the platform process's CPU over the window divided by
+    the heartbeats the light agents sent in it (an upper bound: the process does nothing
+    else then but its idle work and the agents' keepalive pings);
+    ``cpu_ms_per_heartbeat_over_idle`` subtracts the idle process's CPU first.
+    """
+    p = results.params
     usage = {(u.topology, u.phase, u.process): u for u in results.usage}
     loaded_phase = f"{p.agents} agents"
     idle = usage[("one", "0 agents", "platform-1")]
     loaded = usage[("one", loaded_phase, "platform-1")]
     fleet = results.fleet[f"one/{loaded_phase}"]
     updates = fleet["vehicle_updates_per_s"]
+    heartbeats = fleet["heartbeats_per_s"]
     out: dict[str, Any] = {
+        "server": p.server,
+        "code": results.machine.get("platform_code", ""),
         "agents": {
             "n": p.agents,
             "idle_cpu_pct": idle.cpu_pct,
@@ -1865,9 +1780,14 @@ def figures(results: Results) -> dict[str, Any]:
             "threads": loaded.threads,
             "cpu_pct_per_agent": (loaded.cpu_pct - idle.cpu_pct) / p.agents,
             "rss_kb_per_agent": (loaded.rss_mb - idle.rss_mb) * 1024 / p.agents,
-            "heartbeats_sent_per_s": p.agents / float(m["heartbeat_s"]),
+            "heartbeats_per_s": heartbeats,
+            "cpu_ms_per_heartbeat": _per_heartbeat_ms(loaded.cpu_pct, heartbeats),
+            "cpu_ms_per_heartbeat_over_idle": _per_heartbeat_ms(
+                loaded.cpu_pct - idle.cpu_pct, heartbeats
+            ),
+            "online_min": fleet["online_min"],
             "vehicle_updates_per_s": updates,
-            # All of the process's CPU over what it stored: an upper bound per heartbeat.
+            # All of the process's CPU over what it stored: an upper bound per update.
             "cpu_ms_per_update": loaded.cpu_pct * 10 / updates if updates else None,
             "online_after_s": results.online_after_s,
         },
@@ -1891,11 +1811,12 @@ def figures(results: Results) -> dict[str, Any]:
                 "online_min": f["online_min"],
                 "online_mean": f["online_mean"],
                 "heartbeat_age_s": f["heartbeat_age_s"],
-                "heartbeats_sent_per_s": count / float(m["heartbeat_s"]),
+                "heartbeats_per_s": f["heartbeats_per_s"],
+                "cpu_ms_per_heartbeat": _per_heartbeat_ms(u.cpu_pct, f["heartbeats_per_s"]),
                 "vehicle_updates_per_s": f["vehicle_updates_per_s"],
             }
         )
-    for topology in ("one", "two"):
+    for topology in topologies(p):
         rows = [r for r in results.api_rows if r["topology"] == topology]
         ok = [r for r in rows if 200 <= r["status"] < 300]
         duration = p.api_duration_s
@@ -1998,6 +1919,11 @@ def _q(s: dict[str, float], *keys: str, sep: str = " / ") -> str:
     return sep.join(f"{s[k]:.0f}" if s[k] >= 10 else f"{s[k]:.1f}" for k in keys)
 
 
+def _ms(value: float | None) -> str:
+    """A per-heartbeat figure in ms for the report ("n/a" without heartbeats)."""
+    return "n/a" if value is None else f"{value:.3f}"
+
+
 def _change(before: float, after: float) -> str:
     if not before or math.isnan(before) or math.isnan(after):
         return "n/a"
@@ -2008,10 +1934,10 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     """The human report: summary first, then each phase's tables and the notes."""
     p, m = results.params, results.machine
     agents, api_, relay, reaction = data["agents"], data["api"], data["relay"], data["reaction"]
-    one, two = api_["one"], api_["two"]
     loaded = f"{p.agents} agents"
     fleet_one = results.fleet[f"one/{loaded}"]
     hb = float(m["heartbeat_s"])
+    server = p.server
 
     def cpu(topology: str, phase: str, process: str) -> float:
         for u in results.usage:
@@ -2025,6 +1951,11 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     add("")
     add(f"Generated by `{results.command}` (`benchmarks/scale.py`) on {m['date_utc']}; raw data")
     add("in the CSV files beside this report, every figure in `summary.json`.")
+    add("")
+    add(
+        f"**Every platform figure below was served by {server}** (`iouv.asgi`, "
+        f"{m.get('platform_code', 'this checkout')}), behind nginx."
+    )
     if p.quick:
         add("")
         add("**Quick mode: a smoke test of the benchmark, not a measurement.**")
@@ -2033,21 +1964,22 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     add("")
     all_online = fleet_one["online_min"] == p.agents
     held = (
-        f"all {p.agents} were online in the database throughout the window"
+        f"all {p.agents} were online throughout the window"
         if all_online
         else f"only {fleet_one['online_min']} to {fleet_one['online']} of {p.agents} counted as "
-        f"online in the database at once (mean {fleet_one['online_mean']:.0f}): the process "
-        f"stored {agents['vehicle_updates_per_s']:.0f} vehicle updates/s of the "
-        f"{agents['heartbeats_sent_per_s']:.0f} heartbeats/s sent, so heartbeats reached the "
-        f"database {fleet_one['heartbeat_age_s']['p50']:.1f} s late (p50) against an "
-        f"offline threshold of {m['offline_after_s']:g} s"
+        f"online at once (mean {fleet_one['online_mean']:.0f}): of the "
+        f"{agents['heartbeats_per_s']:.0f} heartbeats/s sent, the platform recorded the last "
+        f"{fleet_one['heartbeat_age_s']['p50']:.1f} s ago (p50) against an offline threshold "
+        f"of {m['offline_after_s']:g} s"
     )
     add(
-        f"* **{p.agents} agents** on uplinks to one daphne process, heartbeating every {hb:g} s: "
-        f"the process used **{agents['cpu_pct']:.0f} % of one core and "
+        f"* **{p.agents} agents** on uplinks to one {server} process, heartbeating every "
+        f"{hb:g} s: the process used **{agents['cpu_pct']:.0f} % of one core and "
         f"{agents['rss_mb']:.0f} MB** resident (idle: {agents['idle_cpu_pct']:.1f} %, "
         f"{agents['idle_rss_mb']:.0f} MB), that is **{agents['cpu_pct_per_agent']:.3f} % of a "
-        f"core and {agents['rss_kb_per_agent']:.0f} KiB per agent**; {held}."
+        f"core and {agents['rss_kb_per_agent']:.0f} KiB per agent** and "
+        f"**{_ms(agents['cpu_ms_per_heartbeat'])} ms of its CPU per heartbeat** "
+        f"({agents['heartbeats_per_s']:.0f} heartbeats/s sent); {held}."
     )
     kept = [st for st in data["stages"] if st["online_min"] == st["agents"]]
     if len(data["stages"]) > 1:
@@ -2080,23 +2012,36 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
             f"stop; min / p50 / p95 / max over {p.trials} trials each; link-loss timeout "
             f"{p.link_loss_timeout_ms} ms; {p.agents} agents connected): " + "; ".join(parts) + "."
         )
-    add(
-        f"* **Assignment + deployment** ({p.api_clients} API clients in a closed loop, each "
-        "session requested, deployed to a live agent and ended): one process sustained "
-        f"**{one['sessions_per_s']:.1f} sessions/s** ({one['requests_per_s']:.1f} requests/s; "
-        f"request p50 / p95 {_q(one['request_ms'], 'p50', 'p95')} ms); two processes, agents on "
-        f"one and users on the other, **{two['sessions_per_s']:.1f} sessions/s** "
-        f"({two['requests_per_s']:.1f} requests/s; {_q(two['request_ms'], 'p50', 'p95')} ms). "
-        f"Relayed command round trip p50 / p95 under that load: "
-        f"{_q(relay['one'], 'p50', 'p95')} ms with one process, "
-        f"{_q(relay['two'], 'p50', 'p95')} ms with two."
-    )
+    one = api_.get("one")
+    two = api_.get("two")
+    if one:
+        both = (
+            f"; two processes, agents on one and users on the other, "
+            f"**{two['sessions_per_s']:.1f} sessions/s** ({two['requests_per_s']:.1f} "
+            f"requests/s; {_q(two['request_ms'], 'p50', 'p95')} ms)"
+            if two
+            else ""
+        )
+        add(
+            f"* **Assignment + deployment** ({p.api_clients} API clients in a closed loop, each "
+            "session requested, deployed to a live agent and ended): one process sustained "
+            f"**{one['sessions_per_s']:.1f} sessions/s** ({one['requests_per_s']:.1f} "
+            f"requests/s; request p50 / p95 {_q(one['request_ms'], 'p50', 'p95')} ms){both}. "
+            "Relayed command round trip p50 / p95 under that load: "
+            + "; ".join(
+                f"{_q(relay[t], 'p50', 'p95')} ms with {t} process{'es' if t == 'two' else ''}"
+                for t in relay
+            )
+            + "."
+        )
     add("")
     add("## Machine and run")
     add("")
     add("| | |")
     add("|---|---|")
     for key, label in (
+        ("server", "ASGI server of the platform processes"),
+        ("platform_code", "platform code"),
         ("cpu_model", "CPU"),
         ("cores", "cores"),
         ("ram_gb", "RAM (GB)"),
@@ -2128,7 +2073,7 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     for key, value in asdict(p).items():
         add(f"| `{key}` | {value} |")
     add("")
-    add("**Real**: daphne serving `iouv.asgi` (one or two processes), PostgreSQL, the Redis")
+    add(f"**Real**: {server} serving `iouv.asgi` (one or two processes), PostgreSQL, the Redis")
     add("channel layer, the platform's signing key, vehicles and API tokens in the database,")
     add("assignment, signed task deployment, supervision, the relay; every agent runs the real")
     add("`agents.uplink.Uplink` client; the two cars are full agents (`agents.runtime.Agent`,")
@@ -2148,7 +2093,7 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     )
     add(
         f"The uplinks opened at about {p.ramp_per_s:g} per second. Time until every vehicle was "
-        f"online in the database at once: {after}. CPU is the share of one core over "
+        f"online at once (as the platform counts them): {after}. CPU is the share of one core over "
         f"{p.window_s:g} s from `/proc/<pid>/stat` (user + system, all threads), memory is "
         "VmRSS; *threads* are the platform process's busiest threads (and how many it has)."
     )
@@ -2156,18 +2101,27 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     add("On the way up (one process; CPU of one core, per agent over the idle process):")
     add("")
     add(
-        "| agents | CPU % | RSS MB | per agent: CPU % / KiB | online min / mean | heartbeat "
-        "age p50 / p95 (s) | heartbeats stored / sent per s |"
+        "| agents | CPU % | RSS MB | per agent: CPU % / KiB | heartbeats sent per s | CPU ms "
+        "per heartbeat | online min / mean | heartbeat age p50 / p95 (s) | vehicle rows "
+        "updated per s |"
     )
-    add("|---:|---:|---:|---:|---:|---:|---:|")
+    add("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for st in data["stages"]:
         age = st["heartbeat_age_s"]
         add(
             f"| {st['agents']} | {st['cpu_pct']:.0f} | {st['rss_mb']:.0f} | "
             f"{st['cpu_pct_per_agent']:.3f} / {st['rss_kb_per_agent']:.0f} | "
+            f"{st['heartbeats_per_s']:.0f} | {_ms(st['cpu_ms_per_heartbeat'])} | "
             f"{st['online_min']} / {st['online_mean']:.0f} | {age['p50']:.1f} / {age['p95']:.1f} | "
-            f"{st['vehicle_updates_per_s']:.0f} / {st['heartbeats_sent_per_s']:.0f} |"
+            f"{st['vehicle_updates_per_s']:.0f} |"
         )
+    add("")
+    add(
+        "*CPU ms per heartbeat*: the platform process's CPU seconds over the window divided "
+        "by the heartbeats the light agents sent in it (each agent counts its own; the "
+        "rate is taken between the workers' once-a-second reports). It is all of the "
+        "process's CPU, idle work and the agents' keepalive pings included: an upper bound."
+    )
     add("")
     add("Every process, idle and with all the agents:")
     add("")
@@ -2181,7 +2135,7 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
                 f"{u.threads} |"
             )
     add("")
-    add("The fleet as the database saw it (light agents only):")
+    add("The fleet as the platform saw it (light agents only):")
     add("")
     add(
         "| topology / phase | online at end | online min / mean | heartbeat age p50 / p95 / max "
@@ -2196,16 +2150,20 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
             f"{f['vehicle_updates_per_s']:.0f} | {f['db_conns']} / {f['db_conns_all']} |"
         )
     add("")
-    per_update = agents["cpu_ms_per_update"]
     add(
         f"Per agent (one process, {p.agents} agents minus idle): "
         f"**{agents['cpu_pct_per_agent']:.3f} % of a core** and "
         f"**{agents['rss_kb_per_agent']:.0f} KiB**. The agents sent "
-        f"{agents['heartbeats_sent_per_s']:.0f} heartbeats/s; the platform stored "
-        f"{agents['vehicle_updates_per_s']:.0f} vehicle-row updates/s (PostgreSQL's counter)"
-        + (f", about {per_update:.1f} ms of the process's CPU per update." if per_update else ".")
+        f"{agents['heartbeats_per_s']:.0f} heartbeats/s: "
+        f"**{_ms(agents['cpu_ms_per_heartbeat'])} ms of the process's CPU per heartbeat** "
+        f"({_ms(agents['cpu_ms_per_heartbeat_over_idle'])} ms over the idle process). "
+        f"PostgreSQL's counter shows {agents['vehicle_updates_per_s']:.0f} vehicle-row "
+        "updates/s (heartbeats the platform writes to the vehicle's row, profiles, status "
+        "changes)."
     )
     add("")
+    if not one:
+        return _report_end(results, lines)
 
     add("## 2. Assignment and task deployment")
     add("")
@@ -2219,45 +2177,40 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
         "arrival at the agent (wall clocks of one machine)."
     )
     add("")
-    add("| | one process | two processes |")
-    add("|---|---:|---:|")
-    add(f"| sessions per s | {one['sessions_per_s']:.1f} | {two['sessions_per_s']:.1f} |")
-    add(f"| API requests per s | {one['requests_per_s']:.1f} | {two['requests_per_s']:.1f} |")
+    tops = [t for t in ("one", "two") if t in api_]
+    heads = {"one": "one process", "two": "two processes"}
+    add("| | " + " | ".join(heads[t] for t in tops) + " |")
+    add("|---|" + "---:|" * len(tops))
+
+    def table_row(label: str, cell: Any) -> None:
+        add(f"| {label} | " + " | ".join(str(cell(t)) for t in tops) + " |")
+
+    table_row("sessions per s", lambda t: f"{api_[t]['sessions_per_s']:.1f}")
+    table_row("API requests per s", lambda t: f"{api_[t]['requests_per_s']:.1f}")
     for label, key in (
         ("request", "request_ms"),
         ("end", "end_ms"),
         ("task delivery", "task_delivery_ms"),
     ):
-        add(
-            f"| {label} p50 / p95 / max (ms) | {_q(one[key], 'p50', 'p95', 'max')} | "
-            f"{_q(two[key], 'p50', 'p95', 'max')} |"
+        table_row(
+            f"{label} p50 / p95 / max (ms)", lambda t, k=key: _q(api_[t][k], "p50", "p95", "max")
         )
-    add(
-        f"| relayed round trip p50 / p95 / max (ms) | {_q(relay['one'], 'p50', 'p95', 'max')} | "
-        f"{_q(relay['two'], 'p50', 'p95', 'max')} |"
+    table_row(
+        "relayed round trip p50 / p95 / max (ms)", lambda t: _q(relay[t], "p50", "p95", "max")
     )
-    add(
-        f"| relayed commands without ack in {LOST_AFTER_S:g} s | {relay['one']['lost']} | "
-        f"{relay['two']['lost']} |"
-    )
-    add(
-        "| answers (endpoint status: count) | "
-        + " | ".join(
-            ", ".join(f"{k}: {v}" for k, v in sorted(t["statuses"].items())) for t in (one, two)
-        )
-        + " |"
+    table_row(f"relayed commands without ack in {LOST_AFTER_S:g} s", lambda t: relay[t]["lost"])
+    table_row(
+        "answers (endpoint status: count)",
+        lambda t: ", ".join(f"{k}: {v}" for k, v in sorted(api_[t]["statuses"].items())),
     )
 
-    def log_line(t: dict[str, Any]) -> str:
-        s = t["sessions"]
+    def log_line(t: str) -> str:
+        s = api_[t]["sessions"]
         if not s:
             return ""
         return f"{s['task_deployed']} / {s['task_accepted']} / {s['final']} of {s['sessions']}"
 
-    add(
-        "| sessions: task deployed / accepted by the agent / over (session logs) | "
-        f"{log_line(one)} | {log_line(two)} |"
-    )
+    table_row("sessions: task deployed / accepted by the agent / over (session logs)", log_line)
     add("")
     add("CPU during the load (% of one core):")
     add("")
@@ -2306,10 +2259,12 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     )
     add("")
 
+    if not two:
+        return _report_end(results, lines)
     add("## 4. One platform process against two")
     add("")
     add(
-        "Two daphne processes behind nginx (`benchmarks.nginx_proxy`) on one address, sharing "
+        f"Two {server} processes behind nginx (`benchmarks.nginx_proxy`) on one address, sharing "
         "PostgreSQL and Redis: `/ws/agent/` to process 1, everything else (API, relay) to "
         "process 2. The agents reconnected through the restarted proxy by themselves (backoff "
         "with jitter). Assignment on process 2, deployment to agents held by process 1, the "
@@ -2366,6 +2321,13 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
         "two-process load, load generators included."
     )
     add("")
+    return _report_end(results, lines)
+
+
+def _report_end(results: Results, lines: list[str]) -> str:
+    """The report's closing sections (the platform's logs, the run's notes), joined."""
+    p = results.params
+    add = lines.append
     if results.log_counts:
         add("## What the platform processes logged")
         add("")
@@ -2380,9 +2342,12 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
             )
         add("")
         add(
-            f"Process 1 holds the uplinks in both topologies; each of the {p.agents + p.cars} "
-            "agents opens one uplink per phase (two phases), so more accepted uplinks than "
-            "that are reconnections."
+            f"Process 1 holds the uplinks in both topologies; each of the "
+            f"{p.agents + p.cars_needed} agents opens one uplink per phase (two phases), so "
+            "more accepted uplinks than that are reconnections."
+            if p.phases == "all"
+            else f"Each of the {p.agents + p.cars_needed} agents opened one uplink; more "
+            "accepted uplinks than that are reconnections."
         )
         add("")
     if results.notes:
@@ -2402,29 +2367,100 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
 # ======================================================================================
 
 
-def database_prepare(url: str) -> None:
-    """Create the benchmark's database if missing, migrate it and empty it."""
-    import psycopg
-    from django.core.management import call_command
+@dataclass(frozen=True)
+class Variant:
+    """One run of a comparison: a platform tree under one server, written to ``folder``
+    (relative to ``--out``; empty for a single run, written to ``--out`` itself)."""
 
-    from iouv.env import database_from_url
+    label: str
+    tree: PlatformTree
+    server: str
+    folder: str
 
-    db = database_from_url(url)
-    with psycopg.connect(
-        host=str(db["HOST"]) or None,
-        port=int(str(db["PORT"])) if db["PORT"] else None,
-        user=str(db["USER"]) or None,
-        password=str(db["PASSWORD"]) or None,
-        dbname="postgres",
-        autocommit=True,
-    ) as conn:
-        exists = conn.execute(
-            "SELECT 1 FROM pg_database WHERE datname = %s", (db["NAME"],)
-        ).fetchone()
-        if not exists:
-            conn.execute(f'CREATE DATABASE "{db["NAME"]}"')
-    call_command("migrate", verbosity=0, interactive=False)
-    call_command("flush", verbosity=0, interactive=False)
+
+#: A single run's outputs: removed from ``--out`` when a comparison writes its own
+#: report there, so no stale single-run file sits beside it.
+SINGLE_RUN_FILES = (
+    "resources.csv",
+    "api_requests.csv",
+    "task_delivery.csv",
+    "relay_rtt.csv",
+    "reaction_trials.csv",
+)
+
+
+def variants(trees: Sequence[PlatformTree], servers: Sequence[str]) -> list[Variant]:
+    """Every tree under every server, the baseline's runs first; labels "before" and
+    "after" when there are two trees, the server's name when there are two servers."""
+    out = []
+    for tree in trees:
+        for server in servers:
+            words = []
+            if len(trees) > 1:
+                words.append("before" if tree.commit else "after")
+            if len(servers) > 1 or not words:
+                words.append(server)
+            label = " ".join(words)
+            folder = "" if len(trees) * len(servers) == 1 else label.replace(" ", "-")
+            out.append(Variant(label, tree, server, folder))
+    return out
+
+
+def _stopped(signum: int, frame: Any) -> None:
+    raise asyncio.CancelledError
+
+
+def run_variants(
+    params: Params,
+    *,
+    baseline: str | None,
+    servers: Sequence[str],
+    out: Path,
+    command: str,
+    database_url: str,
+) -> None:
+    """Run ``params`` against each variant in turn (see :func:`variants`), each on a
+    database prepared by its own tree (dropped first when a baseline is compared: a
+    tree's migrations cannot undo a newer tree's). With more than one variant, each
+    run's outputs go to a folder of its own and ``out/report.md`` puts them side by
+    side (``out/summary.json`` lists them)."""
+    with contextlib.ExitStack() as stack:
+        trees = [PlatformTree()]
+        if baseline:
+            trees.insert(0, stack.enter_context(worktree(baseline)))
+        runs = variants(trees, servers)
+        done: list[tuple[str, str, dict[str, Any]]] = []
+        for v in runs:
+            # Between runs (asyncio's handler is gone once a run's loop is closed), SIGTERM
+            # unwinds this stack too, so the baseline's worktree is removed.
+            signal.signal(signal.SIGTERM, _stopped)
+            print(f"benchmarks.scale: {v.label or 'run'}: {v.tree.label} under {v.server}")
+            database_create(database_url, fresh=bool(baseline))
+            where = out / v.folder if v.folder else out
+            run(
+                replace(params, server=v.server),
+                out=where,
+                command=command,
+                database_url=database_url,
+                tree=v.tree,
+                prepare=True,
+            )
+            done.append((v.label, v.folder, json.loads((where / "summary.json").read_text())))
+    if len(runs) == 1:
+        print((out / "report.md").read_text().split("## Machine")[0])
+        return
+    for name in SINGLE_RUN_FILES:
+        (out / name).unlink(missing_ok=True)
+    (out / "summary.json").write_text(
+        json.dumps(
+            {"command": command, "runs": [{"label": lb, "folder": f} for lb, f, _ in done]},
+            indent=2,
+        )
+        + "\n"
+    )
+    report = compare_md(done, command=command)
+    (out / "report.md").write_text(report)
+    print(report)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -2436,6 +2472,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--agents", type=int, help="light agents (default 1000; quick: 50)")
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks" / "scale")
     parser.add_argument("--agent-workers", type=int, help="processes running the light agents")
+    parser.add_argument("--ramp", type=float, help="new uplinks per second (default 50)")
     parser.add_argument("--window", type=float, help="CPU/memory window, seconds")
     parser.add_argument("--api-clients", type=int, help="concurrent API clients")
     parser.add_argument("--api-duration", type=float, help="seconds of API load per topology")
@@ -2447,9 +2484,36 @@ def main(argv: Sequence[str] | None = None) -> None:
         "IOUV_OFFLINE_AFTER_S is set to three times it",
     )
     parser.add_argument(
+        "--phases",
+        choices=PHASES,
+        default="all",
+        help="heartbeats: phase 1 only (agents connected, no cars, no API load); one: "
+        "phases 1-3 (one platform process); all (default): 1-4",
+    )
+    servers = parser.add_mutually_exclusive_group()
+    servers.add_argument(
+        "--server",
+        choices=SERVERS,
+        default=SERVERS[0],
+        help="the ASGI server of the platform processes (default daphne)",
+    )
+    servers.add_argument(
+        "--servers",
+        help="comma list, e.g. daphne,uvicorn: the whole run under each, one after the "
+        "other, reported side by side",
+    )
+    parser.add_argument(
+        "--baseline",
+        metavar="REF",
+        help="a git ref: run the platform of REF (a git worktree, same virtualenv, the "
+        "database dropped and migrated by REF) first, then this checkout's, with the same "
+        "parameters and load, and report them side by side",
+    )
+    parser.add_argument(
         "--database-url",
         default=DEFAULT_DATABASE_URL,
-        help="the benchmark's own database (created, migrated and EMPTIED)",
+        help="the benchmark's own database (created, migrated and EMPTIED; dropped with "
+        "--baseline)",
     )
     parser.add_argument("--agent-worker", help=argparse.SUPPRESS)
     parser.add_argument("--api-worker", help=argparse.SUPPRESS)
@@ -2464,14 +2528,20 @@ def main(argv: Sequence[str] | None = None) -> None:
         api_worker(args.api_worker)
         return
 
+    server_list = args.servers.split(",") if args.servers else [args.server]
+    for name in server_list:
+        if name not in SERVERS:
+            parser.error(f"--servers: {name!r} is not one of {', '.join(SERVERS)}")
     params = Params.quick_mode() if args.quick else Params()
     overrides = {
         "agents": args.agents,
         "agent_workers": args.agent_workers,
+        "ramp_per_s": args.ramp,
         "window_s": args.window,
         "api_clients": args.api_clients,
         "api_duration_s": args.api_duration,
         "trials": args.trials,
+        "phases": args.phases,
     }
     params = replace(params, **{k: v for k, v in overrides.items() if v is not None})
     # The platform under test and this process share these; the database is ours alone.
@@ -2483,28 +2553,28 @@ def main(argv: Sequence[str] | None = None) -> None:
     os.environ.setdefault("SECURE_SSL_REDIRECT", "0")
     os.environ.setdefault("SECURE_COOKIES", "0")
     os.environ.setdefault("DJANGO_SETTINGS_MODULE", "iouv.settings")
+    os.environ.setdefault("LOG_LEVEL", "WARNING")
     if args.heartbeat_s:
-        # Set here, before Django reads them: the platform processes inherit them.
+        # The platform processes and the probe inherit them.
         os.environ["IOUV_HEARTBEAT_INTERVAL_S"] = f"{args.heartbeat_s:g}"
         os.environ["IOUV_OFFLINE_AFTER_S"] = f"{3 * args.heartbeat_s:g}"
     logging.basicConfig(
         level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
-
-    os.environ.setdefault("LOG_LEVEL", "WARNING")
-    import django
-
-    django.setup()
     # The cars' fail-safes are the point of phase 3: their warnings are not news.
     logging.getLogger("agents").setLevel(logging.ERROR)
-    database_prepare(args.database_url)
     command = "python -m benchmarks.scale " + " ".join(argv if argv is not None else sys.argv[1:])
     try:
-        results = run(params, out=args.out, command=command.strip(), database_url=args.database_url)
+        run_variants(
+            params,
+            baseline=args.baseline,
+            servers=server_list,
+            out=args.out,
+            command=command.strip(),
+            database_url=args.database_url,
+        )
     except asyncio.CancelledError:
         sys.exit("benchmarks.scale: stopped (SIGTERM); what it had started is stopped too")
-    print((args.out / "report.md").read_text().split("## Machine")[0])
-    del results
 
 
 if __name__ == "__main__":

@@ -1,5 +1,7 @@
-"""benchmarks.scale in quick mode, end to end, and the nginx front proxy it runs the
-platform behind (benchmarks.nginx_proxy).
+"""benchmarks.scale in quick mode, end to end (under daphne, and under uvicorn for the
+heartbeat phase), the nginx front proxy it runs the platform behind
+(benchmarks.nginx_proxy), and what its comparisons rest on (benchmarks.scale_compare,
+another tree's code kept apart from this checkout's).
 
 The proxy tests start a real nginx (Debian's, installed if missing; skipped with the
 reason when it cannot be) in front of real backends on loopback. The end-to-end test
@@ -16,7 +18,11 @@ import csv
 import http.client
 import json
 import math
+import os
+import subprocess
+import sys
 from collections.abc import AsyncIterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +46,8 @@ from benchmarks.nginx_proxy import (
     config_check,
     nginx_binary,
 )
+from benchmarks.scale_compare import compare_md
+from benchmarks.scale_platform import SITECUSTOMIZE, PlatformTree
 from services.api_schemas import MAX_BODY_BYTES
 
 
@@ -396,3 +404,98 @@ def test_quick_mode_writes_every_output(nginx: Path, tmp_path: Path) -> None:
         assert heading in report
     assert "Quick mode" in report
     assert "nan" not in report
+
+
+@pytest.mark.postgres
+@pytest.mark.redis
+@pytest.mark.django_db(transaction=True)
+def test_uvicorn_serves_the_agents_and_the_report_says_so(nginx: Path, tmp_path: Path) -> None:
+    pytest.importorskip("uvicorn")
+    params = replace(scale.Params.quick_mode(agents=10), server="uvicorn", phases="heartbeats")
+    scale.run(params, out=tmp_path, command="pytest uvicorn", database_url=_database_url())
+
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["machine"]["server"] == "uvicorn"
+    agents = summary["figures"]["agents"]
+    assert agents["online_min"] == 10
+    assert agents["heartbeats_per_s"] > 0
+    assert _number(agents["cpu_ms_per_heartbeat"]) > 0
+    assert summary["platform_logs"]["platform-1"]["uplinks accepted"] >= 10
+    assert summary["platform_logs"]["platform-1"]["tracebacks"] == 0
+    report = (tmp_path / "report.md").read_text()
+    assert "served by uvicorn" in report
+    assert "## 1. 10 agents on uplinks" in report
+    assert "## 2." not in report  # the heartbeat phase only
+    assert "nan" not in report
+
+
+# --------------------------------------------------------------------------------------
+# Comparisons: runs side by side, another tree's code
+# --------------------------------------------------------------------------------------
+
+
+def test_variants_run_the_baseline_first_and_are_labelled_by_what_differs() -> None:
+    current = PlatformTree()
+    old = PlatformTree(Path("/tmp/x"), "abc123", "abc123" * 6)
+    assert [(v.label, v.folder) for v in scale.variants([current], ["daphne"])] == [("daphne", "")]
+    assert [v.label for v in scale.variants([old, current], ["daphne"])] == ["before", "after"]
+    assert [v.folder for v in scale.variants([old, current], ["daphne", "uvicorn"])] == [
+        "before-daphne",
+        "before-uvicorn",
+        "after-daphne",
+        "after-uvicorn",
+    ]
+
+
+def _summary(server: str, ms_per_heartbeat: float | None, api: bool) -> dict[str, Any]:
+    figures: dict[str, Any] = {
+        "agents": {"n": 100, "cpu_pct": 20.0, "cpu_ms_per_heartbeat": ms_per_heartbeat},
+        "stages": [{"agents": 100, "cpu_pct": 20.0, "cpu_ms_per_heartbeat": ms_per_heartbeat}],
+        "api": {},
+        "relay": {},
+        "reaction": {},
+    }
+    if api:
+        figures["api"]["one"] = {
+            "sessions_per_s": 31.5,
+            "request_ms": {"n": 1, "p50": 40.0, "p95": 90.0},
+        }
+        figures["relay"]["one"] = {"n": 3, "p50": 5.0, "p95": 12.0, "lost": 0}
+    return {"machine": {"server": server}, "params": {"agents": 100}, "figures": figures}
+
+
+def test_the_comparison_puts_each_figure_side_by_side_with_its_target() -> None:
+    report = compare_md(
+        [
+            ("daphne", "daphne", _summary("daphne", 0.2, api=True)),
+            ("uvicorn", "uvicorn", _summary("uvicorn", None, api=False)),
+        ],
+        command="python -m benchmarks.scale --servers daphne,uvicorn",
+    )
+    assert "| | [daphne](daphne/report.md) | [uvicorn](uvicorn/report.md) | target |" in report
+    assert "| ASGI server | daphne | uvicorn |  |" in report
+    assert "| **platform CPU per heartbeat (ms)** | 0.200 | n/a | ≤ 0.15 |" in report
+    assert "| 100 agents: CPU % / ms per heartbeat | 20 / 0.200 | 20 / n/a |  |" in report
+    # A figure one run lacks (it ran the heartbeat phase only) is n/a, not an error.
+    assert "| one process: sessions per s | 31.5 | n/a | ≥ 30 |" in report
+    assert (
+        "| one process: relayed round trip p50 / p95 (ms) | 5.0 / 12.0 | n/a | p95 ≤ 20 |" in report
+    )
+
+
+def test_another_tree_runs_its_own_modules_only(tmp_path: Path) -> None:
+    """A module of this checkout's packages that the older tree lacks is not found in
+    this checkout instead (the virtualenv's editable install would find it there)."""
+    tree = tmp_path / "tree"
+    (tree / "fleet").mkdir(parents=True)
+    (tree / "fleet" / "__init__.py").write_text("")
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(SITECUSTOMIZE)
+    probe = "import fleet; print(fleet.__file__); import fleet.liveness"
+    env = PlatformTree(tree, "old", "0" * 40, extra_path=(site,)).env(dict(os.environ))
+    done = subprocess.run(
+        [sys.executable, "-P", "-c", probe], env=env, cwd=tree, capture_output=True, text=True
+    )
+    assert done.stdout.strip() == str(tree / "fleet" / "__init__.py")
+    assert "No module named 'fleet.liveness'" in done.stderr
