@@ -25,7 +25,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import weakref
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
@@ -182,16 +182,19 @@ def live_forget(ids: Iterable[Any]) -> None:
 class LivenessWriter:
     """Writes the heartbeats of every uplink of this process to Redis, many per round trip.
 
-    As with the database before (group commit): a heartbeat that arrives while a write
-    is in flight waits for the next one, with all the others that arrived meanwhile. A
-    batch is two commands in one pipeline, whatever its size.
+    :meth:`put` only notes the report (the latest per vehicle wins) and returns: an
+    uplink never waits for Redis. One task writes what was noted: what arrives while a
+    write is in flight goes with the next one, so a lone heartbeat is written at once
+    and under load each write carries more (a batch is two commands in one pipeline,
+    whatever its size). If Redis refuses a batch, each of its reports' ``lost``
+    callback is called: the uplinks then write their next heartbeat to the row.
     """
 
     #: The most vehicles in one pipeline.
     BATCH_MAX = 2000
 
     def __init__(self) -> None:
-        self._pending: dict[str, tuple[Live, list[asyncio.Future[None]]]] = {}
+        self._pending: dict[str, tuple[Live, Callable[[], None] | None]] = {}
         self._flusher: asyncio.Task[None] | None = None
         self._redis: aioredis.Redis | None = None
 
@@ -202,39 +205,30 @@ class LivenessWriter:
             )
         return self._redis
 
-    async def write(self, vehicle_id: str, live: Live) -> None:
-        """Return once ``live`` (or a later report of the vehicle) is in Redis.
-
-        Raises what Redis raised if the batch holding it could not be written.
-        """
-        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-        entry = self._pending.get(vehicle_id)
-        waiters = entry[1] if entry is not None else []
-        waiters.append(future)
-        self._pending[vehicle_id] = (live, waiters)
+    def put(self, vehicle_id: str, live: Live, lost: Callable[[], None] | None = None) -> None:
+        """Note ``live`` for writing; ``lost`` is called if Redis does not take it."""
+        self._pending[vehicle_id] = (live, lost)
         if self._flusher is None or self._flusher.done():
-            self._flusher = asyncio.create_task(self._flush())
-        # Shielded: an uplink that closes while it waits must not cancel the batch.
-        await asyncio.shield(future)
+            self._flusher = asyncio.get_running_loop().create_task(
+                self._flush(), name="liveness-writer"
+            )
+
+    async def drain(self) -> None:
+        """Return once everything noted so far has been written (or refused)."""
+        while self._flusher is not None and not self._flusher.done():
+            await asyncio.shield(self._flusher)
 
     async def _flush(self) -> None:
         while self._pending:
             ids = list(self._pending)[: self.BATCH_MAX]
             batch = [(pk, *self._pending.pop(pk)) for pk in ids]
-            error: BaseException | None = None
             try:
                 await self._store([(pk, live) for pk, live, _ in batch])
-            except Exception as exc:  # handed to the waiters below
+            except Exception as exc:
                 log.warning("liveness: writing %d heartbeats failed: %s", len(batch), exc)
-                error = exc
-            for _pk, _live, waiters in batch:
-                for future in waiters:
-                    if future.done():
-                        continue
-                    if error is None:
-                        future.set_result(None)
-                    else:
-                        future.set_exception(error)
+                for _pk, _live, lost in batch:
+                    if lost is not None:
+                        lost()
 
     async def _store(self, batch: Sequence[tuple[str, Live]]) -> None:
         seen, state = _keys()
@@ -244,6 +238,8 @@ class LivenessWriter:
         await pipe.execute()
 
     async def close(self) -> None:
+        """Write what is noted, then close the connection."""
+        await self.drain()
         if self._redis is not None:
             await self._redis.aclose()
             self._redis = None

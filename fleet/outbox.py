@@ -249,13 +249,27 @@ def _take_due(*, vehicle_ids: Sequence[str], fresh: Sequence[str], now: datetime
     if not vehicle_ids:
         return []
     fresh_set = set(fresh)
+    # What is owed is little (the partial index holds only that), and the uplinks of a
+    # process are many: read the few pending rows, not a query naming thousands of
+    # vehicles twice a second (building that query alone cost 15 % of a process
+    # holding 2,000 uplinks).
+    ours = set(vehicle_ids)
+    owed = [
+        pk
+        for pk, vehicle_id in AgentMessage.objects.filter(
+            state=AgentMessage.State.PENDING
+        ).values_list("id", "vehicle_id")
+        if str(vehicle_id) in ours
+    ]
+    if not owed:
+        return []
     with transaction.atomic():
         # Locked, skipping rows another transaction holds: a task being withdrawn as
         # its session ends is either sent before that decision or not at all, so the
         # decision always knows whether the agent may have it.
         rows = list(
             AgentMessage.objects.select_for_update(skip_locked=True)
-            .filter(state=AgentMessage.State.PENDING, vehicle_id__in=vehicle_ids)
+            .filter(state=AgentMessage.State.PENDING, pk__in=owed)
             .order_by("id")
             .values(
                 "id", "key", "vehicle_id", "kind", "message", "sent_at", "attempts", "created_at"

@@ -822,6 +822,8 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             return
         if isinstance(msg, RelayToPlatform | RelayClose) and msg.conn:
             await self._relay_to_browser(msg)
+        elif isinstance(msg, HeartbeatMessage):
+            await self._heartbeat(msg)
         else:
             await self._later(lambda: self._handle(msg))
 
@@ -852,8 +854,6 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         """What an authenticated agent's frame asks of the database, in arrival order."""
         if isinstance(msg, Profile):
             await self._profile(msg)
-        elif isinstance(msg, HeartbeatMessage):
-            await self._heartbeat(msg)
         elif isinstance(msg, Ack):
             await _db(_acked)(vehicle_id=self.vehicle_id, ack=msg)
         elif isinstance(msg, RelayToPlatform | RelayClose):
@@ -924,7 +924,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self._live = self._stored = Live(
             now.timestamp(), vehicle.battery, vehicle.lat, vehicle.lon, vehicle.alt
         )
-        await self._write_live()
+        self._write_live()
         self._group = vehicle_group(vehicle.pk)
         # A vehicle is one agent: tell an older uplink of this vehicle to go, before
         # joining the group so this one does not hear its own notice. (The older one
@@ -953,7 +953,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self._registered = True
         self._reported_status = _given(msg.status)
         self._live = self._stored = _live_after(None, msg, now)
-        await self._write_live()
+        self._write_live()
         if not self._closed:
             assert self.vehicle_id is not None
             outbox().register(self.vehicle_id, self)
@@ -975,9 +975,14 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self._grouped = True
 
     async def _heartbeat(self, msg: HeartbeatMessage) -> None:
-        await self._join_group()
-        # At most two writes per heartbeat interval: an agent that heartbeats too fast
-        # costs the database nothing more. A skipped heartbeat is superseded by the next.
+        """A heartbeat, on the consumer's own turn (not queued behind database work):
+        with liveness in Redis most heartbeats end here, handed to the process's
+        liveness writer without waiting; one that changes the vehicle's state (or any,
+        embedded) queues its row write behind the uplink's earlier database work."""
+        if not self._grouped:
+            await self._later(self._join_group)
+        # At most two per heartbeat interval: an agent that heartbeats too fast costs
+        # nothing more. A skipped heartbeat is superseded by the next.
         mono = time.monotonic()
         if mono < self._next_heartbeat_write:
             return
@@ -986,7 +991,8 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         assert self.vehicle_id is not None
         live = self._live = _live_after(self._live, msg, now)
         status = _given(msg.status)
-        if await self._write_live():
+        if in_redis():
+            liveness_writer().put(self.vehicle_id, live, self._liveness_lost)
             self._heard = now
             changed = (
                 self._row_stale
@@ -1003,33 +1009,40 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
                 else (Position(lat=live.lat, lon=live.lon, alt=live.alt))
             )
             msg = msgspec.structs.replace(msg, battery=live.battery, position=position)
-        # To the row: awaited, so this agent's heartbeats are written in order and
-        # _last_seen is only what was committed (the disconnect compares it with the
-        # stored one).
+        # Decided now, so the heartbeats after this one compare with it even before it
+        # is written; a write that fails makes the next heartbeat write again.
         row_stale, self._row_stale = self._row_stale, False
+        self._stored = live
+        if status is not None:
+            self._reported_status = status
+        await self._later(lambda: self._heartbeat_row(msg, now, row_stale))
+
+    async def _heartbeat_row(self, msg: HeartbeatMessage, now: datetime, row_stale: bool) -> None:
+        """Write a heartbeat to the vehicle's row: awaited, so this agent's heartbeats
+        are written in order and _last_seen is only what was committed (the disconnect
+        compares it with the stored one)."""
+        assert self.vehicle_id is not None
         try:
             await heartbeat_writer().write(
                 HeartbeatReport(self.vehicle_id, msg, now, self._registered)
             )
         except BaseException:
-            self._row_stale = self._row_stale or row_stale
+            self._row_stale = True if in_redis() else row_stale
             raise
-        self._last_seen = self._heard = now
-        self._stored = live
-        if status is not None:
-            self._reported_status = status
+        self._last_seen = now
+        if self._heard is None or now > self._heard:
+            self._heard = now
 
-    async def _write_live(self) -> bool:
-        """Put what the agent last reported in Redis (fleet.liveness); False when
-        liveness lives in the rows, or Redis failed (then the row is written)."""
-        if not in_redis() or self._live is None or self.vehicle_id is None:
-            return False
-        try:
-            await liveness_writer().write(self.vehicle_id, self._live)
-        except Exception as exc:
-            log.warning("uplink %s: liveness not written: %s", self.vehicle_id, exc)
-            return False
-        return True
+    def _liveness_lost(self) -> None:
+        """Redis did not take this uplink's last report: the next heartbeat goes to the
+        row (so while Redis is away, every one does)."""
+        self._row_stale = True
+
+    def _write_live(self) -> None:
+        """Put what the agent last reported in Redis (fleet.liveness), when it lives
+        there."""
+        if in_redis() and self._live is not None and self.vehicle_id is not None:
+            liveness_writer().put(self.vehicle_id, self._live, self._liveness_lost)
 
     # -- messages from the platform (channel layer) -------------------------------------
 
