@@ -17,6 +17,7 @@ send cookies, but it cannot make it send this header.
 from typing import Any
 from uuid import UUID
 
+from django.db import transaction
 from django.http import HttpResponse
 from ninja import Status, Swagger
 
@@ -44,9 +45,9 @@ from services.deployment import (
     session_revoke,
     user_task_json,
 )
-from services.grants import services_for_user
+from services.grants import services_for_user, services_usable
 from services.kinds import Request, RequestError
-from services.models import Service, Session
+from services.models import Session
 from services.request import service_request
 from services.sessions import SessionStateError
 
@@ -117,9 +118,17 @@ def _visible_session(request: AuthenticatedHttpRequest, session_id: UUID) -> Ses
     return session
 
 
-def _owned_session(request: AuthenticatedHttpRequest, session_id: UUID, action: str) -> Session:
-    session = _visible_session(request, session_id)
-    if session.user_id != request.user.pk:
+def _owned_session(
+    request: AuthenticatedHttpRequest, session_id: UUID, action: str, *, lock: bool = False
+) -> Session:
+    """The session if the user owns it; 403 if they may only view it, else 404.
+    ``lock``: read it locked, in the caller's transaction (only one's own is locked)."""
+    rows = Session.objects.select_related("service", "user")
+    if lock:
+        rows = rows.select_for_update(of=("self",))
+    session = rows.filter(pk=session_id, user=request.user).first()
+    if session is None:
+        _visible_session(request, session_id)  # 404 unless the user may view it
         raise ApiError(403, "permission_denied", f"only the session's user may {action} it")
     return session
 
@@ -174,11 +183,11 @@ def session_create(
     `params` (docs/api.md lists them). 422 names the requirement no vehicle met; 409
     `session_limit` says the user already holds as many live sessions as it allows."""
     _require_perm(request, "services.use_services", "request services")
-    service = Service.objects.filter(slug=payload.service, is_active=True).first()
+    service = services_usable(request.user).filter(slug=payload.service).first()
     if service is None:
         raise field_error("service", f"no service {payload.service!r}")
-    # Whether the user may use it: service_request checks first, and a refusal is the
-    # same 403 as ever (AssignmentError without a session, below).
+    # Whether the user may use it (read with it): service_request checks it first, and
+    # a refusal is the same 403 as ever (AssignmentError without a session, below).
     target = payload.target
     wish = Request(
         target=(target.lat, target.lon) if target else None,
@@ -187,7 +196,9 @@ def session_create(
         params=payload.params,
     )
     try:
-        opened = service_request(user=request.user, service=service, request=wish)
+        opened = service_request(
+            user=request.user, service=service, request=wish, usable=service.usable
+        )
     except RequestError as exc:
         raise field_error(exc.field or "service", str(exc)) from None
     except AssignmentError as exc:
@@ -250,13 +261,18 @@ def session_finish(
     request: AuthenticatedHttpRequest, session_id: UUID, payload: schema.EndRequest | None = None
 ) -> Session:
     """The owner ends the session on purpose; the vehicles are released."""
-    session = _owned_session(request, session_id, "end")
-    try:
-        return session_end(
-            session=session, reason=_reason(payload, "ended by the user"), by_user=True
-        )
-    except SessionStateError as exc:
-        raise ApiError(409, "session_state", str(exc)) from None
+    # One transaction: the session is read locked, and what is ended is what was read.
+    with transaction.atomic():
+        session = _owned_session(request, session_id, "end", lock=True)
+        try:
+            return session_end(
+                session=session,
+                reason=_reason(payload, "ended by the user"),
+                by_user=True,
+                locked=True,
+            )
+        except SessionStateError as exc:
+            raise ApiError(409, "session_state", str(exc)) from None
 
 
 @api.post(

@@ -30,7 +30,7 @@ from pydantic_core import PydanticCustomError
 from fleet.attributes import CAMERAS
 from fleet.models import Vehicle
 from services import models
-from services.eventlog import session_log_verify
+from services.eventlog import session_log, session_log_verify
 from services.selectors import session_delivery
 from services.sessions import FINAL
 
@@ -373,8 +373,13 @@ class Session(Schema):
     def resolve_params(session: models.Session) -> dict[str, Any]:
         return session.params if isinstance(session.params, dict) else {}
 
+    # The assignments and the log come from the function that just wrote them, when it
+    # left them on the session (models.Session.known_*), else they are read.
+
     @staticmethod
     def resolve_assignments(session: models.Session) -> Any:
+        if session.known_assignments is not None:
+            return session.known_assignments
         return session.assignments.select_related("vehicle")
 
     @staticmethod
@@ -383,7 +388,9 @@ class Session(Schema):
 
     @staticmethod
     def resolve_log(session: models.Session) -> dict[str, Any]:
-        events = list(session.events.order_by("seq"))  # read once: checked and shown
+        events = session.known_events
+        if events is None:
+            events = session_log(session=session)  # read once: checked and shown
         check = session_log_verify(session=session, events=events)
         return {
             "chain_ok": check.ok,

@@ -34,7 +34,7 @@ from services.assignment import (
     session_record,
     session_roles_assign,
 )
-from services.eventlog import event_append, events_staged
+from services.eventlog import event_append, events_staged, session_log
 from services.grants import user_can_use
 from services.kinds import UnknownKind, kind_of
 from services.models import Assignment, Service, Session
@@ -330,7 +330,7 @@ def session_request_deploy(
         service_grant_require(user=user, service=service)
     refused: AssignmentError | InvalidTaskError | None = None
     pk = uuid.uuid4()
-    with transaction.atomic(), events_staged(session_id=pk):
+    with transaction.atomic(), events_staged(session_id=pk) as log:
         session = session_record(
             user=user,
             service=service,
@@ -356,6 +356,8 @@ def session_request_deploy(
             refused = exc
     if refused is not None:
         raise refused
+    # A new session: these are all its assignments, and its whole log.
+    session.known_assignments, session.known_events = assignments, log
     return session, task
 
 
@@ -451,28 +453,45 @@ def _task_withdraw(*, vehicle_id: Any, session_id: Any) -> bool:
 
 
 def _close(
-    *, session: Session, to: str, reason: str, message: EndTask | Revoke, data: dict[str, Any]
+    *,
+    session: Session,
+    to: str,
+    reason: str,
+    message: EndTask | Revoke,
+    data: dict[str, Any],
+    locked: bool = False,
 ) -> Session:
-    with transaction.atomic():
-        locked = Session.objects.select_for_update().get(pk=session.pk)
+    """Move ``session`` to the final state ``to`` and release its vehicles with
+    ``message``; ``locked``: the caller read ``session`` locked in its transaction (a
+    refusal then spoils that transaction: no savepoint is made). The session is left
+    with its assignments and its whole log as this transaction leaves them
+    (``known_assignments``, ``known_events``)."""
+    with transaction.atomic(savepoint=not locked):
+        row = session if locked else Session.objects.select_for_update().get(pk=session.pk)
+        # The whole log rather than its tail: the answer shows it.
+        log = session_log(session=row)
         # The transition validates the move first: nothing is sent for a refused one.
         # The vehicles it takes off the session are settled below, once each.
         released = session_transition_locked(
-            session=locked, to=to, reason=reason, data=data, free_vehicles=False
+            session=row, to=to, reason=reason, data=data, free_vehicles=False, log=log
         )
         for vehicle_id in released:
-            vehicle_release(vehicle_id=vehicle_id, session_id=locked.pk, message=message)
-    # The row as the locked read and the update left it (the caller's instance keeps
-    # its related service and user).
-    for column in Session._meta.concrete_fields:
-        setattr(session, column.attname, getattr(locked, column.attname))
+            vehicle_release(vehicle_id=vehicle_id, session_id=row.pk, message=message)
+    if row is not session:
+        # The row as the locked read and the update left it (the caller's instance
+        # keeps its related service and user).
+        for column in Session._meta.concrete_fields:
+            setattr(session, column.attname, getattr(row, column.attname))
+        session.known_assignments = row.known_assignments
+    session.known_events = log
     return session
 
 
-def session_end(*, session: Session, reason: str, by_user: bool) -> Session:
+def session_end(*, session: Session, reason: str, by_user: bool, locked: bool = False) -> Session:
     """End ``session`` on purpose: its agents get ``end_task`` and its vehicles are
     released (see :func:`vehicle_release`). ``by_user`` records whether the user asked
-    (else the platform did).
+    (else the platform did). ``locked``: the caller read ``session`` locked, in the
+    transaction this joins (see :func:`_close`).
 
     Raises services.sessions.SessionStateError when the session cannot end (already
     final, or never assigned) or ``reason`` is empty.
@@ -483,6 +502,7 @@ def session_end(*, session: Session, reason: str, by_user: bool) -> Session:
         reason=reason,
         message=EndTask(session_id=str(session.pk), reason=reason),
         data={"by_user": by_user},
+        locked=locked,
     )
 
 

@@ -7,7 +7,9 @@ point on, and ``session_log_verify`` names the first broken event.
 Appending locks the session's row and reads the log's tail, one event at a time. A
 session being created writes its first events in one go instead
 (:func:`events_staged`): nobody else can see it before its transaction commits, so
-there is no tail to read and no writer to wait for.
+there is no tail to read and no writer to wait for. A writer that holds the lock and
+has read the whole log (:func:`session_log`, to answer with it) appends after what it
+read, without reading the tail again.
 """
 
 from __future__ import annotations
@@ -130,15 +132,28 @@ def events_staged(*, session_id: Any) -> Iterator[list[SessionEvent]]:
         )
 
 
+def session_log(*, session: Session) -> list[SessionEvent]:
+    """``session``'s whole log, in order. Read by a holder of the session's lock, it is
+    where the next event goes (:func:`event_append`'s ``log``)."""
+    return list(SessionEvent.objects.filter(session=session).order_by("seq"))
+
+
 def event_append(
-    *, session: Session, kind: str, data: dict[str, Any] | None = None, locked: bool = False
+    *,
+    session: Session,
+    kind: str,
+    data: dict[str, Any] | None = None,
+    locked: bool = False,
+    log: list[SessionEvent] | None = None,
 ) -> SessionEvent:
     """Append one event to ``session``'s log and return it (unsaved while staged by
     :func:`events_staged`, which writes it when its block ends).
 
     The session row is locked so concurrent writers (the supervisor, a worker, a view)
     get consecutive sequence numbers and a single chain; ``locked``: the caller already
-    holds that lock in the current transaction.
+    holds that lock in the current transaction. ``log``: the caller holds it and read
+    the whole log under it (:func:`session_log`); the event follows its last and is
+    added to it.
     """
     staged = _staging.get()
     if staged is not None and staged.session_id == session.pk:
@@ -149,18 +164,23 @@ def event_append(
     # No savepoint: nothing here is caught and carried on from; outside a transaction
     # this still makes one, so the lock is held until the event is written.
     with transaction.atomic(savepoint=False):
-        if not locked:
-            Session.objects.select_for_update().filter(pk=session.pk).first()
-        last = (
-            SessionEvent.objects.filter(session=session)
-            .order_by("-seq")
-            .values_list("seq", "hash")
-            .first()
-        )
+        if log is not None:
+            last = (log[-1].seq, log[-1].hash) if log else None
+        else:
+            if not locked:
+                Session.objects.select_for_update().filter(pk=session.pk).first()
+            last = (
+                SessionEvent.objects.filter(session=session)
+                .order_by("-seq")
+                .values_list("seq", "hash")
+                .first()
+            )
         seq, prev_hash = last if last else (0, GENESIS_HASH)
         event = _event_new(session=session, seq=seq + 1, prev_hash=prev_hash, kind=kind, data=data)
         event.save()
         session_notify(session_id=session.pk, event=_feed_item(event))
+    if log is not None:
+        log.append(event)
     return event
 
 
@@ -181,7 +201,7 @@ def session_log_verify(
     ``events`` (those rows, already read in ``seq`` order)."""
     prev_hash = GENESIS_HASH
     count = 0
-    rows = session.events.order_by("seq") if events is None else events
+    rows = session_log(session=session) if events is None else events
     for expected_seq, event in enumerate(rows, start=1):
         count += 1
         if event.seq != expected_seq:

@@ -240,6 +240,13 @@ class Session(models.Model):
     started_at = models.DateTimeField(null=True, blank=True)
     ended_at = models.DateTimeField(null=True, blank=True)
 
+    # Not columns. Left on the instance by the function that just wrote them, under the
+    # session's lock, so that an answer about the session does not read them back
+    # (services.api_schemas): all its assignments with their vehicles, and its whole log
+    # in order, as that transaction left them. None: not known, read them.
+    known_assignments: list[Assignment] | None = None
+    known_events: list[SessionEvent] | None = None
+
     class Meta:
         ordering = ["-created_at"]
         indexes = [models.Index(fields=["state"])]

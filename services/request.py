@@ -15,8 +15,12 @@ from services.kinds import Opened, Request, RequestError, UnknownKind, kind_of
 from services.models import Service
 
 
-def service_request(*, user: User, service: Service, request: Request) -> Opened:
-    """Open a session of ``service`` for ``user`` as ``request`` asks.
+def service_request(
+    *, user: User, service: Service, request: Request, usable: bool | None = None
+) -> Opened:
+    """Open a session of ``service`` for ``user`` as ``request`` asks. ``usable``:
+    whether the user may use the service, when the caller read it with the service
+    (services.grants.services_usable); None: asked here.
 
     Raises AssignmentError when the user may not use the service (``session`` None),
     holds as many live sessions of it as it allows (``over_cap``) or no vehicle fits
@@ -24,7 +28,9 @@ def service_request(*, user: User, service: Service, request: Request) -> Opened
     kind does not read, invalid params, a kind that is not requested this way or not
     installed); services.deployment.DeploymentError when deploying failed.
     """
-    if not service.is_active or not user_can_use(user, service):
+    if usable is None:
+        usable = service.is_active and user_can_use(user, service)
+    if not usable:
         raise AssignmentError(f"you may not use the service {service.name!r}")
     try:
         kind = kind_of(service)

@@ -18,7 +18,7 @@ from django.utils import timezone
 from fleet.feed import fleet_notify
 from fleet.models import Vehicle
 from services.eventlog import event_append
-from services.models import Assignment, Session
+from services.models import Assignment, Session, SessionEvent
 
 S = Session.State
 TRANSITIONS: dict[str, set[str]] = {
@@ -64,12 +64,15 @@ def session_transition_locked(
     reason: str = "",
     data: dict[str, Any] | None = None,
     free_vehicles: bool = True,
+    log: list[SessionEvent] | None = None,
 ) -> list[Any]:
     """:func:`session_transition` for a caller that holds ``session``'s row (locked in
     its transaction, or created there) and read it: nothing is read again, and no
     savepoint is made. ``session`` is updated in place. On a final state its active
-    assignments end; with ``free_vehicles`` their vehicles become idle again, else the
-    caller settles them (see services.deployment.vehicle_release).
+    assignments end (see :func:`assignments_release`); with ``free_vehicles`` their
+    vehicles become idle again, else the caller settles them (see
+    services.deployment.vehicle_release). ``log``: the session's whole log, read under
+    the lock (services.eventlog.event_append).
 
     Returns the ids of the vehicles released. Raises SessionStateError, before any
     write, as :func:`session_transition`.
@@ -97,26 +100,35 @@ def session_transition_locked(
         kind="state",
         data={"from": previous, "to": to, "reason": reason, **(data or {})},
         locked=True,
+        log=log,
     )
     return released
 
 
 def assignments_release(*, session: Session, free_vehicles: bool = True) -> list[Any]:
     """End ``session``'s active assignments; with ``free_vehicles``, vehicles still
-    reserved or in service become idle again. Returns the released vehicle ids."""
+    reserved or in service become idle again. Returns the released vehicle ids.
+
+    Reads all the session's assignments (locked), with their vehicles, and leaves them
+    on ``session.known_assignments`` as they are once released."""
     # No savepoint: nothing is caught in here; outside a transaction it makes one.
     with transaction.atomic(savepoint=False):
-        active = list(
-            Assignment.objects.select_for_update()
-            .filter(session=session, active=True)
-            .values_list("pk", "vehicle_id")
+        assignments = list(
+            Assignment.objects.select_for_update(of=("self",))
+            .select_related("vehicle")
+            .filter(session=session)
         )
-        ids = [vehicle_id for _, vehicle_id in active]
-        if not ids:
+        session.known_assignments = assignments
+        active = [a for a in assignments if a.active]
+        if not active:
             return []
-        Assignment.objects.filter(pk__in=[pk for pk, _ in active]).update(
-            active=False, released_at=timezone.now()
+        now = timezone.now()
+        Assignment.objects.filter(pk__in=[a.pk for a in active]).update(
+            active=False, released_at=now
         )
+        for assignment in active:
+            assignment.active, assignment.released_at = False, now
+        ids = [a.vehicle_id for a in active]
         if free_vehicles:
             Vehicle.objects.filter(
                 pk__in=ids, status__in=[Vehicle.Status.RESERVED, Vehicle.Status.IN_SERVICE]

@@ -27,7 +27,7 @@ from services.deployment import (
     session_revoke,
     user_task_json,
 )
-from services.grants import services_for_user, user_can_use
+from services.grants import services_for_user, services_usable
 from services.kinds import RequestError, ServiceKind, UnknownKind, kind_of
 from services.models import Service, Session
 from services.request import service_request
@@ -66,8 +66,10 @@ def catalog(request: AuthenticatedHttpRequest) -> HttpResponse:
 def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpResponse:
     """The request page of one service (its kind's form); a valid POST opens the
     session (services.request: the same path as the API) and shows its page."""
-    service = get_object_or_404(Service, slug=slug, is_active=True)
-    if not user_can_use(request.user, service):
+    service = services_usable(request.user).filter(slug=slug).first()
+    if service is None:
+        raise Http404("no such service")
+    if not service.usable:
         raise Http404("no such service for you")
     kind = _kind(service)
     if not kind.requestable or kind.form_class is None:
@@ -76,7 +78,10 @@ def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpRe
     if request.method == "POST" and form.is_valid():
         try:
             opened = service_request(
-                user=request.user, service=service, request=kind.request_from_form(form)
+                user=request.user,
+                service=service,
+                request=kind.request_from_form(form),
+                usable=True,  # checked above, with the service
             )
         except RequestError as exc:
             # On the field it names if the form has one (params.area -> area).

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+from django.contrib.auth.models import AnonymousUser
 
 from accounts.roles import (
     ADMIN,
@@ -13,7 +14,7 @@ from accounts.roles import (
     user_roles,
     user_set_roles,
 )
-from services.grants import services_for_user
+from services.grants import services_for_user, services_usable
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db
@@ -59,6 +60,23 @@ def test_grants_by_group_and_by_user():
     # A grant alone is not enough: the user must hold the client role's permission.
     private.grants.create(user=f.user("mallory", roles=(OPERATOR,)))
     assert not services_for_user(private.grants.get(user__username="mallory").user).exists()
+
+
+def test_a_service_read_with_the_users_right_to_it_agrees_with_the_catalog():
+    public = f.service("public")
+    private = f.service("private", grant_clients=False)
+    off = f.service("off", is_active=False)
+    bob, mallory = f.user("bob"), f.user("mallory", roles=(OPERATOR,))
+    private.grants.create(user=bob)
+    private.grants.create(user=mallory)
+    people = [f.user("alice"), bob, mallory, f.user("root", roles=(ADMIN,)), AnonymousUser()]
+    for user in people:
+        usable = {s.slug: s.usable for s in services_usable(user)}
+        assert set(usable) == {public.slug, private.slug}  # active ones, usable or not
+        assert {slug for slug, yes in usable.items() if yes} == {
+            s.slug for s in services_for_user(user)
+        }, user
+    assert off.slug not in {s.slug for s in services_usable(people[3])}
 
 
 def test_login_shows_the_granted_catalog_and_logout(client):

@@ -477,6 +477,25 @@ def test_a_stop_before_the_task_left_frees_the_vehicle_at_once(requested, monito
     assert drone.status == Vehicle.Status.IDLE
 
 
+def test_what_request_end_and_stop_answer_is_what_reading_the_session_shows(
+    drone, fly, alice, monitor
+):
+    # The answers are made from the rows just written; a read shows the same rows.
+    def read(sid: str) -> Any:
+        return call("GET", f"/sessions/{sid}", token=alice).json()
+
+    created = call("POST", "/sessions", token=alice, body={"service": "fly", "target": TARGET})
+    first = created.json()["session"]
+    assert first == read(first["id"]) and len(first["log"]["events"]) == 5
+    ended = call("POST", f"/sessions/{first['id']}/end", token=alice, body={"reason": "done"})
+    assert ended.json() == read(first["id"]) and ended.json()["log"]["chain_ok"] is True
+    assert [e["seq"] for e in ended.json()["log"]["events"]] == [1, 2, 3, 4, 5, 6]
+
+    second = call("POST", "/sessions", token=alice, body={"service": "fly"}).json()["session"]
+    stopped = call("POST", f"/sessions/{second['id']}/stop", token=monitor)
+    assert stopped.json() == read(second["id"]) and stopped.json()["state"] == "aborted"
+
+
 def test_a_client_holds_at_most_the_services_session_limit(requested, fly, alice):
     f.vehicle(station=f.station(), vtype=f.vehicle_type())
     second = call("POST", "/sessions", token=alice, body={"service": "fly"})
