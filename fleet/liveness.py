@@ -105,22 +105,27 @@ def _client() -> redis.Redis:
     return client
 
 
+def _from_redis(read: Callable[[redis.Redis], list[Any]], count: int) -> list[Any]:
+    """``read``'s answer (one entry per id), or ``None`` for each while Redis cannot be
+    reached: the uplinks then write their heartbeats to the rows (fleet.uplink), so the
+    rows are what is known."""
+    if not in_redis():
+        return [None] * count
+    try:
+        return read(_client())
+    except redis.RedisError as exc:
+        log.warning("liveness: Redis unreachable (%s); reading the rows", exc)
+        return [None] * count
+
+
 def vehicles_live(ids: Iterable[Any]) -> dict[str, Live]:
     """The latest report of each of ``ids`` (vehicles never heard from are left out)."""
     keys = [str(pk) for pk in ids]
     if not keys:
         return {}
-    found: dict[str, Live] = {}
-    if in_redis():
-        _, state = _keys()
-        try:
-            reports = _client().hmget(state, keys)
-        except redis.RedisError as exc:
-            reports = [None] * len(keys)
-            log.warning("liveness: Redis unreachable (%s); reading the rows", exc)
-        for pk, raw in zip(keys, reports, strict=True):
-            if raw is not None:
-                found[pk] = _decode(raw)
+    _, state = _keys()
+    reports = _from_redis(lambda client: client.hmget(state, keys), len(keys))
+    found = {pk: _decode(raw) for pk, raw in zip(keys, reports, strict=True) if raw is not None}
     missing = [pk for pk in keys if pk not in found]
     if missing:
         for vehicle in Vehicle.objects.filter(pk__in=missing, last_seen__isnull=False).only(
@@ -137,19 +142,13 @@ def vehicles_seen(ids: Iterable[Any]) -> dict[str, datetime]:
     keys = [str(pk) for pk in ids]
     if not keys:
         return {}
-    found: dict[str, datetime] = {}
-    if in_redis():
-        seen, _ = _keys()
-        try:
-            scores = _client().zmscore(seen, keys)
-        except redis.RedisError as exc:
-            # The uplinks write the rows while Redis is away (fleet.uplink), so the
-            # rows are what is known.
-            scores = [None] * len(keys)
-            log.warning("liveness: Redis unreachable (%s); reading the rows", exc)
-        for pk, score in zip(keys, scores, strict=True):
-            if score is not None:
-                found[pk] = datetime.fromtimestamp(score, tz=UTC)
+    seen, _ = _keys()
+    scores = _from_redis(lambda client: client.zmscore(seen, keys), len(keys))
+    found = {
+        pk: datetime.fromtimestamp(score, tz=UTC)
+        for pk, score in zip(keys, scores, strict=True)
+        if score is not None
+    }
     missing = [pk for pk in keys if pk not in found]
     if missing:
         rows = Vehicle.objects.filter(pk__in=missing, last_seen__isnull=False)
@@ -163,17 +162,6 @@ def vehicles_fresh(ids: Iterable[Any], now: datetime | None = None) -> set[str]:
     """Those of ``ids`` heard from within ``IOUV_OFFLINE_AFTER_S`` of ``now``."""
     cutoff = online_cutoff(now)
     return {pk for pk, seen in vehicles_seen(ids).items() if seen >= cutoff}
-
-
-def live_forget(ids: Iterable[Any]) -> None:
-    """Drop what Redis holds of ``ids`` (deleted vehicles)."""
-    keys = [str(pk) for pk in ids]
-    if keys and in_redis():
-        seen, state = _keys()
-        pipe = _client().pipeline(transaction=False)
-        pipe.zrem(seen, *keys)
-        pipe.hdel(state, *keys)
-        pipe.execute()
 
 
 # -- writes (the uplinks' event loop) ---------------------------------------------------

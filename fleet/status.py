@@ -22,9 +22,6 @@ class FleetError(Exception):
     """A fleet change that is not allowed now; the message says why."""
 
 
-__all__ = ["online_cutoff"]  # re-exported: where callers have always found it
-
-
 def vehicles_online(now: datetime | None = None) -> QuerySet[Vehicle]:
     """Vehicles the platform counts online: not offline, not in maintenance.
 
