@@ -11,7 +11,8 @@ Example::
       "adapter": "car",
       "adapter_options": {"distance_sensor": true},
       "control": {"host": "0.0.0.0", "port": 8765, "public_url": "wss://car-1.example.org"},
-      "video": {"source": "v4l2", "device": "/dev/video0"}
+      "video": {"source": "v4l2", "device": "/dev/video0"},
+      "webrtc": {"ice_servers": ["stun:stun.example.org:3478"]}
     }
 
 A search drone adds its thermal camera, ``"thermal": {"source": "v4l2", "device":
@@ -24,6 +25,12 @@ The platform's public keys come from any of ``platform_public_key`` (PEM text),
 loopback only); the agent trusts all the keys given. Once connected it adopts the key set
 the platform's ``welcome`` carries (a key rotation), unless
 ``"platform_jwks_from_welcome": false`` pins the configured keys.
+
+``webrtc`` configures the agent's WebRTC connections (:mod:`agents.rtc`):
+``ice_servers`` (STUN/TURN used beside the ones the platform sends with each offer),
+``ice_host_addresses`` (restrict the local addresses offered; ``["127.0.0.1"]`` on a
+loopback-only machine), ``max_peers``, or ``"enabled": false`` to answer no WebRTC
+offer at all. Absent, the agent accepts offers with the platform's servers alone.
 
 Relative paths are taken from the config file's folder.
 """
@@ -45,6 +52,8 @@ from agents.protocol import KeySet, ProtocolError
 #: Bounds on fetching ``platform_jwks_url``: a JWKS is a few hundred bytes.
 JWKS_FETCH_TIMEOUT_S: Final = 10.0
 JWKS_MAX_BYTES: Final = 64 * 1024
+#: What the ``webrtc`` section may hold.
+WEBRTC_OPTIONS: Final = frozenset({"enabled", "ice_servers", "ice_host_addresses", "max_peers"})
 
 
 class ConfigError(Exception):
@@ -74,6 +83,7 @@ class AgentConfig:
     control: ControlConfig = field(default_factory=ControlConfig)
     video: Mapping[str, Any] | None = None
     thermal: Mapping[str, Any] | None = None
+    webrtc: Mapping[str, Any] = field(default_factory=dict)
     name: str = ""
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 30.0
@@ -164,6 +174,14 @@ class AgentConfig:
                 thermal_config_check(thermal)
             except ValueError as exc:
                 raise ConfigError(str(exc)) from None
+        webrtc = data.get("webrtc", {})
+        if not isinstance(webrtc, Mapping):
+            raise ConfigError("webrtc: must be an object")
+        unknown = set(webrtc) - WEBRTC_OPTIONS
+        if unknown:
+            raise ConfigError(f"webrtc: unknown option(s) {', '.join(sorted(unknown))}")
+        if not isinstance(webrtc.get("enabled", True), bool):
+            raise ConfigError("webrtc.enabled: must be true or false")
         if video is not None and video.get("source") == "thermal" and thermal is None:
             raise ConfigError("video: the thermal source needs a thermal section")
         config = cls(
@@ -180,6 +198,7 @@ class AgentConfig:
             ),
             video=dict(video) if video is not None else None,
             thermal=dict(thermal) if thermal is not None else None,
+            webrtc=dict(webrtc),
             name=str(data.get("vehicle_name") or data.get("name") or ""),
             platform_jwks=jwks,
             platform_jwks_from_welcome=from_welcome,

@@ -39,7 +39,7 @@ from collections import Counter
 from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any, Protocol, Self
+from typing import Any, Final, Protocol, Self
 
 import msgspec
 from websockets.asyncio.server import Server, ServerConnection, serve
@@ -105,6 +105,18 @@ COMMAND_QUEUE = 16
 #: Refused commands: the first of a burst is reported at once, the rest folded into at
 #: most one report this often while they go on.
 REFUSAL_REPORT_S = 1.0
+#: A command older than this (or than the task's link-loss timeout, if longer) when its
+#: turn comes is dropped: the user steered for a moment that has passed. Safe commands
+#: are never dropped for age.
+MIN_COMMAND_AGE_MS = 250.0
+#: Clock samples kept per user; the one with the shortest round trip is trusted.
+CLOCK_SAMPLES = 16
+#: A user's WebRTC offers at most this often: each one builds a connection and gathers
+#: candidates, far dearer than any other message.
+OFFER_MIN_INTERVAL_S = 1.0
+
+#: Messages that negotiate a WebRTC connection: only on the link the user signals on.
+_SIGNALLING: Final = frozenset({WebrtcRequest, WebrtcOffer, WebrtcAnswer})
 
 Reporter = Callable[[str, str | None, dict[str, Any]], None]
 TaskEnded = Callable[[VehicleTask], None]
@@ -181,7 +193,9 @@ class _RefusalReports:
 
 
 class ClientLink(Protocol):
-    """One user's message channel: a WebSocket, or a relayed connection."""
+    """One user's message channel: a WebSocket, a relayed connection, or a WebRTC data
+    channel. ``path`` names it for the user and the platform (``websocket``, ``relay``;
+    data channels take their ICE path, see :class:`_Paths`)."""
 
     id: str
 
@@ -192,12 +206,82 @@ class ClientLink(Protocol):
         """Close the channel; idempotent."""
 
 
+class _Paths:
+    """One user's ClientLink over every path they have: the link they authenticated on
+    (a direct WebSocket or the platform's relay, which also carries the WebRTC
+    signalling) and, once open, the ``control`` data channel of the WebRTC connection
+    they negotiated on it. Messages go on the data channel while it is open, else on
+    the first link; the user stays connected while either is, so a platform outage
+    leaves a WebRTC user in control and a failed WebRTC connection falls back to the
+    relay without a new ``auth``."""
+
+    def __init__(self, signal: ClientLink) -> None:
+        self.id = signal.id
+        self.signal: ClientLink | None = signal
+        self.channel: ClientLink | None = None
+        #: The ICE path of the WebRTC connection (``webrtc_direct``/``webrtc_turn``).
+        self.rtc_path = "webrtc_direct"
+        #: The path last announced to the user and the platform.
+        self.announced: str | None = None
+
+    @property
+    def path(self) -> str:
+        if self.channel is not None:
+            return self.rtc_path
+        return str(getattr(self.signal, "path", "websocket"))
+
+    def carries(self, link: ClientLink) -> bool:
+        """Is ``link`` one of this user's paths (or these paths themselves)?"""
+        return link is self or link is self.signal or getattr(link, "id", None) == self.id
+
+    async def send(self, message: Message) -> None:
+        channel = self.channel
+        if channel is not None:
+            try:
+                await channel.send(message)
+                return
+            except ConnectionError:
+                pass  # the data channel just broke: the first link carries on
+        if self.signal is None:
+            raise ConnectionError("no path to the user is left")
+        await self.signal.send(message)
+
+    async def close(self, code: int, reason: str) -> None:
+        for link in (self.channel, self.signal):
+            if link is not None:
+                with contextlib.suppress(Exception):
+                    await link.close(code, reason)
+
+
+class _Clock:
+    """The user's clock against ours, from the ping exchange: each pong says what the
+    user's clock read about half a round trip ago; the sample with the shortest round
+    trip bounds the error best (NTP's rule)."""
+
+    def __init__(self) -> None:
+        self.samples: list[tuple[float, float]] = []  # (rtt_ms, offset_ms)
+
+    def add(self, rtt_ms: float, client_ms: float) -> None:
+        offset = client_ms - (time.time() * 1000.0 - rtt_ms / 2)
+        self.samples = [*self.samples[-(CLOCK_SAMPLES - 1) :], (rtt_ms, offset)]
+
+    def age_ms(self, client_ms: float) -> float | None:
+        """How long ago, on our clock, the user's clock read ``client_ms``; None
+        before any sample."""
+        if not self.samples:
+            return None
+        offset = min(self.samples)[1]
+        return time.time() * 1000.0 - (client_ms - offset)
+
+
 @dataclass
 class _Client:
-    link: ClientLink
+    link: _Paths
     role: str = "pending"  # pending, controller, viewer
     grant: UserGrant | None = None
     rtt_ms: float | None = None
+    clock: _Clock = field(default_factory=_Clock)
+    offered_at: float = -OFFER_MIN_INTERVAL_S
     tokens: float = BURST
     refill_at: float = field(default_factory=time.monotonic)
     refused: list[float] = field(default_factory=list)
@@ -235,6 +319,7 @@ class ControlHub:
         report: Reporter,
         video: Any | None = None,
         on_task_end: TaskEnded | None = None,
+        webrtc: Mapping[str, Any] | None = None,
     ) -> None:
         self.vehicle_id = vehicle_id
         self.vehicle_name = vehicle_name
@@ -244,6 +329,10 @@ class ControlHub:
         self.adapter = adapter
         self.report = report
         self.video = video
+        #: The agent's ``webrtc`` configuration (see agents.config); the peers are made
+        #: on the first offer, so an agent nobody calls never loads aiortc.
+        self.webrtc_options = dict(webrtc or {})
+        self.rtc: Any | None = None
         self.task: VehicleTask | None = None
         self.gate: CommandGate | None = None
         self.clients: dict[str, _Client] = {}
@@ -280,6 +369,8 @@ class ControlHub:
         await self._envelope_stop()
         for client in list(self.clients.values()):
             await self._drop(client, 1001, "agent shutting down")
+        if self.rtc is not None:
+            await self.rtc.close()
         self._refusals.flush()
         if self._background:
             await asyncio.wait(self._background, timeout=2)
@@ -433,7 +524,7 @@ class ControlHub:
     # --- connections -------------------------------------------------------------------
     async def connected(self, link: ClientLink) -> None:
         """A user's channel opened; it must authenticate within AUTH_TIMEOUT_S."""
-        client = _Client(link)
+        client = _Client(_Paths(link))
         self.clients[link.id] = client
         asyncio.get_running_loop().call_later(AUTH_TIMEOUT_S, self._auth_deadline, client)
 
@@ -442,14 +533,24 @@ class ControlHub:
             self._spawn(self._drop(client, CLOSE_UNAUTHORIZED, "no auth in time"))
 
     async def disconnected(self, link: ClientLink) -> None:
-        """A user's channel closed (or was dropped)."""
-        client = self.clients.pop(link.id, None)
-        if client is None:
+        """A user's channel closed (or was dropped). While their WebRTC data channel is
+        open, losing the link they signalled on only loses that path."""
+        client = self.clients.get(link.id)
+        if client is None or not client.link.carries(link):
             return
+        paths = client.link
+        if link is paths.signal and paths.channel is not None:
+            paths.signal = None
+            await self._path_announce(client)
+            return
+        del self.clients[link.id]
         self._stop_client_tasks(client)
         if self.video is not None:
             with contextlib.suppress(Exception):
                 await self.video.close_peer(link.id)
+        if self.rtc is not None:
+            with contextlib.suppress(Exception):
+                await self.rtc.close_peer(link.id, notify=False)
         if client.grant is not None and self.task is not None:
             self.report(
                 "user_disconnected",
@@ -494,7 +595,10 @@ class ControlHub:
             await self._auth(client, msg.grant)
             return
         handler = self._handlers.get(type(msg))
-        if handler is None:
+        if handler is None or (
+            type(msg) in _SIGNALLING and link is not client.link.signal and link is not client.link
+        ):
+            # Signalling on a data channel would replace the connection carrying it.
             kind = message_type(msg)
             await self._send(client, error_message("unexpected", f"{kind} is not expected now"))
             return
@@ -551,6 +655,7 @@ class ControlHub:
             ),
         )
         self.report("user_connected", task.session_id, {"user": grant.user, "role": client.role})
+        await self._path_announce(client)
 
     async def _set_controller(self, client: _Client | None) -> None:
         if self.controller is not None and self.controller is not client:
@@ -580,6 +685,14 @@ class ControlHub:
             )
             return
         await self._heard(client)
+        if name in SAFE_COMMANDS:
+            # A stop must not wait behind the moves queued before it: they are dropped
+            # (each acked ``superseded``) and the stop runs next.
+            while not client.commands.empty():
+                dropped = client.commands.get_nowait()
+                await self._ack(
+                    client, dropped.seq, "superseded", f"{dropped.name}: superseded by {name}"
+                )
         try:
             client.commands.put_nowait(msg)
         except asyncio.QueueFull:
@@ -594,6 +707,10 @@ class ControlHub:
             seq, name, args = msg.seq, msg.name, msg.args
             if client is not self.controller or self.gate is None or self.task is None:
                 await self._ack(client, seq, "view_only", f"{name}: you no longer hold control")
+                continue
+            late = self._too_old(client, msg)
+            if late is not None:
+                await self._ack(client, seq, "stale", late)
                 continue
             try:
                 checked = self.gate.check(name, args, rtt_ms=client.rtt_ms)
@@ -620,6 +737,16 @@ class ControlHub:
             with contextlib.suppress(ConnectionError):
                 await client.link.send(CommandAck(seq=seq, ok=True, error=None))
 
+    def _too_old(self, client: _Client, msg: Command) -> str | None:
+        """Why ``msg`` is too old to run now, or None (fresh, safe, or its age unknown)."""
+        if not isinstance(msg.t, float | int) or msg.name in SAFE_COMMANDS or self.task is None:
+            return None
+        age = client.clock.age_ms(float(msg.t))
+        bound = max(MIN_COMMAND_AGE_MS, float(self.task.limits.link_loss_timeout_ms))
+        if age is None or age <= bound:
+            return None
+        return f"{msg.name}: sent {age:.0f} ms ago, older than the {bound:.0f} ms allowed; dropped"
+
     async def _on_keepalive(self, client: _Client, msg: Keepalive) -> None:
         if client is self.controller:
             await self._heard(client)
@@ -633,6 +760,8 @@ class ControlHub:
         now = time.monotonic()
         if 0 <= now - sent < 60:  # our own monotonic stamp echoed back
             client.rtt_ms = (now - sent) * 1000.0
+            if isinstance(msg.client_t, float | int):
+                client.clock.add(client.rtt_ms, float(msg.client_t))
 
     async def _on_subscribe(self, client: _Client, msg: Subscribe) -> None:
         topics = list(dict.fromkeys(msg.topics))
@@ -714,15 +843,80 @@ class ControlHub:
             await self._send(client, error_message("video", str(exc)))
 
     async def _on_webrtc_offer(self, client: _Client, msg: WebrtcOffer) -> None:
-        if self.video is None:
-            await self._send(client, error_message("no_video", "this vehicle has no camera"))
+        """The browser's offer: one connection for its data channels and the camera
+        (:mod:`agents.rtc`), with the ICE servers the platform sent along."""
+        now = time.monotonic()
+        if now - client.offered_at < OFFER_MIN_INTERVAL_S:
+            await self._send(
+                client, error_message("rate_limited", "one WebRTC offer a second at most")
+            )
             return
+        client.offered_at = now
+        rtc = self._rtc()
+        if rtc is None:
+            await self._send(
+                client, error_message("no_webrtc", "this vehicle does not accept WebRTC")
+            )
+            return
+        servers = getattr(client.link.signal, "ice_servers", ())
         try:
-            sdp = await self.video.accept_offer(client.link.id, msg.sdp)
-        except Exception as exc:  # as above
-            await self._send(client, error_message("video", str(exc)))
+            sdp = await rtc.accept(client.link.id, msg.sdp, ice_servers=servers)
+        except Exception as exc:  # any WebRTC failure is reported to the user, not fatal
+            await self._send(client, error_message("webrtc", str(exc)))
             return
         await self._send(client, WebrtcAnswer(sdp=sdp))
+
+    # --- WebRTC paths (agents.rtc.PeerEvents) ---------------------------------------------
+    def _rtc(self) -> Any | None:
+        if self.rtc is None and self.webrtc_options.get("enabled", True):
+            from agents.rtc import RtcPeers  # aiortc loads only when someone calls
+
+            options = {k: v for k, v in self.webrtc_options.items() if k != "enabled"}
+            self.rtc = RtcPeers(self, video=self.video, **options)
+        return self.rtc
+
+    async def channel_opened(self, peer_id: str, link: ClientLink) -> None:
+        """A user's ``control`` data channel opened: their messages now use it."""
+        client = self.clients.get(peer_id)
+        if client is None:
+            await link.close(CLOSE_FORBIDDEN, "no such user")
+            return
+        client.link.channel = link
+        await self._path_announce(client)
+
+    async def path_changed(self, peer_id: str, path: str) -> None:
+        """ICE chose the pair of a user's connection (direct or through TURN)."""
+        client = self.clients.get(peer_id)
+        if client is not None:
+            client.link.rtc_path = path
+            await self._path_announce(client)
+
+    async def channel_closed(self, peer_id: str) -> None:
+        """A user's WebRTC connection ended: back on the link they signalled on, or, if
+        that is gone too, disconnected."""
+        client = self.clients.get(peer_id)
+        if client is None or client.link.channel is None:
+            return
+        client.link.channel = None
+        if client.link.signal is None:
+            await self.disconnected(client.link)
+        else:
+            await self._path_announce(client)
+
+    async def _path_announce(self, client: _Client) -> None:
+        """Tell the user (``event path``) and the platform (``control_path``) which path
+        their messages take, when it changed."""
+        path = client.link.path
+        if path == client.link.announced or client.role == "pending":
+            return
+        client.link.announced = path
+        await self._send(client, ClientEvent(event="path", data={"path": path}))
+        if self.task is not None and client.grant is not None:
+            self.report(
+                "control_path",
+                self.task.session_id,
+                {"user": client.grant.user, "role": client.role, "path": path},
+            )
 
     # Each handler takes the struct of its key (typed per handler, hence Any here).
     _handlers: dict[type[Message], Callable[[ControlHub, _Client, Any], Awaitable[None]]] = {
@@ -846,6 +1040,7 @@ class _WebSocketLink:
     """A ClientLink over a direct WebSocket."""
 
     _ids = itertools.count(1)
+    path = "websocket"
 
     def __init__(self, ws: ServerConnection) -> None:
         self.ws = ws

@@ -101,6 +101,7 @@ class Agent:
                 report=self.report,
                 video=self.video,
                 on_task_end=self._task_ended,
+                webrtc=self.config.webrtc,
             )
             self.hub = await stack.enter_async_context(hub)
             self.missions = MissionControl(
@@ -290,6 +291,9 @@ class Agent:
             link = _RelayLink(self, msg.session_id, conn)
             self.relay_links[conn] = link
             await self.hub.connected(link)
+        if msg.ice_servers:
+            # The platform's servers (fresh TURN credentials) for the offer it carries.
+            link.ice_servers = [server.as_config() for server in msg.ice_servers]
         # The payload was parsed as a control_to_agent message with the uplink frame that
         # carried it; the hub's rate limit applies as on a direct socket.
         await self.hub.received(link, msg.payload)
@@ -342,11 +346,15 @@ class Agent:
 class _RelayLink:
     """A ClientLink for a browser the platform relays (see services.consumers)."""
 
+    path = "relay"
+
     def __init__(self, agent: Agent, session_id: str, conn: str) -> None:
         self.agent = agent
         self.session_id = session_id
         self.conn = conn
         self.id = f"relay-{conn}"
+        #: STUN/TURN servers the platform sent with this user's last WebRTC offer.
+        self.ice_servers: list[dict[str, Any]] = []
 
     async def send(self, message: Message) -> None:
         if self.agent.relay_links.get(self.conn) is not self or self.agent.uplink is None:

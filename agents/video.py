@@ -1195,23 +1195,24 @@ def _vp8_preferences() -> list[RTCRtpCodecCapability]:
     return vp8 + rtx
 
 
-def _ice_server(spec: RTCIceServer | Mapping[str, Any] | str) -> RTCIceServer:
+def ice_server(spec: RTCIceServer | Mapping[str, Any] | str) -> RTCIceServer:
+    """An ``RTCIceServer`` from its configuration: an object, ``{"urls", "username",
+    "credential"}`` or a URL. Raises VideoError naming what is wrong."""
     if isinstance(spec, RTCIceServer):
         return spec
     if isinstance(spec, str):
         return RTCIceServer(urls=spec)
-    try:
-        return RTCIceServer(
-            urls=spec["urls"], username=spec.get("username"), credential=spec.get("credential")
-        )
-    except KeyError as exc:
-        raise VideoError("an ICE server needs 'urls'") from exc
+    if not isinstance(spec, Mapping) or "urls" not in spec:
+        raise VideoError("an ICE server needs 'urls'")
+    return RTCIceServer(
+        urls=spec["urls"], username=spec.get("username"), credential=spec.get("credential")
+    )
 
 
 @dataclass
 class _Peer:
     pc: RTCPeerConnection
-    track: _EncodedTrack
+    track: MediaStreamTrack
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     watchdog: asyncio.Task[None] | None = None
 
@@ -1256,7 +1257,7 @@ class VideoService:
         if isinstance(ice_host_addresses, str):
             ice_host_addresses = [ice_host_addresses]
         #: the STUN/TURN servers given to every peer connection
-        self.ice_servers = [_ice_server(s) for s in ice_servers]
+        self.ice_servers = [ice_server(s) for s in ice_servers]
         self._ice_hosts = list(ice_host_addresses) if ice_host_addresses is not None else None
         self.max_peers = max_peers
         self.answer_timeout_s = answer_timeout_s
@@ -1342,6 +1343,24 @@ class VideoService:
                 ) from exc
             return str(peer.pc.localDescription.sdp)
 
+    def attach(self, pc: RTCPeerConnection) -> MediaStreamTrack:
+        """Add the camera to ``pc`` (a connection another part of the agent negotiates,
+        see :mod:`agents.rtc`): a sendonly VP8 transceiver fed by the shared encoder.
+        Returns its track; stop it when the connection ends (the last viewer's stop
+        ends capture)."""
+        track = _EncodedTrack(self.encoder)
+        transceiver = pc.addTransceiver(track, direction="sendonly")
+        transceiver.setCodecPreferences(_vp8_preferences())
+        # PLI/FIR from this viewer: aiortc would force a keyframe in the sender's own
+        # encoder, which this sender does not use; ask the shared encoder instead.
+        transceiver.sender._send_keyframe = self.encoder.request_keyframe  # type: ignore[method-assign]
+        return track
+
+    @property
+    def ice_host_addresses(self) -> list[str] | None:
+        """The local addresses ICE may offer (None: aioice's choice)."""
+        return self._ice_hosts
+
     async def close_peer(self, peer_id: str) -> None:
         """Hang up one viewer; unknown ids are ignored. The others keep streaming."""
         peer = self._peers.pop(peer_id, None)
@@ -1374,14 +1393,7 @@ class VideoService:
         if len(self._peers) >= self.max_peers:
             raise VideoError(f"too many video viewers (at most {self.max_peers})")
         pc = RTCPeerConnection(RTCConfiguration(iceServers=list(self.ice_servers)))
-        track = _EncodedTrack(self.encoder)
-        transceiver = pc.addTransceiver(track, direction="sendonly")
-        transceiver.setCodecPreferences(_vp8_preferences())
-        sender = transceiver.sender
-        # PLI/FIR from this viewer: aiortc would force a keyframe in the sender's own
-        # encoder, which this sender does not use; ask the shared encoder instead.
-        sender._send_keyframe = self.encoder.request_keyframe  # type: ignore[method-assign]
-        peer = _Peer(pc, track)
+        peer = _Peer(pc, self.attach(pc))
         self._peers[peer_id] = peer
 
         @pc.on("connectionstatechange")

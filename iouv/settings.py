@@ -334,6 +334,16 @@ IOUV_PUBLIC_URL = env_str("IOUV_PUBLIC_URL", "http://127.0.0.1:8000")
 # Notices' webhooks (services.notices): how long one delivery attempt may take.
 IOUV_WEBHOOK_TIMEOUT_S = env_float("IOUV_WEBHOOK_TIMEOUT_S", 5.0)
 
+# --- WebRTC: ICE servers handed to users and vehicles (services.ice) ----------------------
+# STUN finds a peer's public address behind NAT; TURN (coturn) relays when no direct
+# path exists. TURN credentials are minted per session from the secret coturn shares
+# (``static-auth-secret``), valid IOUV_TURN_TTL_S. None configured: WebRTC only finds
+# peers on a shared network, and the relay over the platform carries the rest.
+IOUV_STUN_URLS = env_list("IOUV_STUN_URLS", [])
+IOUV_TURN_URLS = env_list("IOUV_TURN_URLS", [])
+IOUV_TURN_SECRET = env_secret("IOUV_TURN_SECRET")
+IOUV_TURN_TTL_S = env_int("IOUV_TURN_TTL_S", 3600)
+
 # --- Content-Security-Policy (django-csp, on every response) ------------------------------
 # Scripts and styles come only from the platform's static files (Leaflet is vendored
 # there); pages hold no inline code, so neither needs 'unsafe-inline'. The controller

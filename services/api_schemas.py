@@ -347,6 +347,11 @@ class Session(Schema):
     state: models.Session.State
     reason: str = Field(description="Why it is in this state; always set once final.")
     relay: bool
+    control_path: models.Session.ControlPath | Literal[""] = Field(
+        description="How the controller's messages reach the vehicle, as its agent last "
+        "said: WebRTC direct or through TURN, the platform's relay, or the vehicle's own "
+        "socket; empty before anyone connected."
+    )
     target: Target | None
     params: dict[str, Any]
     created_at: Timestamp
@@ -400,6 +405,14 @@ class Session(Schema):
         }
 
 
+class IceServerOut(Schema):
+    """A STUN/TURN server as the browser's ``RTCIceServer`` takes it."""
+
+    urls: list[str]
+    username: str | None = None
+    credential: str | None = None
+
+
 class UserTask(Schema):
     """What a client needs to control the session's vehicle."""
 
@@ -416,6 +429,14 @@ class UserTask(Schema):
     commands: list[dict[str, Any]] = Field(description="The commands this grant allows.")
     telemetry: list[str] = Field(description="Telemetry topics to subscribe to.")
     relay: bool
+    relay_url: str = Field(
+        description="The platform's relay socket for this session: always reachable, and "
+        "where a WebRTC connection to the vehicle is signalled (`webrtc_offer`)."
+    )
+    ice_servers: list[IceServerOut] = Field(
+        description="STUN/TURN servers for that WebRTC connection, as `RTCIceServer`; "
+        "TURN credentials are short-lived and for this session only."
+    )
 
 
 class SessionCreated(Schema):

@@ -7,6 +7,7 @@ import time
 import uuid
 from typing import Any
 
+import msgspec
 from channels.db import database_sync_to_async
 from channels.generic.websocket import AsyncJsonWebsocketConsumer, AsyncWebsocketConsumer
 
@@ -17,11 +18,19 @@ from agents.protocol import (
     error_message,
     parse_message,
 )
-from agents.protocol.messages import Auth, ControlToAgent, RelayClose, RelayToAgent
+from agents.protocol.messages import (
+    Auth,
+    ControlToAgent,
+    IceServer,
+    RelayClose,
+    RelayToAgent,
+    WebrtcOffer,
+)
 from fleet.uplink import avehicle_send, relay_group
 from iouv.consumers import DirectDispatch
 from iouv.layer import relay_ensure
 from services.feed import SESSIONS_GROUP, session_group
+from services.ice import ice_servers_for
 
 #: The relay's own budget per browser, on top of the agent's: it protects the platform.
 RELAY_RATE_PER_S = 200.0
@@ -143,6 +152,10 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
     message and sent to the vehicle's uplink over the channel layer; the agent's
     answers come back through this connection's group. The agent checks the grant
     again (and refuses a replay), so the relay adds transport, not trust.
+
+    It is also the WebRTC signalling path: a ``webrtc_offer`` is forwarded with the
+    platform's STUN/TURN servers for the agent (``ice_servers``, TURN credentials minted
+    for this session), and the agent's ``webrtc_answer`` comes back like any answer.
     """
 
     async def connect(self) -> None:
@@ -192,9 +205,14 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
                 await self.close(code=4401)
                 return
         assert self.vehicle_id is not None
+        message = RelayToAgent(session_id=self.session_id, conn=self.conn, payload=payload)
+        if isinstance(payload, WebrtcOffer):
+            # The agent's STUN/TURN for this connection, with TURN credentials of its own.
+            servers = msgspec.convert(ice_servers_for(self.session_id), list[IceServer])
+            message = msgspec.structs.replace(message, ice_servers=servers)
         await avehicle_send(
             vehicle_id=self.vehicle_id,
-            message=RelayToAgent(session_id=self.session_id, conn=self.conn, payload=payload),
+            message=message,
             via=self.uplink,
             reply_to=self.channel_name,
         )

@@ -36,6 +36,7 @@ from services.assignment import (
 )
 from services.eventlog import event_append, events_staged, session_log
 from services.grants import user_can_use
+from services.ice import ice_servers_for
 from services.kinds import UnknownKind, kind_of
 from services.models import Assignment, Service, Session
 from services.sessions import FINAL, session_transition, session_transition_locked
@@ -540,10 +541,17 @@ def session_fail(*, session: Session, reason: str) -> Session:
 
 
 def user_task_json(task: UserTask, *, request: HttpRequest) -> dict[str, Any]:
-    """The user task as JSON for a page or an API client. A relayed session's
-    ``control_url`` is the platform's relay socket on the host the request came to."""
+    """The user task as JSON for a page or an API client.
+
+    ``relay_url`` is the platform's relay socket on the host the request came to: the
+    path that always works, and where a WebRTC connection is signalled. A relayed
+    session's ``control_url`` is that socket too. ``ice_servers`` are the STUN/TURN
+    servers for the user's side of that WebRTC connection (TURN credentials of its
+    own, valid IOUV_TURN_TTL_S)."""
     data = dataclasses.asdict(task)
+    scheme = "wss" if request.is_secure() else "ws"
+    data["relay_url"] = f"{scheme}://{request.get_host()}/ws/relay/{task.session_id}/"
     if task.relay:
-        scheme = "wss" if request.is_secure() else "ws"
-        data["control_url"] = f"{scheme}://{request.get_host()}/ws/relay/{task.session_id}/"
+        data["control_url"] = data["relay_url"]
+    data["ice_servers"] = ice_servers_for(task.session_id)
     return data

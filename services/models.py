@@ -235,6 +235,19 @@ class Session(models.Model):
     relay = models.BooleanField(
         default=False, help_text="Control goes through the platform instead of point-to-point."
     )
+
+    class ControlPath(models.TextChoices):
+        WEBRTC_DIRECT = "webrtc_direct", "WebRTC, direct"
+        WEBRTC_TURN = "webrtc_turn", "WebRTC through TURN"
+        RELAY = "relay", "relay through the platform"
+        WEBSOCKET = "websocket", "direct WebSocket"
+
+    control_path = models.CharField(
+        max_length=16,
+        choices=ControlPath.choices,
+        blank=True,
+        help_text="How the controller's messages reach the vehicle, as its agent last said.",
+    )
     created_at = models.DateTimeField(auto_now_add=True)
     assigned_at = models.DateTimeField(null=True, blank=True)
     started_at = models.DateTimeField(null=True, blank=True)

@@ -38,6 +38,7 @@ def session_summary(session: Session) -> dict[str, Any]:
         "state": session.state,
         "reason": session.reason,
         "relay": session.relay,
+        "control_path": session.control_path,
         "failsafe_action": session.service.failsafe_action,
         "created_at": session.created_at.isoformat(),
         "started_at": session.started_at.isoformat() if session.started_at else None,

@@ -326,6 +326,25 @@ def _on_link_quality(assignment: Assignment, data: dict[str, Any]) -> None:
     _log(assignment, "link_quality", data)
 
 
+def _on_control_path(assignment: Assignment, data: dict[str, Any]) -> None:
+    """A user's messages changed path (WebRTC direct or through TURN, the relay, the
+    direct WebSocket): the controller's is kept on the session, then logged (the feeds
+    show the session as it is after the change)."""
+    path = data.get("path")
+    if path not in Session.ControlPath.values:
+        log.warning("vehicle %s: unknown control path %.40r", assignment.vehicle_id, path)
+        return
+    if data.get("role") == "controller":
+        Session.objects.filter(pk=assignment.session_id).exclude(control_path=path).update(
+            control_path=path
+        )
+    _log(
+        assignment,
+        "control_path",
+        {"path": path, "user": data.get("user"), "role": data.get("role")},
+    )
+
+
 def _logged_as(kind: str) -> Any:
     def handler(assignment: Assignment, data: dict[str, Any]) -> None:
         _log(assignment, kind, data)
@@ -335,7 +354,14 @@ def _logged_as(kind: str) -> Any:
 
 #: Events that only mean something while the session runs; late ones are dropped.
 _LIVE_ONLY = frozenset(
-    {"command_refused", "link_quality", "link_recovered", "control_handover", "control_released"}
+    {
+        "command_refused",
+        "link_quality",
+        "link_recovered",
+        "control_handover",
+        "control_released",
+        "control_path",
+    }
 )
 
 _EVENT_HANDLERS = {
@@ -348,6 +374,7 @@ _EVENT_HANDLERS = {
     "control_handover": _logged_as("control_handover"),
     "control_released": _logged_as("control_released"),
     "link_quality": _on_link_quality,
+    "control_path": _on_control_path,
 }
 
 

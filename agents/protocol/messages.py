@@ -160,6 +160,26 @@ def _check_commands(commands: list[CommandSpec]) -> None:
 # --------------------------------------------------------------------------------------
 
 
+IceUrl = Annotated[str, Meta(pattern=r"^(?:stuns?|turns?):", max_length=300)]
+
+
+class IceServer(msgspec.Struct, frozen=True):
+    """A STUN/TURN server as WebRTC's ``RTCIceServer`` takes it; TURN carries the
+    short-lived credentials the platform minted for the session."""
+
+    urls: Annotated[list[IceUrl], Meta(min_length=1, max_length=8)]
+    username: Annotated[str, Meta(max_length=300)] | UnsetType = UNSET
+    credential: Annotated[str, Meta(max_length=300)] | UnsetType = UNSET
+
+    def as_config(self) -> dict[str, Any]:
+        """The server as the agent's configuration spells one (``agents.rtc``)."""
+        return {
+            "urls": list(self.urls),
+            "username": self.username or None,
+            "credential": self.credential or None,
+        }
+
+
 class Message(msgspec.Struct, frozen=True, tag_field="type"):
     """Base of every message struct (not itself a message)."""
 
@@ -294,6 +314,9 @@ class Command(Message, frozen=True, tag="command"):
     seq: Uint
     name: Id
     args: Object = field(default_factory=dict)
+    #: When the user sent it, in milliseconds since the epoch on the user's clock; the
+    #: agent (clocks aligned by the ping exchange) drops commands that arrive too late.
+    t: Number | UnsetType = UNSET
 
 
 class Subscribe(Message, frozen=True, tag="subscribe"):
@@ -310,9 +333,11 @@ class Ping(Message, frozen=True, tag="ping"):
 
 
 class Pong(Message, frozen=True, tag="pong"):
-    """Answer to the agent's ping: lets the agent measure latency for its limits."""
+    """Answer to the agent's ping: lets the agent measure latency for its limits and,
+    with ``client_t`` (the user's clock, ms since the epoch), align the clocks."""
 
     t: Number
+    client_t: Number | UnsetType = UNSET
 
 
 class Keepalive(Message, frozen=True, tag="keepalive"):
@@ -420,6 +445,9 @@ class RelayToAgent(Message, frozen=True, tag="relay"):
     session_id: Id
     payload: ControlToAgent
     conn: Id | UnsetType = UNSET
+    #: With a relayed ``webrtc_offer``: the STUN/TURN servers (fresh TURN credentials
+    #: for this session) the platform gives the agent for that connection.
+    ice_servers: Annotated[list[IceServer], Meta(max_length=8)] | UnsetType = UNSET
 
 
 UplinkToPlatform: TypeAlias = (

@@ -8,7 +8,13 @@
  *   - the repeat interval follows the measured round trip, with at most one command
  *     of a kind in flight, so commands never queue up on a slow link;
  *   - keepalives while in control, so the agent's link-loss watchdog stays quiet;
- *   - telemetry by subscription, video over WebRTC, refusals and fail-safes shown.
+ *   - telemetry by subscription, video over WebRTC, refusals and fail-safes shown;
+ *   - the path that works best: the page signals a WebRTC connection through the
+ *     platform's relay socket (the vehicle only dials out) and, once its data channels
+ *     open, control and video ride it, directly or through TURN; until then, or if it
+ *     fails, the relay carries control; on a LAN the vehicle's own socket is the last
+ *     resort. The page shows the path and its round trip;
+ *   - driving pauses while the video is frozen (stop, land and return home still work).
  * No build step: plain ES2017 in one file.
  */
 (function () {
@@ -17,6 +23,20 @@
   const MIN_INTERVAL_MS = 100;
   const MAX_INTERVAL_MS = 1000;
   const TELEMETRY_HZ = 4;
+  // WebRTC: how long ICE may take before control stays on the relay, and when to try
+  // again after a failure (a network that changed may let it through).
+  const RTC_CONNECT_MS = 10000;
+  const RTC_RETRY_MS = 30000;
+  // Driving pauses when the picture has not moved for this long.
+  const STALE_VIDEO_MS = 1500;
+  // Commands that make the vehicle safe: never behind other traffic, never paused.
+  const SAFE_COMMANDS = new Set(["stop", "land", "return_to_home"]);
+  const PATH_WORDS = {
+    webrtc_direct: "WebRTC, direct",
+    webrtc_turn: "WebRTC through TURN",
+    relay: "relay through the platform",
+    websocket: "the vehicle's own socket",
+  };
   const KEY_ALIASES = { " ": "Space", Spacebar: "Space" };
   // How a key is written on its button (the arrows as arrows).
   const KEY_SHOWN = { ArrowUp: "↑", ArrowDown: "↓", ArrowLeft: "←", ArrowRight: "→", " ": "Space" };
@@ -67,6 +87,17 @@
     [0, ["land", "stop"]], [1, ["return_to_home"]], [2, ["stop"]], [3, ["take_off"]],
     [8, ["disarm"]], [9, ["arm"]],
   ];
+
+  // Wait for ICE candidates, but not forever (closed networks never "complete").
+  function iceGathered(pc, ms) {
+    return new Promise((resolve) => {
+      if (pc.iceGatheringState === "complete") return resolve();
+      pc.addEventListener("icegatheringstatechange", () => {
+        if (pc.iceGatheringState === "complete") resolve();
+      });
+      setTimeout(resolve, ms);
+    });
+  }
 
   // A fresh grant for this page's session (a grant is single-use): whether the platform
   // gave one, and its answer (the user task, or {error: {code, message}}).
@@ -121,6 +152,11 @@
       this.lastRefusal = null;
       this.telemetryInfo = {}; // topic -> {label, unit, decimals, yes, no}
       this.pc = null;
+      this.channels = null; // the WebRTC data channels once open: {control, input, urgent}
+      this.direct = false; // the relay socket failed: the vehicle's own socket instead
+      this.path = null;
+      this.lastFrameAt = 0; // when the picture last moved (0: no picture yet)
+      this.videoFrozen = false;
       this.timers = [];
       this.commandList = [];
       this.stickAxes = [0, 0, 0, 0]; // the on-screen sticks, as gamepad axes
@@ -134,6 +170,7 @@
         state: root.querySelector("[data-conn-state]"),
         role: root.querySelector("[data-role]"),
         rtt: root.querySelector("[data-rtt]"),
+        path: root.querySelector("[data-path]"),
         interval: root.querySelector("[data-interval]"),
         telemetry: root.querySelector("[data-telemetry]"),
         controls: root.querySelector("[data-controls]"),
@@ -163,12 +200,27 @@
       return Math.max(50, Math.min(100, timeout / 4));
     }
 
+    // WebRTC is tried for a point-to-point session: signalled on the platform's relay
+    // socket, which carries control meanwhile and if WebRTC fails.
+    wantsRtc() {
+      return !this.task.relay && !!this.task.relay_url && !!window.RTCPeerConnection && !this.direct;
+    }
+
+    // The vehicle's own socket, when the page may open it (not ws:// from https://).
+    directUsable() {
+      const url = this.task.control_url;
+      return !!url && url !== this.task.relay_url && (location.protocol === "http:" || url.startsWith("wss:"));
+    }
+
     connect() {
       this.setState("connecting");
-      const ws = new WebSocket(this.task.control_url);
+      const url = this.direct || this.task.relay || !this.task.relay_url ? this.task.control_url : this.task.relay_url;
+      const ws = new WebSocket(url);
       this.ws = ws;
+      let opened = false;
       ws.onopen = () => {
-        this.send({ type: "auth", grant: this.task.grant });
+        opened = true;
+        this.sendSignal({ type: "auth", grant: this.task.grant });
       };
       ws.onmessage = (event) => {
         let msg;
@@ -178,9 +230,21 @@
       ws.onclose = (event) => {
         if (this.ws !== ws) return;
         this.ws = null;
+        if (this.channels && !this.over) {
+          // The platform's socket is gone but the WebRTC connection carries on.
+          this.toast("The platform's relay dropped; the direct connection carries on.", "warn");
+          return;
+        }
+        if (!opened && !this.direct && !this.over && this.directUsable()) {
+          // The relay never opened and the grant was not used: try the vehicle's socket.
+          this.direct = true;
+          this.connect();
+          return;
+        }
         this.role = "pending";
         this.releaseAll(false);
         this.closeVideo();
+        this.setPath(null);
         if (this.over) { this.setState("ended"); return; }
         this.setState("disconnected");
         const why = event.reason ? ` (${event.reason})` : "";
@@ -212,7 +276,27 @@
       }
     }
 
+    // A message to the vehicle on the best path: the WebRTC data channels while open
+    // (held motions on the lossy "input" channel, safe commands on "urgent"), else the
+    // socket. Returns false when no path is open.
     send(message) {
+      const ch = this.channels;
+      if (ch) {
+        let channel = ch.control;
+        if (message.type === "command") {
+          if (SAFE_COMMANDS.has(message.name)) channel = ch.urgent;
+          else if (this.held.has(message.name)) channel = ch.input;
+        }
+        if (channel.readyState === "open") {
+          channel.send(JSON.stringify(message));
+          return true;
+        }
+      }
+      return this.sendSignal(message);
+    }
+
+    // A message on the socket only (auth and the WebRTC signalling).
+    sendSignal(message) {
       if (!this.ws || this.ws.readyState !== WebSocket.OPEN) return false;
       this.ws.send(JSON.stringify(message));
       return true;
@@ -225,12 +309,14 @@
         case "ack": return this.onAck(msg);
         case "telemetry": return this.onTelemetry(msg);
         case "pong": return this.onRtt(performance.now() - msg.t);
-        case "ping": return this.send({ type: "pong", t: msg.t });
+        case "ping": return this.send({ type: "pong", t: msg.t, client_t: Date.now() });
         case "role": return this.setRole(msg.role);
         case "event": return this.onEvent(msg);
         case "webrtc_offer": return this.onOffer(msg);
-        case "webrtc_answer": return this.pc && this.pc.setRemoteDescription({ type: "answer", sdp: msg.sdp });
-        case "error": return this.toast(`${msg.code}: ${msg.message}`, "bad");
+        case "webrtc_answer": return this.onAnswer(msg);
+        case "error":
+          if (msg.code === "webrtc" || msg.code === "no_webrtc") return this.rtcFailed(msg.message);
+          return this.toast(`${msg.code}: ${msg.message}`, "bad");
         default: return undefined;
       }
     }
@@ -246,8 +332,9 @@
       if (msg.telemetry.length) {
         this.send({ type: "subscribe", topics: msg.telemetry, rate_hz: TELEMETRY_HZ });
       }
-      if (msg.vehicle.video) this.startVideo();
-      else if (this.ui.videoNote) this.ui.videoNote.textContent = "This vehicle has no camera.";
+      if (this.wantsRtc()) this.startRtc();
+      else if (msg.vehicle.video) this.startVideo();
+      if (!msg.vehicle.video && this.ui.videoNote) this.ui.videoNote.textContent = "This vehicle has no camera.";
     }
 
     onAck(msg) {
@@ -306,6 +393,8 @@
         this.showBanner(`Fail-safe: ${msg.data.cause.replace(/_/g, " ")} — the vehicle will ${msg.data.action.replace(/_/g, " ")}.`, "bad");
       } else if (msg.event === "session_ended") {
         this.endSession(msg.data.reason);
+      } else if (msg.event === "path") {
+        this.setPath(msg.data.path);
       } else if (msg.event === "link_recovered") {
         this.showBanner("Link back: you are in control again.", "info");
       } else if (msg.event === "envelope_breach") {
@@ -533,6 +622,10 @@
     press(name) {
       const spec = this.commands.get(name);
       if (!spec || this.role !== "controller") return;
+      if (this.videoFrozen && spec.motion) {
+        this.toast("Driving is paused while the video is frozen.", "warn");
+        return;
+      }
       this.highlight(name, true);
       if (spec.motion) this.held.set(name, { lastSent: 0, inFlight: false });
       else this.command(name);
@@ -560,8 +653,12 @@
 
     command(name, args) {
       const seq = this.seq++;
-      if (!this.send({ type: "command", seq, name, args: args || {} })) return;
-      this.pending.set(seq, { name, sentAt: performance.now() });
+      // t: when it was sent, on this page's clock; the vehicle drops commands that arrive
+      // too late to still mean what the user wanted.
+      if (!this.send({ type: "command", seq, name, args: args || {}, t: Date.now() })) return;
+      // A held motion on the lossy channel may vanish: its ack is waited for briefly.
+      const lossy = !!this.channels && this.held.has(name) && !SAFE_COMMANDS.has(name);
+      this.pending.set(seq, { name, sentAt: performance.now(), lossy });
       this.lastSent = performance.now();
       const hold = this.held.get(name);
       if (hold) { hold.inFlight = true; hold.lastSent = this.lastSent; }
@@ -571,15 +668,20 @@
       this.pollSticks();
       if (this.role !== "controller") return;
       const now = performance.now();
+      if (this.lastFrameAt) {
+        const frozen = now - this.lastFrameAt > STALE_VIDEO_MS;
+        if (frozen !== this.videoFrozen) this.setVideoFrozen(frozen);
+      }
       const every = this.interval();
       for (const [name, hold] of this.held) {
         // Repeat a held command once its last one was acknowledged and the interval
         // passed: on a slow link the rate drops instead of commands piling up.
         if (!hold.inFlight && now - hold.lastSent >= every) this.command(name, this.heldArgs(name, hold.amount));
       }
-      // Forget acks that never came (a dropped relay frame) so holds can continue.
+      // Forget acks that never came (a dropped relay frame, a lost datagram) so holds
+      // can continue.
       for (const [seq, sent] of this.pending) {
-        if (now - sent.sentAt > 3000) {
+        if (now - sent.sentAt > (sent.lossy ? Math.max(300, 2 * every) : 3000)) {
           this.pending.delete(seq);
           const hold = this.held.get(sent.name);
           if (hold) hold.inFlight = false;
@@ -658,19 +760,124 @@
     startVideo() {
       if (!window.RTCPeerConnection || !this.ui.video) return;
       this.closeVideo();
-      const pc = new RTCPeerConnection({ iceServers: this.options.iceServers || [] });
+      const pc = new RTCPeerConnection({ iceServers: this.task.ice_servers || [] });
       this.pc = pc;
-      pc.ontrack = (event) => {
-        this.ui.video.srcObject = event.streams[0] || new MediaStream([event.track]);
-        if (this.ui.videoNote) this.ui.videoNote.textContent = "";
-        const count = () => {
-          this.stats.framesDecoded += 1;
-          this.ui.video.requestVideoFrameCallback(count);
-        };
-        if (this.ui.video.requestVideoFrameCallback) this.ui.video.requestVideoFrameCallback(count);
-      };
+      pc.ontrack = (event) => this.showTrack(pc, event);
       if (this.ui.videoNote) this.ui.videoNote.textContent = "Starting video…";
-      this.send({ type: "webrtc_request" });
+      this.sendSignal({ type: "webrtc_request" });
+    }
+
+    showTrack(pc, event) {
+      this.ui.video.srcObject = event.streams[0] || new MediaStream([event.track]);
+      if (this.ui.videoNote) this.ui.videoNote.textContent = "";
+      const count = () => {
+        if (this.pc !== pc) return;
+        this.stats.framesDecoded += 1;
+        this.lastFrameAt = performance.now();
+        this.ui.video.requestVideoFrameCallback(count);
+      };
+      if (this.ui.video.requestVideoFrameCallback) this.ui.video.requestVideoFrameCallback(count);
+    }
+
+    // The picture stopped moving (or moves again): motions are let go and refused while
+    // it is frozen, since the user would steer blind.
+    setVideoFrozen(frozen) {
+      this.videoFrozen = frozen;
+      this.root.classList.toggle("video-frozen", frozen);
+      if (frozen) {
+        this.releaseAll(true);
+        this.showBanner("The video is frozen: driving is paused until the picture moves again. Stop, land and return home still work.", "warn");
+      } else {
+        this.showBanner("The video moves again: you can drive.", "info");
+        setTimeout(() => { if (!this.videoFrozen) this.hideBanner(); }, 2000);
+      }
+    }
+
+    // --- WebRTC: control and video on one connection ---------------------------------
+    async startRtc() {
+      this.closeVideo();
+      const pc = new RTCPeerConnection({ iceServers: this.task.ice_servers || [] });
+      this.pc = pc;
+      const control = pc.createDataChannel("control");
+      const channels = {
+        control,
+        input: pc.createDataChannel("input", { ordered: false, maxRetransmits: 0 }),
+        urgent: pc.createDataChannel("urgent", { ordered: false }),
+      };
+      control.onopen = () => {
+        if (this.pc === pc) this.channels = channels;
+      };
+      control.onmessage = (event) => {
+        let msg;
+        try { msg = JSON.parse(event.data); } catch (e) { return; }
+        this.handle(msg);
+      };
+      control.onclose = () => {
+        if (this.channels !== channels) return;
+        this.channels = null;
+        if (this.pc === pc) this.rtcFailed("the connection closed");
+      };
+      if (this.vehicle && this.vehicle.video && this.ui.video) {
+        pc.addTransceiver("video", { direction: "recvonly" });
+        pc.ontrack = (event) => this.showTrack(pc, event);
+        if (this.ui.videoNote) this.ui.videoNote.textContent = "Starting video…";
+      }
+      pc.onconnectionstatechange = () => {
+        if (this.pc === pc && pc.connectionState === "failed") this.rtcFailed("could not reach the vehicle");
+      };
+      try {
+        await pc.setLocalDescription(await pc.createOffer());
+        await iceGathered(pc, 3000);
+      } catch (e) {
+        this.rtcFailed(String(e));
+        return;
+      }
+      if (this.pc !== pc) return;
+      this.sendSignal({ type: "webrtc_offer", sdp: pc.localDescription.sdp });
+      setTimeout(() => {
+        if (this.pc === pc && !this.channels) this.rtcFailed("no connection within 10 s");
+      }, RTC_CONNECT_MS);
+    }
+
+    async onAnswer(msg) {
+      if (!this.pc) return;
+      try {
+        await this.pc.setRemoteDescription({ type: "answer", sdp: msg.sdp });
+      } catch (e) {
+        this.rtcFailed(String(e));
+      }
+    }
+
+    // WebRTC did not work (or stopped): control stays on the socket, and the page
+    // tries again later.
+    rtcFailed(why) {
+      if (!this.pc && !this.channels) return;
+      this.closeVideo();
+      if (this.over) return;
+      if (!this.ws) {
+        // The socket went earlier and the WebRTC connection was the last path.
+        this.role = "pending";
+        this.releaseAll(false);
+        this.setPath(null);
+        this.setState("disconnected");
+        this.showBanner("Connection to the vehicle lost. Reconnecting…", "warn");
+        this.reconnect();
+        return;
+      }
+      this.toast(`No direct connection (${why}): control goes ${this.direct ? "to the vehicle's socket" : "through the platform"}.`, "warn");
+      if (this.ui.videoNote && this.vehicle && this.vehicle.video) this.ui.videoNote.textContent = "No video: the vehicle could not be reached directly.";
+      clearTimeout(this.rtcRetry);
+      this.rtcRetry = setTimeout(() => {
+        if (!this.over && this.ws && !this.pc && this.wantsRtc()) this.startRtc();
+      }, RTC_RETRY_MS);
+    }
+
+    setPath(path) {
+      this.path = path;
+      if (this.ui.path) {
+        this.ui.path.textContent = path ? PATH_WORDS[path] || path : "–";
+        this.ui.path.dataset.path = path || "";
+      }
     }
 
     async onOffer(msg) {
@@ -678,18 +885,16 @@
       if (!pc) return;
       await pc.setRemoteDescription({ type: "offer", sdp: msg.sdp });
       await pc.setLocalDescription(await pc.createAnswer());
-      // Wait for ICE candidates, but not forever (closed networks never "complete").
-      await new Promise((resolve) => {
-        if (pc.iceGatheringState === "complete") return resolve();
-        const done = () => { if (pc.iceGatheringState === "complete") resolve(); };
-        pc.addEventListener("icegatheringstatechange", done);
-        setTimeout(resolve, 1500);
-      });
-      this.send({ type: "webrtc_answer", sdp: pc.localDescription.sdp });
+      await iceGathered(pc, 1500);
+      this.sendSignal({ type: "webrtc_answer", sdp: pc.localDescription.sdp });
     }
 
     closeVideo() {
       if (this.pc) { this.pc.close(); this.pc = null; }
+      this.channels = null;
+      this.lastFrameAt = 0;
+      this.videoFrozen = false;
+      this.root.classList.remove("video-frozen");
     }
 
     // --- the session as the platform sees it ---------------------------------------------

@@ -108,6 +108,14 @@
   }
   const fleetOnMap = fleetMap();
 
+  // How each session's controller reaches its vehicle, as its agent last said.
+  const PATH_WORDS = {
+    webrtc_direct: "WebRTC, direct",
+    webrtc_turn: "WebRTC via TURN",
+    relay: "relay",
+    websocket: "vehicle's socket",
+  };
+
   function renderSessions() {
     renderEnded();
     const body = root.querySelector("[data-sessions] tbody");
@@ -121,6 +129,7 @@
         cell(s.service_name), cell(s.user),
         cell(s.vehicles.map((v) => v.name).join(", ") || "–"),
         cell(s.state, `state-${s.state}`),
+        cell(PATH_WORDS[s.control_path] || "–", s.control_path ? `path-${s.control_path}` : ""),
         cell(s.lastEvent || ""),
       );
       const actions = document.createElement("td");

@@ -40,15 +40,18 @@ PHONE: dict[str, Any] = {
 }
 LAPTOP: dict[str, Any] = {"viewport": {"width": 1366, "height": 768}}
 
-#: Records every command the page sends to the vehicle (window.sentCommands).
+#: Records every command the page sends to the vehicle (window.sentCommands), on its
+#: socket or its WebRTC data channels.
 RECORD_COMMANDS = """
 window.sentCommands = [];
-const send = WebSocket.prototype.send;
-WebSocket.prototype.send = function (data) {
-  const msg = JSON.parse(data);
-  if (msg.type === "command") window.sentCommands.push(msg);
-  return send.call(this, data);
-};
+for (const proto of [WebSocket.prototype, RTCDataChannel.prototype]) {
+  const send = proto.send;
+  proto.send = function (data) {
+    const msg = JSON.parse(data);
+    if (msg.type === "command") window.sentCommands.push(msg);
+    return send.call(this, data);
+  };
+}
 """
 
 

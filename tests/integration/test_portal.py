@@ -316,12 +316,14 @@ window.testPad = {
 };
 navigator.getGamepads = () => [window.testPad];
 window.sentCommands = [];
-const send = WebSocket.prototype.send;
-WebSocket.prototype.send = function (data) {
-  const msg = JSON.parse(data);
-  if (msg.type === "command") window.sentCommands.push(msg);
-  return send.call(this, data);
-};
+for (const proto of [WebSocket.prototype, RTCDataChannel.prototype]) {
+  const send = proto.send;
+  proto.send = function (data) {
+    const msg = JSON.parse(data);
+    if (msg.type === "command") window.sentCommands.push(msg);
+    return send.call(this, data);
+  };
+}
 """
 
 

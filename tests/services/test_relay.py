@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import time
 from collections.abc import AsyncIterator
 from typing import Any
 
@@ -183,6 +184,38 @@ async def test_a_relay_that_never_heard_the_agent_still_reaches_it() -> None:
         await browser.send_json_to({"type": "command", "seq": 1, "name": "front", "args": {}})
         relayed = await _relayed(agent)
         assert relayed["payload"]["seq"] == 1  # the refused frame never reached it
+    finally:
+        await browser.disconnect()
+        await agent.disconnect()
+
+
+async def test_a_relayed_webrtc_offer_brings_the_agent_turn_credentials_of_its_own(
+    settings: Any,
+) -> None:
+    """The relay is where a WebRTC connection is signalled: an offer reaches the agent
+    with the platform's STUN/TURN servers, TURN credentials minted for this session
+    (coturn checks them: tests/integration/test_netlab.py); other frames carry none."""
+    settings.IOUV_STUN_URLS = ["stun:turn.example.org:3478"]
+    settings.IOUV_TURN_URLS = ["turn:turn.example.org:3478?transport=udp"]
+    settings.IOUV_TURN_SECRET = "coturn-shared-secret"
+    settings.IOUV_TURN_TTL_S = 600
+    vehicle_id, credential, session_id, grant = await _relayed_session()
+    agent = await _uplink(vehicle_id, credential)
+    browser = await _browser(session_id)
+    try:
+        await browser.send_json_to({"type": "auth", "grant": grant})
+        assert "ice_servers" not in await _relayed(agent)
+        offer = {"type": "webrtc_offer", "sdp": "v=0\r\n"}
+        await browser.send_json_to(offer)
+        relayed = await _relayed(agent)
+        assert relayed["payload"] == offer
+        stun, turn = relayed["ice_servers"]
+        assert stun == {"urls": ["stun:turn.example.org:3478"]}
+        assert turn["urls"] == ["turn:turn.example.org:3478?transport=udp"]
+        expiry, name = turn["username"].split(":")
+        assert name == session_id
+        assert 590 <= int(expiry) - time.time() <= 601
+        assert turn["credential"] and turn["credential"] != settings.IOUV_TURN_SECRET
     finally:
         await browser.disconnect()
         await agent.disconnect()

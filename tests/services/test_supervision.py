@@ -393,6 +393,26 @@ def test_input_again_on_the_open_socket_keeps_the_session(live):
     assert state(session) == Session.State.ACTIVE
 
 
+def test_the_session_keeps_the_path_its_controller_drives_on(live):
+    """The agent says how each user's messages travel (WebRTC direct or through TURN,
+    the relay, the direct socket); the session keeps the controller's, the log all."""
+    session, vehicle, _ = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    say(vehicle, event(session, "control_path", user="alice", role="controller", path="relay"))
+    say(
+        vehicle, event(session, "control_path", user="alice", role="controller", path="webrtc_turn")
+    )
+    say(vehicle, event(session, "control_path", user="bob", role="viewer", path="webrtc_direct"))
+    say(
+        vehicle,
+        event(session, "control_path", user="alice", role="controller", path="carrier-pigeon"),
+    )
+    session.refresh_from_db()
+    assert session.control_path == "webrtc_turn"
+    paths = [e.data["path"] for e in session.events.filter(kind="control_path").order_by("seq")]
+    assert paths == ["relay", "webrtc_turn", "webrtc_direct"]  # the unknown one is dropped
+
+
 def test_the_controller_leaving_ends_the_session_after_the_grace(live, committing):
     session, vehicle, _ = live
     say(vehicle, event(session, "user_connected", user="alice", role="controller"))

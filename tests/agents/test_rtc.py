@@ -1,0 +1,174 @@
+"""The agent's WebRTC paths (agents.rtc with the control hub), over real sockets and a
+real aiortc peer on loopback: signalled on the agent's own control socket (the LAN
+path; the platform's relay carries the same messages), control then on data channels,
+with the fall-backs between them."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator
+from typing import Any
+
+import pytest
+
+from agents import control
+from benchmarks.rtc_client import RtcClientError, RtcControlClient
+from tests.agents.test_control import Rig, make_grant, rig, until
+
+LOOPBACK = ["127.0.0.1"]
+
+__all__ = ["rig"]  # the fixture, shared with test_control
+
+
+@pytest.fixture
+async def user(rig: Rig) -> AsyncIterator[RtcControlClient]:
+    """The controller, authenticated on the agent's socket, not yet on WebRTC."""
+    rig.hub.webrtc_options = {"ice_host_addresses": LOOPBACK}
+    client = RtcControlClient(rig.url, make_grant(), ice_host_addresses=LOOPBACK, timeout_s=10)
+    await client.start(rtc=False)
+    try:
+        yield client
+    finally:
+        await client.close()
+
+
+async def test_control_moves_onto_data_channels_and_the_platform_hears_the_path(
+    rig: Rig, user: RtcControlClient
+):
+    assert user.welcome["role"] == "controller"
+    assert await user.path_is("websocket") == "websocket"
+    await user.negotiate()
+    assert await user.path_is("webrtc_direct") == "webrtc_direct"
+    start = rig.world.pose
+    assert (await user.command(1, "forward", channel="input", speed=1.0))["ok"] is True
+    for _ in range(4):
+        user.send({"type": "keepalive"})
+        await asyncio.sleep(0.1)
+    assert rig.world.pose != start
+    assert (await user.command(2, "stop", channel="urgent"))["ok"] is True
+    paths = [d["path"] for d in rig.events("control_path")]
+    assert paths == ["websocket", "webrtc_direct"]
+    assert rig.events("control_path")[-1]["role"] == "controller"
+
+
+async def test_losing_either_path_leaves_the_user_on_the_other(
+    rig: Rig, user: RtcControlClient, monkeypatch: pytest.MonkeyPatch
+):
+    monkeypatch.setattr(control, "OFFER_MIN_INTERVAL_S", 0.0)  # offers again at once
+    await user.negotiate()
+    await user.path_is("webrtc_direct")
+    # The WebRTC connection ends: back on the socket, same user, no new auth.
+    assert user.pc is not None
+    await user.pc.close()
+    user.channels = {}
+    assert await user.path_is("websocket") == "websocket"
+    assert (await user.command(3, "camera_up", channel=None, step_deg=5))["ok"] is True
+    assert rig.hub.controller is not None and rig.hub.stats["failsafes"] == 0
+
+    # Up again, then the socket goes: the data channel carries on.
+    await user.negotiate()
+    await user.path_is("webrtc_direct")
+    await user.close_socket()
+    await until(
+        lambda: all(c.link.signal is None for c in rig.hub.clients.values()),
+        what="the agent to see the socket closed",
+    )
+    assert (await user.command(4, "camera_down", step_deg=5))["ok"] is True
+    assert rig.hub.controller is not None
+
+
+async def test_signalling_on_a_data_channel_is_refused(user: RtcControlClient):
+    await user.negotiate()
+    await user.path_is("webrtc_direct")
+    user.send({"type": "webrtc_offer", "sdp": "v=0\r\nm=application 9 x\r\n"})
+    error = await user.recv("error")
+    assert error["code"] == "unexpected" and "webrtc_offer" in error["message"]
+    # The connection it would have replaced is still the path.
+    assert (await user.command(5, "camera_up", step_deg=5))["ok"] is True
+
+
+async def test_bad_offers_are_refused_and_the_user_stays(
+    rig: Rig, user: RtcControlClient, monkeypatch: pytest.MonkeyPatch
+):
+    monkeypatch.setattr(control, "OFFER_MIN_INTERVAL_S", 0.0)
+    for sdp in ("", "hello", "v=0\r\nm=application 9 UDP/DTLS/SCTP webrtc-datachannel\r\n"):
+        user.send({"type": "webrtc_offer", "sdp": sdp}, channel=None)
+        error = await user.recv("error")
+        assert error["code"] == "webrtc", error
+    # A car without a camera: video is refused in words, data channels alone are fine.
+    video = RtcControlClient(rig.url, make_grant(user="bob", role="viewer"), video=True)
+    try:
+        await video.start(rtc=False)
+        with pytest.raises(RtcClientError, match="no camera"):
+            await video.negotiate()
+    finally:
+        await video.close()
+    assert (await user.command(6, "camera_up", channel=None, step_deg=5))["ok"] is True
+    assert rig.hub.rtc is not None and rig.hub.rtc.peer_count == 0
+
+
+async def test_a_channel_of_another_name_is_closed(user: RtcControlClient):
+    await user.negotiate()
+    assert user.pc is not None
+    extra = user.pc.createDataChannel("backdoor")
+    closed = asyncio.Event()
+    extra.on("close", closed.set)
+    await asyncio.wait_for(closed.wait(), 10)
+    assert (await user.command(7, "camera_up", step_deg=5))["ok"] is True
+
+
+async def test_a_stop_overtakes_the_commands_waiting_their_turn(
+    rig: Rig, user: RtcControlClient, monkeypatch: pytest.MonkeyPatch
+):
+    await user.negotiate()
+    await user.path_is("webrtc_direct")
+    gate = asyncio.Event()
+    execute = rig.car.execute
+
+    async def slow(name: str, args: dict[str, Any]) -> Any:
+        if name == "forward":
+            await gate.wait()  # the vehicle is busy with the first forward
+        return await execute(name, args)
+
+    monkeypatch.setattr(rig.car, "execute", slow)
+    for seq in range(10, 15):
+        user.send({"type": "command", "seq": seq, "name": "forward", "args": {}})
+    await until(
+        lambda: any(c.commands.qsize() == 4 for c in rig.hub.clients.values()),
+        what="four forwards to wait behind the first",
+    )
+    user.send({"type": "command", "seq": 20, "name": "stop", "args": {}}, channel="urgent")
+    superseded = [
+        await user.recv("ack", where=lambda m, s=seq: m["seq"] == s) for seq in range(11, 15)
+    ]
+    assert all(a["code"] == "superseded" and "stop" in a["error"] for a in superseded)
+    gate.set()
+    assert (await user.recv("ack", where=lambda m: m["seq"] == 10))["ok"] is True
+    assert (await user.recv("ack", where=lambda m: m["seq"] == 20))["ok"] is True
+
+
+async def test_oversized_and_garbage_messages_on_a_channel_change_nothing(
+    rig: Rig, user: RtcControlClient
+):
+    await user.negotiate()
+    await user.path_is("webrtc_direct")
+    control = user.channels["control"]
+    control.send("{not json")
+    assert (await user.recv("error"))["code"] == "bad_json"
+    control.send(json.dumps({"type": "command", "seq": 1, "name": "x" * 70_000}))
+    assert (await user.command(8, "camera_up", step_deg=5))["ok"] is True
+    assert rig.hub.controller is not None
+
+
+async def test_offers_are_limited_to_one_a_second(rig: Rig, user: RtcControlClient):
+    """Each offer builds a connection and gathers candidates: a burst of them is
+    refused, the first is served."""
+    await user.negotiate()
+    await user.path_is("webrtc_direct")
+    for _ in range(5):
+        user.send({"type": "webrtc_offer", "sdp": "v=0\r\n"}, channel=None)
+    for _ in range(5):
+        assert (await user.recv("error"))["code"] == "rate_limited"
+    assert rig.hub.rtc is not None and rig.hub.rtc.peer_count == 1
+    assert (await user.command(9, "camera_up", step_deg=5))["ok"] is True

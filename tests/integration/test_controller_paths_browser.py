@@ -1,0 +1,98 @@
+"""The session page's paths to the vehicle, in Chromium: WebRTC signalled through the
+platform, the relay when WebRTC cannot be had, and driving paused while the video is
+frozen.
+
+Same world as ``test_portal``: the seeded demo under daphne, the simulated car and
+drone's agents (in this process, so a test can switch a vehicle's WebRTC off or freeze
+its camera), Debian's Chromium.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+import pytest
+
+from services.models import Session
+from tests.browser import needs_chromium
+from tests.integration import test_portal
+from tests.integration.test_cockpit_browser import RECORD_COMMANDS
+from tests.integration.test_portal import World, drive_forward, request_car, wait_for
+from tests.servers import db, until
+
+pytestmark = [
+    pytest.mark.postgres,
+    pytest.mark.redis,
+    pytest.mark.django_db(transaction=True),
+    needs_chromium,
+]
+
+world = test_portal.world  # the fixture: the seeded demo, its agents, Chromium
+
+
+def _sent(name: str) -> str:
+    return f"window.sentCommands.filter(m => m.name === {name!r}).length"
+
+
+async def test_the_page_drives_over_webrtc_and_says_which_path(world: World) -> None:
+    page = await world.login("client", init_script=RECORD_COMMANDS)
+    session_id = await request_car(world, page)
+    await wait_for(page, "c.path === 'webrtc_direct' && c.channels !== null")
+    assert await page.locator("[data-path]").inner_text() == "WebRTC, direct"
+    assert await drive_forward(world, page, 1.0) > 0.05
+    # The commands went on the data channels, not on the platform's socket.
+    on_channels = await page.evaluate(
+        "() => window.iouvController.channels.input.readyState === 'open'"
+    )
+    assert on_channels
+
+    async def recorded() -> bool:
+        session = await db(Session.objects.get, pk=session_id)
+        return session.control_path == "webrtc_direct"
+
+    await until(recorded, what="the session to record the WebRTC path")
+
+
+async def test_without_webrtc_the_page_stays_on_the_relay_and_says_so(world: World) -> None:
+    hub: Any = world.agents["car-1"].hub
+    hub.webrtc_options = {"enabled": False}  # as an agent configured without it
+    page = await world.login("client")
+    await request_car(world, page)
+    await wait_for(page, "c.path === 'relay' && c.pc === null")
+    assert await page.locator("[data-path]").inner_text() == "relay through the platform"
+    toast = page.locator("[data-toast]")
+    assert "No direct connection" in await toast.inner_text()
+    assert await drive_forward(world, page, 1.0) > 0.05
+
+
+async def test_a_frozen_picture_pauses_driving_until_it_moves_again(world: World) -> None:
+    page = await world.login("client", init_script=RECORD_COMMANDS)
+    await request_car(world, page)
+    await wait_for(page, "c.channels !== null && c.stats.framesDecoded > 5", 30000)
+    source: Any = world.agents["car-1"].video.encoder.source
+    frame, thawed = source.frame, asyncio.Event()
+
+    async def frozen() -> Any:
+        await thawed.wait()  # the camera hangs: no new frame reaches the page
+        return await frame()
+
+    source.frame = frozen
+    try:
+        await wait_for(page, "c.videoFrozen === true", 15000)
+        banner = page.locator("[data-banner]")
+        assert "video is frozen" in await banner.inner_text()
+        before = await page.evaluate(f"() => {_sent('forward')}")
+        await page.keyboard.down("ArrowUp")
+        await page.wait_for_function("() => !document.querySelector('[data-toast]').hidden")
+        await page.keyboard.up("ArrowUp")
+        assert await page.evaluate(f"() => {_sent('forward')}") == before
+        # The safe commands still go.
+        stops = await page.evaluate(f"() => {_sent('stop')}")
+        await page.click("[data-command=stop]")
+        await page.wait_for_function(f"() => {_sent('stop')} > {stops}")
+    finally:
+        source.frame = frame
+        thawed.set()
+    await wait_for(page, "c.videoFrozen === false", 15000)
+    assert await drive_forward(world, page, 1.0) > 0.05
