@@ -19,6 +19,13 @@ the client's ``Host`` (so the URLs daphne builds, such as a task's relay URL, po
 at the proxy), ``X-Forwarded-For`` and ``X-Forwarded-Proto``. docs/operations.md has
 the production configuration, with TLS.
 
+With :class:`Tls` (``--tls-certificate`` and ``--tls-key``) nginx terminates TLS, as in
+production: the proxy serves ``https://`` and ``wss://`` and tells the backends
+``X-Forwarded-Proto: https``; ``redirect_port`` (``--redirect-port``) adds a plain-http
+listener on the same host that answers every request with a 301 to the https one, as
+production's port 80 does. tests/integration/test_https_portal_browser.py runs the
+portal that way.
+
 On a machine with systemd, Debian's package also starts the system's own nginx (port
 80, the default site); this module never uses or touches it.
 """
@@ -148,6 +155,25 @@ class Routes:
 
 
 @dataclass(frozen=True)
+class Tls:
+    """TLS at the proxy: ``certificate`` is the PEM chain (the server's certificate
+    first, then the intermediates), ``key`` its private key (PEM, unencrypted)."""
+
+    certificate: Path
+    key: Path
+
+    def __post_init__(self) -> None:
+        for path in (self.certificate, self.key):
+            # Written into the configuration unquoted.
+            if not _CONFIG_PATH.fullmatch(str(path)):
+                raise ValueError(f"a TLS file path without spaces or ';', got {str(path)!r}")
+
+
+#: File paths are written into the configuration unquoted.
+_CONFIG_PATH = re.compile(r"[^\s;{}'\"\\]+")
+
+
+@dataclass(frozen=True)
 class AccessEntry:
     """One request in nginx's access log (a WebSocket is logged when it ends)."""
 
@@ -239,10 +265,20 @@ def worker_connections(open_files: int | None = None) -> int:
 
 
 def render_config(
-    routes: Routes, *, listen: Backend, prefix: Path, connections: int | None = None
+    routes: Routes,
+    *,
+    listen: Backend,
+    prefix: Path,
+    connections: int | None = None,
+    tls: Tls | None = None,
+    redirect: Backend | None = None,
 ) -> str:
     """The nginx.conf that serves ``listen`` and routes by ``routes``, keeping every
-    file nginx writes (pid, logs, temporary bodies) under ``prefix``."""
+    file nginx writes (pid, logs, temporary bodies) under ``prefix``. With ``tls``,
+    ``listen`` speaks TLS; ``redirect`` (only with ``tls``) is a plain-http address
+    that sends every request to the same path on ``listen``'s https."""
+    if redirect is not None and tls is None:
+        raise ValueError("a redirect to https needs TLS")
     backends = list(dict.fromkeys([routes.default, *(rule.backend for rule in routes.rules)]))
     upstream = {backend: f"backend_{i}" for i, backend in enumerate(backends)}
     temp = prefix / "temp"
@@ -284,10 +320,28 @@ def render_config(
     for backend, name in upstream.items():
         lines += [f"    upstream {name} {{", f"        server {backend};", "        keepalive 16;"]
         lines += ["    }"]
+    if redirect is not None:
+        # $host is the name the client asked for, without its port: the https port is
+        # written here unless it is the default.
+        port = "" if listen.port == 443 else f":{listen.port}"
+        lines += [
+            "    server {",
+            f"        listen {redirect};",
+            f"        return 301 https://$host{port}$request_uri;",
+            "    }",
+        ]
     lines += [
         "    server {",
         # A reconnect storm (every agent at once after a restart) queues here.
-        f"        listen {listen} backlog=4096;",
+        f"        listen {listen}{' ssl' if tls else ''} backlog=4096;",
+    ]
+    if tls is not None:
+        lines += [
+            f"        ssl_certificate {tls.certificate};",
+            f"        ssl_certificate_key {tls.key};",
+            "        ssl_protocols TLSv1.2 TLSv1.3;",
+        ]
+    lines += [
         "        proxy_http_version 1.1;",
         "        proxy_set_header Upgrade $http_upgrade;",
         "        proxy_set_header Connection $connection_upgrade;",
@@ -358,6 +412,9 @@ async def _accepts(host: str, port: int) -> bool:
 class NginxProxy:
     """nginx routing by ``routes``, as an async context manager: listens on
     ``host:port`` (port 0: a free port, see :attr:`port`) once entered, stopped on exit.
+    With ``tls`` it speaks https and wss there; ``redirect_port`` (0: a free port, see
+    :attr:`redirect_url`) then also listens for plain http on ``host`` and redirects
+    every request to https.
 
     ``prefix`` is the directory for the configuration, pid, access log and temporary
     files (default: a temporary directory, removed on exit); ``log`` receives nginx's
@@ -372,10 +429,17 @@ class NginxProxy:
         port: int = 0,
         prefix: Path | None = None,
         log: Path | None = None,
+        tls: Tls | None = None,
+        redirect_port: int | None = None,
     ) -> None:
+        if redirect_port is not None and tls is None:
+            raise ValueError("a redirect to https needs TLS")
         self.routes = routes
         self.host = host
         self.port = port
+        # nginx would take a relative path from its prefix, not from here.
+        self.tls = tls and Tls(tls.certificate.resolve(), tls.key.resolve())
+        self.redirect_port = redirect_port
         self._own_prefix = prefix is None
         self.prefix = prefix or Path(tempfile.mkdtemp(prefix="iouv-nginx-"))
         self.log_path = log or self.prefix / "error.log"
@@ -383,8 +447,15 @@ class NginxProxy:
 
     @property
     def url(self) -> str:
-        """``http://host:port``."""
-        return f"http://{Backend(self.host, self.port)}"
+        """``http://host:port``, or ``https://host:port`` with TLS."""
+        return f"{'https' if self.tls else 'http'}://{Backend(self.host, self.port)}"
+
+    @property
+    def redirect_url(self) -> str | None:
+        """``http://host:port`` of the redirect to https, if there is one."""
+        if self.redirect_port is None:
+            return None
+        return f"http://{Backend(self.host, self.redirect_port)}"
 
     @property
     def access_log_path(self) -> Path:
@@ -394,10 +465,17 @@ class NginxProxy:
         """Write nginx.conf into the prefix (choosing the port if it is 0); its path."""
         if not self.port:
             self.port = free_port(self.host)
+        if self.redirect_port == 0:
+            self.redirect_port = free_port(self.host)
         (self.prefix / "temp").mkdir(parents=True, exist_ok=True)
         path = self.prefix / "nginx.conf"
         listen = Backend(self.host, self.port)
-        path.write_text(render_config(self.routes, listen=listen, prefix=self.prefix))
+        redirect = None if self.redirect_port is None else Backend(self.host, self.redirect_port)
+        path.write_text(
+            render_config(
+                self.routes, listen=listen, prefix=self.prefix, tls=self.tls, redirect=redirect
+            )
+        )
         return path
 
     async def start(self) -> None:
@@ -418,7 +496,7 @@ class NginxProxy:
         deadline = time.monotonic() + START_TIMEOUT_S
         # nginx writes its pid file after binding the listening socket: a connection
         # accepted before that could be another program's on the same port.
-        while not (self._pid_written(pid_file) and await _accepts(self.connect_host, self.port)):
+        while not (self._pid_written(pid_file) and await self._all_accept()):
             if self.process.returncode is not None or time.monotonic() > deadline:
                 await self._terminate()
                 output = self.log_path.read_text(errors="replace")[-2000:]
@@ -426,6 +504,10 @@ class NginxProxy:
                 raise RuntimeError(f"nginx did not start on {self.host}:{self.port}: {output}")
             await asyncio.sleep(0.02)
         log.info("nginx (pid %d) on %s", self.process.pid, self.url)
+
+    async def _all_accept(self) -> bool:
+        ports = [self.port] if self.redirect_port is None else [self.port, self.redirect_port]
+        return all([await _accepts(self.connect_host, port) for port in ports])
 
     @property
     def connect_host(self) -> str:
@@ -500,7 +582,8 @@ async def _serve(proxy: NginxProxy) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     async with proxy:
-        print(f"nginx listening on {proxy.url}, files in {proxy.prefix}", flush=True)
+        also = f" (and {proxy.redirect_url}, redirecting)" if proxy.redirect_url else ""
+        print(f"nginx listening on {proxy.url}{also}, files in {proxy.prefix}", flush=True)
         assert proxy.process is not None
         await asyncio.wait(
             [asyncio.create_task(stop.wait()), asyncio.create_task(proxy.process.wait())],
@@ -524,15 +607,44 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--default", required=True, metavar="HOST:PORT", help="all the rest")
     parser.add_argument("--prefix", type=Path, help="directory for nginx's files (default: temp)")
     parser.add_argument(
+        "--tls-certificate",
+        type=Path,
+        metavar="PEM",
+        help="terminate TLS on --listen with this certificate chain (needs --tls-key)",
+    )
+    parser.add_argument("--tls-key", type=Path, metavar="PEM", help="the certificate's key")
+    parser.add_argument(
+        "--redirect-port",
+        type=int,
+        metavar="PORT",
+        help="with TLS: also listen for plain http on this port (0: any) and redirect to https",
+    )
+    parser.add_argument(
         "--print-config", action="store_true", help="print the configuration and exit"
     )
     args = parser.parse_args(argv)
+    if (args.tls_certificate is None) != (args.tls_key is None):
+        parser.error("--tls-certificate and --tls-key go together")
+    if args.redirect_port is not None and args.tls_certificate is None:
+        parser.error("--redirect-port needs TLS (--tls-certificate and --tls-key)")
+    if args.redirect_port is not None and not 0 <= args.redirect_port < 65536:
+        parser.error(f"--redirect-port: not a port: {args.redirect_port}")
     try:
         listen = Backend.parse(args.listen, any_port=True)
         routes = Routes.parse(args.route, args.default)
+        tls = None
+        if args.tls_certificate is not None:
+            tls = Tls(args.tls_certificate, args.tls_key)
     except ValueError as exc:
         parser.error(str(exc))
-    proxy = NginxProxy(routes, host=listen.host, port=listen.port, prefix=args.prefix)
+    proxy = NginxProxy(
+        routes,
+        host=listen.host,
+        port=listen.port,
+        prefix=args.prefix,
+        tls=tls,
+        redirect_port=args.redirect_port,
+    )
     if args.print_config:
         sys.stdout.write(proxy.write_config().read_text())
         if args.prefix is None:

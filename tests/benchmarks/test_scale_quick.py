@@ -19,6 +19,7 @@ import http.client
 import json
 import math
 import os
+import ssl
 import subprocess
 import sys
 from collections.abc import AsyncIterator
@@ -43,12 +44,14 @@ from benchmarks.nginx_proxy import (
     NginxUnavailable,
     Routes,
     Rule,
+    Tls,
     config_check,
     nginx_binary,
 )
 from benchmarks.scale_compare import compare_md
 from benchmarks.scale_platform import SITECUSTOMIZE, PlatformTree
 from services.api_schemas import MAX_BODY_BYTES
+from tests.tls import certificates_make
 
 
 @pytest.fixture(scope="module")
@@ -206,6 +209,73 @@ async def test_a_client_that_vanishes_looks_dead_to_the_backend(
         assert await asyncio.wait_for(relay.close_codes.get(), 10) == 1006
 
 
+def _request_tls(
+    port: int, path: str, context: ssl.SSLContext, host: str = "localhost"
+) -> tuple[int, bytes]:
+    connection = http.client.HTTPSConnection(host, port, timeout=10, context=context)
+    try:
+        connection.request("GET", path)
+        response = connection.getresponse()
+        return response.status, response.read()
+    finally:
+        connection.close()
+
+
+async def test_with_tls_nginx_serves_https_and_wss_and_redirects_plain_http(
+    backends: dict[str, EchoBackend], tmp_path: Path
+) -> None:
+    """TLS ends at nginx, as in production: the backends hear plain http with
+    ``X-Forwarded-Proto: https`` and the client's Host; port "80" redirects."""
+    certs = certificates_make(tmp_path / "certs")
+    routes = Routes(
+        default=backends["users"].backend, rules=[Rule("/ws/", backends["relay"].backend)]
+    )
+    tls = Tls(certs.chain, certs.key)
+    async with NginxProxy(routes, tls=tls, redirect_port=0) as proxy:
+        front = f"localhost:{proxy.port}"
+        assert proxy.url == f"https://127.0.0.1:{proxy.port}"
+        context = certs.client_context()  # checks the chain and the name
+        status, body = await asyncio.to_thread(_request_tls, proxy.port, "/api/v1/x", context)
+        assert status == 200
+        assert json.loads(body) == {
+            "backend": "users",
+            "path": "/api/v1/x",
+            "host": front,
+            "forwarded_for": "127.0.0.1",
+            "forwarded_proto": "https",
+        }
+        async with connect(f"wss://{front}/ws/relay/s/", proxy=None, ssl=context) as ws:
+            seen = json.loads(await ws.recv())
+            assert (seen["backend"], seen["forwarded_proto"], seen["host"]) == (
+                "relay",
+                "https",
+                front,
+            )
+            await ws.send("ping")
+            assert await ws.recv() == "relay:ping"
+        # A client that does not trust the CA is refused by its own TLS stack.
+        with pytest.raises(ssl.SSLCertVerificationError):
+            await asyncio.to_thread(_request_tls, proxy.port, "/", ssl.create_default_context())
+
+        # Plain http on the redirect port: a 301 to the same path on https, with its port.
+        assert proxy.redirect_url is not None and proxy.redirect_port is not None
+        connection = http.client.HTTPConnection("localhost", proxy.redirect_port, timeout=10)
+        try:
+            await asyncio.to_thread(connection.request, "GET", "/accounts/login/?next=/x")
+            response = await asyncio.to_thread(connection.getresponse)
+            assert response.status == 301
+            assert response.getheader("Location") == (
+                f"https://localhost:{proxy.port}/accounts/login/?next=/x"
+            )
+        finally:
+            connection.close()
+        # Plain http on the TLS port gets nginx's 400, never the backend.
+        assert (await _get(proxy.port, "/"))[0] == 400
+        assert all(
+            entry.upstream == "-" for entry in proxy.requests() if entry.status in (301, 400)
+        )
+
+
 async def _http_server(handle: Any) -> tuple[asyncio.Server, Backend]:
     server = await asyncio.start_server(handle, "127.0.0.1", 0)
     return server, Backend("127.0.0.1", server.sockets[0].getsockname()[1])
@@ -278,6 +348,21 @@ def test_the_generated_configuration_passes_nginx_t(nginx: Path, tmp_path: Path)
     )
     NginxProxy(routes, port=8000, prefix=tmp_path).write_config()
     assert "test is successful" in config_check(tmp_path, nginx)
+
+
+def test_the_generated_tls_configuration_passes_nginx_t(nginx: Path, tmp_path: Path) -> None:
+    certs = certificates_make(tmp_path / "certs")
+    routes = Routes(default=Backend("127.0.0.1", 8002))
+    tls = Tls(certs.chain, certs.key)
+    NginxProxy(routes, port=8443, prefix=tmp_path, tls=tls, redirect_port=8080).write_config()
+    config = (tmp_path / "nginx.conf").read_text()
+    assert "listen 127.0.0.1:8443 ssl" in config
+    assert "return 301 https://$host:8443$request_uri;" in config
+    assert "test is successful" in config_check(tmp_path, nginx)
+    with pytest.raises(ValueError, match="needs TLS"):
+        NginxProxy(routes, redirect_port=8080)
+    with pytest.raises(ValueError, match="TLS file path"):
+        Tls(Path("/etc/ssl/a b.pem"), certs.key)
 
 
 def test_addresses_and_rules_are_parsed_strictly() -> None:
