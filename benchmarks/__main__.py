@@ -7,7 +7,8 @@
 Runs, one after the other so neither disturbs the other's timings:
 
 * ``benchmarks.paper`` - the paper's response-time tests TC1-TC3, point-to-point vs
-  through the platform, over loopback and emulated remote and LTE links;
+  through the platform vs WebRTC data channels (direct and through TURN), over loopback
+  and emulated remote and LTE links, and the time from connect to the first acked command;
 * ``benchmarks.scale`` - 1,000 agents on one platform, assignment and deployment
   throughput, fail-safe reaction times, one platform process vs two;
 
@@ -83,7 +84,8 @@ def main() -> None:
         "",
         *machine(),
         "",
-        f"- [The paper's response-time tests, point-to-point vs relay](paper/report.md)"
+        f"- [The paper's response-time tests, point-to-point vs relay vs data channels]"
+        f"(paper/report.md)"
         f" ({took['paper'] / 60:.1f} min)",
         f"- [Platform scale: 1,000 agents, throughput, fail-safe reaction, two processes]"
         f"(scale/report.md) ({took['scale'] / 60:.1f} min)",

@@ -24,7 +24,12 @@ late, so each direction adds up to 1 ms (0.5 ms on average) on top; the raw echo
 benchmarks measure through the same proxy carries the same error, which is the point of
 measuring it.
 
-The proxy runs in the caller's event loop. Use it as an async context manager; it
+:class:`UdpDelayProxy` is the same link for UDP, for WebRTC traffic, which the TCP proxy
+cannot carry: the benchmarks put it between a user and the TURN server. It draws the
+jitter once per burst (see its docstring), so that one message exchange meets the same
+link statistics as one WebSocket frame through the TCP proxy.
+
+The proxies run in the caller's event loop. Use one as an async context manager; it
 returns the port it listens on::
 
     async with DelayProxy(target_port=8000, delay_ms=12, jitter_ms=3) as port:
@@ -35,8 +40,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import collections
 import contextlib
 import random
+import socket
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import TracebackType
 
@@ -207,6 +215,185 @@ class DelayProxy:
         async with asyncio.TaskGroup() as group:
             group.create_task(receive())
             group.create_task(deliver())
+
+
+class UdpDelayProxy:
+    """Forward UDP datagrams from a local port to ``target`` over an emulated link: the
+    datagram counterpart of :class:`DelayProxy`, for paths the TCP proxy cannot carry
+    (WebRTC's ICE/DTLS/SCTP, e.g. a user's traffic to a TURN server).
+
+    Each client address seen on the listening port gets its own socket towards the
+    target (a "flow"), so the target sees one peer per client, as behind a NAT. In each
+    flow and direction a datagram that finds the link idle (nothing held) is released
+    after ``delay_ms + Exp(jitter_ms)``; one that arrives while earlier ones are still
+    held queues behind them: released after ``delay_ms`` and never before its
+    predecessor, with no draw of its own. Packets sent back to back share one queueing
+    delay, as in a real queue, and an exchange such as SCTP's data chunk preceded by a
+    SACK meets the link like one WebSocket frame through :class:`DelayProxy` (where the
+    kernel's TCP acknowledgements never cross the emulated link). The link neither
+    reorders nor loses (a full socket buffer drops, as a queue would). As an async
+    context manager it returns the port it listens on; leaving it closes every socket.
+    Counters: :attr:`flows` opened, :attr:`datagrams` forwarded.
+    """
+
+    def __init__(
+        self,
+        *,
+        target_port: int,
+        target_host: str = "127.0.0.1",
+        link: Link | None = None,
+        delay_ms: float = 0.0,
+        jitter_ms: float = 0.0,
+        listen_host: str = "127.0.0.1",
+        listen_port: int = 0,
+        seed: int | None = None,
+        max_flows: int = 256,
+    ) -> None:
+        self.link = link or Link("custom", delay_ms=delay_ms, jitter_ms=jitter_ms)
+        self.target = (target_host, target_port)
+        self.listen = (listen_host, listen_port)
+        self.max_flows = max_flows
+        self.port = 0
+        self.flows = 0
+        self.datagrams = 0
+        self._random = random.Random(seed)
+        self._front: socket.socket | None = None
+        self._by_client: dict[tuple[str, int], _UdpFlow] = {}
+
+    async def __aenter__(self) -> int:
+        loop = asyncio.get_running_loop()
+        front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        front.setblocking(False)
+        front.bind(self.listen)
+        self._front = front
+        self.port = int(front.getsockname()[1])
+        loop.add_reader(front.fileno(), self._from_clients)
+        return self.port
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop listening and close every flow (idempotent)."""
+        loop = asyncio.get_running_loop()
+        for flow in self._by_client.values():
+            flow.close(loop)
+        self._by_client.clear()
+        if self._front is not None:
+            loop.remove_reader(self._front.fileno())
+            self._front.close()
+            self._front = None
+
+    def _draw_s(self) -> float:
+        """The jitter of a datagram that finds the link idle, in seconds."""
+        extra = self._random.expovariate(1 / self.link.jitter_ms) if self.link.jitter_ms else 0.0
+        return extra / 1000
+
+    def _from_clients(self) -> None:
+        front = self._front
+        if front is None:
+            return
+        loop = asyncio.get_running_loop()
+        while True:
+            try:
+                data, client = front.recvfrom(CHUNK_BYTES)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return  # an ICMP error for an earlier send; readable again if more came
+            flow = self._by_client.get(client)
+            if flow is None:
+                if len(self._by_client) >= self.max_flows:
+                    continue
+                flow = _UdpFlow(self, client, loop)
+                self._by_client[client] = flow
+                self.flows += 1
+            flow.up.put(loop, data)
+
+    def _to_client(self, client: tuple[str, int], data: bytes) -> None:
+        if self._front is None:
+            return
+        with contextlib.suppress(OSError):
+            self._front.sendto(data, client)
+            self.datagrams += 1
+
+
+class _UdpDirection:
+    """One direction of a flow: datagrams waiting for their release time, in order."""
+
+    def __init__(self, proxy: UdpDelayProxy, send: Callable[[bytes], None]) -> None:
+        self._proxy = proxy
+        self._send = send
+        self._queue: collections.deque[tuple[float, bytes]] = collections.deque()
+        self._timer: asyncio.TimerHandle | None = None
+        self._last = 0.0
+
+    def put(self, loop: asyncio.AbstractEventLoop, data: bytes) -> None:
+        # An idle link draws the jitter; behind held datagrams, the queue is the jitter.
+        delay_s = self._proxy.link.delay_ms / 1000
+        if not self._queue:
+            delay_s += self._proxy._draw_s()
+        # Never before the previous datagram: the link does not reorder.
+        self._last = max(loop.time() + delay_s, self._last)
+        self._queue.append((self._last, data))
+        if self._timer is None:
+            self._timer = loop.call_at(self._last, self._release, loop)
+
+    def _release(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._timer = None
+        now = loop.time()
+        while self._queue and self._queue[0][0] <= now:
+            self._send(self._queue.popleft()[1])
+        if self._queue:
+            self._timer = loop.call_at(self._queue[0][0], self._release, loop)
+
+    def cancel(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self._queue.clear()
+
+
+class _UdpFlow:
+    """One client of a :class:`UdpDelayProxy` and its socket towards the target."""
+
+    def __init__(
+        self, proxy: UdpDelayProxy, client: tuple[str, int], loop: asyncio.AbstractEventLoop
+    ) -> None:
+        self.proxy = proxy
+        self.client = client
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)
+        self.sock.connect(proxy.target)
+        self.up = _UdpDirection(proxy, self._to_target)
+        self.down = _UdpDirection(proxy, lambda data: proxy._to_client(client, data))
+        loop.add_reader(self.sock.fileno(), self._from_target, loop)
+
+    def _to_target(self, data: bytes) -> None:
+        with contextlib.suppress(OSError):
+            self.sock.send(data)
+            self.proxy.datagrams += 1
+
+    def _from_target(self, loop: asyncio.AbstractEventLoop) -> None:
+        while True:
+            try:
+                data = self.sock.recv(CHUNK_BYTES)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return  # e.g. the target's port was closed (ICMP unreachable)
+            self.down.put(loop, data)
+
+    def close(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.up.cancel()
+        self.down.cancel()
+        loop.remove_reader(self.sock.fileno())
+        self.sock.close()
 
 
 async def _serve(target: str, link: Link, port: int, seed: int | None) -> None:

@@ -1,6 +1,7 @@
 """The paper's response-time tests (section 6: TC1-TC3) against the real platform and agents.
 
     python -m benchmarks.paper [--quick] [--interval-s 1.0] [--scenarios local,remote,lte]
+                               [--connect-tries 20] [--no-datachannel] [--no-turn]
                                [--out docs/benchmarks/paper]
 
 What runs, all on this machine:
@@ -19,7 +20,17 @@ What runs, all on this machine:
   ``control_url`` point-to-point, or ``/ws/relay/<session>/`` on the platform), sends the
   signed grant, answers the agent's pings, and measures every command's response time:
   from handing the ``command`` frame to the socket until its ``ack`` (same ``seq``)
-  arrives. One command is in flight at a time.
+  arrives. One command is in flight at a time;
+* **data channels** (``datachannel``, ``datachannel_turn``): the same user over WebRTC
+  (:class:`~benchmarks.rtc_client.RtcControlClient`, aiortc), as the controller page
+  does it: the relay socket, ``auth``, ``webrtc_offer``/``webrtc_answer``, then commands
+  on the ``control`` data channel and their acks back on it. Both ends offer host
+  candidates on 127.0.0.1 only (the agents' ``webrtc.ice_host_addresses``); for
+  ``datachannel_turn`` the user offers TURN relay candidates only
+  (``iceTransportPolicy: relay``) from a coturn on loopback
+  (:mod:`benchmarks.turn_server`, TURN REST credentials minted as the platform does),
+  so ICE can only pair through it. Every data-channel seat checks the path both ends
+  report.
 
 The paper's test cases (its Table 4), per scenario and communication type:
 
@@ -31,6 +42,12 @@ The paper's test cases (its Table 4), per scenario and communication type:
 * **TC3**: four cars at once, one session and socket each, for 1, 5 and 10 minutes at
   the derived interval (by default in the paper's TC3 scenarios, local and remote).
 * **Table 10** (optional, ``--long-min``): one long point-to-point run, remote scenario.
+* **Connect** (not in the paper): time from "connect" to the first acked command,
+  ``--connect-tries`` times per path in the local scenario, each with a fresh grant
+  (``POST /api/v1/sessions/<id>/grant``): WebSocket point-to-point and relay (socket
+  open, ``auth``, first command acked) and both data channels (relay socket open,
+  ``auth``, ICE gathering, signalling, ICE checks, DTLS, SCTP, first command acked on the
+  data channel). One untimed try per path warms up first.
 
 Scenarios: ``local`` is plain loopback. ``remote``, ``3g`` and ``lte`` put every network
 hop behind a :class:`~benchmarks.delay_proxy.DelayProxy` whose one-way delay is half the
@@ -38,11 +55,16 @@ smallest round trip the paper measured on that network and whose jitter gives th
 smallest average deviation it measured (see LINKS). Point-to-point crosses one link
 (user to vehicle); the relay crosses two (user to platform, platform to vehicle), as the
 paper's relay through an EC2 instance did; the echo is measured across one link and,
-as the relay's floor, across two chained links.
+as the relay's floor, across two chained links. WebRTC is UDP, which the TCP proxies
+cannot carry: there the user reaches coturn through a
+:class:`~benchmarks.delay_proxy.UdpDelayProxy` on the same link, so
+``datachannel_turn`` crosses one emulated link as point-to-point does; the direct data
+channel has no hop to delay (no netem) and runs in the local scenario only.
 
-Outputs in ``--out``: ``raw.csv.gz`` (every command), ``summary.csv``, ``tc1_*.png`` (like
-the paper's Figures 18-23), ``summary.png``, ``run.json`` and ``report.md`` with the
-tables in the paper's format and the paper's figures beside ours. ``--rerender`` renders
+Outputs in ``--out``: ``raw.csv.gz`` (every command and connect try), ``summary.csv``,
+``tc1_*.png`` (like the paper's Figures 18-23), ``summary.png``, ``connect.png``,
+``run.json`` and ``report.md`` with the tables in the paper's format and the paper's
+figures beside ours, and the data channels' targets. ``--rerender`` renders
 them again from ``raw.csv.gz`` and ``run.json`` without measuring.
 """
 
@@ -72,7 +94,7 @@ from collections.abc import AsyncIterator, Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 from urllib.parse import urlsplit
 
 from websockets.asyncio.client import ClientConnection, connect
@@ -80,7 +102,11 @@ from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
 from agents.protocol import MAX_MESSAGE_BYTES
-from benchmarks.delay_proxy import DelayProxy, Link
+from benchmarks.delay_proxy import DelayProxy, Link, UdpDelayProxy
+from benchmarks.turn_server import TurnServer, TurnServerError, turn_server, turnserver_missing
+
+if TYPE_CHECKING:
+    from benchmarks.rtc_client import RtcControlClient
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -91,12 +117,25 @@ ROOT = Path(__file__).resolve().parents[1]
 Figures = tuple[float, float, float, float]
 
 ECHO, ECHO2, P2P, RELAY = "echo", "echo2", "p2p", "relay"
+DC, DCT = "datachannel", "datachannel_turn"
 PATH_LABELS = {
     ECHO: "Raw WebSocket echo (1 link)",
     ECHO2: "Raw WebSocket echo (2 links)",
     P2P: "Point-to-point",
     RELAY: "Through the platform",
+    DC: "Data channel, direct",
+    DCT: "Data channel through TURN",
 }
+#: Every path, in the order the tables list them.
+ALL_PATHS = (ECHO, ECHO2, P2P, RELAY, DC, DCT)
+#: The path each data-channel column must report (agent and user alike).
+DC_ICE_PATH = {DC: "webrtc_direct", DCT: "webrtc_turn"}
+#: Host candidates both WebRTC ends offer: loopback only (aioice skips it otherwise).
+LOOPBACK = ("127.0.0.1",)
+
+#: The issue's targets for the data channels (report: met or not).
+TARGET_DC_MEDIAN_DELTA_MS = 1.0  # data channel median - point-to-point median, loopback
+TARGET_TURN_CONNECT_P95_MS = 1000.0  # first acked command through TURN, loopback, p95
 
 #: TC1, from the text of sections 6.1-6.3: figures plus the interval the paper derived.
 PAPER_TC1: dict[tuple[str, str], tuple[Figures, float]] = {
@@ -268,6 +307,9 @@ class Plan:
     vehicles: int = 4
     long_s: float = 0.0
     seed: int = 1
+    datachannel: bool = True  # the data-channel columns
+    turn: bool = True  # ... including datachannel_turn (needs coturn)
+    connect_tries: int = 20  # per path, local scenario; 0: no connect test
 
     @classmethod
     def quick(cls, **changes: Any) -> Plan:
@@ -280,18 +322,21 @@ class Plan:
             tc2_counts=(4, 6, 8, 10, 12),
             tc3_durations_s=(0.3, 0.6, 0.9),
             long_s=0.5,
+            connect_tries=3,
         )
         return dataclasses.replace(base, **changes)
 
     def tc1_paths(self, scenario: Scenario) -> tuple[str, ...]:
+        """The WebSocket paths of TC1 (the data channels are added when available)."""
         return (ECHO, ECHO2, P2P, RELAY) if scenario.link else (ECHO, P2P, RELAY)
 
 
 #: Full mode at the defaults: TC1 about 18 min (100 s per path), TC2 about 20 min and
 #: the agents and sessions a minute, as the moderate run of docs/benchmarks/paper took
-#: them on a 2-core machine, plus TC3's 64 min of fixed durations.
-FULL_RUN_TIME = "about 1 h 45 min (TC3 alone is 64 min; --long-min 60 adds an hour)"
-QUICK_RUN_TIME = "about 40 s, platform start included"
+#: them on a 2-core machine, plus TC3's 64 min of fixed durations; the data channels add
+#: four TC1 paths (about 7 min), their TC2 (about 6 min) and the connect tries (a minute).
+FULL_RUN_TIME = "about 2 h (TC3 alone is 64 min; --long-min 60 adds an hour)"
+QUICK_RUN_TIME = "about a minute, platform start included"
 
 # --------------------------------------------------------------------------------------
 # Statistics
@@ -300,7 +345,7 @@ QUICK_RUN_TIME = "about 40 s, platform start included"
 
 @dataclass(frozen=True)
 class Stats:
-    """The paper's figures of a set of response times (ms), plus median and p99."""
+    """The paper's figures of a set of response times (ms), plus median, p95 and p99."""
 
     n: int
     min: float
@@ -310,6 +355,7 @@ class Stats:
     median: float
     p99: float
     refused: int = 0
+    p95: float = math.nan
 
     @classmethod
     def of(cls, values: Sequence[float], *, refused: int = 0) -> Stats:
@@ -326,9 +372,15 @@ class Stats:
             # The paper's "average deviation": mean absolute deviation from the average.
             avg_dev=statistics.fmean(abs(v - avg) for v in ordered),
             median=statistics.median(ordered),
-            p99=ordered[min(len(ordered) - 1, math.ceil(0.99 * len(ordered)) - 1)],
+            p99=_rank(ordered, 0.99),
             refused=refused,
+            p95=_rank(ordered, 0.95),
         )
+
+
+def _rank(ordered: Sequence[float], q: float) -> float:
+    """The ``q`` quantile of sorted values by the nearest-rank rule (a measured value)."""
+    return ordered[min(len(ordered) - 1, max(0, math.ceil(q * len(ordered)) - 1))]
 
 
 def interval_from(stats: Stats) -> float:
@@ -344,11 +396,11 @@ class Sample:
     """One command and its response time."""
 
     scenario: str
-    test: str  # tc1, tc2, tc3, long
-    path: str  # echo, echo2, p2p, relay
-    step: float  # tc2: number of commands; tc3/long: duration in s; tc1: count
+    test: str  # tc1, tc2, tc3, long, connect
+    path: str  # echo, echo2, p2p, relay, datachannel, datachannel_turn
+    step: float  # tc2: number of commands; tc3/long: duration in s; tc1/connect: count
     vehicle: int  # 1-based, the socket within a TC3 step
-    seq: int
+    seq: int  # connect: the try, 1-based
     sent_at: float  # Unix time
     response_ms: float
     ok: bool
@@ -357,7 +409,7 @@ class Sample:
 CSV_FIELDS = [f.name for f in dataclasses.fields(Sample)]
 SUMMARY_FIELDS = [
     "scenario", "test", "path", "step", "n", "refused", "min_ms", "max_ms", "avg_ms",
-    "avg_dev_ms", "median_ms", "p99_ms", "interval_ms",
+    "avg_dev_ms", "median_ms", "p95_ms", "p99_ms", "interval_ms",
 ]  # fmt: skip
 
 # --------------------------------------------------------------------------------------
@@ -484,8 +536,291 @@ class Prober:
                 await self._send(keepalive)
 
 
+class DataChannelProber:
+    """The control link over WebRTC data channels, as the controller page holds it.
+
+    Signalled on the platform's relay socket, which stays open beside (the fallback
+    path); commands go on the ``control`` channel and their acks come back on it. The
+    client's listener stamps each message on arrival, before parsing, like
+    :class:`Prober`'s reader; pings are answered by the client at once. An ack that
+    arrives on the relay socket instead is an error: the column measures the channel.
+    """
+
+    def __init__(self, client: RtcControlClient, *, keepalive_s: float | None) -> None:
+        self.client = client
+        self.keepalive_s = keepalive_s
+        client.listener = self._arrived
+        self._waiting: dict[int, asyncio.Future[tuple[float, dict[str, Any]]]] = {}
+        self._last_sent = time.monotonic()
+        self._tasks: list[asyncio.Task[None]] = []
+        self._error: BenchError | None = None
+        self._started = False
+
+    @classmethod
+    async def open(
+        cls,
+        relay_url: str,
+        *,
+        grant: str,
+        path: str,
+        ice_servers: Sequence[dict[str, Any]] = (),
+        keepalive_s: float | None,
+    ) -> DataChannelProber:
+        """Connect as ``path`` (:data:`DC` or :data:`DCT`) and check that both ends use
+        the path it names. Raises BenchError when any step fails."""
+        client = rtc_client(relay_url, grant=grant, path=path, ice_servers=ice_servers)
+        prober = cls(client, keepalive_s=keepalive_s)
+        try:
+            await client.start()
+            await rtc_path_check(client, path)
+        except BaseException as exc:
+            await client.close()
+            if isinstance(exc, Exception) and not isinstance(exc, BenchError):
+                raise BenchError(f"{relay_url}: {path}: {exc}") from exc
+            raise
+        prober._started = True
+        if keepalive_s:
+            prober._tasks.append(asyncio.create_task(prober._keepalive()))
+        return prober
+
+    async def probe(self, seq: int, name: str, args: dict[str, Any]) -> tuple[float, bool]:
+        """As :meth:`Prober.probe`, on the ``control`` data channel."""
+        if self._error is not None:
+            raise self._error
+        frame = json.dumps({"type": "command", "seq": seq, "name": name, "args": args})
+        answer = asyncio.get_running_loop().create_future()
+        self._waiting[seq] = answer
+        try:
+            start = time.perf_counter()
+            self._send(frame)
+            at, msg = await asyncio.wait_for(answer, PROBE_TIMEOUT_S)
+        except TimeoutError:
+            raise BenchError(f"no answer to command {seq} in {PROBE_TIMEOUT_S:g} s") from None
+        finally:
+            self._waiting.pop(seq, None)
+        return (at - start) * 1000, msg.get("type") != "error" and bool(msg.get("ok", True))
+
+    async def close(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._fail(BenchError("the data channel was closed"))
+        await self.client.close()
+
+    def _send(self, frame: str) -> None:
+        channel = self.client.channels.get("control")
+        if channel is None or channel.readyState != "open":
+            raise BenchError("the control data channel is not open")
+        self._last_sent = time.monotonic()
+        channel.send(frame)
+
+    def _arrived(self, msg: dict[str, Any], at: float, via: str) -> bool:
+        kind, seq = msg.get("type"), msg.get("seq")
+        if kind in ("ack", "error") and isinstance(seq, int) and seq in self._waiting:
+            answer = self._waiting[seq]
+            if not answer.done():
+                if via == "control":
+                    answer.set_result((at, msg))
+                else:
+                    answer.set_exception(
+                        BenchError(f"the answer to command {seq} came on the {via}")
+                    )
+            return True
+        if kind == "error" and self._started:
+            self._fail(BenchError(f"the far end refused a frame: {msg}"))
+        return kind in ("ack", "ping", "pong", "telemetry")
+
+    def _fail(self, error: BenchError) -> None:
+        self._error = error
+        for answer in self._waiting.values():
+            if not answer.done():
+                answer.set_exception(error)
+
+    async def _keepalive(self) -> None:
+        assert self.keepalive_s
+        keepalive = json.dumps({"type": "keepalive"})
+        while True:
+            await asyncio.sleep(self.keepalive_s / 4)
+            if time.monotonic() - self._last_sent >= self.keepalive_s:
+                with contextlib.suppress(BenchError):
+                    self._send(keepalive)
+
+
+def rtc_client(
+    relay_url: str,
+    *,
+    grant: str,
+    path: str,
+    ice_servers: Sequence[dict[str, Any]] = (),
+    listener: Any = None,
+) -> RtcControlClient:
+    """A WebRTC user for ``path``: host candidates on loopback only; for :data:`DCT`
+    relay candidates only (``ice_servers`` must hold the TURN server), so the connection
+    can only go through TURN."""
+    from benchmarks.rtc_client import RtcControlClient
+
+    return RtcControlClient(
+        relay_url,
+        grant,
+        ice_servers=ice_servers,
+        ice_host_addresses=LOOPBACK,
+        ice_transport_policy="relay" if path == DCT else "all",
+        timeout_s=PROBE_TIMEOUT_S,
+        listener=listener,
+    )
+
+
+async def rtc_path_check(client: RtcControlClient, path: str) -> None:
+    """Raise BenchError unless both the agent (its ``path`` event) and this side (the
+    candidate pair ICE nominated) say ``path``'s ICE path."""
+    from benchmarks.rtc_client import RtcClientError
+
+    expected = DC_ICE_PATH[path]
+    try:
+        await client.path_is(expected)
+    except RtcClientError as exc:
+        raise BenchError(f"{path}: the agent reports {client.path}, not {expected}") from exc
+    if client.ice_path != expected:
+        raise BenchError(f"{path}: ICE paired {client.ice_path}, not {expected}")
+
+
+#: What the connect test times, per path: (phase, label), in order.
+CONNECT_PHASES: dict[str, tuple[tuple[str, str], ...]] = {
+    "ws": (
+        ("socket", "socket open"),
+        ("auth", "auth to welcome"),
+        ("command", "first command to ack"),
+    ),
+    "rtc": (
+        ("socket", "socket open"),
+        ("auth", "auth to welcome"),
+        ("gather", "ICE gathering (offer ready)"),
+        ("signal", "offer to answer (platform, agent)"),
+        ("connect", "ICE checks, DTLS, SCTP, channels open"),
+        ("command", "first command to ack"),
+    ),
+}
+
+
+async def ws_first_ack(url: str, *, grant: str) -> tuple[float, dict[str, float], bool]:
+    """One connect try on a control socket: open, ``auth``, ``welcome``, the first command
+    and its ack. Returns (ms from the start of the connect to the ack's arrival, each
+    phase's ms, whether the command was executed). Control is released before the
+    socket closes, so leaving is not a link loss. Raises BenchError."""
+    start = time.perf_counter()
+    ws = await connect(
+        url,
+        compression=None,
+        proxy=None,
+        max_size=MAX_MESSAGE_BYTES,
+        open_timeout=30,
+        ping_interval=None,
+    )
+    try:
+        opened = time.perf_counter()
+        await ws.send(json.dumps({"type": "auth", "grant": grant}))
+        welcomed, _ = await _ws_until(ws, lambda m: m.get("type") == "welcome")
+        name, args = COMMANDS[0]
+        await ws.send(json.dumps({"type": "command", "seq": 0, "name": name, "args": args}))
+        acked, ack = await _ws_until(ws, lambda m: m.get("type") == "ack" and m.get("seq") == 0)
+        await ws.send(json.dumps({"type": "release_control"}))
+        await _ws_until(ws, lambda m: m.get("type") == "role")
+    finally:
+        await ws.close()
+    phases = {
+        "socket": opened - start,
+        "auth": welcomed - opened,
+        "command": acked - welcomed,
+    }
+    return (
+        (acked - start) * 1000,
+        {k: round(v * 1000, 3) for k, v in phases.items()},
+        bool(ack.get("ok")),
+    )
+
+
+async def _ws_until(
+    ws: ClientConnection, test: Callable[[dict[str, Any]], bool]
+) -> tuple[float, dict[str, Any]]:
+    """The first message passing ``test``, with its arrival time; an ``error`` raises."""
+    while True:
+        try:
+            raw = await asyncio.wait_for(ws.recv(), PROBE_TIMEOUT_S)
+        except TimeoutError:
+            raise BenchError(f"nothing expected arrived in {PROBE_TIMEOUT_S:g} s") from None
+        at = time.perf_counter()
+        msg = json.loads(raw)
+        if test(msg):
+            return at, msg
+        if msg.get("type") == "error":
+            raise BenchError(f"refused: {msg}")
+
+
+async def rtc_first_ack(
+    relay_url: str, *, grant: str, path: str, ice_servers: Sequence[dict[str, Any]] = ()
+) -> tuple[float, dict[str, float], bool]:
+    """One connect try over WebRTC (:data:`DC` or :data:`DCT`): from opening the relay
+    socket, through ``auth``, ICE gathering, the offer/answer, ICE checks, DTLS, SCTP
+    and the data channels opening, to the first command's ack arriving on the
+    ``control`` channel. Returns as :func:`ws_first_ack`. Afterwards, untimed, the path
+    is checked and control released. Raises BenchError."""
+    first: asyncio.Future[tuple[float, dict[str, Any]]] = asyncio.get_running_loop().create_future()
+
+    def listener(msg: dict[str, Any], at: float, via: str) -> bool:
+        if msg.get("type") != "ack" or msg.get("seq") != 0 or first.done():
+            return False
+        if via == "control":
+            first.set_result((at, msg))
+        else:
+            first.set_exception(BenchError(f"the first ack came on the {via}"))
+        return True
+
+    client = rtc_client(
+        relay_url, grant=grant, path=path, ice_servers=ice_servers, listener=listener
+    )
+    try:
+        try:
+            await client.start()
+            name, args = COMMANDS[0]
+            frame = json.dumps({"type": "command", "seq": 0, "name": name, "args": args})
+            client.channels["control"].send(frame)
+            acked, ack = await asyncio.wait_for(first, PROBE_TIMEOUT_S)
+            await rtc_path_check(client, path)
+            client.send({"type": "release_control"})
+            await client.recv("role")
+        except TimeoutError:
+            raise BenchError(f"{path}: no first ack in {PROBE_TIMEOUT_S:g} s") from None
+        except BenchError:
+            raise
+        except Exception as exc:  # RtcClientError, aiortc's errors: one failure kind
+            raise BenchError(f"{path}: {exc}") from exc
+    finally:
+        await client.close()
+    steps = client.steps
+    marks = [
+        ("socket", "start", "socket_open"),
+        ("auth", "socket_open", "welcome"),
+        ("gather", "welcome", "offer_sent"),
+        ("signal", "offer_sent", "answer"),
+        ("connect", "answer", "channels_open"),
+    ]
+    phases = {name: (steps[b] - steps[a]) * 1000 for name, a, b in marks}
+    phases["command"] = (acked - steps["channels_open"]) * 1000
+    return (
+        (acked - steps["start"]) * 1000,
+        {k: round(v, 3) for k, v in phases.items()},
+        bool(ack.get("ok")),
+    )
+
+
+class Probe(Protocol):
+    """What :func:`probe_series` drives: a :class:`Prober` or a :class:`DataChannelProber`."""
+
+    async def probe(self, seq: int, name: str, args: dict[str, Any]) -> tuple[float, bool]: ...
+
+
 async def probe_series(
-    prober: Prober,
+    prober: Probe,
     *,
     interval_s: float,
     count: int | None = None,
@@ -741,13 +1076,21 @@ class Net:
     uplink_base: str  # ws://host:port the agents reach the platform at
     control_ports: tuple[int, ...]  # where each agent's control socket listens
     control_urls: tuple[str | None, ...]  # what each agent declares (None: its own)
+    turn_port: int | None = None  # where the user reaches the TURN server (UDP)
 
 
 @contextlib.asynccontextmanager
 async def scenario_net(
-    scenario: Scenario, *, platform_port: int, echo_port: int, vehicles: int, seed: int
+    scenario: Scenario,
+    *,
+    platform_port: int,
+    echo_port: int,
+    vehicles: int,
+    seed: int,
+    turn_port: int | None = None,
 ) -> AsyncIterator[Net]:
-    """The scenario's network: plain loopback, or a delay proxy on every hop."""
+    """The scenario's network: plain loopback, or a delay proxy on every hop (a UDP one
+    between the user and the TURN server at ``turn_port``, if any)."""
     control_ports = tuple(free_port() for _ in range(vehicles))
     platform = f"ws://127.0.0.1:{platform_port}"
     if scenario.link is None:
@@ -758,6 +1101,7 @@ async def scenario_net(
             uplink_base=platform,
             control_ports=control_ports,
             control_urls=(None,) * vehicles,
+            turn_port=turn_port,
         )
         return
     link = scenario.link
@@ -773,6 +1117,11 @@ async def scenario_net(
         user_platform = await hop(platform_port)
         vehicle_platform = await hop(platform_port)
         controls = [await hop(port) for port in control_ports]
+        user_turn = None
+        if turn_port is not None:
+            # The user's only path to the vehicle over WebRTC: TURN, across this link.
+            udp = UdpDelayProxy(target_port=turn_port, link=link, seed=next(seeds))
+            user_turn = int(await stack.enter_async_context(udp))
         yield Net(
             echo_url=f"ws://127.0.0.1:{echo}/",
             echo2_url=f"ws://127.0.0.1:{echo2}/",
@@ -780,6 +1129,7 @@ async def scenario_net(
             uplink_base=f"ws://127.0.0.1:{vehicle_platform}",
             control_ports=control_ports,
             control_urls=tuple(f"ws://127.0.0.1:{port}/" for port in controls),
+            turn_port=user_turn,
         )
 
 
@@ -802,11 +1152,13 @@ async def _fleet_until(
 
 def _agent_start(car: Car, *, port: int, url: str | None, uplink: str, folder: Path) -> Any:
     """Write ``car``'s config for this scenario and start its agent process, on the car's
-    simulator (gpiozero mock pins, a simulated world)."""
+    simulator (gpiozero mock pins, a simulated world). Its WebRTC side offers host
+    candidates on loopback only, where the benchmark's user and TURN server are."""
     config = {
         **car.config,
         "platform_url": uplink,
         "control": {"host": "127.0.0.1", "port": port, "public_url": url},
+        "webrtc": {**(car.config.get("webrtc") or {}), "ice_host_addresses": list(LOOPBACK)},
     }
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{car.name}.json"
@@ -873,8 +1225,11 @@ class Run:
     client: PlatformApi
     monitor: PlatformApi
     var_dir: Path
+    turn: TurnServer | None = None
     samples: list[Sample] = field(default_factory=list)
     intervals: dict[tuple[str, str], float] = field(default_factory=dict)
+    #: Connect tries' phases (ms), per path: one dict per counted try.
+    connect_phases: dict[str, list[dict[str, float]]] = field(default_factory=dict)
     started: float = field(default_factory=time.monotonic)
 
     def say(self, text: str) -> None:
@@ -890,21 +1245,33 @@ class Run:
 
         return record
 
-    @contextlib.asynccontextmanager
-    async def seat(self, net: Net, path: str) -> AsyncIterator[Prober]:
-        """A measured socket on ``path``: an echo connection, or a fresh session of the
-        car service (point-to-point or relayed) with its controller connected. On exit
-        the session is ended through the API (the agent drops the socket)."""
-        if path in (ECHO, ECHO2):
-            url = net.echo_url if path == ECHO else net.echo2_url
-            assert url is not None
-            prober = await Prober.open(url, grant=None, keepalive_s=None)
-            try:
-                yield prober
-            finally:
-                await prober.close()
-            return
-        relay = path == RELAY
+    def dc_paths(self, scenario: Scenario) -> tuple[str, ...]:
+        """The data-channel paths this run measures in ``scenario``: the direct one on
+        loopback only (an emulated link has no hop to delay a direct UDP path in), the
+        TURN one wherever coturn runs."""
+        if not self.plan.datachannel:
+            return ()
+        direct = (DC,) if scenario.link is None else ()
+        return direct + ((DCT,) if self.turn is not None else ())
+
+    def connect_paths(self, scenario: Scenario) -> tuple[str, ...]:
+        """The paths of the connect test: loopback only."""
+        if scenario.link is not None or self.plan.connect_tries <= 0:
+            return ()
+        return (P2P, RELAY, *self.dc_paths(scenario))
+
+    def _ice_servers(self, net: Net, path: str, session_id: str) -> list[dict[str, Any]]:
+        """The user's ICE servers: none for the direct data channel; for the TURN one the
+        benchmark's coturn, reached at the scenario's ``turn_port``, with credentials
+        for this session minted as the platform mints them."""
+        if path != DCT:
+            return []
+        assert self.turn is not None and net.turn_port is not None
+        return self.turn.ice_servers(session_id, port=net.turn_port)
+
+    async def session_open(self, *, relay: bool) -> tuple[str, dict[str, Any]]:
+        """A fresh session of the car service whose agent accepted its task: (session
+        id, user task). End it with :meth:`session_end`."""
         lat, lon = self.world.target
         answer = await self.client.acall(
             "POST",
@@ -912,24 +1279,62 @@ class Run:
             {"service": self.world.service, "target": {"lat": lat, "lon": lon}, "relay": relay},
         )
         session_id, task = answer["session"]["id"], answer["task"]
-        end = ("POST", f"/sessions/{session_id}/end", {"reason": "benchmark step done"})
         try:
             await self._task_accepted(session_id)
-            url = f"{net.relay_base}/ws/relay/{session_id}/" if relay else task["control_url"]
-            prober = await Prober.open(
-                url, grant=task["grant"], keepalive_s=LINK_LOSS_TIMEOUT_MS / 3000
-            )
         except BaseException:
             with contextlib.suppress(BenchError):
-                await self.client.acall(*end)
+                await self.session_end(session_id)
+            raise
+        return session_id, task
+
+    async def session_end(self, session_id: str) -> None:
+        """End a session through the API: the agent gets end_task and drops its users."""
+        await self.client.acall(
+            "POST", f"/sessions/{session_id}/end", {"reason": "benchmark step done"}
+        )
+
+    @contextlib.asynccontextmanager
+    async def seat(self, net: Net, path: str) -> AsyncIterator[Probe]:
+        """A measured link on ``path``: an echo connection, or a fresh session of the
+        car service (point-to-point, relayed, or over data channels signalled on the
+        relay) with its controller connected. On exit the session is ended through the
+        API (the agent drops the user)."""
+        if path in (ECHO, ECHO2):
+            url = net.echo_url if path == ECHO else net.echo2_url
+            assert url is not None
+            echo = await Prober.open(url, grant=None, keepalive_s=None)
+            try:
+                yield echo
+            finally:
+                await echo.close()
+            return
+        keepalive_s = LINK_LOSS_TIMEOUT_MS / 3000
+        prober: Prober | DataChannelProber
+        session_id, task = await self.session_open(relay=path == RELAY)
+        relay_url = f"{net.relay_base}/ws/relay/{session_id}/"
+        try:
+            if path in (DC, DCT):
+                prober = await DataChannelProber.open(
+                    relay_url,
+                    grant=task["grant"],
+                    path=path,
+                    ice_servers=self._ice_servers(net, path, session_id),
+                    keepalive_s=keepalive_s,
+                )
+            else:
+                url = relay_url if path == RELAY else task["control_url"]
+                prober = await Prober.open(url, grant=task["grant"], keepalive_s=keepalive_s)
+        except BaseException:
+            with contextlib.suppress(BenchError):
+                await self.session_end(session_id)
             raise
         try:
             yield prober
         finally:
-            # Ended before the socket closes: the agent gets end_task and drops the
+            # Ended before the link closes: the agent gets end_task and drops the
             # user, rather than seeing its controller vanish and going fail-safe.
             try:
-                await self.client.acall(*end)
+                await self.session_end(session_id)
             finally:
                 await prober.close()
 
@@ -944,7 +1349,7 @@ class Run:
 
     # --- the test cases --------------------------------------------------------------
     async def tc1(self, scenario: Scenario, net: Net) -> None:
-        for path in self.plan.tc1_paths(scenario):
+        for path in self.plan.tc1_paths(scenario) + self.dc_paths(scenario):
             async with self.seat(net, path) as prober:
                 await probe_series(
                     prober,
@@ -966,7 +1371,7 @@ class Run:
             )
 
     async def tc2(self, scenario: Scenario, net: Net) -> None:
-        for path in (ECHO, P2P, RELAY):
+        for path in (ECHO, P2P, RELAY, *self.dc_paths(scenario)):
             interval_s = self.intervals[(scenario.name, path)] / 1000
             async with self.seat(net, path) as prober:
                 seq = 0
@@ -1009,6 +1414,45 @@ class Run:
                     )
                     self.say(f"{scenario.name} TC3 {path} {duration:g} s: done")
 
+    async def connect(self, scenario: Scenario, net: Net) -> None:
+        """Time from "connect" to the first acked command, ``connect_tries`` times per
+        path, each try with a fresh grant on one session per path; one untimed try
+        first warms the path up (the agent loads aiortc on its first offer)."""
+        tries = self.plan.connect_tries
+        for path in self.connect_paths(scenario):
+            session_id, _ = await self.session_open(relay=path == RELAY)
+            relay_url = f"{net.relay_base}/ws/relay/{session_id}/"
+            record = self.recorder(scenario.name, "connect", path, tries)
+            phases = self.connect_phases.setdefault(path, [])
+            try:
+                for attempt in range(tries + 1):
+                    answer = await self.client.acall("POST", f"/sessions/{session_id}/grant")
+                    task = answer["task"]
+                    sent_at = time.time()
+                    if path in (DC, DCT):
+                        ms, parts, ok = await rtc_first_ack(
+                            relay_url,
+                            grant=task["grant"],
+                            path=path,
+                            ice_servers=self._ice_servers(net, path, session_id),
+                        )
+                    else:
+                        url = relay_url if path == RELAY else task["control_url"]
+                        ms, parts, ok = await ws_first_ack(url, grant=task["grant"])
+                    if attempt:
+                        record(attempt, sent_at, ms, ok)
+                        phases.append(parts)
+                    # The agent closes the previous user's connection meanwhile.
+                    await asyncio.sleep(0.1)
+            finally:
+                await self.session_end(session_id)
+            st = pooled(self.samples, scenario.name, "connect", path)
+            assert st is not None
+            self.say(
+                f"{scenario.name} connect {path}: p50 {st.median:.1f} ms, p95 {st.p95:.1f} ms "
+                f"({st.n} tries)"
+            )
+
     async def long(self, scenario: Scenario, net: Net) -> None:
         interval_s = self.intervals[(scenario.name, P2P)] / 1000
         async with self.seat(net, P2P) as prober:
@@ -1029,12 +1473,14 @@ class Run:
             vehicles=self.plan.vehicles,
             # Each scenario's proxies draw their own reproducible jitter.
             seed=self.plan.seed * 100 + list(SCENARIOS).index(scenario.name),
+            turn_port=self.turn.port if self.turn is not None else None,
         )
         async with net_cm as net:
             folder = self.var_dir / "paper-agents" / scenario.name
             async with fleet_running(self.world, net, monitor=self.monitor, folder=folder):
                 await self.tc1(scenario, net)
                 await self.tc2(scenario, net)
+                await self.connect(scenario, net)
                 if scenario.name in self.plan.tc3_scenarios:
                     await self.tc3(scenario, net)
                 if self.plan.long_s and scenario.name == "remote":
@@ -1104,6 +1550,25 @@ def platform_services() -> dict[str, str]:
     return {"database": database, "channel_layer": layer}
 
 
+def _turn_start(
+    plan: Plan, stack: contextlib.ExitStack, log_dir: Path
+) -> tuple[TurnServer | None, str]:
+    """Start coturn on loopback for the datachannel_turn column (stopped with ``stack``);
+    returns (server, "") or (None, why there is none)."""
+    if not plan.datachannel:
+        return None, "the data channels were not measured (--no-datachannel)"
+    if not plan.turn:
+        return None, "TURN was switched off (--no-turn)"
+    missing = turnserver_missing()
+    if missing is not None:
+        return None, missing
+    try:
+        # From this (the main) thread: coturn dies with the thread that started it.
+        return stack.enter_context(turn_server(log_dir=log_dir)), ""
+    except TurnServerError as exc:
+        return None, f"coturn did not start: {str(exc).splitlines()[0]}"
+
+
 async def run(plan: Plan, *, base: str, out: Path, command: str, var_dir: Path) -> dict[str, Any]:
     """Run ``plan`` against the platform at ``base`` (http://127.0.0.1:N) and write every
     output into ``out``. Django must be set up on the platform's database. Returns the
@@ -1134,9 +1599,26 @@ async def run(plan: Plan, *, base: str, out: Path, command: str, var_dir: Path) 
     hop = await channel_layer_hops(20 if plan.quick_mode else 200)
     bench.say(f"channel layer hop ({services['channel_layer']}): median {hop.median:.2f} ms")
     platform_port = int(urlsplit(base).port or 80)
-    with echo_process(var_dir / "paper-logs") as echo_port:
+    with contextlib.ExitStack() as stack:
+        echo_port = stack.enter_context(echo_process(var_dir / "paper-logs"))
+        bench.turn, turn_note = _turn_start(plan, stack, var_dir / "paper-logs")
+        if turn_note:
+            bench.say(f"no datachannel_turn column: {turn_note}")
         for name in plan.scenarios:
             await bench.scenario(SCENARIOS[name], platform_port=platform_port, echo_port=echo_port)
+        turn = bench.turn
+        datachannel = {
+            "enabled": plan.datachannel,
+            "paths": {name: list(bench.dc_paths(SCENARIOS[name])) for name in plan.scenarios},
+            "turn": {
+                "server": f"coturn {turn.version()} on {turn.host}:{turn.port} (UDP)",
+                "allocations": turn.allocations(),
+            }
+            if turn is not None
+            else None,
+            "turn_note": turn_note,
+            "connect_phases": bench.connect_phases,
+        }
     meta = {
         "command": command,
         "plan": dataclasses.asdict(plan),
@@ -1145,6 +1627,7 @@ async def run(plan: Plan, *, base: str, out: Path, command: str, var_dir: Path) 
         "links": {k: dataclasses.asdict(v) for k, v in LINKS.items()},
         "intervals_ms": {f"{s}/{p}": v for (s, p), v in bench.intervals.items()},
         "channel_layer_hop_ms": dataclasses.asdict(hop),
+        "datachannel": datachannel,
         "measure_s": round(time.monotonic() - wall, 1),
         "samples": len(bench.samples),
     }
@@ -1235,7 +1718,10 @@ def outputs_write(
         for (scenario, test, path, step), st in table.items():
             writer.writerow(
                 [scenario, test, path, f"{step:g}", st.n, st.refused]
-                + [f"{v:.3f}" for v in (st.min, st.max, st.avg, st.avg_dev, st.median, st.p99)]
+                + [
+                    f"{v:.3f}"
+                    for v in (st.min, st.max, st.avg, st.avg_dev, st.median, st.p95, st.p99)
+                ]
                 + [_interval_ms(meta["plan"], intervals, scenario, test, path)]
             )
     (out / "run.json").write_text(json.dumps(meta, indent=2) + "\n")
@@ -1250,15 +1736,19 @@ def _interval_ms(
     test: str,
     path: str,
 ) -> str:
-    """The interval a group's commands were sent at: TC1's given one, else derived."""
+    """The interval a group's commands were sent at: TC1's given one, else derived;
+    empty for the connect tries (one command each)."""
+    if test == "connect":
+        return ""
     if test == "tc1":
         return f"{plan['interval_s'] * 1000:g}"
     return f"{intervals[(scenario, path)]:g}"
 
 
 def plots_write(out: Path, samples: Sequence[Sample]) -> dict[tuple[str, str], str]:
-    """TC1 per message with min/avg/max lines (like the paper's Figures 18-23), and a
-    summary of medians per scenario; returns {(scenario, path): file name}."""
+    """TC1 per message with min/avg/max lines (like the paper's Figures 18-23), a
+    summary of medians per scenario and the connect tries per path; returns
+    {(scenario, path): file name}."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -1268,7 +1758,7 @@ def plots_write(out: Path, samples: Sequence[Sample]) -> dict[tuple[str, str], s
     scenarios = list(dict.fromkeys(s.scenario for s in samples))
     for scenario in scenarios:
         echo = pooled(samples, scenario, "tc1", ECHO)
-        for path in (P2P, RELAY):
+        for path in (P2P, RELAY, DC, DCT):
             values = [
                 s.response_ms
                 for s in samples
@@ -1323,15 +1813,19 @@ def plots_write(out: Path, samples: Sequence[Sample]) -> dict[tuple[str, str], s
             plt.close(fig)
             written[(scenario, path)] = name
     # Medians of TC2 (the most samples) per scenario and path, with the paper's averages.
-    fig, ax = plt.subplots(figsize=(8, 4), dpi=100)
-    paths = (ECHO, P2P, RELAY)
-    width = 0.25
+    fig, ax = plt.subplots(figsize=(9, 4), dpi=100)
+    paths = [
+        p
+        for p in (ECHO, P2P, RELAY, DC, DCT)
+        if p in (ECHO, P2P, RELAY) or any(s.path == p and s.test == "tc2" for s in samples)
+    ]
+    width = 0.8 / len(paths)
     for i, path in enumerate(paths):
         medians = [
-            (group.median if (group := pooled(samples, sc, "tc2", path)) else 0.0)
+            (group.median if (group := pooled(samples, sc, "tc2", path)) else math.nan)
             for sc in scenarios
         ]
-        xs = [j + (i - 1) * width for j in range(len(scenarios))]
+        xs = [j + (i - (len(paths) - 1) / 2) * width for j in range(len(scenarios))]
         ax.bar(xs, medians, width, label=f"{PATH_LABELS[path]} (ours, median)")
         papers = [
             statistics.fmean(f[2] for f in PAPER_TC2[(sc, path)].values())
@@ -1357,6 +1851,61 @@ def plots_write(out: Path, samples: Sequence[Sample]) -> dict[tuple[str, str], s
     fig.savefig(out / "summary.png")
     plt.close(fig)
     written[("all", "summary")] = "summary.png"
+    # Connect tries: every try per path, with its median and p95.
+    connect = [
+        (
+            path,
+            sc,
+            [
+                s.response_ms
+                for s in samples
+                if (s.test, s.path, s.scenario) == ("connect", path, sc)
+            ],
+        )
+        for sc in scenarios
+        for path in (P2P, RELAY, DC, DCT)
+    ]
+    connect = [(path, sc, values) for path, sc, values in connect if values]
+    if connect:
+        fig, ax = plt.subplots(figsize=(8, 4), dpi=100)
+        for i, (_, _, values) in enumerate(connect):
+            st = Stats.of(values)
+            ax.scatter([i] * len(values), values, marker=".", color="tab:blue", alpha=0.6)
+            ax.hlines(
+                [st.median],
+                i - 0.3,
+                i + 0.3,
+                color="tab:red",
+                label="median" if i == 0 else "_nolegend_",
+            )
+            ax.hlines(
+                [st.p95],
+                i - 0.3,
+                i + 0.3,
+                color="tab:red",
+                linestyle=":",
+                label="p95" if i == 0 else "_nolegend_",
+            )
+        ax.axhline(
+            TARGET_TURN_CONNECT_P95_MS,
+            color="grey",
+            linestyle="-.",
+            linewidth=1,
+            label="target: p95 through TURN",
+        )
+        ax.set_xticks(
+            range(len(connect)),
+            [PATH_LABELS[p] + (f" ({sc})" if len(scenarios) > 1 else "") for p, sc, _ in connect],
+            fontsize=7,
+        )
+        ax.set_ylabel("connect to first ack (ms)")
+        ax.set_ylim(bottom=0)
+        ax.set_title("Time from connect to the first acked command")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / "connect.png")
+        plt.close(fig)
+        written[("all", "connect")] = "connect.png"
     return written
 
 
@@ -1452,6 +2001,10 @@ def report_text(
         "arrives if that is later.\n"
         "* **TC3**: four sessions at once, so the platform assigns four different cars; "
         "four sockets driven concurrently; the figures pool all four.\n"
+        "* **Data channels** (not in the paper; see [Data channels over WebRTC]"
+        "(#data-channels-over-webrtc)): the same sessions, the user connected over WebRTC "
+        "as the controller page does, commands on the `control` data channel, timed the "
+        "same way (`send` on the channel to the `ack` arriving on it).\n"
     )
     links = [
         [
@@ -1507,7 +2060,7 @@ def report_text(
     for name in scenarios:
         add(f"### {SCENARIOS[name].title}\n")
         rows = []
-        for path in (ECHO, ECHO2, P2P, RELAY):
+        for path in ALL_PATHS:
             st = table.get((name, "tc1", path, float(plan["tc1_count"])))
             if st is None:
                 continue
@@ -1528,7 +2081,7 @@ def report_text(
         )
         links_md = [
             f"![TC1 {name} {path}]({figures[(name, path)]})"
-            for path in (P2P, RELAY)
+            for path in (P2P, RELAY, DC, DCT)
             if (name, path) in figures
         ]
         add("\n" + "\n".join(links_md) + "\n")
@@ -1539,7 +2092,7 @@ def report_text(
         sc = SCENARIOS[name]
         add(f"### {sc.title}" + (f" (Table {sc.tc2_table})" if sc.tc2_table else "") + "\n")
         rows = []
-        for path in (ECHO, P2P, RELAY):
+        for path in (ECHO, P2P, RELAY, DC, DCT):
             published = PAPER_TC2.get((name, path), {})
             for i, count in enumerate(plan["tc2_counts"]):
                 st = table.get((name, "tc2", path, float(count)))
@@ -1613,6 +2166,9 @@ def report_text(
                 )
             )
             add("")
+
+    # --- Data channels -----------------------------------------------------------------
+    parts.extend(datachannel_report(samples, meta, figures, scenarios))
 
     # --- Tables 10 and 12 --------------------------------------------------------------
     add("## Long run (the paper's Table 10)\n")
@@ -1774,9 +2330,253 @@ def report_text(
             "much its relay's software, and our platform adds nothing of that order on "
             "equal links.\n"
         )
+    targets = datachannel_targets(samples)
+    if targets:
+        add("Data channels against the issue's targets:\n")
+        add("\n".join(f"* {t}: **{v}**; {m}." for t, m, v in targets) + "\n")
     if plan["quick_mode"]:
         add("\n*Quick mode: a smoke test; its figures are too few to compare.*\n")
     return "\n".join(parts)
+
+
+def datachannel_targets(samples: Sequence[Sample]) -> list[tuple[str, str, str]]:
+    """The issue's two targets for the data channels as (target, what was measured,
+    verdict): ``met``, ``not met`` or ``not measured``."""
+    p2p, dc = pooled(samples, "local", "tc2", P2P), pooled(samples, "local", "tc2", DC)
+    if p2p and dc:
+        delta = dc.median - p2p.median
+        first = (
+            f"data-channel median {dc.median:.2f} ms vs point-to-point {p2p.median:.2f} ms "
+            f"(TC2, {dc.n} and {p2p.n} commands): {delta:+.2f} ms",
+            "met" if delta <= TARGET_DC_MEDIAN_DELTA_MS else "not met",
+        )
+    else:
+        first = ("no TC2 of both paths on loopback in this run", "not measured")
+    turn = pooled(samples, "local", "connect", DCT)
+    if turn:
+        second = (
+            f"p95 {turn.p95:.0f} ms over {turn.n} tries (p50 {turn.median:.0f} ms)",
+            "met" if turn.p95 <= TARGET_TURN_CONNECT_P95_MS else "not met",
+        )
+    else:
+        second = ("no connect tries through TURN on loopback in this run", "not measured")
+    return [
+        (
+            f"data-channel median within {TARGET_DC_MEDIAN_DELTA_MS:g} ms of the WebSocket "
+            "point-to-point on loopback",
+            *first,
+        ),
+        (
+            f"first acked command within {TARGET_TURN_CONNECT_P95_MS / 1000:g} s at p95 "
+            "through TURN on loopback",
+            *second,
+        ),
+    ]
+
+
+def _crossed(name: str, path: str, dc: dict[str, Any]) -> str:
+    """What ``path`` crossed in scenario ``name``, or why it was not measured."""
+    measured = path in dc.get("paths", {}).get(name, [])
+    link = SCENARIOS[name].link
+    if path == DC:
+        if link is not None:
+            return (
+                "not measured: a direct UDP path between two local processes has no hop a "
+                "userspace proxy could delay (no netem here); putting a proxy in it would "
+                "make it a relayed path, which is the next column"
+            )
+        if not measured:
+            return "not measured: " + (dc.get("turn_note") or "--no-datachannel")
+        return (
+            "UDP on loopback, user 127.0.0.1 to agent 127.0.0.1 (host candidates), "
+            "no proxy: what point-to-point crosses"
+        )
+    if not measured:
+        return "not measured: " + (dc.get("turn_note") or "--no-datachannel")
+    if link is None:
+        return (
+            "user (relay candidates only) to coturn on 127.0.0.1 to the agent's host "
+            "candidate, UDP on loopback, no proxy"
+        )
+    return (
+        f"user to a UDP delay proxy on the {link.name} link (one-way {link.delay_ms:g} ms + "
+        f"Exp({link.jitter_ms:g} ms) per burst of datagrams and direction, in order, no "
+        "loss) to coturn on loopback to the agent over loopback: **one** emulated link, as "
+        "point-to-point crosses"
+    )
+
+
+def datachannel_report(
+    samples: Sequence[Sample],
+    meta: dict[str, Any],
+    figures: dict[tuple[str, str], str],
+    scenarios: Sequence[str],
+) -> list[str]:
+    """The report's section on the data channels: what they crossed, their response
+    times beside the WebSocket's, the connect times and the targets."""
+    dc = meta.get("datachannel") or {}
+    parts: list[str] = []
+    add = parts.append
+    add("## Data channels over WebRTC\n")
+    if not dc:
+        add("Not measured: this run predates the data-channel columns.\n")
+        return parts
+    if not dc.get("enabled"):
+        add("Not measured in this run (`--no-datachannel`).\n")
+        return parts
+    turn = dc.get("turn")
+    add(
+        'Not in the paper: control over WebRTC data channels (docs/protocol.md, "Control '
+        "over WebRTC\"). The user (`benchmarks/rtc_client.py`, aiortc) opens the platform's "
+        "relay socket for the session, authenticates with the grant and sends "
+        "`webrtc_offer` (every candidate gathered, no trickle); the platform forwards it "
+        "over the agent's uplink, the agent answers, and the `control` (ordered, reliable), "
+        "`input` and `urgent` channels open. The relay socket stays open beside, as the "
+        "fallback. Response time: from `send` on the `control` channel to the `ack` "
+        "arriving on it, stamped before parsing (an ack on the socket would fail the run). "
+        "Both ends offer host candidates on 127.0.0.1 only (the agents' "
+        "`webrtc.ice_host_addresses`). For `datachannel_turn` the user offers relay "
+        "candidates only (`iceTransportPolicy: relay`) from "
+        + (turn["server"] if turn else "a coturn on loopback")
+        + " (`benchmarks/turn_server.py`) with TURN REST credentials minted per session by "
+        "`services.ice.turn_credentials`, as the platform mints them from "
+        "`IOUV_TURN_SECRET` (the platform itself is not configured with TURN here, so the "
+        "agent gathers host candidates only); ICE can then only pair through the TURN "
+        "server. Every data-channel connection checks the path both ends report "
+        "(`webrtc_direct` or `webrtc_turn`: the agent's `path` event and the candidate pair "
+        "the user's ICE nominated)"
+        + (f"; coturn granted {turn['allocations']} allocations in this run" if turn else "")
+        + ".\n"
+    )
+    add("### What the data-channel columns cross\n")
+    add(
+        md_table(
+            ["Scenario", PATH_LABELS[DC], PATH_LABELS[DCT]],
+            [[SCENARIOS[n].title, _crossed(n, DC, dc), _crossed(n, DCT, dc)] for n in scenarios],
+        )
+    )
+    add(
+        "\nThe signalling (relay socket, offer, answer) crosses the relay's two links in an "
+        "emulated scenario; it costs the connection set-up, not the response times. The "
+        "UDP proxy draws the jitter when a datagram finds the link idle; datagrams that "
+        "arrive behind it (SCTP sends a SACK just before the agent's ack, four datagrams per "
+        "command in all) queue behind it without a draw of their own, so one exchange meets "
+        "the link as one WebSocket frame meets the TCP proxy, whose TCP acknowledgements "
+        "never cross the emulated link.\n"
+    )
+    add("### Response time beside the WebSocket (TC2, all commands)\n")
+    rows = []
+    for name in scenarios:
+        p2p = pooled(samples, name, "tc2", P2P)
+        for path in (P2P, DC, DCT):
+            st = pooled(samples, name, "tc2", path)
+            if st is None:
+                continue
+            rows.append(
+                [
+                    SCENARIOS[name].title if path == P2P else "",
+                    PATH_LABELS[path],
+                    str(st.n),
+                    _f(st.min),
+                    _f(st.avg),
+                    _f(st.median),
+                    _f(st.p95),
+                    f"{st.median - p2p.median:+.2f}" if p2p and path != P2P else "—",
+                ]
+            )
+    if rows:
+        add(
+            md_table(
+                [
+                    "Scenario",
+                    "Communication type",
+                    "Commands",
+                    "Min (ms)",
+                    "Average (ms)",
+                    "Median (ms)",
+                    "p95 (ms)",
+                    "Median - point-to-point (ms)",
+                ],
+                rows,
+            )
+        )
+    connect = [
+        (name, path, st)
+        for name in scenarios
+        for path in (P2P, RELAY, DC, DCT)
+        if (st := pooled(samples, name, "connect", path)) is not None
+    ]
+    add("\n### Time from connect to the first acked command\n")
+    if connect:
+        add(
+            "Each try: a fresh grant (`POST /api/v1/sessions/<id>/grant`, before the clock "
+            "starts), then the clock runs from the start of the connect (the control socket "
+            "for point-to-point, the relay socket otherwise) to the first command's `ack` "
+            "(on the data channel for the WebRTC paths): WebSocket open and `auth` for the "
+            "sockets; for the data channels also ICE gathering (a TURN allocation for "
+            "`datachannel_turn`), the offer/answer through the platform and the agent, ICE "
+            "checks, DTLS and SCTP. Control is released before each try leaves, and one "
+            "untimed try per path warms it up (the agent loads aiortc on its first offer). "
+            "Loopback only. *Socket open* is the control socket for point-to-point and the "
+            "relay socket for the others.\n"
+        )
+        add(
+            md_table(
+                ["Scenario", "Path", "Tries", "p50 (ms)", "p95 (ms)", "Min (ms)", "Max (ms)"],
+                [
+                    [
+                        SCENARIOS[name].title,
+                        PATH_LABELS[path],
+                        str(st.n),
+                        _f(st.median),
+                        _f(st.p95),
+                        _f(st.min),
+                        _f(st.max),
+                    ]
+                    for name, path, st in connect
+                ],
+            )
+        )
+        phases = dc.get("connect_phases") or {}
+        labels = dict(CONNECT_PHASES["rtc"])
+        rows = []
+        for path in (P2P, RELAY, DC, DCT):
+            tries = phases.get(path) or []
+            if not tries:
+                continue
+            rows.append(
+                [PATH_LABELS[path]]
+                + [
+                    _f(statistics.median(t[key] for t in tries)) if key in tries[0] else "—"
+                    for key in labels
+                ]
+            )
+        if rows:
+            add("\nMedians of each step (ms):\n")
+            add(md_table(["Path", *labels.values()], rows))
+        add(
+            "\nSeen while building this benchmark: through TURN the ICE step often takes "
+            "about 500 ms, because the agent starts its connectivity check towards the "
+            "user's relay address as soon as it has answered, before the user's TURN "
+            "client has bound a channel (its permission) for the agent; coturn drops that "
+            "check, and aioice (on both ends here) retransmits only after its 500 ms STUN "
+            "timeout and does not retrigger a check already in progress, so the controlled "
+            "side's pair succeeds half a second later. A browser's ICE would pace this "
+            "differently.\n"
+        )
+        if ("all", "connect") in figures:
+            add(f"\n![Connect to first ack]({figures[('all', 'connect')]})\n")
+    else:
+        add("Not measured in this run (`--connect-tries 0`, or no local scenario).\n")
+    add("### Targets\n")
+    add(
+        md_table(
+            ["Target", "Measured", "Verdict"],
+            [[t, m, f"**{v}**"] for t, m, v in datachannel_targets(samples)],
+        )
+    )
+    add("")
+    return parts
 
 
 # --------------------------------------------------------------------------------------
@@ -1873,7 +2673,9 @@ def parser_build() -> argparse.ArgumentParser:
         description=(
             "Reproduce the paper's response-time tests (TC1-TC3) against the real platform "
             "and real agents, point-to-point and through the platform's relay, beside a raw "
-            "WebSocket echo, on loopback and on emulated remote/3G/LTE links."
+            "WebSocket echo and WebRTC data channels (direct, and through a coturn on "
+            "loopback), on loopback and on emulated remote/3G/LTE links; and time the "
+            "connect to the first acked command per path."
         ),
         epilog=(
             f"Run time: full mode (the defaults, the paper's parameters) {FULL_RUN_TIME}; "
@@ -1911,6 +2713,23 @@ def parser_build() -> argparse.ArgumentParser:
         default=None,
         help="Table 10's long point-to-point run in the remote scenario, "
         "minutes (default 0: not run)",
+    )
+    parser.add_argument(
+        "--connect-tries",
+        type=int,
+        default=None,
+        help="connect-to-first-ack tries per path in the local scenario "
+        "(default 20; quick 3; 0: none)",
+    )
+    parser.add_argument(
+        "--no-datachannel",
+        action="store_true",
+        help="measure no WebRTC data channel (the datachannel columns)",
+    )
+    parser.add_argument(
+        "--no-turn",
+        action="store_true",
+        help="no coturn: leave out the datachannel_turn column",
     )
     parser.add_argument("--seed", type=int, default=1, help="jitter seed")
     parser.add_argument(
@@ -1959,6 +2778,12 @@ def plan_from(args: argparse.Namespace) -> Plan:
         changes["tc3_scenarios"] = tuple(s.strip() for s in args.tc3_scenarios.split(","))
     if args.long_min is not None:
         changes["long_s"] = args.long_min * 60
+    if args.connect_tries is not None:
+        changes["connect_tries"] = max(0, args.connect_tries)
+    if args.no_datachannel:
+        changes["datachannel"] = False
+    if args.no_turn:
+        changes["turn"] = False
     return dataclasses.replace(plan, **changes)
 
 

@@ -1,8 +1,9 @@
 """benchmarks.paper in quick mode, end to end, and the delay proxy it emulates links with.
 
 The end-to-end test runs the real platform (daphne on the test database, Redis channel
-layer), real agent processes and the echo server, then checks that every output exists
-and is well-formed. It asserts nothing about timing: the machine may be busy.
+layer), real agent processes, the echo server and coturn (installed when missing), then
+checks that every output exists and is well-formed, the data-channel columns and connect
+tries included. It asserts nothing about timing: the machine may be busy.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from django.conf import settings
 
 from benchmarks import paper
 from benchmarks.delay_proxy import DelayProxy, Link
+from tests.netlab import ensure_packages
 from tests.servers import platform_process
 
 # --------------------------------------------------------------------------------------
@@ -175,6 +177,7 @@ def _tables(markdown: str) -> list[list[list[str]]]:
 @pytest.mark.redis
 @pytest.mark.django_db(transaction=True)
 async def test_quick_mode_writes_every_output(tmp_path: Path) -> None:
+    ensure_packages("coturn", log_path=tmp_path / "apt.log")  # the datachannel_turn column
     plan = paper.Plan.quick()
     with platform_process() as base:
         meta = await paper.run(
@@ -201,6 +204,12 @@ def _check_outputs(out: Path, plan: paper.Plan, meta: dict[str, Any]) -> None:
             assert counts[(name, "tc1", path)] == plan.tc1_count
         for path in ("echo", "p2p", "relay"):
             assert counts[(name, "tc2", path)] == sum(plan.tc2_counts)
+        # The data channels: direct on loopback only, through TURN everywhere.
+        dc_paths = ["datachannel", "datachannel_turn"] if name == "local" else ["datachannel_turn"]
+        assert meta["datachannel"]["paths"][name] == dc_paths
+        for path in dc_paths:
+            assert counts[(name, "tc1", path)] == plan.tc1_count
+            assert counts[(name, "tc2", path)] == sum(plan.tc2_counts)
         if name in plan.tc3_scenarios:
             for path in ("p2p", "relay"):
                 assert counts[(name, "tc3", path)] >= plan.vehicles * len(plan.tc3_durations_s)
@@ -209,13 +218,21 @@ def _check_outputs(out: Path, plan: paper.Plan, meta: dict[str, Any]) -> None:
                 }
                 assert vehicles == {str(i) for i in range(1, plan.vehicles + 1)}
     assert counts[("remote", "long", "p2p")] >= 1
+    connect_paths = ("p2p", "relay", "datachannel", "datachannel_turn")
+    for path in connect_paths:
+        assert counts[("local", "connect", path)] == plan.connect_tries
+        assert len(meta["datachannel"]["connect_phases"][path]) == plan.connect_tries
+    assert not any(test == "connect" and scenario != "local" for scenario, test, _ in counts)
+    assert meta["datachannel"]["turn"]["allocations"] >= plan.connect_tries
 
     with open(out / "summary.csv", newline="") as fh:
         summary = list(csv.DictReader(fh))
     assert len(summary) == len({(r["scenario"], r["test"], r["path"], r["step"]) for r in rows})
     for line in summary:
-        for column in ("min_ms", "max_ms", "avg_ms", "avg_dev_ms", "median_ms", "interval_ms"):
+        for column in ("min_ms", "max_ms", "avg_ms", "avg_dev_ms", "median_ms", "p95_ms"):
             assert _NUMBER.match(line[column]), (column, line)
+        # A connect try is one command: it has no interval.
+        assert _NUMBER.match(line["interval_ms"]) or line["test"] == "connect", line
 
     # report.md: the tables are filled; the figures our columns hold are numbers.
     report = (out / "report.md").read_text()
@@ -230,8 +247,22 @@ def _check_outputs(out: Path, plan: paper.Plan, meta: dict[str, Any]) -> None:
             for column in ("Min (ms)", "Max (ms)", "Average (ms)", "Avg. deviation (ms)"):
                 if column in header:
                     assert _NUMBER.match(cells[header.index(column)]), (header, cells)
-    for heading in ("## TC1", "## TC2", "## TC3", "## Where our time goes", "## Closing note"):
+    for heading in (
+        "## TC1",
+        "## TC2",
+        "## TC3",
+        "## Data channels over WebRTC",
+        "### Time from connect to the first acked command",
+        "## Where our time goes",
+        "## Closing note",
+    ):
         assert heading in report
+    targets = next(t for t in tables if t[0] == ["Target", "Measured", "Verdict"])
+    assert len(targets) == 3, targets
+    assert all(row[2] in ("**met**", "**not met**") for row in targets[1:]), targets
+    crossed = next(t for t in tables if t[0][0] == "Scenario" and "Data channel, direct" in t[0])
+    assert "one** emulated link" in crossed[2][2]  # remote: through the UDP delay proxy
+    assert crossed[2][1].startswith("not measured")  # no direct data channel there
     assert "point-to-point median overhead over the raw echo" in report
     assert "relay vs point-to-point with four vehicles" in report
     assert "pytest quick" in report
@@ -241,7 +272,8 @@ def _check_outputs(out: Path, plan: paper.Plan, meta: dict[str, Any]) -> None:
 
     pngs = sorted(out.glob("*.png"))
     expected = {f"tc1_{s}_{p}.png" for s in plan.scenarios for p in ("p2p", "relay")}
-    assert {p.name for p in pngs} == expected | {"summary.png"}
+    expected |= {f"tc1_{s}_{p}.png" for s, ps in meta["datachannel"]["paths"].items() for p in ps}
+    assert {p.name for p in pngs} == expected | {"summary.png", "connect.png"}
     for png in pngs:
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         height, width, _ = matplotlib.image.imread(png).shape

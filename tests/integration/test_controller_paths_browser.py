@@ -96,3 +96,27 @@ async def test_a_frozen_picture_pauses_driving_until_it_moves_again(world: World
         thawed.set()
     await wait_for(page, "c.videoFrozen === false", 15000)
     assert await drive_forward(world, page, 1.0) > 0.05
+
+
+#: The platform's relay socket cannot be opened (as when the platform is out of reach of
+#: the user's network but the vehicle is on the same LAN): every relay URL is swapped
+#: for a port nobody listens on.
+RELAY_UNREACHABLE = """
+const RealWebSocket = window.WebSocket;
+window.WebSocket = function (url, protocols) {
+  if (String(url).includes("/ws/relay/")) url = "ws://127.0.0.1:9/";
+  return new RealWebSocket(url, protocols);
+};
+window.WebSocket.prototype = RealWebSocket.prototype;
+Object.assign(window.WebSocket, { OPEN: 1, CLOSED: 3, CONNECTING: 0, CLOSING: 2 });
+"""
+
+
+async def test_when_the_relay_cannot_be_opened_the_page_uses_the_vehicles_own_socket(
+    world: World,
+) -> None:
+    page = await world.login("client", init_script=RELAY_UNREACHABLE)
+    await request_car(world, page)
+    await wait_for(page, "c.path === 'websocket' && c.direct === true")
+    assert await page.locator("[data-path]").inner_text() == "the vehicle's own socket"
+    assert await drive_forward(world, page, 1.0) > 0.05
