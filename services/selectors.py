@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from fleet.liveness import vehicles_fresh
 from fleet.models import AgentMessage, Vehicle
 from fleet.outbox import ENDING, agent_messages_owed
 from services.models import Service, Session
@@ -98,12 +99,16 @@ def session_delivery(session: Session) -> list[dict[str, Any]]:
 
 
 def service_vehicles_matching(service: Service) -> list[Vehicle]:
-    """Online idle vehicles that could fill the service's first role now (for the form)."""
+    """Online idle vehicles that could fill the service's first role now (for the form):
+    heard from within the offline delay, as assignment will check (a vehicle that went
+    quiet since the last sweep is not offered)."""
     from services.assignment import role_match
 
     role = service.roles.filter(required=True).first()
     if role is None:
         return []
     ranked = [c.vehicle.pk for c in role_match(role=role).candidates]
+    fresh = vehicles_fresh(ranked)
+    ranked = [pk for pk in ranked if str(pk) in fresh]
     vehicles = Vehicle.objects.select_related("station").in_bulk(ranked)
     return [vehicles[pk] for pk in ranked if pk in vehicles]

@@ -7,16 +7,19 @@ tests/test_admin.py; here the portal's pages and its reconnect endpoint.
 from __future__ import annotations
 
 import json
+from datetime import timedelta
 from typing import Any
 
 import pytest
 from django.test import Client
 from django.urls import reverse
+from django.utils import timezone
 
 from agents.protocol import UserGrant
 from fleet.models import Vehicle
 from services.assignment import session_request
 from services.models import Session
+from services.selectors import service_vehicles_matching
 from services.signing import platform_public_key
 from tests import factories as f
 from tests.services.test_deployment import TARGET, _registered_vehicle, _service
@@ -89,3 +92,16 @@ def test_ending_asks_with_what_the_vehicle_will_do_in_its_own_words(client, live
     Vehicle.objects.filter(pk=vehicle_id).update(profile=profile)
     html = client.get(reverse("session", args=[session.pk])).content.decode()
     assert f'data-consequence="{vehicle.name} will hover and land where it is."' in html
+
+
+def test_the_request_form_offers_only_vehicles_heard_from_lately() -> None:
+    """A vehicle that went quiet since the last offline sweep still reads idle, but it is
+    not offered: the request would fail on it (assignment checks the same)."""
+    station = f.station()
+    vtype = f.vehicle_type()
+    heard = f.vehicle(station=station, vtype=vtype, name="heard")
+    quiet = f.vehicle(station=station, vtype=vtype, name="quiet")
+    Vehicle.objects.filter(pk=quiet.pk).update(last_seen=timezone.now() - timedelta(minutes=5))
+    service = f.service()
+    assert [v.name for v in service_vehicles_matching(service)] == ["heard"]
+    assert heard.status == quiet.status == Vehicle.Status.IDLE
