@@ -37,9 +37,9 @@ from services.signing import platform_public_key_pem
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def free_port() -> int:
+def free_port(host: str = "127.0.0.1") -> int:
     with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
+        s.bind((host, 0))
         return int(s.getsockname()[1])
 
 
@@ -54,9 +54,16 @@ def _test_database_url() -> str:
 
 
 @contextlib.contextmanager
-def platform_process(*, extra_env: dict[str, str] | None = None) -> Iterator[str]:
-    """Run daphne on a free loopback port; yields its base URL (``http://127.0.0.1:N``)."""
-    port = free_port()
+def platform_process(
+    *, extra_env: dict[str, str] | None = None, host: str = "127.0.0.1"
+) -> Iterator[str]:
+    """Run daphne on a free port of ``host`` (default loopback); yields its base URL
+    (``http://<host>:N``, or ``http://127.0.0.1:N`` when ``host`` is ``0.0.0.0``).
+
+    Another address (e.g. the public address of a tests.netlab lab, for clients in its
+    namespaces) is added to ``ALLOWED_HOSTS``, unless ``extra_env`` sets that; with
+    ``0.0.0.0`` the names clients use are the caller's to allow there."""
+    port = free_port(host)
     env = {
         **os.environ,
         "DATABASE_URL": _test_database_url(),
@@ -66,6 +73,9 @@ def platform_process(*, extra_env: dict[str, str] | None = None) -> Iterator[str
         "IOUV_FAST_PASSWORD_HASHER": "1",
         **(extra_env or {}),
     }
+    url_host = "127.0.0.1" if host == "0.0.0.0" else host
+    if url_host not in settings.ALLOWED_HOSTS and "ALLOWED_HOSTS" not in (extra_env or {}):
+        env["ALLOWED_HOSTS"] = ",".join([*settings.ALLOWED_HOSTS, url_host])
     log = open(settings.VAR_DIR / f"daphne-{port}.log", "w")  # noqa: SIM115 - closed below
     proc = subprocess.Popen(
         [
@@ -73,7 +83,7 @@ def platform_process(*, extra_env: dict[str, str] | None = None) -> Iterator[str
             "-m",
             "daphne",
             "-b",
-            "127.0.0.1",
+            host,
             "-p",
             str(port),
             "iouv.asgi:application",
@@ -83,7 +93,7 @@ def platform_process(*, extra_env: dict[str, str] | None = None) -> Iterator[str
         stdout=log,
         stderr=subprocess.STDOUT,
     )
-    base = f"http://127.0.0.1:{port}"
+    base = f"http://{url_host}:{port}"
     try:
         deadline = time.monotonic() + 30
         while True:

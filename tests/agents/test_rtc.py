@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import json
 from collections.abc import AsyncIterator
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -172,3 +173,45 @@ async def test_offers_are_limited_to_one_a_second(rig: Rig, user: RtcControlClie
         assert (await user.recv("error"))["code"] == "rate_limited"
     assert rig.hub.rtc is not None and rig.hub.rtc.peer_count == 1
     assert (await user.command(9, "camera_up", step_deg=5))["ok"] is True
+
+
+def test_the_agent_follows_the_browser_to_a_pair_it_nominates_after_ice_completed():
+    """aioice cancels the checks in progress when ICE completes and leaves their pairs
+    "in progress" for good, so a pair the browser nominates later (the direct one, after
+    a relayed pair that worked first) would never be taken: its check is started again,
+    and only its."""
+    from aioice.ice import CandidatePair, Connection
+
+    from agents import rtc
+
+    # What the workaround relies on in aioice itself (an upgrade that renames it fails
+    # here, not silently in the field).
+    assert callable(Connection.check_start_task)
+    assert isinstance(Connection(ice_controlling=False)._check_list, list)
+
+    def pair(**fields: Any) -> SimpleNamespace:
+        defaults = {
+            "State": CandidatePair.State,
+            "state": CandidatePair.State.IN_PROGRESS,
+            "task": SimpleNamespace(done=lambda: True),  # cancelled at completion
+            "nominated": False,
+            "remote_nominated": False,
+        }
+        return SimpleNamespace(**{**defaults, **fields})
+
+    nominated_later = pair(remote_nominated=True)
+    others = [
+        pair(),  # not nominated by the browser
+        pair(remote_nominated=True, task=SimpleNamespace(done=lambda: False)),  # running
+        pair(remote_nominated=True, state=CandidatePair.State.SUCCEEDED, nominated=True),
+        pair(remote_nominated=True, state=CandidatePair.State.FAILED),
+    ]
+    started: list[SimpleNamespace] = []
+    connection = SimpleNamespace(
+        _check_list=[*others, nominated_later], check_start_task=started.append
+    )
+    ice = SimpleNamespace(transport=SimpleNamespace(_connection=connection))
+    pc: Any = SimpleNamespace(sctp=SimpleNamespace(transport=ice))
+    rtc._resume_nominated_checks(pc)
+    assert started == [nominated_later]
+    assert nominated_later.task is None  # check_start_task starts one only then
