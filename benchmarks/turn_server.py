@@ -55,6 +55,19 @@ class TurnServer:
     log_path: Path
     process: subprocess.Popen[bytes]
 
+    @property
+    def stun_urls(self) -> list[str]:
+        return [f"stun:{self.host}:{self.port}"]
+
+    @property
+    def turn_urls(self) -> list[str]:
+        return [self.url()]
+
+    @property
+    def urls(self) -> list[str]:
+        """``stun:`` and ``turn:...?transport=udp`` URLs, in that order."""
+        return [*self.stun_urls, *self.turn_urls]
+
     def url(self, *, port: int | None = None) -> str:
         """The ``turn:`` URL (UDP); ``port`` replaces the server's own, e.g. to go
         through a :class:`~benchmarks.delay_proxy.UdpDelayProxy` in front of it."""
@@ -153,13 +166,17 @@ def turn_server(
     port: int | None = None,
     realm: str = "iouv.bench",
     relay_ports: tuple[int, int] = (40000, 40999),
+    peers: str | None = None,
+    pidfile: Path | None = None,
     ready_timeout_s: float = 10.0,
 ) -> Iterator[TurnServer]:
-    """Run coturn on ``host`` (a loopback address) until the block ends; yields it once it
-    answers STUN. ``secret`` (default: a random one) is its ``static-auth-secret``;
-    ``relay_ports`` the range its relays use (ports in use are skipped). Its log and
-    user database go to ``log_dir``. Raises TurnServerError when coturn is missing,
-    exits, or does not answer within ``ready_timeout_s``."""
+    """Run coturn on ``host`` until the block ends; yields it once it answers STUN.
+    ``secret`` (default: a random one) is its ``static-auth-secret``; ``relay_ports``
+    the range its relays use (ports in use are skipped); ``peers`` the only addresses it
+    relays to (``A`` or ``A-B``; default ``host`` alone, loopback peers allowed when it
+    is a loopback address). Its log, user database and pidfile (default: named after the
+    port) go to ``log_dir``. Raises TurnServerError when coturn is missing, exits, or
+    does not answer within ``ready_timeout_s``."""
     missing = turnserver_missing()
     if missing is not None:
         raise TurnServerError(missing)
@@ -185,13 +202,14 @@ def turn_server(
         "--no-cli",
         "--no-rfc5780",
         "--no-software-attribute",
-        # The peers are the agents on this machine: loopback only, nothing else.
-        "--allow-loopback-peers",
-        f"--allowed-peer-ip={host}",
+        # Relays reach the peers named, nothing else (coturn refuses some special
+        # ranges by default, and documentation ranges are not "public" to every version).
+        *(["--allow-loopback-peers"] if host.startswith("127.") else []),
+        f"--allowed-peer-ip={peers or host}",
         "--denied-peer-ip=0.0.0.0-255.255.255.255",
         "--no-multicast-peers",
         "--userdb", str(log_dir / f"turndb-{port}"),
-        "--pidfile", str(log_dir / f"turnserver-{port}.pid"),
+        "--pidfile", str(pidfile or log_dir / f"turnserver-{port}.pid"),
         "--log-file", str(log_path),
         "--simple-log",
         "--no-stdout-log",

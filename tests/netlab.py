@@ -73,14 +73,14 @@ import re
 import shlex
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
-import time
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
+
+from benchmarks.turn_server import TurnServer, TurnServerError, turn_server
 
 NatMode = Literal["eim", "symmetric"]
 NAT_MODES: tuple[NatMode, ...] = ("eim", "symmetric")
@@ -440,46 +440,8 @@ class Site:
     root_veth: str
 
 
-@dataclasses.dataclass
-class Turn:
-    """A running coturn (STUN and TURN on one UDP/TCP port of the lab's public address)."""
-
-    host: str
-    port: int
-    secret: str
-    realm: str
-    log_path: Path
-    process: subprocess.Popen[bytes]
-
-    @property
-    def urls(self) -> list[str]:
-        """``stun:`` and ``turn:...?transport=udp`` URLs, in that order."""
-        return [f"stun:{self.host}:{self.port}", f"turn:{self.host}:{self.port}?transport=udp"]
-
-    @property
-    def stun_urls(self) -> list[str]:
-        return [f"stun:{self.host}:{self.port}"]
-
-    @property
-    def turn_urls(self) -> list[str]:
-        return [f"turn:{self.host}:{self.port}?transport=udp"]
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
-
-    def allocations(self) -> int:
-        """TURN allocations the server granted so far (successful ALLOCATE requests in
-        its log), to assert that a connection used (or did not use) the relay."""
-        return len(re.findall(r"ALLOCATE processed, success", self.log()))
-
-    def ice_servers(
-        self, username: str | None = None, credential: str | None = None
-    ) -> list[dict[str, Any]]:
-        """RTCIceServer-shaped dicts: STUN always, TURN when given credentials."""
-        servers: list[dict[str, Any]] = [{"urls": self.stun_urls}]
-        if username is not None:
-            servers.append({"urls": self.turn_urls, "username": username, "credential": credential})
-        return servers
+#: A running coturn of a lab: the benchmarks' own helper, on the lab's public address.
+Turn = TurnServer
 
 
 class NetLab:
@@ -785,109 +747,35 @@ COMMIT
         port: int | None = None,
         ready_timeout: float = 10.0,
     ) -> Iterator[Turn]:
-        """Run coturn in the root namespace on ``public_ip`` (STUN + TURN over UDP/TCP on
-        one port, no TLS), with TURN REST credentials (``use-auth-secret``, see
-        services.ice.turn_credentials); yields it once it answers a STUN binding
-        request. Relays are allocated on ``public_ip`` and may only reach the lab's
-        public subnet. Stopped on exit (and when the lab closes)."""
+        """Run coturn (benchmarks.turn_server) in the root namespace on ``public_ip``
+        (STUN + TURN over UDP/TCP on one port, no TLS), with TURN REST credentials
+        (``use-auth-secret``, see services.ice.turn_credentials); yields it once it
+        answers a STUN binding request. Relays are allocated on ``public_ip`` and may
+        only reach the lab's public subnet. Stopped on exit (and when the lab closes)."""
         if shutil.which("turnserver") is None:
             raise NetLabError('turnserver missing: call ensure_packages("coturn") first')
-        port = port or _free_port(self.public_ip)
-        log_path = self.logdir / f"turnserver-{port}.log"
-        pidfile = self._state_dir / f"netlab-turn-{self.tag}.pid"
         # Relay ports: a range of its own per lab (the public address differs per lab
         # anyway); coturn skips ports in use within it.
         relay_min = 50000 + PUBLIC_SUBNETS.index(self.public_network) * 400
         net = self.public_network
-        argv = [
-            "turnserver",
-            "-n",  # no config file: everything is on this command line
-            "--listening-ip", self.public_ip,
-            "--relay-ip", self.public_ip,
-            "--listening-port", str(port),
-            "--min-port", str(relay_min),
-            "--max-port", str(relay_min + 399),
-            "--use-auth-secret",
-            "--static-auth-secret", secret,
-            "--realm", realm,
-            "--fingerprint",
-            "--no-tls",
-            "--no-dtls",
-            "--no-cli",
-            "--no-rfc5780",
-            "--no-software-attribute",
-            # Peers are public addresses of the lab: allow exactly its subnet (coturn
-            # refuses some special ranges by default and documentation ranges are not
-            # "public" to every version of it), deny everything else.
-            f"--allowed-peer-ip={net[1]}-{net[-2]}",
-            "--denied-peer-ip=0.0.0.0-255.255.255.255",
-            "--no-multicast-peers",
-            "--userdb", str(self._state_dir / "turndb"),
-            "--pidfile", str(pidfile),
-            "--log-file", str(log_path),
-            "--simple-log",
-            "--no-stdout-log",
-            "--verbose",
-        ]  # fmt: skip
-        proc = subprocess.Popen(
-            argv,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            preexec_fn=_die_with_parent,
-        )
-        self._processes.append(proc)
-        turn = Turn(
-            host=self.public_ip,
-            port=port,
-            secret=secret,
-            realm=realm,
-            log_path=log_path,
-            process=proc,
-        )
         try:
-            _wait_stun(self.public_ip, port, proc, timeout=ready_timeout, log_path=log_path)
-            yield turn
-        finally:
-            _stop_process(proc)
-            with contextlib.suppress(ValueError):
-                self._processes.remove(proc)
-
-
-def _free_port(host: str) -> int:
-    """A port free for both UDP and TCP on ``host`` (coturn listens on both)."""
-    for _ in range(50):
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
-            udp.bind((host, 0))
-            port = int(udp.getsockname()[1])
-            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp:
+            with turn_server(
+                log_dir=self.logdir,
+                secret=secret,
+                host=self.public_ip,
+                port=port,
+                realm=realm,
+                relay_ports=(relay_min, relay_min + 399),
+                peers=f"{net[1]}-{net[-2]}",
+                # Named after the lab: cleanup_stale finds a dead run's coturn by it.
+                pidfile=self._state_dir / f"netlab-turn-{self.tag}.pid",
+                ready_timeout_s=ready_timeout,
+            ) as turn:
+                self._processes.append(turn.process)
                 try:
-                    tcp.bind((host, port))
-                except OSError:
-                    continue
-                return port
-    raise NetLabError(f"no free UDP+TCP port on {host}")
-
-
-def _wait_stun(
-    host: str, port: int, proc: subprocess.Popen[bytes], *, timeout: float, log_path: Path
-) -> None:
-    """Return once a STUN binding request to host:port is answered (coturn is serving);
-    raise if the process exits or ``timeout`` passes. Each request waits up to 0.2 s
-    for its answer: the retry interval, not a sleep."""
-    deadline = time.monotonic() + timeout
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.settimeout(0.2)
-        while True:
-            txid = os.urandom(12)
-            # Binding request: type 0x0001, length 0, magic cookie, transaction id.
-            sock.sendto(b"\x00\x01\x00\x00\x21\x12\xa4\x42" + txid, (host, port))
-            with contextlib.suppress(TimeoutError, ConnectionRefusedError):
-                data = sock.recv(2048)
-                if data[:2] == b"\x01\x01" and data[8:20] == txid:
-                    return
-            if proc.poll() is not None:
-                log = log_path.read_text(errors="replace")[-2000:] if log_path.exists() else ""
-                raise NetLabError(f"turnserver exited with {proc.returncode}:\n{log}")
-            if time.monotonic() > deadline:
-                raise NetLabError(f"turnserver did not answer STUN on {host}:{port} in {timeout}s")
+                    yield turn
+                finally:
+                    with contextlib.suppress(ValueError):
+                        self._processes.remove(turn.process)
+        except TurnServerError as exc:
+            raise NetLabError(str(exc)) from exc

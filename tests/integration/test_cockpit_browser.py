@@ -21,7 +21,13 @@ from playwright.async_api import FloatRect, Page
 
 from tests.browser import needs_chromium
 from tests.integration import test_portal
-from tests.integration.test_portal import World, request_car, request_drone, wait_for
+from tests.integration.test_portal import (
+    RECORD_COMMANDS,
+    World,
+    request_car,
+    request_drone,
+    wait_for,
+)
 
 pytestmark = [
     pytest.mark.postgres,
@@ -39,20 +45,6 @@ PHONE: dict[str, Any] = {
     "has_touch": True,
 }
 LAPTOP: dict[str, Any] = {"viewport": {"width": 1366, "height": 768}}
-
-#: Records every command the page sends to the vehicle (window.sentCommands), on its
-#: socket or its WebRTC data channels.
-RECORD_COMMANDS = """
-window.sentCommands = [];
-for (const proto of [WebSocket.prototype, RTCDataChannel.prototype]) {
-  const send = proto.send;
-  proto.send = function (data) {
-    const msg = JSON.parse(data);
-    if (msg.type === "command") window.sentCommands.push(msg);
-    return send.call(this, data);
-  };
-}
-"""
 
 
 async def login(world: World, username: str, device: dict[str, Any]) -> Page:

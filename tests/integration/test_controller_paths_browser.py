@@ -17,8 +17,13 @@ import pytest
 from services.models import Session
 from tests.browser import needs_chromium
 from tests.integration import test_portal
-from tests.integration.test_cockpit_browser import RECORD_COMMANDS
-from tests.integration.test_portal import World, drive_forward, request_car, wait_for
+from tests.integration.test_portal import (
+    RECORD_COMMANDS,
+    World,
+    drive_forward,
+    request_car,
+    wait_for,
+)
 from tests.servers import db, until
 
 pytestmark = [

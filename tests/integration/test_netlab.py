@@ -45,6 +45,16 @@ _available, _why = netlab_available()
 pytestmark = pytest.mark.skipif(not _available, reason=_why or "network lab unavailable")
 
 
+def ice(
+    turn: Turn, username: str | None = None, credential: str | None = None
+) -> list[dict[str, Any]]:
+    """RTCIceServer-shaped dicts: STUN always, TURN when given credentials."""
+    servers: list[dict[str, Any]] = [{"urls": turn.stun_urls}]
+    if username is not None:
+        servers.append({"urls": turn.turn_urls, "username": username, "credential": credential})
+    return servers
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _packages_and_final_check(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     """Installs what the lab needs; after the module, nothing of any lab this process
@@ -127,7 +137,7 @@ def credentials(name: str) -> tuple[str, str]:
 
 @nat("eim", "eim")
 def test_eim_nat_connects_with_stun_only(lab, turn, start_peer):
-    vehicle, user, cand_v, cand_u = pair(start_peer, turn.ice_servers())
+    vehicle, user, cand_v, cand_u = pair(start_peer, ice(turn))
     # Each peer saw itself behind NAT: a server-reflexive candidate from coturn.
     assert "srflx" in cand_v and "srflx" in cand_u and "relay" not in cand_v + cand_u
     assert vehicle.state("connected", "failed", timeout=CONNECT_S) == "connected"
@@ -145,14 +155,14 @@ def test_eim_nat_connects_with_stun_only(lab, turn, start_peer):
 @nat("symmetric", "symmetric")
 def test_symmetric_nat_needs_turn(lab, turn, start_peer):
     # STUN only: the checks of every candidate pair time out, ICE fails.
-    vehicle, user, cand_v, cand_u = pair(start_peer, turn.ice_servers())
+    vehicle, user, cand_v, cand_u = pair(start_peer, ice(turn))
     assert "srflx" in cand_v and "srflx" in cand_u
     assert vehicle.state("connected", "failed", timeout=FAIL_S) == "failed"
     assert user.state("connected", "failed", timeout=FAIL_S) == "failed"
     assert turn.allocations() == 0
 
     # With TURN credentials: connected through a relay.
-    vehicle, user, cand_v, cand_u = pair(start_peer, turn.ice_servers(*credentials("sym")))
+    vehicle, user, cand_v, cand_u = pair(start_peer, ice(turn, *credentials("sym")))
     assert "relay" in cand_v and "relay" in cand_u
     assert vehicle.state("connected", "failed", timeout=CONNECT_S) == "connected"
     assert user.state("connected", "failed", timeout=CONNECT_S) == "connected"
@@ -166,7 +176,7 @@ def test_symmetric_nat_needs_turn(lab, turn, start_peer):
 def test_symmetric_nat_with_turn_blocked_does_not_connect(lab, turn, start_peer):
     for site in ("vehicle", "user"):
         lab.block(site, turn.host, turn.port, proto="udp")
-    servers = turn.ice_servers(*credentials("blocked"))
+    servers = ice(turn, *credentials("blocked"))
     vehicle, user, cand_v, cand_u = pair(start_peer, servers)
     # The server is unreachable: neither STUN nor TURN candidates, host ones only.
     assert set(cand_v) == set(cand_u) == {"host"}, (cand_v, cand_u)
@@ -186,7 +196,7 @@ def test_symmetric_nat_with_turn_blocked_does_not_connect(lab, turn, start_peer)
 
 @nat("eim", "eim")
 def test_link_cut_is_noticed_and_link_up_restores(lab, turn, start_peer):
-    vehicle, user, _, _ = pair(start_peer, turn.ice_servers())
+    vehicle, user, _, _ = pair(start_peer, ice(turn))
     assert vehicle.state("connected", "failed", timeout=CONNECT_S) == "connected"
     assert user.state("connected", "failed", timeout=CONNECT_S) == "connected"
     assert vehicle.echo()["ok"]
@@ -200,7 +210,7 @@ def test_link_cut_is_noticed_and_link_up_restores(lab, turn, start_peer):
     assert user.state("failed", "closed", timeout=LOSS_S)
 
     lab.link_up("vehicle")
-    vehicle, user, cand_v, _ = pair(start_peer, turn.ice_servers())
+    vehicle, user, cand_v, _ = pair(start_peer, ice(turn))
     assert "srflx" in cand_v  # coturn is reachable again
     assert vehicle.state("connected", "failed", timeout=CONNECT_S) == "connected"
     assert vehicle.echo()["ok"]

@@ -307,14 +307,9 @@ async def request_drone(world: World, page: Page) -> Any:
     return drone
 
 
-#: A gamepad in the Standard Gamepad layout that the test moves (navigator.getGamepads).
-FAKE_GAMEPAD = """
-window.testPad = {
-  id: "test pad", index: 0, connected: true, mapping: "standard",
-  axes: [0, 0, 0, 0],
-  buttons: Array.from({ length: 17 }, () => ({ pressed: false, value: 0 })),
-};
-navigator.getGamepads = () => [window.testPad];
+#: Records every command the page sends to the vehicle (window.sentCommands), on its
+#: socket or its WebRTC data channels.
+RECORD_COMMANDS = """
 window.sentCommands = [];
 for (const proto of [WebSocket.prototype, RTCDataChannel.prototype]) {
   const send = proto.send;
@@ -325,6 +320,19 @@ for (const proto of [WebSocket.prototype, RTCDataChannel.prototype]) {
   };
 }
 """
+
+#: A gamepad in the Standard Gamepad layout that the test moves (navigator.getGamepads).
+FAKE_GAMEPAD = (
+    """
+window.testPad = {
+  id: "test pad", index: 0, connected: true, mapping: "standard",
+  axes: [0, 0, 0, 0],
+  buttons: Array.from({ length: 17 }, () => ({ pressed: false, value: 0 })),
+};
+navigator.getGamepads = () => [window.testPad];
+"""
+    + RECORD_COMMANDS
+)
 
 
 async def test_a_gamepad_flies_the_drone_in_proportion_and_its_buttons_act(world: World):
