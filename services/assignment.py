@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import math
 import operator
 import uuid
 from collections.abc import Callable, Iterable
@@ -35,7 +36,7 @@ from typing import Any
 
 from django.contrib.auth import get_user_model
 from django.db import connection, transaction
-from django.db.models import Exists, OuterRef, Q
+from django.db.models import Exists, ExpressionWrapper, F, FloatField, OuterRef, Q, Value
 from django.utils import timezone
 
 from accounts.users import User
@@ -249,14 +250,29 @@ def _pool(
     target: tuple[float, float] | None,
     exclude: list[Any],
     now: datetime | None,
+    page: tuple[int, int] | None = None,
 ) -> list[Facts]:
-    """The online idle vehicles (meeting ``narrow``), as plain facts."""
+    """The online idle vehicles (meeting ``narrow``), as plain facts. With ``page``
+    (offset, size) and a ``target``: only that slice of them, nearest to the target
+    first (by the database, on an equirectangular approximation of the distance)."""
     rows = vehicles_online(now).filter(status=Vehicle.Status.IDLE).exclude(pk__in=exclude)
     if narrow is not None:
         rows = rows.filter(narrow)
         if target is not None:  # measured from where the vehicle is (module docstring)
             rows = rows.filter(lat__isnull=False, lon__isnull=False)
-    return [Facts.from_row(row) for row in rows.values_list(*Facts.FIELDS)]
+    values = rows.values_list(*Facts.FIELDS)
+    if page is not None and target is not None:
+        lat, lon = target
+        east = math.cos(math.radians(lat)) ** 2  # a degree of longitude, squared, in lat's
+        north_d = F("lat") - Value(lat)
+        east_d = F("lon") - Value(lon)
+        offset, size = page
+        values = values.alias(
+            near=ExpressionWrapper(
+                north_d * north_d + east_d * east_d * Value(east), output_field=FloatField()
+            )
+        ).order_by("near", "pk")[offset : offset + size]
+    return [Facts.from_row(row) for row in values]
 
 
 def _ranked(
@@ -297,7 +313,9 @@ def role_match(
     exclude: Iterable[Any] = (),
     now: datetime | None = None,
 ) -> Match:
-    """Rank the vehicles that can fill ``role`` now; nothing is written.
+    """Rank the vehicles that can fill ``role`` now; nothing is written. With a target
+    and nearest-first selection, the candidates are those of the nearest page of
+    vehicles (:data:`POOL_PAGE`) that has any: the best is always among them.
 
     ``extra_distance_m`` is work done at the target (a search pattern, say) that must
     fit in the vehicle's range too. With a ``target``, only vehicles reporting their
@@ -305,6 +323,25 @@ def role_match(
     requirement.
     """
     excluded = list(exclude)
+    if target is not None and role.selection != ServiceRole.Selection.FASTEST:
+        # Nearest first: the vehicles nearest the target are read first, a page at a
+        # time, until one page yields candidates. With a thousand idle vehicles that is
+        # one page, not the whole fleet decoded and measured for every request.
+        offset = 0
+        while True:
+            page = _pool(
+                narrow=_capable(role),
+                target=target,
+                exclude=excluded,
+                now=now,
+                page=(offset, POOL_PAGE),
+            )
+            match = _ranked(role, page, target, extra_distance_m)
+            if match.candidates:
+                return match
+            if len(page) < POOL_PAGE:
+                break  # none anywhere: the whole pool says why, below
+            offset += POOL_PAGE
     match = _ranked(
         role,
         _pool(narrow=_capable(role), target=target, exclude=excluded, now=now),
@@ -322,6 +359,10 @@ def role_match(
         )
     return match
 
+
+#: Vehicles read per page when matching nearest first (see :func:`role_match`). A page's
+#: candidates rank before the next page's: a vehicle on a later page is farther.
+POOL_PAGE = 64
 
 #: Why no candidate could be reserved (for the refusal).
 TAKEN = "every matching vehicle was just taken by other requests"

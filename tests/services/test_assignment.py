@@ -204,3 +204,23 @@ def test_user_preferences_only_narrow_the_choice(base):
     assert assigned(chosen) == ["thermal-far"]
     with pytest.raises(AssignmentError, match="battery ≥ 95%"):
         session_request(user=f.user(), service=svc, preferences={"min_battery": 95})
+
+
+def test_nearest_first_reads_the_fleet_a_page_at_a_time(base, monkeypatch):
+    """Matching reads the vehicles nearest the target first, a page at a time: an
+    eligible vehicle beyond the first pages is still found, the nearest eligible one
+    wins, and when none is eligible the refusal still names the requirement."""
+    from services import assignment
+
+    monkeypatch.setattr(assignment, "POOL_PAGE", 2)
+    st, drone = base
+    for i in range(1, 4):  # the three nearest are too low on battery
+        f.vehicle(station=st, vtype=drone, name=f"low-{i}", battery=5, at=near(0.1 * i))
+    f.vehicle(station=st, vtype=drone, name="far-ok", battery=90, at=near(0.9))
+    f.vehicle(station=st, vtype=drone, name="ok", battery=90, at=near(0.5))
+    svc = f.service(roles=[{"name": "vehicle", "kinds": ["aerial"], "min_battery": 20}])
+
+    assert assigned(session_request(user=f.user(), service=svc, target=near(0.0))) == ["ok"]
+    assert assigned(session_request(user=f.user(), service=svc, target=near(0.0))) == ["far-ok"]
+    with pytest.raises(AssignmentError, match="battery"):
+        session_request(user=f.user(), service=svc, target=near(0.0))
