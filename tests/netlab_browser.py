@@ -45,6 +45,8 @@ import time
 from collections.abc import Sequence
 from typing import IO, Any
 
+from tests.netlab_peer import stdin_lines
+
 #: Runs first in every page: counts commands and acks per transport, keeps telemetry.
 RECORD_TRANSPORTS = """
 (() => {
@@ -98,20 +100,6 @@ def _in_page(expr: str) -> str:
     return f"() => {{ const c = window.iouvController; return ({expr}); }}"
 
 
-async def _stdin_lines() -> asyncio.Queue[str | None]:
-    """stdin lines in a queue (None at EOF), read by a thread."""
-    loop = asyncio.get_running_loop()
-    lines: asyncio.Queue[str | None] = asyncio.Queue()
-
-    def reader() -> None:
-        for line in sys.stdin:
-            loop.call_soon_threadsafe(lines.put_nowait, line)
-        loop.call_soon_threadsafe(lines.put_nowait, None)
-
-    threading.Thread(target=reader, daemon=True).start()
-    return lines
-
-
 async def browser_main(args: argparse.Namespace) -> int:
     from playwright.async_api import async_playwright
 
@@ -153,7 +141,7 @@ async def browser_main(args: argparse.Namespace) -> int:
                 return None
             raise ValueError(f"unknown command {cmd!r}")
 
-        lines = await _stdin_lines()
+        lines = await stdin_lines()
         try:
             while (line := await lines.get()) is not None:
                 if not line.strip():

@@ -86,7 +86,7 @@ def _selected_pair(pc: Any) -> dict[str, Any] | None:
     }
 
 
-async def _stdin_lines() -> asyncio.Queue[str | None]:
+async def stdin_lines() -> asyncio.Queue[str | None]:
     """stdin lines in a queue (None at EOF), read by a thread: portable and simple."""
     loop = asyncio.get_running_loop()
     lines: asyncio.Queue[str | None] = asyncio.Queue()
@@ -179,7 +179,7 @@ async def peer_main(args: argparse.Namespace) -> int:
         wire(pc.createDataChannel("echo"))
         await describe("offer")
 
-    lines = await _stdin_lines()
+    lines = await stdin_lines()
     tasks: set[asyncio.Task[None]] = set()
     try:
         while (line := await lines.get()) is not None:
