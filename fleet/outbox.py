@@ -36,7 +36,7 @@ from asgiref.sync import async_to_sync
 from channels.db import database_sync_to_async
 from channels.layers import get_channel_layer
 from django.db import connection, transaction
-from django.db.models import F
+from django.db.models import Exists, F, OuterRef
 from django.utils import timezone
 
 from agents.protocol.messages import (
@@ -183,29 +183,29 @@ def agent_message_ack(*, vehicle_id: Any, key: str, ok: bool, detail: str = "") 
         pk = uuid.UUID(str(key))
     except ValueError:
         return None
-    now = timezone.now()
-    with transaction.atomic():
-        row = (
-            AgentMessage.objects.select_for_update()
-            .filter(key=pk, vehicle_id=vehicle_id, state=AgentMessage.State.PENDING)
-            .first()
-        )
-        if row is None:
-            return None
-        row.state = AgentMessage.State.ACKED
-        row.acked_at = now
-        row.result = {"ok": ok, "detail": detail[:200]}
-        row.save(update_fields=["state", "acked_at", "result"])
-        released = False
-        if row.kind in ENDING:
-            released = vehicle_release_if_settled(vehicle_id=vehicle_id)
+    detail = detail[:200]
+    # One conditional update, no transaction: of two acks of one message (a repeat
+    # crossing a redelivery) one changes the row, the other finds it acked already.
+    if not AgentMessage.objects.filter(
+        key=pk, vehicle_id=vehicle_id, state=AgentMessage.State.PENDING
+    ).update(
+        state=AgentMessage.State.ACKED,
+        acked_at=timezone.now(),
+        result={"ok": ok, "detail": detail},
+    ):
+        return None
+    # Acked rows do not change again: read without a lock.
+    session_id, kind, message = (
+        AgentMessage.objects.filter(key=pk).values_list("session_id", "kind", "message").get()
+    )
+    released = kind in ENDING and vehicle_release_if_settled(vehicle_id=vehicle_id)
     return Acked(
         vehicle_id=str(vehicle_id),
-        session_id=str(row.session_id) if row.session_id else None,
-        kind=row.kind,
-        message=stored_message(row.message),
+        session_id=str(session_id) if session_id else None,
+        kind=kind,
+        message=stored_message(message),
         ok=ok,
-        detail=detail[:200],
+        detail=detail,
         released=released,
     )
 
@@ -213,13 +213,15 @@ def agent_message_ack(*, vehicle_id: Any, key: str, ok: bool, detail: str = "") 
 def vehicle_release_if_settled(*, vehicle_id: Any) -> bool:
     """A ``releasing`` vehicle whose agent owes no session end becomes ``idle``; True
     if it did. (Its next heartbeat says ``returning`` if it is still flying home.)"""
-    if AgentMessage.objects.filter(
-        vehicle_id=vehicle_id, state=AgentMessage.State.PENDING, kind__in=ENDING
-    ).exists():
-        return False
-    changed = Vehicle.objects.filter(
-        pk=vehicle_id, status=Vehicle.Status.RELEASING, maintenance=False
-    ).update(status=Vehicle.Status.IDLE)
+    # One statement: the check and the change together.
+    owed = AgentMessage.objects.filter(
+        vehicle_id=OuterRef("pk"), state=AgentMessage.State.PENDING, kind__in=ENDING
+    )
+    changed = (
+        Vehicle.objects.filter(pk=vehicle_id, status=Vehicle.Status.RELEASING, maintenance=False)
+        .filter(~Exists(owed))
+        .update(status=Vehicle.Status.IDLE)
+    )
     if changed:
         fleet_notify([vehicle_id])
     return bool(changed)

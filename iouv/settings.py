@@ -137,8 +137,23 @@ if EMBEDDED:
     }
 else:
     DATABASES = {"default": database_from_url(DATABASE_URL)}
-    DATABASES["default"]["CONN_MAX_AGE"] = env_int("DB_CONN_MAX_AGE", 60)
-    DATABASES["default"]["CONN_HEALTH_CHECKS"] = True
+    # A pool of connections per process (psycopg_pool, as Django runs it). Under ASGI
+    # each HTTP request runs its view on a thread of its own, and Django's connections
+    # belong to threads: without a pool, every request opened a new connection (a
+    # PostgreSQL backend started and torn down for each). DB_POOL_SIZE=0 turns the pool
+    # off; connections are then kept per thread for DB_CONN_MAX_AGE seconds.
+    DB_POOL_SIZE = env_int("DB_POOL_SIZE", 16)
+    if DB_POOL_SIZE > 0:
+        DATABASES["default"]["OPTIONS"]["pool"] = {
+            "min_size": 1,
+            "max_size": DB_POOL_SIZE,
+            # A request waits this long for a free connection before it fails.
+            "timeout": env_int("DB_POOL_TIMEOUT_S", 20),
+        }
+        DATABASES["default"]["CONN_MAX_AGE"] = 0  # the pool keeps them, not the threads
+    else:
+        DATABASES["default"]["CONN_MAX_AGE"] = env_int("DB_CONN_MAX_AGE", 60)
+        DATABASES["default"]["CONN_HEALTH_CHECKS"] = True
 
 DEFAULT_AUTO_FIELD = "django.db.models.BigAutoField"
 
