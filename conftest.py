@@ -63,6 +63,7 @@ class AgentInbox:
     def __init__(self, vehicle: Any) -> None:
         self.vehicle = vehicle
         self._keys: dict[int, str] = {}
+        self._last: list[Any] = []
 
     def owed(self) -> list[Any]:
         from fleet.models import AgentMessage
@@ -91,6 +92,10 @@ class AgentInbox:
         self._last = rows
         return messages
 
+    def ids(self) -> list[str]:
+        """The ``id`` each message of the last ``take`` carried on the uplink."""
+        return [str(row.key) for row in self._last]
+
     def ack(self, message: dict[str, Any] | None = None, *, ok: bool = True) -> None:
         """Acknowledge ``message`` (one returned by ``take``), or every message taken."""
         from agents.protocol.messages import Ack
@@ -117,6 +122,7 @@ def inbox() -> Any:
         take.box = box  # type: ignore[attr-defined]
         take.ack = box.ack  # type: ignore[attr-defined]
         take.owed = box.owed  # type: ignore[attr-defined]
+        take.ids = box.ids  # type: ignore[attr-defined]
         return take
 
     return listen

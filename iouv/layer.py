@@ -81,8 +81,17 @@ def group_send_after_commit(group: str, message: dict[str, Any]) -> None:
 
     def send() -> None:
         layer = get_channel_layer()
-        if layer is not None:
+        if layer is None:
+            return
+        try:
             _push(layer, group, message)
+        except TimeoutError:
+            # The server's loop (or the layer's connections) stayed busy for the whole
+            # wait, e.g. while thousands of agents connect at once: one line, not a
+            # traceback per push, for a push that is best effort anyway.
+            log.warning(
+                "layer: push to %s dropped after %g s, the server is busy", group, PUSH_TIMEOUT_S
+            )
 
     # Robust: a push that fails (Redis away, its connections all in use) is logged and
     # lost like any best-effort push; it must not turn the committed change into an

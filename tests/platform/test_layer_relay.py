@@ -85,3 +85,47 @@ def test_a_push_while_the_server_stops_is_dropped_instead_of_holding_the_thread(
     thread.join(timeout=30)
     stopped.close()
     assert done.is_set(), "the push held its thread after the server's loop stopped"
+
+
+@override_settings(CHANNEL_LAYERS=IN_MEMORY)
+@pytest.mark.django_db(transaction=True)  # the consumer's thread reads the connection
+def test_a_push_the_busy_server_cannot_take_in_time_is_dropped_with_one_line(
+    monkeypatch, caplog
+) -> None:
+    # Thousands of agents connecting at once kept the server's loop busy past the
+    # push's wait: the committed change stands, the push is given up with a warning.
+    import threading
+
+    from asgiref.sync import SyncToAsync
+
+    monkeypatch.setattr(layer, "PUSH_TIMEOUT_S", 0.3)
+    busy = asyncio.new_event_loop()
+    release = threading.Event()
+    server = threading.Thread(target=busy.run_forever, daemon=True)
+    server.start()
+    busy.call_soon_threadsafe(release.wait, 30)  # the loop is stuck in a long callback
+    errors: list[BaseException] = []
+
+    def consumer_thread() -> None:
+        SyncToAsync.threadlocal.main_event_loop = busy
+        SyncToAsync.threadlocal.main_event_loop_pid = __import__("os").getpid()
+        try:
+            # Outside a transaction: sent at once, in this (the consumer's) thread.
+            layer.group_send_after_commit("feed-x", {"type": "feed.update"})
+        except BaseException as exc:  # reported below
+            errors.append(exc)
+
+    try:
+        with caplog.at_level("WARNING", logger="iouv.layer"):
+            thread = threading.Thread(target=consumer_thread, daemon=True)
+            thread.start()
+            thread.join(timeout=30)
+    finally:
+        release.set()
+        busy.call_soon_threadsafe(busy.stop)
+        server.join(timeout=10)
+        busy.close()
+    assert not thread.is_alive() and not errors, errors
+    (record,) = [r for r in caplog.records if r.name == "iouv.layer"]
+    assert record.levelname == "WARNING" and "feed-x" in record.getMessage()
+    assert record.exc_info is None

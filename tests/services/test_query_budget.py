@@ -27,9 +27,12 @@ from django.test.utils import CaptureQueriesContext
 from accounts.roles import CLIENT
 from accounts.tokens import token_issue
 from agents.protocol import VehicleTask
+from agents.protocol.messages import Ack, Event, TaskAccepted
 from fleet.models import Vehicle
+from fleet.signals import agent_message
+from fleet.uplink import _acked, _signal_send
 from services import assignment
-from services.models import Session
+from services.models import Session, SessionEvent
 from services.signing import platform_public_key
 from tests import factories as f
 
@@ -58,6 +61,18 @@ REQUEST_ON_COMMIT = 3
 END_QUERIES = 13
 #   Session page and monitors (2), fleet feed (1), the outbox nudge (1).
 END_ON_COMMIT = 4
+
+# What the vehicle's agent says about the session, as its uplink handles it.
+#   The ack of a message (fleet.outbox.agent_message_ack): the pending row marked
+#   acked (1) and read back (1). Of a session's end, also the vehicle released if it
+#   owes nothing more (1), and the end's delivery logged (services.supervision): the
+#   session (1), the vehicle's name (1), the event appended (BEGIN, the session locked,
+#   the log's tail, the event, COMMIT: 5).
+ACK_QUERIES = 2
+END_ACK_QUERIES = 3 + 7
+#   task_accepted, and an event (task_ended): the vehicle's assignment with its session
+#   (1), the event appended (5).
+REPORT_QUERIES = 6
 
 COMMANDS = [{"name": "up", "args": {}}, {"name": "stop", "args": {}}]
 TARGET = {"lat": 40.6310, "lon": -8.6590}
@@ -146,13 +161,32 @@ def test_requesting_and_ending_a_session_stay_within_their_query_budget(
     (task,) = agent()
     signed = VehicleTask.verify(task["token"], platform_public_key(), vehicle_id=str(vehicle.pk))
     assert signed.session_id == session_id
-    agent.ack()
+    # The live agent's stand-in acknowledges it and reports, through the uplink's code.
+    (task_id,) = agent.ids()
+    with metered(monkeypatch) as ack:
+        _acked(vehicle_id=str(vehicle.pk), ack=Ack(id=task_id, ok=True))
+    with metered(monkeypatch) as accepted:
+        _signal_send(agent_message, vehicle_id=str(vehicle.pk), message=TaskAccepted(session_id))
 
     with metered(monkeypatch) as end:
         ended = _post(f"/sessions/{session_id}/end", token, {"reason": "done"})
     assert ended.status_code == 200, ended.content
     assert ended.json()["state"] == Session.State.ENDED
-    assert agent() == [{"type": "end_task", "session_id": session_id, "reason": "done"}]
+    (end_task,) = agent()
+    assert end_task == {"type": "end_task", "session_id": session_id, "reason": "done"}
+    (end_id,) = agent.ids()
+    with metered(monkeypatch) as end_ack:
+        _acked(vehicle_id=str(vehicle.pk), ack=Ack(id=end_id, ok=True))
+    with metered(monkeypatch) as ended_report:
+        _signal_send(
+            agent_message,
+            vehicle_id=str(vehicle.pk),
+            message=Event(session_id=session_id, event="task_ended", data={"reason": "done"}),
+        )
+    vehicle.refresh_from_db()
+    assert vehicle.status == Vehicle.Status.IDLE  # released by the end's ack
+    kinds = [e.kind for e in SessionEvent.objects.filter(session_id=session_id).order_by("seq")]
+    assert kinds[-4:] == ["task_accepted", "state", "end_delivered", "task_ended"], kinds
 
     assert len(request) <= REQUEST_QUERIES, f"request: {len(request)} statements\n{request}"
     assert request.on_commit <= REQUEST_ON_COMMIT
@@ -160,3 +194,8 @@ def test_requesting_and_ending_a_session_stay_within_their_query_budget(
     assert len(end) <= END_QUERIES, f"end: {len(end)} statements\n{end}"
     assert end.on_commit <= END_ON_COMMIT
     assert not any("SAVEPOINT" in sql for sql in end.statements), str(end)
+    # What the uplink asks of the database for the agent's side of the session.
+    assert len(ack) <= ACK_QUERIES, f"ack: {len(ack)} statements\n{ack}"
+    assert len(end_ack) <= END_ACK_QUERIES, f"end's ack: {len(end_ack)} statements\n{end_ack}"
+    for report in (accepted, ended_report):
+        assert len(report) <= REPORT_QUERIES, f"report: {len(report)} statements\n{report}"
