@@ -23,12 +23,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import operator
 import threading
 import uuid
 import weakref
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
+from functools import reduce
 from typing import Any, Protocol
 
 import msgspec
@@ -36,7 +38,7 @@ from asgiref.sync import async_to_sync
 from channels.db import database_sync_to_async
 from channels.layers import get_channel_layer
 from django.db import connection, transaction
-from django.db.models import Exists, F, OuterRef
+from django.db.models import Exists, F, OuterRef, Q
 from django.utils import timezone
 
 from agents.protocol.messages import (
@@ -129,14 +131,35 @@ def agent_messages_cancel(
 ) -> int:
     """Cancel the vehicle's pending messages of ``kinds`` (of ``session_id`` only, or of
     every session but ``except_session``); returns how many."""
-    rows = AgentMessage.objects.filter(
-        vehicle_id=vehicle_id, state=AgentMessage.State.PENDING, kind__in=list(kinds)
+    return agent_messages_cancel_each(
+        vehicle_id=vehicle_id,
+        withdrawn=[
+            agent_messages_withdrawn(kinds, session_id=session_id, except_session=except_session)
+        ],
     )
+
+
+def agent_messages_withdrawn(
+    kinds: Iterable[str], *, session_id: Any = None, except_session: Any = None
+) -> Q:
+    """The messages of ``kinds`` (of ``session_id`` only, or of every session but
+    ``except_session``), as a condition for :func:`agent_messages_cancel_each`."""
+    q = Q(kind__in=list(kinds))
     if session_id is not None:
-        rows = rows.filter(session_id=session_id)
+        q &= Q(session_id=session_id)
     if except_session is not None:
-        rows = rows.exclude(session_id=except_session)
-    return rows.update(state=AgentMessage.State.CANCELLED)
+        q &= ~Q(session_id=except_session)
+    return q
+
+
+def agent_messages_cancel_each(*, vehicle_id: Any, withdrawn: Sequence[Q]) -> int:
+    """Cancel, in one statement, the vehicle's pending messages meeting any of the
+    ``withdrawn`` conditions (:func:`agent_messages_withdrawn`); returns how many."""
+    return (
+        AgentMessage.objects.filter(vehicle_id=vehicle_id, state=AgentMessage.State.PENDING)
+        .filter(reduce(operator.or_, withdrawn))
+        .update(state=AgentMessage.State.CANCELLED)
+    )
 
 
 def agent_message_was_sent(*, vehicle_id: Any, session_id: Any, kind: str) -> bool:

@@ -267,8 +267,7 @@ def vehicle_record_hello(*, vehicle_id: Any, now: datetime) -> None:
     The status waits for the profile. Writing last_seen also marks the uplink that owns
     the vehicle from now on (see :func:`vehicle_record_disconnect`).
     """
-    with transaction.atomic():
-        Vehicle.objects.filter(pk=vehicle_id).update(last_seen=now)
+    Vehicle.objects.filter(pk=vehicle_id).update(last_seen=now)  # one statement: atomic
 
 
 def vehicle_record_profile(*, vehicle_id: Any, profile: Profile, now: datetime) -> None:

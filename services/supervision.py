@@ -45,6 +45,8 @@ from fleet.outbox import (
     ENDING,
     Acked,
     agent_messages_cancel,
+    agent_messages_cancel_each,
+    agent_messages_withdrawn,
     stored_message,
     vehicle_release_if_settled,
 )
@@ -427,9 +429,14 @@ def agent_connected_handle(*, vehicle_id: Any, state: dict[str, Any] | None = No
                 _owe_end(vehicle_id=vehicle_id, session_id=uuid.UUID(str(reported)))
             except ValueError:  # not even a session id: nothing the platform could end
                 log.warning("vehicle %s runs a task of session %.40r", vehicle_id, reported)
-        agent_messages_cancel(vehicle_id=vehicle_id, kinds=["task"], except_session=desired)
-        # Ends of sessions it does not run are moot (all of them when it runs none).
-        agent_messages_cancel(vehicle_id=vehicle_id, kinds=ENDING, except_session=reported)
+        agent_messages_cancel_each(
+            vehicle_id=vehicle_id,
+            withdrawn=[
+                agent_messages_withdrawn(["task"], except_session=desired),
+                # Ends of sessions it does not run are moot (all of them when it runs none).
+                agent_messages_withdrawn(ENDING, except_session=reported),
+            ],
+        )
         if assignment is None:
             vehicle_release_if_settled(vehicle_id=vehicle_id)
             return

@@ -19,18 +19,21 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
+import msgspec
 import pytest
 from django.db import connection, transaction
 from django.test import Client
 from django.test.utils import CaptureQueriesContext
+from django.utils import timezone
 
 from accounts.roles import CLIENT
 from accounts.tokens import token_issue
 from agents.protocol import VehicleTask
-from agents.protocol.messages import Ack, Event, TaskAccepted
+from agents.protocol.messages import Ack, CommandSpec, Event, Position, Profile, TaskAccepted
+from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
 from fleet.signals import agent_message
-from fleet.uplink import _acked, _signal_send
+from fleet.uplink import _acked, _admit, _signal_send, vehicle_record_profile
 from services import assignment
 from services.models import Session, SessionEvent
 from services.signing import platform_public_key
@@ -199,3 +202,38 @@ def test_requesting_and_ending_a_session_stay_within_their_query_budget(
     assert len(end_ack) <= END_ACK_QUERIES, f"end's ack: {len(end_ack)} statements\n{end_ack}"
     for report in (accepted, ended_report):
         assert len(report) <= REPORT_QUERIES, f"report: {len(report)} statements\n{report}"
+
+
+# An agent connecting (fleet.uplink): hello, the vehicle with its credential (1) and
+# its last_seen (1); profile, one transaction (BEGIN, COMMIT: 2): the vehicle locked
+# (1) and stored (1), then the platform's convergence (services.supervision, in a
+# savepoint so that a failing receiver leaves the profile stored: 2): what it serves
+# (1), the messages that no longer apply withdrawn (1), a releasing vehicle freed (1).
+CONNECT_QUERIES = 2 + 9
+
+
+@pytest.mark.postgres
+@pytest.mark.django_db(transaction=True)
+def test_an_agent_connecting_stays_within_its_query_budget(monkeypatch):
+    # Thousands of agents reconnect at once after a platform restart: each one's
+    # statements are what the process must get through before heartbeats flow again.
+    vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type(), name="drone-1")
+    Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.OFFLINE)
+    credential = vehicle_issue_credential(vehicle=vehicle)
+    profile = Profile(
+        vehicle_type="drone",
+        adapter="light",
+        attributes={},
+        commands=msgspec.convert(COMMANDS, list[CommandSpec]),
+        telemetry=[],
+        control_url="ws://10.0.0.7:8765/control",
+        video=False,
+        position=Position(lat=TARGET["lat"], lon=TARGET["lon"]),
+        battery=90.0,
+    )
+    with metered(monkeypatch) as connect:
+        assert _admit(vehicle_id=str(vehicle.pk), credential=credential, now=timezone.now())
+        vehicle_record_profile(vehicle_id=str(vehicle.pk), profile=profile, now=timezone.now())
+    vehicle.refresh_from_db()
+    assert vehicle.status == Vehicle.Status.IDLE
+    assert len(connect) <= CONNECT_QUERIES, f"connect: {len(connect)} statements\n{connect}"
