@@ -139,9 +139,10 @@ class Params:
     ramp_per_s: float = 50.0  # new uplinks per second, all workers together
     settle_s: float = 5.0  # quiet time before a measurement window
     window_s: float = 15.0  # CPU and memory window
-    # Each API request runs on its own thread in daphne, and with the default
-    # DB_CONN_MAX_AGE each such thread leaves a connection open: more clients would take
-    # this shared PostgreSQL server's last connections from other people.
+    # Each API request runs on its own thread in daphne; a platform without the
+    # connection pool (a --baseline tree) leaves a connection open per such thread for
+    # DB_CONN_MAX_AGE: more clients would take this shared PostgreSQL server's last
+    # connections from other people.
     api_clients: int = 8
     api_duration_s: float = 20.0
     trials: int = 20  # per link-loss mode and topology
@@ -1723,6 +1724,7 @@ async def _run_with_queries(
             )
         platform_settings = await db.call("settings")
         results.machine["db_conn_max_age"] = env.get("DB_CONN_MAX_AGE", "60 (default)")
+        results.machine["db_pool_size"] = env.get("DB_POOL_SIZE", "16 (default)")
         for key in ("http_concurrency", "heartbeat_s", "offline_after_s"):
             results.machine[key] = platform_settings[key]
         await run_async(params, world=world, env=env, logs=logs, results=results, tree=tree, db=db)
@@ -2050,7 +2052,8 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
         ("date_utc", "date"),
         ("load_average_at_start", "load average at start (1, 5, 15 min)"),
         ("open_files_limit", "open files limit"),
-        ("db_conn_max_age", "DB_CONN_MAX_AGE of the platform"),
+        ("db_conn_max_age", "DB_CONN_MAX_AGE of the platform (without a pool)"),
+        ("db_pool_size", "DB_POOL_SIZE of the platform (a tree older than the pool has none)"),
         ("http_concurrency", "IOUV_HTTP_CONCURRENCY (HTTP requests at once per process)"),
         ("heartbeat_s", "IOUV_HEARTBEAT_INTERVAL_S"),
         ("offline_after_s", "IOUV_OFFLINE_AFTER_S"),

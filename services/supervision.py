@@ -34,7 +34,7 @@ from typing import Any
 
 from django.conf import settings
 from django.db import transaction
-from django.db.models import Q
+from django.db.models import Q, Subquery
 from django.utils import timezone
 
 from agents.protocol import CLOCK_SKEW_S
@@ -476,10 +476,15 @@ def agent_acked_handle(*, vehicle_id: Any, acked: Acked) -> None:
     platform's word reached the vehicle, and when."""
     if acked.kind not in ENDING or acked.session_id is None:
         return
-    session = _stale_session(acked.session_id)
+    # The session with the vehicle's name, in one query.
+    session = (
+        Session.objects.filter(pk=acked.session_id)
+        .annotate(vehicle_name=Subquery(Vehicle.objects.filter(pk=vehicle_id).values("name")[:1]))
+        .first()
+    )
     if session is None:
         return
-    name = Vehicle.objects.filter(pk=vehicle_id).values_list("name", flat=True).first()
+    name = session.vehicle_name
     event_append(
         session=session,
         kind="stop_delivered" if acked.kind == "revoke" else "end_delivered",
