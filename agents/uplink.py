@@ -34,7 +34,16 @@ from agents.protocol import (
     encode_message,
     parse_message,
 )
-from agents.protocol.messages import Ack, Heartbeat, Hello, Message, Profile, Welcome, message_type
+from agents.protocol.messages import (
+    Ack,
+    Error,
+    Heartbeat,
+    Hello,
+    Message,
+    Profile,
+    Welcome,
+    message_type,
+)
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +51,10 @@ WELCOME_TIMEOUT_S = 10.0
 OUTBOX_SIZE = 1000
 #: Ids of handled platform messages remembered, to recognise resends.
 HANDLED_IDS = 4096
+
+
+class PlatformBusy(Exception):
+    """The platform turned the hello away for now (``error`` ``busy``); retry later."""
 
 
 def backoff_delay(attempt: int, *, base: float, cap: float) -> float:
@@ -116,6 +129,8 @@ class Uplink:
                 raise
             except (OSError, ConnectionClosed, InvalidHandshake, InvalidURI, TimeoutError) as exc:
                 log.warning("uplink to %s lost: %s", self.url, exc)
+            except PlatformBusy as exc:
+                log.info("uplink to %s turned away: %s", self.url, exc)
             except ProtocolError as exc:
                 log.error("platform sent something invalid: %s", exc)
             finally:
@@ -132,6 +147,10 @@ class Uplink:
         )
         raw = await asyncio.wait_for(ws.recv(), WELCOME_TIMEOUT_S)
         msg = parse_message(raw, channel="uplink_to_agent")
+        if isinstance(msg, Error) and msg.code == "busy":
+            # Thousands of agents connecting at once: come back after the backoff, which
+            # keeps growing while the platform turns us away.
+            raise PlatformBusy(msg.message)
         if not isinstance(msg, Welcome):
             # The platform refused us (bad credential, version): wait and retry.
             raise ProtocolError("refused", f"platform answered {message_type(msg)}: {msg}")

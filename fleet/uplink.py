@@ -36,7 +36,7 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 import msgspec
 from channels.db import database_sync_to_async
@@ -104,6 +104,15 @@ CLOSE_HELLO_TIMEOUT = 4408
 CLOSE_REPLACED = 4409
 CLOSE_FLOOD = 4429
 CLOSE_INTERNAL = 1011  # the standard "server error": the agent reconnects with backoff
+CLOSE_TRY_LATER = 1013  # the standard "try again later": the platform is too busy now
+
+#: A hello that waited this long for the database is not admitted: its agent waits
+#: 10 s for the welcome (agents.uplink.WELCOME_TIMEOUT_S) and has given up, or soon
+#: will, so admitting it would be work for nobody (see AgentUplinkConsumer._hello).
+ADMIT_WITHIN_S = 8.0
+
+#: What :func:`_admit` says of a hello that waited too long.
+BUSY: Literal["busy"] = "busy"
 
 #: This many refused frames within BAD_FRAMES_WINDOW_S closes the uplink (4429).
 BAD_FRAMES_MAX = 20
@@ -643,9 +652,16 @@ def _welcome(vehicle_id: str) -> Welcome:
     return full
 
 
-def _admit(*, vehicle_id: str, credential: str, now: datetime) -> tuple[Vehicle, Welcome] | None:
+def _admit(
+    *, vehicle_id: str, credential: str, now: datetime, queued_at: float | None = None
+) -> tuple[Vehicle, Welcome] | Literal["busy"] | None:
     """A hello's database work in one call: the vehicle if the credential is its own
-    (last_seen recorded at ``now``) and the ``welcome`` to send it, else None."""
+    (last_seen recorded at ``now``) and the ``welcome`` to send it, else None.
+
+    :data:`BUSY`, with nothing read, when the hello waited for a database thread since
+    ``queued_at`` (``time.monotonic()``) for longer than :data:`ADMIT_WITHIN_S`."""
+    if queued_at is not None and time.monotonic() - queued_at > ADMIT_WITHIN_S:
+        return BUSY
     vehicle = vehicle_authenticate(vehicle_id=vehicle_id, credential=credential)
     if vehicle is None:
         return None
@@ -909,7 +925,20 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             )
             return
         now = timezone.now()
-        admitted = await _db(_admit)(vehicle_id=msg.vehicle_id, credential=msg.credential, now=now)
+        admitted = await _db(_admit)(
+            vehicle_id=msg.vehicle_id,
+            credential=msg.credential,
+            now=now,
+            queued_at=time.monotonic(),
+        )
+        if isinstance(admitted, str):  # BUSY
+            # Thousands of agents connect at once (a platform restart): the hellos that
+            # queued too long are turned away at once, so the process spends its time
+            # on those it can still welcome and on the agents already connected; the
+            # turned away come back after their backoff.
+            log.info("uplink: hello of %.40r turned away, the platform is busy", msg.vehicle_id)
+            await self._refuse("busy", "the platform is busy: try again later", CLOSE_TRY_LATER)
+            return
         if admitted is None:
             log.warning("uplink: refused hello for vehicle id %.40r", msg.vehicle_id)
             await self._refuse(

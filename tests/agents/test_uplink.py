@@ -136,3 +136,60 @@ async def test_an_ack_the_link_lost_goes_out_on_the_next_connection(platform, ag
     back = await asyncio.wait_for(platform.connections.get(), 5)
     assert (await next_of(back, "ack"))["id"] == "m-4"
     assert [m.id for m in handled] == ["m-4"]
+
+
+async def test_an_agent_turned_away_as_busy_backs_off_and_comes_back(caplog) -> None:
+    # Thousands of agents connecting at once: the platform turns some hellos away
+    # ("busy", 1013); the agent waits its growing backoff and connects again, with no
+    # error logged (nothing is wrong with it or the platform's messages).
+    hellos: list[float] = []
+    welcomed = asyncio.Event()
+
+    async def handler(ws: ServerConnection) -> None:
+        json.loads(await ws.recv())
+        hellos.append(asyncio.get_running_loop().time())
+        if len(hellos) <= 3:
+            busy = {"type": "error", "code": "busy", "message": "try again later"}
+            await ws.send(json.dumps(busy))
+            await ws.close(1013, "busy")
+            return
+        await ws.send(
+            json.dumps({"type": "welcome", "v": PROTOCOL_VERSION, "heartbeat_interval_s": 30})
+        )
+        welcomed.set()
+        await ws.wait_closed()
+
+    async with serve(handler, "127.0.0.1", 0) as server:
+        port = next(iter(server.sockets)).getsockname()[1]
+        uplink = Uplink(
+            url=f"ws://127.0.0.1:{port}/",
+            vehicle_id="v-1",
+            credential="c",
+            on_message=lambda msg: asyncio.sleep(0),
+            profile=lambda: Profile(
+                vehicle_type="car",
+                adapter="sim",
+                attributes={},
+                commands=[],
+                telemetry=[],
+                control_url="",
+                video=False,
+                position=None,
+                battery=None,
+            ),
+            heartbeat=lambda: Heartbeat(seq=0),
+            reconnect_min_s=0.05,
+            reconnect_max_s=5.0,
+        )
+        with caplog.at_level("INFO", logger="agents.uplink"):
+            run = asyncio.create_task(uplink.run())
+            try:
+                await asyncio.wait_for(welcomed.wait(), 30)
+                await asyncio.wait_for(uplink.connected.wait(), 5)
+            finally:
+                run.cancel()
+                with pytest.raises(asyncio.CancelledError):
+                    await run
+    assert len(hellos) == 4
+    assert not [r for r in caplog.records if r.levelname == "ERROR"], caplog.text
+    assert sum("turned away" in r.getMessage() for r in caplog.records) == 3

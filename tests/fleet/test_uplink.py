@@ -817,3 +817,26 @@ async def test_fuzzed_frames_are_answered_or_accepted_never_crash(fuzz_agent, fr
     assert len(replies) <= 1
     for reply in replies:
         assert reply["type"] == "error" and reply["code"] != "internal", reply
+
+
+async def test_a_hello_that_waited_too_long_for_the_database_is_turned_away(monkeypatch):
+    # A platform restart brings thousands of hellos at once; one that queued for a
+    # database thread longer than its agent waits for the welcome is turned away at
+    # once (1013, "busy") instead of admitted for nobody, and nothing is written.
+    from fleet import uplink
+
+    monkeypatch.setattr(uplink, "ADMIT_WITHIN_S", -1.0)  # every hello has waited too long
+    vehicle, credential = await _enrolled()
+    comm = await _open()
+    await comm.send_json_to(
+        {
+            "type": "hello",
+            "v": PROTOCOL_VERSION,
+            "vehicle_id": str(vehicle.pk),
+            "credential": credential,
+        }
+    )
+    messages, code = await _closed(comm)
+    assert code == 1013
+    assert [m["code"] for m in messages] == ["busy"]
+    assert (await _get(vehicle)).last_seen is None
