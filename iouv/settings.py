@@ -153,7 +153,11 @@ else:
         DATABASES["default"]["CONN_MAX_AGE"] = 0  # the pool keeps them, not the threads
     else:
         DATABASES["default"]["CONN_MAX_AGE"] = env_int("DB_CONN_MAX_AGE", 60)
-        DATABASES["default"]["CONN_HEALTH_CHECKS"] = True
+    # A connection is checked before use: with the pool, as it is lent (one empty round
+    # trip; Django hands the pool psycopg_pool's check), else when a kept one is reused.
+    # After PostgreSQL restarted, or dropped idle connections, the dead ones are
+    # replaced instead of failing a request each.
+    DATABASES["default"]["CONN_HEALTH_CHECKS"] = True
 
 DEFAULT_AUTO_FIELD = "django.db.models.BigAutoField"
 
