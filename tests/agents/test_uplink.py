@@ -48,6 +48,30 @@ async def next_of(ws: ServerConnection, kind: str) -> dict[str, Any]:
             return msg
 
 
+def _uplink(port: int, on_message: Any, *, reconnect_max_s: float) -> Uplink:
+    """An agent's uplink to the stand-in platform on ``port``."""
+    return Uplink(
+        url=f"ws://127.0.0.1:{port}/",
+        vehicle_id="v-1",
+        credential="c",
+        on_message=on_message,
+        profile=lambda: Profile(
+            vehicle_type="car",
+            adapter="sim",
+            attributes={},
+            commands=[],
+            telemetry=[],
+            control_url="",
+            video=False,
+            position=None,
+            battery=None,
+        ),
+        heartbeat=lambda: Heartbeat(seq=0),
+        reconnect_min_s=0.05,
+        reconnect_max_s=reconnect_max_s,
+    )
+
+
 @pytest.fixture
 async def platform() -> AsyncIterator[Platform]:
     p = Platform()
@@ -65,26 +89,7 @@ async def agent(platform: Platform) -> AsyncIterator[tuple[Uplink, list[Revoke]]
         if msg.reason == "explode":
             raise RuntimeError("the handler broke")
 
-    uplink = Uplink(
-        url=f"ws://127.0.0.1:{platform.port}/",
-        vehicle_id="v-1",
-        credential="c",
-        on_message=on_message,
-        profile=lambda: Profile(
-            vehicle_type="car",
-            adapter="sim",
-            attributes={},
-            commands=[],
-            telemetry=[],
-            control_url="",
-            video=False,
-            position=None,
-            battery=None,
-        ),
-        heartbeat=lambda: Heartbeat(seq=0),
-        reconnect_min_s=0.05,
-        reconnect_max_s=0.1,
-    )
+    uplink = _uplink(platform.port, on_message, reconnect_max_s=0.1)
     run = asyncio.create_task(uplink.run())
     yield uplink, handled
     run.cancel()
@@ -161,26 +166,7 @@ async def test_an_agent_turned_away_as_busy_backs_off_and_comes_back(caplog) -> 
 
     async with serve(handler, "127.0.0.1", 0) as server:
         port = next(iter(server.sockets)).getsockname()[1]
-        uplink = Uplink(
-            url=f"ws://127.0.0.1:{port}/",
-            vehicle_id="v-1",
-            credential="c",
-            on_message=lambda msg: asyncio.sleep(0),
-            profile=lambda: Profile(
-                vehicle_type="car",
-                adapter="sim",
-                attributes={},
-                commands=[],
-                telemetry=[],
-                control_url="",
-                video=False,
-                position=None,
-                battery=None,
-            ),
-            heartbeat=lambda: Heartbeat(seq=0),
-            reconnect_min_s=0.05,
-            reconnect_max_s=5.0,
-        )
+        uplink = _uplink(port, lambda msg: asyncio.sleep(0), reconnect_max_s=5.0)
         with caplog.at_level("INFO", logger="agents.uplink"):
             run = asyncio.create_task(uplink.run())
             try:

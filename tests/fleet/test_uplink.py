@@ -93,8 +93,8 @@ async def _open() -> WebsocketCommunicator:
     return comm
 
 
-async def _agent(vehicle: Vehicle, credential: str) -> tuple[WebsocketCommunicator, dict]:
-    """An authenticated uplink and the platform's welcome."""
+async def _hello(vehicle: Vehicle, credential: str) -> WebsocketCommunicator:
+    """A new uplink that has said hello."""
     comm = await _open()
     await comm.send_json_to(
         {
@@ -104,6 +104,12 @@ async def _agent(vehicle: Vehicle, credential: str) -> tuple[WebsocketCommunicat
             "credential": credential,
         }
     )
+    return comm
+
+
+async def _agent(vehicle: Vehicle, credential: str) -> tuple[WebsocketCommunicator, dict]:
+    """An authenticated uplink and the platform's welcome."""
+    comm = await _hello(vehicle, credential)
     welcome = await comm.receive_json_from(timeout=5)
     assert welcome["type"] == "welcome", welcome
     return comm, welcome
@@ -128,6 +134,12 @@ async def _closed(comm: WebsocketCommunicator) -> tuple[list[dict], int]:
             await comm.disconnect()
             return messages, out.get("code")
         messages.append(json.loads(out["text"]))
+
+
+async def _hello_closed(vehicle: Vehicle, credential: str) -> tuple[list[dict], int]:
+    """Say hello on a new uplink that the platform is expected to close: what it sent,
+    and the close code."""
+    return await _closed(await _hello(vehicle, credential))
 
 
 async def _eventually(check) -> None:
@@ -739,16 +751,7 @@ async def test_a_platform_failure_during_hello_closes_for_a_retry(monkeypatch):
         raise RuntimeError("database down")
 
     monkeypatch.setattr(uplink, "vehicle_authenticate", broken)
-    comm = await _open()
-    await comm.send_json_to(
-        {
-            "type": "hello",
-            "v": PROTOCOL_VERSION,
-            "vehicle_id": str(vehicle.pk),
-            "credential": credential,
-        }
-    )
-    messages, code = await _closed(comm)
+    messages, code = await _hello_closed(vehicle, credential)
     assert code == 1011 and messages[0]["code"] == "internal"
 
 
@@ -827,16 +830,7 @@ async def test_a_hello_that_waited_too_long_for_the_database_is_turned_away(monk
 
     monkeypatch.setattr(uplink, "ADMIT_WITHIN_S", -1.0)  # every hello has waited too long
     vehicle, credential = await _enrolled()
-    comm = await _open()
-    await comm.send_json_to(
-        {
-            "type": "hello",
-            "v": PROTOCOL_VERSION,
-            "vehicle_id": str(vehicle.pk),
-            "credential": credential,
-        }
-    )
-    messages, code = await _closed(comm)
+    messages, code = await _hello_closed(vehicle, credential)
     assert code == 1013
     assert [m["code"] for m in messages] == ["busy"]
     assert (await _get(vehicle)).last_seen is None
