@@ -15,8 +15,13 @@ Close codes the platform uses on this socket:
 4409   replaced: a newer uplink of the same vehicle took over
 4401   (also) the vehicle's credential was replaced (error ``credential_revoked``)
 4429   flood: too many refused frames in a short time
-1011   the platform failed before authentication finished (retry)
+4500   the platform failed before authentication finished (retry)
+4503   the platform is too busy to admit the ``hello`` now (error ``busy``; retry later)
 =====  ===============================================================
+
+The codes are in WebSocket's private range (4000-4999): daphne's server (autobahn)
+closes with nothing but 1000 or 3000-4999, so the standard 1011 and 1013 cannot be
+sent; 4500 and 4503 say the same as HTTP's 500 and 503.
 
 What the platform tells an agent (tasks, revokes, ends) is owed in the database until
 the agent acknowledges it (:func:`vehicle_send`, fleet.outbox); relayed control traffic
@@ -103,8 +108,8 @@ CLOSE_UNAUTHORIZED = 4401
 CLOSE_HELLO_TIMEOUT = 4408
 CLOSE_REPLACED = 4409
 CLOSE_FLOOD = 4429
-CLOSE_INTERNAL = 1011  # the standard "server error": the agent reconnects with backoff
-CLOSE_TRY_LATER = 1013  # the standard "try again later": the platform is too busy now
+CLOSE_INTERNAL = 4500  # a server error (HTTP's 500): the agent reconnects with backoff
+CLOSE_TRY_LATER = 4503  # too busy now (HTTP's 503): the agent comes back after its backoff
 
 #: A hello that waited this long for the database is not admitted: its agent waits
 #: 10 s for the welcome (agents.uplink.WELCOME_TIMEOUT_S) and has given up, or soon

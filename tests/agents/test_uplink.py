@@ -145,7 +145,7 @@ async def test_an_ack_the_link_lost_goes_out_on_the_next_connection(platform, ag
 
 async def test_an_agent_turned_away_as_busy_backs_off_and_comes_back(caplog) -> None:
     # Thousands of agents connecting at once: the platform turns some hellos away
-    # ("busy", 1013); the agent waits its growing backoff and connects again, with no
+    # ("busy", 4503); the agent waits its growing backoff and connects again, with no
     # error logged (nothing is wrong with it or the platform's messages).
     hellos: list[float] = []
     welcomed = asyncio.Event()
@@ -156,7 +156,7 @@ async def test_an_agent_turned_away_as_busy_backs_off_and_comes_back(caplog) -> 
         if len(hellos) <= 3:
             busy = {"type": "error", "code": "busy", "message": "try again later"}
             await ws.send(json.dumps(busy))
-            await ws.close(1013, "busy")
+            await ws.close(4503, "busy")
             return
         await ws.send(
             json.dumps({"type": "welcome", "v": PROTOCOL_VERSION, "heartbeat_interval_s": 30})

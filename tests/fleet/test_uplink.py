@@ -752,7 +752,7 @@ async def test_a_platform_failure_during_hello_closes_for_a_retry(monkeypatch):
 
     monkeypatch.setattr(uplink, "vehicle_authenticate", broken)
     messages, code = await _hello_closed(vehicle, credential)
-    assert code == 1011 and messages[0]["code"] == "internal"
+    assert code == 4500 and messages[0]["code"] == "internal"
 
 
 # --- fuzz -------------------------------------------------------------------------------
@@ -825,12 +825,22 @@ async def test_fuzzed_frames_are_answered_or_accepted_never_crash(fuzz_agent, fr
 async def test_a_hello_that_waited_too_long_for_the_database_is_turned_away(monkeypatch):
     # A platform restart brings thousands of hellos at once; one that queued for a
     # database thread longer than its agent waits for the welcome is turned away at
-    # once (1013, "busy") instead of admitted for nobody, and nothing is written.
+    # once (4503, "busy") instead of admitted for nobody, and nothing is written.
     from fleet import uplink
 
     monkeypatch.setattr(uplink, "ADMIT_WITHIN_S", -1.0)  # every hello has waited too long
     vehicle, credential = await _enrolled()
     messages, code = await _hello_closed(vehicle, credential)
-    assert code == 1013
+    assert code == 4503
     assert [m["code"] for m in messages] == ["busy"]
     assert (await _get(vehicle)).last_seen is None
+
+
+def test_every_close_code_is_one_daphne_can_send():
+    # daphne's WebSocket server (autobahn) refuses to close with any code but 1000 or
+    # 3000-4999: a refusal with another one raised instead of closing the socket.
+    from fleet import uplink
+
+    codes = {name: value for name, value in vars(uplink).items() if name.startswith("CLOSE_")}
+    assert len(codes) >= 7, codes
+    assert all(code == 1000 or 3000 <= code <= 4999 for code in codes.values()), codes
