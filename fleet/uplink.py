@@ -936,7 +936,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             now=now,
             queued_at=time.monotonic(),
         )
-        if isinstance(admitted, str):  # BUSY
+        if admitted == BUSY:
             # Thousands of agents connect at once (a platform restart): the hellos that
             # queued too long are turned away at once, so the process spends its time
             # on those it can still welcome and on the agents already connected; the
