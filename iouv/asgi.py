@@ -7,11 +7,13 @@ be abused cross-site there.
 """
 
 import os
-
-from django.core.asgi import get_asgi_application
+import sys
 
 os.environ.setdefault("DJANGO_SETTINGS_MODULE", "iouv.settings")
-django_asgi_app = get_asgi_application()
+
+from iouv.handler import one_hop_asgi_application
+
+django_asgi_app = one_hop_asgi_application()
 
 # Imported after Django is set up: consumers import models.
 from channels.auth import AuthMiddlewareStack  # noqa: E402
@@ -30,6 +32,11 @@ from iouv.routing import (  # noqa: E402
 # daphne answers an oversized request line or header with a 414 or 431 instead of
 # dropping the connection without a word.
 daphne_use_limited_channel()
+
+# A request's thread runs its whole view without giving the interpreter back
+# (iouv.handler); the event loop, which carries every socket, waits for it at most
+# this long each time it needs it (iouv.concurrency).
+sys.setswitchinterval(settings.IOUV_SWITCH_INTERVAL_MS / 1000)
 
 http_app: ASGIApp = HttpConcurrencyLimit(django_asgi_app, limit=settings.IOUV_HTTP_CONCURRENCY)
 if settings.SERVE_STATIC:

@@ -4,10 +4,28 @@ Django runs each request's view on a thread of its own. Those threads and the ev
 loop, which carries every WebSocket (the agents' uplinks, the relay, the live feeds),
 share one interpreter lock. With eight busy API clients the loop got an eighth of it:
 a process holding a thousand agents fell behind their heartbeats, and a relayed
-command waited 1.8 s for its answer (median). With at most four requests at a time
-and the rest waiting their turn on the loop, where waiting costs nothing, the same
-load gave as many sessions per second and relayed commands 0.18 s. (Both measured by
-``python -m benchmarks.scale``, run with ``IOUV_HTTP_CONCURRENCY=0`` and with 4.)
+command waited 1.8 s for its answer (median).
+
+Since a request's middleware and view run in one go on its thread (iouv.handler), a
+request thread gives the interpreter back only when it waits (for the database, say)
+or when the loop has waited for it a switch interval (IOUV_SWITCH_INTERVAL_MS). Every
+further request thread is one more the loop waits behind, and adds no processor: the
+lock lets one thread run at a time. ``python -m benchmarks.scale --phases one`` (1,000
+agents, eight API clients, a relayed command every 100 ms) measured, on one 2-core
+machine, the relayed round trip p50 / p95 and the sessions per second:
+
+=========================  ======================  ==============
+requests at once           relayed round trip      sessions per s
+=========================  ======================  ==============
+4 (switch interval 5 ms)   64 / 122, 84 / 156 ms   9.7, 7.9
+2 (5 ms)                   26 / 56 ms              9.9
+1 (5 ms)                   10 / 27 ms              8.8
+1 (1 ms)                   8.4 / 20 ms             10.3
+=========================  ======================  ==============
+
+The sessions per second are the same within this machine's spread (runs of one setting
+differ by a fifth); the relay is not. Hence one request at a time and a 1 ms interval
+by default. A deployment whose views wait on slow services would raise the limit.
 """
 
 from __future__ import annotations

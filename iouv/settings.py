@@ -334,7 +334,11 @@ IOUV_UNSAFE_REFUSALS_WINDOW_S = env_float("IOUV_UNSAFE_REFUSALS_WINDOW_S", 10.0)
 # HTTP requests one platform process runs at once (0: no limit); the rest wait their
 # turn. Their threads share the interpreter with the WebSockets' event loop, which
 # must keep its share (iouv.concurrency).
-IOUV_HTTP_CONCURRENCY = env_int("IOUV_HTTP_CONCURRENCY", 4)
+IOUV_HTTP_CONCURRENCY = env_int("IOUV_HTTP_CONCURRENCY", 1)
+# How long a thread of a platform process may hold the interpreter while another
+# waits for it, in milliseconds (Python's own default is 5): the event loop waits for
+# the request threads at most this long each time (iouv.asgi, iouv.concurrency).
+IOUV_SWITCH_INTERVAL_MS = env_float("IOUV_SWITCH_INTERVAL_MS", 1.0)
 
 # Embedded mode: a worker process pushes through the database to the ASGI process.
 IOUV_LAYER_RELAY = env_bool("IOUV_LAYER_RELAY", True)
