@@ -23,7 +23,7 @@ from django.http import HttpRequest
 
 from accounts.users import User
 from agents.protocol import FAILSAFE_ACTIONS, Limits, ProtocolError, UserGrant, VehicleTask
-from agents.protocol.messages import EndTask, Revoke, Task
+from agents.protocol.messages import EndTask, Revoke, Task, message_to_dict, message_type
 from fleet.feed import fleet_notify
 from fleet.models import AgentMessage, Vehicle
 from fleet.outbox import agent_messages_cancel
@@ -39,6 +39,7 @@ from services.grants import user_can_use
 from services.ice import ice_servers_for
 from services.kinds import UnknownKind, kind_of
 from services.models import Assignment, Service, Session
+from services.selectors import delivery_entry
 from services.sessions import FINAL, session_transition, session_transition_locked
 from services.signing import platform_private_key
 
@@ -476,8 +477,19 @@ def _close(
         released = session_transition_locked(
             session=row, to=to, reason=reason, data=data, free_vehicles=False, log=log
         )
+        vehicles = {a.vehicle_id: a.vehicle for a in row.known_assignments or []}
+        delivery = []
         for vehicle_id in released:
-            vehicle_release(vehicle_id=vehicle_id, session_id=row.pk, message=message)
+            if vehicle_release(vehicle_id=vehicle_id, session_id=row.pk, message=message):
+                # Owed, not yet confirmed: as session_delivery words it, from the
+                # vehicle as read before the release (offline stays offline).
+                delivery.append(
+                    delivery_entry(
+                        vehicle=vehicles[vehicle_id],
+                        kind=message_type(message),
+                        message=message_to_dict(message),
+                    )
+                )
     if row is not session:
         # The row as the locked read and the update left it (the caller's instance
         # keeps its related service and user).
@@ -485,6 +497,7 @@ def _close(
             setattr(session, column.attname, getattr(row, column.attname))
         session.known_assignments = row.known_assignments
     session.known_events = log
+    session.known_delivery = delivery
     return session
 
 

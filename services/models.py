@@ -255,10 +255,12 @@ class Session(models.Model):
 
     # Not columns. Left on the instance by the function that just wrote them, under the
     # session's lock, so that an answer about the session does not read them back
-    # (services.api_schemas): all its assignments with their vehicles, and its whole log
-    # in order, as that transaction left them. None: not known, read them.
+    # (services.api_schemas): all its assignments with their vehicles, its whole log
+    # in order, and what its end sent the vehicles (services.selectors.session_delivery),
+    # as that transaction left them. None: not known, read them.
     known_assignments: list[Assignment] | None = None
     known_events: list[SessionEvent] | None = None
+    known_delivery: list[dict[str, Any]] | None = None
 
     class Meta:
         ordering = ["-created_at"]

@@ -60,42 +60,57 @@ def session_delivery(session: Session) -> list[dict[str, Any]]:
     ``at``), ``sending`` (its agent is online and has not confirmed yet) or
     ``vehicle_offline`` (its own fail-safe, ``action``, holds; it is told when it
     reconnects). Vehicles whose agent never had the session's task are not listed.
+    The function that just ended the session leaves what it sent on it
+    (``known_delivery``): that is the answer then, without reading it back.
     """
+    if session.known_delivery is not None:
+        return session.known_delivery
     latest: dict[Any, AgentMessage] = {}
     for row in agent_messages_owed(session_id=session.pk):
         if row.kind in ENDING and row.state != AgentMessage.State.CANCELLED:
             latest[row.vehicle_id] = row
-    out = []
-    for row in latest.values():
-        vehicle = row.vehicle
-        action = row.message.get("action") or "end"
-        word = "stop" if row.kind == AgentMessage.Kind.REVOKE else "end of the session"
-        if row.state == AgentMessage.State.ACKED:
-            state = "delivered"
-            text = f"The {word} reached {vehicle.name}"
-            if row.kind == AgentMessage.Kind.REVOKE:
-                text += f": it performs {action.replace('_', ' ')}"
-        elif vehicle.status == Vehicle.Status.OFFLINE:
-            state = "vehicle_offline"
-            failsafe = action if row.kind == AgentMessage.Kind.REVOKE else "its fail-safe"
-            text = (
-                f"{vehicle.name} is offline: its own fail-safe ({failsafe.replace('_', ' ')}) "
-                f"holds; the {word} is delivered when it reconnects"
-            )
-        else:
-            state = "sending"
-            text = f"Sending the {word} to {vehicle.name}…"
-        out.append(
-            {
-                "vehicle": {"id": str(vehicle.pk), "name": vehicle.name},
-                "message": row.kind,
-                "action": row.message.get("action"),
-                "state": state,
-                "at": row.acked_at.isoformat() if row.acked_at else None,
-                "text": text,
-            }
+    return [
+        delivery_entry(
+            vehicle=row.vehicle,
+            kind=row.kind,
+            message=row.message,
+            acked_at=row.acked_at if row.state == AgentMessage.State.ACKED else None,
         )
-    return out
+        for row in latest.values()
+    ]
+
+
+def delivery_entry(
+    *, vehicle: Vehicle, kind: str, message: dict[str, Any], acked_at: Any = None
+) -> dict[str, Any]:
+    """One entry of :func:`session_delivery`: the ``kind`` (end_task or revoke) of
+    ``message`` sent to ``vehicle``, confirmed by its agent at ``acked_at`` (None: not
+    yet)."""
+    action = message.get("action") or "end"
+    word = "stop" if kind == AgentMessage.Kind.REVOKE else "end of the session"
+    if acked_at is not None:
+        state = "delivered"
+        text = f"The {word} reached {vehicle.name}"
+        if kind == AgentMessage.Kind.REVOKE:
+            text += f": it performs {action.replace('_', ' ')}"
+    elif vehicle.status == Vehicle.Status.OFFLINE:
+        state = "vehicle_offline"
+        failsafe = action if kind == AgentMessage.Kind.REVOKE else "its fail-safe"
+        text = (
+            f"{vehicle.name} is offline: its own fail-safe ({failsafe.replace('_', ' ')}) "
+            f"holds; the {word} is delivered when it reconnects"
+        )
+    else:
+        state = "sending"
+        text = f"Sending the {word} to {vehicle.name}…"
+    return {
+        "vehicle": {"id": str(vehicle.pk), "name": vehicle.name},
+        "message": kind,
+        "action": message.get("action"),
+        "state": state,
+        "at": acked_at.isoformat() if acked_at else None,
+        "text": text,
+    }
 
 
 def service_vehicles_matching(service: Service) -> list[Vehicle]:

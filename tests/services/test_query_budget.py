@@ -36,6 +36,7 @@ from fleet.signals import agent_message
 from fleet.uplink import _acked, _admit, _signal_send, vehicle_record_profile
 from services import assignment
 from services.models import Session, SessionEvent
+from services.selectors import session_delivery
 from services.signing import platform_public_key
 from tests import factories as f
 
@@ -53,15 +54,16 @@ REQUEST_QUERIES = 17
 #   to the vehicle's outbox (1).
 REQUEST_ON_COMMIT = 3
 
-# End: 13 statements.
+# End: 12 statements.
 #   the API's own: the token with its user (1);
 #   one transaction (BEGIN, COMMIT: 2): the session locked and read, with its service
 #   and user (1), its whole log (1, the event's place and the answer's), its
 #   assignments locked and read with their vehicles (1) and released (1), the
 #   session ended (1) and the event (1), the vehicle's task rows locked (1), the end
 #   owed to the agent (1), the vehicle releasing (1);
-#   the answer: the end's delivery (1); the assignments and the log as written.
-END_QUERIES = 13
+#   the answer: nothing read back (the assignments, the log and the end's delivery as
+#   written).
+END_QUERIES = 12
 #   Session page and monitors (2), fleet feed (1), the outbox nudge (1).
 END_ON_COMMIT = 4
 
@@ -175,6 +177,10 @@ def test_requesting_and_ending_a_session_stay_within_their_query_budget(
         ended = _post(f"/sessions/{session_id}/end", token, {"reason": "done"})
     assert ended.status_code == 200, ended.content
     assert ended.json()["state"] == Session.State.ENDED
+    # The end's delivery, answered as written, is what reading it back says.
+    (delivery,) = ended.json()["delivery"]
+    assert delivery["state"] == "sending" and delivery["message"] == "end_task"
+    assert ended.json()["delivery"] == session_delivery(Session.objects.get(pk=session_id))
     (end_task,) = agent()
     assert end_task == {"type": "end_task", "session_id": session_id, "reason": "done"}
     (end_id,) = agent.ids()
