@@ -362,7 +362,9 @@ def role_match(
 
 #: Vehicles read per page when matching nearest first (see :func:`role_match`). A page's
 #: candidates rank before the next page's: a vehicle on a later page is farther.
-POOL_PAGE = 64
+#: Small, because every row read is decoded (its attributes are JSON) and measured,
+#: and the database has already left out the vehicles that cannot serve the role.
+POOL_PAGE = 16
 
 #: Why no candidate could be reserved (for the refusal).
 TAKEN = "every matching vehicle was just taken by other requests"

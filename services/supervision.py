@@ -85,7 +85,11 @@ def _assignment_for(*, vehicle_id: Any, session_id: Any) -> Assignment | None:
         return None
     assignment = (
         Assignment.objects.filter(session_id=pk, vehicle_id=vehicle_id)
-        .select_related("session__service", "session__user", "vehicle")
+        # The session and its service are what every report needs (its log, its kind);
+        # the vehicle and the user are read when a message needs them (a refusal's
+        # reason, some kinds' handlers). Joined too, they were most of a report's cost:
+        # Django composing a five-table query takes longer than PostgreSQL answering it.
+        .select_related("session__service")
         .order_by("-active", "-created_at")
         .first()
     )
