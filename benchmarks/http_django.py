@@ -1,19 +1,14 @@
 """The platform's HTTP served by Django's own ASGI handler, for benchmarks.http_handler.
 
-The same settings and the same concurrency limit as ``iouv.asgi``; only the handler
-differs: Django's runs each middleware hook in a thread hop of its own.
+The platform's own set-up (``iouv.asgi``: settings, the interpreter's switch interval,
+daphne's HTTP channel) and the same concurrency limit; only the handler differs:
+Django's runs each middleware hook in a thread hop of its own.
 """
 
-import os
-
-os.environ.setdefault("DJANGO_SETTINGS_MODULE", "iouv.settings")
-
+from django.conf import settings
 from django.core.asgi import get_asgi_application
 
-django_asgi_app = get_asgi_application()
+import iouv.asgi  # noqa: F401 - the platform's set-up, as the other handler has it
+from iouv.concurrency import HttpConcurrencyLimit
 
-from django.conf import settings  # noqa: E402
-
-from iouv.concurrency import HttpConcurrencyLimit  # noqa: E402
-
-application = HttpConcurrencyLimit(django_asgi_app, limit=settings.IOUV_HTTP_CONCURRENCY)
+application = HttpConcurrencyLimit(get_asgi_application(), limit=settings.IOUV_HTTP_CONCURRENCY)
