@@ -171,9 +171,10 @@ async def test_direct_data_channel_carries_commands_and_acks(agent: Rig) -> None
         for seq in range(3):
             ms, ok = await prober.probe(seq, "forward" if seq % 2 else "stop", {})
             assert ok and 0 < ms < paper.PROBE_TIMEOUT_S * 1000
+        # Read while the channel is open: closing it reports the fall back to the socket.
+        assert agent.events("control_path")[-1]["path"] == "webrtc_direct"
     finally:
         await prober.close()
-    assert agent.events("control_path")[-1]["path"] == "webrtc_direct"
 
 
 async def test_turn_data_channel_goes_through_coturn(agent: Rig, turn: TurnServer) -> None:
@@ -188,9 +189,10 @@ async def test_turn_data_channel_goes_through_coturn(agent: Rig, turn: TurnServe
     try:
         ms, ok = await prober.probe(1, "stop", {})
         assert ok and ms > 0
+        # Read while the channel is open: closing it reports the fall back to the socket.
+        assert agent.events("control_path")[-1]["path"] == "webrtc_turn"
     finally:
         await prober.close()
-    assert agent.events("control_path")[-1]["path"] == "webrtc_turn"
     assert turn.allocations() > before
 
 
