@@ -53,6 +53,7 @@ from agents.protocol.messages import (
 from fleet.feed import fleet_notify
 from fleet.models import AgentMessage, Vehicle
 from iouv import layer
+from iouv.prepared import Param, PreparedQuery, PreparedUpdate
 
 log = logging.getLogger(__name__)
 
@@ -195,6 +196,52 @@ class Acked:
     released: bool  # the vehicle left ``releasing`` with this acknowledgement
 
 
+# An agent's ack, which every delivered message gets, in statements composed once
+# (iouv.prepared).
+# One conditional update, no transaction: of two acks of one message (a repeat crossing
+# a redelivery) one changes the row, the other finds it acked already.
+_ACK = PreparedUpdate(
+    lambda: (
+        AgentMessage.objects.filter(
+            key=Param("key", AgentMessage.key),
+            vehicle_id=Param("vehicle", AgentMessage.vehicle),
+            state=AgentMessage.State.PENDING,
+        ),
+        {
+            "state": AgentMessage.State.ACKED,
+            "acked_at": Param("now", AgentMessage.acked_at),
+            "result": Param("result", AgentMessage.result),
+        },
+    )
+)
+# Acked rows do not change again: read without a lock.
+_ACKED: PreparedQuery[Any] = PreparedQuery(
+    lambda: AgentMessage.objects.filter(key=Param("key", AgentMessage.key)).values_list(
+        "session_id", "kind", "message"
+    )
+)
+# A releasing vehicle whose agent owes no session end, made idle: the check and the
+# change in one statement.
+_RELEASE_IF_SETTLED = PreparedUpdate(
+    lambda: (
+        Vehicle.objects.filter(
+            pk=Param("vehicle", Vehicle.id),
+            status=Vehicle.Status.RELEASING,
+            maintenance=False,
+        ).filter(
+            ~Exists(
+                AgentMessage.objects.filter(
+                    vehicle_id=OuterRef("pk"),
+                    state=AgentMessage.State.PENDING,
+                    kind__in=ENDING,
+                )
+            )
+        ),
+        {"status": Vehicle.Status.IDLE},
+    )
+)
+
+
 def agent_message_ack(*, vehicle_id: Any, key: str, ok: bool, detail: str = "") -> Acked | None:
     """Record the agent's ``ack`` of message ``key``; None when it is not one of the
     vehicle's pending messages (a repeat, a stranger's id, a cancelled one).
@@ -207,20 +254,11 @@ def agent_message_ack(*, vehicle_id: Any, key: str, ok: bool, detail: str = "") 
     except ValueError:
         return None
     detail = detail[:200]
-    # One conditional update, no transaction: of two acks of one message (a repeat
-    # crossing a redelivery) one changes the row, the other finds it acked already.
-    if not AgentMessage.objects.filter(
-        key=pk, vehicle_id=vehicle_id, state=AgentMessage.State.PENDING
-    ).update(
-        state=AgentMessage.State.ACKED,
-        acked_at=timezone.now(),
-        result={"ok": ok, "detail": detail},
+    if not _ACK.run(
+        key=pk, vehicle=vehicle_id, now=timezone.now(), result={"ok": ok, "detail": detail}
     ):
         return None
-    # Acked rows do not change again: read without a lock.
-    session_id, kind, message = (
-        AgentMessage.objects.filter(key=pk).values_list("session_id", "kind", "message").get()
-    )
+    session_id, kind, message = _ACKED.all(key=pk)[0]
     released = kind in ENDING and vehicle_release_if_settled(vehicle_id=vehicle_id)
     return Acked(
         vehicle_id=str(vehicle_id),
@@ -236,15 +274,7 @@ def agent_message_ack(*, vehicle_id: Any, key: str, ok: bool, detail: str = "") 
 def vehicle_release_if_settled(*, vehicle_id: Any) -> bool:
     """A ``releasing`` vehicle whose agent owes no session end becomes ``idle``; True
     if it did. (Its next heartbeat says ``returning`` if it is still flying home.)"""
-    # One statement: the check and the change together.
-    owed = AgentMessage.objects.filter(
-        vehicle_id=OuterRef("pk"), state=AgentMessage.State.PENDING, kind__in=ENDING
-    )
-    changed = (
-        Vehicle.objects.filter(pk=vehicle_id, status=Vehicle.Status.RELEASING, maintenance=False)
-        .filter(~Exists(owed))
-        .update(status=Vehicle.Status.IDLE)
-    )
+    changed = _RELEASE_IF_SETTLED.run(vehicle=vehicle_id)
     if changed:
         fleet_notify([vehicle_id])
     return bool(changed)

@@ -24,6 +24,7 @@ from ninja import Status, Swagger
 from accounts.users import AuthenticatedHttpRequest
 from fleet.models import Vehicle
 from fleet.status import fleet_snapshot
+from iouv.prepared import Param, PreparedQuery
 from services import api_schemas as schema
 from services.api_kit import (
     ApiError,
@@ -45,7 +46,7 @@ from services.deployment import (
     session_revoke,
     user_task_json,
 )
-from services.grants import services_for_user, services_usable
+from services.grants import service_usable_get, services_for_user
 from services.kinds import Request, RequestError
 from services.models import Session
 from services.request import service_request
@@ -118,15 +119,29 @@ def _visible_session(request: AuthenticatedHttpRequest, session_id: UUID) -> Ses
     return session
 
 
+def _own_session(lock: bool) -> PreparedQuery[Session]:
+    def build() -> Any:
+        rows = Session.objects.select_related("service", "user")
+        if lock:
+            rows = rows.select_for_update(of=("self",))
+        return rows.filter(
+            pk=Param("session", Session.id), user_id=Param("user", Session.user)
+        ).order_by("pk")[:1]
+
+    return PreparedQuery(build)
+
+
+# Every call on one's own session reads it: composed once (iouv.prepared).
+_OWN_SESSION, _OWN_SESSION_LOCKED = _own_session(False), _own_session(True)
+
+
 def _owned_session(
     request: AuthenticatedHttpRequest, session_id: UUID, action: str, *, lock: bool = False
 ) -> Session:
     """The session if the user owns it; 403 if they may only view it, else 404.
     ``lock``: read it locked, in the caller's transaction (only one's own is locked)."""
-    rows = Session.objects.select_related("service", "user")
-    if lock:
-        rows = rows.select_for_update(of=("self",))
-    session = rows.filter(pk=session_id, user=request.user).first()
+    statement = _OWN_SESSION_LOCKED if lock else _OWN_SESSION
+    session: Session | None = statement.first(session=session_id, user=request.user.pk)
     if session is None:
         _visible_session(request, session_id)  # 404 unless the user may view it
         raise ApiError(403, "permission_denied", f"only the session's user may {action} it")
@@ -183,7 +198,7 @@ def session_create(
     `params` (docs/api.md lists them). 422 names the requirement no vehicle met; 409
     `session_limit` says the user already holds as many live sessions as it allows."""
     _require_perm(request, "services.use_services", "request services")
-    service = services_usable(request.user).filter(slug=payload.service).first()
+    service = service_usable_get(request.user, payload.service)
     if service is None:
         raise field_error("service", f"no service {payload.service!r}")
     # Whether the user may use it (read with it): service_request checks it first, and

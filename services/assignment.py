@@ -36,7 +36,15 @@ from typing import Any
 
 from django.contrib.auth import get_user_model
 from django.db import connection, transaction
-from django.db.models import Exists, ExpressionWrapper, F, FloatField, OuterRef, Q, Value
+from django.db.models import (
+    Exists,
+    ExpressionWrapper,
+    F,
+    FloatField,
+    OuterRef,
+    Q,
+    Value,
+)
 from django.utils import timezone
 
 from accounts.users import User
@@ -46,6 +54,7 @@ from fleet.feed import fleet_notify
 from fleet.liveness import vehicles_fresh
 from fleet.models import Vehicle
 from fleet.status import vehicles_online
+from iouv.prepared import Param, PreparedQuery, PreparedUpdate
 from services.eventlog import event_append, events_staged
 from services.grants import user_can_use
 from services.models import Assignment, Service, ServiceRole, Session
@@ -371,6 +380,60 @@ TAKEN = "every matching vehicle was just taken by other requests"
 QUIET = "no vehicle is online and idle"
 
 
+# What a request runs for every session, composed once (iouv.prepared).
+#
+# The row lock on a candidate, if it is still idle: a request holding it is skipped (it
+# is being reserved), not waited for. Not one still holding an active assignment (found
+# silent, then heard from again): the unique index would refuse the assignment, and
+# checking here needs no savepoint to go on. Read with its type and station (what its
+# task needs).
+_CANDIDATE_LOCK: PreparedQuery[Vehicle] = PreparedQuery(
+    lambda: (
+        Vehicle.objects.select_for_update(skip_locked=True, of=("self",))
+        .select_related("vehicle_type", "station")
+        .filter(pk=Param("vehicle", Vehicle.id), status=Vehicle.Status.IDLE, maintenance=False)
+        .filter(~Exists(Assignment.objects.filter(vehicle_id=OuterRef("pk"), active=True)))
+        .order_by()[:1]
+    )
+)
+# Conditional too: SQLite has no row locks (its writers take turns instead).
+_RESERVE = PreparedUpdate(
+    lambda: (
+        Vehicle.objects.filter(pk=Param("vehicle", Vehicle.id), status=Vehicle.Status.IDLE),
+        {"status": Vehicle.Status.RESERVED},
+    )
+)
+_REQUIRED_ROLES: PreparedQuery[ServiceRole] = PreparedQuery(
+    lambda: ServiceRole.objects.filter(
+        service_id=Param("service", ServiceRole.service), required=True
+    )
+)
+# The user's row is the lock: two requests of one user are counted one after the other,
+# so together they cannot pass the cap. The count is a statement of its own: under READ
+# COMMITTED a statement sees what was committed when it began, and the lock may be
+# waited for; counted in the locking statement, a racing request's session, committed
+# while this one waited, would not be seen.
+_USER_LOCK: PreparedQuery[Any] = PreparedQuery(
+    lambda: (
+        get_user_model()
+        .objects.select_for_update()
+        .filter(pk=Param("user", get_user_model()._meta.pk))
+        .values_list("pk", flat=True)
+    )
+)
+_LIVE_SESSIONS: PreparedQuery[Any] = PreparedQuery(
+    lambda: (
+        Session.objects.filter(
+            user_id=Param("user", Session.user),
+            service_id=Param("service", Session.service),
+            state__in=LIVE_STATES,
+        )
+        .order_by()
+        .values_list("pk", flat=True)
+    )
+)
+
+
 def _reserve_first(
     *, session: Session, match: Match, now: datetime | None = None
 ) -> tuple[Assignment, Facts] | str:
@@ -379,21 +442,10 @@ def _reserve_first(
     gone quiet. Call it in a transaction: the chosen vehicle's row stays locked until
     it ends. The assignment's ``vehicle`` is read, with its type and station (what its
     task needs)."""
-    held = Assignment.objects.filter(vehicle_id=OuterRef("pk"), active=True)
     why = QUIET if match.candidates else TAKEN
     for candidate in match.candidates:
         facts = candidate.vehicle
-        # The row lock on the chosen vehicle, if it is still idle: a request holding it
-        # is skipped (it is being reserved), not waited for. Not one still holding an
-        # active assignment (found silent, then heard from again): the unique index
-        # would refuse the assignment, and checking here needs no savepoint to go on.
-        vehicle = (
-            Vehicle.objects.select_for_update(skip_locked=True, of=("self",))
-            .select_related("vehicle_type", "station")
-            .filter(pk=facts.pk, status=Vehicle.Status.IDLE, maintenance=False)
-            .filter(~Exists(held))
-            .first()
-        )
+        vehicle: Vehicle | None = _CANDIDATE_LOCK.first(vehicle=facts.pk)
         if vehicle is None:
             why = TAKEN  # another request got it first
             continue
@@ -401,10 +453,7 @@ def _reserve_first(
             # Its agent is not heard from (the sweep has not marked it offline yet):
             # not this one. The lock ends with the transaction.
             continue
-        # Conditional too: SQLite has no row locks (its writers take turns instead).
-        if not Vehicle.objects.filter(pk=vehicle.pk, status=Vehicle.Status.IDLE).update(
-            status=Vehicle.Status.RESERVED
-        ):
+        if not _RESERVE.run(vehicle=vehicle.pk):
             why = TAKEN
             continue
         vehicle.status = Vehicle.Status.RESERVED
@@ -497,10 +546,8 @@ def session_record(
     caller made it): the cap is counted under the user's row lock, the session (``pk``
     if given) is recorded and its ``requested`` event logged. Raises AssignmentError
     (``over_cap``) before writing anything."""
-    # The user's row is the lock: two requests of one user are counted one after
-    # the other, so together they cannot pass the cap.
-    get_user_model().objects.select_for_update().filter(pk=user.pk).values_list("pk").first()
-    live = Session.objects.filter(user=user, service=service, state__in=LIVE_STATES).count()
+    _USER_LOCK.all(user=user.pk)
+    live = len(_LIVE_SESSIONS.all(user=user.pk, service=service.pk))
     cap = service.max_sessions_per_user
     if live >= cap:
         raise AssignmentError(
@@ -582,7 +629,7 @@ def session_roles_assign(
     vehicle stays reserved) and AssignmentError is raised: the caller catches it and
     commits the failure. Returns the assignments, with their vehicles read.
     """
-    roles = list(service.roles.filter(required=True))
+    roles = _REQUIRED_ROLES.all(service=service.pk)
     reserved: list[tuple[Assignment, dict[str, Any]]] = []
     # All roles or none. With one role nothing is written before a refusal; with more,
     # a savepoint takes back the vehicles reserved for the roles before the one failing.

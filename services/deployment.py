@@ -28,6 +28,7 @@ from fleet.feed import fleet_notify
 from fleet.models import AgentMessage, Vehicle
 from fleet.outbox import agent_messages_cancel
 from fleet.uplink import vehicle_send
+from iouv.prepared import Param, PreparedQuery, PreparedUpdate
 from services.assignment import (
     AssignmentError,
     service_grant_require,
@@ -400,6 +401,45 @@ def grant_issue(
         return _user_task(session=session, assignment=_primary(assignments), user=user, role=role)
 
 
+_HELD = [
+    Vehicle.Status.RESERVED,
+    Vehicle.Status.IN_SERVICE,
+    Vehicle.Status.FAILSAFE,
+    Vehicle.Status.IDLE,
+]
+# What every session's end runs per vehicle, composed once (iouv.prepared).
+# A vehicle the supervisor marked fail-safe is freed too: if its agent still is in
+# fail-safe, its next heartbeat says so and marks it again.
+_FREE = PreparedUpdate(
+    lambda: (
+        Vehicle.objects.filter(
+            pk=Param("vehicle", Vehicle.id), maintenance=False, status__in=_HELD[:3]
+        ),
+        {"status": Vehicle.Status.IDLE},
+    )
+)
+# An offline vehicle stays offline: it is told when it reconnects.
+_RELEASING = PreparedUpdate(
+    lambda: (
+        Vehicle.objects.filter(
+            pk=Param("vehicle", Vehicle.id), maintenance=False, status__in=_HELD
+        ),
+        {"status": Vehicle.Status.RELEASING},
+    )
+)
+_TASKS_LOCKED: PreparedQuery[Any] = PreparedQuery(
+    lambda: (
+        AgentMessage.objects.select_for_update()
+        .filter(
+            vehicle_id=Param("vehicle", AgentMessage.vehicle),
+            session_id=Param("session", AgentMessage.session_id),
+            kind=AgentMessage.Kind.TASK,
+        )
+        .values_list("pk", "state", "attempts")
+    )
+)
+
+
 def vehicle_release(*, vehicle_id: Any, session_id: Any, message: EndTask | Revoke) -> bool:
     """Make the vehicle give up ``session_id``: its agent is told ``message`` (an
     ``end_task`` or a ``revoke``) reliably, and the vehicle is ``releasing`` until the
@@ -411,25 +451,12 @@ def vehicle_release(*, vehicle_id: Any, session_id: Any, message: EndTask | Revo
     agent has to confirm, False when the vehicle was freed at once.
     """
     sent = _task_withdraw(vehicle_id=vehicle_id, session_id=session_id)
-    held = [
-        Vehicle.Status.RESERVED,
-        Vehicle.Status.IN_SERVICE,
-        Vehicle.Status.FAILSAFE,
-        Vehicle.Status.IDLE,
-    ]
     if not sent:
-        # A vehicle the supervisor marked fail-safe is freed too: if its agent still
-        # is in fail-safe, its next heartbeat says so and marks it again.
-        if Vehicle.objects.filter(pk=vehicle_id, maintenance=False, status__in=held[:3]).update(
-            status=Vehicle.Status.IDLE
-        ):
+        if _FREE.run(vehicle=vehicle_id):
             fleet_notify([vehicle_id])
         return False
     vehicle_send(vehicle_id=vehicle_id, message=message)
-    # An offline vehicle stays offline: it is told when it reconnects.
-    if Vehicle.objects.filter(pk=vehicle_id, maintenance=False, status__in=held).update(
-        status=Vehicle.Status.RELEASING
-    ):
+    if _RELEASING.run(vehicle=vehicle_id):
         fleet_notify([vehicle_id])
     return True
 
@@ -443,11 +470,7 @@ def _task_withdraw(*, vehicle_id: Any, session_id: Any) -> bool:
     the outbox skips it. One read for both questions (what to withdraw, and whether the
     agent may have it); an update only when something is withdrawn.
     """
-    tasks = list(
-        AgentMessage.objects.select_for_update()
-        .filter(vehicle_id=vehicle_id, session_id=session_id, kind=AgentMessage.Kind.TASK)
-        .values_list("pk", "state", "attempts")
-    )
+    tasks = _TASKS_LOCKED.all(vehicle=vehicle_id, session=session_id)
     pending = [pk for pk, state, _ in tasks if state == AgentMessage.State.PENDING]
     if pending:
         AgentMessage.objects.filter(pk__in=pending).update(state=AgentMessage.State.CANCELLED)

@@ -26,10 +26,33 @@ from django.core.serializers.json import DjangoJSONEncoder
 from django.db import transaction
 from django.utils import timezone
 
+from iouv.prepared import Param, PreparedQuery
 from services.feed import session_notify, session_notify_many
 from services.models import Session, SessionEvent
 
 GENESIS_HASH = "0" * 64
+
+# An append's two reads, composed once (iouv.prepared): they run for every event an
+# agent's report or a supervisor logs.
+_SESSION_LOCK: PreparedQuery[Any] = PreparedQuery(
+    lambda: (
+        Session.objects.select_for_update()
+        .filter(pk=Param("session", Session.id))
+        .values_list("pk", flat=True)
+    )
+)
+_LOG: PreparedQuery[SessionEvent] = PreparedQuery(
+    lambda: SessionEvent.objects.filter(session_id=Param("session", SessionEvent.session)).order_by(
+        "seq"
+    )
+)
+_LOG_TAIL: PreparedQuery[Any] = PreparedQuery(
+    lambda: (
+        SessionEvent.objects.filter(session_id=Param("session", SessionEvent.session))
+        .order_by("-seq")
+        .values_list("seq", "hash")[:1]
+    )
+)
 
 
 def _event_hash(
@@ -135,7 +158,8 @@ def events_staged(*, session_id: Any) -> Iterator[list[SessionEvent]]:
 def session_log(*, session: Session) -> list[SessionEvent]:
     """``session``'s whole log, in order. Read by a holder of the session's lock, it is
     where the next event goes (:func:`event_append`'s ``log``)."""
-    return list(SessionEvent.objects.filter(session=session).order_by("seq"))
+    events: list[SessionEvent] = _LOG.all(session=session.pk)
+    return events
 
 
 def event_append(
@@ -168,13 +192,8 @@ def event_append(
             last = (log[-1].seq, log[-1].hash) if log else None
         else:
             if not locked:
-                Session.objects.select_for_update().filter(pk=session.pk).first()
-            last = (
-                SessionEvent.objects.filter(session=session)
-                .order_by("-seq")
-                .values_list("seq", "hash")
-                .first()
-            )
+                _SESSION_LOCK.all(session=session.pk)
+            last = _LOG_TAIL.first(session=session.pk)
         seq, prev_hash = last if last else (0, GENESIS_HASH)
         event = _event_new(session=session, seq=seq + 1, prev_hash=prev_hash, kind=kind, data=data)
         event.save()

@@ -12,11 +12,12 @@ from __future__ import annotations
 
 from typing import Any
 
-from django.db import transaction
+from django.db import DatabaseError, transaction
 from django.utils import timezone
 
 from fleet.feed import fleet_notify
 from fleet.models import Vehicle
+from iouv.prepared import Param, PreparedQuery, PreparedUpdate
 from services.eventlog import event_append
 from services.models import Assignment, Session, SessionEvent
 
@@ -57,6 +58,27 @@ def session_transition(
     return session
 
 
+# A state change's update, per set of fields changed, composed once (iouv.prepared).
+_UPDATES: dict[tuple[str, ...], PreparedUpdate] = {}
+
+
+def _update_of(fields: tuple[str, ...]) -> PreparedUpdate:
+    return PreparedUpdate(
+        lambda: (
+            Session.objects.filter(pk=Param("session", Session.id)),
+            {name: Param(name, Session._meta.get_field(name)) for name in fields},
+        )
+    )
+
+
+def _session_update(session: Session, fields: list[str]) -> None:
+    """``session.save(update_fields=fields)``, composed once per set of fields."""
+    key = tuple(fields)
+    statement = _UPDATES.get(key) or _UPDATES.setdefault(key, _update_of(key))
+    if not statement.run(session=session.pk, **{name: getattr(session, name) for name in key}):
+        raise DatabaseError("Save with update_fields did not affect any rows.")
+
+
 def session_transition_locked(
     *,
     session: Session,
@@ -94,7 +116,7 @@ def session_transition_locked(
         session.ended_at = now
         fields.append("ended_at")
         released = assignments_release(session=session, free_vehicles=free_vehicles)
-    session.save(update_fields=fields)
+    _session_update(session, fields)
     event_append(
         session=session,
         kind="state",
@@ -105,6 +127,23 @@ def session_transition_locked(
     return released
 
 
+# What every session's end runs, composed once (iouv.prepared).
+_ASSIGNMENTS_LOCKED: PreparedQuery[Assignment] = PreparedQuery(
+    lambda: (
+        Assignment.objects.select_for_update(of=("self",))
+        .select_related("vehicle")
+        .filter(session_id=Param("session", Assignment.session))
+    )
+)
+# Under the locks of all the session's assignments: the active ones are those just read.
+_ASSIGNMENTS_END = PreparedUpdate(
+    lambda: (
+        Assignment.objects.filter(session_id=Param("session", Assignment.session), active=True),
+        {"active": False, "released_at": Param("now", Assignment.released_at)},
+    )
+)
+
+
 def assignments_release(*, session: Session, free_vehicles: bool = True) -> list[Any]:
     """End ``session``'s active assignments; with ``free_vehicles``, vehicles still
     reserved or in service become idle again. Returns the released vehicle ids.
@@ -113,19 +152,13 @@ def assignments_release(*, session: Session, free_vehicles: bool = True) -> list
     on ``session.known_assignments`` as they are once released."""
     # No savepoint: nothing is caught in here; outside a transaction it makes one.
     with transaction.atomic(savepoint=False):
-        assignments = list(
-            Assignment.objects.select_for_update(of=("self",))
-            .select_related("vehicle")
-            .filter(session=session)
-        )
+        assignments: list[Assignment] = _ASSIGNMENTS_LOCKED.all(session=session.pk)
         session.known_assignments = assignments
         active = [a for a in assignments if a.active]
         if not active:
             return []
         now = timezone.now()
-        Assignment.objects.filter(pk__in=[a.pk for a in active]).update(
-            active=False, released_at=now
-        )
+        _ASSIGNMENTS_END.run(session=session.pk, now=now)
         for assignment in active:
             assignment.active, assignment.released_at = False, now
         ids = [a.vehicle_id for a in active]

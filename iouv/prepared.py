@@ -1,0 +1,283 @@
+"""Queries Django composes once per process, then runs with new values.
+
+Composing a query is most of what a short ORM statement costs the platform: building
+the ``Query`` from ``filter()`` and compiling it to SQL took longer than PostgreSQL
+took to answer it (a session's request, end, acks and reports are about forty such
+statements, half their CPU time in composing). The statements on those paths are
+written once with the ORM, with :class:`Param` where a value goes, and kept here as
+their SQL and what Django needs to read their rows back; each run only binds the
+values, executes and reads, as the ORM would.
+
+The SQL is still Django's: the same models, the same backend's dialect (SQLite in the
+embedded set-up, PostgreSQL in production), rows read into model instances by the
+same code (``from_db``, ``select_related``'s populators, the fields' converters). What
+is not supported is refused when a statement is prepared, never silently run
+differently: values that change the SQL's shape (an ``IN`` list), updates across
+tables, extra selects, and annotations outside model queries.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Generic, TypeVar, cast
+
+from django.db import DEFAULT_DB_ALIAS, connections, transaction
+from django.db.models import Expression, Field, Model, QuerySet
+from django.db.models.query import (
+    FlatValuesListIterable,
+    ModelIterable,
+    ValuesListIterable,
+    get_related_populators,
+)
+from django.db.models.sql import UpdateQuery
+from django.db.transaction import TransactionManagementError
+
+M = TypeVar("M", bound=Model)
+
+
+class _Slot:
+    """Where a :class:`Param`'s value goes in a compiled statement's parameters."""
+
+    __slots__ = ("field", "name")
+
+    def __init__(self, name: str, field: Field[Any, Any]) -> None:
+        self.name = name
+        self.field = field
+
+    def __repr__(self) -> str:
+        return f"<slot {self.name}>"
+
+
+class Param(Expression):
+    """A named value of a prepared statement, where a filter or an update takes one.
+
+    ``field`` is the model field the value is for (``Vehicle.status.field``, a
+    relation's field for its id): the value is made ready for the database as that
+    field makes its own, so ids, datetimes and JSON bind as the ORM would bind them.
+    """
+
+    def __init__(self, name: str, field: Any) -> None:
+        # Accept the model attribute (Vehicle.status) as well as its field.
+        field = getattr(field, "field", field)
+        if not isinstance(field, Field):
+            raise TypeError(f"Param {name!r}: {field!r} is not a model field")
+        super().__init__(output_field=field)
+        self.name = name
+
+    def as_sql(self, compiler: Any, connection: Any) -> tuple[str, tuple[Any, ...]]:
+        return "%s", (_Slot(self.name, self.output_field),)
+
+    def __repr__(self) -> str:
+        return f"Param({self.name!r})"
+
+
+@dataclass(frozen=True)
+class _Compiled:
+    """One statement as a backend runs it: the SQL, its parameters (fixed values and
+    slots) and, for a SELECT, what reads its rows back."""
+
+    sql: str
+    params: tuple[Any, ...]
+    names: frozenset[str]
+    locks: bool  # SELECT ... FOR UPDATE: only inside a transaction
+    # For a SELECT, how its rows are read, as Django's compiler and ModelIterable read
+    # them (worked out while composing): the columns kept, each column's converters...
+    col_count: int = 0
+    has_extra_select: bool = False
+    converters: tuple[tuple[int, tuple[Any, ...], Any], ...] = ()
+    values: bool = False  # rows as tuples (values_list), not model instances
+    flat: bool = False
+    # ...and for model instances, the model's columns, the joined models' populators
+    # (select_related) and the annotations' columns.
+    model: Any = None
+    model_start: int = 0
+    model_end: int = 0
+    init_list: tuple[str, ...] = ()
+    populators: tuple[Any, ...] = ()
+    annotations: tuple[tuple[str, int], ...] = ()
+
+    def bind(self, values: Mapping[str, Any], connection: Any) -> list[Any]:
+        if set(values) != self.names:
+            missing, extra = self.names - set(values), set(values) - self.names
+            raise TypeError(
+                f"prepared statement takes {sorted(self.names)}; "
+                f"missing {sorted(missing)}, unknown {sorted(extra)}"
+            )
+        return [
+            p.field.get_db_prep_value(values[p.name], connection, prepared=False)
+            if isinstance(p, _Slot)
+            else p
+            for p in self.params
+        ]
+
+
+class _Statement:
+    """What :class:`PreparedQuery` and :class:`PreparedUpdate` share: the statement
+    composed once per database alias, on first use. What is kept holds no connection:
+    each run uses its own thread's."""
+
+    def __init__(self, build: Callable[[], Any]) -> None:
+        self._build = build
+        self._compiled: dict[str, _Compiled] = {}
+
+    def compiled(self, using: str = DEFAULT_DB_ALIAS) -> _Compiled:
+        """The statement as ``using``'s backend runs it (composed now if not yet).
+        Two threads composing it at once compose the same thing: no lock."""
+        found = self._compiled.get(using)
+        if found is None:
+            found = self._compiled[using] = self._compile(using)
+        return found
+
+    def _compile(self, using: str) -> _Compiled:
+        raise NotImplementedError
+
+    @staticmethod
+    def _slots(params: Sequence[Any]) -> frozenset[str]:
+        return frozenset(p.name for p in params if isinstance(p, _Slot))
+
+
+class PreparedQuery(_Statement, Generic[M]):
+    """A SELECT composed once: ``build`` returns the queryset, with :class:`Param` as
+    its values, model instances (``select_related`` and ``select_for_update`` as
+    written) or ``values_list`` rows. Slice it (``[:1]``) for a LIMIT; :meth:`first`
+    does not add one."""
+
+    def _compile(self, using: str) -> _Compiled:
+        queryset = self._build()
+        if not isinstance(queryset, QuerySet):
+            raise TypeError("a prepared query is built from a QuerySet")
+        iterable = queryset._iterable_class
+        flat = iterable is FlatValuesListIterable
+        if iterable not in (ModelIterable, ValuesListIterable, FlatValuesListIterable):
+            raise TypeError(f"prepared queries read models or values_list, not {iterable}")
+        query = queryset.query
+        if query.extra_select or query.combinator:
+            raise TypeError("prepared queries take no extra selects or unions")
+        if query.annotation_select and iterable is not ModelIterable:
+            # values_list puts annotations in an order of its own: not supported.
+            raise TypeError("prepared values_list queries take no annotations")
+        compiler = query.get_compiler(using=using)
+        sql, params = compiler.as_sql()
+        fields = [column[0] for column in compiler.select[: compiler.col_count]]
+        if compiler.has_composite_fields(fields):
+            raise TypeError("prepared queries read no composite fields")
+        # The converters are the backend's and the fields' (Django's get_converters);
+        # each is applied with the running thread's connection.
+        converters = tuple(
+            (position, tuple(convs), expression)
+            for position, (convs, expression) in compiler.get_converters(fields).items()
+        )
+        compiled = _Compiled(
+            sql=sql,
+            params=tuple(params),
+            names=self._slots(params),
+            locks=bool(query.select_for_update)
+            and compiler.connection.features.has_select_for_update,
+            col_count=compiler.col_count,
+            has_extra_select=compiler.has_extra_select,
+            converters=converters,
+            values=iterable is not ModelIterable,
+            flat=flat,
+        )
+        if iterable is not ModelIterable:
+            return compiled
+        klass_info, select = compiler.klass_info, compiler.select
+        if klass_info is None:
+            raise TypeError("a model query selected no model")
+        columns = klass_info["select_fields"]
+        start, end = columns[0], columns[-1] + 1
+        return dataclasses.replace(
+            compiled,
+            model=klass_info["model"],
+            model_start=start,
+            model_end=end,
+            init_list=tuple(column[0].target.attname for column in select[start:end]),
+            # Django 5.2's signature (the stubs know a later one's).
+            populators=tuple(get_related_populators(klass_info, select, using)),  # type: ignore[call-arg]
+            annotations=tuple(compiler.annotation_col_map.items()),
+        )
+
+    def all(self, *, using: str = DEFAULT_DB_ALIAS, **values: Any) -> list[Any]:
+        """Every row: model instances, or tuples (single values when flat)."""
+        compiled = self.compiled(using)
+        connection = connections[using]
+        if compiled.locks and connection.get_autocommit():
+            raise TransactionManagementError(
+                "select_for_update cannot be used outside of a transaction."
+            )
+        params = compiled.bind(values, connection)
+        with connection.cursor() as cursor:
+            cursor.execute(compiled.sql, params)
+            rows = cursor.fetchall()
+        if not rows:
+            return []
+        if compiled.has_extra_select:  # ordering columns Django adds past the selected
+            rows = [row[: compiled.col_count] for row in rows]
+        if compiled.converters:
+            rows = [self._converted(compiled, row, connection) for row in rows]
+        if compiled.values:
+            return [row[0] for row in rows] if compiled.flat else [tuple(r) for r in rows]
+        return [self._model(compiled, row, using) for row in rows]
+
+    def first(self, *, using: str = DEFAULT_DB_ALIAS, **values: Any) -> Any:
+        """The first row, or None."""
+        rows = self.all(using=using, **values)
+        return rows[0] if rows else None
+
+    @staticmethod
+    def _converted(compiled: _Compiled, row: Sequence[Any], connection: Any) -> list[Any]:
+        """``row`` with its values converted, as Django's apply_converters does."""
+        out = list(row)
+        for position, converters, expression in compiled.converters:
+            value = out[position]
+            for converter in converters:
+                value = converter(value, expression, connection)
+            out[position] = value
+        return out
+
+    @staticmethod
+    def _model(compiled: _Compiled, row: Sequence[Any], using: str) -> Any:
+        """A row as a model instance, as Django's ModelIterable makes it."""
+        columns = row[compiled.model_start : compiled.model_end]
+        obj = compiled.model.from_db(using, compiled.init_list, columns)
+        for populator in compiled.populators:
+            populator.populate(row, obj)
+        for name, position in compiled.annotations:
+            setattr(obj, name, row[position])
+        return obj
+
+
+class PreparedUpdate(_Statement):
+    """An UPDATE composed once: ``build`` returns ``(queryset, {field: value})`` as
+    ``queryset.update(**values)`` would take them, with :class:`Param` (or fixed
+    values, or expressions such as ``F``) as the values."""
+
+    def _compile(self, using: str) -> _Compiled:
+        queryset, changes = self._build()
+        if not isinstance(queryset, QuerySet):
+            raise TypeError("a prepared update is built from a QuerySet")
+        if queryset.query.is_sliced:
+            raise TypeError("cannot update a sliced query")
+        query = cast(UpdateQuery, queryset.query.chain(UpdateQuery))
+        query.add_update_values(changes)
+        query.clear_select_clause()
+        if query.get_related_updates():
+            raise TypeError("prepared updates change one table")
+        compiler = query.get_compiler(using=using)
+        if compiler.query.count_active_tables() > 1 and not (
+            compiler.connection.features.update_can_self_select
+        ):
+            raise TypeError("this backend selects the rows of a joined update first")
+        sql, params = compiler.as_sql()
+        return _Compiled(sql=sql, params=tuple(params), names=self._slots(params), locks=False)
+
+    def run(self, *, using: str = DEFAULT_DB_ALIAS, **values: Any) -> int:
+        """Run the update; how many rows it changed."""
+        compiled = self.compiled(using)
+        connection = connections[using]
+        params = compiled.bind(values, connection)
+        with transaction.mark_for_rollback_on_error(using=using), connection.cursor() as cursor:
+            cursor.execute(compiled.sql, params)
+            return int(cursor.rowcount)

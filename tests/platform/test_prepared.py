@@ -1,0 +1,215 @@
+"""iouv.prepared: statements Django composes once and runs with new values.
+
+Each prepared statement must answer exactly as the ORM queryset it was written as:
+the same rows, the same model instances (with what select_related joined), the same
+conversions (UUIDs, datetimes, JSON) on the database the suite runs on; and it must
+refuse what it cannot run the same way instead of running it differently.
+"""
+
+from __future__ import annotations
+
+import uuid
+from datetime import timedelta
+
+import pytest
+from django.db import connection, transaction
+from django.db.models import F, OuterRef, Subquery
+from django.db.transaction import TransactionManagementError
+from django.test.utils import CaptureQueriesContext
+from django.utils import timezone
+
+from fleet.models import AgentMessage, Station, Vehicle
+from iouv.prepared import Param, PreparedQuery, PreparedUpdate
+from tests import factories as f
+
+pytestmark = pytest.mark.django_db
+
+BY_NAME = PreparedQuery(
+    lambda: (
+        Vehicle.objects.filter(name=Param("name", Vehicle.name))
+        .select_related("station", "vehicle_type")
+        .order_by("pk")[:1]
+    )
+)
+BY_STATION_AND_STATUS = PreparedQuery(
+    lambda: Vehicle.objects.filter(
+        station_id=Param("station", Vehicle.station), status=Param("status", Vehicle.status)
+    ).order_by("name")
+)
+NAMES_SEEN_SINCE = PreparedQuery(
+    lambda: (
+        Vehicle.objects.filter(last_seen__gte=Param("since", Vehicle.last_seen))
+        .order_by("name")
+        .values_list("name", flat=True)
+    )
+)
+ID_AND_PROFILE = PreparedQuery(
+    lambda: Vehicle.objects.filter(pk=Param("vehicle", Vehicle.id)).values_list("id", "profile")
+)
+MESSAGES_OF = PreparedQuery(
+    lambda: AgentMessage.objects.filter(vehicle_id=Param("vehicle", AgentMessage.vehicle)).order_by(
+        "id"
+    )
+)
+LOCKED = PreparedQuery(
+    lambda: Vehicle.objects.select_for_update().filter(pk=Param("vehicle", Vehicle.id))
+)
+STATUS_SET = PreparedUpdate(
+    lambda: (
+        Vehicle.objects.filter(pk=Param("vehicle", Vehicle.id), maintenance=False),
+        {"status": Param("status", Vehicle.status), "battery": F("battery") - 1},
+    )
+)
+
+
+@pytest.fixture
+def fleet() -> list[Vehicle]:
+    station = f.station()
+    vtype = f.vehicle_type()
+    now = timezone.now()
+    out = []
+    for i, status in enumerate(["idle", "idle", "offline"]):
+        v = f.vehicle(station=station, vtype=vtype, name=f"car-{i}")
+        Vehicle.objects.filter(pk=v.pk).update(
+            status=status, last_seen=now - timedelta(minutes=i), battery=50, profile={"i": i}
+        )
+        v.refresh_from_db()
+        out.append(v)
+    return out
+
+
+def _same(a: Vehicle, b: Vehicle) -> None:
+    assert type(a) is type(b)
+    for field in Vehicle._meta.concrete_fields:
+        assert getattr(a, field.attname) == getattr(b, field.attname), field.name
+
+
+def test_models_come_back_as_the_orm_reads_them_with_their_joins(fleet):
+    for vehicle in fleet:
+        got = BY_NAME.first(name=vehicle.name)
+        orm = (
+            Vehicle.objects.filter(name=vehicle.name)
+            .select_related("station", "vehicle_type")
+            .order_by("pk")
+            .first()
+        )
+        _same(got, orm)
+        # What select_related joined is read with the row: no query to reach it.
+        with CaptureQueriesContext(connection) as captured:
+            assert got.station.name == orm.station.name
+            assert got.vehicle_type.kind == orm.vehicle_type.kind
+        assert len(captured) == 0
+        assert got._state.adding is False and got._state.db == "default"
+    assert BY_NAME.first(name="no such car") is None
+
+
+def test_every_value_binds_anew_and_the_rows_match_the_orm(fleet):
+    station = fleet[0].station_id
+    for status in ("idle", "offline", "in_service"):
+        got = BY_STATION_AND_STATUS.all(station=station, status=status)
+        orm = list(Vehicle.objects.filter(station_id=station, status=status).order_by("name"))
+        assert [v.pk for v in got] == [v.pk for v in orm]
+    # An id given as text binds as the field binds it.
+    assert [v.pk for v in BY_STATION_AND_STATUS.all(station=str(station), status="idle")] == [
+        fleet[0].pk,
+        fleet[1].pk,
+    ]
+
+
+def test_values_lists_convert_as_the_orm_converts(fleet):
+    since = fleet[1].last_seen
+    assert NAMES_SEEN_SINCE.all(since=since) == list(
+        Vehicle.objects.filter(last_seen__gte=since).order_by("name").values_list("name", flat=True)
+    )
+    assert NAMES_SEEN_SINCE.all(since=since) == ["car-0", "car-1"]
+    vehicle = fleet[2]
+    for key in (vehicle.pk, str(vehicle.pk)):
+        row = ID_AND_PROFILE.first(vehicle=key)
+        assert row == (vehicle.pk, {"i": 2})
+        assert isinstance(row[0], uuid.UUID)  # converted, as values_list converts
+
+
+def test_a_model_query_reads_its_annotations(fleet):
+    statement = PreparedQuery(
+        lambda: Vehicle.objects.filter(pk=Param("vehicle", Vehicle.id)).annotate(
+            station_name=Subquery(Station.objects.filter(pk=OuterRef("station_id")).values("name")),
+            twice=F("battery") * 2,
+        )
+    )
+    (got,) = statement.all(vehicle=fleet[1].pk)
+    assert (got.name, got.station_name, got.twice) == ("car-1", fleet[1].station.name, 100)
+
+
+def test_a_relation_binds_by_the_id_of_its_target(fleet):
+    vehicle = fleet[0]
+    for text in ("one", "two"):
+        AgentMessage.objects.create(vehicle=vehicle, kind="task", message={"text": text})
+    got = MESSAGES_OF.all(vehicle=str(vehicle.pk))
+    assert [m.message["text"] for m in got] == ["one", "two"]
+    assert [m.pk for m in got] == list(
+        AgentMessage.objects.filter(vehicle=vehicle).order_by("id").values_list("id", flat=True)
+    )
+    assert MESSAGES_OF.all(vehicle=fleet[1].pk) == []
+
+
+def test_an_update_changes_what_it_selects_and_counts_it(fleet):
+    idle = fleet[0]
+    assert STATUS_SET.run(vehicle=idle.pk, status="reserved") == 1
+    idle.refresh_from_db()
+    assert (idle.status, idle.battery) == ("reserved", 49)
+    Vehicle.objects.filter(pk=fleet[1].pk).update(maintenance=True)
+    assert STATUS_SET.run(vehicle=fleet[1].pk, status="reserved") == 0
+    assert STATUS_SET.run(vehicle=uuid.uuid4(), status="reserved") == 0
+    assert Vehicle.objects.filter(status="reserved").count() == 1
+
+
+def test_it_is_composed_once(fleet, monkeypatch):
+    statement = PreparedQuery(lambda: Vehicle.objects.filter(name=Param("name", Vehicle.name)))
+    composed = []
+    compile_ = statement._compile
+
+    def counting(using: str):  # type: ignore[no-untyped-def]
+        composed.append(using)
+        return compile_(using)
+
+    monkeypatch.setattr(statement, "_compile", counting)
+    names = [statement.first(name=v.name).name for v in fleet]
+    assert names == [v.name for v in fleet]
+    assert composed == ["default"]
+
+
+@pytest.mark.postgres
+@pytest.mark.django_db(transaction=True)
+def test_a_locking_read_needs_a_transaction_as_in_the_orm(fleet):
+    with pytest.raises(TransactionManagementError):
+        LOCKED.all(vehicle=fleet[0].pk)
+    with transaction.atomic(), CaptureQueriesContext(connection) as captured:
+        assert [v.pk for v in LOCKED.all(vehicle=fleet[0].pk)] == [fleet[0].pk]
+    assert "FOR UPDATE" in captured.captured_queries[-1]["sql"]
+
+
+def test_wrong_values_and_unsupported_statements_are_refused(fleet):
+    with pytest.raises(TypeError, match="missing"):
+        BY_NAME.first()
+    with pytest.raises(TypeError, match="unknown"):
+        BY_NAME.first(name="car-0", other=1)
+    with pytest.raises(TypeError, match="not a model field"):
+        Param("x", "name")
+    annotated = PreparedQuery(
+        lambda: (
+            Vehicle.objects.annotate(twice=F("battery") * 2)
+            .filter(name=Param("name", Vehicle.name))
+            .values_list("name", "twice")
+        )
+    )
+    with pytest.raises(TypeError, match="annotations"):
+        annotated.all(name="car-0")
+    named = PreparedQuery(lambda: Vehicle.objects.values_list("name", named=True))
+    with pytest.raises(TypeError, match="values_list"):
+        named.all()
+    dicts = PreparedQuery(lambda: Vehicle.objects.values("name"))
+    with pytest.raises(TypeError, match="values_list"):
+        dicts.all()
+    sliced = PreparedUpdate(lambda: (Vehicle.objects.all()[:1], {"status": "idle"}))
+    with pytest.raises(TypeError, match="sliced"):
+        sliced.run()
