@@ -53,7 +53,7 @@ from agents.protocol.messages import (
 from fleet.feed import fleet_notify
 from fleet.models import AgentMessage, Vehicle
 from iouv import layer
-from iouv.prepared import Param, PreparedQuery, PreparedUpdate
+from iouv.prepared import Param, PreparedInsert, PreparedQuery, PreparedUpdate
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +90,10 @@ def _db(func: Any) -> Any:
 # --------------------------------------------------------------------------------------
 
 
+# Every task and every end owed to an agent: composed once (iouv.prepared).
+_ENQUEUE: PreparedInsert[AgentMessage] = PreparedInsert(AgentMessage)
+
+
 def agent_message_enqueue(
     *, vehicle_id: Any, message: Task | Revoke | EndTask, session_id: Any = None
 ) -> AgentMessage:
@@ -106,11 +110,13 @@ def agent_message_enqueue(
     # (a struct's constructor checks no limits).
     encode_message(msgspec.structs.replace(message, id="0"), channel="uplink_to_agent")
     pk = uuid.UUID(str(vehicle_id))
-    row = AgentMessage.objects.create(
-        vehicle_id=pk,
-        session_id=session_id or getattr(message, "session_id", None),
-        kind=message_type(message),
-        message=message_to_dict(message),  # stored as the JSON it travels as
+    row = _ENQUEUE.save(
+        AgentMessage(
+            vehicle_id=pk,
+            session_id=session_id or getattr(message, "session_id", None),
+            kind=message_type(message),
+            message=message_to_dict(message),  # stored as the JSON it travels as
+        )
     )
     transaction.on_commit(lambda: outbox_nudge(pk), robust=True)
     return row

@@ -24,14 +24,14 @@ from dataclasses import dataclass
 from typing import Any, Generic, TypeVar, cast
 
 from django.db import DEFAULT_DB_ALIAS, connections, transaction
-from django.db.models import Expression, Field, Model, QuerySet
+from django.db.models import Expression, Field, Model, QuerySet, signals
 from django.db.models.query import (
     FlatValuesListIterable,
     ModelIterable,
     ValuesListIterable,
     get_related_populators,
 )
-from django.db.models.sql import UpdateQuery
+from django.db.models.sql import InsertQuery, UpdateQuery
 from django.db.transaction import TransactionManagementError
 
 M = TypeVar("M", bound=Model)
@@ -281,3 +281,96 @@ class PreparedUpdate(_Statement):
         with transaction.mark_for_rollback_on_error(using=using), connection.cursor() as cursor:
             cursor.execute(compiled.sql, params)
             return int(cursor.rowcount)
+
+
+@dataclass(frozen=True)
+class _CompiledInsert:
+    sql: str
+    fields: tuple[Any, ...]  # the columns written, in order
+    returning: tuple[Any, ...]  # the fields the database fills in (an auto id)
+    converters: tuple[tuple[int, tuple[Any, ...], Any], ...]
+
+
+class PreparedInsert(Generic[M]):
+    """The INSERT of one new ``model`` instance, composed once: what
+    ``obj.save(force_insert=True)`` writes (``Model.objects.create``), with the same
+    values (each field's ``pre_save`` and database preparation), the same signals and
+    the database's id set on the instance. For plain tables: a model with parents
+    (multi-table inheritance), a field with a placeholder of its own or an expression as
+    a value is refused."""
+
+    def __init__(self, model: type[M]) -> None:
+        self.model = model
+        self._compiled: dict[tuple[str, bool], _CompiledInsert] = {}
+
+    def _compile(self, using: str, pk_set: bool) -> _CompiledInsert:
+        meta = self.model._meta
+        if meta.parents:
+            raise TypeError("prepared inserts write one table")
+        fields = [f for f in meta.local_concrete_fields if not f.generated]
+        if not pk_set:
+            fields = [f for f in fields if f is not meta.auto_field]
+        if any(hasattr(f, "get_placeholder") for f in fields):
+            raise TypeError("prepared inserts take fields bound as plain values only")
+        connection = connections[using]
+        returning = list(meta.db_returning_fields) if not pk_set else []
+        if returning and not connection.features.can_return_columns_from_insert:
+            raise TypeError("this backend cannot return the inserted id")
+        query = InsertQuery(self.model)
+        query.insert_values(fields, [self.model()], raw=False)
+        compiler = query.get_compiler(using=using)
+        compiler.returning_fields = returning or None
+        ((sql, _params),) = compiler.as_sql()
+        columns = [f.get_col(meta.db_table) for f in returning]
+        converters = tuple(
+            (position, tuple(convs), expression)
+            for position, (convs, expression) in compiler.get_converters(columns).items()
+        )
+        return _CompiledInsert(sql, tuple(fields), tuple(returning), converters)
+
+    def save(self, obj: M, *, using: str = DEFAULT_DB_ALIAS) -> M:
+        """Insert ``obj`` (a new instance of the model) and return it, saved."""
+        if type(obj) is not self.model or not obj._state.adding:
+            raise TypeError(f"a prepared insert saves new {self.model.__name__} instances")
+        meta = self.model._meta
+        # Model.save's own checks of the relations (not in the stubs).
+        obj._prepare_related_fields_for_save(operation_name="save")  # type: ignore[attr-defined]
+        signals.pre_save.send(
+            sender=self.model, instance=obj, raw=False, using=using, update_fields=None
+        )
+        pk = obj._get_pk_val()
+        if pk is None:
+            pk = meta.pk.get_pk_value_on_save(obj)
+            setattr(obj, meta.pk.attname, pk)
+        key = (using, pk is not None)
+        compiled = self._compiled.get(key)
+        if compiled is None:
+            compiled = self._compiled[key] = self._compile(*key)
+        connection = connections[using]
+        params = []
+        for field in compiled.fields:
+            value = field.pre_save(obj, True)
+            if hasattr(value, "resolve_expression"):
+                raise TypeError(f"{field.name}: a prepared insert takes values, not expressions")
+            params.append(field.get_db_prep_save(value, connection=connection))
+        with transaction.mark_for_rollback_on_error(using=using), connection.cursor() as cursor:
+            cursor.execute(compiled.sql, params)
+            returned = cursor.fetchone() if compiled.returning else None
+        if returned is not None:
+            values = list(returned)
+            for position, converters, expression in compiled.converters:
+                for converter in converters:
+                    values[position] = converter(values[position], expression, connection)
+            for field, value in zip(compiled.returning, values, strict=True):
+                setattr(obj, field.attname, value)
+        obj._state.adding = False
+        obj._state.db = using
+        signals.post_save.send(
+            sender=self.model,
+            instance=obj,
+            created=True,
+            update_fields=None,
+            raw=False,
+            using=using,
+        )
+        return obj

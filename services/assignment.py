@@ -54,7 +54,7 @@ from fleet.feed import fleet_notify
 from fleet.liveness import vehicles_fresh
 from fleet.models import Vehicle
 from fleet.status import vehicles_online
-from iouv.prepared import Param, PreparedQuery, PreparedUpdate
+from iouv.prepared import Param, PreparedInsert, PreparedQuery, PreparedUpdate
 from services.eventlog import event_append, events_staged
 from services.grants import user_can_use
 from services.models import Assignment, Service, ServiceRole, Session
@@ -403,6 +403,8 @@ _RESERVE = PreparedUpdate(
         {"status": Vehicle.Status.RESERVED},
     )
 )
+_ASSIGNMENT_INSERT: PreparedInsert[Assignment] = PreparedInsert(Assignment)
+_SESSION_INSERT: PreparedInsert[Session] = PreparedInsert(Session)
 _REQUIRED_ROLES: PreparedQuery[ServiceRole] = PreparedQuery(
     lambda: ServiceRole.objects.filter(
         service_id=Param("service", ServiceRole.service), required=True
@@ -457,11 +459,13 @@ def _reserve_first(
             why = TAKEN
             continue
         vehicle.status = Vehicle.Status.RESERVED
-        assignment = Assignment.objects.create(
-            session=session,
-            role=match.role.name,
-            vehicle=vehicle,
-            distance_m=round(candidate.distance_m, 1),
+        assignment = _ASSIGNMENT_INSERT.save(
+            Assignment(
+                session=session,
+                role=match.role.name,
+                vehicle=vehicle,
+                distance_m=round(candidate.distance_m, 1),
+            )
         )
         fleet_notify([vehicle.pk])
         return assignment, facts
@@ -565,7 +569,7 @@ def session_record(
     )
     if pk is not None:
         session.pk = pk
-    session.save(force_insert=True)
+    _SESSION_INSERT.save(session)
     event_append(
         session=session,
         kind="requested",

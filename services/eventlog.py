@@ -26,7 +26,7 @@ from django.core.serializers.json import DjangoJSONEncoder
 from django.db import transaction
 from django.utils import timezone
 
-from iouv.prepared import Param, PreparedQuery
+from iouv.prepared import Param, PreparedInsert, PreparedQuery
 from services.feed import session_notify, session_notify_many
 from services.models import Session, SessionEvent
 
@@ -41,6 +41,7 @@ _SESSION_LOCK: PreparedQuery[Any] = PreparedQuery(
         .values_list("pk", flat=True)
     )
 )
+_INSERT: PreparedInsert[SessionEvent] = PreparedInsert(SessionEvent)
 _LOG: PreparedQuery[SessionEvent] = PreparedQuery(
     lambda: SessionEvent.objects.filter(session_id=Param("session", SessionEvent.session)).order_by(
         "seq"
@@ -196,7 +197,7 @@ def event_append(
             last = _LOG_TAIL.first(session=session.pk)
         seq, prev_hash = last if last else (0, GENESIS_HASH)
         event = _event_new(session=session, seq=seq + 1, prev_hash=prev_hash, kind=kind, data=data)
-        event.save()
+        _INSERT.save(event)
         session_notify(session_id=session.pk, event=_feed_item(event))
     if log is not None:
         log.append(event)

@@ -13,13 +13,13 @@ from datetime import timedelta
 
 import pytest
 from django.db import connection, transaction
-from django.db.models import F, OuterRef, Subquery
+from django.db.models import F, OuterRef, Subquery, signals
 from django.db.transaction import TransactionManagementError
 from django.test.utils import CaptureQueriesContext
 from django.utils import timezone
 
 from fleet.models import AgentMessage, Station, Vehicle
-from iouv.prepared import Param, PreparedQuery, PreparedUpdate
+from iouv.prepared import Param, PreparedInsert, PreparedQuery, PreparedUpdate
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db
@@ -213,3 +213,63 @@ def test_wrong_values_and_unsupported_statements_are_refused(fleet):
     sliced = PreparedUpdate(lambda: (Vehicle.objects.all()[:1], {"status": "idle"}))
     with pytest.raises(TypeError, match="sliced"):
         sliced.run()
+
+
+def test_an_insert_writes_what_save_writes_and_reads_the_id_back(fleet):
+    insert: PreparedInsert[AgentMessage] = PreparedInsert(AgentMessage)
+    heard: list[tuple[str, bool]] = []
+
+    def pre(sender, instance, **kwargs):  # type: ignore[no-untyped-def]
+        heard.append(("pre", instance._state.adding))
+
+    def post(sender, instance, created, **kwargs):  # type: ignore[no-untyped-def]
+        heard.append(("post", created))
+
+    signals.pre_save.connect(pre, sender=AgentMessage)
+    signals.post_save.connect(post, sender=AgentMessage)
+    try:
+        session = uuid.uuid4()
+        ours = insert.save(
+            AgentMessage(
+                vehicle=fleet[0], session_id=session, kind="task", message={"type": "task"}
+            )
+        )
+        theirs = AgentMessage.objects.create(
+            vehicle=fleet[0], session_id=session, kind="task", message={"type": "task"}
+        )
+    finally:
+        signals.pre_save.disconnect(pre, sender=AgentMessage)
+        signals.post_save.disconnect(post, sender=AgentMessage)
+    assert heard == [("pre", True), ("post", True)] * 2
+    # The id the database gave it, its auto_now_add time and its defaults, as save sets.
+    assert isinstance(ours.pk, int) and ours.pk == theirs.pk - 1
+    assert ours._state.adding is False and ours._state.db == "default"
+    stored = AgentMessage.objects.get(pk=ours.pk)
+    for field in AgentMessage._meta.concrete_fields:
+        if field.name not in ("id", "key", "created_at"):
+            assert getattr(stored, field.attname) == getattr(theirs, field.attname), field.name
+    assert stored.key == ours.key and stored.created_at == ours.created_at
+    assert stored.state == "pending" and stored.result == {}
+    # A model whose primary key is set before the insert (a UUID) is written with it.
+    vehicles: PreparedInsert[Vehicle] = PreparedInsert(Vehicle)
+    new = vehicles.save(
+        Vehicle(name="car-new", station=fleet[0].station, vehicle_type=fleet[0].vehicle_type)
+    )
+    assert Vehicle.objects.get(pk=new.pk).name == "car-new"
+
+
+def test_an_insert_refuses_what_it_cannot_write_as_save_would(fleet):
+    insert: PreparedInsert[AgentMessage] = PreparedInsert(AgentMessage)
+    with pytest.raises(TypeError, match="new AgentMessage"):
+        insert.save(AgentMessage.objects.create(vehicle=fleet[0], kind="task", message={}))
+    with pytest.raises(TypeError, match="new AgentMessage"):
+        insert.save(fleet[0])  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="expressions"):
+        insert.save(AgentMessage(vehicle=fleet[0], kind="task", message={}, attempts=F("id")))
+    # An unsaved relation is refused as save refuses it, before anything is written.
+    vehicles: PreparedInsert[Vehicle] = PreparedInsert(Vehicle)
+    unsaved = Station(name="nowhere", lat=0, lon=0)
+    with pytest.raises(ValueError, match="unsaved related object"):
+        vehicles.save(Vehicle(name="ghost", station=unsaved, vehicle_type=fleet[0].vehicle_type))
+    assert AgentMessage.objects.count() == 1
+    assert not Vehicle.objects.filter(name="ghost").exists()
