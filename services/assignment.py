@@ -43,6 +43,7 @@ from django.db.models import (
     FloatField,
     OuterRef,
     Q,
+    QuerySet,
     Value,
 )
 from django.utils import timezone
@@ -264,24 +265,76 @@ def _pool(
     """The online idle vehicles (meeting ``narrow``), as plain facts. With ``page``
     (offset, size) and a ``target``: only that slice of them, nearest to the target
     first (by the database, on an equirectangular approximation of the distance)."""
-    rows = vehicles_online(now).filter(status=Vehicle.Status.IDLE).exclude(pk__in=exclude)
-    if narrow is not None:
-        rows = rows.filter(narrow)
-        if target is not None:  # measured from where the vehicle is (module docstring)
-            rows = rows.filter(lat__isnull=False, lon__isnull=False)
-    values = rows.values_list(*Facts.FIELDS)
+    if page is not None and target is not None and narrow is not None and not exclude:
+        # A request's usual read, composed once per role's requirements and page.
+        lat, lon = target
+        nearest = _page_statement(narrow, page).all(lat=lat, lon=lon, east=_east(lat))
+        return [Facts.from_row(row) for row in nearest]
+    values = _candidates(narrow=narrow, positioned=target is not None).exclude(pk__in=exclude)
     if page is not None and target is not None:
         lat, lon = target
-        east = math.cos(math.radians(lat)) ** 2  # a degree of longitude, squared, in lat's
-        north_d = F("lat") - Value(lat)
-        east_d = F("lon") - Value(lon)
-        offset, size = page
-        values = values.alias(
-            near=ExpressionWrapper(
-                north_d * north_d + east_d * east_d * Value(east), output_field=FloatField()
-            )
-        ).order_by("near", "pk")[offset : offset + size]
+        values = _nearest_first(values, Value(lat), Value(lon), Value(_east(lat)), page)
     return [Facts.from_row(row) for row in values]
+
+
+def _east(lat: float) -> float:
+    """A degree of longitude, squared, in degrees of latitude at ``lat``."""
+    return math.cos(math.radians(lat)) ** 2
+
+
+def _candidates(*, narrow: Q | None, positioned: bool) -> QuerySet[Vehicle, tuple[Any, ...]]:
+    """The online idle vehicles meeting ``narrow``, as :class:`Facts` rows; with
+    ``positioned``, only those reporting where they are (module docstring)."""
+    rows = vehicles_online().filter(status=Vehicle.Status.IDLE)
+    if narrow is not None:
+        rows = rows.filter(narrow)
+        if positioned:
+            rows = rows.filter(lat__isnull=False, lon__isnull=False)
+    return rows.values_list(*Facts.FIELDS)
+
+
+def _nearest_first(
+    values: QuerySet[Vehicle, tuple[Any, ...]],
+    lat: Any,
+    lon: Any,
+    east: Any,
+    page: tuple[int, int],
+) -> QuerySet[Vehicle, tuple[Any, ...]]:
+    """``values``' page ``page`` (offset, size), nearest to (``lat``, ``lon``) first (by
+    the database, on an equirectangular approximation of the distance)."""
+    north_d = F("lat") - lat
+    east_d = F("lon") - lon
+    offset, size = page
+    return values.alias(
+        near=ExpressionWrapper(
+            north_d * north_d + east_d * east_d * east, output_field=FloatField()
+        )
+    ).order_by("near", "pk")[offset : offset + size]
+
+
+#: Pages of candidates composed once (iouv.prepared), per role requirements and page;
+#: a bound on how many are kept, as services and their roles can be changed at will.
+_PAGES: dict[tuple[Q, tuple[int, int]], PreparedQuery[Any]] = {}
+_PAGES_KEPT = 256
+
+
+def _page_statement(narrow: Q, page: tuple[int, int]) -> PreparedQuery[Any]:
+    key = (narrow, page)
+    statement = _PAGES.get(key)
+    if statement is None:
+        if len(_PAGES) >= _PAGES_KEPT:
+            _PAGES.clear()
+        position = Vehicle.lat.field  # the type the three numbers bind as
+        statement = _PAGES[key] = PreparedQuery(
+            lambda: _nearest_first(
+                _candidates(narrow=narrow, positioned=True),
+                Param("lat", position),
+                Param("lon", position),
+                Param("east", position),
+                page,
+            )
+        )
+    return statement
 
 
 def _ranked(
