@@ -374,3 +374,37 @@ class PreparedInsert(Generic[M]):
             using=using,
         )
         return obj
+
+
+S = TypeVar("S")
+
+
+class PreparedFamily(Generic[S]):
+    """Prepared statements whose SQL depends on a shape (an ``IN`` list's length, a
+    role's requirements): ``build(shape)`` makes the statement for a shape on its first
+    use. At most ``keep`` shapes are kept; past that the family starts afresh, so
+    shapes that come and go (services edited at will) cannot grow it without bound."""
+
+    def __init__(self, build: Callable[[Any], S], *, keep: int = 64) -> None:
+        self._build = build
+        self._keep = keep
+        self._statements: dict[Any, S] = {}
+
+    def __getitem__(self, shape: Any) -> S:
+        statement = self._statements.get(shape)
+        if statement is None:
+            if len(self._statements) >= self._keep:
+                self._statements.clear()
+            statement = self._statements[shape] = self._build(shape)
+        return statement
+
+
+def params_in(name: str, field: Any, count: int) -> list[Any]:
+    """``count`` Params (``name0``, ``name1``...) for an ``IN`` list of that length;
+    bind them with :func:`values_in`."""
+    return [Param(f"{name}{i}", field) for i in range(count)]
+
+
+def values_in(name: str, values: Sequence[Any]) -> dict[str, Any]:
+    """The values of :func:`params_in`'s Params, by name."""
+    return {f"{name}{i}": value for i, value in enumerate(values)}

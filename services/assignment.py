@@ -55,7 +55,7 @@ from fleet.feed import fleet_notify
 from fleet.liveness import vehicles_fresh
 from fleet.models import Vehicle
 from fleet.status import vehicles_online
-from iouv.prepared import Param, PreparedInsert, PreparedQuery, PreparedUpdate
+from iouv.prepared import Param, PreparedFamily, PreparedInsert, PreparedQuery, PreparedUpdate
 from services.eventlog import event_append, events_staged
 from services.grants import user_can_use
 from services.models import Assignment, Service, ServiceRole, Session
@@ -268,7 +268,7 @@ def _pool(
     if page is not None and target is not None and narrow is not None and not exclude:
         # A request's usual read, composed once per role's requirements and page.
         lat, lon = target
-        nearest = _page_statement(narrow, page).all(lat=lat, lon=lon, east=_east(lat))
+        nearest = _PAGES[(narrow, page)].all(lat=lat, lon=lon, east=_east(lat))
         return [Facts.from_row(row) for row in nearest]
     values = _candidates(narrow=narrow, positioned=target is not None).exclude(pk__in=exclude)
     if page is not None and target is not None:
@@ -312,29 +312,19 @@ def _nearest_first(
     ).order_by("near", "pk")[offset : offset + size]
 
 
-#: Pages of candidates composed once (iouv.prepared), per role requirements and page;
-#: a bound on how many are kept, as services and their roles can be changed at will.
-_PAGES: dict[tuple[Q, tuple[int, int]], PreparedQuery[Any]] = {}
-_PAGES_KEPT = 256
-
-
-def _page_statement(narrow: Q, page: tuple[int, int]) -> PreparedQuery[Any]:
-    key = (narrow, page)
-    statement = _PAGES.get(key)
-    if statement is None:
-        if len(_PAGES) >= _PAGES_KEPT:
-            _PAGES.clear()
-        position = Vehicle.lat.field  # the type the three numbers bind as
-        statement = _PAGES[key] = PreparedQuery(
-            lambda: _nearest_first(
-                _candidates(narrow=narrow, positioned=True),
-                Param("lat", position),
-                Param("lon", position),
-                Param("east", position),
-                page,
-            )
+#: Pages of candidates composed once (iouv.prepared), per role requirements and page.
+_PAGES: PreparedFamily[PreparedQuery[Any]] = PreparedFamily(
+    lambda shape: PreparedQuery(
+        lambda: _nearest_first(
+            _candidates(narrow=shape[0], positioned=True),
+            Param("lat", Vehicle.lat),  # the type the three numbers bind as
+            Param("lon", Vehicle.lat),
+            Param("east", Vehicle.lat),
+            shape[1],
         )
-    return statement
+    ),
+    keep=256,
+)
 
 
 def _ranked(

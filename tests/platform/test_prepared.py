@@ -19,7 +19,15 @@ from django.test.utils import CaptureQueriesContext
 from django.utils import timezone
 
 from fleet.models import AgentMessage, Station, Vehicle
-from iouv.prepared import Param, PreparedInsert, PreparedQuery, PreparedUpdate
+from iouv.prepared import (
+    Param,
+    PreparedFamily,
+    PreparedInsert,
+    PreparedQuery,
+    PreparedUpdate,
+    params_in,
+    values_in,
+)
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db
@@ -273,3 +281,27 @@ def test_an_insert_refuses_what_it_cannot_write_as_save_would(fleet):
         vehicles.save(Vehicle(name="ghost", station=unsaved, vehicle_type=fleet[0].vehicle_type))
     assert AgentMessage.objects.count() == 1
     assert not Vehicle.objects.filter(name="ghost").exists()
+
+
+def test_a_family_prepares_one_statement_per_shape_and_keeps_a_few(fleet):
+    built: list[int] = []
+
+    def build(count: int) -> PreparedQuery[Vehicle]:
+        built.append(count)
+        return PreparedQuery(
+            lambda: Vehicle.objects.filter(pk__in=params_in("id", Vehicle.id, count)).order_by(
+                "name"
+            )
+        )
+
+    by_ids: PreparedFamily[PreparedQuery[Vehicle]] = PreparedFamily(build, keep=2)
+    ids = [v.pk for v in fleet]
+    for chosen in (ids[:1], ids[1:], ids[:1][::-1], [ids[2], uuid.uuid4()]):
+        got = by_ids[len(chosen)].all(**values_in("id", chosen))
+        assert [v.pk for v in got] == list(
+            Vehicle.objects.filter(pk__in=chosen).order_by("name").values_list("pk", flat=True)
+        )
+    assert built == [1, 2]  # lengths 1 and 2, each prepared once
+    by_ids[3]  # a third shape: past keep=2 the family starts afresh
+    by_ids[1]
+    assert built == [1, 2, 3, 1]
