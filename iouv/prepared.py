@@ -12,8 +12,14 @@ The SQL is still Django's: the same models, the same backend's dialect (SQLite i
 embedded set-up, PostgreSQL in production), rows read into model instances by the
 same code (``from_db``, ``select_related``'s populators, the fields' converters). What
 is not supported is refused when a statement is prepared, never silently run
-differently: values that change the SQL's shape (an ``IN`` list), updates across
-tables, extra selects, and annotations outside model queries.
+differently: values that change the SQL's shape (an ``IN`` list: a
+:class:`PreparedFamily` holds one statement per length), updates across tables, extra
+selects, and annotations outside model queries.
+
+It reads what Django's compiler works out while composing (the selected columns, the
+models they fill, their converters), which Django does not document as an interface:
+tests/platform/test_prepared.py compares each kind of statement with the ORM's own
+answer, so a Django release that changes those fails there first.
 """
 
 from __future__ import annotations
@@ -161,7 +167,8 @@ class PreparedQuery(_Statement, Generic[M]):
         compiler = query.get_compiler(using=using)
         sql, params = compiler.as_sql()
         fields = [column[0] for column in compiler.select[: compiler.col_count]]
-        if compiler.has_composite_fields(fields):
+        composite = getattr(compiler, "has_composite_fields", None)  # Django 5.2 on
+        if composite is not None and composite(fields):
             raise TypeError("prepared queries read no composite fields")
         # The converters are the backend's and the fields' (Django's get_converters);
         # each is applied with the running thread's connection.
