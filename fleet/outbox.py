@@ -38,7 +38,7 @@ from asgiref.sync import async_to_sync
 from channels.db import database_sync_to_async
 from channels.layers import get_channel_layer
 from django.db import connection, transaction
-from django.db.models import Exists, F, OuterRef, Q
+from django.db.models import Exists, F, OuterRef, Q, QuerySet
 from django.utils import timezone
 
 from agents.protocol.messages import (
@@ -318,27 +318,31 @@ _OWED: PreparedQuery[Any] = PreparedQuery(
     )
 )
 _DUE_FIELDS = ("id", "key", "vehicle_id", "kind", "message", "sent_at", "attempts", "created_at")
+
+
 # Locked, skipping rows another transaction holds: a task being withdrawn as its session
 # ends is either sent before that decision or not at all, so the decision always knows
 # whether the agent may have it.
-_OWED_LOCKED: PreparedFamily[PreparedQuery[Any]] = PreparedFamily(
-    lambda count: PreparedQuery(
-        lambda: (
-            AgentMessage.objects.select_for_update(skip_locked=True)
-            .filter(
-                state=AgentMessage.State.PENDING, pk__in=params_in("id", AgentMessage.id, count)
-            )
-            .order_by("id")
-            .values_list(*_DUE_FIELDS)
-        )
+def _owed_locked(ids: Sequence[Any]) -> QuerySet[AgentMessage, tuple[Any, ...]]:
+    return (
+        AgentMessage.objects.select_for_update(skip_locked=True)
+        .filter(state=AgentMessage.State.PENDING, pk__in=ids)
+        .order_by("id")
+        .values_list(*_DUE_FIELDS)
     )
+
+
+def _sent(ids: Sequence[Any], now: Any) -> tuple[QuerySet[AgentMessage], dict[str, Any]]:
+    """The rows ``ids`` marked sent at ``now``: the queryset and its changes."""
+    return AgentMessage.objects.filter(pk__in=ids), {"sent_at": now, "attempts": F("attempts") + 1}
+
+
+_OWED_LOCKED: PreparedFamily[PreparedQuery[Any]] = PreparedFamily(
+    lambda count: PreparedQuery(lambda: _owed_locked(params_in("id", AgentMessage.id, count)))
 )
 _SENT: PreparedFamily[PreparedUpdate] = PreparedFamily(
     lambda count: PreparedUpdate(
-        lambda: (
-            AgentMessage.objects.filter(pk__in=params_in("id", AgentMessage.id, count)),
-            {"sent_at": Param("now", AgentMessage.sent_at), "attempts": F("attempts") + 1},
-        )
+        lambda: _sent(params_in("id", AgentMessage.id, count), Param("now", AgentMessage.sent_at))
     )
 )
 #: The most rows a pass reads or marks with a prepared statement; more (a backlog after
@@ -368,12 +372,7 @@ def _take_due(*, vehicle_ids: Sequence[str], fresh: Sequence[str], now: datetime
         if len(owed) <= _PREPARED_ROWS:
             found = _OWED_LOCKED[len(owed)].all(**values_in("id", owed))
         else:
-            found = list(
-                AgentMessage.objects.select_for_update(skip_locked=True)
-                .filter(state=AgentMessage.State.PENDING, pk__in=owed)
-                .order_by("id")
-                .values_list(*_DUE_FIELDS)
-            )
+            found = list(_owed_locked(owed))
         rows = [dict(zip(_DUE_FIELDS, row, strict=True)) for row in found]
         due = []
         stale_disconnects = []
@@ -396,9 +395,8 @@ def _take_due(*, vehicle_ids: Sequence[str], fresh: Sequence[str], now: datetime
         if sending and len(sending) <= _PREPARED_ROWS:
             _SENT[len(sending)].run(now=now, **values_in("id", sending))
         elif sending:
-            AgentMessage.objects.filter(pk__in=sending).update(
-                sent_at=now, attempts=F("attempts") + 1
-            )
+            marked, changes = _sent(sending, now)
+            marked.update(**changes)
         if stale_disconnects:
             AgentMessage.objects.filter(pk__in=stale_disconnects).update(
                 state=AgentMessage.State.CANCELLED

@@ -119,6 +119,20 @@ class _Compiled:
         ]
 
 
+def _converted(
+    converters: Sequence[tuple[int, Sequence[Any], Any]], row: Sequence[Any], connection: Any
+) -> list[Any]:
+    """``row`` with its values converted, as Django's apply_converters does: each
+    column's converters (worked out while composing) with this thread's connection."""
+    out = list(row)
+    for position, column_converters, expression in converters:
+        value = out[position]
+        for converter in column_converters:
+            value = converter(value, expression, connection)
+        out[position] = value
+    return out
+
+
 class _Statement:
     """What :class:`PreparedQuery` and :class:`PreparedUpdate` share: the statement
     composed once per database alias, on first use. What is kept holds no connection:
@@ -223,7 +237,7 @@ class PreparedQuery(_Statement, Generic[M]):
         if compiled.has_extra_select:  # ordering columns Django adds past the selected
             rows = [row[: compiled.col_count] for row in rows]
         if compiled.converters:
-            rows = [self._converted(compiled, row, connection) for row in rows]
+            rows = [_converted(compiled.converters, row, connection) for row in rows]
         if compiled.values:
             return [row[0] for row in rows] if compiled.flat else [tuple(r) for r in rows]
         return [self._model(compiled, row, using) for row in rows]
@@ -232,17 +246,6 @@ class PreparedQuery(_Statement, Generic[M]):
         """The first row, or None."""
         rows = self.all(using=using, **values)
         return rows[0] if rows else None
-
-    @staticmethod
-    def _converted(compiled: _Compiled, row: Sequence[Any], connection: Any) -> list[Any]:
-        """``row`` with its values converted, as Django's apply_converters does."""
-        out = list(row)
-        for position, converters, expression in compiled.converters:
-            value = out[position]
-            for converter in converters:
-                value = converter(value, expression, connection)
-            out[position] = value
-        return out
 
     @staticmethod
     def _model(compiled: _Compiled, row: Sequence[Any], using: str) -> Any:
@@ -364,10 +367,7 @@ class PreparedInsert(Generic[M]):
             cursor.execute(compiled.sql, params)
             returned = cursor.fetchone() if compiled.returning else None
         if returned is not None:
-            values = list(returned)
-            for position, converters, expression in compiled.converters:
-                for converter in converters:
-                    values[position] = converter(values[position], expression, connection)
+            values = _converted(compiled.converters, returned, connection)
             for field, value in zip(compiled.returning, values, strict=True):
                 setattr(obj, field.attname, value)
         obj._state.adding = False

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TypedDict
+from typing import Any, TypedDict
 
 from django.contrib.auth.models import AnonymousUser, Group
 from django.db.models import BooleanField, Exists, OuterRef, Q, QuerySet, Value
@@ -13,10 +13,13 @@ from iouv.prepared import Param, PreparedQuery
 from services.models import Service, ServiceGrant
 
 
-def _granted(user: User) -> Exists:
-    """Whether the outer service is granted to ``user`` or to one of their groups."""
+def _granted(user_id: Any) -> Exists:
+    """Whether the outer service is granted to the user ``user_id`` (an id, or the
+    :class:`Param` of a prepared statement) or to one of their groups."""
     grants = ServiceGrant.objects.filter(service=OuterRef("pk"))
-    return Exists(grants.filter(Q(user=user) | Q(group__in=user.groups.all())))
+    return Exists(
+        grants.filter(Q(user_id=user_id) | Q(group__in=Group.objects.filter(user=user_id)))
+    )
 
 
 class Usable(TypedDict):
@@ -34,19 +37,14 @@ def services_usable(user: User | AnonymousUser) -> QuerySet[WithAnnotations[Serv
         return active.annotate(usable=Value(False, output_field=BooleanField()))
     if user.is_superuser:
         return active.annotate(usable=Value(True, output_field=BooleanField()))
-    return active.annotate(usable=_granted(user))
+    return active.annotate(usable=_granted(user.pk))
 
 
 # A request's service with the user's right to it (a client's, the usual case), in one
 # statement composed once (iouv.prepared): as services_usable(user).filter(slug=slug).
 _SERVICE_USABLE_BY: PreparedQuery[Service] = PreparedQuery(
     lambda: Service.objects.filter(is_active=True, slug=Param("slug", Service.slug)).annotate(
-        usable=Exists(
-            ServiceGrant.objects.filter(service=OuterRef("pk")).filter(
-                Q(user_id=Param("user", ServiceGrant.user))
-                | Q(group__in=Group.objects.filter(user=Param("user", User._meta.pk)))
-            )
-        )
+        usable=_granted(Param("user", User._meta.pk))
     )[:1]
 )
 
@@ -76,7 +74,7 @@ def services_for_user(user: User | AnonymousUser) -> QuerySet[Service]:
         return active
     if not user.has_perm("services.use_services"):
         return active.none()
-    return active.filter(_granted(user))
+    return active.filter(_granted(user.pk))
 
 
 def user_can_use(user: User | AnonymousUser, service: Service) -> bool:

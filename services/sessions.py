@@ -17,7 +17,7 @@ from django.utils import timezone
 
 from fleet.feed import fleet_notify
 from fleet.models import Vehicle
-from iouv.prepared import Param, PreparedQuery, PreparedUpdate
+from iouv.prepared import Param, PreparedFamily, PreparedQuery, PreparedUpdate
 from services.eventlog import event_append
 from services.models import Assignment, Session, SessionEvent
 
@@ -59,23 +59,20 @@ def session_transition(
 
 
 # A state change's update, per set of fields changed, composed once (iouv.prepared).
-_UPDATES: dict[tuple[str, ...], PreparedUpdate] = {}
-
-
-def _update_of(fields: tuple[str, ...]) -> PreparedUpdate:
-    return PreparedUpdate(
+_UPDATES: PreparedFamily[PreparedUpdate] = PreparedFamily(
+    lambda fields: PreparedUpdate(
         lambda: (
             Session.objects.filter(pk=Param("session", Session.id)),
             {name: Param(name, Session._meta.get_field(name)) for name in fields},
         )
     )
+)
 
 
 def _session_update(session: Session, fields: list[str]) -> None:
     """``session.save(update_fields=fields)``, composed once per set of fields."""
     key = tuple(fields)
-    statement = _UPDATES.get(key) or _UPDATES.setdefault(key, _update_of(key))
-    if not statement.run(session=session.pk, **{name: getattr(session, name) for name in key}):
+    if not _UPDATES[key].run(session=session.pk, **{name: getattr(session, name) for name in key}):
         raise DatabaseError("Save with update_fields did not affect any rows.")
 
 
