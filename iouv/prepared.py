@@ -31,6 +31,7 @@ from typing import Any, Generic, TypeVar, cast
 
 from django.db import DEFAULT_DB_ALIAS, connections, transaction
 from django.db.models import Expression, Field, Model, QuerySet, signals
+from django.db.models.constants import OnConflict
 from django.db.models.query import (
     FlatValuesListIterable,
     ModelIterable,
@@ -307,10 +308,16 @@ class PreparedInsert(Generic[M]):
     values (each field's ``pre_save`` and database preparation), the same signals and
     the database's id set on the instance. For plain tables: a model with parents
     (multi-table inheritance), a field with a placeholder of its own or an expression as
-    a value is refused."""
+    a value is refused.
 
-    def __init__(self, model: type[M]) -> None:
+    ``skip_conflicts``: the row is not written when it would break a unique constraint
+    (``ON CONFLICT DO NOTHING``; SQLite's ``INSERT OR IGNORE``), and :meth:`save_unless_taken`
+    says so instead of raising, without aborting the transaction it runs in. For models
+    whose id the database sets, which is how the insert is told apart from the skip."""
+
+    def __init__(self, model: type[M], *, skip_conflicts: bool = False) -> None:
         self.model = model
+        self.skip_conflicts = skip_conflicts
         self._compiled: dict[tuple[str, bool], _CompiledInsert] = {}
 
     def _compile(self, using: str, pk_set: bool) -> _CompiledInsert:
@@ -326,7 +333,11 @@ class PreparedInsert(Generic[M]):
         returning = list(meta.db_returning_fields) if not pk_set else []
         if returning and not connection.features.can_return_columns_from_insert:
             raise TypeError("this backend cannot return the inserted id")
-        query = InsertQuery(self.model)
+        if self.skip_conflicts and not returning:
+            raise TypeError("a skipped insert is told by the id the database returns")
+        query = InsertQuery(
+            self.model, on_conflict=OnConflict.IGNORE if self.skip_conflicts else None
+        )
         query.insert_values(fields, [self.model()], raw=False)
         compiler = query.get_compiler(using=using)
         compiler.returning_fields = returning or None
@@ -340,6 +351,20 @@ class PreparedInsert(Generic[M]):
 
     def save(self, obj: M, *, using: str = DEFAULT_DB_ALIAS) -> M:
         """Insert ``obj`` (a new instance of the model) and return it, saved."""
+        if self.skip_conflicts:
+            raise TypeError("this insert may skip its row: use save_unless_taken")
+        saved = self._insert(obj, using)
+        assert saved is not None
+        return saved
+
+    def save_unless_taken(self, obj: M, *, using: str = DEFAULT_DB_ALIAS) -> M | None:
+        """Insert ``obj`` unless a stored row already holds one of its unique values:
+        ``obj`` saved, else None (``obj`` is left unsaved and no post_save is sent)."""
+        if not self.skip_conflicts:
+            raise TypeError("this insert is not prepared to skip conflicts")
+        return self._insert(obj, using)
+
+    def _insert(self, obj: M, using: str) -> M | None:
         if type(obj) is not self.model or not obj._state.adding:
             raise TypeError(f"a prepared insert saves new {self.model.__name__} instances")
         meta = self.model._meta
@@ -366,6 +391,8 @@ class PreparedInsert(Generic[M]):
         with transaction.mark_for_rollback_on_error(using=using), connection.cursor() as cursor:
             cursor.execute(compiled.sql, params)
             returned = cursor.fetchone() if compiled.returning else None
+        if returned is None and self.skip_conflicts:
+            return None
         if returned is not None:
             values = _converted(compiled.converters, returned, connection)
             for field, value in zip(compiled.returning, values, strict=True):

@@ -123,7 +123,7 @@ def _own_session(lock: bool) -> PreparedQuery[Session]:
     def build() -> Any:
         rows = Session.objects.select_related("service", "user")
         if lock:
-            rows = rows.select_for_update(of=("self",))
+            rows = rows.select_for_update(of=("self",), no_key=True)
         return rows.filter(
             pk=Param("session", Session.id), user_id=Param("user", Session.user)
         ).order_by("pk")[:1]

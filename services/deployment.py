@@ -267,7 +267,9 @@ def session_deploy(*, session: Session) -> UserTask:
     """
     try:
         with transaction.atomic():
-            locked = Session.objects.select_for_update().select_related("service", "user")
+            locked = Session.objects.select_for_update(no_key=True).select_related(
+                "service", "user"
+            )
             session = locked.get(pk=session.pk)
             if session.state != Session.State.ASSIGNED:
                 raise DeploymentError(f"session {session.pk} is {session.state}, not assigned")
@@ -383,7 +385,9 @@ def grant_issue(
         raise DeploymentError(f"unknown role {role!r}")
     with transaction.atomic():
         session = (
-            Session.objects.select_for_update().select_related("service", "user").get(pk=session.pk)
+            Session.objects.select_for_update(no_key=True)
+            .select_related("service", "user")
+            .get(pk=session.pk)
         )
         if session.state in FINAL:
             raise DeploymentError(f"the session has {session.state}: {session.reason}")
@@ -492,7 +496,9 @@ def _close(
     with its assignments and its whole log as this transaction leaves them
     (``known_assignments``, ``known_events``)."""
     with transaction.atomic(savepoint=not locked):
-        row = session if locked else Session.objects.select_for_update().get(pk=session.pk)
+        row = (
+            session if locked else Session.objects.select_for_update(no_key=True).get(pk=session.pk)
+        )
         # The whole log rather than its tail: the answer shows it.
         log = session_log(session=row)
         # The transition validates the move first: nothing is sent for a refused one.

@@ -4,8 +4,20 @@ Each event stores the SHA-256 of its own canonical content plus the previous eve
 hash, so changing, removing or reordering a stored event breaks the chain from that
 point on, and ``session_log_verify`` names the first broken event.
 
-Appending locks the session's row and reads the log's tail, one event at a time. A
-session being created writes its first events in one go instead
+Appending reads the log's tail and inserts the next event only if its place (the
+session's next sequence number, unique) is still free; a writer that finds it taken
+reads the tail again and follows the event that took it. So an agent's report, which
+runs in no transaction of its own, appends with two statements and no lock: it used
+to take five (BEGIN, the session's row locked, the tail, the event, COMMIT), and a
+session has several such reports. A writer inside a transaction still locks the
+session's row first, as it did: that transaction may go on to lock the row itself,
+and taking the lock first keeps every writer's locks in one order. Session rows are
+locked ``FOR NO KEY UPDATE`` everywhere: the lock keeps writers of the session in
+turn without blocking the inserts that refer to it, such as a report's event (an
+insert's foreign-key check waits for ``FOR UPDATE``, and a report waiting there while
+the lock's holder waits for the report's event's place would deadlock).
+
+A session being created writes its first events in one go instead
 (:func:`events_staged`): nobody else can see it before its transaction commits, so
 there is no tail to read and no writer to wait for. A writer that holds the lock and
 has read the whole log (:func:`session_log`, to answer with it) appends after what it
@@ -23,7 +35,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from django.core.serializers.json import DjangoJSONEncoder
-from django.db import transaction
+from django.db.transaction import get_connection
 from django.utils import timezone
 
 from iouv.prepared import Param, PreparedInsert, PreparedQuery
@@ -36,12 +48,16 @@ GENESIS_HASH = "0" * 64
 # agent's report or a supervisor logs.
 _SESSION_LOCK: PreparedQuery[Any] = PreparedQuery(
     lambda: (
-        Session.objects.select_for_update()
+        Session.objects.select_for_update(no_key=True)
         .filter(pk=Param("session", Session.id))
         .values_list("pk", flat=True)
     )
 )
-_INSERT: PreparedInsert[SessionEvent] = PreparedInsert(SessionEvent)
+_INSERT: PreparedInsert[SessionEvent] = PreparedInsert(SessionEvent, skip_conflicts=True)
+# How often a writer may find its event's place taken before it gives up: each time,
+# another event was written in between, so only a flood of writers to one session
+# gets near it.
+_PLACE_TRIES = 100
 _LOG: PreparedQuery[SessionEvent] = PreparedQuery(
     lambda: SessionEvent.objects.filter(session_id=Param("session", SessionEvent.session)).order_by(
         "seq"
@@ -174,11 +190,13 @@ def event_append(
     """Append one event to ``session``'s log and return it (unsaved while staged by
     :func:`events_staged`, which writes it when its block ends).
 
-    The session row is locked so concurrent writers (the supervisor, a worker, a view)
-    get consecutive sequence numbers and a single chain; ``locked``: the caller already
-    holds that lock in the current transaction. ``log``: the caller holds it and read
-    the whole log under it (:func:`session_log`); the event follows its last and is
-    added to it.
+    Concurrent writers (the supervisor, a worker, a view) get consecutive sequence
+    numbers and a single chain: each event takes the next free place (module
+    docstring). Inside a transaction the session's row is locked first; ``locked``: the
+    caller already holds that lock in the current transaction. ``log``: the caller
+    holds it and read the whole log under it (:func:`session_log`); the event follows
+    its last and is added to it (the log is read again if another writer's event came
+    in between).
     """
     staged = _staging.get()
     if staged is not None and staged.session_id == session.pk:
@@ -186,19 +204,26 @@ def event_append(
         event = _event_new(session=session, seq=seq + 1, prev_hash=prev_hash, kind=kind, data=data)
         staged.events.append(event)
         return event
-    # No savepoint: nothing here is caught and carried on from; outside a transaction
-    # this still makes one, so the lock is held until the event is written.
-    with transaction.atomic(savepoint=False):
+    if log is None and not locked and get_connection().in_atomic_block:
+        # Inside a transaction: lock first, as every writer in one does (above).
+        _SESSION_LOCK.all(session=session.pk)
+    for _ in range(_PLACE_TRIES):
         if log is not None:
             last = (log[-1].seq, log[-1].hash) if log else None
         else:
-            if not locked:
-                _SESSION_LOCK.all(session=session.pk)
             last = _LOG_TAIL.first(session=session.pk)
         seq, prev_hash = last if last else (0, GENESIS_HASH)
         event = _event_new(session=session, seq=seq + 1, prev_hash=prev_hash, kind=kind, data=data)
-        _INSERT.save(event)
-        session_notify(session_id=session.pk, event=_feed_item(event))
+        if _INSERT.save_unless_taken(event) is not None:
+            break
+        # Another writer's event took the place: follow it.
+        if log is not None:
+            log[:] = session_log(session=session)
+    else:
+        raise RuntimeError(
+            f"session {session.pk}: no free place in its log after {_PLACE_TRIES} tries"
+        )
+    session_notify(session_id=session.pk, event=_feed_item(event))
     if log is not None:
         log.append(event)
     return event

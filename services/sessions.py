@@ -49,7 +49,7 @@ def session_transition(
     if to in FINAL and not reason:
         raise SessionStateError(f"a session cannot become {to} without a reason")
     with transaction.atomic():
-        locked = Session.objects.select_for_update().get(pk=session.pk)
+        locked = Session.objects.select_for_update(no_key=True).get(pk=session.pk)
         session_transition_locked(session=locked, to=to, reason=reason, data=data)
     # What the locked read and the update left: the row as it is now, without reading
     # it again.

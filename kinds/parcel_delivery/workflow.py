@@ -49,7 +49,7 @@ def delivery_advance(session_id: Any) -> str | None:
     after the step, None for no such delivery."""
     with transaction.atomic():
         delivery = (
-            Delivery.objects.select_for_update()
+            Delivery.objects.select_for_update(no_key=True)
             .select_related("session__service", "session__user")
             .filter(pk=session_id)
             .first()
@@ -62,7 +62,7 @@ def delivery_advance(session_id: Any) -> str | None:
 
 
 def _step(delivery: Delivery) -> None:
-    session = Session.objects.select_for_update().get(pk=delivery.session_id)
+    session = Session.objects.select_for_update(no_key=True).get(pk=delivery.session_id)
     delivery.session = session
     if session.state in FINAL:
         # Ended from outside: the user cancelled, a monitor stopped it, a task refused.

@@ -60,7 +60,7 @@ def mission_advance(session_id: Any) -> str | None:
     docstring). Returns the mission state after the step, None for no such mission."""
     with transaction.atomic():
         mission = (
-            Mission.objects.select_for_update()
+            Mission.objects.select_for_update(no_key=True)
             .select_related("session__service", "session__user")
             .filter(pk=session_id)
             .first()
@@ -74,7 +74,7 @@ def mission_advance(session_id: Any) -> str | None:
 
 
 def _step(mission: Mission) -> None:
-    session = Session.objects.select_for_update().get(pk=mission.session_id)
+    session = Session.objects.select_for_update(no_key=True).get(pk=mission.session_id)
     mission.session = session
     if session.state in FINAL and mission.state != S.RETURNING:
         # Ended from outside: a monitor's stop, a refused task, the time limit.

@@ -283,6 +283,40 @@ def test_an_insert_refuses_what_it_cannot_write_as_save_would(fleet):
     assert not Vehicle.objects.filter(name="ghost").exists()
 
 
+def test_an_insert_that_skips_conflicts_says_which_row_it_skipped(fleet):
+    insert: PreparedInsert[AgentMessage] = PreparedInsert(AgentMessage, skip_conflicts=True)
+    created: list[int] = []
+
+    signals.post_save.connect(
+        lambda sender, instance, **kw: created.append(instance.pk),
+        sender=AgentMessage,
+        weak=False,
+        dispatch_uid="skip-test",
+    )
+    try:
+        with transaction.atomic():
+            first = insert.save_unless_taken(
+                AgentMessage(vehicle=fleet[0], kind="task", message={"n": 1})
+            )
+            assert first is not None and isinstance(first.pk, int)
+            # Same unique key: not written, not an error, and the transaction goes on.
+            again = AgentMessage(key=first.key, vehicle=fleet[1], kind="task", message={"n": 2})
+            assert insert.save_unless_taken(again) is None
+            assert again._state.adding is True and again.pk is None
+            third = AgentMessage.objects.create(vehicle=fleet[1], kind="task", message={"n": 3})
+    finally:
+        signals.post_save.disconnect(sender=AgentMessage, dispatch_uid="skip-test")
+    assert created == [first.pk, third.pk]  # no post_save for the skipped row
+    assert sorted(AgentMessage.objects.values_list("message__n", flat=True)) == [1, 3]
+    # The plain save of such an insert, and the skip of a plain one, are refused.
+    with pytest.raises(TypeError, match="save_unless_taken"):
+        insert.save(AgentMessage(vehicle=fleet[0], kind="task", message={}))
+    with pytest.raises(TypeError, match="not prepared to skip"):
+        PreparedInsert(AgentMessage).save_unless_taken(
+            AgentMessage(vehicle=fleet[0], kind="task", message={})
+        )
+
+
 def test_a_family_prepares_one_statement_per_shape_and_keeps_a_few(fleet):
     built: list[int] = []
 

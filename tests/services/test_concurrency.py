@@ -6,11 +6,12 @@ import threading
 from collections import Counter
 
 import pytest
-from django.db import connection
+from django.db import connection, transaction
 
 from fleet.models import Vehicle
 from services.assignment import AssignmentError, session_request
-from services.models import Assignment, Session
+from services.eventlog import event_append, session_log, session_log_verify
+from services.models import Assignment, Session, SessionEvent
 from tests import factories as f
 
 REQUESTS = 40
@@ -115,3 +116,62 @@ def test_one_client_racing_twenty_requests_holds_only_the_services_cap():
     assert len(granted) == 2 and len(capped) == 18
     assert Vehicle.objects.filter(status=Vehicle.Status.RESERVED).count() == 2
     assert not Session.objects.exclude(pk__in=granted).exists()  # refusals record nothing
+
+
+@pytest.mark.postgres
+@pytest.mark.django_db(transaction=True)
+def test_writers_racing_on_one_log_keep_one_chain():
+    """Agents' reports append with no lock (two statements each); transactions lock the
+    session first, and one reads the whole log to answer with it. Racing on one log,
+    every event gets its own place in one unbroken chain, and nobody waits forever on
+    anybody (the lock and the reports' inserts cannot deadlock)."""
+    f.vehicle(station=f.station(), vtype=f.vehicle_type(), name="v")
+    session = session_request(user=f.user(), service=f.service(), target=f.HOME)
+    before = SessionEvent.objects.filter(session=session).count()
+    start = threading.Barrier(12)
+    crashes: list[BaseException] = []
+    lock = threading.Lock()
+
+    def report(n: int) -> None:  # as the uplink appends an agent's report: no transaction
+        for i in range(5):
+            event_append(session=session, kind="agent_event", data={"writer": n, "i": i})
+
+    def locked_writer(n: int) -> None:  # appends in a transaction, then locks the row
+        for i in range(3):
+            with transaction.atomic():
+                event_append(session=session, kind="note", data={"writer": n, "i": i})
+                Session.objects.select_for_update(no_key=True).get(pk=session.pk)
+
+    def answering_writer(n: int) -> None:  # holds the lock and answers with the log
+        for i in range(3):
+            with transaction.atomic():
+                row = Session.objects.select_for_update(no_key=True).get(pk=session.pk)
+                log = session_log(session=row)
+                event_append(session=row, kind="note", data={"writer": n, "i": i}, log=log)
+                # What it answers with is the whole log, its event last.
+                assert [e.seq for e in log] == list(range(1, len(log) + 1))
+                assert log[-1].data == {"writer": n, "i": i}
+
+    def run(work, n: int) -> None:  # type: ignore[no-untyped-def]
+        try:
+            start.wait()
+            work(n)
+        except BaseException as exc:
+            with lock:
+                crashes.append(exc)
+        finally:
+            connection.close()
+
+    workers = [report] * 8 + [locked_writer] * 2 + [answering_writer] * 2
+    threads = [threading.Thread(target=run, args=(w, n)) for n, w in enumerate(workers)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+
+    assert not crashes, crashes
+    events = list(SessionEvent.objects.filter(session=session).order_by("seq"))
+    assert len(events) == before + 8 * 5 + 4 * 3
+    assert session_log_verify(session=session, events=events).ok
+    written = Counter((e.data.get("writer"), e.data.get("i")) for e in events[before:])
+    assert set(written.values()) == {1}  # each once: none lost, none written twice

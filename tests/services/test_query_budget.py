@@ -71,13 +71,13 @@ END_ON_COMMIT = 4
 #   The ack of a message (fleet.outbox.agent_message_ack): the pending row marked
 #   acked (1) and read back (1). Of a session's end, also the vehicle released if it
 #   owes nothing more (1), and the end's delivery logged (services.supervision): the
-#   session with the vehicle's name (1), the event appended (BEGIN, the session
-#   locked, the log's tail, the event, COMMIT: 5).
+#   session with the vehicle's name (1), the event appended (the log's tail, the event
+#   in its place: 2; services.eventlog, no transaction and no lock).
 ACK_QUERIES = 2
-END_ACK_QUERIES = 3 + 6
+END_ACK_QUERIES = 3 + 3
 #   task_accepted, and an event (task_ended): the vehicle's assignment with its session
-#   (1), the event appended (5).
-REPORT_QUERIES = 6
+#   (1), the event appended (2).
+REPORT_QUERIES = 3
 
 COMMANDS = [{"name": "up", "args": {}}, {"name": "stop", "args": {}}]
 TARGET = {"lat": 40.6310, "lon": -8.6590}
