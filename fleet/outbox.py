@@ -210,10 +210,10 @@ class Acked:
     released: bool  # the vehicle left ``releasing`` with this acknowledgement
 
 
-# An agent's ack, which every delivered message gets, in statements composed once
-# (iouv.prepared).
-# One conditional update, no transaction: of two acks of one message (a repeat crossing
-# a redelivery) one changes the row, the other finds it acked already.
+# An agent's ack, which every delivered message gets, in one statement composed once
+# (iouv.prepared): a conditional update, no transaction, giving back what the ack is
+# about. Of two acks of one message (a repeat crossing a redelivery) one changes the
+# row, the other finds it acked already.
 _ACK = PreparedUpdate(
     lambda: (
         AgentMessage.objects.filter(
@@ -226,13 +226,8 @@ _ACK = PreparedUpdate(
             "acked_at": Param("now", AgentMessage.acked_at),
             "result": Param("result", AgentMessage.result),
         },
-    )
-)
-# Acked rows do not change again: read without a lock.
-_ACKED: PreparedQuery[Any] = PreparedQuery(
-    lambda: AgentMessage.objects.filter(key=Param("key", AgentMessage.key)).values_list(
-        "session_id", "kind", "message"
-    )
+    ),
+    returning=("session_id", "kind", "message"),
 )
 # A releasing vehicle whose agent owes no session end, made idle: the check and the
 # change in one statement.
@@ -268,11 +263,12 @@ def agent_message_ack(*, vehicle_id: Any, key: str, ok: bool, detail: str = "") 
     except ValueError:
         return None
     detail = detail[:200]
-    if not _ACK.run(
+    acked = _ACK.run_returning(
         key=pk, vehicle=vehicle_id, now=timezone.now(), result={"ok": ok, "detail": detail}
-    ):
+    )
+    if not acked:
         return None
-    session_id, kind, message = _ACKED.all(key=pk)[0]
+    ((session_id, kind, message),) = acked
     released = kind in ENDING and vehicle_release_if_settled(vehicle_id=vehicle_id)
     return Acked(
         vehicle_id=str(vehicle_id),

@@ -263,7 +263,15 @@ class PreparedQuery(_Statement, Generic[M]):
 class PreparedUpdate(_Statement):
     """An UPDATE composed once: ``build`` returns ``(queryset, {field: value})`` as
     ``queryset.update(**values)`` would take them, with :class:`Param` (or fixed
-    values, or expressions such as ``F``) as the values."""
+    values, or expressions such as ``F``) as the values.
+
+    ``returning``: names of the model's fields whose values, as the update leaves them,
+    each changed row gives back (``UPDATE ... RETURNING``, :meth:`run_returning`): what
+    a read after the update would say, without that read's statement."""
+
+    def __init__(self, build: Callable[[], Any], *, returning: Sequence[str] = ()) -> None:
+        super().__init__(build)
+        self.returning = tuple(returning)
 
     def _compile(self, using: str) -> _Compiled:
         queryset, changes = self._build()
@@ -282,10 +290,47 @@ class PreparedUpdate(_Statement):
         ):
             raise TypeError("this backend selects the rows of a joined update first")
         sql, params = compiler.as_sql()
-        return _Compiled(sql=sql, params=tuple(params), names=self._slots(params), locks=False)
+        converters: tuple[tuple[int, tuple[Any, ...], Any], ...] = ()
+        if self.returning:
+            connection = compiler.connection
+            if not connection.features.can_return_columns_from_insert:
+                raise TypeError("this backend cannot return the rows it changes")
+            meta = queryset.model._meta
+            fields = [meta.get_field(name) for name in self.returning]
+            # The same clause an INSERT's RETURNING takes, on both backends.
+            returning_sql, _ = connection.ops.return_insert_columns(fields)
+            sql = f"{sql} {returning_sql}"
+            columns = [field.get_col(meta.db_table) for field in fields]
+            converters = tuple(
+                (position, tuple(convs), expression)
+                for position, (convs, expression) in compiler.get_converters(columns).items()
+            )
+        return _Compiled(
+            sql=sql,
+            params=tuple(params),
+            names=self._slots(params),
+            locks=False,
+            converters=converters,
+        )
+
+    def run_returning(
+        self, *, using: str = DEFAULT_DB_ALIAS, **values: Any
+    ) -> list[tuple[Any, ...]]:
+        """Run the update; the ``returning`` fields of each row it changed."""
+        if not self.returning:
+            raise TypeError("this update returns nothing: give it returning fields")
+        compiled = self.compiled(using)
+        connection = connections[using]
+        params = compiled.bind(values, connection)
+        with transaction.mark_for_rollback_on_error(using=using), connection.cursor() as cursor:
+            cursor.execute(compiled.sql, params)
+            rows = cursor.fetchall()
+        return [tuple(_converted(compiled.converters, row, connection)) for row in rows]
 
     def run(self, *, using: str = DEFAULT_DB_ALIAS, **values: Any) -> int:
         """Run the update; how many rows it changed."""
+        if self.returning:
+            raise TypeError("this update returns its rows: use run_returning")
         compiled = self.compiled(using)
         connection = connections[using]
         params = compiled.bind(values, connection)

@@ -35,7 +35,7 @@ from functools import reduce
 from typing import Any
 
 from django.contrib.auth import get_user_model
-from django.db import connection, transaction
+from django.db import DEFAULT_DB_ALIAS, connection, transaction
 from django.db.models import (
     Exists,
     ExpressionWrapper,
@@ -425,26 +425,25 @@ QUIET = "no vehicle is online and idle"
 
 # What a request runs for every session, composed once (iouv.prepared).
 #
-# The row lock on a candidate, if it is still idle: a request holding it is skipped (it
-# is being reserved), not waited for. Not one still holding an active assignment (found
-# silent, then heard from again): the unique index would refuse the assignment, and
-# checking here needs no savepoint to go on. Read with its type and station (what its
-# task needs).
-_CANDIDATE_LOCK: PreparedQuery[Vehicle] = PreparedQuery(
-    lambda: (
-        Vehicle.objects.select_for_update(skip_locked=True, of=("self",))
-        .select_related("vehicle_type", "station")
-        .filter(pk=Param("vehicle", Vehicle.id), status=Vehicle.Status.IDLE, maintenance=False)
-        .filter(~Exists(Assignment.objects.filter(vehicle_id=OuterRef("pk"), active=True)))
-        .order_by()[:1]
-    )
-)
-# Conditional too: SQLite has no row locks (its writers take turns instead).
+# A candidate reserved, if it is still idle, in one statement that gives its row back
+# (what its task needs): the row is locked in a subquery that skips a row another
+# request holds (it is being reserved: skipped, not waited for). Not one still holding
+# an active assignment (found silent, then heard from again): the unique index would
+# refuse the assignment, and checking here needs no savepoint to go on. The update's
+# own condition holds on SQLite too, which has no row locks (its writers take turns).
+_VEHICLE_COLUMNS = tuple(field.attname for field in Vehicle._meta.concrete_fields)
 _RESERVE = PreparedUpdate(
     lambda: (
-        Vehicle.objects.filter(pk=Param("vehicle", Vehicle.id), status=Vehicle.Status.IDLE),
+        Vehicle.objects.filter(
+            pk__in=Vehicle.objects.select_for_update(skip_locked=True, of=("self",))
+            .filter(pk=Param("vehicle", Vehicle.id), status=Vehicle.Status.IDLE, maintenance=False)
+            .filter(~Exists(Assignment.objects.filter(vehicle_id=OuterRef("pk"), active=True)))
+            .order_by()
+            .values("pk")
+        ),
         {"status": Vehicle.Status.RESERVED},
-    )
+    ),
+    returning=_VEHICLE_COLUMNS,
 )
 _ASSIGNMENT_INSERT: PreparedInsert[Assignment] = PreparedInsert(Assignment)
 _SESSION_INSERT: PreparedInsert[Session] = PreparedInsert(Session)
@@ -485,23 +484,20 @@ def _reserve_first(
     """Reserve the best candidate still free and heard from; else say why none could
     be: :data:`TAKEN` by other requests, or :data:`QUIET` when every one's agent has
     gone quiet. Call it in a transaction: the chosen vehicle's row stays locked until
-    it ends. The assignment's ``vehicle`` is read, with its type and station (what its
-    task needs)."""
+    it ends. The assignment's ``vehicle`` is its row as reserved (what its task needs;
+    its type and station are read if asked for)."""
     why = QUIET if match.candidates else TAKEN
     for candidate in match.candidates:
         facts = candidate.vehicle
-        vehicle: Vehicle | None = _CANDIDATE_LOCK.first(vehicle=facts.pk)
-        if vehicle is None:
+        if str(facts.pk) not in vehicles_fresh([facts.pk], now):
+            # Its agent is not heard from (the sweep has not marked it offline yet):
+            # not this one.
+            continue
+        reserved = _RESERVE.run_returning(vehicle=facts.pk)
+        if not reserved:
             why = TAKEN  # another request got it first
             continue
-        if str(vehicle.pk) not in vehicles_fresh([vehicle.pk], now):
-            # Its agent is not heard from (the sweep has not marked it offline yet):
-            # not this one. The lock ends with the transaction.
-            continue
-        if not _RESERVE.run(vehicle=vehicle.pk):
-            why = TAKEN
-            continue
-        vehicle.status = Vehicle.Status.RESERVED
+        vehicle = Vehicle.from_db(DEFAULT_DB_ALIAS, _VEHICLE_COLUMNS, reserved[0])
         assignment = _ASSIGNMENT_INSERT.save(
             Assignment(
                 session=session,
@@ -588,11 +584,17 @@ def session_record(
     relay: bool = False,
     preferences: dict[str, Any] | None = None,
     pk: Any = None,
+    write: bool = True,
 ) -> Session:
     """:func:`session_open` in the caller's transaction, without the grant check (the
     caller made it): the cap is counted under the user's row lock, the session (``pk``
     if given) is recorded and its ``requested`` event logged. Raises AssignmentError
-    (``over_cap``) before writing anything."""
+    (``over_cap``) before writing anything.
+
+    ``write=False``: the session is not written yet. Its state changes stay on the
+    instance (services.sessions) and the caller writes it once, as they leave it, with
+    :func:`session_write` before its transaction ends (what refers to it, its
+    assignments and its log, is checked against it at the commit)."""
     _USER_LOCK.all(user=user.pk)
     live = len(_LIVE_SESSIONS.all(user=user.pk, service=service.pk))
     cap = service.max_sessions_per_user
@@ -612,7 +614,8 @@ def session_record(
     )
     if pk is not None:
         session.pk = pk
-    _SESSION_INSERT.save(session)
+    if write:
+        _SESSION_INSERT.save(session)
     event_append(
         session=session,
         kind="requested",
@@ -625,6 +628,11 @@ def session_record(
         locked=True,  # nobody else sees it before this transaction commits
     )
     return session
+
+
+def session_write(session: Session) -> Session:
+    """Write a session :func:`session_record` left unwritten, as it is now."""
+    return _SESSION_INSERT.save(session)
 
 
 def service_grant_require(*, user: User, service: Service) -> None:
@@ -726,6 +734,7 @@ def session_request(
     refused: AssignmentError | None = None
     pk = uuid.uuid4()
     # One transaction, and the log written in one go at its end (services.eventlog).
+    # The session written once, assigned or failed (session_record's write).
     with transaction.atomic(), events_staged(session_id=pk):
         session = session_record(
             user=user,
@@ -735,6 +744,7 @@ def session_request(
             relay=relay,
             preferences=preferences,
             pk=pk,
+            write=False,
         )
         try:
             session_roles_assign(
@@ -742,6 +752,7 @@ def session_request(
             )
         except AssignmentError as exc:
             refused = exc  # the failed session is committed, then the refusal raised
+        session_write(session)
     if refused is not None:
         raise refused
     return session

@@ -34,6 +34,7 @@ from services.assignment import (
     service_grant_require,
     session_record,
     session_roles_assign,
+    session_write,
 )
 from services.eventlog import event_append, events_staged, session_log
 from services.grants import user_can_use
@@ -335,6 +336,7 @@ def session_request_deploy(
         service_grant_require(user=user, service=service)
     refused: AssignmentError | InvalidTaskError | None = None
     pk = uuid.uuid4()
+    # The session written once, as the block leaves it (session_record's write).
     with transaction.atomic(), events_staged(session_id=pk) as log:
         session = session_record(
             user=user,
@@ -344,6 +346,7 @@ def session_request_deploy(
             relay=relay,
             preferences=preferences,
             pk=pk,
+            write=False,
         )
         try:
             assignments = session_roles_assign(
@@ -359,6 +362,7 @@ def session_request_deploy(
             session_transition_locked(session=session, to=Session.State.FAILED, reason=str(exc))
             exc.session = session
             refused = exc
+        session_write(session)
     if refused is not None:
         raise refused
     # A new session: these are all its assignments, and its whole log.

@@ -70,7 +70,11 @@ _UPDATES: PreparedFamily[PreparedUpdate] = PreparedFamily(
 
 
 def _session_update(session: Session, fields: list[str]) -> None:
-    """``session.save(update_fields=fields)``, composed once per set of fields."""
+    """``session.save(update_fields=fields)``, composed once per set of fields; nothing
+    for a session not written yet (services.assignment.session_record's ``write``),
+    which is written with its changes."""
+    if session._state.adding:
+        return
     key = tuple(fields)
     if not _UPDATES[key].run(session=session.pk, **{name: getattr(session, name) for name in key}):
         raise DatabaseError("Save with update_fields did not affect any rows.")

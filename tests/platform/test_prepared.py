@@ -171,6 +171,32 @@ def test_an_update_changes_what_it_selects_and_counts_it(fleet):
     assert Vehicle.objects.filter(status="reserved").count() == 1
 
 
+def test_an_update_returns_what_it_left_in_the_rows_it_changed(fleet):
+    reserve = PreparedUpdate(
+        lambda: (
+            Vehicle.objects.filter(pk=Param("vehicle", Vehicle.id), status="idle"),
+            {"status": "reserved", "battery": F("battery") - 1},
+        ),
+        returning=("id", "status", "battery", "profile", "last_seen", "station"),
+    )
+    with CaptureQueriesContext(connection) as statements:
+        ((pk, status, battery, profile, seen, station),) = reserve.run_returning(
+            vehicle=fleet[0].pk
+        )
+    assert len(statements) == 1
+    stored = Vehicle.objects.get(pk=fleet[0].pk)
+    # Converted as the ORM reads them: a UUID, JSON, an aware datetime, a relation's id.
+    assert (pk, status, battery, profile) == (stored.pk, "reserved", 49, {"i": 0})
+    assert (seen, station) == (stored.last_seen, stored.station_id)
+    # A row the filter no longer selects is not changed and gives nothing back.
+    assert reserve.run_returning(vehicle=fleet[0].pk) == []
+    assert Vehicle.objects.get(pk=fleet[0].pk).battery == 49
+    with pytest.raises(TypeError, match="run_returning"):
+        reserve.run(vehicle=fleet[1].pk)
+    with pytest.raises(TypeError, match="returns nothing"):
+        STATUS_SET.run_returning(vehicle=fleet[1].pk, status="idle")
+
+
 def test_it_is_composed_once(fleet, monkeypatch):
     statement = PreparedQuery(lambda: Vehicle.objects.filter(name=Param("name", Vehicle.name)))
     composed = []

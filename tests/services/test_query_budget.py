@@ -40,16 +40,17 @@ from services.selectors import session_delivery
 from services.signing import platform_public_key
 from tests import factories as f
 
-# Request: 17 statements.
+# Request: 15 statements.
 #   the API's own: the token with its user (1), its last use (1, at most once a
 #   minute), the user's permissions (1, accounts.backends.RoleBackend), the service
 #   with whether the user may use it (1);
 #   one transaction (BEGIN, COMMIT: 2): the user's row locked for the cap (1), the
-#   live sessions counted (1), the session (1), its roles (1), the matching vehicles
-#   (1), the chosen one locked and read (1), reserved (1), its assignment (1), the
-#   session assigned (1), the task owed to the agent (1), the whole log (1);
+#   live sessions counted (1), its roles (1), the matching vehicles (1), the chosen
+#   one reserved if still idle, its row given back (1), its assignment (1), the task
+#   owed to the agent (1), the session, written once as assigned (1), the whole log
+#   (1);
 #   the answer: nothing read back (the assignments and the log just written).
-REQUEST_QUERIES = 17
+REQUEST_QUERIES = 15
 #   Monitors' session feed (1 message for the whole log), fleet feed (1), the nudge
 #   to the vehicle's outbox (1).
 REQUEST_ON_COMMIT = 3
@@ -69,12 +70,12 @@ END_ON_COMMIT = 4
 
 # What the vehicle's agent says about the session, as its uplink handles it.
 #   The ack of a message (fleet.outbox.agent_message_ack): the pending row marked
-#   acked (1) and read back (1). Of a session's end, also the vehicle released if it
+#   acked, giving back what it was (1). Of a session's end, also the vehicle released if it
 #   owes nothing more (1), and the end's delivery logged (services.supervision): the
 #   session with the vehicle's name (1), the event appended (the log's tail, the event
 #   in its place: 2; services.eventlog, no transaction and no lock).
-ACK_QUERIES = 2
-END_ACK_QUERIES = 3 + 3
+ACK_QUERIES = 1
+END_ACK_QUERIES = 2 + 3
 #   task_accepted, and an event (task_ended): the vehicle's assignment with its session
 #   (1), the event appended (2).
 REPORT_QUERIES = 3
