@@ -14,10 +14,11 @@ ready (:func:`relay_store_set`), so this project-level helper depends on no app'
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
+import collections
 import logging
 import os
 import time
+import weakref
 from typing import Any, Protocol
 
 from asgiref.sync import SyncToAsync, async_to_sync
@@ -34,8 +35,8 @@ CROSS_PROCESS = False
 
 #: How often the ASGI process looks for relayed messages (embedded mode only).
 RELAY_POLL_S = 0.25
-#: How long a push from a worker thread of the ASGI server waits for the server's loop.
-PUSH_TIMEOUT_S = 5.0
+#: How many pushes from worker threads may wait for the ASGI server's loop.
+PUSH_QUEUE_MAX = 10_000
 
 _relay_task: asyncio.Task[None] | None = None
 
@@ -81,17 +82,8 @@ def group_send_after_commit(group: str, message: dict[str, Any]) -> None:
 
     def send() -> None:
         layer = get_channel_layer()
-        if layer is None:
-            return
-        try:
+        if layer is not None:
             _push(layer, group, message)
-        except TimeoutError:
-            # The server's loop (or the layer's connections) stayed busy for the whole
-            # wait, e.g. while thousands of agents connect at once: one line, not a
-            # traceback per push, for a push that is best effort anyway.
-            log.warning(
-                "layer: push to %s dropped after %g s, the server is busy", group, PUSH_TIMEOUT_S
-            )
 
     # Robust: a push that fails (Redis away, its connections all in use) is logged and
     # lost like any best-effort push; it must not turn the committed change into an
@@ -112,12 +104,16 @@ def _server_loop() -> asyncio.AbstractEventLoop | None:
 def _push(layer: Any, group: str, message: dict[str, Any]) -> None:
     """``layer.group_send`` from synchronous code.
 
-    In a worker thread of the ASGI server the send runs on the server's loop, as
-    ``async_to_sync`` would run it, but the wait ends if that loop stops: a server
-    shutting down stops its loop while consumers' database work (a closing uplink's
-    "offline", say) is still in threads, and ``async_to_sync`` would then wait for
-    ever, holding the process until it is killed. Elsewhere (a Celery worker, a
-    command) ``async_to_sync`` runs it on a loop of its own.
+    In a worker thread of the ASGI server (an HTTP request's view, a consumer's
+    database work) the push is handed to the server's loop and the thread goes on at
+    once: the loop sends its pushes one after the other, in the order they came
+    (:class:`_Pushes`). The thread used to wait for each send, a hop to the loop and
+    back and two Redis round trips, three to four times per request; the request
+    held the process's one HTTP slot (IOUV_HTTP_CONCURRENCY) all that while, behind
+    a loop busy with a thousand agents' frames. A push to a loop that has stopped (a
+    server shutting down, while a closing uplink's database work is still in a
+    thread) is dropped with a line. Elsewhere (a Celery worker, a command)
+    ``async_to_sync`` runs the send on a loop of its own and returns when it is done.
     """
     loop = _server_loop()
     if loop is None:
@@ -126,20 +122,64 @@ def _push(layer: Any, group: str, message: dict[str, Any]) -> None:
     if not loop.is_running():
         log.info("layer: push to %s dropped, the server is stopping", group)
         return
-    future = asyncio.run_coroutine_threadsafe(layer.group_send(group, message), loop)
-    deadline = time.monotonic() + PUSH_TIMEOUT_S
-    while True:
-        try:
-            future.result(timeout=0.1)
+    try:
+        loop.call_soon_threadsafe(_Pushes.of(loop).put, layer, group, message)
+    except RuntimeError:  # the loop closed since the check above
+        log.info("layer: push to %s dropped, the server is stopping", group)
+
+
+class _Pushes:
+    """The pushes a server's worker threads handed to its loop, sent in order by one
+    task. Bounded: when the loop cannot keep up for long (thousands of agents
+    connecting at once), the pushes over :data:`PUSH_QUEUE_MAX` are dropped, one
+    warning line per second at most; each is best effort, as every push is."""
+
+    _by_loop: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, _Pushes] = (
+        weakref.WeakKeyDictionary()
+    )
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+        self.waiting: collections.deque[tuple[Any, str, dict[str, Any]]] = collections.deque()
+        self.sender: asyncio.Task[None] | None = None
+        self.dropped = 0
+        self.warned_at = 0.0
+
+    @classmethod
+    def of(cls, loop: asyncio.AbstractEventLoop) -> _Pushes:
+        """The queue of ``loop`` (made on first use; a thread may race to make it, and
+        the loser's queue is simply not kept)."""
+        found = cls._by_loop.get(loop)
+        if found is None:
+            found = cls._by_loop.setdefault(loop, cls(loop))
+        return found
+
+    def put(self, layer: Any, group: str, message: dict[str, Any]) -> None:
+        """On the loop: queue one push and make sure the sender runs."""
+        if len(self.waiting) >= PUSH_QUEUE_MAX:
+            self.dropped += 1
+            now = time.monotonic()
+            if now - self.warned_at >= 1.0:
+                log.warning(
+                    "layer: push to %s dropped, %d pushes already wait for the server "
+                    "(%d dropped since the last line)",
+                    group,
+                    len(self.waiting),
+                    self.dropped,
+                )
+                self.warned_at, self.dropped = now, 0
             return
-        except concurrent.futures.TimeoutError:
-            if not loop.is_running():
-                future.cancel()
-                log.info("layer: push to %s dropped, the server is stopping", group)
-                return
-            if time.monotonic() > deadline:
-                future.cancel()
-                raise
+        self.waiting.append((layer, group, message))
+        if self.sender is None or self.sender.done():
+            self.sender = self.loop.create_task(self._send_all())
+
+    async def _send_all(self) -> None:
+        while self.waiting:
+            layer, group, message = self.waiting.popleft()
+            try:
+                await layer.group_send(group, message)
+            except Exception:  # Redis away: this push is lost, the next ones are tried
+                log.warning("layer: push to %s failed", group, exc_info=True)
 
 
 def _take_relayed(limit: int = 200) -> list[tuple[str, dict[str, Any]]]:
