@@ -42,6 +42,7 @@ from django.db.models.sql import InsertQuery, UpdateQuery
 from django.db.transaction import TransactionManagementError
 
 M = TypeVar("M", bound=Model)
+R = TypeVar("R")
 
 
 class _Slot:
@@ -120,6 +121,16 @@ class _Compiled:
         ]
 
 
+def _column_converters(compiler: Any, columns: Sequence[Any]) -> tuple[Any, ...]:
+    """What converts each of ``columns`` as it is read: the backend's and the fields'
+    converters (Django's get_converters), kept with the statement; :func:`_converted`
+    applies them with the running thread's connection."""
+    return tuple(
+        (position, tuple(convs), expression)
+        for position, (convs, expression) in compiler.get_converters(columns).items()
+    )
+
+
 def _converted(
     converters: Sequence[tuple[int, Sequence[Any], Any]], row: Sequence[Any], connection: Any
 ) -> list[Any]:
@@ -185,12 +196,7 @@ class PreparedQuery(_Statement, Generic[M]):
         composite = getattr(compiler, "has_composite_fields", None)  # Django 5.2 on
         if composite is not None and composite(fields):
             raise TypeError("prepared queries read no composite fields")
-        # The converters are the backend's and the fields' (Django's get_converters);
-        # each is applied with the running thread's connection.
-        converters = tuple(
-            (position, tuple(convs), expression)
-            for position, (convs, expression) in compiler.get_converters(fields).items()
-        )
+        converters = _column_converters(compiler, fields)
         compiled = _Compiled(
             sql=sql,
             params=tuple(params),
@@ -300,10 +306,8 @@ class PreparedUpdate(_Statement):
             # The same clause an INSERT's RETURNING takes, on both backends.
             returning_sql, _ = connection.ops.return_insert_columns(fields)
             sql = f"{sql} {returning_sql}"
-            columns = [field.get_col(meta.db_table) for field in fields]
-            converters = tuple(
-                (position, tuple(convs), expression)
-                for position, (convs, expression) in compiler.get_converters(columns).items()
+            converters = _column_converters(
+                compiler, [field.get_col(meta.db_table) for field in fields]
             )
         return _Compiled(
             sql=sql,
@@ -319,24 +323,24 @@ class PreparedUpdate(_Statement):
         """Run the update; the ``returning`` fields of each row it changed."""
         if not self.returning:
             raise TypeError("this update returns nothing: give it returning fields")
-        compiled = self.compiled(using)
-        connection = connections[using]
-        params = compiled.bind(values, connection)
-        with transaction.mark_for_rollback_on_error(using=using), connection.cursor() as cursor:
-            cursor.execute(compiled.sql, params)
-            rows = cursor.fetchall()
-        return [tuple(_converted(compiled.converters, row, connection)) for row in rows]
+        rows = self._execute(using, values, lambda cursor: cursor.fetchall())
+        converters, connection = self.compiled(using).converters, connections[using]
+        return [tuple(_converted(converters, row, connection)) for row in rows]
 
     def run(self, *, using: str = DEFAULT_DB_ALIAS, **values: Any) -> int:
         """Run the update; how many rows it changed."""
         if self.returning:
             raise TypeError("this update returns its rows: use run_returning")
+        return self._execute(using, values, lambda cursor: int(cursor.rowcount))
+
+    def _execute(self, using: str, values: Mapping[str, Any], read: Callable[[Any], R]) -> R:
+        """Bind ``values``, run the update and ``read`` its cursor."""
         compiled = self.compiled(using)
         connection = connections[using]
         params = compiled.bind(values, connection)
         with transaction.mark_for_rollback_on_error(using=using), connection.cursor() as cursor:
             cursor.execute(compiled.sql, params)
-            return int(cursor.rowcount)
+            return read(cursor)
 
 
 @dataclass(frozen=True)
@@ -387,11 +391,7 @@ class PreparedInsert(Generic[M]):
         compiler = query.get_compiler(using=using)
         compiler.returning_fields = returning or None
         ((sql, _params),) = compiler.as_sql()
-        columns = [f.get_col(meta.db_table) for f in returning]
-        converters = tuple(
-            (position, tuple(convs), expression)
-            for position, (convs, expression) in compiler.get_converters(columns).items()
-        )
+        converters = _column_converters(compiler, [f.get_col(meta.db_table) for f in returning])
         return _CompiledInsert(sql, tuple(fields), tuple(returning), converters)
 
     def save(self, obj: M, *, using: str = DEFAULT_DB_ALIAS) -> M:
