@@ -14,9 +14,10 @@ import secrets
 from datetime import timedelta
 
 from django.db import IntegrityError, transaction
-from django.db.models import Q
+from django.db.models import OuterRef, Q
 from django.utils import timezone
 
+from accounts.backends import permissions_cache, permissions_joined
 from accounts.models import ApiToken
 from accounts.users import User
 from iouv.prepared import Param, PreparedQuery
@@ -75,10 +76,12 @@ def token_issue(*, user: User, name: str) -> str:
     raise RuntimeError("could not find a free token prefix")  # pragma: no cover
 
 
-# Every API request reads its token: composed once (iouv.prepared).
+# Every API request reads its token, with its user and the user's permissions
+# (accounts.backends): composed once (iouv.prepared).
 _TOKEN_BY_PREFIX: PreparedQuery[ApiToken] = PreparedQuery(
     lambda: (
         ApiToken.objects.select_related("user")
+        .annotate(permissions=permissions_joined(OuterRef("user_id")))
         .filter(prefix=Param("prefix", ApiToken.prefix), revoked_at__isnull=True)
         .order_by("pk")[:1]
     )
@@ -100,6 +103,7 @@ def token_authenticate(raw: str) -> User | None:
         return None
     if not token.user.is_active:
         return None
+    permissions_cache(token.user, token.permissions)  # type: ignore[attr-defined]
     now = timezone.now()
     if token.last_used_at is None or token.last_used_at < now - LAST_USED_RESOLUTION:
         # Conditional so that concurrent requests do not all write.

@@ -98,8 +98,9 @@ def _db(func: Any) -> Any:
 # --------------------------------------------------------------------------------------
 
 
-# Every task and every end owed to an agent: composed once (iouv.prepared).
-_ENQUEUE: PreparedInsert[AgentMessage] = PreparedInsert(AgentMessage)
+# Every task and every end owed to an agent: composed once (iouv.prepared), and held
+# by an open write batch (a session's request and end send their writes together).
+_ENQUEUE: PreparedInsert[AgentMessage] = PreparedInsert(AgentMessage, batched=True)
 
 
 def agent_message_enqueue(

@@ -20,12 +20,22 @@ It reads what Django's compiler works out while composing (the selected columns,
 models they fill, their converters), which Django does not document as an interface:
 tests/platform/test_prepared.py compares each kind of statement with the ORM's own
 answer, so a Django release that changes those fails there first.
+
+Writes can also wait for each other (:func:`writes_batched`): inside such a block the
+inserts and updates that may (:class:`PreparedInsert` made with ``batched=True``,
+:meth:`PreparedUpdate.run_later`) are held, and sent when the block ends, all in one
+statement on PostgreSQL (``WITH w0 AS (INSERT ...), w1 AS (UPDATE ...) SELECT ...``),
+one after the other elsewhere. A session's request and its end each write four or
+five rows that nothing in their transaction reads back: one round trip instead of
+five.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar, cast
 
@@ -143,6 +153,153 @@ def _converted(
             value = converter(value, expression, connection)
         out[position] = value
     return out
+
+
+@dataclass
+class _Held:
+    """One write held by a :class:`WriteBatch`: its SQL and values as bound, the
+    fields whose values it gives back, and what to do once it has run (given how many
+    rows it wrote and their returned values)."""
+
+    sql: str
+    params: Sequence[Any]
+    returning: tuple[Any, ...]
+    converters: tuple[tuple[int, tuple[Any, ...], Any], ...]
+    done: Callable[[int, list[list[Any]]], object] | None
+
+
+class WriteBatch:
+    """Writes held until their :func:`writes_batched` block ends, then sent together.
+
+    Only writes made at the block's own savepoint depth are held: one made inside a
+    savepoint opened in the block runs at once, since rolling back to that savepoint
+    would not take back a write that had not been sent yet."""
+
+    def __init__(self, using: str, depth: int) -> None:
+        self.using = using
+        self.depth = depth
+        self._held: list[_Held] = []
+
+    def holds(self, using: str) -> bool:
+        """Whether a write to ``using`` made now is held (else it runs at once)."""
+        return using == self.using and _savepoint_depth(using) == self.depth
+
+    def hold(self, held: _Held) -> None:
+        self._held.append(held)
+
+    def flush(self) -> None:
+        """Send what is held: one statement where the backend can run writes in a
+        WITH clause, each alone elsewhere; then each write's ``done``, in order. The
+        block's end calls it; a block that has to read back what it wrote calls it
+        first (the batch goes on holding what comes after)."""
+        held, self._held = self._held, []
+        if not held:
+            return
+        connection = connections[self.using]
+        # A WITH clause's writes are PostgreSQL's; SQLite runs them one by one.
+        if len(held) == 1 or connection.vendor != "postgresql":
+            results = [_run_alone(connection, one) for one in held]
+        else:
+            results = _run_together(connection, held)
+        for one, (count, rows) in zip(held, results, strict=True):
+            if one.done is not None:
+                one.done(count, rows)
+
+
+def _savepoint_depth(using: str) -> int:
+    return sum(1 for sid in connections[using].savepoint_ids if sid)
+
+
+def _run_alone(connection: Any, held: _Held) -> tuple[int, list[list[Any]]]:
+    with (
+        transaction.mark_for_rollback_on_error(using=connection.alias),
+        connection.cursor() as cursor,
+    ):
+        cursor.execute(held.sql, held.params)
+        if not held.returning:
+            return int(cursor.rowcount), []
+        rows = cursor.fetchall()
+    return len(rows), [_converted(held.converters, row, connection) for row in rows]
+
+
+def _run_together(connection: Any, held: Sequence[_Held]) -> list[tuple[int, list[list[Any]]]]:
+    """The held writes as one PostgreSQL statement: each a data-modifying WITH query,
+    and one row that says how many rows each wrote (or the arrays of what they
+    returned, in the order written)."""
+    quote = connection.ops.quote_name
+    queries: list[str] = []
+    columns: list[str] = []
+    params: list[Any] = []
+    for i, one in enumerate(held):
+        name = f"iouv_w{i}"
+        sql = one.sql if one.returning else f"{one.sql} RETURNING 1"
+        queries.append(f"{name} AS ({sql})")
+        params.extend(one.params)
+        if one.returning:
+            columns += [
+                f"(SELECT array_agg({name}.{quote(f.column)}) FROM {name})" for f in one.returning
+            ]
+        else:
+            columns.append(f"(SELECT count(*) FROM {name})")
+    sql = f"WITH {', '.join(queries)} SELECT {', '.join(columns)}"
+    with (
+        transaction.mark_for_rollback_on_error(using=connection.alias),
+        connection.cursor() as cursor,
+    ):
+        cursor.execute(sql, params)
+        (row,) = cursor.fetchall()
+    results: list[tuple[int, list[list[Any]]]] = []
+    position = 0
+    for one in held:
+        if not one.returning:
+            results.append((int(row[position]), []))
+            position += 1
+            continue
+        arrays = row[position : position + len(one.returning)]
+        position += len(one.returning)
+        rows = [list(values) for values in zip(*(a or [] for a in arrays), strict=True)]
+        results.append(
+            (len(rows), [_converted(one.converters, values, connection) for values in rows])
+        )
+    return results
+
+
+_batch: ContextVar[WriteBatch | None] = ContextVar("iouv_write_batch", default=None)
+
+
+def _open_batch(using: str) -> WriteBatch | None:
+    """The open batch that holds a write to ``using`` made now, if any."""
+    batch = _batch.get()
+    return batch if batch is not None and batch.holds(using) else None
+
+
+@contextmanager
+def writes_batched(using: str = DEFAULT_DB_ALIAS) -> Iterator[WriteBatch]:
+    """Within the block, the writes that may wait are held and sent when it ends
+    without an error (an error drops them, with the rest of its transaction): the
+    inserts of a :class:`PreparedInsert` made with ``batched=True`` and the updates of
+    :meth:`PreparedUpdate.run_later`. Call it inside a transaction.
+
+    What the block may not do: read back a row a held write writes (it is not written
+    yet), or change one row twice (PostgreSQL runs the held writes as one statement, in
+    which a second change of a row does not see the first). A held insert's id, when
+    the database sets it, is on its instance once the block has ended; a unique
+    constraint a held write breaks raises there. A block inside another's joins it."""
+    outer = _batch.get()
+    if outer is not None:
+        if outer.using != using:
+            raise TransactionManagementError("write batches of two databases do not nest")
+        yield outer
+        return
+    if not connections[using].in_atomic_block:
+        raise TransactionManagementError("writes are batched inside a transaction")
+    batch = WriteBatch(using, _savepoint_depth(using))
+    token = _batch.set(batch)
+    try:
+        yield batch
+    finally:
+        _batch.reset(token)
+    batch.flush()
 
 
 class _Statement:
@@ -333,6 +490,32 @@ class PreparedUpdate(_Statement):
             raise TypeError("this update returns its rows: use run_returning")
         return self._execute(using, values, lambda cursor: int(cursor.rowcount))
 
+    def run_later(
+        self,
+        *,
+        then: Callable[[int], None] | None = None,
+        using: str = DEFAULT_DB_ALIAS,
+        **values: Any,
+    ) -> None:
+        """:meth:`run`, held by the open :func:`writes_batched` block if there is one,
+        else now; ``then`` is given how many rows it changed once it has run."""
+        if self.returning:
+            raise TypeError("this update returns its rows: use run_returning")
+        batch = _open_batch(using)
+        if batch is None:
+            count = self.run(using=using, **values)
+            if then is not None:
+                then(count)
+            return
+        compiled = self.compiled(using)
+        params = compiled.bind(values, connections[using])
+
+        def done(count: int, _rows: list[list[Any]]) -> None:
+            if then is not None:
+                then(count)
+
+        batch.hold(_Held(compiled.sql, params, (), (), done))
+
     def _execute(self, using: str, values: Mapping[str, Any], read: Callable[[Any], R]) -> R:
         """Bind ``values``, run the update and ``read`` its cursor."""
         compiled = self.compiled(using)
@@ -362,14 +545,21 @@ class PreparedInsert(Generic[M]):
     ``skip_conflicts``: the row is not written when it would break a unique constraint
     (``ON CONFLICT DO NOTHING``; SQLite's ``INSERT OR IGNORE``), and :meth:`save_unless_taken`
     says so instead of raising, without aborting the transaction it runs in. For models
-    whose id the database sets, which is how the insert is told apart from the skip."""
+    whose id the database sets, which is how the insert is told apart from the skip.
 
-    def __init__(self, model: type[M], *, skip_conflicts: bool = False) -> None:
+    ``batched``: inside a :func:`writes_batched` block the insert is held and sent with
+    the block's other writes; its post_save, and the id the database sets, come then."""
+
+    def __init__(
+        self, model: type[M], *, skip_conflicts: bool = False, batched: bool = False
+    ) -> None:
         self.model = model
         self.skip_conflicts = skip_conflicts
+        self.batched = batched
         self._compiled: dict[tuple[str, bool], _CompiledInsert] = {}
 
-    def _compile(self, using: str, pk_set: bool) -> _CompiledInsert:
+    def _fields(self, using: str, pk_set: bool) -> tuple[list[Any], list[Any]]:
+        """The columns written and the fields the database fills in, checked."""
         meta = self.model._meta
         if meta.parents:
             raise TypeError("prepared inserts write one table")
@@ -378,12 +568,15 @@ class PreparedInsert(Generic[M]):
             fields = [f for f in fields if f is not meta.auto_field]
         if any(hasattr(f, "get_placeholder") for f in fields):
             raise TypeError("prepared inserts take fields bound as plain values only")
-        connection = connections[using]
         returning = list(meta.db_returning_fields) if not pk_set else []
-        if returning and not connection.features.can_return_columns_from_insert:
+        if returning and not connections[using].features.can_return_columns_from_insert:
             raise TypeError("this backend cannot return the inserted id")
         if self.skip_conflicts and not returning:
             raise TypeError("a skipped insert is told by the id the database returns")
+        return fields, returning
+
+    def _compile(self, using: str, pk_set: bool) -> _CompiledInsert:
+        fields, returning = self._fields(using, pk_set)
         query = InsertQuery(
             self.model, on_conflict=OnConflict.IGNORE if self.skip_conflicts else None
         )
@@ -391,38 +584,51 @@ class PreparedInsert(Generic[M]):
         compiler = query.get_compiler(using=using)
         compiler.returning_fields = returning or None
         ((sql, _params),) = compiler.as_sql()
-        converters = _column_converters(compiler, [f.get_col(meta.db_table) for f in returning])
+        table = self.model._meta.db_table
+        converters = _column_converters(compiler, [f.get_col(table) for f in returning])
         return _CompiledInsert(sql, tuple(fields), tuple(returning), converters)
 
     def save(self, obj: M, *, using: str = DEFAULT_DB_ALIAS) -> M:
-        """Insert ``obj`` (a new instance of the model) and return it, saved."""
+        """Insert ``obj`` (a new instance of the model) and return it, saved (or held,
+        with ``batched``)."""
         if self.skip_conflicts:
             raise TypeError("this insert may skip its row: use save_unless_taken")
-        saved = self._insert(obj, using)
-        assert saved is not None
-        return saved
+        self._insert(obj, using, None)
+        return obj
 
-    def save_unless_taken(self, obj: M, *, using: str = DEFAULT_DB_ALIAS) -> M | None:
+    def save_unless_taken(
+        self,
+        obj: M,
+        *,
+        using: str = DEFAULT_DB_ALIAS,
+        then: Callable[[M | None], None] | None = None,
+    ) -> M | None:
         """Insert ``obj`` unless a stored row already holds one of its unique values:
-        ``obj`` saved, else None (``obj`` is left unsaved and no post_save is sent)."""
+        ``obj`` saved, else None (``obj`` is left unsaved and no post_save is sent).
+
+        ``then`` is given that answer once the insert has run: with ``batched``, in a
+        :func:`writes_batched` block, that is when the block ends, and ``obj`` (held) is
+        returned meanwhile."""
         if not self.skip_conflicts:
             raise TypeError("this insert is not prepared to skip conflicts")
-        return self._insert(obj, using)
+        return self._insert(obj, using, then)
 
-    def _insert(self, obj: M, using: str) -> M | None:
+    def _prepare(self, obj: M, using: str) -> None:
+        """Model.save's checks and pre_save, and the pk set if Python makes it."""
         if type(obj) is not self.model or not obj._state.adding:
             raise TypeError(f"a prepared insert saves new {self.model.__name__} instances")
-        meta = self.model._meta
         # Model.save's own checks of the relations (not in the stubs).
         obj._prepare_related_fields_for_save(operation_name="save")  # type: ignore[attr-defined]
         signals.pre_save.send(
             sender=self.model, instance=obj, raw=False, using=using, update_fields=None
         )
-        pk = obj._get_pk_val()
-        if pk is None:
-            pk = meta.pk.get_pk_value_on_save(obj)
-            setattr(obj, meta.pk.attname, pk)
-        key = (using, pk is not None)
+        if obj._get_pk_val() is None:
+            pk = self.model._meta.pk.get_pk_value_on_save(obj)
+            setattr(obj, self.model._meta.pk.attname, pk)
+
+    def _insert(self, obj: M, using: str, then: Callable[[M | None], None] | None) -> M | None:
+        self._prepare(obj, using)
+        key = (using, obj._get_pk_val() is not None)
         compiled = self._compiled.get(key)
         if compiled is None:
             compiled = self._compiled[key] = self._compile(*key)
@@ -433,26 +639,76 @@ class PreparedInsert(Generic[M]):
             if hasattr(value, "resolve_expression"):
                 raise TypeError(f"{field.name}: a prepared insert takes values, not expressions")
             params.append(field.get_db_prep_save(value, connection=connection))
-        with transaction.mark_for_rollback_on_error(using=using), connection.cursor() as cursor:
-            cursor.execute(compiled.sql, params)
-            returned = cursor.fetchone() if compiled.returning else None
-        if returned is None and self.skip_conflicts:
-            return None
-        if returned is not None:
-            values = _converted(compiled.converters, returned, connection)
-            for field, value in zip(compiled.returning, values, strict=True):
-                setattr(obj, field.attname, value)
-        obj._state.adding = False
-        obj._state.db = using
-        signals.post_save.send(
-            sender=self.model,
-            instance=obj,
-            created=True,
-            update_fields=None,
-            raw=False,
-            using=using,
-        )
-        return obj
+
+        def written(count: int, rows: list[list[Any]]) -> M | None:
+            saved: M | None = None
+            if rows or not self.skip_conflicts:
+                for field, value in zip(compiled.returning, rows[0] if rows else (), strict=False):
+                    setattr(obj, field.attname, value)
+                _written(obj, using)
+                saved = obj
+            if then is not None:
+                then(saved)
+            return saved
+
+        held = _Held(compiled.sql, params, compiled.returning, compiled.converters, written)
+        batch = _open_batch(using) if self.batched else None
+        if batch is not None:
+            batch.hold(held)
+            return obj
+        return written(*_run_alone(connection, held))
+
+    def save_all(self, objs: Sequence[M], *, using: str = DEFAULT_DB_ALIAS) -> list[M]:
+        """Insert the new instances ``objs`` with one statement, as
+        ``bulk_create(objs)`` would, with each one's signals, and return them (held,
+        with ``batched``). Composed for each call: its SQL depends on the number of
+        rows."""
+        if self.skip_conflicts:
+            raise TypeError("save_all writes every row: not for an insert that skips")
+        objs = list(objs)
+        if not objs:
+            return objs
+        for obj in objs:
+            self._prepare(obj, using)
+        pk_set = {obj._get_pk_val() is not None for obj in objs}
+        if len(pk_set) > 1:
+            raise TypeError("save_all takes instances that all have an id, or none")
+        fields, returning = self._fields(using, pk_set.pop())
+        query = InsertQuery(self.model)
+        query.insert_values(fields, list[Model](objs), raw=False)
+        compiler = query.get_compiler(using=using)
+        compiler.returning_fields = returning or None
+        ((sql, params),) = compiler.as_sql()
+        table = self.model._meta.db_table
+        converters = _column_converters(compiler, [f.get_col(table) for f in returning])
+
+        def written(count: int, rows: list[list[Any]]) -> None:
+            for obj, row in zip(objs, rows or [[]] * len(objs), strict=True):
+                for field, value in zip(returning, row, strict=False):
+                    setattr(obj, field.attname, value)
+                _written(obj, using)
+
+        held = _Held(sql, params, tuple(returning), converters, written)
+        batch = _open_batch(using) if self.batched else None
+        if batch is not None:
+            batch.hold(held)
+        else:
+            written(*_run_alone(connections[using], held))
+        return objs
+
+
+def _written(obj: Model, using: str) -> None:
+    """``obj`` as Model.save leaves a new instance: saved to ``using``, post_save sent."""
+    obj._state.adding = False
+    obj._state.db = using
+    signals.post_save.send(
+        sender=type(obj),
+        instance=obj,
+        created=True,
+        update_fields=None,
+        raw=False,
+        using=using,
+    )
 
 
 S = TypeVar("S")

@@ -55,7 +55,14 @@ from fleet.feed import fleet_notify
 from fleet.liveness import vehicles_fresh
 from fleet.models import Vehicle
 from fleet.status import vehicles_online
-from iouv.prepared import Param, PreparedFamily, PreparedInsert, PreparedQuery, PreparedUpdate
+from iouv.prepared import (
+    Param,
+    PreparedFamily,
+    PreparedInsert,
+    PreparedQuery,
+    PreparedUpdate,
+    writes_batched,
+)
 from services.eventlog import event_append, events_staged
 from services.grants import user_can_use
 from services.models import Assignment, Service, ServiceRole, Session
@@ -445,8 +452,10 @@ _RESERVE = PreparedUpdate(
     ),
     returning=_VEHICLE_COLUMNS,
 )
-_ASSIGNMENT_INSERT: PreparedInsert[Assignment] = PreparedInsert(Assignment)
-_SESSION_INSERT: PreparedInsert[Session] = PreparedInsert(Session)
+# Held by the request's write batch (iouv.prepared.writes_batched): nothing in its
+# transaction reads them back.
+_ASSIGNMENT_INSERT: PreparedInsert[Assignment] = PreparedInsert(Assignment, batched=True)
+_SESSION_INSERT: PreparedInsert[Session] = PreparedInsert(Session, batched=True)
 _REQUIRED_ROLES: PreparedQuery[ServiceRole] = PreparedQuery(
     lambda: ServiceRole.objects.filter(
         service_id=Param("service", ServiceRole.service), required=True
@@ -734,8 +743,9 @@ def session_request(
     refused: AssignmentError | None = None
     pk = uuid.uuid4()
     # One transaction, and the log written in one go at its end (services.eventlog).
-    # The session written once, assigned or failed (session_record's write).
-    with transaction.atomic(), events_staged(session_id=pk):
+    # The session written once, assigned or failed (session_record's write); the
+    # session, its assignments and its log sent in one statement (writes_batched).
+    with transaction.atomic(), writes_batched(), events_staged(session_id=pk):
         session = session_record(
             user=user,
             service=service,

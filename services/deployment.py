@@ -28,7 +28,7 @@ from fleet.feed import fleet_notify
 from fleet.models import AgentMessage, Vehicle
 from fleet.outbox import agent_messages_cancel
 from fleet.uplink import vehicle_send
-from iouv.prepared import Param, PreparedQuery, PreparedUpdate
+from iouv.prepared import Param, PreparedQuery, PreparedUpdate, writes_batched
 from services.assignment import (
     AssignmentError,
     service_grant_require,
@@ -336,8 +336,10 @@ def session_request_deploy(
         service_grant_require(user=user, service=service)
     refused: AssignmentError | InvalidTaskError | None = None
     pk = uuid.uuid4()
-    # The session written once, as the block leaves it (session_record's write).
-    with transaction.atomic(), events_staged(session_id=pk) as log:
+    # The session written once, as the block leaves it (session_record's write); the
+    # session, its assignments, its tasks and its log sent in one statement
+    # (writes_batched).
+    with transaction.atomic(), writes_batched() as batch, events_staged(session_id=pk) as log:
         session = session_record(
             user=user,
             service=service,
@@ -359,6 +361,7 @@ def session_request_deploy(
         except AssignmentError as exc:
             refused = exc  # the failed session is committed, then the refusal raised
         except InvalidTaskError as exc:
+            batch.flush()  # the failure reads the assignments back to release them
             session_transition_locked(session=session, to=Session.State.FAILED, reason=str(exc))
             exc.session = session
             refused = exc
@@ -459,13 +462,17 @@ def vehicle_release(*, vehicle_id: Any, session_id: Any, message: EndTask | Revo
     agent has to confirm, False when the vehicle was freed at once.
     """
     sent = _task_withdraw(vehicle_id=vehicle_id, session_id=session_id)
-    if not sent:
-        if _FREE.run(vehicle=vehicle_id):
+
+    def changed(rows: int) -> None:
+        if rows:
             fleet_notify([vehicle_id])
+
+    # Held by an open write batch (iouv.prepared.writes_batched), as the end is.
+    if not sent:
+        _FREE.run_later(then=changed, vehicle=vehicle_id)
         return False
     vehicle_send(vehicle_id=vehicle_id, message=message)
-    if _RELEASING.run(vehicle=vehicle_id):
-        fleet_notify([vehicle_id])
+    _RELEASING.run_later(then=changed, vehicle=vehicle_id)
     return True
 
 
@@ -499,7 +506,9 @@ def _close(
     refusal then spoils that transaction: no savepoint is made). The session is left
     with its assignments and its whole log as this transaction leaves them
     (``known_assignments``, ``known_events``)."""
-    with transaction.atomic(savepoint=not locked):
+    # The session's, its assignments', its vehicles' and its log's writes, and the
+    # messages owed, sent in one statement at the block's end (writes_batched).
+    with transaction.atomic(savepoint=not locked), writes_batched():
         row = (
             session if locked else Session.objects.select_for_update(no_key=True).get(pk=session.pk)
         )

@@ -54,6 +54,13 @@ _SESSION_LOCK: PreparedQuery[Any] = PreparedQuery(
     )
 )
 _INSERT: PreparedInsert[SessionEvent] = PreparedInsert(SessionEvent, skip_conflicts=True)
+# The same, held by an open write batch (iouv.prepared.writes_batched): for a writer
+# that holds the lock and read the log, whose event follows what it read.
+_INSERT_HELD: PreparedInsert[SessionEvent] = PreparedInsert(
+    SessionEvent, skip_conflicts=True, batched=True
+)
+# A new session's first events, written in one go (events_staged), held likewise.
+_INSERT_NEW: PreparedInsert[SessionEvent] = PreparedInsert(SessionEvent, batched=True)
 # How often a writer may find its event's place taken before it gives up: each time,
 # another event was written in between, so only a flood of writers to one session
 # gets near it.
@@ -145,9 +152,10 @@ _staging: ContextVar[_Staged | None] = ContextVar("iouv_events_staged", default=
 @contextmanager
 def events_staged(*, session_id: Any) -> Iterator[list[SessionEvent]]:
     """Within the block, :func:`event_append` for the session ``session_id`` stages its
-    events; when
-    the block ends without an error they are written with one INSERT, in order, and
-    announced to the monitors' feed in one message. Yields the staged events' list.
+    events; when the block ends without an error they are written with one INSERT, in
+    order (held by an open write batch, iouv.prepared.writes_batched, if there is
+    one), and announced to the monitors' feed in one message. Yields the staged
+    events' list.
 
     Only for a session created in the block's transaction, with no event logged yet:
     nobody else can write to its log before the transaction commits, so no lock is
@@ -164,7 +172,7 @@ def events_staged(*, session_id: Any) -> Iterator[list[SessionEvent]]:
     finally:
         _staging.reset(token)
     if staged.events:
-        SessionEvent.objects.bulk_create(staged.events)
+        _INSERT_NEW.save_all(staged.events)
         # The session is new: no page follows it yet (its id is not even known
         # outside this transaction), so only the monitors' feed is told.
         session_notify_many(
@@ -207,26 +215,66 @@ def event_append(
     if log is None and not locked and get_connection().in_atomic_block:
         # Inside a transaction: lock first, as every writer in one does (above).
         _SESSION_LOCK.all(session=session.pk)
-    for _ in range(_PLACE_TRIES):
-        if log is not None:
-            last = (log[-1].seq, log[-1].hash) if log else None
+    event = _event_next(session=session, kind=kind, data=data, log=log)
+    if log is None:
+        _event_place(session=session, event=event, log=None)
+        return event
+
+    # The caller holds the lock and read the log: the event follows what it read, sent
+    # with the transaction's other writes if they are batched (iouv.prepared). Only a
+    # lock-free writer (an agent's report) can have taken its place meanwhile.
+    def placed(saved: SessionEvent | None) -> None:
+        if saved is None:
+            log[:] = session_log(session=session)
+            _event_renew(event, session=session, log=log)
+            _event_place(session=session, event=event, log=log)
         else:
-            last = _LOG_TAIL.first(session=session.pk)
-        seq, prev_hash = last if last else (0, GENESIS_HASH)
-        event = _event_new(session=session, seq=seq + 1, prev_hash=prev_hash, kind=kind, data=data)
+            _event_placed(session=session, event=event, log=log)
+
+    _INSERT_HELD.save_unless_taken(event, then=placed)
+    return event
+
+
+def _event_next(
+    *, session: Session, kind: str, data: dict[str, Any] | None, log: list[SessionEvent] | None
+) -> SessionEvent:
+    """The event that follows ``log`` (the log's tail, read now, if None)."""
+    if log is not None:
+        last = (log[-1].seq, log[-1].hash) if log else None
+    else:
+        last = _LOG_TAIL.first(session=session.pk)
+    seq, prev_hash = last if last else (0, GENESIS_HASH)
+    return _event_new(session=session, seq=seq + 1, prev_hash=prev_hash, kind=kind, data=data)
+
+
+def _event_renew(event: SessionEvent, *, session: Session, log: list[SessionEvent] | None) -> None:
+    """``event`` moved to the place after ``log`` (its tail read now, if None)."""
+    fresh = _event_next(session=session, kind=event.kind, data=event.data, log=log)
+    for name in ("seq", "prev_hash", "hash", "created_at"):
+        setattr(event, name, getattr(fresh, name))
+
+
+def _event_place(*, session: Session, event: SessionEvent, log: list[SessionEvent] | None) -> None:
+    """Write ``event`` in its place, or after the events that took it."""
+    for _ in range(_PLACE_TRIES):
         if _INSERT.save_unless_taken(event) is not None:
             break
         # Another writer's event took the place: follow it.
         if log is not None:
             log[:] = session_log(session=session)
+        _event_renew(event, session=session, log=log)
     else:
         raise RuntimeError(
             f"session {session.pk}: no free place in its log after {_PLACE_TRIES} tries"
         )
+    _event_placed(session=session, event=event, log=log)
+
+
+def _event_placed(*, session: Session, event: SessionEvent, log: list[SessionEvent] | None) -> None:
+    """``event`` is written: the session's feeds are told once its transaction commits."""
     session_notify(session_id=session.pk, event=_feed_item(event))
     if log is not None:
         log.append(event)
-    return event
 
 
 @dataclass(frozen=True)

@@ -70,14 +70,21 @@ _UPDATES: PreparedFamily[PreparedUpdate] = PreparedFamily(
 
 
 def _session_update(session: Session, fields: list[str]) -> None:
-    """``session.save(update_fields=fields)``, composed once per set of fields; nothing
-    for a session not written yet (services.assignment.session_record's ``write``),
-    which is written with its changes."""
+    """``session.save(update_fields=fields)``, composed once per set of fields (and held
+    by an open write batch, iouv.prepared.writes_batched); nothing for a session not
+    written yet (services.assignment.session_record's ``write``), which is written with
+    its changes."""
     if session._state.adding:
         return
+
+    def updated(rows: int) -> None:
+        if not rows:
+            raise DatabaseError("Save with update_fields did not affect any rows.")
+
     key = tuple(fields)
-    if not _UPDATES[key].run(session=session.pk, **{name: getattr(session, name) for name in key}):
-        raise DatabaseError("Save with update_fields did not affect any rows.")
+    _UPDATES[key].run_later(
+        then=updated, session=session.pk, **{name: getattr(session, name) for name in key}
+    )
 
 
 def session_transition_locked(
@@ -159,7 +166,7 @@ def assignments_release(*, session: Session, free_vehicles: bool = True) -> list
         if not active:
             return []
         now = timezone.now()
-        _ASSIGNMENTS_END.run(session=session.pk, now=now)
+        _ASSIGNMENTS_END.run_later(session=session.pk, now=now)
         for assignment in active:
             assignment.active, assignment.released_at = False, now
         ids = [a.vehicle_id for a in active]

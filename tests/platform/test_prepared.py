@@ -12,7 +12,7 @@ import uuid
 from datetime import timedelta
 
 import pytest
-from django.db import connection, transaction
+from django.db import IntegrityError, connection, transaction
 from django.db.models import F, OuterRef, Subquery, signals
 from django.db.transaction import TransactionManagementError
 from django.test.utils import CaptureQueriesContext
@@ -27,6 +27,7 @@ from iouv.prepared import (
     PreparedUpdate,
     params_in,
     values_in,
+    writes_batched,
 )
 from tests import factories as f
 
@@ -365,3 +366,120 @@ def test_a_family_prepares_one_statement_per_shape_and_keeps_a_few(fleet):
     by_ids[3]  # a third shape: past keep=2 the family starts afresh
     by_ids[1]
     assert built == [1, 2, 3, 1]
+
+
+# --- writes held until their block ends (writes_batched) -----------------------------
+
+HELD_MESSAGE: PreparedInsert[AgentMessage] = PreparedInsert(AgentMessage, batched=True)
+HELD_VEHICLE: PreparedInsert[Vehicle] = PreparedInsert(Vehicle, batched=True)
+HELD_UNLESS_TAKEN: PreparedInsert[AgentMessage] = PreparedInsert(
+    AgentMessage, skip_conflicts=True, batched=True
+)
+
+
+def _message(vehicle: Vehicle, n: int, **fields: object) -> AgentMessage:
+    return AgentMessage(vehicle=vehicle, kind="task", message={"n": n}, **fields)  # type: ignore[arg-type]
+
+
+def test_held_writes_are_sent_together_when_the_block_ends(fleet):
+    posted: list[int | None] = []
+    changed: list[int] = []
+    signals.post_save.connect(
+        lambda sender, instance, **kw: posted.append(instance.pk),
+        sender=AgentMessage,
+        weak=False,
+        dispatch_uid="held-test",
+    )
+    station, vtype = fleet[0].station, fleet[0].vehicle_type
+    try:
+        with transaction.atomic():
+            with CaptureQueriesContext(connection) as inside, writes_batched():
+                one = HELD_MESSAGE.save(_message(fleet[0], 1))
+                two, three = HELD_MESSAGE.save_all([_message(fleet[1], 2), _message(fleet[1], 3)])
+                STATUS_SET.run_later(then=changed.append, vehicle=fleet[0].pk, status="busy")
+                car = HELD_VEHICLE.save(
+                    Vehicle(name="car-new", station=station, vehicle_type=vtype)
+                )
+                # Nothing sent yet: no id, no post_save, no row, no answer.
+                assert one.pk is None and posted == [] and changed == []
+                held = len(inside)
+            sent = inside.captured_queries[held:]
+    finally:
+        signals.post_save.disconnect(sender=AgentMessage, dispatch_uid="held-test")
+    assert held == 0, inside.captured_queries
+    # PostgreSQL runs them as one statement; SQLite one by one, in the order made.
+    assert len(sent) == (1 if connection.vendor == "postgresql" else 4), sent
+    # Each insert's id came back onto its instance, in order, then its post_save.
+    assert [one.pk, two.pk, three.pk] == sorted(AgentMessage.objects.values_list("pk", flat=True))
+    assert posted == [one.pk, two.pk, three.pk]
+    assert [m.message["n"] for m in AgentMessage.objects.order_by("pk")] == [1, 2, 3]
+    assert one._state.adding is False and one._state.db == "default"
+    assert changed == [1]  # the update's rows, once it ran
+    fleet[0].refresh_from_db()
+    assert fleet[0].status == "busy" and fleet[0].battery == 49
+    assert Vehicle.objects.get(pk=car.pk).name == "car-new"
+
+
+def test_an_error_in_the_block_drops_what_it_held(fleet):
+    with (
+        pytest.raises(RuntimeError, match="changed my mind"),
+        transaction.atomic(),
+        writes_batched(),
+    ):
+        HELD_MESSAGE.save(_message(fleet[0], 1))
+        STATUS_SET.run_later(vehicle=fleet[0].pk, status="busy")
+        raise RuntimeError("changed my mind")
+    assert not AgentMessage.objects.exists()
+    fleet[0].refresh_from_db()
+    assert fleet[0].status == "idle"
+
+
+def test_a_write_inside_a_savepoint_is_not_held(fleet):
+    # Rolling back to a savepoint must take the write back: it is sent at once.
+    with transaction.atomic(), writes_batched():
+        kept = HELD_MESSAGE.save(_message(fleet[0], 1))
+        try:
+            with transaction.atomic():
+                undone = HELD_MESSAGE.save(_message(fleet[0], 2))
+                assert undone.pk is not None  # sent already
+                raise RuntimeError("undo")
+        except RuntimeError:
+            pass
+        assert kept.pk is None  # still held
+    assert [m.message["n"] for m in AgentMessage.objects.all()] == [1]
+
+
+@pytest.mark.django_db(transaction=True)
+def test_writes_are_batched_only_inside_a_transaction(fleet):
+    with pytest.raises(TransactionManagementError, match="inside a transaction"), writes_batched():
+        pass
+    # Outside a block a batched insert and run_later run at once.
+    changed: list[int] = []
+    message = HELD_MESSAGE.save(_message(fleet[0], 1))
+    STATUS_SET.run_later(then=changed.append, vehicle=fleet[1].pk, status="busy")
+    assert message.pk is not None and changed == [1]
+
+
+def test_a_held_insert_that_skips_tells_its_then_and_the_rest_is_written(fleet):
+    taken = AgentMessage.objects.create(vehicle=fleet[0], kind="task", message={"n": 0})
+    answers: list[AgentMessage | None] = []
+    with transaction.atomic(), writes_batched():
+        skipped = HELD_UNLESS_TAKEN.save_unless_taken(
+            _message(fleet[0], 1, key=taken.key), then=answers.append
+        )
+        written = HELD_UNLESS_TAKEN.save_unless_taken(_message(fleet[0], 2), then=answers.append)
+        STATUS_SET.run_later(vehicle=fleet[0].pk, status="busy")
+        assert answers == []
+    assert answers == [None, written] and written is not None and written.pk is not None
+    assert skipped is not None and skipped._state.adding is True  # never written
+    assert sorted(AgentMessage.objects.values_list("message__n", flat=True)) == [0, 2]
+    fleet[0].refresh_from_db()
+    assert fleet[0].status == "busy"
+
+
+def test_a_held_write_breaking_a_constraint_raises_when_the_block_ends(fleet):
+    taken = AgentMessage.objects.create(vehicle=fleet[0], kind="task", message={"n": 0})
+    with pytest.raises(IntegrityError), transaction.atomic(), writes_batched():
+        HELD_MESSAGE.save(_message(fleet[1], 1))
+        HELD_MESSAGE.save(_message(fleet[1], 2, key=taken.key))
+    assert list(AgentMessage.objects.values_list("message__n", flat=True)) == [0]

@@ -40,33 +40,40 @@ from services.selectors import session_delivery
 from services.signing import platform_public_key
 from tests import factories as f
 
-# Request: 15 statements.
-#   the API's own: the token with its user (1), its last use (1, at most once a
-#   minute), the user's permissions (1, accounts.backends.RoleBackend), the service
-#   with whether the user may use it (1);
+# Request: 11 statements.
+#   the API's own: the token with its user and the user's permissions (1,
+#   accounts.backends.permissions_joined), its last use (1, at most once a minute),
+#   the service with whether the user may use it (1);
 #   one transaction (BEGIN, COMMIT: 2): the user's row locked for the cap (1), the
 #   live sessions counted (1), its roles (1), the matching vehicles (1), the chosen
-#   one reserved if still idle, its row given back (1), its assignment (1), the task
-#   owed to the agent (1), the session, written once as assigned (1), the whole log
-#   (1);
+#   one reserved if still idle, its row given back (1); then what it writes, held to
+#   its end and sent as one statement (1, iouv.prepared.writes_batched): the session
+#   as assigned, its assignment, the task owed to the agent, its whole log;
 #   the answer: nothing read back (the assignments and the log just written).
-REQUEST_QUERIES = 15
+REQUEST_QUERIES = 11
 #   Monitors' session feed (1 message for the whole log), fleet feed (1), the nudge
 #   to the vehicle's outbox (1).
 REQUEST_ON_COMMIT = 3
 
-# End: 12 statements.
-#   the API's own: the token with its user (1);
+# End: 8 statements.
+#   the API's own: the token with its user and permissions (1);
 #   one transaction (BEGIN, COMMIT: 2): the session locked and read, with its service
 #   and user (1), its whole log (1, the event's place and the answer's), its
-#   assignments locked and read with their vehicles (1) and released (1), the
-#   session ended (1) and the event (1), the vehicle's task rows locked (1), the end
-#   owed to the agent (1), the vehicle releasing (1);
+#   assignments locked and read with their vehicles (1), the vehicle's task rows
+#   locked (1); then what it writes, sent as one statement (1): the assignments
+#   released, the session ended, its event, the end owed to the agent, the vehicle
+#   releasing;
 #   the answer: nothing read back (the assignments, the log and the end's delivery as
 #   written).
-END_QUERIES = 12
+END_QUERIES = 8
 #   Session page and monitors (2), fleet feed (1), the outbox nudge (1).
 END_ON_COMMIT = 4
+
+# The issue's own measure ("request + end <= 15 queries"; 76 when it was filed, when
+# the same calls made 98 statements): the statements other than the transactions'
+# BEGIN and COMMIT (and SAVEPOINT and RELEASE, of which there are none left).
+REQUEST_AND_END_QUERIES = 15
+_TRANSACTION_CONTROL = ("BEGIN", "COMMIT", "SAVEPOINT", "RELEASE", "ROLLBACK")
 
 # What the vehicle's agent says about the session, as its uplink handles it.
 #   The ack of a message (fleet.outbox.agent_message_ack): the pending row marked
@@ -204,6 +211,12 @@ def test_requesting_and_ending_a_session_stay_within_their_query_budget(
     assert len(end) <= END_QUERIES, f"end: {len(end)} statements\n{end}"
     assert end.on_commit <= END_ON_COMMIT
     assert not any("SAVEPOINT" in sql for sql in end.statements), str(end)
+    queries = [
+        sql
+        for sql in request.statements + end.statements
+        if not sql.lstrip().upper().startswith(_TRANSACTION_CONTROL)
+    ]
+    assert len(queries) <= REQUEST_AND_END_QUERIES, "\n".join(queries)
     # What the uplink asks of the database for the agent's side of the session.
     assert len(ack) <= ACK_QUERIES, f"ack: {len(ack)} statements\n{ack}"
     assert len(end_ack) <= END_ACK_QUERIES, f"end's ack: {len(end_ack)} statements\n{end_ack}"
