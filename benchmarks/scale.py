@@ -26,7 +26,8 @@ deployed by the platform's code. What is light is the load:
   trials and the relayed control session.
 * **API clients**: threads in an ``--api-worker`` process, each with its own user and
   bearer token, requesting a session (assignment, signed task deployed to a live
-  light agent) and ending it, in a closed loop.
+  light agent) and ending it, in a closed loop, or paced (``--api-rate``: the clients
+  together start that many sessions a second, evenly spaced).
 
 Phases (the report names them; ``--phases heartbeats`` runs the first only, ``one`` the
 first three):
@@ -144,6 +145,11 @@ class Params:
     # DB_CONN_MAX_AGE: more clients would take this shared PostgreSQL server's last
     # connections from other people.
     api_clients: int = 8
+    # 0: each client requests its next session as soon as the last one ended (a closed
+    # loop: the platform's most, with latency that is mostly waiting in line). Else the
+    # clients together start this many sessions a second, evenly spaced (a paced load:
+    # the latency a user meets at that rate).
+    api_rate: float = 0.0
     api_duration_s: float = 20.0
     trials: int = 20  # per link-loss mode and topology
     trial_budget_s: float = 120.0  # per mode: an overloaded platform gets fewer trials
@@ -715,14 +721,16 @@ class ApiClient:
 
 
 def api_worker(spec_path: str) -> None:
-    """Closed-loop API clients: each thread requests a session of the light service for
-    a random target, then ends it, until the duration is over. Writes one CSV row per
-    request to the spec's ``out``."""
+    """API clients: each thread requests a session of the light service for a random
+    target, then ends it, until the duration is over; at once again (closed loop), or,
+    with the spec's ``rate``, at its next turn of an even pace shared by the clients.
+    Writes one CSV row per request to the spec's ``out``."""
     with open(spec_path) as f:
         spec = json.load(f)
     from agents.geo import offset
 
     deadline_wall = spec["start_wall"] + spec["duration_s"]
+    rate, clients = float(spec.get("rate") or 0.0), len(spec["tokens"])
     rows: list[tuple[Any, ...]] = []
     lock = threading.Lock()
 
@@ -732,7 +740,18 @@ def api_worker(spec_path: str) -> None:
         mine: list[tuple[Any, ...]] = []
         # Every client starts at the same instant, when the parent's window opens.
         time.sleep(max(0.0, spec["start_wall"] - time.time()))
-        while time.time() < deadline_wall:
+        turn = 0
+        while True:
+            if rate:
+                # Paced: session turn * clients + index of the whole load is due then; a
+                # client still busy with its last one starts late (fewer sessions/s).
+                due = spec["start_wall"] + (turn * clients + index) / rate
+                turn += 1
+                if due >= deadline_wall:
+                    break
+                time.sleep(max(0.0, due - time.time()))
+            elif time.time() >= deadline_wall:
+                break
             distance, bearing = 1000 * math.sqrt(rng.random()), rng.uniform(0, 2 * math.pi)
             lat, lon = offset(HOME, distance * math.cos(bearing), distance * math.sin(bearing))
             started = time.time()
@@ -772,6 +791,15 @@ def api_worker(spec_path: str) -> None:
         writer.writerow(["client", "endpoint", "start_wall", "latency_ms", "status", "session_id"])
         writer.writerows(rows)
     print(json.dumps({"requests": len(rows)}), flush=True)
+
+
+def _api_load(p: Params) -> str:
+    """How the API load was driven, for the report."""
+    if p.api_rate:
+        return (
+            f"{p.api_clients} API clients starting {p.api_rate:g} sessions/s together, evenly paced"
+        )
+    return f"{p.api_clients} API clients in a closed loop"
 
 
 # ======================================================================================
@@ -1314,6 +1342,7 @@ async def load_phase(
                 "service": LIGHT_SERVICE,
                 "start_wall": start_wall,
                 "duration_s": params.api_duration_s,
+                "rate": params.api_rate,
                 "out": str(out),
             }
         )
@@ -1834,6 +1863,7 @@ def figures(results: Results) -> dict[str, Any]:
             statuses[key] = statuses.get(key, 0) + 1
         out["api"][topology] = {
             "clients": p.api_clients,
+            "rate": p.api_rate,
             "duration_s": duration,
             "requests_per_s": len(done) / duration,
             "sessions_per_s": sum(r["endpoint"] == "request" for r in done) / duration,
@@ -2025,7 +2055,7 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
             else ""
         )
         add(
-            f"* **Assignment + deployment** ({p.api_clients} API clients in a closed loop, each "
+            f"* **Assignment + deployment** ({_api_load(p)}, each "
             "session requested, deployed to a live agent and ended): one process sustained "
             f"**{one['sessions_per_s']:.1f} sessions/s** ({one['requests_per_s']:.1f} "
             f"requests/s; request p50 / p95 {_q(one['request_ms'], 'p50', 'p95')} ms){both}. "
@@ -2171,7 +2201,7 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     add("## 2. Assignment and task deployment")
     add("")
     add(
-        f"{p.api_clients} API clients, each its own user with a bearer token, in a closed loop "
+        f"{_api_load(p)}, each client its own user with a bearer token, "
         f"for {p.api_duration_s:g} s: `POST /api/v1/sessions` (assignment among the online idle "
         "drones, nearest to a random target within 1 km; a signed task deployed to the chosen "
         "light agent over its uplink; the user task returned), then `POST .../end`. Meanwhile "
@@ -2479,6 +2509,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--window", type=float, help="CPU/memory window, seconds")
     parser.add_argument("--api-clients", type=int, help="concurrent API clients")
     parser.add_argument("--api-duration", type=float, help="seconds of API load per topology")
+    parser.add_argument(
+        "--api-rate",
+        type=float,
+        help="sessions started per second by the API clients together, evenly paced "
+        "(default 0: a closed loop, each client's next session as soon as its last ended)",
+    )
     parser.add_argument("--trials", type=int, help="link-loss trials per case and topology")
     parser.add_argument(
         "--heartbeat-s",
@@ -2542,6 +2578,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "ramp_per_s": args.ramp,
         "window_s": args.window,
         "api_clients": args.api_clients,
+        "api_rate": args.api_rate,
         "api_duration_s": args.api_duration,
         "trials": args.trials,
         "phases": args.phases,

@@ -56,6 +56,14 @@ def _pair(s: Any, a: str = "p50", b: str = "p95") -> str:
 Row = tuple[str, Callable[[dict[str, Any]], str], str]
 
 
+def _api_load(run: dict[str, Any]) -> str:
+    """How the run drove the API: a closed loop, or a pace (runs before pacing have no
+    rate: a closed loop)."""
+    clients = _num(_get(run, "params", "api_clients"), 0)
+    rate = _get(run, "params", "api_rate")
+    return f"{clients} clients, " + (f"{rate:g} sessions/s paced" if rate else "closed loop")
+
+
 def _rows(runs: Sequence[dict[str, Any]]) -> list[Row]:
     """(label, cell of one run's summary, target) for each line of the table; the stage
     rows come from every agent count any run measured."""
@@ -73,6 +81,7 @@ def _rows(runs: Sequence[dict[str, Any]]) -> list[Row]:
         ("platform code", lambda r: str(_get(r, "machine", "platform_code") or "?"), ""),
         ("heartbeat interval (s)", lambda r: _num(_get(r, "machine", "heartbeat_s"), 1), ""),
         ("light agents", fig("agents", "n"), ""),
+        ("API load", _api_load, ""),
         ("idle process: CPU % of one core", fig("agents", "idle_cpu_pct"), ""),
         ("with all agents: CPU % of one core", fig("agents", "cpu_pct"), ""),
         ("with all agents: RSS MB", fig("agents", "rss_mb", digits=0), ""),

@@ -16,12 +16,16 @@ from __future__ import annotations
 import asyncio
 import csv
 import http.client
+import http.server
 import json
 import math
 import os
 import ssl
 import subprocess
 import sys
+import threading
+import time
+import uuid
 from collections.abc import AsyncIterator
 from dataclasses import replace
 from pathlib import Path
@@ -585,3 +589,56 @@ def test_another_tree_runs_its_own_modules_only(tmp_path: Path) -> None:
     )
     assert done.stdout.strip() == str(tree / "fleet" / "__init__.py")
     assert "No module named 'fleet.liveness'" in done.stderr
+
+
+class _SessionsApi(http.server.BaseHTTPRequestHandler):
+    """What the API clients need of the platform: a session on request, 200 on end."""
+
+    protocol_version = "HTTP/1.1"
+
+    def do_POST(self) -> None:
+        self.rfile.read(int(self.headers.get("Content-Length", 0)))
+        body: dict[str, Any]
+        if self.path == "/api/v1/sessions":
+            status, body = 201, {"session": {"id": str(uuid.uuid4())}}
+        else:
+            status, body = 200, {"state": "ended"}
+        raw = json.dumps(body).encode()
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(raw)))
+        self.end_headers()
+        self.wfile.write(raw)
+
+    def log_message(self, *args: object) -> None:
+        pass
+
+
+def test_paced_clients_start_sessions_at_the_rate_asked(tmp_path: Path) -> None:
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _SessionsApi)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        out = tmp_path / "api.csv"
+        start = time.time() + 0.5
+        spec = {
+            "base": f"http://127.0.0.1:{server.server_address[1]}",
+            "tokens": ["a", "b", "c"],
+            "service": "light",
+            "start_wall": start,
+            "duration_s": 2.0,
+            "rate": 10.0,
+            "out": str(out),
+        }
+        (tmp_path / "spec.json").write_text(json.dumps(spec))
+        scale.api_worker(str(tmp_path / "spec.json"))
+    finally:
+        server.shutdown()
+        server.server_close()
+    with out.open() as f:
+        rows = list(csv.DictReader(f))
+    requests = sorted(float(r["start_wall"]) - start for r in rows if r["endpoint"] == "request")
+    # 10 a second for 2 s, shared by the three clients: 20 sessions, each at its turn
+    # (a client never starts one early; it may start late on a busy machine).
+    assert len(requests) == 20, requests
+    assert all(at >= i / 10.0 - 0.005 for i, at in enumerate(requests)), requests
+    assert sum(r["endpoint"] == "end" and r["status"] == "200" for r in rows) == 20
