@@ -156,3 +156,55 @@ async def test_a_send_to_a_consumer_of_this_process_skips_redis() -> None:
     finally:
         await layer.flush()
         await layer.close_pools()
+
+
+@pytest.mark.asyncio
+async def test_a_group_send_is_one_round_trip_to_nobody_and_two_to_members(caplog) -> None:
+    """Every member of a group gets the message once (channels of this process and
+    others alike); an expired member is dropped, a full channel is skipped and logged,
+    never raised; sending to a group nobody is in costs one round trip."""
+    prefix = f"test-{uuid.uuid4().hex[:8]}"
+    layer = WaitingRedisChannelLayer(
+        hosts=[{"address": REDIS_URL}], prefix=prefix, capacity=2, expiry=60, group_expiry=86400
+    )
+    try:
+        connection = layer.connection(0)
+        pool = connection.connection_pool
+        borrowed: list[int] = []
+        real_get = pool.get_connection
+
+        async def counted(*args: object, **kwargs: object) -> object:
+            borrowed.append(1)
+            return await real_get(*args, **kwargs)
+
+        pool.get_connection = counted  # each round trip borrows a pooled connection
+        await layer.group_send("nobody", {"type": "feed.changed"})
+        assert len(borrowed) == 1
+
+        here, there = await layer.new_channel(), await layer.new_channel()
+        for channel in (here, there, "elsewhere"):
+            await layer.group_add("monitors", channel)
+        # Two consumers of this process wait on their channels (one Redis key for both).
+        first = [asyncio.ensure_future(layer.receive(c)) for c in (here, there)]
+        await asyncio.sleep(0)
+        # A member that joined longer ago than group_expiry is gone.
+        await connection.zadd(layer._group_key("monitors"), {"stale!abc": 1.0})
+        borrowed.clear()
+        await layer.group_send("monitors", {"type": "feed.changed", "n": 1})
+        assert len(borrowed) == 2
+        got = [await asyncio.wait_for(waiting, 5) for waiting in first]
+        got.append(await asyncio.wait_for(layer.receive("elsewhere"), 5))
+        assert [m["n"] for m in got] == [1, 1, 1]
+        assert "stale!abc" not in {
+            m.decode() for m in await connection.zrange(layer._group_key("monitors"), 0, -1)
+        }
+
+        # "elsewhere" fills up (nobody receives on it): the rest still get theirs.
+        for n in (2, 3, 4):
+            await layer.group_send("monitors", {"type": "feed.changed", "n": n})
+            assert (await asyncio.wait_for(layer.receive(here), 5))["n"] == n
+        assert "1 of 3 channels full in group monitors" in caplog.text
+        assert await connection.zcount(prefix + "elsewhere", "-inf", "+inf") == 2
+    finally:
+        await layer.flush()
+        await layer.close_pools()
