@@ -45,7 +45,7 @@ async def test_the_page_drives_over_webrtc_and_says_which_path(world: World) -> 
     session_id = await request_car(world, page)
     await wait_for(page, "c.path === 'webrtc_direct' && c.channels !== null")
     assert await page.locator("[data-path]").inner_text() == "WebRTC, direct"
-    assert await drive_forward(world, page, 1.0) > 0.05
+    assert await drive_forward(world, page) > 0.05
     # The commands went on the data channels, not on the platform's socket.
     on_channels = await page.evaluate(
         "() => window.iouvController.channels.input.readyState === 'open'"
@@ -68,7 +68,7 @@ async def test_without_webrtc_the_page_stays_on_the_relay_and_says_so(world: Wor
     assert await page.locator("[data-path]").inner_text() == "relay through the platform"
     toast = page.locator("[data-toast]")
     assert "No direct connection" in await toast.inner_text()
-    assert await drive_forward(world, page, 1.0) > 0.05
+    assert await drive_forward(world, page) > 0.05
 
 
 async def test_a_frozen_picture_pauses_driving_until_it_moves_again(world: World) -> None:
@@ -100,7 +100,7 @@ async def test_a_frozen_picture_pauses_driving_until_it_moves_again(world: World
         source.frame = frame
         thawed.set()
     await wait_for(page, "c.videoFrozen === false", 15000)
-    assert await drive_forward(world, page, 1.0) > 0.05
+    assert await drive_forward(world, page) > 0.05
 
 
 #: The platform's relay socket cannot be opened (as when the platform is out of reach of
@@ -124,4 +124,4 @@ async def test_when_the_relay_cannot_be_opened_the_page_uses_the_vehicles_own_so
     await request_car(world, page)
     await wait_for(page, "c.path === 'websocket' && c.direct === true")
     assert await page.locator("[data-path]").inner_text() == "the vehicle's own socket"
-    assert await drive_forward(world, page, 1.0) > 0.05
+    assert await drive_forward(world, page) > 0.05
