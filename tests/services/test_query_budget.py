@@ -69,9 +69,10 @@ END_QUERIES = 8
 #   Session page and monitors (2), fleet feed (1), the outbox nudge (1).
 END_ON_COMMIT = 4
 
-# The issue's own measure ("request + end <= 15 queries"; 76 when it was filed, when
-# the same calls made 98 statements): the statements other than the transactions'
-# BEGIN and COMMIT (and SAVEPOINT and RELEASE, of which there are none left).
+# The issue's own measure ("request + end <= 15 queries"), read as the statements
+# other than the transactions' BEGIN and COMMIT (and SAVEPOINT and RELEASE, of which
+# there are none left): it counted 76 queries when it was filed, when the same calls
+# made 98 statements with those.
 REQUEST_AND_END_QUERIES = 15
 _TRANSACTION_CONTROL = ("BEGIN", "COMMIT", "SAVEPOINT", "RELEASE", "ROLLBACK")
 
