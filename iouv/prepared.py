@@ -52,7 +52,6 @@ from django.db.models.sql import InsertQuery, UpdateQuery
 from django.db.transaction import TransactionManagementError
 
 M = TypeVar("M", bound=Model)
-R = TypeVar("R")
 
 
 class _Slot:
@@ -105,6 +104,7 @@ class _Compiled:
     col_count: int = 0
     has_extra_select: bool = False
     converters: tuple[tuple[int, tuple[Any, ...], Any], ...] = ()
+    returning: tuple[Any, ...] = ()  # for an UPDATE ... RETURNING, the fields it gives
     values: bool = False  # rows as tuples (values_list), not model instances
     flat: bool = False
     # ...and for model instances, the model's columns, the joined models' populators
@@ -454,6 +454,7 @@ class PreparedUpdate(_Statement):
             raise TypeError("this backend selects the rows of a joined update first")
         sql, params = compiler.as_sql()
         converters: tuple[tuple[int, tuple[Any, ...], Any], ...] = ()
+        fields: list[Any] = []
         if self.returning:
             connection = compiler.connection
             if not connection.features.can_return_columns_from_insert:
@@ -472,6 +473,7 @@ class PreparedUpdate(_Statement):
             names=self._slots(params),
             locks=False,
             converters=converters,
+            returning=tuple(fields),
         )
 
     def run_returning(
@@ -480,15 +482,15 @@ class PreparedUpdate(_Statement):
         """Run the update; the ``returning`` fields of each row it changed."""
         if not self.returning:
             raise TypeError("this update returns nothing: give it returning fields")
-        rows = self._execute(using, values, lambda cursor: cursor.fetchall())
-        converters, connection = self.compiled(using).converters, connections[using]
-        return [tuple(_converted(converters, row, connection)) for row in rows]
+        _count, rows = _run_alone(connections[using], self._held(using, values, None))
+        return [tuple(row) for row in rows]
 
     def run(self, *, using: str = DEFAULT_DB_ALIAS, **values: Any) -> int:
         """Run the update; how many rows it changed."""
         if self.returning:
             raise TypeError("this update returns its rows: use run_returning")
-        return self._execute(using, values, lambda cursor: int(cursor.rowcount))
+        count, _rows = _run_alone(connections[using], self._held(using, values, None))
+        return count
 
     def run_later(
         self,
@@ -501,29 +503,28 @@ class PreparedUpdate(_Statement):
         else now; ``then`` is given how many rows it changed once it has run."""
         if self.returning:
             raise TypeError("this update returns its rows: use run_returning")
-        batch = _open_batch(using)
-        if batch is None:
-            count = self.run(using=using, **values)
-            if then is not None:
-                then(count)
-            return
-        compiled = self.compiled(using)
-        params = compiled.bind(values, connections[using])
 
         def done(count: int, _rows: list[list[Any]]) -> None:
             if then is not None:
                 then(count)
 
-        batch.hold(_Held(compiled.sql, params, (), (), done))
+        held = self._held(using, values, done)
+        batch = _open_batch(using)
+        if batch is None:
+            done(*_run_alone(connections[using], held))
+        else:
+            batch.hold(held)
 
-    def _execute(self, using: str, values: Mapping[str, Any], read: Callable[[Any], R]) -> R:
-        """Bind ``values``, run the update and ``read`` its cursor."""
+    def _held(
+        self,
+        using: str,
+        values: Mapping[str, Any],
+        done: Callable[[int, list[list[Any]]], object] | None,
+    ) -> _Held:
+        """The update with ``values`` bound, as a batch holds it or runs it alone."""
         compiled = self.compiled(using)
-        connection = connections[using]
-        params = compiled.bind(values, connection)
-        with transaction.mark_for_rollback_on_error(using=using), connection.cursor() as cursor:
-            cursor.execute(compiled.sql, params)
-            return read(cursor)
+        params = compiled.bind(values, connections[using])
+        return _Held(compiled.sql, params, compiled.returning, compiled.converters, done)
 
 
 @dataclass(frozen=True)
@@ -643,9 +644,7 @@ class PreparedInsert(Generic[M]):
         def written(count: int, rows: list[list[Any]]) -> M | None:
             saved: M | None = None
             if rows or not self.skip_conflicts:
-                for field, value in zip(compiled.returning, rows[0] if rows else (), strict=False):
-                    setattr(obj, field.attname, value)
-                _written(obj, using)
+                _written(obj, compiled.returning, rows[0] if rows else None, using)
                 saved = obj
             if then is not None:
                 then(saved)
@@ -683,10 +682,9 @@ class PreparedInsert(Generic[M]):
         converters = _column_converters(compiler, [f.get_col(table) for f in returning])
 
         def written(count: int, rows: list[list[Any]]) -> None:
-            for obj, row in zip(objs, rows or [[]] * len(objs), strict=True):
-                for field, value in zip(returning, row, strict=False):
-                    setattr(obj, field.attname, value)
-                _written(obj, using)
+            returned: Sequence[Any] = rows if returning else [None] * len(objs)
+            for obj, row in zip(objs, returned, strict=True):
+                _written(obj, returning, row, using)
 
         held = _Held(sql, params, tuple(returning), converters, written)
         batch = _open_batch(using) if self.batched else None
@@ -697,8 +695,12 @@ class PreparedInsert(Generic[M]):
         return objs
 
 
-def _written(obj: Model, using: str) -> None:
-    """``obj`` as Model.save leaves a new instance: saved to ``using``, post_save sent."""
+def _written(obj: Model, fields: Sequence[Any], row: Sequence[Any] | None, using: str) -> None:
+    """``obj`` as Model.save leaves a new instance: the values the database set
+    (``fields``, read back as ``row``), saved to ``using``, post_save sent."""
+    if row is not None:
+        for field, value in zip(fields, row, strict=True):
+            setattr(obj, field.attname, value)
     obj._state.adding = False
     obj._state.db = using
     signals.post_save.send(

@@ -34,23 +34,11 @@ from redis.exceptions import TimeoutError as RedisTimeoutError
 
 log = logging.getLogger(__name__)
 
-# channels_redis's send as one script: KEYS[1] the channel's key; ARGV the message,
-# the capacity, the expiry cut-off, the score (now) and the key's expiry in seconds.
+# channels_redis's send, to one channel or to each member of a group once the group's
+# members are read, as one script: KEYS the channels' keys; ARGV each key's message,
+# then each key's capacity, then the expiry cut-off, the score (now) and the keys'
+# expiry in seconds. Returns how many channels were full (their message not stored).
 _SEND_LUA = """
-redis.call('ZREMRANGEBYSCORE', KEYS[1], 0, ARGV[3])
-if redis.call('ZCOUNT', KEYS[1], '-inf', '+inf') >= tonumber(ARGV[2]) then
-    return 1
-end
-redis.call('ZADD', KEYS[1], ARGV[4], ARGV[1])
-redis.call('EXPIRE', KEYS[1], ARGV[5])
-return 0
-"""
-
-# channels_redis's group send, once the group's members are read, as one script:
-# KEYS the members' channel keys; ARGV each key's message, then each key's capacity,
-# then the expiry cut-off, the score (now) and the keys' expiry in seconds. Returns
-# how many channels were full (their message is not stored).
-_GROUP_SEND_LUA = """
 local n = #KEYS
 local full = 0
 for i = 1, n do
@@ -296,7 +284,7 @@ class WaitingRedisChannelLayer(RedisChannelLayer):  # type: ignore[misc]
         for index, keys in by_connection.items():
             now = time.time()
             full = await self.connection(index).eval(
-                _GROUP_SEND_LUA,
+                _SEND_LUA,
                 len(keys),
                 *keys,
                 *(messages[k] for k in keys),

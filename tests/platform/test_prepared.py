@@ -9,11 +9,14 @@ refuse what it cannot run the same way instead of running it differently.
 from __future__ import annotations
 
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from datetime import timedelta
+from typing import Any
 
 import pytest
 from django.db import IntegrityError, connection, transaction
-from django.db.models import F, OuterRef, Subquery, signals
+from django.db.models import F, Model, OuterRef, Subquery, signals
 from django.db.transaction import TransactionManagementError
 from django.test.utils import CaptureQueriesContext
 from django.utils import timezone
@@ -310,29 +313,36 @@ def test_an_insert_refuses_what_it_cannot_write_as_save_would(fleet):
     assert not Vehicle.objects.filter(name="ghost").exists()
 
 
-def test_an_insert_that_skips_conflicts_says_which_row_it_skipped(fleet):
-    insert: PreparedInsert[AgentMessage] = PreparedInsert(AgentMessage, skip_conflicts=True)
-    created: list[int] = []
-
+@contextmanager
+def _post_saves(model: type[Model]) -> Iterator[list[Any]]:
+    """The pks of the ``model`` instances post_save announces within the block, as it
+    announces them."""
+    seen: list[Any] = []
+    uid = f"post-saves-{uuid.uuid4()}"
     signals.post_save.connect(
-        lambda sender, instance, **kw: created.append(instance.pk),
-        sender=AgentMessage,
+        lambda sender, instance, **kw: seen.append(instance.pk),
+        sender=model,
         weak=False,
-        dispatch_uid="skip-test",
+        dispatch_uid=uid,
     )
     try:
-        with transaction.atomic():
-            first = insert.save_unless_taken(
-                AgentMessage(vehicle=fleet[0], kind="task", message={"n": 1})
-            )
-            assert first is not None and isinstance(first.pk, int)
-            # Same unique key: not written, not an error, and the transaction goes on.
-            again = AgentMessage(key=first.key, vehicle=fleet[1], kind="task", message={"n": 2})
-            assert insert.save_unless_taken(again) is None
-            assert again._state.adding is True and again.pk is None
-            third = AgentMessage.objects.create(vehicle=fleet[1], kind="task", message={"n": 3})
+        yield seen
     finally:
-        signals.post_save.disconnect(sender=AgentMessage, dispatch_uid="skip-test")
+        signals.post_save.disconnect(sender=model, dispatch_uid=uid)
+
+
+def test_an_insert_that_skips_conflicts_says_which_row_it_skipped(fleet):
+    insert: PreparedInsert[AgentMessage] = PreparedInsert(AgentMessage, skip_conflicts=True)
+    with _post_saves(AgentMessage) as created, transaction.atomic():
+        first = insert.save_unless_taken(
+            AgentMessage(vehicle=fleet[0], kind="task", message={"n": 1})
+        )
+        assert first is not None and isinstance(first.pk, int)
+        # Same unique key: not written, not an error, and the transaction goes on.
+        again = AgentMessage(key=first.key, vehicle=fleet[1], kind="task", message={"n": 2})
+        assert insert.save_unless_taken(again) is None
+        assert again._state.adding is True and again.pk is None
+        third = AgentMessage.objects.create(vehicle=fleet[1], kind="task", message={"n": 3})
     assert created == [first.pk, third.pk]  # no post_save for the skipped row
     assert sorted(AgentMessage.objects.values_list("message__n", flat=True)) == [1, 3]
     # The plain save of such an insert, and the skip of a plain one, are refused.
@@ -382,30 +392,18 @@ def _message(vehicle: Vehicle, n: int, **fields: object) -> AgentMessage:
 
 
 def test_held_writes_are_sent_together_when_the_block_ends(fleet):
-    posted: list[int | None] = []
     changed: list[int] = []
-    signals.post_save.connect(
-        lambda sender, instance, **kw: posted.append(instance.pk),
-        sender=AgentMessage,
-        weak=False,
-        dispatch_uid="held-test",
-    )
     station, vtype = fleet[0].station, fleet[0].vehicle_type
-    try:
-        with transaction.atomic():
-            with CaptureQueriesContext(connection) as inside, writes_batched():
-                one = HELD_MESSAGE.save(_message(fleet[0], 1))
-                two, three = HELD_MESSAGE.save_all([_message(fleet[1], 2), _message(fleet[1], 3)])
-                STATUS_SET.run_later(then=changed.append, vehicle=fleet[0].pk, status="busy")
-                car = HELD_VEHICLE.save(
-                    Vehicle(name="car-new", station=station, vehicle_type=vtype)
-                )
-                # Nothing sent yet: no id, no post_save, no row, no answer.
-                assert one.pk is None and posted == [] and changed == []
-                held = len(inside)
-            sent = inside.captured_queries[held:]
-    finally:
-        signals.post_save.disconnect(sender=AgentMessage, dispatch_uid="held-test")
+    with _post_saves(AgentMessage) as posted, transaction.atomic():
+        with CaptureQueriesContext(connection) as inside, writes_batched():
+            one = HELD_MESSAGE.save(_message(fleet[0], 1))
+            two, three = HELD_MESSAGE.save_all([_message(fleet[1], 2), _message(fleet[1], 3)])
+            STATUS_SET.run_later(then=changed.append, vehicle=fleet[0].pk, status="busy")
+            car = HELD_VEHICLE.save(Vehicle(name="car-new", station=station, vehicle_type=vtype))
+            # Nothing sent yet: no id, no post_save, no row, no answer.
+            assert one.pk is None and posted == [] and changed == []
+            held = len(inside)
+        sent = inside.captured_queries[held:]
     assert held == 0, inside.captured_queries
     # PostgreSQL runs them as one statement; SQLite one by one, in the order made.
     assert len(sent) == (1 if connection.vendor == "postgresql" else 4), sent
