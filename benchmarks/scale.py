@@ -2,11 +2,11 @@
 link loss to safe action, and one platform process against two.
 
     python -m benchmarks.scale [--quick] [--agents 1000] [--out docs/benchmarks/scale]
-        [--server daphne|uvicorn] [--servers daphne,uvicorn] [--baseline REF]
+        [--server uvicorn|daphne] [--servers uvicorn,daphne] [--baseline REF]
         [--phases all|one|heartbeats] [--heartbeat-s 1]
 
-Everything on the platform side is real: an ASGI server (daphne, the default, or
-uvicorn with the websockets library: ``--server``) serving ``iouv.asgi`` on PostgreSQL
+Everything on the platform side is real: an ASGI server (uvicorn as production runs it,
+``python -m iouv.serve``, the default; or daphne: ``--server``) serving ``iouv.asgi`` on PostgreSQL
 and Redis (its own database, ``iouv_bench_scale`` unless ``--database-url`` says
 otherwise, created, migrated and emptied at the start; Redis from ``REDIS_URL``, else
 database 4, with its own ``CHANNELS_PREFIX``), the platform's own signing key, vehicles
@@ -140,7 +140,7 @@ class Params:
     ramp_per_s: float = 50.0  # new uplinks per second, all workers together
     settle_s: float = 5.0  # quiet time before a measurement window
     window_s: float = 15.0  # CPU and memory window
-    # Each API request runs on its own thread in daphne; a platform without the
+    # Each API request runs on its own thread in the server; a platform without the
     # connection pool (a --baseline tree) leaves a connection open per such thread for
     # DB_CONN_MAX_AGE: more clients would take this shared PostgreSQL server's last
     # connections from other people.
@@ -2534,11 +2534,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         "--server",
         choices=SERVERS,
         default=SERVERS[0],
-        help="the ASGI server of the platform processes (default daphne)",
+        help="the ASGI server of the platform processes (default uvicorn, as iouv.serve runs it)",
     )
     servers.add_argument(
         "--servers",
-        help="comma list, e.g. daphne,uvicorn: the whole run under each, one after the "
+        help="comma list, e.g. uvicorn,daphne: the whole run under each, one after the "
         "other, reported side by side",
     )
     parser.add_argument(

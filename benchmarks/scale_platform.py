@@ -31,10 +31,13 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import unquote, urlsplit
 
+from iouv.serve import command as serve_command
+
 ROOT = Path(__file__).resolve().parents[1]
 PROBE = Path(__file__).resolve().with_name("scale_probe.py")
-#: ASGI servers the benchmark can run the platform under; the first is the default.
-SERVERS = ("daphne", "uvicorn")
+#: ASGI servers the benchmark can run the platform under; the first is the default,
+#: production's (iouv.serve).
+SERVERS = ("uvicorn", "daphne")
 START_TIMEOUT_S = 60.0
 
 
@@ -165,27 +168,28 @@ def worktree(ref: str) -> Iterator[PlatformTree]:
 # --------------------------------------------------------------------------------------
 
 
-def server_command(server: str, *, port: int) -> list[str]:
+def server_command(server: str, *, port: int, tree: PlatformTree | None = None) -> list[str]:
     """The command line serving ``iouv.asgi:application`` under ``server`` on loopback.
 
-    daphne as production runs it (docs/operations.md). uvicorn with the websockets
-    library for WebSockets (the agent's own), no lifespan (``iouv.asgi`` routes HTTP
-    and WebSocket only; Django needs no start-up hook), no access log (daphne's is one
-    line per request and per socket, not per message, so the two stay comparable), and
-    no proxy headers: daphne runs without ``--proxy-headers`` too, and the platform
-    does not use the client's address.
+    uvicorn as production runs it: ``python -m iouv.serve`` (its options and why are
+    that module's). A tree older than that module gets the same options on uvicorn's
+    command line, with httptools' own head parsing. daphne as its documented alternative
+    runs (docs/operations.md, "Choosing the ASGI server"), without an access log.
     """
+    if server == "uvicorn":
+        if tree is None or (tree.root / "iouv" / "serve.py").exists():
+            return serve_command(port=port)
+        return [
+            *(sys.executable, "-m", "uvicorn", "iouv.asgi:application"),
+            *("--host", "127.0.0.1", "--port", str(port)),
+            *("--loop", "uvloop", "--http", "httptools", "--ws", "websockets-sansio"),
+            *("--ws-per-message-deflate", "false", "--lifespan", "off"),
+            *("--no-access-log", "--no-proxy-headers", "--no-server-header"),
+        ]
     if server == "daphne":
         return [
             *(sys.executable, "-m", "daphne", "iouv.asgi:application"),
             *("-b", "127.0.0.1", "-p", str(port)),
-        ]
-    if server == "uvicorn":
-        return [
-            *(sys.executable, "-m", "uvicorn", "iouv.asgi:application"),
-            *("--host", "127.0.0.1", "--port", str(port)),
-            *("--ws", "websockets", "--lifespan", "off"),
-            *("--no-access-log", "--no-proxy-headers"),
         ]
     raise ValueError(f"unknown ASGI server {server!r}; one of {', '.join(SERVERS)}")
 
@@ -208,7 +212,7 @@ async def platform_start(
     log_path = logs / f"{name}.log"
     with open_log(log_path) as log_file:
         proc = await asyncio.create_subprocess_exec(
-            *server_command(server, port=port),
+            *server_command(server, port=port, tree=tree),
             cwd=tree.root,
             env=tree.env(env),
             stdout=log_file,

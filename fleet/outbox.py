@@ -540,7 +540,7 @@ def outbox_nudge(vehicle_id: Any) -> None:
             box.wake_threadsafe()
             return
     if layer.CROSS_PROCESS and layer.in_memory():
-        return  # an embedded worker: daphne's outbox polls
+        return  # an embedded worker: the server process's outbox polls
     channel_layer = get_channel_layer()
     if channel_layer is None:
         return

@@ -19,9 +19,9 @@ Close codes the platform uses on this socket:
 4503   the platform is too busy to admit the ``hello`` now (error ``busy``; retry later)
 =====  ===============================================================
 
-The codes are in WebSocket's private range (4000-4999): daphne's server (autobahn)
-closes with nothing but 1000 or 3000-4999, so the standard 1011 and 1013 cannot be
-sent; 4500 and 4503 say the same as HTTP's 500 and 503.
+The codes are in WebSocket's private range (4000-4999): daphne's server (autobahn),
+the platform's other server, closes with nothing but 1000 or 3000-4999, so the
+standard 1011 and 1013 cannot be sent; 4500 and 4503 say the same as HTTP's 500 and 503.
 
 What the platform tells an agent (tasks, revokes, ends) is owed in the database until
 the agent acknowledges it (:func:`vehicle_send`, fleet.outbox); relayed control traffic

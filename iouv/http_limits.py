@@ -1,124 +1,138 @@
-"""Limits on an HTTP/1.1 request's head under daphne, answered rather than dropped.
+"""Limits on an HTTP/1.1 request's head, answered rather than dropped or ignored.
 
-daphne parses HTTP with Twisted's ``HTTPChannel``, a ``LineReceiver``. A request line
-or a header line longer than ``MAX_LENGTH`` (16 KiB) makes ``LineReceiver`` close the
-connection with no answer at all, so a client with an oversized ``Authorization``
-header or URL sees the connection close instead of an error it can act on; too many or
-too large headers in total get a bare ``400`` followed by an immediate close, which
-can reset the answer away while the client is still sending.
+The platform's server (:mod:`iouv.serve`: uvicorn) parses HTTP with httptools, which
+sets no limit of its own on a request's head: a client could send an endless URL or
+header and the process would buffer it. :class:`LimitedHttpToolsProtocol` is uvicorn's
+httptools protocol with limits, each answered: ``414 URI Too Long`` for the request
+line, ``431 Request Header Fields Too Large`` for a header line, the whole head or the
+number of header fields, each with a short plain-text body and ``Connection: close``.
 
-:class:`LimitedHTTPChannel` keeps Twisted's limits and answers every one of them:
-``414 URI Too Long`` for the request line, ``431 Request Header Fields Too Large``
-for the headers, each with a short plain-text body and ``Connection: close``. It then
-closes its sending half only and reads and drops what the client still sends, for at
-most :data:`LINGER_S` seconds: closing outright while request bytes are unread makes
-the kernel send a reset, which can destroy the answer before the client reads it.
+It then closes its sending half only and reads and drops what the client still sends,
+for at most :data:`LINGER_S` seconds: closing outright while request bytes are unread
+makes the kernel send a reset, which can destroy the answer before the client reads it.
 
-daphne has no setting for its HTTP protocol, so :func:`daphne_use_limited_channel`
-sets ``protocol`` (Twisted's ``Factory`` extension point) on daphne's HTTP factory.
-``iouv.asgi`` calls it, which covers every way the project runs daphne (``daphne
-iouv.asgi:application``, ``python -m daphne``, ``manage.py runserver``).
+A head still arriving is checked after every read (at most one read, 256 KiB, is
+buffered beyond a limit); a head that arrived whole is checked once complete, before
+the request reaches Django. Under daphne, :mod:`iouv.http_limits_twisted` answers the
+same limits.
 """
 
 from __future__ import annotations
 
-from typing import Any
-
-from twisted.internet.interfaces import ITCPTransport
-from twisted.web import http
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 #: Longest request line (method, target, version), and longest single header line, in
-#: bytes: Twisted's own limit.
+#: bytes.
 MAX_LINE_BYTES = 16 * 1024
-#: Most bytes in the request line and all header lines together: Twisted's own limit.
+#: Most bytes in the request line and all header lines together.
 MAX_HEAD_BYTES = 16 * 1024
-#: Most header lines in one request: Twisted's own limit.
+#: Most header lines in one request.
 MAX_HEADERS = 500
 #: After refusing a request, how long to keep reading (and dropping) what the client
 #: still sends before closing the connection.
 LINGER_S = 2.0
 
+#: (status, reason phrase, why) of a refused head.
+Refusal = tuple[int, bytes, str]
 
-class LimitedHTTPChannel(http.HTTPChannel):
-    """Twisted's ``HTTPChannel`` that answers an oversized request head with a 4xx
-    (414 for the request line, 431 for the headers) instead of dropping the connection.
-    """
+_URI_TOO_LONG = b"URI Too Long"
+_HEADERS_TOO_LARGE = b"Request Header Fields Too Large"
 
-    MAX_LENGTH = MAX_LINE_BYTES
-    totalHeadersSize = MAX_HEAD_BYTES
-    maxHeaders = MAX_HEADERS
 
-    _refused = False
-    # This request's head so far: bytes and lines (the request line included).
-    # Counted here, before Twisted's own checks, so that each of its limits is
-    # answered by _refuse rather than by its bare 400.
+def head_refusal(url: bytes, headers: list[tuple[bytes, bytes]]) -> Refusal | None:
+    """Why a complete request head breaks a limit, or None. ``url`` is the request
+    target, ``headers`` the (name, value) pairs as parsed."""
+    if len(url) > MAX_LINE_BYTES:
+        return (414, _URI_TOO_LONG, f"the request line is over {MAX_LINE_BYTES} bytes")
+    if len(headers) > MAX_HEADERS:
+        return (431, _HEADERS_TOO_LARGE, f"the request has more than {MAX_HEADERS} header fields")
+    # Each line is "name: value\r\n"; the request line about the target and 14 bytes.
+    total = len(url) + 14
+    for name, value in headers:
+        line = len(name) + len(value) + 4
+        if line > MAX_LINE_BYTES:
+            return (431, _HEADERS_TOO_LARGE, f"a header field is over {MAX_LINE_BYTES} bytes")
+        total += line
+    if total > MAX_HEAD_BYTES:
+        return (431, _HEADERS_TOO_LARGE, f"the request's head is over {MAX_HEAD_BYTES} bytes")
+    return None
+
+
+class LimitedHttpToolsProtocol(HttpToolsProtocol):
+    """uvicorn's httptools protocol that answers an oversized request head with a 4xx
+    (see the module); ``uvicorn --http iouv.http_limits:LimitedHttpToolsProtocol``."""
+
+    # The current request's head: still arriving, bytes read for it after the read
+    # that began it, and a refusal found when it completed.
+    _in_head = False
     _head_bytes = 0
-    _head_lines = 0
+    _refusal: Refusal | None = None
+    _refused = False
 
-    def dataReceived(self, data: bytes) -> None:
+    def data_received(self, data: bytes) -> None:
         if self._refused:
             return  # the answer is out; drop the rest of the request (see _refuse)
-        super().dataReceived(data)
-
-    def lineReceived(self, line: bytes) -> None:
-        if self._refused:
+        was_in_head = self._in_head
+        super().data_received(data)
+        if self._refusal is not None:
+            self._refuse(*self._refusal)
             return
-        self._head_bytes += len(line)
-        if line and line[:1] not in b" \t":  # a continuation line is not a new header
-            self._head_lines += 1
-        if self._head_bytes > self.totalHeadersSize:
-            self._refuse_head(f"the request's head is over {self.totalHeadersSize} bytes")
+        if not self._in_head or self.transport.is_closing():
             return
-        if self._head_lines > self.maxHeaders + 1:
-            self._refuse_head(f"the request has more than {self.maxHeaders} header fields")
-            return
-        super().lineReceived(line)
+        # The head is still arriving: what has come of it so far.
+        if was_in_head:
+            self._head_bytes += len(data)
+        refusal = None
+        if len(self.url) > MAX_LINE_BYTES:  # the target arrives piece by piece
+            refusal = head_refusal(self.url, [])
+        elif len(self.headers) > MAX_HEADERS:
+            refusal = head_refusal(b"", self.headers)
+        elif self._head_bytes > MAX_HEAD_BYTES:
+            refusal = (
+                431,
+                _HEADERS_TOO_LARGE,
+                f"the request's head is over {MAX_HEAD_BYTES} bytes",
+            )
+        if refusal is not None:
+            self._refuse(*refusal)
 
-    def allContentReceived(self) -> None:
-        # A request is complete: the next one's head is counted from zero.
-        self._head_bytes = 0
-        self._head_lines = 0
-        super().allContentReceived()
+    def on_message_begin(self) -> None:
+        super().on_message_begin()
+        self._in_head, self._head_bytes = True, 0
 
-    def lineLengthExceeded(self, line: bytes) -> None:
-        # LineReceiver's default closes the connection without a word.
-        if self._head_lines == 0:
-            self._refuse(414, b"URI Too Long", f"the request line is over {self.MAX_LENGTH} bytes")
-        else:
-            self._refuse_head(f"a header field is over {self.MAX_LENGTH} bytes")
+    def on_headers_complete(self) -> None:
+        self._in_head = False
+        self._refusal = head_refusal(self.url, self.headers)
+        if self._refusal is None:
+            super().on_headers_complete()
 
-    def _refuse_head(self, why: str) -> None:
-        self._refuse(431, b"Request Header Fields Too Large", why)
+    def handle_websocket_upgrade(self) -> None:
+        if self._refusal is None:
+            super().handle_websocket_upgrade()
+
+    def on_body(self, body: bytes) -> None:
+        if self._refusal is None:
+            super().on_body(body)
+
+    def on_message_complete(self) -> None:
+        if self._refusal is None:
+            super().on_message_complete()
 
     def _refuse(self, status: int, reason: bytes, why: str) -> None:
         """Answer ``status`` with ``why`` as the body, then close (see the module)."""
         self._refused = True
-        transport: Any = self.transport  # zope's interfaces give mypy no usable types
+        self._unset_keepalive_if_required()
         body = f"{why}\n".encode()
-        transport.write(
+        self.transport.write(
             b"HTTP/1.1 %d %s\r\n"
             b"Content-Type: text/plain; charset=utf-8\r\n"
             b"Content-Length: %d\r\n"
             b"Connection: close\r\n"
             b"\r\n%s" % (status, reason, len(body), body)
         )
-        # The idle timeout ends the lingering: timeoutConnection closes the connection
-        # (and aborts it if the client does not let go). dataReceived no longer resets it.
-        self.setTimeout(LINGER_S)
-        if ITCPTransport.providedBy(transport):
-            transport.loseWriteConnection()
-        else:
-            self.loseConnection()
-
-
-def daphne_use_limited_channel() -> None:
-    """Make daphne's HTTP server build :class:`LimitedHTTPChannel` for each connection.
-
-    Twisted's default protocol wraps the channel so that it can switch to HTTP/2 when
-    TLS negotiates it; daphne here serves plain HTTP/1.1 (TLS ends at the proxy), which
-    the channel speaks by itself. Idempotent.
-    """
-    from daphne.http_protocol import HTTPFactory
-
-    factory: Any = HTTPFactory
-    factory.protocol = LimitedHTTPChannel
+        if not self.transport.can_write_eof():
+            self.transport.close()
+            return
+        # Reading goes on (and drops) until the client closes, or LINGER_S at most.
+        self.transport.write_eof()
+        self.loop.call_later(LINGER_S, self.transport.abort)

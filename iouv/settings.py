@@ -411,5 +411,10 @@ LOGGING = {
     "formatters": {"plain": {"format": "%(asctime)s %(levelname)s %(name)s: %(message)s"}},
     "handlers": {"console": {"class": "logging.StreamHandler", "formatter": "plain"}},
     "root": {"handlers": ["console"], "level": env_str("LOG_LEVEL", "INFO")},
-    "loggers": {"django.channels.server": {"level": "WARNING"}},
+    # The servers' lines for each socket opened or closed (daphne's, uvicorn's): a busy
+    # process's log would be little else. Their warnings and errors still show.
+    "loggers": {
+        "django.channels.server": {"level": "WARNING"},
+        "uvicorn.error": {"level": "WARNING"},
+    },
 }

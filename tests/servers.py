@@ -1,4 +1,5 @@
-"""Real servers for integration tests: the platform under daphne, in its own process.
+"""Real servers for integration tests: the platform under its server (``iouv.serve``:
+uvicorn), or under daphne when a test asks, in its own process.
 
 The child process uses the test database that pytest-django created (so the test must
 commit its rows: ``django_db(transaction=True)``), the same Redis channel layer and
@@ -32,6 +33,8 @@ from agents.config import AgentConfig, ControlConfig
 from agents.runtime import Agent
 from agents.simulation import simulator_running
 from agents.vehicles.base import Simulation
+from iouv.serve import APPLICATION
+from iouv.serve import command as iouv_serve_command
 from services.signing import platform_public_key_pem
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,12 +56,35 @@ def _test_database_url() -> str:
     )
 
 
+#: The ASGI servers a test may run the platform under; the first is production's.
+SERVERS = ("uvicorn", "daphne")
+
+
+def server_command(server: str, *, host: str, port: int) -> list[str]:
+    """The command line serving the platform under ``server`` (one of :data:`SERVERS`)."""
+    if server == "uvicorn":
+        return iouv_serve_command(host=host, port=port)
+    if server == "daphne":
+        return [sys.executable, "-m", "daphne", "-b", host, "-p", str(port), APPLICATION]
+    raise ValueError(f"unknown server {server!r}; one of {', '.join(SERVERS)}")
+
+
+def platform_log(base: str) -> Path:
+    """The output file of the platform process serving ``base``."""
+    return Path(settings.VAR_DIR / f"platform-{base.rsplit(':', 1)[1]}.log")
+
+
 @contextlib.contextmanager
 def platform_process(
-    *, extra_env: dict[str, str] | None = None, host: str = "127.0.0.1"
+    *,
+    extra_env: dict[str, str] | None = None,
+    host: str = "127.0.0.1",
+    server: str = SERVERS[0],
 ) -> Iterator[str]:
-    """Run daphne on a free port of ``host`` (default loopback); yields its base URL
-    (``http://<host>:N``, or ``http://127.0.0.1:N`` when ``host`` is ``0.0.0.0``).
+    """Run the platform on a free port of ``host`` (default loopback) under ``server``
+    (default production's, ``iouv.serve``); yields its base URL (``http://<host>:N``, or
+    ``http://127.0.0.1:N`` when ``host`` is ``0.0.0.0``). Its output goes to
+    :func:`platform_log`.
 
     Another address (e.g. the public address of a tests.netlab lab, for clients in its
     namespaces) is added to ``ALLOWED_HOSTS``, unless ``extra_env`` sets that; with
@@ -76,18 +102,9 @@ def platform_process(
     url_host = "127.0.0.1" if host == "0.0.0.0" else host
     if url_host not in settings.ALLOWED_HOSTS and "ALLOWED_HOSTS" not in (extra_env or {}):
         env["ALLOWED_HOSTS"] = ",".join([*settings.ALLOWED_HOSTS, url_host])
-    log = open(settings.VAR_DIR / f"daphne-{port}.log", "w")  # noqa: SIM115 - closed below
+    log = open(settings.VAR_DIR / f"platform-{port}.log", "w")  # noqa: SIM115 - closed below
     proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "daphne",
-            "-b",
-            host,
-            "-p",
-            str(port),
-            "iouv.asgi:application",
-        ],
+        server_command(server, host=host, port=port),
         cwd=ROOT,
         env=env,
         stdout=log,
@@ -104,7 +121,7 @@ def platform_process(
             except OSError:
                 if proc.poll() is not None or time.monotonic() > deadline:
                     raise RuntimeError(
-                        f"daphne did not start: {Path(log.name).read_text()[-2000:]}"
+                        f"{server} did not start: {Path(log.name).read_text()[-2000:]}"
                     ) from None
                 time.sleep(0.2)
         yield base

@@ -1,6 +1,6 @@
 """benchmarks.paper in quick mode, end to end, and the delay proxy it emulates links with.
 
-The end-to-end test runs the real platform (daphne on the test database, Redis channel
+The end-to-end test runs the real platform (iouv.serve on the test database, Redis channel
 layer), real agent processes, the echo server and coturn (installed when missing), then
 checks that every output exists and is well-formed, the data-channel columns and connect
 tries included. It asserts nothing about timing: the machine may be busy.

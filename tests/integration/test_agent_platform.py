@@ -1,4 +1,4 @@
-"""End to end over real sockets: platform (daphne, Postgres, Redis) + agent + user.
+"""End to end over real sockets: platform (iouv.serve, Postgres, Redis) + agent + user.
 
 The agent registers on its uplink, the platform assigns the car and deploys a signed
 task, and a user holding the grant drives the simulated car point-to-point.

@@ -1,6 +1,6 @@
 """The API's interactive documentation (Swagger UI at /api/v1/docs) in a real browser.
 
-The platform runs under daphne with its production policy; Chromium (Playwright) opens
+The platform runs (iouv.serve) with its production policy; Chromium (Playwright) opens
 the page, sees every operation listed, authorizes with an API token and runs "Try it
 out" on GET /services. Any CSP violation, and any request leaving the platform's origin
 (a CDN, swagger.io's validator), fails the test.

@@ -5,7 +5,7 @@ sticks in proportion to the push, the vehicle's other commands along the top of 
 picture, touch hints rather than keys, and no page wider than the screen. A laptop
 (1366 by 768) shows the picture and every control without scrolling.
 
-Same world as ``test_portal``: the seeded demo under daphne, the simulated car and
+Same world as ``test_portal``: the seeded demo on the platform, the simulated car and
 drone's agents, Debian's Chromium.
 """
 

@@ -2,7 +2,7 @@
 platform, the relay when WebRTC cannot be had, and driving paused while the video is
 frozen.
 
-Same world as ``test_portal``: the seeded demo under daphne, the simulated car and
+Same world as ``test_portal``: the seeded demo on the platform, the simulated car and
 drone's agents (in this process, so a test can switch a vehicle's WebRTC off or freeze
 its camera), Debian's Chromium.
 """

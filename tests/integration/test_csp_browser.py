@@ -1,6 +1,6 @@
 """The portal works under its Content-Security-Policy in a real browser.
 
-The platform runs under daphne with map tiles from a tile server on another origin; the
+The platform runs (iouv.serve) with map tiles from a tile server on another origin; the
 simulated car's agent serves its control socket and WebRTC video on a port of its own.
 Chromium (Playwright) opens the catalog, the rescue request map, a controller session,
 the monitor dashboard and the admin, and every ``securitypolicyviolation`` event and

@@ -1,7 +1,9 @@
 """Oversized request heads get an HTTP answer from the platform, not a dropped connection.
 
-The platform runs as the project runs it (``python -m daphne iouv.asgi:application``,
-tests/servers.py), and the requests go over real sockets, as a client would send them.
+The platform runs as the project runs it (``python -m iouv.serve``: uvicorn with
+``iouv.http_limits``), and under daphne (``iouv.http_limits_twisted``), its documented
+alternative (tests/servers.py); the requests go over real sockets, as a client would
+send them.
 """
 
 from __future__ import annotations
@@ -14,16 +16,16 @@ from urllib.parse import urlsplit
 import pytest
 
 from iouv.http_limits import MAX_HEAD_BYTES, MAX_HEADERS, MAX_LINE_BYTES
-from tests.servers import platform_process
+from tests.servers import SERVERS, platform_process
 
 # The platform process uses the test database (tests/servers.py), which it only finds
 # on PostgreSQL; the tests themselves touch no rows.
 pytestmark = pytest.mark.postgres
 
 
-@pytest.fixture(scope="module")
-def address(django_db_setup: None) -> Iterator[tuple[str, int]]:
-    with platform_process() as base:
+@pytest.fixture(scope="module", params=SERVERS)
+def address(request: pytest.FixtureRequest, django_db_setup: None) -> Iterator[tuple[str, int]]:
+    with platform_process(server=request.param) as base:
         parts = urlsplit(base)
         assert parts.hostname and parts.port
         yield parts.hostname, parts.port

@@ -1,6 +1,6 @@
-"""The portal over HTTPS, as production runs it: TLS at nginx, daphne behind it.
+"""The portal over HTTPS, as production runs it: TLS at nginx, the platform behind it.
 
-The platform runs under daphne with production's security settings (``BEHIND_PROXY``,
+The platform runs (iouv.serve) with production's security settings (``BEHIND_PROXY``,
 ``SECURE_SSL_REDIRECT``, secure cookies, HSTS at its production default) behind
 Debian's nginx (``benchmarks.nginx_proxy``), which terminates TLS with a certificate
 from a CA the test makes (``tests.tls``) and redirects plain http to https. The car's
@@ -81,7 +81,7 @@ for (const [via, proto] of carriers) {
 class HttpsPortal:
     world: World  # base: the proxy's https URL
     proxy: NginxProxy
-    daphne: str  # http://127.0.0.1:N: the platform process itself, behind the proxy
+    platform: str  # http://127.0.0.1:N: the platform process itself, behind the proxy
     certs: Certificates
 
     @property
@@ -107,7 +107,7 @@ def car_agent_config(path: Path, platform_url: str) -> AgentConfig:
 
 @pytest.fixture
 async def portal(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> AsyncIterator[HttpsPortal]:
-    """The seeded demo under daphne with production's settings, nginx terminating TLS
+    """The seeded demo on the platform with production's settings, nginx terminating TLS
     in front, car-1's agent online through it, and Chromium trusting the server key."""
     try:
         await asyncio.to_thread(nginx_binary)  # Debian's, installed if missing
@@ -115,8 +115,8 @@ async def portal(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> AsyncIterat
         pytest.skip(f"needs nginx: {exc}")
     certs = certificates_make(tmp_path / "tls")
     await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path / "agents")
-    with platform_process(extra_env=PRODUCTION_ENV) as daphne:
-        routes = Routes(default=Backend.parse(daphne.removeprefix("http://")))
+    with platform_process(extra_env=PRODUCTION_ENV) as platform:
+        routes = Routes(default=Backend.parse(platform.removeprefix("http://")))
         tls = Tls(certs.chain, certs.key)
         async with NginxProxy(routes, prefix=tmp_path / "nginx", tls=tls, redirect_port=0) as proxy:
             # The agent's uplink makes its TLS context as any program does (the
@@ -136,7 +136,7 @@ async def portal(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> AsyncIterat
                     webrtc_loopback=True, extra_args=certs.chromium_args()
                 ) as browser:
                     world = World(proxy.url, browser, {"car-1": agent})
-                    yield HttpsPortal(world, proxy, daphne, certs)
+                    yield HttpsPortal(world, proxy, platform, certs)
 
 
 def _get(
@@ -213,11 +213,11 @@ async def test_plain_http_is_sent_to_https_by_nginx_and_by_the_platform(
 
     # The platform process itself, reached without the proxy (or a proxy that forgot
     # the header): Django's SECURE_SSL_REDIRECT. Health checks stay on plain http.
-    daphne_port = int(portal.daphne.rsplit(":", 1)[1])
-    response = await asyncio.to_thread(_get, "127.0.0.1", daphne_port, "/accounts/login/")
+    platform_port = int(portal.platform.rsplit(":", 1)[1])
+    response = await asyncio.to_thread(_get, "127.0.0.1", platform_port, "/accounts/login/")
     assert response.status == 301
-    assert response.getheader("Location") == f"https://127.0.0.1:{daphne_port}/accounts/login/"
-    assert (await asyncio.to_thread(_get, "127.0.0.1", daphne_port, "/healthz")).status == 200
+    assert response.getheader("Location") == f"https://127.0.0.1:{platform_port}/accounts/login/"
+    assert (await asyncio.to_thread(_get, "127.0.0.1", platform_port, "/healthz")).status == 200
 
 
 async def test_over_https_the_controller_drives_on_webrtc_with_no_mixed_content(

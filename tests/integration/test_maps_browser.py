@@ -6,7 +6,7 @@ shown. Labels (vehicles, stations, the person found, the grid's coordinates) nev
 cover one another nor the map's controls. The monitor sees the whole fleet on a map,
 live; the mission page has no empty box under its map.
 
-The platform runs under daphne with the demo seeded and simulated agents, as in
+The platform runs (iouv.serve) with the demo seeded and simulated agents, as in
 ``tests/integration/test_portal.py`` and ``kinds/rescue_at_sea/tests/test_integration.py``
 (whose helpers are imported here).
 """

@@ -1,6 +1,6 @@
 """The portal as a person uses it: real Chromium, real platform, real agents.
 
-The demo world is seeded, the platform runs under daphne (Postgres, Redis), the
+The demo world is seeded, the platform runs under its server (Postgres, Redis), the
 simulated car's agent runs here, and Playwright drives Debian's Chromium.
 """
 
@@ -95,7 +95,7 @@ async def world(tmp_path: Path) -> AsyncIterator[World]:
 
 @contextlib.asynccontextmanager
 async def demo_world(tmp_path: Path, *, webrtc_loopback: bool = True) -> AsyncIterator[World]:
-    """The seeded demo under daphne, car-1's and quad-1's agents online with a position
+    """The seeded demo on the platform, car-1's and quad-1's agents online with a position
     (their configs in ``tmp_path``), and Chromium (``webrtc_loopback``: able to take
     their video)."""
     await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path)

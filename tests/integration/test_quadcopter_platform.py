@@ -1,4 +1,4 @@
-"""End to end with a MAVLink drone: platform (daphne, Postgres, Redis) + agent with the
+"""End to end with a MAVLink drone: platform (iouv.serve, Postgres, Redis) + agent with the
 simulated ArduCopter (a separate process on UDP) + a user flying it point-to-point.
 
 The service's fail-safe is return_to_home: when the user's browser dies mid-flight,

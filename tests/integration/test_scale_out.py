@@ -1,12 +1,12 @@
-"""Scale-out: two daphne processes behind one address, sharing PostgreSQL and Redis.
+"""Scale-out: two platform processes behind one address, sharing PostgreSQL and Redis.
 
 nginx (``benchmarks.nginx_proxy``) sends the agents' uplinks (``/ws/agent/``) to process
 A and everything else (the API, the relay) to process B. A session requested on B is
 assigned there, its task reaches the agent connected to A, a relayed control session
 opened on B drives the car through A, and supervision holds across the two: the
 controller's socket dying on B makes the agent on A stop and the platform log it, and a
-monitor's stop on B revokes the agent on A. Each process's access log, and nginx's,
-shows it only served its own share.
+monitor's stop on B revokes the agent on A. nginx's access log shows that each process
+served only its own share.
 """
 
 from __future__ import annotations
@@ -16,11 +16,9 @@ import json
 import urllib.request
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import pytest
-from django.conf import settings
 from websockets.asyncio.client import connect
 
 from accounts.roles import MONITOR
@@ -86,11 +84,6 @@ def _port(base: str) -> int:
     return int(base.rsplit(":", 1)[1])
 
 
-def _access_log(base: str) -> str:
-    # tests.servers.platform_process writes each daphne's output here.
-    return Path(settings.VAR_DIR / f"daphne-{_port(base)}.log").read_text()
-
-
 async def _api(base: str, token: str, path: str, body: dict[str, Any] | None = None) -> Any:
     """POST ``body`` to the API at ``base``; the parsed answer (raises on an HTTP error)."""
 
@@ -149,14 +142,8 @@ async def test_two_processes_assign_deploy_relay_and_supervise(platform: Platfor
     ) as agent:
         await _drive_across_processes(platform, world, agent)
 
-    # Each process served only its share: A the uplink, B the API and the relay.
-    a_log, b_log = _access_log(platform.agents_process), _access_log(platform.users_process)
-    assert "/ws/agent/" in a_log
-    assert "/api/v1/sessions" not in a_log and "/ws/relay/" not in a_log
-    assert "/api/v1/sessions" in b_log and "/ws/relay/" in b_log
-    assert "/ws/agent/" not in b_log
-
-    # nginx agrees: every request went by its path. It logs a WebSocket once it ended.
+    # Each process served only its share, A the uplink, B the API and the relay: nginx
+    # logs the process that served each request (a WebSocket once it ended).
     agents_at = f"127.0.0.1:{_port(platform.agents_process)}"
     users_at = f"127.0.0.1:{_port(platform.users_process)}"
 

@@ -1,4 +1,4 @@
-"""Supervision that cannot be lost, on the real servers: daphne, PostgreSQL, Redis, a
+"""Supervision that cannot be lost, on the real servers: the platform (iouv.serve), PostgreSQL, Redis, a
 Celery worker with its beat, and vehicle agents on their simulators.
 
 Each test breaks something the way it breaks in the field (an agent killed, a user who
@@ -81,7 +81,7 @@ def _fleet(cap: int = 1) -> tuple[Vehicle, str, Any]:
 
 @pytest.fixture
 def servers() -> Iterator[str]:
-    """daphne and a worker with its beat, on the test database and Redis."""
+    """The platform and a worker with its beat, on the test database and Redis."""
     with platform_process() as base, celery_worker_process(extra_env=TIMERS):
         yield base
 

@@ -1,4 +1,4 @@
-"""End to end over real sockets: platform (daphne, Postgres, Redis) + the simulated
+"""End to end over real sockets: platform (iouv.serve, Postgres, Redis) + the simulated
 Spektrum VTOL's agent + a user.
 
 The agent registers on its uplink, the platform assigns the plane to a service whose

@@ -1,7 +1,7 @@
 """Control over WebRTC across real NATs: the four network cases of the issue.
 
 Each test builds a network lab (tests/netlab.py): the root namespace plays the internet,
-with the platform (daphne, on the lab's public address) and coturn (its STUN and TURN
+with the platform (iouv.serve, on the lab's public address) and coturn (its STUN and TURN
 server, whose URLs and shared secret the platform hands out); a car's agent on its
 simulator runs as a process in the "vehicle" site, and Debian's Chromium, driven by
 Playwright (tests/netlab_browser.py), is the user in the "user" site. Each site sits

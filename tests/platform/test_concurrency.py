@@ -66,5 +66,5 @@ def test_the_platform_serves_http_through_the_limit(settings):
     # The ASGI application routes HTTP through the limit set by IOUV_HTTP_CONCURRENCY.
     http = application.application_mapping["http"]
     while not isinstance(http, HttpConcurrencyLimit):
-        http = http.application  # the static files handler, when daphne serves /static/
+        http = http.application  # the static files handler, when the platform serves /static/
     assert http.limit == settings.IOUV_HTTP_CONCURRENCY > 0

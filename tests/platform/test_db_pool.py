@@ -2,7 +2,7 @@
 
 PostgreSQL restarting, a failover, or a firewall dropping idle connections leave a
 process's pooled connections dead. Each one must be replaced as it is lent, not fail
-the request that gets it. The platform runs as the project runs it (daphne, its pool
+the request that gets it. The platform runs as the project runs it (iouv.serve, its pool
 as settings configure it, tests/servers.py) and its connections are killed from outside.
 """
 

@@ -1,5 +1,5 @@
 """The boat, driven from the browser: the demo's "Manual control of a boat" with the
-platform under daphne and the boat's real agent on its ArduRover-like simulator."""
+platform under its server and the boat's real agent on its ArduRover-like simulator."""
 
 from __future__ import annotations
 
