@@ -975,10 +975,16 @@ async def _controller(task: dict[str, Any]) -> Any:
     from websockets.asyncio.client import connect
 
     ws = await connect(task["control_url"], proxy=None, compression=None, open_timeout=15)
-    await ws.send(json.dumps({"type": "auth", "grant": task["grant"]}))
-    welcome = await _recv(ws, "welcome", within=15)
-    if welcome["role"] != "controller":
-        raise RuntimeError(f"not the controller: {welcome}")
+    try:
+        await ws.send(json.dumps({"type": "auth", "grant": task["grant"]}))
+        welcome = await _recv(ws, "welcome", within=15)
+        if welcome["role"] != "controller":
+            raise RuntimeError(f"not the controller: {welcome}")
+    except BaseException:
+        # A refused or failed attempt leaves: a socket kept open would hold a viewer's
+        # place at the agent through the next attempts.
+        await ws.close()
+        raise
     return ws
 
 

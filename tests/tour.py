@@ -2,7 +2,7 @@
 phone's viewport: shared by the accessibility test and the screenshot script.
 
 :func:`tour_world` runs what the pages need, as the integration tests do: the seeded
-demo, the platform under its server (iouv.serve), a Celery worker (with beat) for the rescue missions,
+demo, the platform (iouv.serve), a Celery worker (with beat) for the rescue missions,
 the simulated agents of the car, the drone, the search drone and the lifeguard drone,
 and Chromium. :func:`open_page` then opens one page of :data:`PAGES` as the user who
 would see it, in a browser context with the viewport's size, and returns once the page

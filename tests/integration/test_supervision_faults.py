@@ -1,4 +1,4 @@
-"""Supervision that cannot be lost, on the real servers: the platform (iouv.serve), PostgreSQL, Redis, a
+"""Supervision that cannot be lost, on the real servers: the platform, PostgreSQL, Redis, a
 Celery worker with its beat, and vehicle agents on their simulators.
 
 Each test breaks something the way it breaks in the field (an agent killed, a user who

@@ -1,6 +1,6 @@
 """Control over WebRTC data channels, signalled through the platform, end to end.
 
-Real sockets: the platform under its server (iouv.serve) (Postgres, Redis), a car agent on its simulator,
+Real sockets: the platform (iouv.serve, Postgres, Redis), a car agent on its simulator,
 and a user (an aiortc program in place of the browser) that authenticates on the
 platform's relay socket, offers a connection there, and once its data channels open
 drives the car on them. The vehicle never accepts an inbound connection: the offer and

@@ -1,4 +1,4 @@
-"""Parcel delivery, end to end: the platform under its server (iouv.serve), a real Celery worker (with
+"""Parcel delivery, end to end: the platform (iouv.serve), a real Celery worker (with
 beat) on Redis, Postgres, and the demo's payload drones as real agents on their
 MAVLink simulators. Nothing is played by the test but the user (in a browser, or
 through the request path the API shares) and, in one test, a carrier switched off

@@ -1,4 +1,4 @@
-"""Person rescue at sea, end to end: the platform under its server (iouv.serve), a real Celery worker
+"""Person rescue at sea, end to end: the platform (iouv.serve), a real Celery worker
 (with beat) on Redis, Postgres, and the demo's sea fleet as real agents on their
 MAVLink simulators, with the search drone's thermal camera looking at a simulated sea
 that holds a person. Nothing is played by the test except the user's request (and, in
