@@ -26,6 +26,13 @@ requests at once           relayed round trip      sessions per s
 The sessions per second are the same within this machine's spread (runs of one setting
 differ by a fifth); the relay is not. Hence one request at a time and a 1 ms interval
 by default. A deployment whose views wait on slow services would raise the limit.
+
+Those runs were under daphne. Under uvicorn (iouv.serve), with the clients paced at 30
+sessions per second (``--api-rate 30``), one request at a time kept 27.2 sessions/s with
+the process at 87 % of its core, waiting on the database between a request's
+statements; two kept the pace, 30.0, and the relayed round trip went from 4.2 / 8.6 to
+7.8 / 17 ms (docs/benchmarks/scale/report.md, "The server"). The default stays one:
+the relay's margin is the platform's promise, a session more per second is not.
 """
 
 from __future__ import annotations
