@@ -244,7 +244,7 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         if "text" in event:
             await self.send(text_data=event["text"])
         else:
-            await self.close(code=event.get("close") or CLOSED_BY_AGENT)
+            await self.close(code=_sendable_close_code(event.get("close")))
 
     async def relay_uplink_gone(self, event: dict[str, Any]) -> None:
         """The uplink that answered closed: back to the vehicle's group, where the
@@ -254,6 +254,17 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
 
     async def _error(self, code: str, message: str) -> None:
         await self.send(text_data=encode_message(error_message(code, message)))
+
+
+def _sendable_close_code(code: Any) -> int:
+    """The agent's close code for its relayed client, if a server may send it (1000 or
+    the range for applications and libraries, 3000-4999: daphne sends no other, and
+    uvicorn refuses the reserved ones), else :data:`CLOSED_BY_AGENT`. An agent's code is
+    any number its message carries; another would raise in the relay instead of
+    closing the client's socket."""
+    if isinstance(code, int) and (code == 1000 or 3000 <= code <= 4999):
+        return code
+    return CLOSED_BY_AGENT
 
 
 @database_sync_to_async

@@ -189,6 +189,35 @@ async def test_a_relay_that_never_heard_the_agent_still_reaches_it() -> None:
         await agent.disconnect()
 
 
+@pytest.mark.parametrize(
+    ("agent_code", "browser_code"),
+    [(4403, 4403), (1000, 1000), (1005, 4000), (1011, 4000), (70000, 4000), (None, 4000)],
+)
+async def test_an_agent_dropping_its_relayed_client_closes_the_browser_with_a_code_a_server_sends(
+    agent_code: int | None, browser_code: int
+) -> None:
+    """The agent's close code reaches the browser when a WebSocket server may send it
+    (1000, 3000-4999); any other (reserved, out of range, none) becomes 4000, "closed by
+    the agent", rather than an error in the relay that would leave the socket open."""
+    vehicle_id, credential, session_id, grant = await _relayed_session()
+    agent = await _uplink(vehicle_id, credential)
+    browser = await _browser(session_id)
+    try:
+        await browser.send_json_to({"type": "auth", "grant": grant})
+        relayed = await _relayed(agent)
+        await _answer(agent, relayed, 0)
+        assert json.loads(await browser.receive_from(timeout=10))["seq"] == 0
+        dropped = {"type": "relay_close", "session_id": session_id, "conn": relayed["conn"]}
+        if agent_code is not None:
+            dropped["code"] = agent_code
+        await agent.send_json_to(dropped)
+        closed = await browser.receive_output(timeout=10)
+        assert (closed["type"], closed["code"]) == ("websocket.close", browser_code)
+    finally:
+        await browser.disconnect()
+        await agent.disconnect()
+
+
 async def test_a_relayed_webrtc_offer_brings_the_agent_turn_credentials_of_its_own(
     settings: Any,
 ) -> None:
