@@ -641,7 +641,11 @@
     releaseAll(sendStop) {
       const wasHeld = this.held.size > 0;
       this.held.clear();
-      this.stickHeld.clear(); // a stick still pushed presses again on the next tick
+      // A stick still pushed presses its motion again on the next tick; a button held
+      // for a one-off command (return home, land) is not sent again until pressed anew.
+      for (const name of [...this.stickHeld.keys()]) {
+        if ((this.commands.get(name) || {}).motion) this.stickHeld.delete(name);
+      }
       this.root.querySelectorAll(".cmd.active").forEach((b) => b.classList.remove("active"));
       if (sendStop && wasHeld && this.commands.has("stop")) this.command("stop");
     }

@@ -401,7 +401,10 @@ async def test_a_gamepad_flies_the_drone_in_proportion_and_its_buttons_act(world
     # B: return home, once however long it is held.
     await page.evaluate("() => { window.testPad.buttons[1].pressed = true; }")
     await page.wait_for_function(f"() => {sent.format('return_to_home')}.length === 1")
-    await page.wait_for_timeout(200)
+    # Everything held is let go while B is down (the window loses focus; a frozen
+    # picture or a fail-safe does the same): B is still not sent again.
+    await page.evaluate("() => window.dispatchEvent(new Event('blur'))")
+    await page.wait_for_timeout(300)
     await page.evaluate("() => { window.testPad.buttons[1].pressed = false; }")
     assert len(await page.evaluate(f"() => {sent.format('return_to_home')}")) == 1
 
