@@ -22,19 +22,18 @@ from channels.security.websocket import AllowedHostsOriginValidator  # noqa: E40
 from django.conf import settings  # noqa: E402
 
 from iouv.concurrency import ASGIApp, HttpConcurrencyLimit  # noqa: E402
+from iouv.http_limits_twisted import daphne_use_limited_channel  # noqa: E402
 from iouv.routing import (  # noqa: E402
     browser_websocket_urlpatterns,
     self_authenticating_websocket_urlpatterns,
     websocket_path,
 )
 
-if "daphne.server" in sys.modules:
-    # Served by daphne (its command line and runserver import its server first): its
-    # HTTP channel answers an oversized request head with a 414 or 431, as the
-    # platform's own server does (iouv.serve), instead of dropping the connection.
-    from iouv.http_limits_twisted import daphne_use_limited_channel
-
-    daphne_use_limited_channel()
+# Under daphne, its HTTP channel answers an oversized request head with a 414 or 431, as
+# the platform's own server does (iouv.serve, iouv.http_limits), instead of dropping the
+# connection. Set up whichever server imports this: daphne's app (INSTALLED_APPS, for
+# runserver) has imported daphne's server and Twisted by now anyway.
+daphne_use_limited_channel()
 
 # A request's thread runs its whole view without giving the interpreter back
 # (iouv.handler); the event loop, which carries every socket, waits for it at most

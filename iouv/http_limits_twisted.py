@@ -15,8 +15,8 @@ drops what the client still sends, for at most ``LINGER_S`` seconds.
 
 daphne has no setting for its HTTP protocol, so :func:`daphne_use_limited_channel`
 sets ``protocol`` (Twisted's ``Factory`` extension point) on daphne's HTTP factory.
-``iouv.asgi`` calls it when daphne serves it (``daphne iouv.asgi:application``,
-``python -m daphne``, ``manage.py runserver``).
+``iouv.asgi`` calls it, which covers every way daphne serves the platform (``daphne
+iouv.asgi:application``, ``python -m daphne``, ``manage.py runserver``).
 """
 
 from __future__ import annotations
