@@ -126,6 +126,19 @@ def _group_sends() -> Any:
         layer.group_send = real
 
 
+async def _authenticate(
+    browser: WebsocketCommunicator, agent: WebsocketCommunicator, grant: str
+) -> dict[str, Any]:
+    """The browser's grant, checked by the relay and then by the agent, which answers;
+    returns the relayed frame (its ``conn`` names the browser's connection)."""
+    await browser.send_json_to({"type": "auth", "grant": grant})
+    relayed = await _relayed(agent)
+    assert relayed["payload"] == {"type": "auth", "grant": grant}
+    await _answer(agent, relayed, 0)
+    assert json.loads(await browser.receive_from(timeout=10))["seq"] == 0
+    return relayed
+
+
 async def _command(browser: WebsocketCommunicator, agent: WebsocketCommunicator, seq: int) -> None:
     """One relayed command and its ack, end to end."""
     await browser.send_json_to({"type": "command", "seq": seq, "name": "front", "args": {}})
@@ -146,11 +159,7 @@ async def test_relayed_commands_go_channel_to_channel_and_survive_an_uplink_reco
     browser = await _browser(session_id)
     try:
         # The grant first: the relay checks it, then the agent does (it answers).
-        await browser.send_json_to({"type": "auth", "grant": grant})
-        relayed = await _relayed(agent)
-        assert relayed["payload"] == {"type": "auth", "grant": grant}
-        await _answer(agent, relayed, 0)
-        assert json.loads(await browser.receive_from(timeout=10))["seq"] == 0
+        await _authenticate(browser, agent, grant)
 
         # From now on each side knows the other's channel: no group lookups.
         with _group_sends() as sends:
@@ -203,10 +212,7 @@ async def test_an_agent_dropping_its_relayed_client_closes_the_browser_with_a_co
     agent = await _uplink(vehicle_id, credential)
     browser = await _browser(session_id)
     try:
-        await browser.send_json_to({"type": "auth", "grant": grant})
-        relayed = await _relayed(agent)
-        await _answer(agent, relayed, 0)
-        assert json.loads(await browser.receive_from(timeout=10))["seq"] == 0
+        relayed = await _authenticate(browser, agent, grant)
         dropped = {"type": "relay_close", "session_id": session_id, "conn": relayed["conn"]}
         if agent_code is not None:
             dropped["code"] = agent_code
