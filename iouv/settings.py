@@ -153,10 +153,10 @@ else:
         DATABASES["default"]["CONN_MAX_AGE"] = 0  # the pool keeps them, not the threads
     else:
         DATABASES["default"]["CONN_MAX_AGE"] = env_int("DB_CONN_MAX_AGE", 60)
-    # A connection is checked before use: with the pool, as it is lent (one empty round
-    # trip; Django hands the pool psycopg_pool's check), else when a kept one is reused.
-    # After PostgreSQL restarted, or dropped idle connections, the dead ones are
-    # replaced instead of failing a request each.
+    # A connection is checked before use: with the pool, as it is lent (by its socket,
+    # with a round trip only when something waits there: iouv.db_pool), else when a
+    # kept one is reused (an empty round trip). After PostgreSQL restarted, or dropped
+    # idle connections, the dead ones are replaced instead of failing a request each.
     DATABASES["default"]["CONN_HEALTH_CHECKS"] = True
     # Statements bound and prepared by PostgreSQL: psycopg sends the values apart from
     # the SQL instead of quoting them into it in Python, and a statement a connection
@@ -351,6 +351,11 @@ IOUV_HTTP_CONCURRENCY = env_int("IOUV_HTTP_CONCURRENCY", 1)
 # waits for it, in milliseconds (Python's own default is 5): the event loop waits for
 # the request threads at most this long each time (iouv.asgi, iouv.concurrency).
 IOUV_SWITCH_INTERVAL_MS = env_float("IOUV_SWITCH_INTERVAL_MS", 1.0)
+# Net allocations between two collections of the garbage collector's youngest
+# generation in a platform process (Python's default: 700; 0 keeps it). See
+# iouv.collector: a request's objects then die young instead of filling the oldest
+# generation, whose full collections stop the whole process.
+IOUV_GC_YOUNG_THRESHOLD = env_int("IOUV_GC_YOUNG_THRESHOLD", 10_000)
 
 # Embedded mode: a worker process pushes through the database to the ASGI process.
 IOUV_LAYER_RELAY = env_bool("IOUV_LAYER_RELAY", True)

@@ -8,35 +8,81 @@ as settings configure it, tests/servers.py) and its connections are killed from 
 
 from __future__ import annotations
 
+import select
 import urllib.request
 import uuid
+from typing import Any
 
 import psycopg
 import pytest
 from django.conf import settings
 
+from iouv.db_pool import pooled_connection_check
 from tests.servers import _test_database_url, platform_process
 
 pytestmark = pytest.mark.postgres
 
 
-def _kill(application_name: str) -> int:
-    """Terminate the test database's connections opened under ``application_name``."""
+def _connect(dbname: str | None = None, **kwargs: Any) -> psycopg.Connection[Any]:
+    """A connection of its own to the test database (or to ``dbname``)."""
     db = settings.DATABASES["default"]
-    with psycopg.connect(
+    return psycopg.connect(
         host=db.get("HOST") or "127.0.0.1",
         port=db.get("PORT") or 5432,
         user=db.get("USER") or None,
         password=db.get("PASSWORD") or None,
-        dbname="postgres",
+        dbname=dbname or db["NAME"],
         autocommit=True,
-    ) as admin:
+        **kwargs,
+    )
+
+
+def _kill(application_name: str) -> int:
+    """Terminate the test database's connections opened under ``application_name``."""
+    with _connect("postgres") as admin:
         rows = admin.execute(
             "SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
             "WHERE datname = %s AND application_name = %s",
-            [db["NAME"], application_name],
+            [settings.DATABASES["default"]["NAME"], application_name],
         ).fetchall()
     return len(rows)
+
+
+def _last_statement(pid: int) -> str:
+    """What PostgreSQL last ran for the connection of backend ``pid``."""
+    with _connect("postgres") as admin:
+        row = admin.execute("SELECT query FROM pg_stat_activity WHERE pid = %s", [pid]).fetchone()
+    assert row is not None, f"no backend {pid}"
+    return str(row[0])
+
+
+def test_a_live_idle_connection_is_lent_without_a_round_trip(django_db_setup: None) -> None:
+    with _connect() as conn:
+        conn.execute("SELECT 'the last statement'")
+        for _ in range(3):
+            pooled_connection_check(conn)
+        # PostgreSQL was sent nothing: psycopg_pool's own check would have run "".
+        assert _last_statement(conn.info.backend_pid) == "SELECT 'the last statement'"
+
+
+def test_a_connection_the_database_ended_is_not_lent(django_db_setup: None) -> None:
+    name = f"iouv-check-{uuid.uuid4().hex[:8]}"
+    with _connect(application_name=name) as conn:
+        pooled_connection_check(conn)
+        assert _kill(name) == 1
+        _wait_readable(conn)
+        with pytest.raises(psycopg.OperationalError):
+            pooled_connection_check(conn)
+        with pytest.raises(psycopg.OperationalError):  # and stays refused
+            pooled_connection_check(conn)
+
+
+def _wait_readable(conn: psycopg.Connection[Any]) -> None:
+    """Until PostgreSQL's goodbye reached the socket (it is sent, not yet arrived,
+    when pg_terminate_backend returns)."""
+    poller = select.poll()
+    poller.register(conn.pgconn.socket, select.POLLIN)
+    assert poller.poll(10_000), "PostgreSQL did not close the connection"
 
 
 def _health(base: str) -> int:
