@@ -21,6 +21,7 @@ from channels.routing import ProtocolTypeRouter, URLRouter  # noqa: E402
 from channels.security.websocket import AllowedHostsOriginValidator  # noqa: E402
 from django.conf import settings  # noqa: E402
 
+from iouv.collector import collector_tune  # noqa: E402
 from iouv.concurrency import ASGIApp, HttpConcurrencyLimit  # noqa: E402
 from iouv.http_limits_twisted import daphne_use_limited_channel  # noqa: E402
 from iouv.routing import (  # noqa: E402
@@ -66,3 +67,7 @@ application = ProtocolTypeRouter(
         ),
     }
 )
+
+# Last: what exists now (the platform's modules, classes and schemas) lives as long as
+# the process, and is kept out of every later full collection (iouv.collector).
+collector_tune(settings.IOUV_GC_YOUNG_THRESHOLD)
