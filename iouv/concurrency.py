@@ -1,6 +1,7 @@
 """How many HTTP requests a platform process handles at once.
 
-Django runs each request's view on a thread of its own. Those threads and the event
+Each request's view runs on a thread (one per request at a time; iouv.handler keeps
+them for the next requests). Those threads and the event
 loop, which carries every WebSocket (the agents' uplinks, the relay, the live feeds),
 share one interpreter lock. With eight busy API clients the loop got an eighth of it:
 a process holding a thousand agents fell behind their heartbeats, and a relayed

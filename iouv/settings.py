@@ -138,10 +138,11 @@ if EMBEDDED:
 else:
     DATABASES = {"default": database_from_url(DATABASE_URL)}
     # A pool of connections per process (psycopg_pool, as Django runs it). Under ASGI
-    # each HTTP request runs its view on a thread of its own, and Django's connections
-    # belong to threads: without a pool, every request opened a new connection (a
-    # PostgreSQL backend started and torn down for each). DB_POOL_SIZE=0 turns the pool
-    # off; connections are then kept per thread for DB_CONN_MAX_AGE seconds.
+    # Django's connections belong to each request (asgiref's context-local storage),
+    # not to a thread that outlives it: without a pool, every request opened a new
+    # connection (a PostgreSQL backend started and torn down for each). DB_POOL_SIZE=0
+    # turns the pool off; connections are then kept for DB_CONN_MAX_AGE seconds where
+    # Django can keep them (a worker's thread).
     DB_POOL_SIZE = env_int("DB_POOL_SIZE", 16)
     if DB_POOL_SIZE > 0:
         DATABASES["default"]["OPTIONS"]["pool"] = {
