@@ -34,7 +34,7 @@ def pooled_connection_check(conn: psycopg.Connection[Any]) -> None:
     Runs the pool's full check (an empty statement) only when the connection is not
     plainly idle and quiet: closed, in a transaction, or with data waiting on its socket.
     """
-    if conn.closed or conn.broken:
+    if conn.closed:  # closed, or broken (psycopg counts a broken connection closed)
         raise psycopg.OperationalError("the connection is closed")
     pgconn = conn.pgconn
     quiet = (
