@@ -10,7 +10,7 @@ Django's own ASGI handler costs a request, around its view:
   agent's uplink;
 * a trip of its own for the ``request_started`` signal and another for closing the
   response (the ``request_finished`` signal, which gives the database connection back);
-* two new threads (asgiref 3.12 and later: the request's own, and one that waits for
+* two new threads (asgiref 3.13, as installed: the request's own, and one that waits for
   it to end), since every request runs in a fresh ``ThreadSensitiveContext``;
 * two tasks, one of which waits for the client to go away and, under uvicorn, ends
   every request by raising ``RequestAborted`` (the server reports ``http.disconnect``
