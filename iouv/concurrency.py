@@ -1,11 +1,11 @@
 """How many HTTP requests a platform process handles at once.
 
 Each request's view runs on a thread (one per request at a time; iouv.handler keeps
-them for the next requests). Those threads and the event
-loop, which carries every WebSocket (the agents' uplinks, the relay, the live feeds),
-share one interpreter lock. With eight busy API clients the loop got an eighth of it:
-a process holding a thousand agents fell behind their heartbeats, and a relayed
-command waited 1.8 s for its answer (median).
+them for the next requests). Those threads and the event loop, which carries every
+WebSocket (the agents' uplinks, the relay, the live feeds), share one interpreter lock.
+With eight busy API clients the loop got an eighth of it: a process holding a thousand
+agents fell behind their heartbeats, and a relayed command waited 1.8 s for its answer
+(median).
 
 Since a request's middleware and view run in one go on its thread (iouv.handler), a
 request thread gives the interpreter back only when it waits (for the database, say)
