@@ -18,6 +18,13 @@ from dataclasses import dataclass
 from agents.geo import local_offset_m
 from agents.vehicles.mavlink.classes import COPTER
 from agents.vehicles.mavlink.dialect import MAV
+from agents.vehicles.mavlink.sim.shaping import (
+    position_speed,
+    position_velocity_xy,
+    shape_vel_accel,
+    shape_vel_accel_xy,
+    stopping_distance,
+)
 from agents.vehicles.mavlink.sim.vehicle import (
     BODY_FRAMES,
     OFFSET_FRAMES,
@@ -28,7 +35,6 @@ from agents.vehicles.mavlink.sim.vehicle import (
     CommandResult,
     PositionTarget,
     SimVehicle,
-    approach,
     clamp_norm,
     wrap180,
     wrap360,
@@ -39,6 +45,10 @@ POSHOLD, BRAKE, SMART_RTL = 16, 17, 21
 #: FS_GCS_ENABLE (Copter 4.x) -> the mode its GCS fail-safe switches to.
 FS_GCS_MODES = {1: RTL, 2: RTL, 3: RTL, 4: LAND, 5: LAND, 6: RTL, 7: BRAKE}
 DEFAULT_YAW_RATE_DEG_S = 60.0
+#: The physics' longest step (s): ArduCopter's shaping runs at 400 Hz, this at 200 Hz.
+STEP_S = 0.005
+#: BRAKE mode stops harder than WPNAV_ACCEL (ArduCopter's BRAKE_MODE_DECEL_RATE).
+BRAKE_ACCEL_FACTOR = 3.0
 
 
 @dataclass
@@ -70,6 +80,10 @@ class Copter(SimVehicle):
     rtl_stage: str = ""
     rtl_loiter_until: float = 0.0
     landed_since: float = 0.0
+    #: The shaped acceleration (m/s² north, east, up): ArduCopter's is jerk-limited.
+    an: float = 0.0
+    ae: float = 0.0
+    au: float = 0.0
 
     # --- state ------------------------------------------------------------------------
     @property
@@ -81,7 +95,14 @@ class Copter(SimVehicle):
         return self.flying
 
     def _hold_here(self) -> None:
-        self.hold = (self.north, self.east, self.up)
+        """Hold at the stopping point, as ArduCopter's position modes start: where the
+        copter comes to rest from its velocity, not where it was when asked."""
+        accel_h, accel_z = self._accel_limits()
+        jerk_h, jerk_z = self.p("PSC_JERK_XY"), self.p("PSC_JERK_Z")
+        speed = math.hypot(self.vn, self.ve)
+        ahead = stopping_distance(speed, accel_h, jerk_h) / speed if speed > 0.01 else 0.0
+        rise = math.copysign(stopping_distance(self.vu, accel_z, jerk_z), self.vu)
+        self.hold = (self.north + self.vn * ahead, self.east + self.ve * ahead, self.up + rise)
 
     # --- modes and arming -------------------------------------------------------------
     def _entered(self, mode: str) -> None:
@@ -292,40 +313,68 @@ class Copter(SimVehicle):
 
     # --- physics ----------------------------------------------------------------------
     def step(self, dt: float, wall: float) -> None:
-        """Advance the flight by ``dt`` seconds of flight time (``wall``: wall clock)."""
+        """Advance the flight by ``dt`` seconds of flight time (``wall``: wall clock), in
+        steps of at most :data:`STEP_S` (ArduCopter's shaping runs at 400 Hz; a coarse
+        step would stop it short or overshoot)."""
+        pieces = max(1, math.ceil(dt / STEP_S - 1e-9))
+        for _ in range(pieces):
+            self._step(dt / pieces, wall)
+
+    def _step(self, dt: float, wall: float) -> None:
         self.sim_time += dt
         self._origin_check()
         self._battery(dt, 1.0 if self.flying else 0.2)
         if not self.armed:
             self.vn = self.ve = 0.0
             self.vu = -5.0 if self.up > 0 else 0.0  # disarmed in the air: it falls
+            self.an = self.ae = self.au = 0.0
             self._integrate(dt)
             return
         desired = self._desired_velocity(wall)
-        horizontal_accel = self.p("WPNAV_ACCEL") / 100.0 * (2.0 if self.mode == BRAKE else 1.0)
-        dv = horizontal_accel * dt
-        self.vn = approach(self.vn, desired[0], dv)
-        self.ve = approach(self.ve, desired[1], dv)
-        self.vu = approach(self.vu, desired[2], 5.0 * dt)
+        self._shape(desired, dt)
         self._integrate(dt)
         self._yaw(dt)
         self._ground(desired[2])
         self._auto_disarm()
 
+    def _accel_limits(self) -> tuple[float, float]:
+        """The horizontal and vertical acceleration limits (m/s²) of the shaping: the
+        mode's (WPNAV_ACCEL; BRAKE brakes harder) and WPNAV_ACCEL_Z."""
+        brake = BRAKE_ACCEL_FACTOR if self.mode == BRAKE else 1.0
+        horizontal = self.p("WPNAV_ACCEL") / 100.0 * brake
+        return max(horizontal, 0.1), max(self.p("WPNAV_ACCEL_Z") / 100.0, 0.1)
+
+    def _shape(self, desired: tuple[float, float, float], dt: float) -> None:
+        """The acceleration of the next ``dt`` on the jerk-limited path to ``desired``,
+        as ArduCopter's position controller shapes every mode's velocity."""
+        accel_h, accel_z = self._accel_limits()
+        self.an, self.ae = shape_vel_accel_xy(
+            (desired[0], desired[1]), (self.vn, self.ve), (self.an, self.ae),
+            accel_h, self.p("PSC_JERK_XY"), dt,
+        )  # fmt: skip
+        self.au = shape_vel_accel(
+            desired[2], self.vu, self.au, -accel_z, accel_z, self.p("PSC_JERK_Z"), dt
+        )
+
     def _integrate(self, dt: float) -> None:
-        self.north += self.vn * dt
-        self.east += self.ve * dt
-        self.up += self.vu * dt
+        self.north += self.vn * dt + 0.5 * self.an * dt * dt
+        self.east += self.ve * dt + 0.5 * self.ae * dt * dt
+        self.up += self.vu * dt + 0.5 * self.au * dt * dt
+        self.vn += self.an * dt
+        self.ve += self.ae * dt
+        self.vu += self.au * dt
         if self.up <= 0.0:
             self.up = 0.0
             self.vu = max(self.vu, 0.0)
+            self.au = max(self.au, 0.0)
 
     def _ground(self, climb_wanted: float) -> None:
         if self.up <= 0.02 and climb_wanted <= 0.0:
             if not self.landed:
                 self.landed = True
                 self.landed_since = self.sim_time
-                self.vn = self.ve = 0.0
+                self.vn = self.ve = self.vu = 0.0
+                self.an = self.ae = self.au = 0.0
                 if self.mode in (LAND, RTL, SMART_RTL):
                     self._disarm("Land complete, disarming")
         elif self.up > 0.2:
@@ -350,14 +399,18 @@ class Copter(SimVehicle):
     def _towards(
         self, target: tuple[float, float, float], speed: float | None = None
     ) -> tuple[float, float, float]:
-        """A velocity that flies to ``target`` and slows down on arrival."""
+        """A velocity that flies to ``target`` and stops there, as ArduCopter's
+        position shaping asks for it (half the acceleration limit for the approach)."""
         h_max, up_max, down_max = self._speed_limits()
         if speed is not None:
             h_max = min(h_max, speed) if speed > 0 else h_max
-        gain = 1.0  # 1/s: the last metre is flown at under 1 m/s
-        vn, ve = clamp_norm((target[0] - self.north) * gain, (target[1] - self.east) * gain, h_max)
-        vu = max(-down_max, min(up_max, (target[2] - self.up) * gain))
-        return vn, ve, vu
+        accel_h, accel_z = self._accel_limits()
+        vn, ve = position_velocity_xy(
+            (target[0] - self.north, target[1] - self.east), accel_h, self.p("PSC_JERK_XY"), 0.0
+        )
+        vn, ve = clamp_norm(vn, ve, h_max)
+        vu = position_speed(target[2] - self.up, accel_z, self.p("PSC_JERK_Z"), 0.0)
+        return vn, ve, max(-down_max, min(up_max, vu))
 
     def _desired_velocity(self, wall: float) -> tuple[float, float, float]:
         if self.landed and not (self.mode == GUIDED and self.guided == "takeoff"):
@@ -378,15 +431,14 @@ class Copter(SimVehicle):
             if self.up >= self.takeoff_alt - 0.05:
                 self.guided = "idle"
                 self.hold = target
-            vn, ve, _ = self._towards(target)
-            return vn, ve, min(up_max, max(0.3, (self.takeoff_alt - self.up) * 1.5))
+            vn, ve, vu = self._towards(target)
+            return vn, ve, max(0.3, vu) if self.landed else vu
         if self.guided == "velocity":
             if wall - self.target_vel_wall > self.p("GUID_TIMEOUT"):
-                # ArduCopter: no setpoint for GUID_TIMEOUT seconds -> stop.
-                self.guided = "idle"
+                # ArduCopter: no setpoint for GUID_TIMEOUT seconds -> a zero velocity
+                # target (it brakes and stays in velocity control).
+                self.target_vel = (0.0, 0.0, 0.0)
                 self.rate_cmd = None
-                self._hold_here()
-                return self._towards(self.hold)
             vn, ve = clamp_norm(self.target_vel[0], self.target_vel[1], h_max)
             vu = max(-down_max, min(up_max, self.target_vel[2]))
             return vn, ve, vu
