@@ -14,7 +14,8 @@ against ``max_speed_mps``), :func:`band_for` gives three distances:
 
 * **tolerance**: a breach is a value more than this past the limit (sensor noise and an
   autopilot settling on a limit set exactly at it are not breaches), or past the limit
-  at all for ``DWELL_S``;
+  for ``DWELL_S`` (the speed: by more than half the tolerance, for an autopilot flying
+  at a commanded speed equal to the limit reads a few cm/s over it all along);
 * **margin**: the recovery aims this far inside the limit (``Breach.target``);
 * the breach ends (``restored``) once the value has stayed at least half the margin
   inside the limit for ``RESTORE_S``.
@@ -66,6 +67,11 @@ _BANDS: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {
 }
 
 
+#: Past the limit by more than this share of the tolerance for DWELL_S: a breach. The
+#: speed's floor: ArduCopter flying at the 5 m/s it was asked for reports 5.05 m/s.
+_DWELL_FLOOR: dict[str, float] = {ALTITUDE: 0.0, GEOFENCE: 0.0, SPEED: 0.5}
+
+
 @dataclass(frozen=True)
 class Band:
     """How a limit is watched; see the module docstring."""
@@ -73,6 +79,8 @@ class Band:
     limit_value: float
     tolerance: float
     margin: float
+    #: How far past the limit a value counts for the dwell rule.
+    dwell_floor: float = 0.0
 
     @property
     def target(self) -> float:
@@ -91,10 +99,12 @@ def band_for(limit: str, limit_value: float) -> Band:
     speed (so a 6 m ceiling is watched with 0.3 m and 1.2 m, a 60 m one with 0.5 m and
     2 m)."""
     (tol_share, tol_max), (margin_share, margin_max) = _BANDS[limit]
+    tolerance = min(tol_max, tol_share * limit_value)
     return Band(
         limit_value=limit_value,
-        tolerance=min(tol_max, tol_share * limit_value),
+        tolerance=tolerance,
         margin=min(margin_max, margin_share * limit_value),
+        dwell_floor=_DWELL_FLOOR[limit] * tolerance,
     )
 
 
@@ -179,7 +189,7 @@ class Envelope:
         band = track.band
         over = value > band.limit_value
         if not track.breached:
-            if not over:
+            if value <= band.limit_value + band.dwell_floor:
                 track.over_since = None
             elif track.over_since is None:
                 track.over_since = now

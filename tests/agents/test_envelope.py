@@ -73,6 +73,23 @@ def test_a_vehicle_sitting_just_above_the_limit_is_a_breach_after_the_dwell():
     assert steps == [(DWELL_S, "breach")]
 
 
+def test_flying_at_the_speed_limit_is_no_breach_but_a_real_overshoot_is():
+    """An autopilot asked for exactly the limit's speed reports a few cm/s over it all
+    along (ArduCopter: 5.05 m/s at 5 m/s): no breach. More than half the tolerance over
+    it for the dwell, or past the tolerance, is."""
+    limits = Limits(max_speed_mps=5)
+    band = band_for("speed", 5.0)
+    envelope = Envelope(limits)
+    steady = [(t / 10, 5.05 + 0.02 * (t % 3)) for t in range(100)]  # 10 s at 5.05-5.09
+    assert [s for now, v in steady for s in envelope.update(at(speed=v), now)] == []
+    over = band.limit_value + band.tolerance * 0.75  # 5.19: past half the tolerance
+    steps = [(now, s.kind) for now, v in [(10 + t / 10, over) for t in range(30)]
+             for s in envelope.update(at(speed=v), now)]  # fmt: skip
+    assert steps == [(10 + DWELL_S, "breach")]
+    [step] = Envelope(limits).update(at(speed=5.0 + band.tolerance + 0.01), 0.0)
+    assert step.kind == "breach"
+
+
 def test_noise_around_the_limit_does_not_chatter():
     envelope = Envelope(Limits(max_altitude_m=10))
     # Across the limit and back every 100 ms, never for long: no breach at all.
