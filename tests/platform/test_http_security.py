@@ -14,10 +14,8 @@ from django.test import Client
 from django.urls import reverse
 
 from iouv.csp_sources import csp_origin_of_template
-from services.assignment import session_request
 from services.demo import demo_seed
-from tests import factories as f
-from tests.services.test_deployment import TARGET, _registered_vehicle, _service
+from tests.deployment import alices_session
 
 PASSWORD = "pw-for-tests"
 
@@ -117,10 +115,8 @@ def test_pages_carry_the_policy_and_hold_no_inline_code(world, username, path) -
 
 @pytest.mark.django_db
 def test_the_controller_page_carries_the_policy_and_holds_no_inline_code(client) -> None:
-    _registered_vehicle()
-    user = f.user(username="alice")
-    session = session_request(user=user, service=_service(), target=TARGET)
-    client.force_login(user)
+    session, _ = alices_session()
+    client.force_login(session.user)
     page = client.get(reverse("session", args=[session.pk]))
     assert page.status_code == 200
     assert_strict(page)

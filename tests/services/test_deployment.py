@@ -7,7 +7,6 @@ the same group the uplink consumer of the vehicle listens on.
 from __future__ import annotations
 
 import time
-from typing import Any
 
 import pytest
 from django.conf import settings
@@ -29,54 +28,16 @@ from services.models import Session
 from services.sessions import SessionStateError
 from services.signing import platform_private_key, platform_public_key, platform_public_key_pem
 from tests import factories as f
+from tests.deployment import LIMITS, TARGET, alices_session, limited_service, registered_vehicle
 
 pytestmark = pytest.mark.django_db
-
-COMMANDS = [
-    {"name": "up", "args": {}},
-    {"name": "down", "args": {}},
-    {"name": "stop", "args": {}},
-]
-TARGET = (40.6310, -8.6590)
-LIMITS: dict[str, Any] = {
-    "max_altitude_m": 50.0,
-    "geofence_radius_m": 300.0,
-    "max_speed_mps": 5.0,
-    "link_loss_timeout_ms": 800,
-    "failsafe_action": "land",
-    "latency_soft_ms": 150,
-    "latency_hard_ms": 400,
-    "session_time_limit_s": 600,
-}
-
-
-def _registered_vehicle(name="", at=None):
-    vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type(), name=name, at=at)
-    Vehicle.objects.filter(pk=vehicle.pk).update(
-        control_url="ws://10.0.0.7:8765/control",
-        profile={"commands": COMMANDS, "telemetry": ["position", "battery"], "video": True},
-    )
-    vehicle.refresh_from_db()
-    return vehicle
-
-
-def _service(**kw):
-    return f.service(allowed_commands=["up", "stop"], **{**LIMITS, **kw})
-
-
-@pytest.fixture
-def committing(django_capture_on_commit_callbacks):
-    """A block whose on-commit work (the pushes to agents) runs, as after a real commit:
-    the test itself runs inside a transaction that never commits."""
-    return lambda: django_capture_on_commit_callbacks(execute=True)
 
 
 @pytest.fixture
 def deployed(inbox, committing):
     """(session, vehicle, user task, vehicle task) of a freshly deployed session."""
-    vehicle = _registered_vehicle()
+    session, vehicle = alices_session()
     take = inbox(vehicle)
-    session = session_request(user=f.user(username="alice"), service=_service(), target=TARGET)
     with committing():
         user_task = session_deploy(session=session)
     (message,) = take()
@@ -123,9 +84,9 @@ def test_tokens_never_reach_the_log(deployed):
 
 
 def test_geofence_is_centred_on_the_vehicle_without_a_target(inbox, committing):
-    vehicle = _registered_vehicle(at=(40.6320, -8.6570))
+    vehicle = registered_vehicle(at=(40.6320, -8.6570))
     take = inbox(vehicle)
-    session = session_request(user=f.user(), service=_service())
+    session = session_request(user=f.user(), service=limited_service())
     with committing():
         session_deploy(session=session)
     (message,) = take()
@@ -134,9 +95,9 @@ def test_geofence_is_centred_on_the_vehicle_without_a_target(inbox, committing):
 
 
 def test_no_radius_means_no_geofence(inbox, committing):
-    vehicle = _registered_vehicle()
+    vehicle = registered_vehicle()
     take = inbox(vehicle)
-    service = _service(geofence_radius_m=None, max_altitude_m=None)
+    service = limited_service(geofence_radius_m=None, max_altitude_m=None)
     with committing():
         session_deploy(session=session_request(user=f.user(), service=service, target=TARGET))
     (message,) = take()
@@ -146,17 +107,17 @@ def test_no_radius_means_no_geofence(inbox, committing):
 
 
 def test_relay_only_vehicle_gives_a_relay_user_task():
-    vehicle = _registered_vehicle()
+    vehicle = registered_vehicle()
     Vehicle.objects.filter(pk=vehicle.pk).update(control_url="")
-    user_task = session_deploy(session=session_request(user=f.user(), service=_service()))
+    user_task = session_deploy(session=session_request(user=f.user(), service=limited_service()))
     assert user_task.relay is True
 
 
 def test_every_role_gets_a_task_and_the_user_controls_the_vehicle_role(inbox, committing):
-    searcher = _registered_vehicle(name="searcher")
-    main = _registered_vehicle(name="main")
+    searcher = registered_vehicle(name="searcher")
+    main = registered_vehicle(name="main")
     takes = {v.name: inbox(v) for v in (searcher, main)}
-    service = _service(roles=[{"name": "search"}, {"name": "vehicle"}])
+    service = limited_service(roles=[{"name": "search"}, {"name": "vehicle"}])
     session = session_request(user=f.user(), service=service, target=TARGET)
     with committing():
         user_task = session_deploy(session=session)
@@ -175,8 +136,8 @@ def test_deploy_needs_an_assigned_session(deployed):
 
 
 def test_invalid_limits_fail_the_session_and_send_nothing():
-    vehicle = _registered_vehicle()
-    session = session_request(user=f.user(), service=_service(max_speed_mps=0))
+    vehicle = registered_vehicle()
+    session = session_request(user=f.user(), service=limited_service(max_speed_mps=0))
     with pytest.raises(InvalidTaskError, match="max_speed_mps"):
         session_deploy(session=session)
     session.refresh_from_db()
@@ -271,9 +232,8 @@ def test_session_revoke_sends_revoke_and_aborts(deployed, committing):
 
 def test_a_task_that_never_left_is_withdrawn_and_the_vehicle_freed_at_once(inbox, committing):
     """The agent never heard of the session: there is nothing to take back."""
-    vehicle = _registered_vehicle()
+    session, vehicle = alices_session()
     take = inbox(vehicle)
-    session = session_request(user=f.user(username="alice"), service=_service(), target=TARGET)
     with committing():
         session_deploy(session=session)
         session_revoke(session=session, reason="kill switch", action="land")

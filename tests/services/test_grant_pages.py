@@ -6,69 +6,43 @@ tests/test_admin.py; here the portal's pages and its reconnect endpoint.
 
 from __future__ import annotations
 
-import json
 from datetime import timedelta
-from typing import Any
 
 import pytest
-from django.test import Client
 from django.urls import reverse
 from django.utils import timezone
 
 from agents.protocol import UserGrant
 from fleet.models import Vehicle
-from services.assignment import session_request
 from services.models import Session
 from services.selectors import service_vehicles_matching
 from services.signing import platform_public_key
 from tests import factories as f
-from tests.services.test_deployment import TARGET, _registered_vehicle, _service
+from tests.deployment import page_grant, uncacheable
 
 pytestmark = pytest.mark.django_db
 
 
-def _uncacheable(response: Any) -> None:
-    assert response.status_code == 200
-    assert "no-store" in response.get("Cache-Control", ""), response.get("Cache-Control")
-
-
-@pytest.fixture
-def live(client: Client) -> tuple[Session, str]:
-    """A live session of the logged-in client, and its vehicle's id."""
-    vehicle = _registered_vehicle()
-    user = f.user(username="alice")
-    session = session_request(user=user, service=_service(), target=TARGET)
-    client.force_login(user)
-    return session, str(vehicle.pk)
-
-
-def _page_grant(html: str, vehicle_id: str) -> UserGrant:
-    """The grant in the page's user-task JSON (it must verify: a real grant)."""
-    start = html.index('<script id="user-task" type="application/json">')
-    task = json.loads(html[html.index(">", start) + 1 : html.index("</script>", start)])
-    return UserGrant.verify(task["grant"], platform_public_key(), vehicle_id=vehicle_id)
-
-
-def test_the_controller_page_is_not_stored(client, live) -> None:
-    session, vehicle_id = live
+def test_the_controller_page_is_not_stored(client, live_session) -> None:
+    session, vehicle_id = live_session
     page = client.get(reverse("session", args=[session.pk]))
-    _uncacheable(page)
-    assert _page_grant(page.content.decode(), vehicle_id).role == "controller"
+    uncacheable(page)
+    assert page_grant(page.content.decode(), vehicle_id).role == "controller"
 
 
-def test_a_fresh_grant_to_reconnect_is_not_stored(client, live) -> None:
-    session, vehicle_id = live
+def test_a_fresh_grant_to_reconnect_is_not_stored(client, live_session) -> None:
+    session, vehicle_id = live_session
     answer = client.post(reverse("session_grant", args=[session.pk]))
-    _uncacheable(answer)
+    uncacheable(answer)
     UserGrant.verify(answer.json()["grant"], platform_public_key(), vehicle_id=vehicle_id)
 
 
 def test_a_session_still_waiting_for_its_vehicle_says_so_and_then_the_session_over(
-    client, live
+    client, live_session
 ) -> None:
     # An autonomous kind's page asks for its grant until a vehicle is assigned: it must
     # tell "not yet" (ask again) from "over" (stop asking).
-    session, _ = live
+    session, _ = live_session
     Session.objects.filter(pk=session.pk).update(state=Session.State.REQUESTED)
     answer = client.post(reverse("session_grant", args=[session.pk]))
     assert answer.status_code == 409
@@ -79,10 +53,10 @@ def test_a_session_still_waiting_for_its_vehicle_says_so_and_then_the_session_ov
     assert answer.json()["error"]["code"] == "session_over"
 
 
-def test_ending_asks_with_what_the_vehicle_will_do_in_its_own_words(client, live) -> None:
+def test_ending_asks_with_what_the_vehicle_will_do_in_its_own_words(client, live_session) -> None:
     # The service's fail-safe is "land": the page says what that means for this vehicle,
     # in the words its agent declared, else by the action's name.
-    session, vehicle_id = live
+    session, vehicle_id = live_session
     vehicle = Vehicle.objects.get(pk=vehicle_id)
     html = client.get(reverse("session", args=[session.pk])).content.decode()
     assert 'data-confirm="End the session?"' in html

@@ -31,7 +31,6 @@ from agents.protocol import (
 )
 from services.deployment import grant_issue
 from services.signing import platform_jwks, platform_keys, platform_private_key
-from tests.services.test_grant_pages import live  # noqa: F401  (fixture)
 
 pytestmark = [pytest.mark.filterwarnings("ignore:EdDSA is deprecated")]
 
@@ -78,9 +77,9 @@ def test_jwks_refuses_other_methods(client: Client) -> None:
 @pytest.mark.django_db
 def test_a_grant_from_grant_issue_verifies_with_joserfc_and_the_published_jwks(
     client: Client,
-    live: Any,  # noqa: F811
+    live_session: Any,
 ) -> None:
-    session, vehicle_id = live
+    session, vehicle_id = live_session
     token = grant_issue(session=session, user=session.user).grant
     published = JoseKeySet.import_key_set(cast(Any, _jwks(client)))
     decoded = jose_jwt.decode(token, published, algorithms=["EdDSA"])

@@ -46,12 +46,6 @@ pytestmark = pytest.mark.django_db
 
 
 @pytest.fixture
-def committing(django_capture_on_commit_callbacks):
-    """A block whose on-commit work (the pushes to agents) runs, as after a real commit."""
-    return lambda: django_capture_on_commit_callbacks(execute=True)
-
-
-@pytest.fixture
 def live(inbox, committing):
     """(session, vehicle, take) for a deployed session of a service that lands on
     fail-safe, with the vehicle's agent messages readable through ``take``."""

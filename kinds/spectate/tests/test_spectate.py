@@ -9,12 +9,10 @@ from django.conf import settings
 from django.test import Client
 from django.urls import reverse
 
-from services.assignment import session_request
 from services.eventlog import event_append
 from services.models import Session
 from tests import factories as f
-from tests.services.test_deployment import TARGET, _registered_vehicle, _service
-from tests.services.test_grant_pages import _page_grant, _uncacheable
+from tests.deployment import alices_session, page_grant, uncacheable
 
 pytestmark = pytest.mark.django_db
 
@@ -22,8 +20,7 @@ pytestmark = pytest.mark.django_db
 @pytest.fixture
 def watched(client: Client) -> tuple[Session, str]:
     """alice's live session, and its vehicle's id; vera, a client, is logged in."""
-    vehicle = _registered_vehicle()
-    session = session_request(user=f.user(username="alice"), service=_service(), target=TARGET)
+    session, vehicle = alices_session()
     f.service("spectate", kind="spectate")
     client.force_login(f.user(username="vera"))
     return session, str(vehicle.pk)
@@ -39,8 +36,8 @@ def test_the_list_shows_sessions_whose_vehicle_streams(client, watched) -> None:
 def test_the_spectators_page_carries_a_viewer_grant_and_is_not_stored(client, watched) -> None:
     session, vehicle_id = watched
     page = client.get(reverse("spectate_session", args=[session.pk]))
-    _uncacheable(page)
-    assert _page_grant(page.content.decode(), vehicle_id).role == "viewer"
+    uncacheable(page)
+    assert page_grant(page.content.decode(), vehicle_id).role == "viewer"
 
 
 def test_spectating_is_not_requested_as_a_session(client, watched) -> None:
