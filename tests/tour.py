@@ -22,23 +22,11 @@ from typing import Any
 
 from playwright.async_api import Browser, Page, expect
 
-from agents.runtime import Agent
-from fleet.models import Vehicle
-from kinds.rescue_at_sea.tests.test_integration import _agent as sea_agent_config
-from kinds.rescue_at_sea.tests.test_integration import _request as rescue_request_in
-from kinds.rescue_at_sea.tests.test_integration import search_area
-from services.demo import demo_seed
-from tests.browser import chromium_browser
-from tests.integration.test_portal import (
-    PASSWORD,
-    World,
-    demo_agent,
-    request_car,
-    request_drone,
-    sign_in,
-    wait_for,
-)
-from tests.servers import agent_configured, celery_worker_process, db, platform_process, until
+from agents.config import AgentConfig
+from kinds.rescue_at_sea.tests.sea import client_requests_rescue, search_area
+from tests.demo import demo_agent_config, mission_agent_config
+from tests.portal import World, demo_world, request_car, request_drone, sign_in, wait_for
+from tests.servers import db
 
 #: Browser context options per viewport: a laptop, and a phone (touch, mobile layout).
 VIEWPORTS: dict[str, dict[str, Any]] = {
@@ -82,27 +70,16 @@ async def tour_world(directory: Path, *, video: bool = True) -> AsyncIterator[To
     """Seed the demo (agent configs in ``directory``), run the platform, a worker and
     the demo agents, and a browser; yields the :class:`Tour`. ``video``: the search
     drone streams its thermal camera (the car and the drone always stream)."""
-    await db(demo_seed, password=PASSWORD, credentials_dir=directory)
-    with platform_process(extra_env=ENV) as base, celery_worker_process(extra_env=ENV):
-        async with contextlib.AsyncExitStack() as running:
-            agents: dict[str, Agent] = {}
-            for name in CONTROLLED:
-                agents[name], _ = await running.enter_async_context(
-                    demo_agent(directory / f"{name}.json", base)
-                )
-            for name in SEA:
-                config = sea_agent_config(directory / f"{name}.json", base, video=video)
-                agents[name], _ = await running.enter_async_context(agent_configured(config))
 
-            async def online() -> bool:
-                # Idle with a position: matching measures from where a vehicle is, and a
-                # drone has none before its autopilot's GPS fix.
-                ready = Vehicle.objects.filter(name__in=agents, status="idle", lat__isnull=False)
-                return await db(ready.count) == len(agents)
+    def configure(path: Path, base: str) -> AgentConfig:
+        if path.stem in SEA:
+            return mission_agent_config(path, base, video=video)
+        return demo_agent_config(path, base)
 
-            await until(online, within=60, what=f"{', '.join(agents)} online with a position")
-            async with chromium_browser(webrtc_loopback=True) as browser:
-                yield Tour(World(base, browser, agents), video=video)
+    async with demo_world(
+        directory, CONTROLLED + SEA, configure, env=ENV, worker=True, within=60
+    ) as world:
+        yield Tour(world, video=video)
 
 
 async def signed_in(tour: Tour, viewport: str, username: str) -> Page:
@@ -172,7 +149,7 @@ async def _rescue_request(tour: Tour, page: Page) -> None:
 async def _rescue_mission(tour: Tour, page: Page) -> None:
     if "rescue" not in tour.sessions:
         # Requested as the request form does (the rescue test draws it with the mouse).
-        session = await db(rescue_request_in, search_area())
+        session = await db(client_requests_rescue, search_area())
         tour.sessions["rescue"] = f"{tour.base}/sessions/{session.pk}/"
     await page.goto(tour.sessions["rescue"])
     # The mission map drawn: the planned path and the search drone on it.

@@ -18,8 +18,8 @@ from playwright.async_api import expect
 from accounts.tokens import token_issue
 from services.demo import demo_seed
 from tests.browser import chromium_browser, needs_chromium
-from tests.integration.test_csp_browser import LISTEN_FOR_VIOLATIONS
-from tests.integration.test_portal import PASSWORD
+from tests.demo import PASSWORD
+from tests.portal import LISTEN_FOR_VIOLATIONS
 from tests.servers import db, platform_process
 
 pytestmark = [

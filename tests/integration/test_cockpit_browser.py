@@ -5,8 +5,8 @@ sticks in proportion to the push, the vehicle's other commands along the top of 
 picture, touch hints rather than keys, and no page wider than the screen. A laptop
 (1366 by 768) shows the picture and every control without scrolling.
 
-Same world as ``test_portal``: the seeded demo on the platform, the simulated car and
-drone's agents, Debian's Chromium.
+Same world as ``test_portal`` (the ``world`` fixture): the seeded demo on the platform,
+the simulated car and drone's agents, Debian's Chromium.
 """
 
 from __future__ import annotations
@@ -20,10 +20,12 @@ import pytest
 from playwright.async_api import FloatRect, Page
 
 from tests.browser import needs_chromium
-from tests.integration import test_portal
-from tests.integration.test_portal import (
-    RECORD_COMMANDS,
+from tests.portal import (
+    LAPTOP,
+    PHONE,
     World,
+    login,
+    no_wider_than_the_screen,
     request_car,
     request_drone,
     wait_for,
@@ -35,20 +37,6 @@ pytestmark = [
     pytest.mark.django_db(transaction=True),
     needs_chromium,
 ]
-
-world = test_portal.world  # the fixture: the seeded demo, its agents, Chromium
-
-PHONE: dict[str, Any] = {
-    "viewport": {"width": 390, "height": 844},
-    "device_scale_factor": 2,
-    "is_mobile": True,
-    "has_touch": True,
-}
-LAPTOP: dict[str, Any] = {"viewport": {"width": 1366, "height": 768}}
-
-
-async def login(world: World, username: str, device: dict[str, Any]) -> Page:
-    return await world.login(username, init_script=RECORD_COMMANDS, **device)
 
 
 async def rect(page: Page, selector: str) -> FloatRect:
@@ -64,11 +52,6 @@ def inside(inner: FloatRect, outer: FloatRect) -> bool:
         and inner["x"] + inner["width"] <= outer["x"] + outer["width"] + 0.5
         and inner["y"] + inner["height"] <= outer["y"] + outer["height"] + 0.5
     )
-
-
-async def no_wider_than_the_screen(page: Page) -> None:
-    widths = await page.evaluate("() => [document.documentElement.scrollWidth, window.innerWidth]")
-    assert widths[0] <= widths[1], f"{page.url}: the page is {widths[0]} px wide on {widths[1]}"
 
 
 async def visible_texts(page: Page, selector: str) -> list[str]:

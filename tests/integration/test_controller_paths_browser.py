@@ -2,9 +2,9 @@
 platform, the relay when WebRTC cannot be had, and driving paused while the video is
 frozen.
 
-Same world as ``test_portal``: the seeded demo on the platform, the simulated car and
-drone's agents (in this process, so a test can switch a vehicle's WebRTC off or freeze
-its camera), Debian's Chromium.
+Same world as ``test_portal`` (the ``world`` fixture): the seeded demo on the platform,
+the simulated car and drone's agents (in this process, so a test can switch a vehicle's
+WebRTC off or freeze its camera), Debian's Chromium.
 """
 
 from __future__ import annotations
@@ -16,14 +16,7 @@ import pytest
 
 from services.models import Session
 from tests.browser import needs_chromium
-from tests.integration import test_portal
-from tests.integration.test_portal import (
-    RECORD_COMMANDS,
-    World,
-    drive_forward,
-    request_car,
-    wait_for,
-)
+from tests.portal import RECORD_COMMANDS, World, drive_forward, request_car, wait_for
 from tests.servers import db, until
 
 pytestmark = [
@@ -32,8 +25,6 @@ pytestmark = [
     pytest.mark.django_db(transaction=True),
     needs_chromium,
 ]
-
-world = test_portal.world  # the fixture: the seeded demo, its agents, Chromium
 
 
 def _sent(name: str) -> str:

@@ -23,14 +23,13 @@ import pytest
 from django.contrib.auth import get_user_model
 from playwright.async_api import Browser, Page, Response, expect
 
-from fleet.models import Station, Vehicle
+from fleet.models import Station
 from services.assignment import session_request
-from services.demo import demo_seed
 from services.deployment import session_deploy
 from services.models import Service, Session
-from tests.browser import chromium_browser, needs_chromium
-from tests.integration.test_portal import PASSWORD, demo_agent, sign_in, wait_for
-from tests.servers import db, platform_process, until
+from tests.browser import needs_chromium
+from tests.portal import LISTEN_FOR_VIOLATIONS, demo_world, sign_in, wait_for
+from tests.servers import db
 
 pytestmark = [
     pytest.mark.postgres,
@@ -38,16 +37,6 @@ pytestmark = [
     pytest.mark.django_db(transaction=True),
     needs_chromium,
 ]
-
-#: Records the page's policy violations before any of its own scripts runs.
-LISTEN_FOR_VIOLATIONS = """
-window.__cspViolations = [];
-document.addEventListener("securitypolicyviolation", (e) => {
-  window.__cspViolations.push(
-    `${e.effectiveDirective} blocked ${e.blockedURI || "inline"} (${e.sourceFile}:${e.lineNumber})`
-  );
-});
-"""
 
 #: A 1x1 PNG: every tile the map asks for.
 TILE = base64.b64decode(
@@ -124,23 +113,14 @@ class Portal:
 
 @pytest.fixture
 async def portal(tmp_path: Path) -> AsyncIterator[Portal]:
-    await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path)
-    with (
-        tile_server() as tiles,
-        platform_process(
-            extra_env={"IOUV_MAP_TILES_URL": f"{tiles.base}/{{z}}/{{x}}/{{y}}.png"}
-        ) as base,
-    ):
-        async with demo_agent(tmp_path / "car-1.json", base):
-
-            async def idle() -> bool:
-                return await db(
-                    lambda: Vehicle.objects.filter(name="car-1", status="idle").exists()
-                )
-
-            await until(idle, within=15, what="car-1 online and idle")
-            async with chromium_browser(webrtc_loopback=True) as browser:
-                yield Portal(base, browser, tiles)
+    """The seeded demo on the platform, with map tiles from the tile server, car-1's
+    agent online and idle, and Chromium."""
+    with tile_server() as tiles:
+        tiles_url = {"IOUV_MAP_TILES_URL": f"{tiles.base}/{{z}}/{{x}}/{{y}}.png"}
+        async with demo_world(
+            tmp_path, ("car-1",), env=tiles_url, within=15, positioned=False
+        ) as world:
+            yield Portal(world.base, world.browser, tiles)
 
 
 def _drive_car_for(username: str) -> Session:

@@ -28,12 +28,12 @@ from playwright.async_api import Browser, ConsoleMessage, Page, Request, WebSock
 
 from agents.config import AgentConfig
 from benchmarks.nginx_proxy import Backend, NginxProxy, NginxUnavailable, Routes, Tls, nginx_binary
-from fleet.models import Vehicle
 from services.demo import demo_seed
 from services.models import Session
 from tests.browser import chromium_browser, needs_chromium
-from tests.integration.test_portal import PASSWORD, World, sign_in, wait_for
-from tests.servers import agent_configured, db, platform_process, until
+from tests.demo import PASSWORD, agents_online
+from tests.portal import World, sign_in, wait_for
+from tests.servers import db, platform_process, until
 from tests.tls import Certificates, certificates_make
 
 pytestmark = [
@@ -125,18 +125,15 @@ async def portal(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> AsyncIterat
             config = car_agent_config(
                 tmp_path / "agents" / "car-1.json", f"wss://127.0.0.1:{proxy.port}"
             )
-            async with agent_configured(config) as (agent, _):
-
-                async def online() -> bool:
-                    ready = Vehicle.objects.filter(name="car-1", status="idle", lat__isnull=False)
-                    return await db(ready.exists)
-
-                await until(online, within=60, what="car-1 online over wss with a position")
-                async with chromium_browser(
-                    webrtc_loopback=True, extra_args=certs.chromium_args()
-                ) as browser:
-                    world = World(proxy.url, browser, {"car-1": agent})
-                    yield HttpsPortal(world, proxy, platform, certs)
+            online = agents_online(
+                {"car-1": config}, within=60, what="car-1 online over wss with a position"
+            )
+            async with (
+                online as running,
+                chromium_browser(webrtc_loopback=True, extra_args=certs.chromium_args()) as browser,
+            ):
+                world = World(proxy.url, browser, running.agents)
+                yield HttpsPortal(world, proxy, platform, certs)
 
 
 def _get(

@@ -8,7 +8,7 @@ live; the mission page has no empty box under its map.
 
 The platform runs (iouv.serve) with the demo seeded and simulated agents, as in
 ``tests/integration/test_portal.py`` and ``kinds/rescue_at_sea/tests/test_integration.py``
-(whose helpers are imported here).
+(their worlds: tests/portal.py and kinds/rescue_at_sea/tests/sea.py).
 """
 
 from __future__ import annotations
@@ -29,10 +29,10 @@ from agents.geography import land_at
 from agents.runtime import Agent
 from agents.vehicles.car.kinematics import Pose
 from fleet.models import Vehicle
-from kinds.rescue_at_sea.tests.test_integration import _request, sea, search_area
+from kinds.rescue_at_sea.tests.sea import client_requests_rescue, sea, search_area
 from services.demo import CASTAWAY
 from tests.browser import chromium_browser, needs_chromium
-from tests.integration.test_portal import demo_world, sign_in
+from tests.portal import demo_world, sign_in
 from tests.servers import db, until
 
 pytestmark = [
@@ -364,7 +364,7 @@ async def test_the_mission_map_shows_sea_land_and_labels_apart(tmp_path: Path) -
         sea(tmp_path, ("search-1", "lifeguard-1")) as world,
         chromium_browser() as browser,
     ):
-        session = await db(_request, search_area())
+        session = await db(client_requests_rescue, search_area())
         for screen in VIEWPORTS:
             page, errors = await login(browser, world.base, "client", screen)
             await page.goto(f"{world.base}/sessions/{session.pk}/")

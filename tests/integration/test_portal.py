@@ -1,34 +1,38 @@
 """The portal as a person uses it: real Chromium, real platform, real agents.
 
 The demo world is seeded, the platform runs under its server (Postgres, Redis), the
-simulated car's agent runs here, and Playwright drives Debian's Chromium.
+simulated car's agent runs here, and Playwright drives Debian's Chromium: the ``world``
+fixture (tests/integration/conftest.py, on tests.portal).
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import dataclasses
-import math
 import re
-from collections.abc import AsyncIterator
 from datetime import datetime
-from pathlib import Path
 from typing import Any
 
 import pytest
-from playwright.async_api import Browser, Page, expect
+from playwright.async_api import Page, expect
 
 from accounts.roles import CLIENT
-from agents.config import AgentConfig
 from agents.geo import distance_m
-from agents.runtime import Agent
 from fleet.models import Vehicle
-from services.demo import demo_seed
 from services.models import Session
 from tests import factories as f
-from tests.browser import chromium_browser, needs_chromium
-from tests.servers import agent_configured, db, platform_process, until
+from tests.browser import needs_chromium
+from tests.portal import (
+    RECORD_COMMANDS,
+    World,
+    controller,
+    drive_forward,
+    end_session,
+    hold_until,
+    request_car,
+    request_drone,
+    wait_for,
+)
+from tests.servers import db, until
 
 pytestmark = [
     pytest.mark.postgres,
@@ -36,170 +40,12 @@ pytestmark = [
     pytest.mark.django_db(transaction=True),
     needs_chromium,
 ]
-PASSWORD = "demo-pass-for-tests"
-
-
-@dataclasses.dataclass
-class World:
-    base: str
-    browser: Browser
-    agents: dict[str, Agent]
-
-    async def login(
-        self,
-        username: str,
-        password: str = PASSWORD,
-        *,
-        init_script: str | None = None,
-        **context_options: Any,
-    ) -> Page:
-        """A new browser context (Playwright's ``new_context`` options: a viewport, a
-        phone's touch...) signed in as ``username``; ``init_script`` runs in each of its
-        pages first. Returns its page, on the catalog."""
-        context = await self.browser.new_context(**context_options)
-        if init_script:
-            await context.add_init_script(init_script)
-        page = await context.new_page()
-        await sign_in(page, self.base, username, password)
-        return page
-
-
-async def sign_in(page: Page, base: str, username: str, password: str = PASSWORD) -> None:
-    """Sign ``page`` in as ``username`` through the login form; it ends on the catalog."""
-    await page.goto(f"{base}/accounts/login/")
-    await page.fill("#id_username", username)
-    await page.fill("#id_password", password)
-    await page.click("button[type=submit]")
-    await page.wait_for_url(f"{base}/")
-
-
-def demo_agent(path: Path, base: str) -> contextlib.AbstractAsyncContextManager[Any]:
-    """The agent of a demo config file, on its simulator, against the platform at
-    ``base`` (an async context manager yielding ``(agent, simulation)``)."""
-    config = AgentConfig.load(path)
-    config = dataclasses.replace(
-        config,
-        platform_url=base.replace("http://", "ws://"),
-        # Loopback only: aioice would otherwise offer this machine's other addresses.
-        video={"source": "synthetic", "ice_host_addresses": ["127.0.0.1"]},
-        reconnect_min_s=0.2,
-    )
-    return agent_configured(config)
-
-
-@pytest.fixture
-async def world(tmp_path: Path) -> AsyncIterator[World]:
-    async with demo_world(tmp_path) as running:
-        yield running
-
-
-@contextlib.asynccontextmanager
-async def demo_world(tmp_path: Path, *, webrtc_loopback: bool = True) -> AsyncIterator[World]:
-    """The seeded demo on the platform, car-1's and quad-1's agents online with a position
-    (their configs in ``tmp_path``), and Chromium (``webrtc_loopback``: able to take
-    their video)."""
-    await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path)
-    with platform_process() as base:
-        async with contextlib.AsyncExitStack() as running:
-            agents: dict[str, Agent] = {}
-            for name in ("car-1", "quad-1"):
-                agent, _ = await running.enter_async_context(
-                    demo_agent(tmp_path / f"{name}.json", base)
-                )
-                agents[name] = agent
-
-            async def online() -> bool:
-                # Idle with a position: matching measures from where a vehicle reports
-                # it is, and the drone has none before its autopilot's GPS fix.
-                ready = Vehicle.objects.filter(name__in=agents, status="idle", lat__isnull=False)
-                return await db(ready.count) == len(agents)
-
-            await until(online, within=30, what="car-1 and quad-1 online with a position")
-            # The agents stop (cancelled, then their simulators) after the browser.
-            async with chromium_browser(webrtc_loopback=webrtc_loopback) as browser:
-                yield World(base, browser, agents)
-
-
-async def controller(page: Page, expression: str) -> Any:
-    return await page.evaluate(f"() => {{ const c = window.iouvController; return {expression}; }}")
-
-
-async def wait_for(page: Page, expression: str, timeout_ms: int = 15000) -> None:
-    await page.wait_for_function(
-        f"() => {{ const c = window.iouvController; return c && ({expression}); }}",
-        timeout=timeout_ms,
-    )
-
-
-async def request_car(world: World, page: Page, *, relay: bool = False) -> str:
-    await page.click("[data-service=drive-car] a.button")
-    await page.select_option("#id_station", label="Campus station")
-    if relay:
-        await page.check("#id_relay")
-    await page.click("#request-button")
-    await page.wait_for_url("**/sessions/*/")
-    await wait_for(page, "c.role === 'controller'")
-    return page.url.rstrip("/").rsplit("/", 1)[-1]
-
-
-async def drive_forward(world: World, page: Page, *, at_least_m: float = 0.15) -> float:
-    """Hold ArrowUp until the simulated car has moved ``at_least_m`` (however slowly a
-    busy machine runs it; fails after 20 s); returns how far it moved (metres)."""
-    adapter: Any = world.agents["car-1"].adapter  # the car's adapter, on mock pins
-    car = adapter.sensors  # the simulated world
-    start = car.pose
-
-    def moved() -> float:
-        return math.hypot(car.pose.north_m - start.north_m, car.pose.east_m - start.east_m)
-
-    async def far_enough() -> bool:
-        return moved() >= at_least_m
-
-    await hold_until(page, "ArrowUp", far_enough, what=f"the car to move {at_least_m} m")
-    return moved()
-
-
-async def end_session(page: Page, *, first_dismiss: bool = False) -> str:
-    """Press End session and confirm (after saying Cancel once, if ``first_dismiss``);
-    returns what the confirmation asked."""
-    asked: list[str] = []
-
-    async def answer(dialog: Any) -> None:
-        asked.append(dialog.message)
-        if first_dismiss and len(asked) == 1:
-            await dialog.dismiss()
-        else:
-            await dialog.accept()
-
-    page.on("dialog", answer)
-    try:
-        if first_dismiss:
-            await page.click("[data-end-session]")
-            await expect(page.locator("[data-end-session]")).to_be_visible()
-        await page.click("[data-end-session]")
-        await page.wait_for_url(re.compile(r"^https?://[^/]+/$"))  # the catalog
-    finally:
-        page.remove_listener("dialog", answer)
-    return asked[-1]
 
 
 async def hold(page: Page, key: str, seconds: float) -> None:
     await page.keyboard.down(key)
     await asyncio.sleep(seconds)
     await page.keyboard.up(key)
-
-
-async def hold_until(
-    page: Page, key: str, reached: Any, *, within: float = 20.0, what: str = ""
-) -> None:
-    """Hold ``key`` until ``reached`` (a coroutine function) says so, then let go: the
-    simulators run as fast as the machine lets them, so a fixed hold proves nothing on
-    a busy one."""
-    await page.keyboard.down(key)
-    try:
-        await until(reached, within=within, what=what)
-    finally:
-        await page.keyboard.up(key)
 
 
 def _altitude_above(drone: Any, floor: float) -> Any:
@@ -318,37 +164,6 @@ async def test_client_requests_drives_sees_video_and_ends(world: World):
     # Free once its agent has confirmed the end, a moment later.
     await until(car_free, what="the car to be free again")
 
-
-async def request_drone(world: World, page: Page) -> Any:
-    """Request fly-drone from the catalog and take off; returns the drone's adapter."""
-    await page.click("[data-service=fly-drone] a.button")
-    await page.select_option("#id_station", label="Campus station")
-    await page.click("#request-button")
-    await page.wait_for_url("**/sessions/*/")
-    await wait_for(page, "c.role === 'controller' && c.stats.framesDecoded > 3")
-    drone = world.agents["quad-1"].adapter
-    await page.keyboard.press("t")  # take off to the default 5 m
-    for _ in range(150):
-        if (drone.telemetry().get("altitude") or 0) > 4.5:
-            break
-        await asyncio.sleep(0.1)
-    assert drone.telemetry()["altitude"] > 4.5
-    return drone
-
-
-#: Records every command the page sends to the vehicle (window.sentCommands), on its
-#: socket or its WebRTC data channels.
-RECORD_COMMANDS = """
-window.sentCommands = [];
-for (const proto of [WebSocket.prototype, RTCDataChannel.prototype]) {
-  const send = proto.send;
-  proto.send = function (data) {
-    const msg = JSON.parse(data);
-    if (msg.type === "command") window.sentCommands.push(msg);
-    return send.call(this, data);
-  };
-}
-"""
 
 #: A gamepad in the Standard Gamepad layout that the test moves (navigator.getGamepads).
 FAKE_GAMEPAD = (

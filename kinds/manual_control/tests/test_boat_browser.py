@@ -4,7 +4,6 @@ platform under its server and the boat's real agent on its ArduRover-like simula
 from __future__ import annotations
 
 import asyncio
-import contextlib
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -14,36 +13,20 @@ from playwright.async_api import expect
 from agents.geo import distance_m
 from agents.geography import is_water
 from fleet.models import Vehicle
-from services.demo import demo_seed
 from services.models import Session
-from tests.browser import chromium_browser, needs_chromium
-from tests.integration.test_portal import (
-    PASSWORD,
-    World,
-    controller,
-    demo_agent,
-    end_session,
-    wait_for,
-)
-from tests.servers import db, platform_process, until
+from tests.browser import needs_chromium
+from tests.portal import World, controller, demo_world, end_session, wait_for
+from tests.servers import db, until
 
 pytestmark = [pytest.mark.django_db(transaction=True), needs_chromium]
 
 
 @pytest.fixture
 async def world(tmp_path: Path) -> AsyncIterator[World]:
-    await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path)
-    with platform_process() as base:
-        async with contextlib.AsyncExitStack() as running:
-            agent, _ = await running.enter_async_context(demo_agent(tmp_path / "boat-1.json", base))
-
-            async def online() -> bool:
-                ready = Vehicle.objects.filter(name="boat-1", status="idle", lat__isnull=False)
-                return await db(ready.exists)
-
-            await until(online, within=30, what="boat-1 online with a position")
-            async with chromium_browser(webrtc_loopback=True) as browser:
-                yield World(base, browser, {"boat-1": agent})
+    """The seeded demo on the platform, boat-1's agent online with a position, and
+    Chromium."""
+    async with demo_world(tmp_path, ("boat-1",)) as running:
+        yield running
 
 
 async def test_client_steers_the_boat_from_the_browser(world: World) -> None:

@@ -10,37 +10,31 @@ a delivery takes seconds.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
-import dataclasses
 import re
-from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 from playwright.async_api import expect
 
-from agents.config import AgentConfig
 from agents.geo import distance_m
 from agents.geography import is_water
-from agents.runtime import Agent
 from fleet.models import Vehicle
 from kinds.parcel_delivery.models import Delivery
-from services.demo import agent_configs_write, demo_seed
 from services.kinds import Opened, Request
 from services.models import Assignment, Service, Session
 from services.request import service_request
 from tests.browser import chromium_browser, needs_chromium
-from tests.servers import agent_started, celery_worker_process, db, platform_process, until
+from tests.demo import Demo, mission_agent_config, missions_running
+from tests.portal import sign_in
+from tests.servers import db, until
 
 pytestmark = [
     pytest.mark.postgres,
     pytest.mark.redis,
     pytest.mark.django_db(transaction=True),
 ]
-PASSWORD = "demo-pass-for-tests"
-SIM = {"speedup": 10, "params": {"WPNAV_SPEED": 1500, "RTL_ALT": 2000}}
 #: On land north-west of the coastal station (about 700 m and 1 km from it), 480 m
 #: apart: a drone's parcel, not a boat's.
 PICKUP = (40.6485, -8.7520)
@@ -48,76 +42,18 @@ DROPOFF = (40.6510, -8.7480)
 RECIPIENT = "rita@example.org"
 
 
-@dataclasses.dataclass
-class Fleet:
-    base: str
-    mail_dir: Path
-    agents: dict[str, Agent]
-    tasks: dict[str, asyncio.Task[None]]
-
-    async def switch_off(self, name: str) -> None:
-        """The vehicle and its agent stop at once, wherever they are."""
-        task = self.tasks.pop(name)
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
-
-
-def _agent(path: Path, base: str) -> AgentConfig:
-    config = AgentConfig.load(path)
-    return dataclasses.replace(
-        config,
-        platform_url=base.replace("http://", "ws://"),
-        adapter_options={**config.adapter_options, "simulator": SIM},
-        video=None,
-        reconnect_min_s=0.2,
+def fleet(directory: Path, names: tuple[str, ...]) -> contextlib.AbstractAsyncContextManager[Demo]:
+    """The carriers ``names`` running for real on the seeded demo, with the platform and
+    a worker (tests.demo.missions_running), a parcel loaded in 2 s; lifeguard-2, if
+    named, a second payload drone at the coastal station beside lifeguard-1."""
+    return missions_running(
+        directory,
+        names,
+        mission_agent_config,
+        env={"IOUV_PARCEL_LOAD_S": "2"},
+        spares={"lifeguard-2": "lifeguard-1"} if "lifeguard-2" in names else None,
+        what="the carriers online",
     )
-
-
-def _second_carrier(directory: Path) -> None:
-    """Another payload drone at the coastal station, beside the first."""
-    spare = Vehicle.objects.get(name="lifeguard-1")
-    spare.pk, spare.name, spare.credential_hash = None, "lifeguard-2", ""
-    spare.save()
-    agent_configs_write(
-        vehicles={"lifeguard-2": spare}, directory=directory, platform_url="ws://127.0.0.1:1"
-    )
-
-
-@contextlib.asynccontextmanager
-async def fleet(tmp_path: Path, names: tuple[str, ...]) -> AsyncIterator[Fleet]:
-    await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path)
-    if "lifeguard-2" in names:
-        await db(_second_carrier, tmp_path)
-    mail_dir = tmp_path / "mail"
-    env = {
-        "IOUV_MISSION_TICK_S": "1",
-        "IOUV_MISSION_OFFLINE_GRACE_S": "3",
-        "IOUV_PARCEL_LOAD_S": "2",
-        "CELERY_VISIBILITY_TIMEOUT_S": "5",
-        "EMAIL_BACKEND": "django.core.mail.backends.filebased.EmailBackend",
-        "EMAIL_FILE_PATH": str(mail_dir),
-    }
-    with platform_process(extra_env=env) as base, celery_worker_process(extra_env=env):
-        started = {
-            name: await agent_started(_agent(tmp_path / f"{name}.json", base)) for name in names
-        }
-        agents = {name: agent for name, (agent, _) in started.items()}
-        tasks = {name: task for name, (_, task) in started.items()}
-
-        async def online() -> bool:
-            idle = Vehicle.objects.filter(name__in=names, status="idle")
-            return await db(idle.count) == len(names)
-
-        try:
-            await until(online, within=30, what="the carriers online")
-            yield Fleet(base, mail_dir, agents, tasks)
-        finally:
-            for task in tasks.values():
-                task.cancel()
-            for task in tasks.values():
-                with contextlib.suppress(asyncio.CancelledError):
-                    await task
 
 
 def _delivery(session_id: Any) -> Delivery:
@@ -160,10 +96,6 @@ async def carriers_home(names: tuple[str, ...]) -> dict[str, tuple[str, float]]:
     return await until(home, within=90, what=f"{', '.join(names)} home and idle")
 
 
-def _emails(mail_dir: Path) -> list[str]:
-    return [p.read_text() for p in sorted(mail_dir.glob("*.log"))] if mail_dir.exists() else []
-
-
 def test_the_test_points_are_a_drones_parcel() -> None:
     # Both on land: the boat may not take it, a drone must.
     assert not is_water(*PICKUP) and not is_water(*DROPOFF)
@@ -178,11 +110,7 @@ async def test_user_sends_a_parcel_from_the_map_and_both_follow_it(tmp_path: Pat
         page = await (await browser.new_context()).new_page()
         errors: list[str] = []
         page.on("pageerror", lambda exc: errors.append(f"{exc} {exc.stack}"))
-        await page.goto(f"{world.base}/accounts/login/")
-        await page.fill("#id_username", "client")
-        await page.fill("#id_password", PASSWORD)
-        await page.click("button[type=submit]")
-        await page.wait_for_url(f"{world.base}/")
+        await sign_in(page, world.base, "client")
         # The catalog offers it; its button opens the request page.
         await page.click("a[href='/services/parcel-delivery/']")
         await page.wait_for_url("**/services/parcel-delivery/")
@@ -245,7 +173,7 @@ async def test_user_sends_a_parcel_from_the_map_and_both_follow_it(tmp_path: Pat
         # The recipient was told twice (on its way, delivered), with a link that
         # needs no account.
         async def told() -> list[str] | None:
-            mails = [m for m in _emails(world.mail_dir) if RECIPIENT in m]
+            mails = [m for m in world.emails() if RECIPIENT in m]
             return mails if len(mails) >= 2 else None
 
         mails = await until(told, within=30, what="the recipient's two e-mails")

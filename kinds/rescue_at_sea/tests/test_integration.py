@@ -4,147 +4,39 @@ MAVLink simulators, with the search drone's thermal camera looking at a simulate
 that holds a person. Nothing is played by the test except the user's request (and, in
 one test, a crash of the worker or of a drone's agent).
 
-Flight runs at 10x in the simulators, at 15 m/s so a search takes seconds, not minutes.
+Flight runs at 10x in the simulators, at 15 m/s so a search takes seconds, not minutes
+(the fleet and the areas: kinds/rescue_at_sea/tests/sea.py).
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import dataclasses
 import http.server
 import json
 import re
 import threading
-from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 from playwright.async_api import expect
 
-from agents.config import AgentConfig
-from agents.geo import distance_m, offset
+from agents.geo import distance_m
 from agents.geography import is_water
-from agents.runtime import Agent
 from fleet.models import Vehicle
 from kinds.rescue_at_sea.models import Mission, RescueTeam
-from kinds.rescue_at_sea.request import rescue_request
-from services.demo import CASTAWAY, agent_configs_write, demo_seed
-from services.models import Assignment, Notice, Service, Session
+from kinds.rescue_at_sea.tests.sea import CENTER, client_requests_rescue, sea, search_area
+from services.demo import CASTAWAY
+from services.models import Assignment, Notice, Session
 from tests.browser import chromium_browser, needs_chromium
-from tests.servers import agent_started, celery_worker_process, db, platform_process, until
+from tests.portal import sign_in
+from tests.servers import db, until
 
 pytestmark = [
     pytest.mark.postgres,
     pytest.mark.redis,
     pytest.mark.django_db(transaction=True),
 ]
-PASSWORD = "demo-pass-for-tests"
-SIM = {"speedup": 10, "params": {"WPNAV_SPEED": 1500, "RTL_ALT": 2000}}
-#: The boat's simulator: ArduRover's own parameters, at the same speed-up.
-BOAT_SIM = {"speedup": 10}
-#: A 200 x 120 m area with the castaway inside, off its centre.
-CENTER = offset(CASTAWAY, 25, -50)
-
-
-def search_area(width_m: float = 200, height_m: float = 120) -> list[list[float]]:
-    corner = offset(CENTER, -height_m / 2, -width_m / 2)
-    return [
-        list(corner),
-        list(offset(corner, 0, width_m)),
-        list(offset(corner, height_m, width_m)),
-        list(offset(corner, height_m, 0)),
-    ]
-
-
-@dataclasses.dataclass
-class Sea:
-    base: str
-    mail_dir: Path
-    worker: Any
-    agents: dict[str, Agent]
-    tasks: dict[str, asyncio.Task[None]]
-
-    async def stop_agent(self, name: str) -> None:
-        task = self.tasks.pop(name)
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
-
-
-def _agent(path: Path, base: str, *, video: bool = False) -> AgentConfig:
-    config = AgentConfig.load(path)
-    return dataclasses.replace(
-        config,
-        platform_url=base.replace("http://", "ws://"),
-        adapter_options={
-            **config.adapter_options,
-            "simulator": BOAT_SIM if config.adapter_options.get("vehicle_class") == "boat" else SIM,
-        },
-        video=(
-            {**(config.video or {}), "ice_host_addresses": ["127.0.0.1"]}
-            if video and config.video
-            else None
-        ),
-        reconnect_min_s=0.2,
-    )
-
-
-def _spare_search_drone(directory: Path) -> None:
-    spare = Vehicle.objects.get(name="search-1")
-    spare.pk, spare.name, spare.credential_hash = None, "search-2", ""
-    spare.save()
-    agent_configs_write(
-        vehicles={"search-2": spare}, directory=directory, platform_url="ws://127.0.0.1:1"
-    )
-
-
-@contextlib.asynccontextmanager
-async def sea(
-    tmp_path: Path, names: tuple[str, ...], *, video: bool = False, spare: bool = False
-) -> AsyncIterator[Sea]:
-    await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path)
-    if spare:
-        await db(_spare_search_drone, tmp_path)
-    mail_dir = tmp_path / "mail"
-    env = {
-        "IOUV_MISSION_TICK_S": "1",
-        "IOUV_MISSION_OFFLINE_GRACE_S": "3",
-        "CELERY_VISIBILITY_TIMEOUT_S": "5",
-        "EMAIL_BACKEND": "django.core.mail.backends.filebased.EmailBackend",
-        "EMAIL_FILE_PATH": str(mail_dir),
-    }
-    with platform_process(extra_env=env) as base, celery_worker_process(extra_env=env) as worker:
-        # Each agent on its simulator: cancelling its task stops both.
-        started = {
-            name: await agent_started(_agent(tmp_path / f"{name}.json", base, video=video))
-            for name in names
-        }
-        agents = {name: agent for name, (agent, _) in started.items()}
-        tasks = {name: task for name, (_, task) in started.items()}
-
-        async def online() -> bool:
-            idle = Vehicle.objects.filter(name__in=names, status="idle")
-            return await db(idle.count) == len(names)
-
-        try:
-            await until(online, within=30, what="the sea fleet online")
-            yield Sea(base, mail_dir, worker, agents, tasks)
-        finally:
-            for task in tasks.values():
-                task.cancel()
-            for task in tasks.values():
-                with contextlib.suppress(asyncio.CancelledError):
-                    await task
-
-
-def _request(area: list[list[float]], altitude: float = 30) -> Session:
-    from django.contrib.auth import get_user_model
-
-    client = get_user_model().objects.get(username="client")
-    service = Service.objects.get(slug="rescue-at-sea")
-    return rescue_request(user=client, service=service, area=area, altitude_m=altitude)
 
 
 def _mission(session_id: Any) -> Mission:
@@ -177,10 +69,6 @@ async def mission_reaches(session_id: Any, state: str, *, within: float) -> Miss
         raise AssertionError(
             f"mission stuck in {mission.state} ({mission.status_text}); log: {kinds}"
         ) from None
-
-
-def _emails(mail_dir: Path) -> list[str]:
-    return [p.read_text() for p in sorted(mail_dir.glob("*.log"))] if mail_dir.exists() else []
 
 
 async def _assert_rescued_and_home(session_id: Any, *, delivery: str = "lifeguard-1") -> None:
@@ -262,7 +150,7 @@ async def test_worker_killed_mid_step_completes_without_duplicates(tmp_path: Pat
                     webhook=hook
                 )
             )
-            session = await db(_request, search_area())
+            session = await db(client_requests_rescue, search_area())
             # The worker is inside the step that alerts the team: kill it there.
             arrived = await asyncio.to_thread(_SlowHook.first_arrived.wait, 120)
             assert arrived, await db(_kinds, session.pk)
@@ -283,7 +171,7 @@ async def test_worker_killed_mid_step_completes_without_duplicates(tmp_path: Pat
             # E-mail too is at least once: a worker killed between handing the message
             # to the mail server and recording it sends it again after the restart,
             # with the same Message-ID, by which mail systems drop the repeat.
-            emails = _emails(world.mail_dir)
+            emails = world.emails()
             ids = {re.search(r"^Message-ID:\s*(\S+)", e, re.M).group(1) for e in emails}
             assert len(emails) >= 1 and ids == {f"<iouv-person_in_water-{session.pk}-email@iouv>"}
             kinds = await db(_kinds, session.pk)
@@ -307,7 +195,7 @@ async def test_search_drone_offline_hands_its_remaining_lines_to_another(
 ) -> None:
     async with sea(tmp_path, ("search-1", "search-2", "lifeguard-1"), spare=True) as world:
         # A wider area, so the first drone is still searching when it is lost.
-        session = await db(_request, search_area(260, 160))
+        session = await db(client_requests_rescue, search_area(260, 160))
 
         async def first_waypoints() -> Any:
             mission = await db(_mission, session.pk)
@@ -317,7 +205,7 @@ async def test_search_drone_offline_hands_its_remaining_lines_to_another(
         first = await db(
             lambda: Assignment.objects.get(session_id=session.pk, role="search").vehicle.name
         )
-        await world.stop_agent(first)
+        await world.switch_off(first)
 
         async def handed_over() -> Any:
             return await db(
@@ -356,11 +244,7 @@ async def test_user_draws_the_area_and_watches_the_mission_on_the_map(tmp_path: 
         page = await (await browser.new_context()).new_page()
         errors: list[str] = []
         page.on("pageerror", lambda exc: errors.append(f"{exc} {exc.stack}"))
-        await page.goto(f"{world.base}/accounts/login/")
-        await page.fill("#id_username", "client")
-        await page.fill("#id_password", PASSWORD)
-        await page.click("button[type=submit]")
-        await page.wait_for_url(f"{world.base}/")
+        await sign_in(page, world.base, "client")
         await page.goto(f"{world.base}/services/rescue-at-sea/")
         await page.wait_for_function("() => window.iouvMap && window.iouvMap.map")
         # Click the area's corners on the map, where those coordinates are drawn.
@@ -426,7 +310,7 @@ async def test_user_draws_the_area_and_watches_the_mission_on_the_map(tmp_path: 
         )
         session_id = page.url.rstrip("/").rsplit("/", 1)[-1]
         await _assert_rescued_and_home(session_id)
-        emails = _emails(world.mail_dir)
+        emails = world.emails()
         assert len(emails) == 1 and "Person in the water" in emails[0]
 
 
@@ -451,7 +335,7 @@ async def test_the_boat_brings_the_life_jacket_when_it_is_the_nearest_capable(
 
         watcher = asyncio.create_task(watch_boat())
         try:
-            session = await db(_request, search_area())
+            session = await db(client_requests_rescue, search_area())
             await mission_reaches(session.pk, Mission.State.COMPLETED, within=240)
         finally:
             watcher.cancel()

@@ -5,11 +5,7 @@ from __future__ import annotations
 import pytest
 
 from tests.browser import needs_chromium
-from tests.integration import test_portal
-from tests.integration.test_cockpit_browser import PHONE, login, no_wider_than_the_screen
-from tests.integration.test_portal import World
-
-world = test_portal.world  # the fixture: the seeded demo, its agents, Chromium
+from tests.portal import PHONE, World, login, no_wider_than_the_screen
 
 pytestmark = [
     pytest.mark.postgres,
@@ -19,9 +15,9 @@ pytestmark = [
 ]
 
 
-async def test_on_a_phone_the_area_map_takes_the_screens_width(world: World) -> None:
-    page = await login(world, "client", PHONE)
-    await page.goto(f"{world.base}/services/rescue-at-sea/")
+async def test_on_a_phone_the_area_map_takes_the_screens_width(portal: World) -> None:
+    page = await login(portal, "client", PHONE)
+    await page.goto(f"{portal.base}/services/rescue-at-sea/")
     box = await page.locator("#area-map").bounding_box()
     assert box is not None and box["width"] >= 0.75 * 390 and box["height"] >= 300, box
     await no_wider_than_the_screen(page)

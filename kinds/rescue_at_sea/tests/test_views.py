@@ -9,19 +9,17 @@ from django.urls import reverse
 
 from kinds.rescue_at_sea.models import Mission
 from kinds.rescue_at_sea.request import rescue_request
-from kinds.rescue_at_sea.tests.test_workflow import area, online
-from services.demo import demo_seed
-from services.models import Service, Session
+from kinds.rescue_at_sea.tests.sea import area
+from services.models import Session
 from tests import factories as f
-from tests.services.test_grant_pages import _uncacheable
+from tests.deployment import uncacheable
 
 pytestmark = pytest.mark.django_db
 
 
 @pytest.fixture
-def skipper(client):
-    demo_seed(password="pw")
-    online("search-1", "lifeguard-1")
+def skipper(client, world):
+    """skipper, a client, logged in; the sea fleet online (``world``)."""
     user = f.user(username="skipper")
     client.force_login(user)
     return user
@@ -78,16 +76,10 @@ def test_the_mission_is_private_to_its_user_and_the_monitors(client, skipper) ->
     assert client.get(mission_url).status_code == 200
 
 
-def test_the_rescue_mission_page_is_not_stored(client) -> None:
+def test_the_rescue_mission_page_is_not_stored(client, world, skipper) -> None:
     # The same view as the controller's: once a search vehicle flies, it carries the
     # user's viewer grant.
-    demo_seed(password="pw")
-    online("search-1", "lifeguard-1")
-    user = f.user(username="skipper")
-    session = rescue_request(
-        user=user, service=Service.objects.get(slug="rescue-at-sea"), area=area()
-    )
-    client.force_login(user)
+    session = rescue_request(user=skipper, service=world, area=area())
     page = client.get(reverse("session", args=[session.pk]))
-    _uncacheable(page)
+    uncacheable(page)
     assert 'id="mission-map"' in page.content.decode()

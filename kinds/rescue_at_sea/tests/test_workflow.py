@@ -27,34 +27,14 @@ from kinds.rescue_at_sea.models import Mission, RescueTeam
 from kinds.rescue_at_sea.notifications import notices_create
 from kinds.rescue_at_sea.presentation import mission_json
 from kinds.rescue_at_sea.request import RescueError, rescue_request
+from kinds.rescue_at_sea.tests.sea import SEA, area, online
 from kinds.rescue_at_sea.workflow import mission_advance, missions_tick
 from services.assignment import AssignmentError
-from services.demo import demo_seed
 from services.models import Assignment, Notice, Service, Session
 from services.notices import notices_send as notifications_send
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db
-
-SEA = (40.6420, -8.7560)  # about 900 m west of Costa Nova station, over the water
-
-
-def area(width_m: float = 300, height_m: float = 200) -> list[list[float]]:
-    return [
-        list(SEA),
-        list(offset(SEA, 0, width_m)),
-        list(offset(SEA, height_m, width_m)),
-        list(offset(SEA, height_m, 0)),
-    ]
-
-
-def online(*names: str) -> None:
-    for vehicle in Vehicle.objects.filter(name__in=names).select_related("station"):
-        vehicle.status = Vehicle.Status.IDLE
-        vehicle.last_seen = timezone.now()
-        vehicle.lat, vehicle.lon, vehicle.alt = vehicle.station.lat, vehicle.station.lon, 0.0
-        vehicle.battery = 95.0
-        vehicle.save()
 
 
 def say(vehicle: Vehicle, msg: dict) -> None:
@@ -84,13 +64,6 @@ def step(session: Session) -> str | None:
     state = mission_advance(session.pk)
     notifications_send(session.pk)
     return state
-
-
-@pytest.fixture
-def world():
-    demo_seed(password="pw")
-    online("search-1", "lifeguard-1")
-    return Service.objects.get(slug="rescue-at-sea")
 
 
 @pytest.fixture

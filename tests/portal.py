@@ -1,0 +1,239 @@
+"""The portal as a person uses it, for the browser tests: the running demo with Chromium
+(:class:`World`, :func:`demo_world`), signing in, the devices people hold, and what a
+person does on a session page (request the car or the drone, drive, hold a key, end),
+with the scripts the tests put in pages to watch them.
+
+The fixtures built on these are in the packages' conftest.py (``world`` in
+tests/integration, ``portal`` in kinds/rescue_at_sea/tests).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import math
+import re
+from collections.abc import AsyncIterator, Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+from playwright.async_api import Browser, Page, expect
+
+from agents.config import AgentConfig
+from agents.runtime import Agent
+from tests.browser import chromium_browser
+from tests.demo import PASSWORD, demo_agent_config, demo_running
+from tests.servers import until
+
+
+@dataclasses.dataclass
+class World:
+    """The portal at ``base``, Chromium, and the demo vehicles' agents by name."""
+
+    base: str
+    browser: Browser
+    agents: dict[str, Agent]
+
+    async def login(
+        self,
+        username: str,
+        password: str = PASSWORD,
+        *,
+        init_script: str | None = None,
+        **context_options: Any,
+    ) -> Page:
+        """A new browser context (Playwright's ``new_context`` options: a viewport, a
+        phone's touch...) signed in as ``username``; ``init_script`` runs in each of its
+        pages first. Returns its page, on the catalog."""
+        context = await self.browser.new_context(**context_options)
+        if init_script:
+            await context.add_init_script(init_script)
+        page = await context.new_page()
+        await sign_in(page, self.base, username, password)
+        return page
+
+
+async def sign_in(page: Page, base: str, username: str, password: str = PASSWORD) -> None:
+    """Sign ``page`` in as ``username`` through the login form; it ends on the catalog."""
+    await page.goto(f"{base}/accounts/login/")
+    await page.fill("#id_username", username)
+    await page.fill("#id_password", password)
+    await page.click("button[type=submit]")
+    await page.wait_for_url(f"{base}/")
+
+
+@contextlib.asynccontextmanager
+async def demo_world(
+    directory: Path,
+    names: Iterable[str] = ("car-1", "quad-1"),
+    configure: Callable[[Path, str], AgentConfig] = demo_agent_config,
+    *,
+    env: dict[str, str] | None = None,
+    worker: bool = False,
+    within: float = 30,
+    positioned: bool = True,
+    webrtc_loopback: bool = True,
+) -> AsyncIterator[World]:
+    """The seeded demo on the platform, the agents of ``names`` online (by default
+    car-1's and quad-1's, idle with a position; their configs in ``directory``), and
+    Chromium (``webrtc_loopback``: able to take their video). The other options are
+    tests.demo.demo_running's."""
+    running = demo_running(
+        directory, names, configure, env=env, worker=worker, within=within, positioned=positioned
+    )
+    # The agents stop (cancelled, then their simulators) after the browser.
+    async with running as demo, chromium_browser(webrtc_loopback=webrtc_loopback) as browser:
+        yield World(demo.base, browser, demo.agents)
+
+
+# --- on a session page --------------------------------------------------------------------
+
+
+async def controller(page: Page, expression: str) -> Any:
+    """``expression`` evaluated in the page with ``c``, its controller."""
+    return await page.evaluate(f"() => {{ const c = window.iouvController; return {expression}; }}")
+
+
+async def wait_for(page: Page, expression: str, timeout_ms: int = 15000) -> None:
+    """Wait until the page has a controller ``c`` and ``expression`` holds."""
+    await page.wait_for_function(
+        f"() => {{ const c = window.iouvController; return c && ({expression}); }}",
+        timeout=timeout_ms,
+    )
+
+
+async def request_car(world: World, page: Page, *, relay: bool = False) -> str:
+    """Request drive-car from the catalog (through the relay, if ``relay``); returns the
+    session's id once the page controls the car."""
+    await page.click("[data-service=drive-car] a.button")
+    await page.select_option("#id_station", label="Campus station")
+    if relay:
+        await page.check("#id_relay")
+    await page.click("#request-button")
+    await page.wait_for_url("**/sessions/*/")
+    await wait_for(page, "c.role === 'controller'")
+    return page.url.rstrip("/").rsplit("/", 1)[-1]
+
+
+async def request_drone(world: World, page: Page) -> Any:
+    """Request fly-drone from the catalog and take off; returns the drone's adapter."""
+    await page.click("[data-service=fly-drone] a.button")
+    await page.select_option("#id_station", label="Campus station")
+    await page.click("#request-button")
+    await page.wait_for_url("**/sessions/*/")
+    await wait_for(page, "c.role === 'controller' && c.stats.framesDecoded > 3")
+    drone = world.agents["quad-1"].adapter
+    await page.keyboard.press("t")  # take off to the default 5 m
+    for _ in range(150):
+        if (drone.telemetry().get("altitude") or 0) > 4.5:
+            break
+        await asyncio.sleep(0.1)
+    assert drone.telemetry()["altitude"] > 4.5
+    return drone
+
+
+async def hold_until(
+    page: Page, key: str, reached: Any, *, within: float = 20.0, what: str = ""
+) -> None:
+    """Hold ``key`` until ``reached`` (a coroutine function) says so, then let go: the
+    simulators run as fast as the machine lets them, so a fixed hold proves nothing on
+    a busy one."""
+    await page.keyboard.down(key)
+    try:
+        await until(reached, within=within, what=what)
+    finally:
+        await page.keyboard.up(key)
+
+
+async def drive_forward(world: World, page: Page, *, at_least_m: float = 0.15) -> float:
+    """Hold ArrowUp until the simulated car has moved ``at_least_m`` (however slowly a
+    busy machine runs it; fails after 20 s); returns how far it moved (metres)."""
+    adapter: Any = world.agents["car-1"].adapter  # the car's adapter, on mock pins
+    car = adapter.sensors  # the simulated world
+    start = car.pose
+
+    def moved() -> float:
+        return math.hypot(car.pose.north_m - start.north_m, car.pose.east_m - start.east_m)
+
+    async def far_enough() -> bool:
+        return moved() >= at_least_m
+
+    await hold_until(page, "ArrowUp", far_enough, what=f"the car to move {at_least_m} m")
+    return moved()
+
+
+async def end_session(page: Page, *, first_dismiss: bool = False) -> str:
+    """Press End session and confirm (after saying Cancel once, if ``first_dismiss``);
+    returns what the confirmation asked."""
+    asked: list[str] = []
+
+    async def answer(dialog: Any) -> None:
+        asked.append(dialog.message)
+        if first_dismiss and len(asked) == 1:
+            await dialog.dismiss()
+        else:
+            await dialog.accept()
+
+    page.on("dialog", answer)
+    try:
+        if first_dismiss:
+            await page.click("[data-end-session]")
+            await expect(page.locator("[data-end-session]")).to_be_visible()
+        await page.click("[data-end-session]")
+        await page.wait_for_url(re.compile(r"^https?://[^/]+/$"))  # the catalog
+    finally:
+        page.remove_listener("dialog", answer)
+    return asked[-1]
+
+
+# --- the devices people use ---------------------------------------------------------------
+
+#: A phone held in the hand (Playwright context options).
+PHONE: dict[str, Any] = {
+    "viewport": {"width": 390, "height": 844},
+    "device_scale_factor": 2,
+    "is_mobile": True,
+    "has_touch": True,
+}
+#: A laptop's screen.
+LAPTOP: dict[str, Any] = {"viewport": {"width": 1366, "height": 768}}
+
+
+async def login(world: World, username: str, device: dict[str, Any]) -> Page:
+    """A page on ``device`` (:data:`PHONE`, :data:`LAPTOP`) signed in as ``username``,
+    recording the commands it sends (:data:`RECORD_COMMANDS`)."""
+    return await world.login(username, init_script=RECORD_COMMANDS, **device)
+
+
+async def no_wider_than_the_screen(page: Page) -> None:
+    widths = await page.evaluate("() => [document.documentElement.scrollWidth, window.innerWidth]")
+    assert widths[0] <= widths[1], f"{page.url}: the page is {widths[0]} px wide on {widths[1]}"
+
+
+# --- scripts the tests put in pages --------------------------------------------------------
+
+#: Records every command the page sends to the vehicle (window.sentCommands), on its
+#: socket or its WebRTC data channels.
+RECORD_COMMANDS = """
+window.sentCommands = [];
+for (const proto of [WebSocket.prototype, RTCDataChannel.prototype]) {
+  const send = proto.send;
+  proto.send = function (data) {
+    const msg = JSON.parse(data);
+    if (msg.type === "command") window.sentCommands.push(msg);
+    return send.call(this, data);
+  };
+}
+"""
+
+#: Records the page's Content-Security-Policy violations (window.__cspViolations) before
+#: any of its own scripts runs.
+LISTEN_FOR_VIOLATIONS = """
+window.__cspViolations = [];
+document.addEventListener("securitypolicyviolation", (e) => {
+  window.__cspViolations.push(
+    `${e.effectiveDirective} blocked ${e.blockedURI || "inline"} (${e.sourceFile}:${e.lineNumber})`
+  );
+});
+"""
