@@ -98,7 +98,7 @@ class Copter(SimVehicle):
         """Hold at the stopping point, as ArduCopter's position modes start: where the
         copter comes to rest from its velocity, not where it was when asked."""
         accel_h, accel_z = self._accel_limits()
-        jerk_h, jerk_z = self.p("PSC_JERK_XY"), self.p("PSC_JERK_Z")
+        jerk_h, jerk_z = self._jerk()
         speed = math.hypot(self.vn, self.ve)
         ahead = stopping_distance(speed, accel_h, jerk_h) / speed if speed > 0.01 else 0.0
         rise = math.copysign(stopping_distance(self.vu, accel_z, jerk_z), self.vu)
@@ -344,17 +344,22 @@ class Copter(SimVehicle):
         horizontal = self.p("WPNAV_ACCEL") / 100.0 * brake
         return max(horizontal, 0.1), max(self.p("WPNAV_ACCEL_Z") / 100.0, 0.1)
 
+    def _jerk(self) -> tuple[float, float]:
+        """PSC_JERK_XY and PSC_JERK_Z (m/s³), PSC_JERK_NE and PSC_JERK_D from 4.7."""
+        params = self.params
+        horizontal = params["PSC_JERK_NE"] if "PSC_JERK_NE" in params else params["PSC_JERK_XY"]
+        vertical = params["PSC_JERK_D"] if "PSC_JERK_D" in params else params["PSC_JERK_Z"]
+        return max(float(horizontal), 0.1), max(float(vertical), 0.1)
+
     def _shape(self, desired: tuple[float, float, float], dt: float) -> None:
         """The acceleration of the next ``dt`` on the jerk-limited path to ``desired``,
         as ArduCopter's position controller shapes every mode's velocity."""
         accel_h, accel_z = self._accel_limits()
+        jerk_h, jerk_z = self._jerk()
         self.an, self.ae = shape_vel_accel_xy(
-            (desired[0], desired[1]), (self.vn, self.ve), (self.an, self.ae),
-            accel_h, self.p("PSC_JERK_XY"), dt,
-        )  # fmt: skip
-        self.au = shape_vel_accel(
-            desired[2], self.vu, self.au, -accel_z, accel_z, self.p("PSC_JERK_Z"), dt
+            (desired[0], desired[1]), (self.vn, self.ve), (self.an, self.ae), accel_h, jerk_h, dt
         )
+        self.au = shape_vel_accel(desired[2], self.vu, self.au, -accel_z, accel_z, jerk_z, dt)
 
     def _integrate(self, dt: float) -> None:
         self.north += self.vn * dt + 0.5 * self.an * dt * dt
@@ -405,11 +410,10 @@ class Copter(SimVehicle):
         if speed is not None:
             h_max = min(h_max, speed) if speed > 0 else h_max
         accel_h, accel_z = self._accel_limits()
-        vn, ve = position_velocity_xy(
-            (target[0] - self.north, target[1] - self.east), accel_h, self.p("PSC_JERK_XY"), 0.0
-        )
-        vn, ve = clamp_norm(vn, ve, h_max)
-        vu = position_speed(target[2] - self.up, accel_z, self.p("PSC_JERK_Z"), 0.0)
+        jerk_h, jerk_z = self._jerk()
+        error = (target[0] - self.north, target[1] - self.east)
+        vn, ve = clamp_norm(*position_velocity_xy(error, accel_h, jerk_h, 0.0), h_max)
+        vu = position_speed(target[2] - self.up, accel_z, jerk_z, 0.0)
         return vn, ve, max(-down_max, min(up_max, vu))
 
     def _desired_velocity(self, wall: float) -> tuple[float, float, float]:

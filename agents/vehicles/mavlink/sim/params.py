@@ -78,8 +78,14 @@ VEHICLE_PARAMS: Mapping[str, Mapping[str, tuple[float, bool]]] = {
 }
 
 #: ArduPilot 4.7 moved the MAVLink ids into the MAV_ namespace (a parameter conversion
-#: of March 2025): old name -> new name. SYSID_MYGCS no longer exists there.
-RENAMED_IN_4_7 = {"SYSID_THISMAV": "MAV_SYSID", "SYSID_MYGCS": "MAV_GCS_SYSID"}
+#: of March 2025), and named the position controller's axes NE and D: old name -> new
+#: name. SYSID_MYGCS, PSC_JERK_XY and PSC_JERK_Z no longer exist there.
+RENAMED_IN_4_7 = {
+    "SYSID_THISMAV": "MAV_SYSID",
+    "SYSID_MYGCS": "MAV_GCS_SYSID",
+    "PSC_JERK_XY": "PSC_JERK_NE",
+    "PSC_JERK_Z": "PSC_JERK_D",
+}
 #: ... and added an upper end: GCS ids MAV_GCS_SYSID..MAV_GCS_SYSID_HI when HI >= the id.
 #: ArduRover also has FS_GCS_TIMEOUT by then (before it, the GCS counted as lost after
 #: a fixed 2 s of silence).
