@@ -9,7 +9,9 @@ relay. It
 * gives control to one user at a time; the others watch. When control changes hands
   the adapter's inputs are zeroed first;
 * runs every command through the :class:`~agents.safety.CommandGate` and answers each
-  with an ``ack`` carrying its ``seq`` once the adapter applied or refused it;
+  with an ``ack`` carrying its ``seq`` once the adapter applied or refused it; a
+  movement the gate refuses at the ceiling or the geofence is stopped at once
+  (:meth:`~agents.vehicles.base.Adapter.stop_motion`), not left to run its hold;
 * streams telemetry per subscription at the requested rate, and answers pings;
 * pings the controller to know the round trip (latency-aware limits) and watches its
   inputs: nothing within the task's link-loss timeout, or its socket closing, triggers
@@ -80,7 +82,7 @@ from agents.protocol.messages import (
     WebrtcRequest,
     message_type,
 )
-from agents.safety import CommandGate, Refusal
+from agents.safety import LIMIT_CODES, CommandGate, Refusal
 from agents.vehicles.base import SAFE_COMMANDS, Adapter, AdapterError, Breach
 
 log = logging.getLogger(__name__)
@@ -398,17 +400,21 @@ class ControlHub:
         if self.task is not None and self.task.session_id != task.session_id:
             raise Refusal("busy", f"the vehicle is serving session {self.task.session_id}")
         self.task = task
-        self.gate = CommandGate(self.adapter, allowed=task.allowed_commands, limits=task.limits)
-        # The watch of the previous copy of this task (the platform resent it) goes.
-        previous, self._envelope = (
-            self._envelope,
-            EnvelopeWatch(
-                limits=task.limits,
-                state=self.adapter.state,
-                recover=self._envelope_recover,
-                notify=self._envelope_notify,
-            ),
+        watch = EnvelopeWatch(
+            limits=task.limits,
+            state=self.adapter.state,
+            recover=self._envelope_recover,
+            notify=self._envelope_notify,
+            braking=self.adapter.braking,
         )
+        self.gate = CommandGate(
+            self.adapter,
+            allowed=task.allowed_commands,
+            limits=task.limits,
+            breached=lambda: watch.envelope.breached,
+        )
+        # The watch of the previous copy of this task (the platform resent it) goes.
+        previous, self._envelope = self._envelope, watch
         self._envelope.start()
         if previous is not None:
             self._spawn(previous.stop())
@@ -722,6 +728,8 @@ class ControlHub:
                     # sees that the user took over.
                     self._override(f"the user sent {name}")
             except (Refusal, AdapterError) as exc:
+                if isinstance(exc, Refusal) and exc.code in LIMIT_CODES.values():
+                    await self._stop_motion(name)
                 self.stats["refused"] += 1
                 reason = refusal_text(name, str(exc))
                 await self._ack(client, seq, exc.code, reason)
@@ -736,6 +744,18 @@ class ControlHub:
             self._input()
             with contextlib.suppress(ConnectionError):
                 await client.link.send(CommandAck(seq=seq, ok=True, error=None))
+
+    async def _stop_motion(self, name: str) -> None:
+        """A movement refused at a limit: the one it repeats must not run its hold out
+        (a climb refused at the ceiling stops now, under the command lock)."""
+        gate = self.gate
+        if gate is None or not gate.is_motion(name):
+            return
+        async with self._exec:
+            try:
+                await self.adapter.stop_motion(name)
+            except Exception:  # the refusal is acked whatever happened here
+                log.exception("stopping %s at a limit failed", name)
 
     def _too_old(self, client: _Client, msg: Command) -> str | None:
         """Why ``msg`` is too old to run now, or None (fresh, safe, or its age unknown)."""

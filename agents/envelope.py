@@ -16,9 +16,17 @@ against ``max_speed_mps``), :func:`band_for` gives three distances:
   autopilot settling on a limit set exactly at it are not breaches), or past the limit
   for ``DWELL_S`` (the speed: by more than half the tolerance, for an autopilot flying
   at a commanded speed equal to the limit reads a few cm/s over it all along);
-* **margin**: the recovery aims this far inside the limit (``Breach.target``);
+* **margin**: the recovery aims this far inside the limit (``Breach.target``; never
+  further out than the vehicle is);
 * the breach ends (``restored``) once the value has stayed at least half the margin
   inside the limit for ``RESTORE_S``.
+
+**On its way out.** A vehicle that reports its velocity
+(:attr:`~agents.vehicles.base.VehicleState.velocity`) and says how it brakes
+(:meth:`Adapter.braking`) is also a breach while still inside, as soon as braking now
+would no longer stop it within the tolerance (``Breach.rest``, the ``rest`` of the
+``envelope_breach`` event): a return's climb or another ground station's command is
+then caught before it crosses, not a braking distance after.
 
 While breached the recovery is repeated when the value crosses the limit again, or
 stays past it ``REPEAT_S`` after the last recovery without getting better; the
@@ -34,15 +42,16 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Self
 
-from agents.geo import distance_m
+from agents.geo import distance_m, offset
 from agents.protocol import Limits
-from agents.vehicles.base import Breach, VehicleState
+from agents.vehicles.base import Braking, Breach, VehicleState
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +67,8 @@ RESTORE_S = 1.0
 REPEAT_S = 1.0
 #: Never two recoveries of one limit closer together than this.
 MIN_REPEAT_S = 0.25
+#: From a check to the vehicle acting on its recovery (s): the check's own period.
+ACT_S = 1.0 / CHECK_HZ
 
 #: limit -> (tolerance: fraction of the limit, at most; margin: fraction, at most).
 _BANDS: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {
@@ -164,28 +175,57 @@ class Envelope:
             return None
         return distance_m(track.centre, position)
 
-    def update(self, state: VehicleState, now: float) -> list[Step]:
-        """Compare ``state`` (at monotonic time ``now``) with the limits."""
+    def _rest(
+        self, name: str, track: _Track, state: VehicleState, braking: Braking | None
+    ) -> float | None:
+        """Where the vehicle comes to rest if it brakes now (the value of limit
+        ``name``), when it is heading out and says how it brakes; else None."""
+        velocity = state.velocity
+        if braking is None or velocity is None:
+            return None
+        north, east, up = velocity
+        if name == ALTITUDE:
+            vertical = braking.vertical
+            if vertical is None or state.alt is None or up <= 0:
+                return None
+            return state.alt + vertical.distance(up) + up * ACT_S
+        horizontal, position = braking.horizontal, state.position
+        speed = math.hypot(north, east)
+        if name != GEOFENCE or horizontal is None or position is None or track.centre is None:
+            return None
+        if speed <= 0:
+            return None
+        ahead = (horizontal.distance(speed) + speed * ACT_S) / speed
+        return distance_m(track.centre, offset(position, north * ahead, east * ahead))
+
+    def update(self, state: VehicleState, now: float, braking: Braking | None = None) -> list[Step]:
+        """Compare ``state`` (at monotonic time ``now``) with the limits; with the
+        vehicle's ``braking`` and its velocity, also where it would come to rest."""
         steps: list[Step] = []
         for name, track in self.tracks.items():
             value = self._value(name, track, state)
             if value is not None:
-                step = self._update_one(name, track, value, now)
+                rest = self._rest(name, track, state, braking)
+                step = self._update_one(name, track, value, now, rest)
                 if step is not None:
                     steps.append(step)
         return steps
 
-    def _breach(self, name: str, track: _Track, value: float) -> Breach:
+    def _breach(self, name: str, track: _Track, value: float, rest: float | None = None) -> Breach:
         band = track.band
         return Breach(
             limit=name,
             value=value,
             limit_value=band.limit_value,
-            target=band.target,
+            # Never further out than it is: caught on its way out, it stops there.
+            target=min(band.target, value),
             centre=track.centre,
+            rest=rest,
         )
 
-    def _update_one(self, name: str, track: _Track, value: float, now: float) -> Step | None:
+    def _update_one(
+        self, name: str, track: _Track, value: float, now: float, rest: float | None = None
+    ) -> Step | None:
         band = track.band
         over = value > band.limit_value
         if not track.breached:
@@ -194,11 +234,15 @@ class Envelope:
             elif track.over_since is None:
                 track.over_since = now
             dwelt = track.over_since is not None and now - track.over_since >= DWELL_S
-            if value > band.limit_value + band.tolerance or dwelt:
+            beyond = band.limit_value + band.tolerance
+            heading_out = rest is not None and rest > beyond and value <= beyond
+            if value > beyond or dwelt or heading_out:
                 track.breached, track.since = True, now
                 track.inside_since = None
                 self._acted(track, value, now)
-                return Step("breach", self._breach(name, track, value))
+                return Step(
+                    "breach", self._breach(name, track, value, rest if heading_out else None)
+                )
             return None
         if value <= band.restore_below:
             if track.inside_since is None:
@@ -235,9 +279,11 @@ Notify = Callable[[str, dict[str, Any]], Awaitable[None]]
 class EnvelopeWatch:
     """Watches one task's limits on the vehicle's state (an async context manager).
 
-    ``state`` is the adapter's :meth:`~agents.vehicles.base.Adapter.state`. On a breach
-    the watch awaits ``recover(breach)`` (the hub runs it under its command lock) and
-    then ``notify("envelope_breach", {"limit", "value", "limit_value", "action"})``;
+    ``state`` is the adapter's :meth:`~agents.vehicles.base.Adapter.state`, ``braking``
+    its :meth:`~agents.vehicles.base.Adapter.braking`. On a breach the watch awaits
+    ``recover(breach)`` (the hub runs it under its command lock) and then
+    ``notify("envelope_breach", {"limit", "value", "limit_value", "action"})`` (and
+    ``"rest"`` when caught on its way out);
     when the vehicle is back inside, ``notify("envelope_restored", {"limit", "value",
     "limit_value", "duration_ms"})``. A recovery repeated during one breach is logged,
     not notified. Neither callback may stop the watch: their errors are logged.
@@ -250,10 +296,12 @@ class EnvelopeWatch:
         state: Callable[[], VehicleState],
         recover: Recover,
         notify: Notify,
+        braking: Callable[[], Braking | None] | None = None,
         period_s: float = 1.0 / CHECK_HZ,
     ) -> None:
         self.envelope = Envelope(limits)
         self.state = state
+        self.braking = braking or (lambda: None)
         self.recover = recover
         self.notify = notify
         self.period_s = period_s
@@ -304,7 +352,7 @@ class EnvelopeWatch:
 
     async def check_once(self, now: float) -> None:
         """One check: compare the state with the limits and act on what changed."""
-        for step in self.envelope.update(self.state(), now):
+        for step in self.envelope.update(self.state(), now, self.braking()):
             breach = step.breach
             if step.kind == "restored":
                 log.warning("envelope: back inside the %s limit", breach.limit)
@@ -329,15 +377,15 @@ class EnvelopeWatch:
             )
             if step.kind == "breach":
                 self.breaches += 1
-                await self._notify(
-                    "envelope_breach",
-                    {
-                        "limit": breach.limit,
-                        "value": round(breach.value, 2),
-                        "limit_value": breach.limit_value,
-                        "action": action,
-                    },
-                )
+                data: dict[str, Any] = {
+                    "limit": breach.limit,
+                    "value": round(breach.value, 2),
+                    "limit_value": breach.limit_value,
+                    "action": action,
+                }
+                if breach.rest is not None:
+                    data["rest"] = round(breach.rest, 2)
+                await self._notify("envelope_breach", data)
 
     async def _recover(self, breach: Breach) -> str:
         try:

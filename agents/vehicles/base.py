@@ -13,7 +13,8 @@ What every adapter shares is here and in :mod:`agents.vehicles.kit` (the option 
 
 * the abstract methods every adapter implements, and the optional hooks with their
   defaults (:meth:`Adapter.neutral`, :meth:`Adapter.envelope_recover`,
-  :meth:`Adapter.project`, :meth:`Adapter.check_failsafe_params`, the event sink
+  :meth:`Adapter.project`, :meth:`Adapter.braking`, :meth:`Adapter.stop_motion`,
+  :meth:`Adapter.check_failsafe_params`, the event sink
   :attr:`Adapter.on_event` with :meth:`Adapter.emit`, :meth:`Adapter.video_source`);
 * the simulator hook's contract (:class:`Simulation`): an integration's simulator
   module offers ``simulation(options)``, an async context manager that starts the
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import abc
 import logging
+import math
 from collections.abc import Callable, Mapping
 from contextlib import AbstractAsyncContextManager
 from dataclasses import dataclass, field
@@ -100,6 +102,8 @@ class VehicleState:
     armed: bool | None = None
     mode: str | None = None
     home: tuple[float, float] | None = None
+    #: (north, east, up) in m/s, where the vehicle tells it.
+    velocity: tuple[float, float, float] | None = None
 
     @property
     def position(self) -> tuple[float, float] | None:
@@ -124,15 +128,60 @@ class Breach:
     limit_value: float
     target: float
     centre: tuple[float, float] | None = None
+    #: Caught before it crossed: where the vehicle would have come to rest on its way
+    #: out (metres above home or from ``centre``); None for a value past the limit.
+    rest: float | None = None
 
 
 @dataclass(frozen=True)
 class Projection:
-    """Where a command would take the vehicle (None fields: unchanged/unknown)."""
+    """Where a command would take the vehicle (None fields: unchanged/unknown).
+
+    ``velocity`` is set for a movement held by repeats (a key): the velocity it asks
+    for, (north, east, up) in m/s. With the adapter's :meth:`Adapter.braking` the gate
+    then predicts where the vehicle comes to rest instead of checking the projected
+    point, and slows the movement down before a limit (see :mod:`agents.safety`).
+    """
 
     lat: float | None = None
     lon: float | None = None
     alt: float | None = None
+    velocity: tuple[float, float, float] | None = None
+
+
+@dataclass(frozen=True)
+class Stopping:
+    """How a vehicle stops along one axis once asked to: it goes on at its speed for
+    ``reaction_s`` (the age of the position it was judged on, the way to the
+    autopilot, the autopilot's ramp up to full braking), then brakes at
+    ``decel_mps2``."""
+
+    decel_mps2: float
+    reaction_s: float
+
+    def distance(self, speed: float) -> float:
+        """How far it goes from ``speed`` (m/s) before it rests."""
+        speed = abs(speed)
+        return speed * self.reaction_s + speed * speed / (2.0 * self.decel_mps2)
+
+    def speed_within(self, room: float) -> float:
+        """The highest speed it can still stop from within ``room`` metres (0 when
+        there is none): the inverse of :meth:`distance`."""
+        if room <= 0:
+            return 0.0
+        a, t = self.decel_mps2, self.reaction_s
+        return a * (math.sqrt(t * t + 2.0 * room / a) - t)
+
+
+@dataclass(frozen=True)
+class Braking:
+    """How a vehicle stops, per axis (None: that axis is not predicted); ``hold_s``: how
+    long a movement goes on after its last repeat (its key let go) before it is
+    stopped, which the gate adds to each axis's reaction."""
+
+    horizontal: Stopping | None = None
+    vertical: Stopping | None = None
+    hold_s: float = 0.0
 
 
 #: Receives what the vehicle itself reports: ``(event name, JSON-ready data)``.
@@ -250,8 +299,22 @@ class Adapter(abc.ABC):
 
     def project(self, name: str, args: Mapping[str, Any]) -> Projection | None:
         """Where ``name`` would take the vehicle over the next second or so, for the
-        altitude and geofence checks; None when the command does not move it."""
+        altitude and geofence checks; None when the command does not move it. A
+        movement held by repeats also gives its ``velocity``."""
         return None
+
+    def braking(self) -> Braking | None:
+        """How the vehicle stops now (its deceleration and reaction per axis), for the
+        gate's predictions of a movement's ``velocity``; None: not known, and the gate
+        checks the projected point only. Must not block."""
+        return None
+
+    async def stop_motion(self, name: str) -> None:  # noqa: B027 - optional hook
+        """Stop, now, the movement ``name`` put under way, along its own axis only (a
+        climb stops, the forward speed it was flying with stays); called under the
+        command lock when the gate refuses ``name`` at a limit, so that a refused
+        repeat does not leave the previous one to run its hold. Never raises.
+        Default: nothing (the movement runs out its hold; the envelope watches)."""
 
     async def check_failsafe_params(
         self, expected_action: str, *, max_altitude_m: float | None = None

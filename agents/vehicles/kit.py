@@ -122,6 +122,19 @@ class OptionReader:
             return None
         return self.integer(key, 0, min=min, max=max)
 
+    def optional_number(
+        self,
+        key: str,
+        *,
+        min: float | None = None,
+        above: float | None = None,
+        max: float | None = None,
+    ) -> float | None:
+        """A number like :meth:`number`, or None when not given."""
+        if not self.has(key):
+            return None
+        return self.number(key, 0.0, min=min, above=above, max=max)
+
     def flag(self, key: str, default: bool = False) -> bool:
         """``true`` or ``false``, strictly."""
         value = self.get(key, default)

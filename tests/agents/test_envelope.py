@@ -23,7 +23,7 @@ from agents.envelope import (
 )
 from agents.geo import offset
 from agents.protocol import Limits
-from agents.vehicles.base import Breach, VehicleState
+from agents.vehicles.base import Braking, Breach, Stopping, VehicleState
 
 CENTRE = (40.0, -8.0)
 
@@ -88,6 +88,36 @@ def test_flying_at_the_speed_limit_is_no_breach_but_a_real_overshoot_is():
     assert steps == [(10 + DWELL_S, "breach")]
     [step] = Envelope(limits).update(at(speed=5.0 + band.tolerance + 0.01), 0.0)
     assert step.kind == "breach"
+
+
+def test_a_vehicle_that_could_no_longer_stop_inside_is_caught_on_its_way_out():
+    """With its velocity and its braking, a breach is where the vehicle would come to
+    rest: a climb at 3 m/s braking at 1 m/s² 2.5 m under the ceiling is caught there,
+    and the recovery aims where it is (never further out than the margin's target)."""
+    braking = Braking(vertical=Stopping(decel_mps2=1.0, reaction_s=0.2))
+    envelope = Envelope(Limits(max_altitude_m=10))
+    climbing = VehicleState(alt=7.5, velocity=(0.0, 0.0, 3.0))
+    [step] = envelope.update(climbing, 0.0, braking)
+    assert step.kind == "breach"
+    assert step.breach.value == 7.5 and step.breach.target == 7.5  # under the 8 m target
+    assert step.breach.rest == pytest.approx(7.5 + 0.6 + 4.5 + 0.3)  # reaction, brake, check
+    # Slow enough to stop within the tolerance: nothing.
+    slow = VehicleState(alt=9.0, velocity=(0.0, 0.0, 0.5))
+    assert Envelope(Limits(max_altitude_m=10)).update(slow, 0.0, braking) == []
+    # Heading out of a 40 m fence at 5 m/s, 34 m from its centre: it would stop 41.5 m
+    # out, past the 1 m tolerance: caught.
+    fence = Envelope(Limits(geofence_center=CENTRE, geofence_radius_m=40))
+    lat, lon = offset(CENTRE, 34.0, 0.0)
+    out = VehicleState(lat=lat, lon=lon, velocity=(5.0, 0.0, 0.0))
+    across = Braking(horizontal=Stopping(decel_mps2=2.5, reaction_s=0.4))
+    [step] = fence.update(out, 0.0, across)
+    assert step.breach.limit == "geofence" and step.breach.rest == pytest.approx(41.5, abs=0.01)
+    # ... but not when it comes back.
+    back = VehicleState(lat=lat, lon=lon, velocity=(-5.0, 0.0, 0.0))
+    assert (
+        Envelope(Limits(geofence_center=CENTRE, geofence_radius_m=40)).update(back, 0.0, across)
+        == []
+    )
 
 
 def test_noise_around_the_limit_does_not_chatter():

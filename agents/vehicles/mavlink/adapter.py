@@ -41,7 +41,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from agents.telemetry import TopicInfo
-from agents.vehicles.base import Adapter, AdapterError, CommandSpec, VehicleState
+from agents.vehicles.base import Adapter, AdapterError, Braking, CommandSpec, VehicleState
+from agents.vehicles.mavlink.braking import kinematics_default, kinematics_read
 from agents.vehicles.mavlink.config import MavlinkConfig
 from agents.vehicles.mavlink.dialect import (
     DATA_STREAMS,
@@ -59,6 +60,13 @@ from agents.vehicles.mavlink.vocabulary import mavlink_vocabulary, telemetry_top
 
 logger = logging.getLogger(__name__)
 
+#: The watch loop's period (s): a released key's setpoint ends within it.
+WATCH_PERIOD_S = 0.05
+#: A position older than this (s) is judged as this old: the streams come at 10 Hz.
+MAX_POSITION_AGE_S = 1.0
+#: From the agent's decision to the autopilot acting on it (s): a local link.
+LINK_S = 0.05
+
 
 @dataclass
 class Telemetry:
@@ -70,6 +78,8 @@ class Telemetry:
     heading: float | None = None
     speed: float | None = None
     climb: float | None = None
+    #: (north, east, up) m/s, from GLOBAL_POSITION_INT.
+    velocity: tuple[float, float, float] | None = None
     battery: float | None = None
     satellites: int | None = None
     gps_fix: int | None = None
@@ -124,6 +134,9 @@ class MavlinkAdapter(Adapter, abc.ABC):
         #: Which name the autopilot has for its GCS system id (``MAV_GCS_SYSID`` or
         #: ``SYSID_MYGCS``), once :meth:`check_failsafe_params` found out; else None.
         self.gcs_sysid_param: str | None = None
+        #: How the vehicle brakes: the firmware's defaults until the autopilot's own
+        #: limits are read at start (see :mod:`.braking`).
+        self.kinematics = kinematics_default(self.vehicle_class, self.config)
 
     # --- the link's figures, for diagnostics and tests -----------------------------------
     @property
@@ -183,6 +196,24 @@ class MavlinkAdapter(Adapter, abc.ABC):
             # In the background: on a slow radio link ten requests take a while, and
             # commands need not wait for them.
             self._spawn(self._request_streams())
+            self._spawn(self._read_kinematics())
+
+    async def _read_kinematics(self) -> None:
+        self.kinematics = await kinematics_read(self.link, self.vehicle_class, self.config)
+
+    def braking(self) -> Braking:
+        """How the vehicle stops now, for the gate and the envelope (see
+        :mod:`.braking`): the autopilot's deceleration and jerk, after the age of the
+        position they judge on and the way to the autopilot; a movement's key let go,
+        its setpoint goes on for ``setpoint_hold_s`` (and the watch's period) first."""
+        age = time.monotonic() - self.t.position_at if self.t.position_at else MAX_POSITION_AGE_S
+        reaction = min(max(age, 0.0), MAX_POSITION_AGE_S) + LINK_S
+        vertical = self.kinematics.vertical
+        return Braking(
+            horizontal=self.kinematics.horizontal.stopping(reaction),
+            vertical=None if vertical is None else vertical.stopping(reaction),
+            hold_s=self.config.setpoint_hold_s + WATCH_PERIOD_S,
+        )
 
     async def _wait_first_heartbeat(self, wait_s: float) -> None:
         try:
@@ -237,6 +268,7 @@ class MavlinkAdapter(Adapter, abc.ABC):
             t.alt = msg.relative_alt / 1000.0
             t.speed = math.hypot(msg.vx, msg.vy) / 100.0
             t.climb = -msg.vz / 100.0
+            t.velocity = (msg.vx / 100.0, msg.vy / 100.0, t.climb)
             if msg.hdg != 65535 and t.heading is None:
                 t.heading = msg.hdg / 100.0
             t.position_at = time.monotonic()
@@ -457,6 +489,7 @@ class MavlinkAdapter(Adapter, abc.ABC):
             armed=t.armed,
             mode=self.mode_name(t.mode),
             home=t.home,
+            velocity=t.velocity,
         )
 
     def telemetry_topics(self) -> list[str]:

@@ -63,6 +63,10 @@ class MavlinkConfig:
     move_speed_mps: float = 1.0
     max_speed_mps: float = 10.0
     setpoint_hold_s: float = 1.0
+    #: The deceleration the vehicle brakes at (m/s²; a copter's horizontal one), and a
+    #: copter's vertical one; None: read from the autopilot (see :mod:`.braking`).
+    decel_mps2: float | None = None
+    decel_z_mps2: float | None = None
     stream_rates_hz: Mapping[str, float] = field(
         default_factory=lambda: dict(DEFAULT_STREAM_RATES_HZ)
     )
@@ -121,6 +125,7 @@ class MavlinkConfig:
             "move_speed_mps": o.number("move_speed_mps", 1.0, above=0, max=50),
             "max_speed_mps": o.number("max_speed_mps", 10.0, above=0, max=50),
             "setpoint_hold_s": o.number("setpoint_hold_s", 1.0, above=0, max=3.0),
+            "decel_mps2": o.optional_number("decel_mps2", above=0, max=50),
             "stream_rates_hz": rates,
             "close_action": o.choice("close_action", "return_to_home", CLOSE_ACTIONS),
             "payload": None if payload is None else dict(payload),
@@ -132,6 +137,7 @@ class MavlinkConfig:
                 "rotate_default_deg": o.number("rotate_default_deg", 15.0, above=0, max=180),
                 "rotate_rate_deg_s": o.number("rotate_rate_deg_s", 45.0, above=0, max=360),
                 "velocity_frame": o.choice("velocity_frame", "body_offset_ned", VELOCITY_FRAMES),
+                "decel_z_mps2": o.optional_number("decel_z_mps2", above=0, max=50),
             }
         else:
             specific = {

@@ -79,6 +79,9 @@ class CopterAdapter(MavlinkAdapter):
         self._takeoff_at = 0.0
         self._yaw_target: float | None = None
         self._yaw_deadline = 0.0
+        #: The user's velocity setpoint under way (forward, right, up; m/s), while
+        #: ``_moving_until`` holds it.
+        self._setpoint: tuple[float, float, float] | None = None
 
     # --- state -------------------------------------------------------------------------
     def _in_air(self) -> bool:
@@ -115,8 +118,9 @@ class CopterAdapter(MavlinkAdapter):
     def project(self, name: str, args: Mapping[str, Any]) -> Projection | None:
         """Where a command takes the drone, for the gate's ceiling and geofence checks:
         a movement ``setpoint_hold_s`` (1 s) ahead at the commanded speed (body axes
-        turned by the heading), the target altitude of ``take_off``, the waypoint of
-        ``go_to_waypoint``; None for the rest."""
+        turned by the heading), with its velocity, so that the gate predicts where the
+        drone comes to rest (:meth:`braking`); the target altitude of ``take_off``, the
+        waypoint of ``go_to_waypoint``; None for the rest."""
         t = self.t
         if name == "take_off":
             return Projection(lat=t.lat, lon=t.lon, alt=float(args.get("altitude_m", 0)))
@@ -127,15 +131,34 @@ class CopterAdapter(MavlinkAdapter):
         body = BODY_AXES.get(name)
         if body is None:
             return None
-        distance = float(args.get("speed_mps", self.config.move_speed_mps))
-        distance *= self.config.setpoint_hold_s
-        forward, right, up = (axis * distance for axis in body)
-        alt = None if t.alt is None else max(0.0, t.alt + up)
-        if t.lat is None or t.lon is None or t.heading is None or (forward == right == 0):
+        speed = float(args.get("speed_mps", self.config.move_speed_mps))
+        forward, right, up = (axis * speed for axis in body)
+        hold = self.config.setpoint_hold_s
+        alt = None if t.alt is None else max(0.0, t.alt + up * hold)
+        if forward == right == 0:
+            return Projection(alt=alt, velocity=(0.0, 0.0, up))
+        if t.lat is None or t.lon is None or t.heading is None:
             return Projection(alt=alt)
         north, east = body_to_ned(forward, right, t.heading)
-        lat, lon = offset((t.lat, t.lon), north, east)
-        return Projection(lat=lat, lon=lon, alt=alt)
+        lat, lon = offset((t.lat, t.lon), north * hold, east * hold)
+        return Projection(lat=lat, lon=lon, alt=alt, velocity=(north, east, up))
+
+    async def stop_motion(self, name: str) -> None:
+        """The movement ``name`` was refused at a limit: take its axis out of the
+        setpoint under way now (a climb refused at the ceiling hovers at once; the rest
+        of the setpoint keeps its hold). Never raises."""
+        axis = BODY_AXES.get(name)
+        setpoint = self._setpoint
+        if axis is None or setpoint is None or self._moving_until is None:
+            return
+        along = sum(a * v for a, v in zip(axis, setpoint, strict=True))
+        if along <= 0:
+            return  # not moving that way
+        rest = tuple(v - along * a for a, v in zip(axis, setpoint, strict=True))
+        forward, right, up = rest
+        self._setpoint = (forward, right, up)
+        if self.link.ok and self.t.mode == GUIDED and self._in_air():
+            self._send_velocity(forward, right, up)
 
     # --- acting ------------------------------------------------------------------------
     async def execute(self, name: str, args: Mapping[str, Any]) -> None:
@@ -228,6 +251,7 @@ class CopterAdapter(MavlinkAdapter):
     async def _move(self, name: str, forward: float, right: float, up: float) -> None:
         await self._ensure_guided_flight(name)
         self._send_velocity(forward, right, up)
+        self._setpoint = (forward, right, up)
         self._moving_until = time.monotonic() + self.config.setpoint_hold_s
 
     def _tick(self, now: float) -> None:

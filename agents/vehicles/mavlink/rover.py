@@ -94,8 +94,9 @@ class RoverAdapter(MavlinkAdapter):
     def project(self, name: str, args: Mapping[str, Any]) -> Projection | None:
         """Where a command takes the vehicle, for the gate's geofence check:
         ``forward``/``backward`` ``setpoint_hold_s`` (1 s) ahead along the heading at the
-        commanded speed, the waypoint of ``go_to_waypoint``; None for the rest (turning
-        on the spot goes nowhere)."""
+        commanded speed, with its velocity (the gate predicts where the vehicle comes
+        to rest: :meth:`braking`), the waypoint of ``go_to_waypoint``; None for the rest
+        (turning on the spot goes nowhere)."""
         t = self.t
         if name == "go_to_waypoint":
             return Projection(lat=float(args["lat"]), lon=float(args["lon"]))
@@ -103,11 +104,24 @@ class RoverAdapter(MavlinkAdapter):
             return None
         if t.heading is None:
             return None
-        distance = float(args.get("speed_mps", self.config.move_speed_mps))
-        distance *= self.config.setpoint_hold_s * (1 if name == "forward" else -1)
+        speed = float(args.get("speed_mps", self.config.move_speed_mps))
+        speed *= 1 if name == "forward" else -1
         h = math.radians(t.heading)
-        lat, lon = offset((t.lat, t.lon), distance * math.cos(h), distance * math.sin(h))
-        return Projection(lat=lat, lon=lon)
+        north, east = speed * math.cos(h), speed * math.sin(h)
+        hold = self.config.setpoint_hold_s
+        lat, lon = offset((t.lat, t.lon), north * hold, east * hold)
+        return Projection(lat=lat, lon=lon, velocity=(north, east, 0.0))
+
+    async def stop_motion(self, name: str) -> None:
+        """``forward`` or ``backward`` refused at the geofence: the speed under way in
+        that direction goes to zero now (a turn held with it goes on). Never raises."""
+        if name not in ("forward", "backward") or self._moving_until is None:
+            return
+        if (self._speed > 0) != (name == "forward") or self._speed == 0:
+            return
+        self._speed = 0.0
+        if self.link.ok and self.t.armed and self.t.mode == GUIDED:
+            self._send_drive(0.0, self._turn)
 
     # --- acting ------------------------------------------------------------------------
     async def execute(self, name: str, args: Mapping[str, Any]) -> None:
