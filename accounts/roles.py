@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
+from django.apps import AppConfig, apps
 from django.contrib.auth.models import AnonymousUser, Group, Permission
 from django.db import transaction
 
@@ -53,15 +54,15 @@ STAFF_ROLES = {MONITOR, OPERATOR, ADMIN}
 
 
 def _permissions(names: Iterable[str]) -> list[Permission]:
-    found = []
-    for name in names:
-        app_label, codename = name.split(".", 1)
-        perm = Permission.objects.filter(
-            content_type__app_label=app_label, codename=codename
-        ).first()
-        if perm is not None:  # absent until that app has migrated
-            found.append(perm)
-    return found
+    """The permissions ``names`` ("app_label.codename") name, in one query; those of an
+    app that has not migrated yet are absent."""
+    wanted = {tuple(name.split(".", 1)) for name in names}
+    if not wanted:
+        return []
+    candidates = Permission.objects.filter(
+        codename__in={codename for _, codename in wanted}
+    ).select_related("content_type")
+    return [p for p in candidates if (p.content_type.app_label, p.codename) in wanted]
 
 
 def roles_ensure() -> dict[str, Group]:
@@ -80,8 +81,16 @@ def roles_ensure() -> dict[str, Group]:
     return groups
 
 
-def roles_ensure_on_migrate(**kwargs: Any) -> None:
-    """post_migrate receiver: keep the role groups in step with the permissions."""
+def roles_ensure_on_migrate(sender: AppConfig, **kwargs: Any) -> None:
+    """post_migrate receiver: keep the role groups in step with the permissions.
+
+    Django sends post_migrate once per installed app with models, after each app's
+    permissions are made; the groups need every app's, so they are filled once, for
+    the last app. (Once per app made every ``flush`` - a transactional test's
+    teardown - about 0.4 s slower.)"""
+    with_models = [config for config in apps.get_app_configs() if config.models_module]
+    if with_models and sender is not with_models[-1]:
+        return
     roles_ensure()
 
 
