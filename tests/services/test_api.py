@@ -615,13 +615,17 @@ def test_unknown_paths_under_api_are_json_404(path, alice):
     _error(response, 404, "not_found")
 
 
+UNKNOWN_SESSION = uuid.UUID("5f0c3f5e-2d6b-4c1e-9a43-0d4c6f8a9b21")
+
+
 @pytest.mark.parametrize(
     ("method", "path", "allow"),
     [
         ("DELETE", "/services", "GET"),
         ("GET", "/sessions", "POST"),
-        ("PUT", f"/sessions/{uuid.uuid4()}", "GET"),
-        ("GET", f"/sessions/{uuid.uuid4()}/end", "POST"),
+        # A fixed id: xdist's workers must collect the same test names.
+        ("PUT", f"/sessions/{UNKNOWN_SESSION}", "GET"),
+        ("GET", f"/sessions/{UNKNOWN_SESSION}/end", "POST"),
         ("POST", "/openapi.json", "GET"),
     ],
 )
