@@ -8,10 +8,15 @@ and skipped, with the reason, on the other.
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit, urlunsplit
 
 import pytest
 from django.conf import settings
+
+from tests.browser import chromium_missing_reason
 
 
 def pytest_report_header(config: pytest.Config) -> list[str]:
@@ -28,6 +33,37 @@ def pytest_report_header(config: pytest.Config) -> list[str]:
     ]
 
 
+#: Each pytest-xdist worker's own ports: worker N takes PORTS_PER_WORKER ports from
+#: FIRST_WORKER_PORT + N * PORTS_PER_WORKER (below Linux's ephemeral range, 32768 up, so
+#: no outgoing connection holds one); see tests.servers.free_port.
+FIRST_WORKER_PORT = 20000
+PORTS_PER_WORKER = 500
+
+
+def pytest_xdist_setupnodes(config: pytest.Config, specs: list[Any]) -> None:
+    """Isolate the xdist workers from each other before they start, through their
+    environment (which the settings read): each its own Redis database (channel layer,
+    Celery broker), its own ``IOUV_VAR_DIR`` (logs, mail, the embedded broker's folder)
+    and its own range of ports. pytest-django already gives each its own test database
+    (``test_<name>_gwN``). Run on the controller, once, with every worker's spec."""
+    redis_url = os.environ.get("REDIS_URL", "")
+    var_dir = Path(os.environ.get("IOUV_VAR_DIR") or settings.VAR_DIR)
+    for index, spec in enumerate(specs):
+        env = spec.env
+        if redis_url:
+            # Database 0 stays the demo's and plain pytest's; Redis has 16 by default.
+            env["REDIS_URL"] = _redis_database(redis_url, 1 + index % 15)
+        env["IOUV_VAR_DIR"] = str(var_dir / f"worker-{index}")
+        first = FIRST_WORKER_PORT + index * PORTS_PER_WORKER
+        env["IOUV_TEST_PORTS"] = f"{first}-{first + PORTS_PER_WORKER - 1}"
+
+
+def _redis_database(url: str, number: int) -> str:
+    """``url`` pointing at Redis database ``number`` instead of the one it names."""
+    parts = urlsplit(url)
+    return urlunsplit(parts._replace(path=f"/{number}"))
+
+
 def on_postgres() -> bool:
     return settings.DATABASES["default"]["ENGINE"].endswith("postgresql")
 
@@ -39,7 +75,11 @@ def on_redis() -> bool:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     skip_pg = pytest.mark.skip(reason="needs PostgreSQL (run bin/test with the server up)")
     skip_redis = pytest.mark.skip(reason="needs Redis (run bin/test with the server up)")
+    chromium = chromium_missing_reason()
+    skip_browser = pytest.mark.skip(reason=chromium or "")
     for item in items:
+        if "browser" in item.keywords and chromium is not None:
+            item.add_marker(skip_browser)
         if "postgres" in item.keywords and not on_postgres():
             item.add_marker(skip_pg)
         if "redis" in item.keywords and not on_redis():

@@ -71,10 +71,9 @@ def chromium_missing_reason() -> str | None:
     return None
 
 
-#: Decorator for browser tests: skipped, with the reason, when Chromium is unavailable.
-needs_chromium = pytest.mark.skipif(
-    chromium_missing_reason() is not None, reason=chromium_missing_reason() or ""
-)
+#: Marks a browser test (the ``browser`` tier: ``bin/test -m "not browser"`` leaves them
+#: out); the suite's conftest skips them, with the reason, when Chromium is unavailable.
+needs_chromium = pytest.mark.browser
 
 
 def launch_options(
