@@ -402,6 +402,28 @@ async def test_go_to_waypoint_on_water_arrives_and_holds_there(rig: Rig):
     await ws.close()
 
 
+async def test_the_boat_sails_100_m_to_a_waypoint_at_the_speed_asked(rig: Rig):
+    """ArduRover answers a speed FAILED unless it already drives to a position (a boat
+    just armed loiters): the adapter sends the position first, then the speed. So a
+    mission's first leg, from a boat holding where it armed, goes at its speed."""
+    ws = await join(rig)
+    await arm(ws)
+    target = offset(ORIGIN, -100, 0)  # south: open water
+    ack = await command(ws, 2, "go_to_waypoint", lat=target[0], lon=target[1], speed_mps=3)
+    assert ack["ok"], ack
+    data = await watch(ws, lambda d: d["speed"] > 2.9, 10, "cruising at 3 m/s")
+    fastest = data["speed"]
+    data = await watch(
+        ws,
+        lambda d: near(d["location"], target, 3) and d["speed"] < 0.1,
+        60,
+        "100 m out, holding",
+    )
+    assert fastest < 3.1 and data["mode"] == "GUIDED"
+    assert rig.boat.stats["refusals"] == 0 and rig.texts("Reached destination") == 1
+    await ws.close()
+
+
 async def test_a_waypoint_across_land_stops_at_the_shore_and_never_on_land(
     make_rig: RigFactory,
 ):

@@ -15,8 +15,9 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from agents.geo import distance_m
+from agents.geo import distance_m, offset
 from agents.vehicles.mavlink.dialect import MAV, mavutil
+from agents.vehicles.mavlink.sim import BOAT_SIM_ORIGIN as BOAT_HOME
 from tests.agents.test_mavlink import HOME, ROOT, start_simulator
 
 GCS_SYSID = 255
@@ -27,9 +28,8 @@ def simulator(*args: str) -> Iterator[Any]:
     """The simulator in its own process, and a pymavlink ground station (system 255)
     talking to it; both closed at the end. Only a heartbeat is sent, so the simulator
     knows where to send: no stream is asked for."""
-    sim = start_simulator(
-        "--listen", "udpin:127.0.0.1:0", "--home", f"{HOME[0]},{HOME[1]}", *args
-    )  # fmt: skip
+    home = () if "--home" in args else ("--home", f"{HOME[0]},{HOME[1]}")
+    sim = start_simulator("--listen", "udpin:127.0.0.1:0", *home, *args)
     gcs = None
     try:
         assert sim.stdout is not None
@@ -259,3 +259,39 @@ def test_the_gcs_failsafe_follows_the_range_of_gcs_ids():
         assert failsafe_texts == 0
         beat = first(gcs, "HEARTBEAT", 5)
         assert beat.base_mode & MAV.MAV_MODE_FLAG_SAFETY_ARMED
+
+
+# --- ArduRover's speed rules -------------------------------------------------------------
+
+
+def reposition(gcs: Any, north_m: float, *, speed: float = -1) -> int:
+    """DO_REPOSITION (COMMAND_INT) ``north_m`` north of home at ``speed`` (-1: none);
+    returns its COMMAND_ACK result."""
+    lat, lon = offset(BOAT_HOME, north_m, 0.0)
+    gcs.mav.command_int_send(
+        1, 1, MAV.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, MAV.MAV_CMD_DO_REPOSITION, 0, 0,
+        speed, MAV.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, 0,
+        round(lat * 1e7), round(lon * 1e7), 0,
+    )  # fmt: skip
+    ack = first(gcs, "COMMAND_ACK", 5, lambda m: m.command == MAV.MAV_CMD_DO_REPOSITION)
+    return int(ack.result)
+
+
+def test_the_boat_takes_a_speed_only_on_its_way_to_a_position_as_ardurover():
+    """ArduRover (Rover/mode_guided.cpp, GCS_MAVLink_Rover.cpp): DO_CHANGE_SPEED, and
+    DO_REPOSITION's own speed, which it sets before the position, are FAILED unless
+    GUIDED already drives to a position; a boat entering GUIDED holds (loiters)."""
+    home = f"{BOAT_HOME[0]},{BOAT_HOME[1]}"
+    with simulator("--vehicle-class", "boat", "--home", home) as gcs:
+        guided = 15
+        assert command(gcs, MAV.MAV_CMD_DO_SET_MODE, 1, guided) == MAV.MAV_RESULT_ACCEPTED
+        assert command(gcs, MAV.MAV_CMD_COMPONENT_ARM_DISARM, 1) == MAV.MAV_RESULT_ACCEPTED
+        change_speed = MAV.MAV_CMD_DO_CHANGE_SPEED
+        assert command(gcs, change_speed, 1, 3, -1) == MAV.MAV_RESULT_FAILED  # holding
+        assert reposition(gcs, 100, speed=3) == MAV.MAV_RESULT_FAILED
+        assert reposition(gcs, 100) == MAV.MAV_RESULT_ACCEPTED
+        assert command(gcs, change_speed, 1, 3, -1) == MAV.MAV_RESULT_ACCEPTED
+        assert reposition(gcs, 120, speed=2) == MAV.MAV_RESULT_ACCEPTED  # on its way now
+        hold = 4
+        assert command(gcs, MAV.MAV_CMD_DO_SET_MODE, 1, hold) == MAV.MAV_RESULT_ACCEPTED
+        assert command(gcs, change_speed, 1, 3, -1) == MAV.MAV_RESULT_FAILED

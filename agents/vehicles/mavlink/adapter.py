@@ -561,17 +561,16 @@ class MavlinkAdapter(Adapter, abc.ABC):
         await self.link.command_long(MAV.MAV_CMD_COMPONENT_ARM_DISARM, (0,))
         self._assume(armed=False)
 
-    async def _reposition(
-        self, lat: float, lon: float, alt: float, *, speed: float | None = None
-    ) -> None:
+    async def _reposition(self, lat: float, lon: float, alt: float) -> None:
         """Go to a position in GUIDED (the caller made sure of GUIDED): DO_REPOSITION
-        (COMMAND_INT, relative altitude), else, from an autopilot that does not know it,
-        SET_POSITION_TARGET_GLOBAL_INT (no ACK exists for it)."""
+        (COMMAND_INT, relative altitude) with no speed of its own, else, from an
+        autopilot that does not know it, SET_POSITION_TARGET_GLOBAL_INT (no ACK exists
+        for it)."""
         try:
             await self.link.command_int(
                 MAV.MAV_CMD_DO_REPOSITION,
                 MAV.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-                (speed or -1, MAV.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan),
+                (-1, MAV.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan),
                 lat,
                 lon,
                 alt,
@@ -589,9 +588,32 @@ class MavlinkAdapter(Adapter, abc.ABC):
             )  # fmt: skip
         self._moving_until = None
 
+    async def _go_to_position(
+        self, lat: float, lon: float, alt: float, *, speed: float | None
+    ) -> None:
+        """Go to a position at ``speed`` (None: the autopilot's cruise speed), in the
+        order ArduPilot takes it: DO_REPOSITION first, then DO_CHANGE_SPEED. ArduRover
+        refuses a speed (DO_CHANGE_SPEED, or DO_REPOSITION's own) unless GUIDED already
+        drives to a position, and ArduCopter ignores DO_REPOSITION's and forgets one
+        sent before it when GUIDED starts flying to a position. A refused speed leaves
+        the vehicle holding where it is, not on its way at its cruise speed, and raises
+        the refusal (AdapterError)."""
+        await self._reposition(lat, lon, alt)
+        if not speed:
+            return
+        try:
+            await self._change_speed(speed)
+        except AdapterError:
+            t = self.t
+            if t.lat is not None and t.lon is not None:
+                with contextlib.suppress(AdapterError):
+                    await self._reposition(t.lat, t.lon, t.alt or alt)
+            raise
+
     async def _change_speed(self, speed: float) -> None:
-        """DO_CHANGE_SPEED (ground speed): the autopilot's cruise speed for positions,
-        returns and later legs (ArduPilot ignores DO_REPOSITION's own speed field)."""
+        """DO_CHANGE_SPEED (ground speed): the autopilot's speed for the position it is
+        going to (and, in RTL, for its return). FAILED where the mode takes none (see
+        :meth:`_go_to_position`)."""
         await self.link.command_long(MAV.MAV_CMD_DO_CHANGE_SPEED, (1, speed, -1, 0))
 
     async def _release_payload(self) -> None:

@@ -9,8 +9,9 @@ take_off(altitude_m)   GUIDED, arm if needed, MAV_CMD_NAV_TAKEOFF
 front/back/left/right  SET_POSITION_TARGET_LOCAL_NED, MAV_FRAME_BODY_OFFSET_NED,
 up/down(speed_mps)     velocity only, yaw rate 0 (hold the heading)
 rotate_left/right      MAV_CMD_CONDITION_YAW, relative, direction -1/+1
-go_to_waypoint         MAV_CMD_DO_CHANGE_SPEED if speed_mps, then MAV_CMD_DO_REPOSITION
-                       (COMMAND_INT, relative altitude)
+go_to_waypoint         MAV_CMD_DO_REPOSITION (COMMAND_INT, relative altitude), then
+                       MAV_CMD_DO_CHANGE_SPEED if speed_mps (ArduCopter forgets a speed
+                       sent before it)
 land                   MAV_CMD_NAV_LAND
 return_to_home         MAV_CMD_NAV_RETURN_TO_LAUNCH
 stop                   zero velocity setpoint (hover) in GUIDED
@@ -313,9 +314,7 @@ class CopterAdapter(MavlinkAdapter):
         self, lat: float, lon: float, alt: float, *, speed: float | None = None
     ) -> None:
         await self._ensure_guided_flight("go_to_waypoint")
-        if speed:
-            await self._change_speed(speed)
-        await self._reposition(lat, lon, alt, speed=speed)
+        await self._go_to_position(lat, lon, alt, speed=speed)
 
     # --- safety ------------------------------------------------------------------------
     async def safe_action(self, action: str) -> None:
@@ -375,9 +374,9 @@ class CopterAdapter(MavlinkAdapter):
         * geofence: a position target ``breach.target`` from the centre on the line to
           where it is, at its altitude (GUIDED); nothing in LAND or RTL (on its way
           down or home);
-        * speed: a zero velocity setpoint if the user's movement is under way, and
-          DO_CHANGE_SPEED to ``breach.target`` (the autopilot's cruise speed for
-          positions, returns and later legs).
+        * speed (GUIDED only: ArduCopter takes no speed in its own modes): a zero
+          velocity setpoint if the user's movement is under way, and DO_CHANGE_SPEED
+          to ``breach.target`` (the speed of the position it flies to).
 
         Flying is what the user's own commands see afterwards, in GUIDED. Raises
         AdapterError when the autopilot refuses (the hub reports it as the action).
@@ -389,7 +388,11 @@ class CopterAdapter(MavlinkAdapter):
         if not t.armed or not self._in_air():
             return "none: not flying"
         if breach.limit == "speed":
-            if moving and t.mode == GUIDED:
+            if t.mode != GUIDED:
+                # ArduCopter takes DO_CHANGE_SPEED in GUIDED and AUTO only; a return
+                # flies at RTL_SPEED.
+                return f"none: {self.mode_name(t.mode)} flies at the autopilot's own speed"
+            if moving:
                 self._moving_until = None
                 self._send_velocity(0.0, 0.0, 0.0)
             await self._change_speed(breach.target)

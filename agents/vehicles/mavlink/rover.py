@@ -11,8 +11,9 @@ forward/backward       SET_POSITION_TARGET_LOCAL_NED, MAV_FRAME_BODY_NED, veloci
 left/right             heading, the yaw rate the turn (ArduRover's
 (rate_deg_s)           set_desired_turn_rate_and_speed); a held "forward" and a held
                        "left" combine into a curve, "left" alone turns on the spot
-go_to_waypoint         MAV_CMD_DO_CHANGE_SPEED if speed_mps, then MAV_CMD_DO_REPOSITION
-                       (COMMAND_INT); ArduRover drives there and stops
+go_to_waypoint         MAV_CMD_DO_REPOSITION (COMMAND_INT, no speed), then
+                       MAV_CMD_DO_CHANGE_SPEED if speed_mps: ArduRover takes a speed only
+                       while it drives to a position; it drives there and holds
 return_to_home         MAV_CMD_NAV_RETURN_TO_LAUNCH (RTL: home, then it holds)
 stop                   zero speed and turn rate in GUIDED
 release_payload        MAV_CMD_DO_SET_SERVO or MAV_CMD_DO_GRIPPER (``payload`` option)
@@ -162,9 +163,8 @@ class RoverAdapter(MavlinkAdapter):
             await self._ensure_guided_drive("go_to_waypoint")
             self._stop_moving()
             speed = min(float(args.get("speed_mps") or 0), self.config.max_speed_mps)
-            if speed:
-                await self._change_speed(speed)
-            await self._reposition(float(args["lat"]), float(args["lon"]), 0.0, speed=speed or None)
+            lat, lon = float(args["lat"]), float(args["lon"])
+            await self._go_to_position(lat, lon, 0.0, speed=speed or None)
         elif name == "release_payload" and self.config.payload is not None:
             await self._release_payload()
         else:
@@ -298,9 +298,10 @@ class RoverAdapter(MavlinkAdapter):
     async def envelope_recover(self, breach: Breach) -> str:
         """Bring the vehicle back inside a limit it crossed, whatever crossed it.
 
-        * speed: stop (a zero setpoint if the user's movement is under way) and
-          DO_CHANGE_SPEED to ``breach.target`` (the cruise speed of its returns and
-          waypoints);
+        * speed: the user's movement under way (velocity setpoints, which ArduRover
+          takes no speed change for): a zero setpoint. Else DO_CHANGE_SPEED to
+          ``breach.target`` (on its way to a waypoint or home); where ArduRover refuses
+          it (holding, loitering), the hold mode;
         * geofence: drive back to ``breach.target`` from the centre, on the line to
           where it is, and hold there (GUIDED); nothing while it returns home;
         * altitude: nothing: it has none.
@@ -316,10 +317,21 @@ class RoverAdapter(MavlinkAdapter):
             return "none: disarmed"
         if breach.limit == "speed":
             if self._moving_until is not None and t.mode == GUIDED:
+                # Driven by the user's setpoints (whose speed the gate caps): ArduRover
+                # takes no speed change then. Stop them.
                 self._stop_moving()
                 self._send_drive(0.0, 0.0)
-            await self._change_speed(breach.target)
-            return f"stop, then {breach.target:.1f} m/s at most"
+                return "stop"
+            try:
+                await self._change_speed(breach.target)
+            except AdapterError as exc:
+                if exc.code != "autopilot_refused":
+                    raise
+                # Holding or loitering (ArduRover takes a speed only on its way to a
+                # position or home): what moves it is no speed of its own. Hold.
+                await self._hold("failsafe")
+                return "hold: the autopilot takes no speed now"
+            return f"{breach.target:.1f} m/s at most"
         if t.mode in (RTL, SMART_RTL):
             return "none: returning home"
         if t.lat is None or t.lon is None:

@@ -14,8 +14,14 @@ What it does, as ArduRover does it for a boat (``docs/vehicles/boat.md``):
   current;
 * RTL, SMART_RTL: straight home at ``RTL_SPEED`` (else ``WP_SPEED``), then it holds
   there as in LOITER (SmartRTL's retracing of the way out is not modelled);
-* DO_CHANGE_SPEED: the speed of positions and returns until the next mode change;
-  velocity setpoints are capped at ``WP_SPEED`` (``CRUISE_SPEED`` when 0);
+* DO_CHANGE_SPEED as ArduRover's ``set_desired_speed`` takes it: accepted while
+  GUIDED drives to a position (its WP sub-mode) and in RTL, SMART_RTL and AUTO, where
+  it is the speed of positions and returns until the next mode change; FAILED
+  everywhere else: GUIDED holding (its Loiter sub-mode: just armed, a position
+  reached, a velocity setpoint timed out) or driven by velocity setpoints, LOITER,
+  HOLD, MANUAL. DO_REPOSITION's own speed (param 1) is set the same way before the
+  position, so it fails unless GUIDED already drives to one. Velocity setpoints are
+  capped at ``WP_SPEED`` (``CRUISE_SPEED`` when 0);
 * the GCS fail-safe (``FS_GCS_ENABLE``): after ``FS_GCS_TIMEOUT`` s of silence (a fixed
   2 s before ArduRover 4.7) and ``FS_TIMEOUT`` s more, ``FS_ACTION``; never in RTL, nor
   in HOLD unless ``FS_OPTIONS`` bit 0;
@@ -55,8 +61,9 @@ from agents.vehicles.mavlink.sim.vehicle import (
 _NUMBER = {name: number for number, name in ROVER_MODES.items()}
 MANUAL, HOLD, LOITER, AUTO = _NUMBER["MANUAL"], _NUMBER["HOLD"], _NUMBER["LOITER"], _NUMBER["AUTO"]
 RTL, SMART_RTL, GUIDED = _NUMBER["RTL"], _NUMBER["SMART_RTL"], _NUMBER["GUIDED"]
-#: Modes that drive by themselves (DO_CHANGE_SPEED is accepted in them).
-AUTONOMOUS = frozenset({GUIDED, LOITER, RTL, SMART_RTL, AUTO})
+#: Modes whose set_desired_speed takes a speed whatever they do (ArduRover's ModeRTL,
+#: ModeSmartRTL, ModeAuto); GUIDED takes one only while it drives to a position.
+SPEED_MODES = frozenset({RTL, SMART_RTL, AUTO})
 #: Modes whose motors the autopilot drives; in the others (HOLD, MANUAL without a
 #: pilot...) the motors are off.
 POWERED = frozenset(
@@ -184,12 +191,17 @@ class Boat(SimVehicle):
                 return MAV.MAV_RESULT_COMMAND_INT_ONLY, None
             return self.reposition(p[4], p[5], speed=p[0], change_mode=bool(int(p[1]) & 1))
         if command == MAV.MAV_CMD_DO_CHANGE_SPEED:
-            if self.mode not in AUTONOMOUS:
-                return failed, None
-            if p[1] > 0:
-                self.nav_speed = float(p[1])
-            return ok, None
+            return (ok, None) if self.set_desired_speed(float(p[1])) else (failed, None)
         return super().command(command, p, z, frame)
+
+    def set_desired_speed(self, speed: float) -> bool:
+        """ArduRover's ``control_mode->set_desired_speed``: False (FAILED) unless the
+        mode takes a speed now (see the module docstring)."""
+        takes = self.mode in SPEED_MODES or (self.mode == GUIDED and self.guided == "wp")
+        if not takes or speed < 0:
+            return False
+        self.nav_speed = speed or None
+        return True
 
     def reposition(
         self, lat: float, lon: float, *, speed: float, change_mode: bool
@@ -206,8 +218,9 @@ class Boat(SimVehicle):
             error = self.set_mode(GUIDED)
             if error:
                 return MAV.MAV_RESULT_FAILED, error
-        if speed > 0:
-            self.nav_speed = float(speed)
+        # ArduRover sets the speed before the position: holding, it has none to take.
+        if speed > 0 and not self.set_desired_speed(float(speed)):
+            return MAV.MAV_RESULT_FAILED, None
         self._go_to(north, east)
         return MAV.MAV_RESULT_ACCEPTED, None
 

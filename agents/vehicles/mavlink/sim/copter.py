@@ -1,13 +1,21 @@
 """The simulated multicopter: ArduCopter's flight modes and kinematics, no I/O.
 
-GUIDED (take-off, velocity and position setpoints, CONDITION_YAW, DO_REPOSITION),
-LAND (fast then slow descent, disarm on touchdown), RTL (climb to ``RTL_ALT``, fly
-home, loiter ``RTL_LOIT_TIME``, land, disarm), BRAKE/LOITER (hold); velocity and
-acceleration limits (``WPNAV_*``), ground contact, auto-disarm after ``DISARM_DELAY`` s
-armed on the ground, battery drain (faster when flying). As in ArduCopter a velocity
+GUIDED (take-off, velocity and position setpoints, CONDITION_YAW, DO_REPOSITION, whose
+speed ArduCopter ignores, and DO_CHANGE_SPEED, taken in GUIDED and AUTO only and
+forgotten when GUIDED starts flying to a position from another sub-mode), LAND (fast
+then slow descent, disarm on touchdown), RTL (climb to ``RTL_ALT``, fly home, loiter
+``RTL_LOIT_TIME``, land, disarm), BRAKE/LOITER (hold at the stopping point); speed
+limits (``WPNAV_SPEED*``), ground contact, auto-disarm after ``DISARM_DELAY`` s armed
+on the ground, battery drain (faster when flying). As in ArduCopter a velocity
 setpoint lapses after ``GUID_TIMEOUT`` s, and one that ignores both yaw and yaw rate
 hands yaw to ``WP_YAW_BEHAVIOR`` (by default the nose turns into the direction of
 travel). The GCS fail-safe acts after ``FS_GCS_TIMEOUT`` s as ``FS_GCS_ENABLE`` says.
+
+Kinematics: every mode's velocity goes through the position controller's jerk-limited
+shaping (:mod:`.shaping`) within ``WPNAV_ACCEL`` and ``WPNAV_ACCEL_Z`` (BRAKE: three
+times the horizontal one) and ``PSC_JERK_XY``/``PSC_JERK_Z`` (``PSC_JERK_NE``/
+``PSC_JERK_D`` from 4.7): a climb at 2.5 m/s takes some 3.4 m to stop, 5 m/s across
+some 6.3 m, as on ArduCopter.
 """
 
 from __future__ import annotations
@@ -70,6 +78,7 @@ class Copter(SimVehicle):
     target_vel: tuple[float, float, float] = (0.0, 0.0, 0.0)
     target_vel_wall: float = 0.0
     target_pos: tuple[float, float, float] | None = None
+    #: DO_CHANGE_SPEED's speed (m/s) for positions in GUIDED; None: WPNAV_SPEED.
     target_speed: float | None = None
     takeoff_alt: float = 0.0
     target_yaw: float | None = None
@@ -148,11 +157,18 @@ class Copter(SimVehicle):
             if self.mode != GUIDED and not int(p[1]) & 1:
                 return failed, "Reposition: not in GUIDED"
             alt = float(z) if frame in (3, 6) else float(z) - self.home_alt_amsl
-            error = self.reposition(p[4], p[5], alt, p[0] if p[0] > 0 else None)
+            # ArduCopter ignores DO_REPOSITION's speed (param 1).
+            error = self.reposition(p[4], p[5], alt)
             return (failed, error) if error else (ok, None)
         if command == MAV.MAV_CMD_DO_CHANGE_SPEED:
-            if p[1] > 0:
-                self.params["WPNAV_SPEED"] = min(2000.0, p[1] * 100.0)
+            # ArduCopter: a speed > 0 for the mode's position controller; only GUIDED
+            # and AUTO take one (set_speed_NE), and GUIDED forgets it when it starts
+            # flying to a position from another sub-mode (pva_control_start).
+            if p[1] <= 0:
+                return MAV.MAV_RESULT_DENIED, None
+            if self.mode not in (GUIDED, AUTO):
+                return failed, None
+            self.target_speed = float(p[1])
             return ok, None
         return super().command(command, p, z, frame)
 
@@ -191,7 +207,7 @@ class Copter(SimVehicle):
         self.look_ahead = False
         return True
 
-    def reposition(self, lat: float, lon: float, alt: float, speed: float | None) -> str | None:
+    def reposition(self, lat: float, lon: float, alt: float) -> str | None:
         if not self.flying:
             return "Reposition: not flying"
         north, east = local_offset_m(self.home, (lat, lon))
@@ -202,7 +218,6 @@ class Copter(SimVehicle):
             if error:
                 return error
         self.guided_position(north, east, alt, yaw=None, yaw_rate=None)
-        self.target_speed = speed if speed and speed > 0 else None
         return None
 
     # --- setpoints --------------------------------------------------------------------
@@ -229,6 +244,8 @@ class Copter(SimVehicle):
     ) -> bool:
         if self.mode != GUIDED or not self.flying:
             return False
+        if self.guided != "position":
+            self.target_speed = None  # WPNAV_SPEED again, as pva_control_start sets it
         self.guided = "position"
         self.target_pos = (north, east, max(0.0, up))
         self._setpoint_yaw(yaw, yaw_rate)
