@@ -18,6 +18,7 @@ import socket
 import struct
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
@@ -371,6 +372,87 @@ async def test_autopilot_refusal_reaches_the_user_in_its_words(make_rig: RigFact
     assert rig.reported("command_refused")[0]["code"] == "autopilot_refused"
     assert ("autopilot_warning", {"severity": 2, "text": "PreArm: GPS: no 3D fix"}) in rig.events
     await ws.close()
+
+
+class ScriptedAutopilot:
+    """A stand-in autopilot on a UDP port (pymavlink, a thread): heartbeats at 5 Hz, and
+    each arming command answered as the test scripted it: ``(texts, result)``, the texts
+    ``(severity, words)`` sent just before the COMMAND_ACK, as ArduPilot does."""
+
+    def __init__(self) -> None:
+        self.conn = mavutil.mavlink_connection(
+            "udpin:127.0.0.1:0", source_system=1, source_component=1
+        )
+        self.port = int(self.conn.port.getsockname()[1])
+        self.script: list[tuple[list[tuple[int, str]], int]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def say(self, severity: int, text: str) -> None:
+        self.conn.mav.statustext_send(severity, text.encode())
+
+    def _run(self) -> None:
+        next_beat = 0.0
+        while not self._stop.is_set():
+            if time.monotonic() >= next_beat:
+                self.conn.mav.heartbeat_send(
+                    MAV.MAV_TYPE_QUADROTOR, MAV.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                    MAV.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4, MAV.MAV_STATE_STANDBY,
+                )  # fmt: skip
+                next_beat = time.monotonic() + 0.2
+            msg = self.conn.recv_match(type="COMMAND_LONG", blocking=True, timeout=0.05)
+            if msg is None:
+                continue
+            result = MAV.MAV_RESULT_ACCEPTED
+            if msg.command == MAV.MAV_CMD_COMPONENT_ARM_DISARM and self.script:
+                texts, result = self.script.pop(0)
+                for severity, text in texts:
+                    self.say(severity, text)
+            self.conn.mav.command_ack_send(msg.command, result)
+
+    def __enter__(self) -> ScriptedAutopilot:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        self.conn.close()
+
+
+async def test_a_refusal_quotes_only_the_autopilots_answer_to_that_command():
+    """ArduPilot explains a refusal in a STATUSTEXT (WARNING or worse) just before its
+    COMMAND_ACK. What else it says meanwhile ("Throttle armed"), or said before the
+    command, is no reason for this refusal."""
+    with ScriptedAutopilot() as autopilot:
+        drone = adapter_create(
+            "mavlink",
+            {"connection": f"udpout:127.0.0.1:{autopilot.port}", "command_timeout_s": 2.0},
+        )
+        assert isinstance(drone, MavlinkAdapter)
+        async with drone:
+            info, critical = MAV.MAV_SEVERITY_INFO, MAV.MAV_SEVERITY_CRITICAL
+            autopilot.script = [
+                ([(info, "Throttle armed")], MAV.MAV_RESULT_FAILED),
+                ([(critical, "Arm: Radio failsafe on")], MAV.MAV_RESULT_TEMPORARILY_REJECTED),
+                ([], MAV.MAV_RESULT_DENIED),
+            ]
+            with pytest.raises(AdapterError) as refused:
+                await drone.execute("arm", {})
+            assert "Throttle armed" not in str(refused.value)
+            assert str(refused.value).endswith("failed (the autopilot tried and could not)")
+            with pytest.raises(AdapterError) as refused:
+                await drone.execute("arm", {})
+            assert str(refused.value).endswith("temporarily rejected (Arm: Radio failsafe on)")
+            # A warning of earlier, then a refusal with no words of its own.
+            autopilot.say(MAV.MAV_SEVERITY_WARNING, "PreArm: Compass not calibrated")
+            await poll(lambda: any("Compass" in t for _, _, t in drone.texts), 5, "the text")
+            with pytest.raises(AdapterError) as refused:
+                await drone.execute("arm", {})
+            assert "Compass" not in str(refused.value)
+            assert str(refused.value).endswith(
+                "denied (the autopilot does not allow it in its current state)"
+            )
 
 
 async def test_unanswered_command_is_a_timeout(make_rig: RigFactory):

@@ -381,6 +381,22 @@ async def test_a_released_key_stops_the_boat_at_once(make_rig: RigFactory):
     await ws.close()
 
 
+async def test_ardurovers_timeout_after_a_stop_is_not_a_warning_for_the_platform(rig: Rig):
+    """A stop is a zero setpoint; 3 s later ArduRover says "target not received last
+    3.0 secs, stopping", as it should once the agent sends no more: no
+    autopilot_warning for that."""
+    ws = await join(rig)
+    await arm(ws)
+    seq, _ = await hold_until(
+        ws, [("forward", {"speed_mps": 1.0})], lambda d: d["speed"] > 0.5, 10, 2, "moving"
+    )
+    assert (await command(ws, seq, "stop"))["ok"]
+    timeout = "target not received last 3secs, stopping"
+    await watch(ws, lambda d: rig.texts(timeout) > 0, 10, "ArduRover's setpoint timeout")
+    assert timeout not in rig.warnings()
+    await ws.close()
+
+
 # --- waypoints, land, home ------------------------------------------------------------------
 
 

@@ -23,8 +23,9 @@ position (None) to users and to the platform.
 Events (:meth:`~agents.vehicles.base.Adapter.emit`): ``autopilot_link_lost``,
 ``autopilot_link_restored``, ``low_battery``, ``autopilot_mode_changed`` (the autopilot
 changed mode by itself, e.g. its own fail-safe), ``autopilot_warning`` (a STATUSTEXT of
-severity WARNING or worse, and an autopilot of another class than the options say),
-``safe_action_failed``.
+severity WARNING or worse, but for one a class expects after what the agent did, e.g.
+ArduRover's setpoint timeout after a stop; and an autopilot of another class than the
+options say), ``safe_action_failed``.
 """
 
 from __future__ import annotations
@@ -378,11 +379,19 @@ class MavlinkAdapter(Adapter, abc.ABC):
 
     def _on_text(self, msg: Any) -> None:
         severity, text = int(msg.severity), statustext(msg)
+        if self._expected_text(text):
+            logger.debug("mavlink: autopilot says %r, as expected", text)
+            return
         now = time.monotonic()
         # The same warning at most every 5 s: autopilots repeat pre-arm texts.
         if severity <= MAV.MAV_SEVERITY_WARNING and now - self._warned_at.get(text, -1e9) > 5.0:
             self._warned_at[text] = now
             self.emit("autopilot_warning", {"severity": severity, "text": text})
+
+    def _expected_text(self, text: str) -> bool:
+        """Whether the autopilot's ``text`` is the expected consequence of what the
+        agent did, not news for the platform. Default: none is."""
+        return False
 
     # --- background loops ------------------------------------------------------------------
     async def _heartbeats(self) -> None:

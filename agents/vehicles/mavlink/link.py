@@ -8,8 +8,11 @@ message to the event loop (``call_soon_threadsafe``), where all state lives, and
 Confirmation: every MAV_CMD waits for its COMMAND_ACK (resent every ``resend_s``, with
 the confirmation counter raised, until ``command_timeout_s``): ACCEPTED is the user's ok;
 any other result raises :class:`~agents.vehicles.base.AdapterError` ``autopilot_refused``
-with the autopilot's words (the result and the STATUSTEXT it sent with it); no answer
-raises ``timeout``; a link found dead meanwhile raises ``autopilot_lost``.
+with the autopilot's words: the result, and the explanation ArduPilot sends just before
+its refusal (a STATUSTEXT of severity WARNING or worse received between the command's
+last sending and its COMMAND_ACK), or none; never an unrelated message that happened to
+come meanwhile ("Throttle armed", a pre-arm text of earlier). No answer raises
+``timeout``; a link found dead meanwhile raises ``autopilot_lost``.
 """
 
 from __future__ import annotations
@@ -47,6 +50,8 @@ class _Pending:
     command: int
     future: asyncio.Future[Any]
     sent_at: float
+    #: When its COMMAND_ACK came (monotonic; texts after it answer something else).
+    acked_at: float = 0.0
 
 
 class AutopilotLink:
@@ -221,6 +226,7 @@ class AutopilotLink:
             return  # an answer to another ground station on the same link
         pending = self._pending.get(int(msg.command))
         if pending is not None and not pending.future.done():
+            pending.acked_at = time.monotonic()
             pending.future.set_result(msg)
 
     def _on_text(self, msg: Any) -> None:
@@ -307,6 +313,7 @@ class AutopilotLink:
             confirmation = 0
             try:
                 self.send(build(confirmation))
+                sent_at = time.monotonic()
                 while True:
                     wait = min(self.config.resend_s, deadline - time.monotonic())
                     try:
@@ -324,6 +331,7 @@ class AutopilotLink:
                         # confirmation counter raised.
                         confirmation = min(255, confirmation + 1)
                         self.send(build(confirmation))
+                        sent_at = time.monotonic()
                         continue
                     if ack.result == MAV.MAV_RESULT_IN_PROGRESS:
                         pending.future = loop.create_future()
@@ -335,13 +343,20 @@ class AutopilotLink:
         if ack.result != MAV.MAV_RESULT_ACCEPTED:
             self.stats["refusals"] += 1
             raise AdapterError(
-                self._refusal(what, int(ack.result), started), code="autopilot_refused"
+                self._refusal(what, int(ack.result), sent_at, pending.acked_at),
+                code="autopilot_refused",
             )
         return ack
 
-    def _refusal(self, what: str, result: int, since: float) -> str:
+    def _refusal(self, what: str, result: int, sent_at: float, acked_at: float) -> str:
+        """The refusal in words: the result, and the autopilot's explanation of it (see
+        the module docstring) or, without one, what the result means."""
         words = RESULT_WORDS.get(result, f"result {result}")
-        texts = [text for at, _, text in self.texts if at >= since - 0.05]
+        texts = [
+            text
+            for at, severity, text in self.texts
+            if sent_at <= at <= acked_at and severity <= MAV.MAV_SEVERITY_WARNING
+        ]
         reason = "; ".join(dict.fromkeys(texts[-2:])) or RESULT_HINTS.get(result, "")
         return f"autopilot refused {what}: {words}" + (f" ({reason})" if reason else "")
 

@@ -243,6 +243,13 @@ class RoverAdapter(MavlinkAdapter):
         if changed and self.link.ok and self.t.armed and self.t.mode == GUIDED:
             self._send_drive(self._speed, self._turn)
 
+    def _expected_text(self, text: str) -> bool:
+        """ArduRover's "target not received last 3.0 secs, stopping" once the agent
+        has stopped sending setpoints (a stop, a key let go): its last setpoint timing
+        out is what it should do. While the user's movement is held the same words mean
+        setpoints are lost on the way, and they go to the platform."""
+        return text.startswith("target not received last") and self._moving_until is None
+
     # --- safety ------------------------------------------------------------------------
     async def _hold(self, owner: str) -> None:
         """Zero speed in GUIDED at once, then the class's hold mode (a boat's LOITER,
