@@ -368,7 +368,22 @@ class ControlHub:
         self._pinger = asyncio.create_task(self._ping_controller(), name="control-pinger")
 
     async def close(self) -> None:
+        """Shut down: with a task current, the vehicle performs the task's fail-safe
+        action first (the agent is stopping, SIGTERM or Ctrl-C: nobody will control the
+        vehicle), then the users are dropped and everything stops."""
         await self._envelope_stop()
+        current = self.task
+        if current is not None:
+            action = current.limits.failsafe_action
+            log.warning("shutting down during session %s: %s", current.session_id, action)
+            self._override(f"the agent's shutdown performed {action}")
+            try:
+                async with self._exec:
+                    await self.adapter.safe_action(action)
+            except Exception:  # the rest of the shutdown must happen whatever
+                log.exception("the shutdown's safe action %s failed", action)
+            else:
+                log.warning("shutdown: %s under way", action)
         for client in list(self.clients.values()):
             await self._drop(client, 1001, "agent shutting down")
         if self.rtc is not None:

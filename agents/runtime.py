@@ -5,7 +5,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Mapping
+import signal
+from collections.abc import Callable, Coroutine, Mapping
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -384,15 +385,49 @@ def _server_authenticated(url: str) -> bool:
 
 
 async def agent_run(config: AgentConfig) -> None:
-    """Run one agent until cancelled (Ctrl-C)."""
+    """Run one agent until cancelled (Ctrl-C, SIGTERM)."""
     await Agent(config).run()
 
 
+def run_until_stopped(main: Callable[[], Coroutine[Any, Any, None]]) -> None:
+    """Run ``main()`` until it returns or the process is told to stop: SIGINT (Ctrl-C)
+    and SIGTERM (what systemd and container runtimes send) alike cancel it, so that
+    every agent's exit stack runs: the vehicle performs its shutdown action (the task's
+    fail-safe action while a task is current, else the adapter's own). A second signal
+    during that is ignored: the shutdown finishes, bounded by the service manager's
+    stop timeout."""
+
+    async def guarded() -> None:
+        task = asyncio.current_task()
+        assert task is not None
+        loop = asyncio.get_running_loop()
+        stopping = False
+
+        def stop(signum: signal.Signals) -> None:
+            nonlocal stopping
+            if stopping:
+                log.warning("%s again: the shutdown is under way", signum.name)
+                return
+            stopping = True
+            log.warning("%s: shutting down", signum.name)
+            task.cancel()
+
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            # Not every platform has loop signal handlers (Windows): Ctrl-C then stays
+            # asyncio.run's own, which cancels the task too.
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                loop.add_signal_handler(signum, stop, signum)
+        await main()
+
+    with contextlib.suppress(KeyboardInterrupt, asyncio.CancelledError):
+        asyncio.run(guarded())
+
+
 def agents_run_forever(configs: list[AgentConfig]) -> None:
-    """Run several agents in one process (simulated fleets) until interrupted."""
+    """Run several agents in one process (simulated fleets) until stopped (SIGINT,
+    SIGTERM: see :func:`run_until_stopped`)."""
 
     async def main() -> None:
         await asyncio.gather(*(Agent(c).run() for c in configs))
 
-    with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(main())
+    run_until_stopped(main)

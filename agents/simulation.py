@@ -23,7 +23,7 @@ from types import ModuleType
 from typing import Any
 
 from agents.config import AgentConfig
-from agents.runtime import Agent
+from agents.runtime import Agent, run_until_stopped
 from agents.vehicles.base import Adapter, Simulation
 from agents.vehicles.registry import UnknownIntegration, adapter_create, integration
 
@@ -69,13 +69,13 @@ async def agent_simulated_run(config: AgentConfig) -> None:
 
 
 def fleet_run_forever(configs: list[AgentConfig]) -> None:
-    """Run a simulated agent per config in this process until interrupted."""
+    """Run a simulated agent per config in this process until stopped (SIGINT, SIGTERM:
+    each vehicle performs its shutdown action, see :func:`run_until_stopped`)."""
 
     async def main() -> None:
         await asyncio.gather(*(agent_simulated_run(config) for config in configs))
 
-    with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(main())
+    run_until_stopped(main)
 
 
 def simulator_cli(name: str, argv: list[str]) -> int:

@@ -135,6 +135,8 @@ class MavlinkAdapter(Adapter, abc.ABC):
         #: Which name the autopilot has for its GCS system id (``MAV_GCS_SYSID`` or
         #: ``SYSID_MYGCS``), once :meth:`check_failsafe_params` found out; else None.
         self.gcs_sysid_param: str | None = None
+        #: A safe action was performed and no command came since (see :meth:`close`).
+        self.safe_action_done = False
         #: How the vehicle brakes: the firmware's defaults until the autopilot's own
         #: limits are read at start (see :mod:`.braking`).
         self.kinematics = kinematics_default(self.vehicle_class, self.config)
@@ -230,10 +232,13 @@ class MavlinkAdapter(Adapter, abc.ABC):
 
     async def close(self) -> None:
         """Leave the vehicle safe (``close_action`` while it is flying or under way and
-        reachable), then stop the loops and close the link. Idempotent."""
+        reachable, unless a safe action, such as the task's fail-safe on the agent's
+        shutdown, was performed since the last command: that one stands), then stop the
+        loops and close the link. Idempotent."""
         if (
             self.link.conn is not None
             and self.config.close_action != "none"
+            and not self.safe_action_done
             and self.link.ok
             and self._busy()
         ):

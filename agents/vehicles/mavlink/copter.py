@@ -171,6 +171,7 @@ class CopterAdapter(MavlinkAdapter):
         ``autopilot_mode`` (checked here before anything is sent), ``not_ready``,
         ``unknown_command``.
         """
+        self.safe_action_done = False
         self._require_link(name)
         body = BODY_AXES.get(name)
         if body is not None:
@@ -327,6 +328,7 @@ class CopterAdapter(MavlinkAdapter):
         Disarmed: nothing to do. Without a link to the autopilot nothing can be sent:
         the autopilot's own GCS fail-safe (see :meth:`check_failsafe_params`) acts.
         """
+        self.safe_action_done = True
         self._moving_until = None
         self._yaw_target = None
         try:

@@ -133,6 +133,7 @@ class RoverAdapter(MavlinkAdapter):
         while moving), ``low_battery`` / ``autopilot_mode`` (checked before anything
         is sent), ``not_ready``, ``unknown_command``.
         """
+        self.safe_action_done = False
         self._require_link(name)
         now = time.monotonic()
         hold = self.config.setpoint_hold_s
@@ -274,6 +275,7 @@ class RoverAdapter(MavlinkAdapter):
         to do. Without a link nothing can be sent: the autopilot's own GCS fail-safe
         (see :meth:`check_failsafe_params`) acts.
         """
+        self.safe_action_done = True
         self._stop_moving()
         try:
             if not self.link.ok:
