@@ -323,25 +323,46 @@ class Agent:
         if self.missions is not None:
             # After task_accepted: the platform hears the task before its mission events.
             self.missions.task_accepted(task)
-        job = asyncio.create_task(self._check_failsafe(task))
-        self._checks.add(job)
-        job.add_done_callback(self._checks.discard)
+        self._spawn_check(self._check_failsafe(task))
 
     def _task_ended(self, task: VehicleTask) -> None:
         if self.missions is not None:
             self.missions.task_ended(task)
+        self._spawn_check(self._fence_clear(task))
+
+    def _spawn_check(self, coro: Coroutine[Any, Any, None]) -> None:
+        job = asyncio.create_task(coro)
+        self._checks.add(job)
+        job.add_done_callback(self._checks.discard)
 
     async def _check_failsafe(self, task: VehicleTask) -> None:
         """Does the vehicle's own fail-safe (an autopilot's) agree with the task? Report
-        if not (see :meth:`Adapter.check_failsafe_params`)."""
+        if not (see :meth:`Adapter.check_failsafe_params`). Then the task's limits go to
+        the vehicle's own fence, the second line (:meth:`Adapter.fence_set`), reported as
+        ``autopilot_fence_failed`` when that fails."""
+        limits = task.limits
         try:
             problems = await self.adapter.check_failsafe_params(
-                task.limits.failsafe_action, max_altitude_m=task.limits.max_altitude_m
+                limits.failsafe_action, max_altitude_m=limits.max_altitude_m
             )
         except Exception as exc:  # a parameter read failing is itself worth reporting
             problems = [f"could not read the autopilot's fail-safe parameters: {exc}"]
         if problems:
             self.report("failsafe_mismatch", task.session_id, {"problems": list(problems)})
+        fence = await self.adapter.fence_set(
+            limits.failsafe_action,
+            max_altitude_m=limits.max_altitude_m,
+            geofence_center=limits.geofence_center,
+            geofence_radius_m=limits.geofence_radius_m,
+        )
+        if fence:
+            self.report("autopilot_fence_failed", task.session_id, {"problems": fence})
+
+    async def _fence_clear(self, task: VehicleTask) -> None:
+        """The task ended: the vehicle's own fence goes back to what it was."""
+        problems = await self.adapter.fence_clear()
+        if problems:
+            self.report("autopilot_fence_failed", task.session_id, {"problems": problems})
 
 
 class _RelayLink:

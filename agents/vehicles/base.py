@@ -14,7 +14,8 @@ What every adapter shares is here and in :mod:`agents.vehicles.kit` (the option 
 * the abstract methods every adapter implements, and the optional hooks with their
   defaults (:meth:`Adapter.neutral`, :meth:`Adapter.envelope_recover`,
   :meth:`Adapter.project`, :meth:`Adapter.braking`, :meth:`Adapter.stop_motion`,
-  :meth:`Adapter.check_failsafe_params`, the event sink
+  :meth:`Adapter.check_failsafe_params`, :meth:`Adapter.fence_set` and
+  :meth:`Adapter.fence_clear`, the event sink
   :attr:`Adapter.on_event` with :meth:`Adapter.emit`, :meth:`Adapter.video_source`);
 * the simulator hook's contract (:class:`Simulation`): an integration's simulator
   module offers ``simulation(options)``, an async context manager that starts the
@@ -324,6 +325,28 @@ class Adapter(abc.ABC):
         starts. Returns the mismatches in words ([] when they agree); the agent reports
         them as ``failsafe_mismatch``. Default: [] (no fail-safe of its own: the
         agent's is the vehicle's)."""
+        return []
+
+    async def fence_set(
+        self,
+        action: str,
+        *,
+        max_altitude_m: float | None = None,
+        geofence_center: tuple[float, float] | None = None,
+        geofence_radius_m: float | None = None,
+    ) -> list[str]:
+        """Hand a task's ceiling and geofence to the vehicle's own fence (an
+        autopilot's), a margin outside the agent's, with the task's fail-safe
+        ``action`` as its breach action: the second line, which holds when the agent
+        does not (dead, hung, cut off). Called when a task starts. Returns the problems
+        in words ([] when it is set, or when the vehicle has no fence of its own); the
+        agent reports them as ``autopilot_fence_failed``. Never raises. Default: []."""
+        return []
+
+    async def fence_clear(self) -> list[str]:
+        """Undo :meth:`fence_set` when the task ends (not when the agent stops: the
+        fence is then what holds the vehicle). Returns the problems in words. Never
+        raises. Default: []."""
         return []
 
     def emit(self, name: str, data: dict[str, Any]) -> None:

@@ -6,7 +6,8 @@ A real deployment's processes: the simulated ArduCopter on its own
 vehicle), a stand-in platform that gives it a task, a browser's controller that flies
 it, and a second ground station that watches the autopilot's mode. The task's action is
 ``land`` (the adapter's own ``close_action`` is ``return_to_home``): the autopilot must
-land, not return.
+land, not return. The task's ceiling, handed to the autopilot's fence at its start,
+stays there: the agent is gone.
 """
 
 from __future__ import annotations
@@ -57,6 +58,7 @@ class Platform:
         self.port = 0
         self.control_url: asyncio.Future[str] = asyncio.get_running_loop().create_future()
         self.accepted = asyncio.Event()
+        self.events: list[str] = []
 
     async def handler(self, ws: ServerConnection) -> None:
         hello = json.loads(await ws.recv())
@@ -72,6 +74,8 @@ class Platform:
                     self.control_url.set_result(msg["control_url"])
                 elif msg["type"] == "task_accepted":
                     self.accepted.set()
+                elif msg["type"] == "event":
+                    self.events.append(msg["event"])
 
 
 def make_task() -> str:
@@ -155,9 +159,9 @@ def logged_at(line: str) -> float:
     return datetime.strptime(stamp.group(1), "%Y-%m-%d %H:%M:%S,%f").timestamp()
 
 
-async def modes_seen(address: str, until: int, within: float) -> list[int]:
+async def modes_seen(address: str, until: int, within: float) -> tuple[list[int], float]:
     """The autopilot's modes as another ground station (system 200) sees them in its
-    heartbeats, until ``until`` shows."""
+    heartbeats, until ``until`` shows; and its FENCE_ENABLE then."""
     observer = mavutil.mavlink_connection(address, source_system=200)
     modes: list[int] = []
     try:
@@ -169,9 +173,13 @@ async def modes_seen(address: str, until: int, within: float) -> list[int]:
             )
             if beat is not None and beat.type == MAV.MAV_TYPE_QUADROTOR:
                 modes.append(int(beat.custom_mode))
+        observer.mav.param_request_read_send(1, 1, b"FENCE_ENABLE", -1)
+        value = await asyncio.to_thread(
+            observer.recv_match, type="PARAM_VALUE", blocking=True, timeout=5
+        )
     finally:
         observer.close()
-    return modes
+    return modes, -1.0 if value is None else float(value.param_value)
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
@@ -198,7 +206,7 @@ async def test_a_stopped_agent_leaves_the_vehicle_doing_the_tasks_safe_action(
             await watch(ws, lambda d: (d["altitude"] or 0) > 5, 20, "6 m")
             signalled = time.time()
             agent.send_signal(signum)
-            modes = await modes_seen(autopilot, LAND, 15)
+            modes, fence = await modes_seen(autopilot, LAND, 15)
             code = await asyncio.to_thread(agent.wait, 30)
         finally:
             if agent.poll() is None:
@@ -207,6 +215,8 @@ async def test_a_stopped_agent_leaves_the_vehicle_doing_the_tasks_safe_action(
     log = log_path.read_text()
     assert code == 0, log
     assert LAND in modes and RTL not in modes, (modes, log)
+    # The task's ceiling went to the autopilot's fence at its start, and stays there.
+    assert "autopilot_fence_set" in platform.events and fence == 1
     [done] = [line for line in log.splitlines() if "shutdown: land under way" in line]
     took = logged_at(done) - signalled
     print(f"\n{signum.name} in flight: the task's land acknowledged {took * 1000:.0f} ms later")

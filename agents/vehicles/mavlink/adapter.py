@@ -25,7 +25,8 @@ Events (:meth:`~agents.vehicles.base.Adapter.emit`): ``autopilot_link_lost``,
 changed mode by itself, e.g. its own fail-safe), ``autopilot_warning`` (a STATUSTEXT of
 severity WARNING or worse, but for one a class expects after what the agent did, e.g.
 ArduRover's setpoint timeout after a stop; and an autopilot of another class than the
-options say), ``safe_action_failed``.
+options say), ``safe_action_failed``, ``autopilot_fence_set`` (the autopilot's fence
+set from a task's limits: see :mod:`.fence`).
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ from agents.vehicles.mavlink.dialect import (
     statustext,
 )
 from agents.vehicles.mavlink.failsafe import failsafe_problems
+from agents.vehicles.mavlink.fence import FenceState, fence_clear, fence_set, fence_words
 from agents.vehicles.mavlink.link import AutopilotLink
 from agents.vehicles.mavlink.vocabulary import mavlink_vocabulary, telemetry_topics
 
@@ -135,6 +137,9 @@ class MavlinkAdapter(Adapter, abc.ABC):
         #: Which name the autopilot has for its GCS system id (``MAV_GCS_SYSID`` or
         #: ``SYSID_MYGCS``), once :meth:`check_failsafe_params` found out; else None.
         self.gcs_sysid_param: str | None = None
+        #: The autopilot's fence the agent set for the task, and what it replaced.
+        self._fence = FenceState()
+        self._fence_lock = asyncio.Lock()
         #: A safe action was performed and no command came since (see :meth:`close`).
         self.safe_action_done = False
         #: How the vehicle brakes: the firmware's defaults until the autopilot's own
@@ -729,6 +734,44 @@ class MavlinkAdapter(Adapter, abc.ABC):
         if found is not None:
             self.gcs_sysid_param = found
         return problems
+
+    async def fence_set(
+        self,
+        action: str,
+        *,
+        max_altitude_m: float | None = None,
+        geofence_center: tuple[float, float] | None = None,
+        geofence_radius_m: float | None = None,
+    ) -> list[str]:
+        """The autopilot's fence from the task's limits (see :mod:`.fence`); what was
+        set goes to the platform as ``autopilot_fence_set``. Never raises."""
+        try:
+            # One at a time: a task's end and the next one's start may overlap.
+            async with self._fence_lock:
+                values, problems = await fence_set(
+                    self.link, self.vehicle_class, action,
+                    max_altitude_m=max_altitude_m, geofence_center=geofence_center,
+                    geofence_radius_m=geofence_radius_m, home=self.t.home, state=self._fence,
+                )  # fmt: skip
+        except Exception as exc:  # a fence half set is reported, never raised
+            logger.exception("mavlink: setting the autopilot's fence failed")
+            return [f"setting the autopilot's fence failed: {exc}"]
+        if values and not problems:
+            logger.info("mavlink: the autopilot's fence is %s", values)
+            self.emit("autopilot_fence_set", fence_words(values))
+        return problems
+
+    async def fence_clear(self) -> list[str]:
+        """Put the autopilot's fence back as it was before the task (see
+        :mod:`.fence`). Never raises."""
+        try:
+            async with self._fence_lock:
+                if not self._fence.previous and not self._fence.uploaded:
+                    return []
+                return await fence_clear(self.link, self._fence)
+        except Exception as exc:
+            logger.exception("mavlink: clearing the autopilot's fence failed")
+            return [f"clearing the autopilot's fence failed: {exc}"]
 
     async def read_param(self, name: str) -> float:
         """One autopilot parameter. Raises AdapterError ``timeout`` or ``autopilot_lost``."""

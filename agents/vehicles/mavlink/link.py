@@ -85,6 +85,7 @@ class AutopilotLink:
         self._stop = threading.Event()
         self._pending: dict[int, _Pending] = {}
         self._param_waiters: dict[str, list[asyncio.Future[float]]] = {}
+        self._answer_waiters: list[tuple[str, Callable[[Any], bool], asyncio.Future[Any]]] = []
         self._command_lock = asyncio.Lock()
 
     # --- lifecycle ---------------------------------------------------------------------
@@ -216,6 +217,9 @@ class AutopilotLink:
                     for future in self._param_waiters.pop(param_name(msg.param_id), []):
                         if not future.done():
                             future.set_result(float(msg.param_value))
+                for wanted, match, future in list(self._answer_waiters):
+                    if wanted == kind and not future.done() and match(msg):
+                        future.set_result(msg)
             self.on_message(msg)
         except Exception:
             logger.exception("mavlink: error handling %s", msg.get_type())
@@ -389,3 +393,58 @@ class AutopilotLink:
             waiters = self._param_waiters.get(name, [])
             if future in waiters:
                 waiters.remove(future)
+
+    async def set_param(self, name: str, value: float) -> float:
+        """PARAM_SET ``name`` to ``value``, resent until the autopilot echoes it in a
+        PARAM_VALUE (ArduPilot's acknowledgement) within ``command_timeout_s``; returns
+        the value it took. Raises AdapterError ``timeout`` (an autopilot without the
+        parameter says nothing) or ``autopilot_lost``."""
+        target = self.target_or_default()
+
+        def build() -> Any:
+            return MAV.MAVLink_param_set_message(
+                target[0], target[1], name.encode(), float(value), MAV.MAV_PARAM_TYPE_REAL32
+            )
+
+        answer = await self.request(
+            build,
+            "PARAM_VALUE",
+            lambda m: param_name(m.param_id) == name,
+            what=f"setting {name}",
+        )
+        return float(answer.param_value)
+
+    async def request(
+        self,
+        build: Callable[[], Any],
+        answer: str,
+        match: Callable[[Any], bool],
+        *,
+        what: str,
+        timeout_s: float | None = None,
+    ) -> Any:
+        """Send ``build()`` and resend it every ``resend_s`` until the autopilot's
+        ``answer`` message for which ``match`` holds; returns it. Raises AdapterError
+        ``timeout`` after ``timeout_s`` (``command_timeout_s``) or ``autopilot_lost``."""
+        self.require(what)
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[Any] = loop.create_future()
+        waiter = (answer, match, future)
+        self._answer_waiters.append(waiter)
+        timeout = self.config.command_timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout
+        try:
+            while True:
+                self.send(build())
+                wait = min(self.config.resend_s, deadline - time.monotonic())
+                try:
+                    return await asyncio.wait_for(asyncio.shield(future), max(0.01, wait))
+                except TimeoutError:
+                    if time.monotonic() >= deadline:
+                        raise AdapterError(
+                            f"the autopilot did not answer {what} within {timeout:g} s",
+                            code="timeout",
+                        ) from None
+                    self.require(what)
+        finally:
+            self._answer_waiters.remove(waiter)

@@ -24,6 +24,9 @@ IoUV agent uses (``docs/vehicles/quadcopter.md``, ``docs/vehicles/boat.md``):
 * the GCS fail-safe's clock: the last heartbeat of the GCS (``SYSID_MYGCS``, or from 4.7
   ``MAV_GCS_SYSID``..``MAV_GCS_SYSID_HI``), after which silence the vehicle model
   acts (:meth:`~.vehicle.SimVehicle.gcs_failsafe`);
+* the fence (:mod:`.fence`): its parameters, its upload, download and clearing with the
+  mission protocol for ``MAV_MISSION_TYPE_FENCE``, its check at 25 Hz and ArduPilot's
+  breach action, a FENCE_STATUS when its state changes;
 * MISSION_REQUEST_LIST answered with an empty mission, TIMESYNC.
 
 Time: ``speedup`` runs the vehicle's physics (and the delays measured in its time: RTL
@@ -32,7 +35,7 @@ Everything about the link stays on the wall clock: heartbeats, stream rates, set
 timeouts and the GCS fail-safe, because the peer sends at wall-clock rates; so does the
 time to the first GPS fix, which is not flight.
 
-Not modelled: missions (MISSION_COUNT is always 0), RC input, wind, terrain, EKF
+Not modelled: missions (a mission's MISSION_COUNT is always 0), RC input, wind, terrain, EKF
 variances, signing.
 """
 
@@ -50,6 +53,7 @@ from typing import Any
 from agents.vehicles.mavlink.dialect import MAV, mavutil, param_name
 from agents.vehicles.mavlink.sim.boat import Boat
 from agents.vehicles.mavlink.sim.copter import Copter
+from agents.vehicles.mavlink.sim.fence import FenceTransfer, fence_breach_type
 from agents.vehicles.mavlink.sim.messages import STREAMABLE, Clocks, heartbeat, message
 from agents.vehicles.mavlink.sim.params import DEFAULT_FIRMWARE, FIRMWARES, firmware_params
 from agents.vehicles.mavlink.sim.vehicle import CommandResult, PositionTarget, SimVehicle, wrap360
@@ -79,6 +83,8 @@ DATA_STREAMS[0] = tuple(m for ms in DATA_STREAMS.values() for m in ms)  # ALL
 DEFAULT_STREAM_RATE_HZ = 1.0
 MAX_STREAM_HZ = 50.0
 PHYSICS_HZ = 50.0
+#: How often the fence is checked (ArduCopter: 25 Hz).
+FENCE_HZ = 25.0
 #: MAV_CMD_COMPONENT_ARM_DISARM's param 2 that forces a disarm.
 FORCE_DISARM = 21196
 
@@ -178,6 +184,8 @@ class Autopilot:
         self.gcs_last: float | None = None  # wall time of the last heartbeat of the GCS
         self.gcs_failsafe = False
         self.peers: dict[tuple[int, int], float] = {}
+        self.fence_transfer = FenceTransfer(self.vehicle.fence, options.home)
+        self.next_fence_check = 0.0
         if options.stream_rate_hz > 0:
             for name in DATA_STREAMS[0]:
                 interval = 1.0 / min(options.stream_rate_hz, MAX_STREAM_HZ)
@@ -233,6 +241,7 @@ class Autopilot:
                 self.vehicle.gps_fix = self.options.gps_fix
                 self.vehicle.satellites = self.options.satellites
             self.vehicle.step(dt, now)
+            self._fence_check(now)
             self._gcs_failsafe(now)
             if now >= next_heartbeat:
                 self._send(heartbeat(self.vehicle, critical=self.gcs_failsafe))
@@ -468,12 +477,33 @@ class Autopilot:
                 self._stream(name, None)
 
     def _on_mission_request_list(self, msg: Any) -> None:
-        if self._for_me(msg):
-            self._send(
-                MAV.MAVLink_mission_count_message(
-                    msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type
-                )
+        if not self._for_me(msg):
+            return
+        if msg.mission_type == MAV.MAV_MISSION_TYPE_FENCE:
+            self._send_all(self.fence_transfer.request_list(msg))
+            return
+        self._send(
+            MAV.MAVLink_mission_count_message(
+                msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type
             )
+        )
+
+    def _fence_message(self, msg: Any, answer: Callable[[Any], list[Any]]) -> None:
+        """A message of the fence's mission protocol (others are not modelled)."""
+        if self._for_me(msg) and msg.mission_type == MAV.MAV_MISSION_TYPE_FENCE:
+            self._send_all(answer(msg))
+
+    def _on_mission_count(self, msg: Any) -> None:
+        self._fence_message(msg, self.fence_transfer.count)
+
+    def _on_mission_item_int(self, msg: Any) -> None:
+        self._fence_message(msg, self.fence_transfer.item)
+
+    def _on_mission_request_int(self, msg: Any) -> None:
+        self._fence_message(msg, self.fence_transfer.request)
+
+    def _on_mission_clear_all(self, msg: Any) -> None:
+        self._fence_message(msg, self.fence_transfer.clear)
 
     def _on_timesync(self, msg: Any) -> None:
         if msg.tc1 == 0:
@@ -492,6 +522,11 @@ class Autopilot:
         "PARAM_SET": _on_param_set,
         "REQUEST_DATA_STREAM": _on_request_data_stream,
         "MISSION_REQUEST_LIST": _on_mission_request_list,
+        "MISSION_COUNT": _on_mission_count,
+        "MISSION_ITEM_INT": _on_mission_item_int,
+        "MISSION_REQUEST_INT": _on_mission_request_int,
+        "MISSION_REQUEST": _on_mission_request_int,
+        "MISSION_CLEAR_ALL": _on_mission_clear_all,
         "TIMESYNC": _on_timesync,
     }
 
@@ -515,6 +550,27 @@ class Autopilot:
             self.conn.mav.send(msg)
         except Exception as exc:  # a TCP peer gone, a serial port pulled
             log.debug("mavlink sim: send failed: %s", exc)
+
+    def _send_all(self, messages: list[Any]) -> None:
+        for msg in messages:
+            self._send(msg)
+
+    def _fence_check(self, now: float) -> None:
+        """ArduCopter checks its fence at 25 Hz; a change goes out as FENCE_STATUS."""
+        if now < self.next_fence_check:
+            return
+        self.next_fence_check = now + 1.0 / FENCE_HZ
+        if self.vehicle.fence_check():
+            self._send_texts()  # "... fence breached" before the status
+            fence = self.vehicle.fence
+            self._send(
+                MAV.MAVLink_fence_status_message(
+                    int(fence.breached != 0),
+                    fence.breach_count,
+                    fence_breach_type(fence.breached),
+                    fence.breach_time_ms,
+                )
+            )
 
     def _send_texts(self) -> None:
         while self.vehicle.texts:

@@ -44,6 +44,7 @@ from agents.geo import local_offset_m, offset
 from agents.geography import land_at
 from agents.vehicles.mavlink.classes import BOAT, MAV_TYPE_SURFACE_BOAT, ROVER_MODES
 from agents.vehicles.mavlink.dialect import MAV
+from agents.vehicles.mavlink.sim.fence import GIVE_UP_DISTANCE_M
 from agents.vehicles.mavlink.sim.vehicle import (
     BODY_FRAMES,
     OFFSET_FRAMES,
@@ -317,6 +318,17 @@ class Boat(SimVehicle):
             if self.set_mode(mode) is None:
                 break
         return True
+
+    # --- the fence -------------------------------------------------------------------
+    def _fence_breached(self, action: int, distance: float) -> None:
+        """ArduRover's fence_check (see :mod:`.fence`)."""
+        if distance > GIVE_UP_DISTANCE_M:
+            self._modes_in_turn("HOLD")
+        elif action == 5:
+            self.disarm(force=True)
+        else:
+            modes = {2: ("HOLD",), 3: ("SMART_RTL", "RTL", "HOLD"), 4: ("SMART_RTL", "HOLD")}
+            self._modes_in_turn(*modes.get(action, ("RTL", "HOLD")))
 
     # --- physics ----------------------------------------------------------------------
     def step(self, dt: float, wall: float) -> None:

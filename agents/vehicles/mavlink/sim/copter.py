@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from agents.geo import local_offset_m
 from agents.vehicles.mavlink.classes import COPTER
 from agents.vehicles.mavlink.dialect import MAV
+from agents.vehicles.mavlink.sim.fence import ALT_MAX, GIVE_UP_DISTANCE_M
 from agents.vehicles.mavlink.sim.shaping import (
     position_speed,
     position_velocity_xy,
@@ -328,6 +329,30 @@ class Copter(SimVehicle):
             self.set_mode(LAND)
         return True
 
+    # --- the fence -------------------------------------------------------------------
+    def _fence_breached(self, action: int, distance: float) -> None:
+        """ArduCopter's fence_check: landed, disarm; more than 100 m out, LAND; else as
+        FENCE_ACTION says (see :mod:`.fence`)."""
+        if self.landed:
+            self.disarm(force=True)
+        elif distance > GIVE_UP_DISTANCE_M:
+            self._modes_in_turn("LAND")
+        else:
+            modes = {
+                2: ("LAND",),
+                3: ("SMART_RTL", "RTL", "LAND"),
+                4: ("BRAKE", "LAND"),
+                5: ("SMART_RTL", "LAND"),
+            }
+            self._modes_in_turn(*modes.get(action, ("RTL", "LAND")))
+
+    def _rtl_alt_cap(self) -> float | None:
+        """With the altitude fence enabled, ArduCopter's return stays FENCE_MARGIN under
+        FENCE_ALT_MAX (ModeRTL::compute_return_target)."""
+        if self.p("FENCE_ENABLE") and int(self.p("FENCE_TYPE")) & ALT_MAX:
+            return self.p("FENCE_ALT_MAX") - self.p("FENCE_MARGIN")
+        return None
+
     # --- physics ----------------------------------------------------------------------
     def step(self, dt: float, wall: float) -> None:
         """Advance the flight by ``dt`` seconds of flight time (``wall``: wall clock), in
@@ -475,13 +500,17 @@ class Copter(SimVehicle):
 
     def _rtl(self) -> tuple[float, float, float]:
         rtl_alt = max(self.p("RTL_ALT") / 100.0, self.up + self.p("RTL_CLIMB_MIN") / 100.0)
+        cap = self._rtl_alt_cap()
+        if cap is not None:
+            rtl_alt = min(rtl_alt, cap)
         if self.rtl_stage == "climb":
             if math.hypot(self.north, self.east) < 2.0:
                 self.rtl_stage = "loiter"  # already home: no need to climb
                 self.rtl_loiter_until = self.sim_time + self.p("RTL_LOIT_TIME") / 1000.0
             elif self.up >= rtl_alt - 0.2:
                 self.rtl_stage = "return"
-                self.hold = (0.0, 0.0, self.up)
+                # Above the fence's cap (it was breached): back down to it on the way.
+                self.hold = (0.0, 0.0, self.up if cap is None else min(self.up, rtl_alt))
             else:
                 self.hold = (self.north, self.east, rtl_alt)
                 return self._towards(self.hold)

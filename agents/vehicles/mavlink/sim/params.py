@@ -40,6 +40,12 @@ COPTER_PARAMS: Mapping[str, tuple[float, bool]] = {
     "BATT_CAPACITY": (5200, True),
     "BATT_ARM_VOLT": (0.0, False),
     "PILOT_TKOFF_ALT": (0.0, False),
+    "FENCE_ENABLE": (0, True),
+    "FENCE_TYPE": (7, True),
+    "FENCE_ACTION": (1, True),
+    "FENCE_ALT_MAX": (100.0, False),
+    "FENCE_RADIUS": (300.0, False),
+    "FENCE_MARGIN": (2.0, False),
 }
 
 #: ArduRover 4.5 with FRAME_CLASS 2, a boat (Rover/Parameters.cpp, AR_WPNav,
@@ -68,6 +74,11 @@ BOAT_PARAMS: Mapping[str, tuple[float, bool]] = {
     "ATC_STR_ACC_MAX": (120.0, False),
     "ARMING_CHECK": (1, True),
     "BATT_CAPACITY": (5200, True),
+    "FENCE_ENABLE": (0, True),
+    "FENCE_TYPE": (6, True),
+    "FENCE_ACTION": (1, True),
+    "FENCE_RADIUS": (300.0, False),
+    "FENCE_MARGIN": (2.0, False),
 }
 
 #: The simulated vehicles (a ``vehicle_class`` of :mod:`..classes`) -> their firmware's

@@ -22,6 +22,7 @@ from typing import ClassVar
 from agents.geo import offset
 from agents.vehicles.mavlink.classes import VehicleClass
 from agents.vehicles.mavlink.dialect import MAV
+from agents.vehicles.mavlink.sim.fence import SimFence, fence_names
 
 #: SET_POSITION_TARGET_* type_mask bits; a bit set means "ignore this field".
 TYPE_MASK_POS = 0b111
@@ -114,6 +115,7 @@ class SimVehicle(abc.ABC):
     sim_time: float = 0.0
     payload_released: bool = False
     texts: deque[tuple[int, str]] = field(default_factory=lambda: deque(maxlen=32))
+    fence: SimFence = field(default_factory=SimFence)
 
     # --- helpers ----------------------------------------------------------------------
     @property
@@ -257,6 +259,36 @@ class SimVehicle(abc.ABC):
         """The GCS is silent past :meth:`gcs_failsafe_after_s` while armed: act as the
         firmware's parameters say. False when the firmware holds off for now (ArduRover
         in RTL): the autopilot asks again at its next step."""
+
+    # --- the fence ---------------------------------------------------------------------
+    def fence_check(self) -> bool:
+        """Check the fence (see :mod:`.fence`) and act on a new breach; True when its
+        state changed (FENCE_STATUS is due)."""
+        before = self.fence.breached
+        new, distance = self.fence.check(
+            self.params, self.north, self.east, self.up, flies=self.VEHICLE_CLASS.flies
+        )
+        if not self.armed:
+            return self.fence.breached != before
+        if new:
+            self.fence.breach_time_ms = int(self.sim_time * 1000)
+            if self.active:
+                self.say(MAV.MAV_SEVERITY_NOTICE, f"{fence_names(new)} breached")
+            if int(self.p("FENCE_ACTION")) != 0:
+                self._fence_breached(int(self.p("FENCE_ACTION")), distance)
+        elif before and not self.fence.breached and self.active:
+            self.say(MAV.MAV_SEVERITY_NOTICE, "Fence breach cleared")
+        return self.fence.breached != before
+
+    @abc.abstractmethod
+    def _fence_breached(self, action: int, distance: float) -> None:
+        """A new breach, ``distance`` m out: do what FENCE_ACTION ``action`` says."""
+
+    def _modes_in_turn(self, *names: str) -> None:
+        """The first of the modes ``names`` it can switch to."""
+        for name in names:
+            if self.set_mode(self.VEHICLE_CLASS.mode_number(name)) is None:
+                return
 
     # --- physics ----------------------------------------------------------------------
     @abc.abstractmethod
