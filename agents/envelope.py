@@ -19,7 +19,8 @@ against ``max_speed_mps``), :func:`band_for` gives three distances:
 * **margin**: the recovery aims this far inside the limit (``Breach.target``; never
   further out than the vehicle is);
 * the breach ends (``restored``) once the value has stayed at least half the margin
-  inside the limit for ``RESTORE_S``.
+  inside the limit for ``RESTORE_S`` (and, for a vehicle that says how it brakes, so has
+  where it would come to rest).
 
 **On its way out.** A vehicle that reports its velocity
 (:attr:`~agents.vehicles.base.VehicleState.velocity`) and says how it brakes
@@ -244,7 +245,8 @@ class Envelope:
                     "breach", self._breach(name, track, value, rest if heading_out else None)
                 )
             return None
-        if value <= band.restore_below:
+        # Inside, and not on its way out again (braking now it would still rest inside).
+        if max(value, rest or value) <= band.restore_below:
             if track.inside_since is None:
                 track.inside_since = now
             if now - track.inside_since >= RESTORE_S:

@@ -112,7 +112,13 @@ def test_a_vehicle_that_could_no_longer_stop_inside_is_caught_on_its_way_out():
     across = Braking(horizontal=Stopping(decel_mps2=2.5, reaction_s=0.4))
     [step] = fence.update(out, 0.0, across)
     assert step.breach.limit == "geofence" and step.breach.rest == pytest.approx(41.5, abs=0.01)
-    # ... but not when it comes back.
+    # Still heading out, it is not back inside, however long it stays under the limit.
+    later = [fence.update(out, 0.5 + t / 10, across) for t in range(30)]
+    assert not any(later) and fence.breached == ["geofence"]
+    still = VehicleState(lat=lat, lon=lon, velocity=(0.0, 0.0, 0.0))
+    steps = [s.kind for t in range(15) for s in fence.update(still, 4.0 + t / 10, across)]
+    assert steps == ["restored"]
+    # ... and nothing when it comes back.
     back = VehicleState(lat=lat, lon=lon, velocity=(-5.0, 0.0, 0.0))
     assert (
         Envelope(Limits(geofence_center=CENTRE, geofence_radius_m=40)).update(back, 0.0, across)

@@ -666,3 +666,96 @@ async def test_the_copter_is_still_the_default_and_flies():
             await drone.execute("take_off", {"altitude_m": 2})
             await poll(lambda: (drone.t.alt or 0) > 1.8, 10, "2 m")
             assert drone.t.mav_type == MAV.MAV_TYPE_QUADROTOR and drone.state().alt is not None
+
+
+# --- limits, measured at real speed ------------------------------------------------------
+
+#: Stated in docs/vehicles/boat.md: a boat at 4 m/s with ``forward`` held ends at most
+#: this far outside its geofence (it stops the fence's margin inside it) ...
+BOAT_FENCE_MARGIN_M = 1.0
+#: ... and one sent out at 4 m/s by another ground station at most this far.
+BOAT_UNCOMMANDED_FENCE_MARGIN_M = 2.5
+
+
+class Farthest:
+    """The boat's greatest distance from ``centre``, sampled every 20 ms."""
+
+    def __init__(self, boat: MavlinkAdapter, centre: tuple[float, float]) -> None:
+        self.boat, self.centre, self.value = boat, centre, 0.0
+        self._task: asyncio.Task[None] | None = None
+
+    async def _run(self) -> None:
+        while True:
+            here = self.boat.state().position
+            if here is not None:
+                self.value = max(self.value, distance_m(self.centre, here))
+            await asyncio.sleep(0.02)
+
+    async def __aenter__(self) -> Farthest:
+        self._task = asyncio.create_task(self._run())
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        assert self._task is not None
+        self._task.cancel()
+
+
+async def test_a_held_forward_key_stops_the_boat_inside_its_fence(make_rig: RigFactory):
+    radius = 40.0
+    task = make_task(geofence_center=ORIGIN, geofence_radius_m=radius)
+    rig = await make_rig(task, simulator={"speedup": 1, "heading_deg": 180})  # south: water
+    ws = await join(rig)
+    await arm(ws)
+    seq, refused, accepted_after = 2, 0, 0
+    async with Farthest(rig.boat, ORIGIN) as farthest:
+        end = time.monotonic() + 25
+        while time.monotonic() < end:
+            ack = await command(ws, seq, "forward", speed_mps=4.0)
+            seq += 1
+            refused += not ack["ok"]
+            accepted_after += bool(refused and ack["ok"])
+            if not ack["ok"]:
+                assert ack["code"] == "geofence", ack
+            await asyncio.sleep(0.1)
+        await watch(ws, lambda d: d["speed"] < 0.05, 15, "stopped")
+    print(f"\nboat, forward at 4 m/s to a {radius:g} m fence: farthest {farthest.value:.2f} m")
+    assert refused and accepted_after == 0
+    assert farthest.value <= radius + BOAT_FENCE_MARGIN_M, farthest.value
+    assert not rig.reported("envelope_breach")
+    await ws.close()
+
+
+async def test_sent_out_by_another_ground_station_the_boat_is_caught_on_its_way(
+    make_rig: RigFactory,
+):
+    radius = 40.0
+    task = make_task(geofence_center=ORIGIN, geofence_radius_m=radius)
+    rig = await make_rig(task, max_speed_mps=4, simulator={"speedup": 1, "heading_deg": 180})
+    ws = await join(rig)
+    await arm(ws)
+    gcs = mavutil.mavlink_connection(rig.boat.config.connection, source_system=200)
+    try:
+        async with Farthest(rig.boat, ORIGIN) as farthest:
+            lat, lon = offset(ORIGIN, -150.0, 0.0)
+            gcs.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            gcs.mav.command_int_send(
+                1, 1, MAV.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, MAV.MAV_CMD_DO_REPOSITION, 0, 0,
+                -1, MAV.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, 0,
+                round(lat * 1e7), round(lon * 1e7), 0,
+            )  # fmt: skip
+            await watch(ws, lambda d: bool(rig.reported("envelope_breach")), 60, "the envelope")
+            await watch(
+                ws,
+                lambda d: distance_m(ORIGIN, point(d["location"])) < radius and d["speed"] < 0.1,
+                60,
+                "back inside, holding",
+            )
+    finally:
+        gcs.close()
+    [breach] = rig.reported("envelope_breach")
+    print(
+        f"\nboat sent out at 4 m/s by another ground station, {radius:g} m fence: caught at "
+        f"{breach['value']:.2f} m, at most {farthest.value:.2f} m out"
+    )
+    assert farthest.value <= radius + BOAT_UNCOMMANDED_FENCE_MARGIN_M, farthest.value
+    await ws.close()
