@@ -80,10 +80,21 @@ from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
+import pytest
+
 from benchmarks.turn_server import TurnServer, TurnServerError, turn_server
 
 NatMode = Literal["eim", "symmetric"]
 NAT_MODES: tuple[NatMode, ...] = ("eim", "symmetric")
+
+
+def nat(vehicle: NatMode, user: NatMode) -> Any:
+    """For a test: parametrizes its ``lab`` fixture (tests/integration/conftest.py) with
+    the NAT modes of the two sites, the vehicle's and the user's."""
+    return pytest.mark.parametrize(
+        "lab", [{"vehicle": vehicle, "user": user}], indirect=True, ids=[f"{vehicle}-{user}"]
+    )
+
 
 #: Public subnets a lab may take, in order of preference: the /26s of the RFC 5737
 #: documentation ranges (a lab needs 1 + number of sites addresses).

@@ -29,7 +29,7 @@ from typing import Any
 import pytest
 
 from services.ice import turn_credentials
-from tests.netlab import NatMode, NetLab, Turn, ensure_packages, leftovers, netlab_available
+from tests.netlab import NetLab, Turn, ensure_packages, leftovers, nat, netlab_available
 from tests.netlab_peer import PeerProcess, connect_peers
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -62,27 +62,6 @@ def _packages_and_final_check(tmp_path_factory: pytest.TempPathFactory) -> Itera
     ensure_packages("iptables", "coturn", log_path=tmp_path_factory.mktemp("apt") / "apt.log")
     yield
     assert not leftovers(), leftovers()
-
-
-def nat(vehicle: NatMode, user: NatMode) -> Any:
-    """Parametrizes the ``lab`` fixture with the NAT modes of the two sites."""
-    return pytest.mark.parametrize(
-        "lab", [{"vehicle": vehicle, "user": user}], indirect=True, ids=[f"{vehicle}-{user}"]
-    )
-
-
-@pytest.fixture
-def lab(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[NetLab]:
-    """A lab with the sites of the test's ``nat`` (logs in tmp_path). Teardown asserts
-    that nothing of it is left: close() raises on leftovers, and they are looked for
-    again here, after the peers and coturn (torn down first) are gone."""
-    lab = NetLab(nat=request.param, workdir=tmp_path / "lab")
-    lab.open()
-    yield lab
-    try:
-        lab.close()
-    finally:
-        assert not leftovers(lab.tag)
 
 
 @pytest.fixture

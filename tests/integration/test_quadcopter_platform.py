@@ -19,14 +19,17 @@ from websockets.asyncio.client import connect
 
 from agents.geo import distance_m
 from agents.runtime import Agent
-from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
-from services.assignment import session_request
-from services.deployment import session_deploy
-from services.models import Session
 from tests import factories as f
 from tests.agents.test_control import command, recv
 from tests.servers import agent_simulated, db, platform_process, until
+from tests.vehicles import (
+    QUADCOPTER,
+    agent_registered,
+    session_deployed,
+    unintentional_end_recorded,
+    vehicle_served,
+)
 
 pytestmark = [
     pytest.mark.postgres,
@@ -50,26 +53,18 @@ DRONE_COMMANDS = [
 ]
 
 
-def _fleet() -> tuple[Vehicle, str, Any]:
-    station = f.station()
-    quad_type = f.vehicle_type("aerial", "mavlink", name="MAVLink quadcopter")
-    quad = f.vehicle(
-        station=station, vtype=quad_type, name="quad-1", online=False, features=["gps"]
-    )
-    service = f.service(
-        "fly-drone",
-        roles=[{"name": "vehicle", "kinds": ["aerial"], "min_battery": 20}],
-        allowed_commands=DRONE_COMMANDS,
-        failsafe_action="return_to_home",
-        link_loss_timeout_ms=500,
-        max_altitude_m=30,
-    )
-    return quad, vehicle_issue_credential(vehicle=quad), service
-
-
 @pytest.fixture
 async def running() -> AsyncIterator[tuple[Agent, Vehicle, Any]]:
-    quad, credential, service = await db(_fleet)
+    quad, credential, service = await db(
+        vehicle_served,
+        "quad-1",
+        QUADCOPTER,
+        service="fly-drone",
+        commands=DRONE_COMMANDS,
+        failsafe_action="return_to_home",
+        attributes={"features": ["gps"]},
+        max_altitude_m=30,
+    )
     with platform_process() as base:
         async with agent_simulated(
             base=base,
@@ -88,23 +83,11 @@ async def running() -> AsyncIterator[tuple[Agent, Vehicle, Any]]:
 async def test_fly_then_browser_dies_drone_returns_home_and_platform_records_it(running):
     agent, quad, service = running
 
-    async def registered() -> bool:
-        v = await db(Vehicle.objects.get, pk=quad.pk)
-        return v.status == Vehicle.Status.IDLE and bool(v.control_url) and v.lat is not None
-
-    await until(registered, within=20, what="the drone's agent to register with a position")
-    vehicle = await db(Vehicle.objects.get, pk=quad.pk)
+    vehicle = await agent_registered(quad, within=20, positioned=True)
     assert {c["name"] for c in vehicle.profile["commands"]} >= set(DRONE_COMMANDS)
     assert "autopilot_link" in vehicle.profile["telemetry"]
 
-    user = await db(f.user, "alice")
-    session = await db(session_request, user=user, service=service, target=f.HOME)
-    user_task = await db(session_deploy, session=session)
-
-    async def task_arrived() -> bool:
-        return agent.hub is not None and agent.hub.task is not None
-
-    await until(task_arrived, what="the task to reach the agent")
+    session, user_task = await session_deployed(agent, service)
     assert agent.hub is not None and agent.hub.task is not None
     assert agent.hub.task.limits.failsafe_action == "return_to_home"
 
@@ -145,13 +128,7 @@ async def test_fly_then_browser_dies_drone_returns_home_and_platform_records_it(
     assert drone.t.alt is not None and drone.t.alt < 0.3
     assert distance_m(f.HOME, (drone.t.lat, drone.t.lon)) < 2
 
-    async def recorded() -> list[tuple[str, dict[str, Any]]]:
-        events = await db(
-            lambda: list(Session.objects.get(pk=session.pk).events.values_list("kind", "data"))
-        )
-        return events if any(kind == "unintentional_end" for kind, _ in events) else []
-
-    events = await until(recorded, what="the platform to record the unintentional end")
+    events = await unintentional_end_recorded(session)
     kinds = [kind for kind, _ in events]
     assert kinds.index("task_deployed") < kinds.index("unintentional_end")
     [end] = [data for kind, data in events if kind == "unintentional_end"]

@@ -33,12 +33,12 @@ from benchmarks.nginx_proxy import (
     Rule,
     nginx_binary,
 )
-from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
 from services.models import Session
 from tests import factories as f
 from tests.agents.test_control import command, recv
 from tests.servers import agent_running, db, platform_process, until
+from tests.vehicles import CAR, vehicle_served
 
 pytestmark = [
     pytest.mark.postgres,
@@ -57,24 +57,18 @@ class World:
 
 
 def _world() -> World:
-    station = f.station()
-    car = f.vehicle(
-        station=station,
-        vtype=f.vehicle_type("ground", "car", name="Raspberry Pi car"),
-        name="car-1",
-        online=False,
-        environments=["land"],
-    )
-    f.service(
-        "drive-car",
-        roles=[{"name": "vehicle", "kinds": ["ground"]}],
-        allowed_commands=CAR_COMMANDS,
+    car, credential, _ = vehicle_served(
+        "car-1",
+        CAR,
+        service="drive-car",
+        commands=CAR_COMMANDS,
         failsafe_action="stop",
-        link_loss_timeout_ms=500,
+        min_battery=None,
+        attributes={"environments": ["land"]},
     )
     return World(
         car=car,
-        credential=vehicle_issue_credential(vehicle=car),
+        credential=credential,
         client_token=token_issue(user=f.user("alice"), name="test"),
         monitor_token=token_issue(user=f.user("mona", roles=(MONITOR,)), name="test"),
     )

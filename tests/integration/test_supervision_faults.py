@@ -43,6 +43,7 @@ from tests.servers import (
     redis_server_process,
     until,
 )
+from tests.vehicles import CAR, vehicle_served
 
 pytestmark = [
     pytest.mark.postgres,
@@ -60,23 +61,15 @@ TIMERS = {
 
 
 def _fleet(cap: int = 1) -> tuple[Vehicle, str, Any]:
-    station = f.station()
-    car = f.vehicle(
-        station=station,
-        vtype=f.vehicle_type("ground", "car", name="Raspberry Pi car"),
-        name="car-1",
-        online=False,
-        environments=["land"],
-    )
-    service = f.service(
-        "drive-car",
-        roles=[{"name": "vehicle", "kinds": ["ground"], "min_battery": 20}],
-        allowed_commands=CAR_COMMANDS,
+    return vehicle_served(
+        "car-1",
+        CAR,
+        service="drive-car",
+        commands=CAR_COMMANDS,
         failsafe_action="stop",
-        link_loss_timeout_ms=500,
+        attributes={"environments": ["land"]},
         max_sessions_per_user=cap,
     )
-    return car, vehicle_issue_credential(vehicle=car), service
 
 
 @pytest.fixture

@@ -20,14 +20,18 @@ from websockets.asyncio.client import connect
 
 from agents.runtime import Agent
 from agents.vehicles.spektrum.adapter import SpektrumAdapter
-from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
-from services.assignment import session_request
-from services.deployment import session_deploy
-from services.models import Session
 from tests import factories as f
 from tests.agents.test_spektrum import FAST, command, recv
-from tests.servers import agent_simulated, db, platform_process, until
+from tests.servers import agent_simulated, db, platform_process
+from tests.vehicles import (
+    VTOL,
+    agent_registered,
+    session_active,
+    session_deployed,
+    unintentional_end_recorded,
+    vehicle_served,
+)
 
 pytestmark = [
     pytest.mark.postgres,
@@ -50,30 +54,17 @@ VTOL_COMMANDS = [
 ]
 
 
-def _fleet() -> tuple[Vehicle, str, Any]:
-    station = f.station()
-    vtol_type = f.vehicle_type("hybrid", "spektrum", name="Spektrum VTOL plane")
-    plane = f.vehicle(
-        station=station,
-        vtype=vtol_type,
-        name="vtol-1",
-        online=False,
-        environments=["air", "land"],
-        features=["gps"],
-    )
-    service = f.service(
-        "fly-vtol",
-        roles=[{"name": "vehicle", "kinds": ["hybrid"], "min_battery": 20}],
-        allowed_commands=VTOL_COMMANDS,
-        failsafe_action="land",
-        link_loss_timeout_ms=500,
-    )
-    return plane, vehicle_issue_credential(vehicle=plane), service
-
-
 @pytest.fixture
 async def running() -> AsyncIterator[tuple[Agent, Vehicle, Any, Any]]:
-    plane, credential, service = await db(_fleet)
+    plane, credential, service = await db(
+        vehicle_served,
+        "vtol-1",
+        VTOL,
+        service="fly-vtol",
+        commands=VTOL_COMMANDS,
+        failsafe_action="land",
+        attributes={"environments": ["air", "land"], "features": ["gps"]},
+    )
     with platform_process() as base:
         async with agent_simulated(
             base=base,
@@ -92,33 +83,17 @@ async def running() -> AsyncIterator[tuple[Agent, Vehicle, Any, Any]]:
 async def test_register_deploy_fly_and_link_loss_lands(running: Any) -> None:
     agent, plane, service, sim = running
 
-    async def registered() -> bool:
-        v = await db(Vehicle.objects.get, pk=plane.pk)
-        return v.status == Vehicle.Status.IDLE and bool(v.control_url)
-
-    await until(registered, what="the agent to register")
-    vehicle = await db(Vehicle.objects.get, pk=plane.pk)
+    vehicle = await agent_registered(plane)
     assert vehicle.control_url == agent.control_url
     assert {c["name"] for c in vehicle.profile["commands"]} >= set(VTOL_COMMANDS)
     assert vehicle.profile["adapter"] == "spektrum"
 
-    client_user = await db(f.user, "alice")
-    session = await db(session_request, user=client_user, service=service, target=f.HOME)
-    user_task = await db(session_deploy, session=session)
-
-    async def task_arrived() -> bool:
-        return agent.hub is not None and agent.hub.task is not None
-
-    await until(task_arrived, what="the task to reach the agent")
+    session, user_task = await session_deployed(agent, service)
     ws = await connect(user_task.control_url, proxy=None, compression=None)
     await ws.send(json.dumps({"type": "auth", "grant": user_task.grant}))
     assert (await recv(ws, "welcome"))["role"] == "controller"
 
-    async def active() -> bool:
-        s = await db(Session.objects.get, pk=session.pk)
-        return s.state == Session.State.ACTIVE
-
-    await until(active, what="the platform to see the user connected")
+    await session_active(session)
 
     adapter = agent.adapter
     assert isinstance(adapter, SpektrumAdapter)
@@ -146,13 +121,7 @@ async def test_register_deploy_fly_and_link_loss_lands(running: Any) -> None:
     assert state["alt"] == 0.0 and not state["armed"] and state["hard_landings"] == 0
     assert adapter.controls.landings == 1
 
-    async def recorded() -> list[tuple[str, dict[str, Any]]]:
-        events = await db(
-            lambda: list(Session.objects.get(pk=session.pk).events.values_list("kind", "data"))
-        )
-        return events if any(kind == "unintentional_end" for kind, _ in events) else []
-
-    events = await until(recorded, what="the platform to record the unintentional end")
+    events = await unintentional_end_recorded(session)
     kinds = [kind for kind, _ in events]
     assert kinds.index("task_deployed") < kinds.index("unintentional_end")
     end = next(data for kind, data in events if kind == "unintentional_end")

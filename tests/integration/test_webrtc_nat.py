@@ -46,7 +46,6 @@ from typing import Any
 import pytest
 from django.utils import timezone
 
-from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
 from services.assignment import session_request
 from services.deployment import session_deploy
@@ -54,14 +53,14 @@ from services.models import Session, SessionEvent
 from services.signing import platform_public_key_pem
 from tests import factories as f
 from tests.browser import chromium_missing_reason
-from tests.netlab import NatMode, NetLab, Turn, ensure_packages, leftovers, netlab_available
+from tests.netlab import NetLab, Turn, ensure_packages, leftovers, nat, netlab_available
 from tests.netlab_browser import BrowserProcess
 from tests.servers import platform_process
+from tests.vehicles import CAR, CAR_COMMANDS, vehicle_served
 
 ROOT = Path(__file__).resolve().parents[2]
 TURN_SECRET = "nat-test-secret"
 PASSWORD = "pw-for-tests"  # tests.factories.user's
-CAR_COMMANDS = ["forward", "backward", "left", "right", "stop", "camera_up", "camera_down"]
 #: The service's link-loss timeout. Long enough that a loaded machine never trips the
 #: fail-safe by itself (the page sends a keepalive every 100 ms), short for case 4.
 LINK_LOSS_MS = 2000
@@ -93,24 +92,6 @@ def _packages_and_final_check(tmp_path_factory: pytest.TempPathFactory) -> Itera
     assert reason is None, reason
     yield
     assert not leftovers(), leftovers()
-
-
-def nat(vehicle: NatMode, user: NatMode) -> Any:
-    """Parametrizes the ``lab`` fixture with the NAT modes of the two sites."""
-    return pytest.mark.parametrize(
-        "lab", [{"vehicle": vehicle, "user": user}], indirect=True, ids=[f"{vehicle}-{user}"]
-    )
-
-
-@pytest.fixture
-def lab(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[NetLab]:
-    lab = NetLab(nat=request.param, workdir=tmp_path / "lab")
-    lab.open()
-    try:
-        yield lab
-    finally:
-        lab.close()
-        assert not leftovers(lab.tag)
 
 
 def wait_until(predicate: Callable[[], Any], *, within: float, what: str) -> Any:
@@ -189,25 +170,6 @@ class World:
         return _tail(self.logs / "agent.log", chars)
 
 
-def _fleet() -> tuple[Vehicle, str, Any]:
-    car = f.vehicle(
-        station=f.station(),
-        vtype=f.vehicle_type("ground", "car", name="Raspberry Pi car"),
-        name="car-nat",
-        online=False,
-        environments=["land"],
-        features=["camera_arm"],
-    )
-    service = f.service(
-        "drive-car-nat",
-        roles=[{"name": "vehicle", "kinds": ["ground"], "min_battery": 20}],
-        allowed_commands=CAR_COMMANDS,
-        failsafe_action="stop",
-        link_loss_timeout_ms=LINK_LOSS_MS,
-    )
-    return car, vehicle_issue_credential(vehicle=car), service
-
-
 @pytest.fixture
 def world(lab: NetLab, tmp_path: Path) -> Iterator[World]:
     logs = tmp_path / "logs"
@@ -224,7 +186,15 @@ def world(lab: NetLab, tmp_path: Path) -> Iterator[World]:
             "SECURE_COOKIES": "0",
         }
         base = stack.enter_context(platform_process(host=lab.public_ip, extra_env=env))
-        car, credential, service = _fleet()
+        car, credential, service = vehicle_served(
+            "car-nat",
+            CAR,
+            service="drive-car-nat",
+            commands=CAR_COMMANDS,
+            failsafe_action="stop",
+            link_loss_timeout_ms=LINK_LOSS_MS,
+            attributes={"environments": ["land"], "features": ["camera_arm"]},
+        )
         user = f.user("alice")
         configs = tmp_path / "agents"
         configs.mkdir()

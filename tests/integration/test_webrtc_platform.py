@@ -12,52 +12,36 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import AsyncIterator
-from typing import Any
 
 import pytest
 
 from agents.runtime import Agent
 from benchmarks.rtc_client import RtcClientError, RtcControlClient
-from fleet.credentials import vehicle_issue_credential
-from fleet.models import Vehicle
-from services.assignment import session_request
-from services.deployment import session_deploy
 from services.models import Session, SessionEvent
 from tests import factories as f
 from tests.servers import agent_running, db, platform_process, until
+from tests.vehicles import CAR, CAR_COMMANDS, agent_registered, session_deployed, vehicle_served
 
 pytestmark = [
     pytest.mark.postgres,
     pytest.mark.redis,
     pytest.mark.django_db(transaction=True),
 ]
-CAR_COMMANDS = ["forward", "backward", "left", "right", "stop", "camera_up", "camera_down"]
-
-
-def _fleet() -> tuple[Vehicle, str, Any]:
-    car = f.vehicle(
-        station=f.station(),
-        vtype=f.vehicle_type("ground", "car", name="Raspberry Pi car"),
-        name="car-rtc",
-        online=False,
-        environments=["land"],
-        features=["camera_arm"],
-    )
-    service = f.service(
-        "drive-car-rtc",
-        roles=[{"name": "vehicle", "kinds": ["ground"], "min_battery": 20}],
-        allowed_commands=CAR_COMMANDS,
-        failsafe_action="stop",
-        link_loss_timeout_ms=500,
-    )
-    return car, vehicle_issue_credential(vehicle=car), service
 
 
 @pytest.fixture
 async def deployed() -> AsyncIterator[tuple[str, Agent, Session, str]]:
     """A car agent registered on a running platform and a session deployed on it:
     (relay URL, agent, session, the owner's grant)."""
-    car, credential, service = await db(_fleet)
+    car, credential, service = await db(
+        vehicle_served,
+        "car-rtc",
+        CAR,
+        service="drive-car-rtc",
+        commands=CAR_COMMANDS,
+        failsafe_action="stop",
+        attributes={"environments": ["land"], "features": ["camera_arm"]},
+    )
     with platform_process() as base:
         async with agent_running(
             base=base,
@@ -66,25 +50,10 @@ async def deployed() -> AsyncIterator[tuple[str, Agent, Session, str]]:
             adapter="car",
             options={"camera_arm": True, "origin": [f.HOME[0], f.HOME[1]]},
         ) as agent:
-
-            async def registered() -> bool:
-                v = await db(Vehicle.objects.get, pk=car.pk)
-                return v.status == Vehicle.Status.IDLE
-
-            await until(registered, what="the agent to register")
-            alice = await db(f.user, "alice")
-            session = await db(session_request, user=alice, service=service, target=f.HOME)
-            task = await db(session_deploy, session=session)
-            await until(
-                lambda: _true(agent.hub is not None and agent.hub.task is not None),
-                what="the task to reach the agent",
-            )
+            await agent_registered(car)
+            session, task = await session_deployed(agent, service)
             relay_url = f"{base.replace('http', 'ws')}/ws/relay/{session.pk}/"
             yield relay_url, agent, session, task.grant
-
-
-async def _true(value: bool) -> bool:
-    return value
 
 
 async def _session(session: Session) -> Session:

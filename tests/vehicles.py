@@ -1,0 +1,124 @@
+"""One vehicle on a running platform, as the platform's integration tests drive it: its
+rows, and the steps of a session on it, each waited for.
+
+:func:`vehicle_served` makes the rows: a vehicle of one of the types below, offline at a
+station of its own until its agent registers, the service whose sessions control it,
+and the credential its agent dials in with. The steps (:func:`agent_registered`,
+:func:`session_deployed`, :func:`session_active`, :func:`unintentional_end_recorded`)
+return once the platform or the agent shows that they happened.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from agents.runtime import Agent
+from fleet.credentials import vehicle_issue_credential
+from fleet.models import Vehicle
+from services.assignment import session_request
+from services.deployment import UserTask, session_deploy
+from services.models import Service, Session
+from tests import factories as f
+from tests.servers import db, until
+
+#: The vehicle types, as (kind, adapter, name).
+CAR = ("ground", "car", "Raspberry Pi car")
+QUADCOPTER = ("aerial", "mavlink", "MAVLink quadcopter")
+VTOL = ("hybrid", "spektrum", "Spektrum VTOL plane")
+
+#: Every command of the car's adapter.
+CAR_COMMANDS = ["forward", "backward", "left", "right", "stop", "camera_up", "camera_down"]
+
+
+def vehicle_served(
+    name: str,
+    vtype: tuple[str, str, str],
+    *,
+    service: str,
+    commands: list[str],
+    failsafe_action: str,
+    min_battery: int | None = 20,
+    link_loss_timeout_ms: int = 500,
+    attributes: dict[str, Any] | None = None,
+    **service_fields: Any,
+) -> tuple[Vehicle, str, Service]:
+    """Vehicle ``name`` of type ``vtype`` (:data:`CAR`...), offline at a new station,
+    with ``attributes`` (tests.factories.vehicle's); the service of slug ``service``
+    whose one role takes a vehicle of that kind (with ``min_battery`` % at least, unless
+    None), allowing ``commands``, with ``failsafe_action`` after
+    ``link_loss_timeout_ms`` and ``service_fields``; and the vehicle's credential."""
+    kind, adapter, type_name = vtype
+    vehicle = f.vehicle(
+        station=f.station(),
+        vtype=f.vehicle_type(kind, adapter, name=type_name),
+        name=name,
+        online=False,
+        **(attributes or {}),
+    )
+    role: dict[str, Any] = {"name": "vehicle", "kinds": [kind]}
+    if min_battery is not None:
+        role["min_battery"] = min_battery
+    served = f.service(
+        service,
+        roles=[role],
+        allowed_commands=commands,
+        failsafe_action=failsafe_action,
+        link_loss_timeout_ms=link_loss_timeout_ms,
+        **service_fields,
+    )
+    return vehicle, vehicle_issue_credential(vehicle=vehicle), served
+
+
+async def agent_registered(
+    vehicle: Vehicle, *, within: float = 10, positioned: bool = False
+) -> Vehicle:
+    """Wait until ``vehicle``'s agent has registered: the vehicle idle with its control
+    URL (and with a position, if ``positioned``). Returns the vehicle's row then."""
+
+    async def registered() -> Vehicle | None:
+        v = await db(Vehicle.objects.get, pk=vehicle.pk)
+        done = v.status == Vehicle.Status.IDLE and bool(v.control_url)
+        return v if done and (v.lat is not None or not positioned) else None
+
+    where = " with a position" if positioned else ""
+    return await until(registered, within=within, what=f"the agent to register{where}")
+
+
+async def session_deployed(
+    agent: Agent, service: Service, *, username: str = "alice"
+) -> tuple[Session, UserTask]:
+    """A new client ``username``'s session of ``service`` towards tests.factories.HOME,
+    requested and deployed; returned, with its user task, once the task has reached
+    ``agent``."""
+    user = await db(f.user, username)
+    session = await db(session_request, user=user, service=service, target=f.HOME)
+    user_task = await db(session_deploy, session=session)
+
+    async def task_arrived() -> bool:
+        return agent.hub is not None and agent.hub.task is not None
+
+    await until(task_arrived, what="the task to reach the agent")
+    return session, user_task
+
+
+async def session_active(session: Session) -> None:
+    """Wait until the platform has seen the session's user connect (it is active)."""
+
+    async def active() -> bool:
+        s = await db(Session.objects.get, pk=session.pk)
+        return s.state == Session.State.ACTIVE
+
+    await until(active, what="the platform to see the user connected")
+
+
+async def unintentional_end_recorded(session: Session) -> list[tuple[str, dict[str, Any]]]:
+    """Wait until the session's log records an unintentional end; returns the log as
+    (kind, data) pairs."""
+
+    async def recorded() -> list[tuple[str, dict[str, Any]]]:
+        events = await db(
+            lambda: list(Session.objects.get(pk=session.pk).events.values_list("kind", "data"))
+        )
+        return events if any(kind == "unintentional_end" for kind, _ in events) else []
+
+    return await until(recorded, what="the platform to record the unintentional end")
