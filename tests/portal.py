@@ -103,16 +103,18 @@ async def wait_for(page: Page, expression: str, timeout_ms: int = 15000) -> None
     )
 
 
-async def request_car(world: World, page: Page, *, relay: bool = False) -> str:
+async def request_car(
+    world: World, page: Page, *, relay: bool = False, timeout_ms: int = 15000
+) -> str:
     """Request drive-car from the catalog (through the relay, if ``relay``); returns the
-    session's id once the page controls the car."""
+    session's id once the page controls the car (within ``timeout_ms``)."""
     await page.click("[data-service=drive-car] a.button")
     await page.select_option("#id_station", label="Campus station")
     if relay:
         await page.check("#id_relay")
     await page.click("#request-button")
     await page.wait_for_url("**/sessions/*/")
-    await wait_for(page, "c.role === 'controller'")
+    await wait_for(page, "c.role === 'controller'", timeout_ms)
     return page.url.rstrip("/").rsplit("/", 1)[-1]
 
 

@@ -12,13 +12,10 @@ not per test: it is the slow part, and these tests only read pages.
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator, Iterator
-from typing import Any
+from collections.abc import AsyncIterator
 
 import pytest
 import pytest_asyncio
-from django.core.management import call_command
-from django.test import override_settings
 
 from tests.accessibility import axe_violations, violations_report
 from tests.browser import needs_chromium
@@ -27,9 +24,9 @@ from tests.tour import VIEWPORTS, Tour, open_page, tour_world
 pytestmark = [
     pytest.mark.postgres,
     pytest.mark.redis,
-    # Asks pytest-django for the test database. Not ``transaction=True``: that empties
-    # the database after each test, and the module's world lives across them. The tests
-    # write nothing themselves; the world is committed by the module's fixture.
+    # Asks pytest-django for the test database. Not ``transaction=True``: the module's
+    # world lives across the tests (the module_database fixture, tests/integration's
+    # conftest.py). The tests write nothing themselves.
     pytest.mark.django_db,
     needs_chromium,
     # The tests share the module's world, which lives in the module's event loop.
@@ -37,21 +34,10 @@ pytestmark = [
 ]
 
 
-@pytest.fixture(scope="module")
-def _database(django_db_setup: Any, django_db_blocker: Any) -> Iterator[None]:
-    """The test database, open to the module for its whole run (the servers it starts
-    share it, so what the module seeds is committed, as ``transaction=True`` would), and
-    emptied afterwards as a transactional test's teardown does."""
-    with django_db_blocker.unblock():
-        # The demo users' passwords hashed the fast way (the platform the tests start
-        # accepts it), as tests/conftest.py's per-test fixture does.
-        with override_settings(PASSWORD_HASHERS=["django.contrib.auth.hashers.MD5PasswordHasher"]):
-            yield
-        call_command("flush", interactive=False, verbosity=0)
-
-
 @pytest_asyncio.fixture(scope="module", loop_scope="module")
-async def tour(_database: None, tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Tour]:
+async def tour(
+    module_database: None, tmp_path_factory: pytest.TempPathFactory
+) -> AsyncIterator[Tour]:
     # No thermal video from the search drone: encoding it is the costliest part of the
     # world on a small machine, and the mission page around the video is the same.
     async with tour_world(tmp_path_factory.mktemp("accessibility"), video=False) as world:

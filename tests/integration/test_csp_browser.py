@@ -16,10 +16,10 @@ import http.server
 import re
 import threading
 from collections.abc import AsyncIterator, Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
+import pytest_asyncio
 from django.contrib.auth import get_user_model
 from playwright.async_api import Browser, Page, Response, expect
 
@@ -28,14 +28,18 @@ from services.assignment import session_request
 from services.deployment import session_deploy
 from services.models import Service, Session
 from tests.browser import needs_chromium
-from tests.portal import LISTEN_FOR_VIOLATIONS, demo_world, sign_in, wait_for
+from tests.portal import LISTEN_FOR_VIOLATIONS, World, demo_world, sign_in, wait_for
 from tests.servers import db
 
 pytestmark = [
     pytest.mark.postgres,
     pytest.mark.redis,
-    pytest.mark.django_db(transaction=True),
+    # Not ``transaction=True``: the module's world lives across its tests (the
+    # module_database fixture, tests/integration's conftest.py).
+    pytest.mark.django_db,
     needs_chromium,
+    # The world lives in the module's event loop.
+    pytest.mark.asyncio(loop_scope="module"),
 ]
 
 #: A 1x1 PNG: every tile the map asks for.
@@ -111,16 +115,28 @@ class Portal:
         assert self.console == [], f"{what}: {self.console}"
 
 
-@pytest.fixture
-async def portal(tmp_path: Path) -> AsyncIterator[Portal]:
+@pytest_asyncio.fixture(scope="module", loop_scope="module")
+async def csp_world(
+    module_database: None, tmp_path_factory: pytest.TempPathFactory
+) -> AsyncIterator[tuple[World, TileServer]]:
     """The seeded demo on the platform, with map tiles from the tile server, car-1's
-    agent online and idle, and Chromium."""
+    agent online and idle, and Chromium: one for the module (its tests only open pages,
+    and one of them a session of its own on the car)."""
     with tile_server() as tiles:
         tiles_url = {"IOUV_MAP_TILES_URL": f"{tiles.base}/{{z}}/{{x}}/{{y}}.png"}
         async with demo_world(
-            tmp_path, ("car-1",), env=tiles_url, within=15, positioned=False
+            tmp_path_factory.mktemp("csp"), ("car-1",), env=tiles_url, within=15, positioned=False
         ) as world:
-            yield Portal(world.base, world.browser, tiles)
+            yield world, tiles
+
+
+@pytest.fixture
+def portal(csp_world: tuple[World, TileServer]) -> Portal:
+    """The module's world as a test sees it: with its own record of what the console
+    said, and of the tiles served from now on."""
+    world, tiles = csp_world
+    tiles.served.clear()
+    return Portal(world.base, world.browser, tiles)
 
 
 def _drive_car_for(username: str) -> Session:

@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from playwright.async_api import Browser, ConsoleMessage, Page, Request, WebSocket
+import pytest_asyncio
+from playwright.async_api import Browser, ConsoleMessage, Request, WebSocket
 
 from agents.config import AgentConfig
 from benchmarks.nginx_proxy import Backend, NginxProxy, NginxUnavailable, Routes, Tls, nginx_binary
@@ -32,15 +33,19 @@ from services.demo import demo_seed
 from services.models import Session
 from tests.browser import chromium_browser, needs_chromium
 from tests.demo import PASSWORD, agents_online
-from tests.portal import World, sign_in, wait_for
+from tests.portal import World, controller, request_car, sign_in, wait_for
 from tests.servers import db, platform_process, until
 from tests.tls import Certificates, certificates_make
 
 pytestmark = [
     pytest.mark.postgres,
     pytest.mark.redis,
-    pytest.mark.django_db(transaction=True),
+    # Not ``transaction=True``: the module's world lives across its tests (the
+    # module_database fixture, tests/integration's conftest.py).
+    pytest.mark.django_db,
     needs_chromium,
+    # The world lives in the module's event loop.
+    pytest.mark.asyncio(loop_scope="module"),
 ]
 
 #: The platform's environment in production behind a TLS proxy (the test process's own
@@ -105,17 +110,24 @@ def car_agent_config(path: Path, platform_url: str) -> AgentConfig:
     )
 
 
-@pytest.fixture
-async def portal(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> AsyncIterator[HttpsPortal]:
+@pytest_asyncio.fixture(scope="module", loop_scope="module")
+async def portal(
+    module_database: None, tmp_path_factory: pytest.TempPathFactory
+) -> AsyncIterator[HttpsPortal]:
     """The seeded demo on the platform with production's settings, nginx terminating TLS
-    in front, car-1's agent online through it, and Chromium trusting the server key."""
+    in front, car-1's agent online through it, and Chromium trusting the server key: one
+    for the module (one test drives the car, the other only asks for pages)."""
     try:
         await asyncio.to_thread(nginx_binary)  # Debian's, installed if missing
     except NginxUnavailable as exc:
         pytest.skip(f"needs nginx: {exc}")
+    tmp_path = tmp_path_factory.mktemp("https")
     certs = certificates_make(tmp_path / "tls")
     await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path / "agents")
-    with platform_process(extra_env=PRODUCTION_ENV) as platform:
+    with (
+        platform_process(extra_env=PRODUCTION_ENV) as platform,
+        pytest.MonkeyPatch.context() as monkeypatch,
+    ):
         routes = Routes(default=Backend.parse(platform.removeprefix("http://")))
         tls = Tls(certs.chain, certs.key)
         async with NginxProxy(routes, prefix=tmp_path / "nginx", tls=tls, redirect_port=0) as proxy:
@@ -154,21 +166,6 @@ def _get(
         return response
     finally:
         connection.close()
-
-
-async def request_car(page: Page) -> str:
-    """Request drive-car from the catalog; returns the session's id once the page is
-    the controller (test_portal's steps, with this module's bounds)."""
-    await page.click("[data-service=drive-car] a.button")
-    await page.select_option("#id_station", label="Campus station")
-    await page.click("#request-button")
-    await page.wait_for_url("**/sessions/*/")
-    await wait_for(page, "c.role === 'controller'", PAGE_TIMEOUT_MS)
-    return page.url.rstrip("/").rsplit("/", 1)[-1]
-
-
-async def controller(page: Page, expression: str) -> Any:
-    return await page.evaluate(f"() => {{ const c = window.iouvController; return {expression}; }}")
 
 
 async def test_plain_http_is_sent_to_https_by_nginx_and_by_the_platform(
@@ -259,7 +256,7 @@ async def test_over_https_the_controller_drives_on_webrtc_with_no_mixed_content(
     cookies = {c["name"]: c for c in await context.cookies(base)}
     assert cookies["sessionid"]["secure"] and cookies["csrftoken"]["secure"], cookies
 
-    session_id = await request_car(page)
+    session_id = await request_car(portal.world, page, timeout_ms=PAGE_TIMEOUT_MS)
     assert page.url == f"{base}/sessions/{session_id}/"
     assert await page.evaluate("() => window.isSecureContext") is True
     # Every socket the page opens is wss:// on the portal's own origin: the relay
