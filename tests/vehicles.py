@@ -3,9 +3,10 @@ rows, and the steps of a session on it, each waited for.
 
 :func:`vehicle_served` makes the rows: a vehicle of one of the types below, offline at a
 station of its own until its agent registers, the service whose sessions control it,
-and the credential its agent dials in with. The steps (:func:`agent_registered`,
-:func:`session_deployed`, :func:`session_active`, :func:`unintentional_end_recorded`)
-return once the platform or the agent shows that they happened.
+and the credential its agent dials in with (:func:`car_served` for a car). The steps
+(:func:`agent_registered`, :func:`session_deployed`, :func:`session_active`,
+:func:`unintentional_end_recorded`) return once the platform or the agent shows that
+they happened.
 """
 
 from __future__ import annotations
@@ -67,6 +68,31 @@ def vehicle_served(
         **service_fields,
     )
     return vehicle, vehicle_issue_credential(vehicle=vehicle), served
+
+
+def car_served(
+    name: str,
+    *,
+    service: str,
+    commands: list[str] | None = None,
+    features: list[str] | None = None,
+    **options: Any,
+) -> tuple[Vehicle, str, Service]:
+    """:func:`vehicle_served` for a :data:`CAR` on land, with ``features``, whose
+    service allows ``commands`` (default :data:`CAR_COMMANDS`) and stops it on a
+    fail-safe; ``options`` are vehicle_served's."""
+    attributes: dict[str, Any] = {"environments": ["land"]}
+    if features is not None:
+        attributes["features"] = features
+    return vehicle_served(
+        name,
+        CAR,
+        service=service,
+        commands=CAR_COMMANDS if commands is None else commands,
+        failsafe_action="stop",
+        attributes=attributes,
+        **options,
+    )
 
 
 async def agent_registered(

@@ -21,13 +21,12 @@ from tests import factories as f
 from tests.agents.test_control import command, recv
 from tests.servers import agent_running, db, platform_process
 from tests.vehicles import (
-    CAR,
     CAR_COMMANDS,
     agent_registered,
+    car_served,
     session_active,
     session_deployed,
     unintentional_end_recorded,
-    vehicle_served,
 )
 
 pytestmark = [
@@ -40,13 +39,7 @@ pytestmark = [
 @pytest.fixture
 async def running() -> AsyncIterator[tuple[str, Agent, Vehicle, Any]]:
     car, credential, service = await db(
-        vehicle_served,
-        "car-1",
-        CAR,
-        service="drive-car",
-        commands=CAR_COMMANDS,
-        failsafe_action="stop",
-        attributes={"environments": ["land"], "features": ["camera_arm", "obstacle_sensor"]},
+        car_served, "car-1", service="drive-car", features=["camera_arm", "obstacle_sensor"]
     )
     with platform_process() as base:
         async with agent_running(

@@ -38,7 +38,7 @@ from services.models import Session
 from tests import factories as f
 from tests.agents.test_control import command, recv
 from tests.servers import agent_running, db, platform_process, until
-from tests.vehicles import CAR, vehicle_served
+from tests.vehicles import car_served
 
 pytestmark = [
     pytest.mark.postgres,
@@ -57,14 +57,8 @@ class World:
 
 
 def _world() -> World:
-    car, credential, _ = vehicle_served(
-        "car-1",
-        CAR,
-        service="drive-car",
-        commands=CAR_COMMANDS,
-        failsafe_action="stop",
-        min_battery=None,
-        attributes={"environments": ["land"]},
+    car, credential, _ = car_served(
+        "car-1", service="drive-car", commands=CAR_COMMANDS, min_battery=None
     )
     return World(
         car=car,

@@ -43,7 +43,7 @@ from tests.servers import (
     redis_server_process,
     until,
 )
-from tests.vehicles import CAR, vehicle_served
+from tests.vehicles import car_served
 
 pytestmark = [
     pytest.mark.postgres,
@@ -61,14 +61,8 @@ TIMERS = {
 
 
 def _fleet(cap: int = 1) -> tuple[Vehicle, str, Any]:
-    return vehicle_served(
-        "car-1",
-        CAR,
-        service="drive-car",
-        commands=CAR_COMMANDS,
-        failsafe_action="stop",
-        attributes={"environments": ["land"]},
-        max_sessions_per_user=cap,
+    return car_served(
+        "car-1", service="drive-car", commands=CAR_COMMANDS, max_sessions_per_user=cap
     )
 
 

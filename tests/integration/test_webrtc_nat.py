@@ -56,7 +56,7 @@ from tests.browser import chromium_missing_reason
 from tests.netlab import NetLab, Turn, ensure_packages, leftovers, nat, netlab_available
 from tests.netlab_browser import BrowserProcess
 from tests.servers import platform_process
-from tests.vehicles import CAR, CAR_COMMANDS, vehicle_served
+from tests.vehicles import car_served
 
 ROOT = Path(__file__).resolve().parents[2]
 TURN_SECRET = "nat-test-secret"
@@ -186,14 +186,11 @@ def world(lab: NetLab, tmp_path: Path) -> Iterator[World]:
             "SECURE_COOKIES": "0",
         }
         base = stack.enter_context(platform_process(host=lab.public_ip, extra_env=env))
-        car, credential, service = vehicle_served(
+        car, credential, service = car_served(
             "car-nat",
-            CAR,
             service="drive-car-nat",
-            commands=CAR_COMMANDS,
-            failsafe_action="stop",
+            features=["camera_arm"],
             link_loss_timeout_ms=LINK_LOSS_MS,
-            attributes={"environments": ["land"], "features": ["camera_arm"]},
         )
         user = f.user("alice")
         configs = tmp_path / "agents"

@@ -20,7 +20,7 @@ from benchmarks.rtc_client import RtcClientError, RtcControlClient
 from services.models import Session, SessionEvent
 from tests import factories as f
 from tests.servers import agent_running, db, platform_process, until
-from tests.vehicles import CAR, CAR_COMMANDS, agent_registered, session_deployed, vehicle_served
+from tests.vehicles import agent_registered, car_served, session_deployed
 
 pytestmark = [
     pytest.mark.postgres,
@@ -34,13 +34,7 @@ async def deployed() -> AsyncIterator[tuple[str, Agent, Session, str]]:
     """A car agent registered on a running platform and a session deployed on it:
     (relay URL, agent, session, the owner's grant)."""
     car, credential, service = await db(
-        vehicle_served,
-        "car-rtc",
-        CAR,
-        service="drive-car-rtc",
-        commands=CAR_COMMANDS,
-        failsafe_action="stop",
-        attributes={"environments": ["land"], "features": ["camera_arm"]},
+        car_served, "car-rtc", service="drive-car-rtc", features=["camera_arm"]
     )
     with platform_process() as base:
         async with agent_running(
