@@ -7,8 +7,6 @@ A real uplink (the wire protocol over channels' test communicator) and the real 
 from __future__ import annotations
 
 import asyncio
-import time
-from collections.abc import Callable
 from datetime import timedelta
 from typing import Any
 
@@ -21,14 +19,13 @@ from django.db import connections
 from django.utils import timezone
 
 from accounts.roles import MONITOR
-from agents.protocol import PROTOCOL_VERSION
-from fleet.credentials import vehicle_issue_credential
 from fleet.liveness import Live, LivenessWriter, vehicles_fresh, vehicles_live, vehicles_seen
 from fleet.models import Vehicle
 from fleet.signals import agent_disconnected
 from fleet.status import vehicles_mark_stale_offline
 from iouv.asgi import application
 from tests import factories as f
+from tests.uplink import agent_idle, eventually
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.redis]
 
@@ -58,38 +55,6 @@ async def _tidy(settings):
         await layer.close_pools()
 
 
-async def _eventually(check: Callable[[], bool], within: float = 10.0) -> None:
-    """Wait until ``check()`` (run on the ORM thread) is true."""
-    deadline = time.monotonic() + within
-    while not await database_sync_to_async(check)():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        await asyncio.sleep(0.02)
-
-
-async def _idle_agent() -> tuple[Vehicle, WebsocketCommunicator]:
-    """An enrolled car whose agent said hello and sent its profile."""
-
-    def enrol() -> tuple[Vehicle, str]:
-        vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type(), online=False)
-        return vehicle, vehicle_issue_credential(vehicle=vehicle)
-
-    vehicle, credential = await database_sync_to_async(enrol)()
-    comm = WebsocketCommunicator(application, "/ws/agent/")
-    assert (await comm.connect())[0]
-    await comm.send_json_to(
-        {
-            "type": "hello",
-            "v": PROTOCOL_VERSION,
-            "vehicle_id": str(vehicle.pk),
-            "credential": credential,
-        }
-    )
-    assert (await comm.receive_json_from(timeout=10))["type"] == "welcome"
-    await comm.send_json_to(PROFILE)
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
-    return vehicle, comm
-
-
 async def _beat(comm: WebsocketCommunicator, seq: int, **fields: Any) -> None:
     """Send a heartbeat and wait until the uplink has handled it (a bad frame sent after
     it is answered in turn, after what came before it)."""
@@ -104,12 +69,14 @@ def _row(vehicle: Vehicle) -> Vehicle:
 
 
 async def test_heartbeats_that_change_nothing_reach_redis_not_the_row():
-    vehicle, comm = await _idle_agent()
+    vehicle, comm = await agent_idle(PROFILE, within=10.0)
     before = await database_sync_to_async(_row)(vehicle)
 
     # Half a percent of battery and a few metres: news for the monitor, not the row.
     await _beat(comm, 1, battery=87.5, position={"lat": 40.63002, "lon": -8.65, "alt": 0.0})
-    await _eventually(lambda: vehicles_live([vehicle.pk])[str(vehicle.pk)].battery == 87.5)
+    await eventually(
+        lambda: vehicles_live([vehicle.pk])[str(vehicle.pk)].battery == 87.5, within=10.0
+    )
     row = await database_sync_to_async(_row)(vehicle)
     assert (row.last_seen, row.battery, row.lat) == (before.last_seen, 88, 40.63)
     live = (await database_sync_to_async(vehicles_live)([vehicle.pk]))[str(vehicle.pk)]
@@ -131,13 +98,13 @@ async def test_heartbeats_that_change_nothing_reach_redis_not_the_row():
 
 
 async def test_the_disconnect_stores_when_the_agent_was_last_heard():
-    vehicle, comm = await _idle_agent()
+    vehicle, comm = await agent_idle(PROFILE, within=10.0)
     profiled = (await database_sync_to_async(_row)(vehicle)).last_seen
     await _beat(comm, 1)  # nothing changed: Redis only
-    await _eventually(lambda: vehicles_seen([vehicle.pk])[str(vehicle.pk)] > profiled)
+    await eventually(lambda: vehicles_seen([vehicle.pk])[str(vehicle.pk)] > profiled, within=10.0)
     heard = (await database_sync_to_async(vehicles_seen)([vehicle.pk]))[str(vehicle.pk)]
     await comm.disconnect()
-    await _eventually(lambda: _row(vehicle).status == "offline")
+    await eventually(lambda: _row(vehicle).status == "offline", within=10.0)
     assert abs((await database_sync_to_async(_row)(vehicle)).last_seen - heard) < timedelta(
         milliseconds=1
     )
@@ -181,7 +148,7 @@ def test_the_sweep_reads_liveness_and_keeps_when_each_was_last_heard(settings):
 
 
 async def test_a_vehicle_the_sweep_marked_offline_is_back_with_its_next_heartbeat():
-    vehicle, comm = await _idle_agent()
+    vehicle, comm = await agent_idle(PROFILE, within=10.0)
     disconnected: list[str] = []
 
     def heard_of(sender: Any, vehicle_id: str, **kwargs: Any) -> None:
@@ -205,7 +172,7 @@ async def test_a_vehicle_the_sweep_marked_offline_is_back_with_its_next_heartbea
 
         # The uplink still owns the row: its disconnect marks the vehicle offline.
         await comm.disconnect()
-        await _eventually(lambda: _row(vehicle).status == "offline")
+        await eventually(lambda: _row(vehicle).status == "offline", within=10.0)
         assert disconnected == [str(vehicle.pk)]
     finally:
         agent_disconnected.disconnect(heard_of)
@@ -215,7 +182,7 @@ async def test_the_monitor_sees_heartbeats_that_do_not_reach_the_row(monkeypatch
     from channels import auth
 
     settings.IOUV_FLEET_FEED_LIVE_S = 0.05
-    vehicle, agent = await _idle_agent()
+    vehicle, agent = await agent_idle(PROFILE, within=10.0)
     monitor = await database_sync_to_async(f.user)(roles=(MONITOR,))
 
     async def the_monitor(scope: Any) -> Any:
@@ -247,7 +214,7 @@ async def test_the_monitor_sees_heartbeats_that_do_not_reach_the_row(monkeypatch
 async def test_while_redis_is_away_heartbeats_reach_the_row(monkeypatch):
     import redis
 
-    vehicle, comm = await _idle_agent()
+    vehicle, comm = await agent_idle(PROFILE, within=10.0)
 
     async def unreachable(self: LivenessWriter, batch: Any) -> None:
         raise redis.ConnectionError("Connection refused")

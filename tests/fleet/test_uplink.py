@@ -38,9 +38,15 @@ from fleet.models import AgentMessage, Vehicle
 from fleet.outbox import outbox
 from fleet.signals import agent_connected, agent_disconnected, agent_message
 from fleet.uplink import avehicle_send, vehicle_record_disconnect, vehicle_send
-from iouv.asgi import application
 from services.signing import platform_jwks, platform_public_key_pem
-from tests import factories as f
+from tests.uplink import (
+    agent_idle,
+    eventually,
+    uplink_hello,
+    uplink_open,
+    uplink_welcomed,
+    vehicle_enrolled,
+)
 
 pytestmark = pytest.mark.django_db(transaction=True)
 
@@ -71,12 +77,6 @@ async def _close_worker_connections():
 
 
 @database_sync_to_async
-def _enrolled(**kw: Any) -> tuple[Vehicle, str]:
-    vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type(), online=False, **kw)
-    return vehicle, vehicle_issue_credential(vehicle=vehicle)
-
-
-@database_sync_to_async
 def _get(vehicle: Vehicle) -> Vehicle:
     return Vehicle.objects.get(pk=vehicle.pk)
 
@@ -84,44 +84,6 @@ def _get(vehicle: Vehicle) -> Vehicle:
 @database_sync_to_async
 def _update(vehicle: Vehicle, **fields: Any) -> None:
     Vehicle.objects.filter(pk=vehicle.pk).update(**fields)
-
-
-async def _open() -> WebsocketCommunicator:
-    comm = WebsocketCommunicator(application, "/ws/agent/")
-    connected, _ = await comm.connect()
-    assert connected
-    return comm
-
-
-async def _hello(vehicle: Vehicle, credential: str) -> WebsocketCommunicator:
-    """A new uplink that has said hello."""
-    comm = await _open()
-    await comm.send_json_to(
-        {
-            "type": "hello",
-            "v": PROTOCOL_VERSION,
-            "vehicle_id": str(vehicle.pk),
-            "credential": credential,
-        }
-    )
-    return comm
-
-
-async def _agent(vehicle: Vehicle, credential: str) -> tuple[WebsocketCommunicator, dict]:
-    """An authenticated uplink and the platform's welcome."""
-    comm = await _hello(vehicle, credential)
-    welcome = await comm.receive_json_from(timeout=5)
-    assert welcome["type"] == "welcome", welcome
-    return comm, welcome
-
-
-async def _idle_agent() -> tuple[Vehicle, WebsocketCommunicator]:
-    """An enrolled vehicle whose agent said hello and sent its profile: idle."""
-    vehicle, credential = await _enrolled()
-    comm, _ = await _agent(vehicle, credential)
-    await comm.send_json_to(PROFILE)
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
-    return vehicle, comm
 
 
 async def _closed(comm: WebsocketCommunicator) -> tuple[list[dict], int]:
@@ -139,15 +101,7 @@ async def _closed(comm: WebsocketCommunicator) -> tuple[list[dict], int]:
 async def _hello_closed(vehicle: Vehicle, credential: str) -> tuple[list[dict], int]:
     """Say hello on a new uplink that the platform is expected to close: what it sent,
     and the close code."""
-    return await _closed(await _hello(vehicle, credential))
-
-
-async def _eventually(check) -> None:
-    """Wait (up to 5 s) until ``check()``, run on the ORM thread, is true."""
-    deadline = time.monotonic() + 5.0
-    while not await database_sync_to_async(check)():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        await asyncio.sleep(0.02)
+    return await _closed(await uplink_hello(vehicle, credential))
 
 
 def _collect(signal):
@@ -166,8 +120,8 @@ def _collect(signal):
 
 
 async def test_good_hello_gets_welcome(settings):
-    vehicle, credential = await _enrolled()
-    comm, welcome = await _agent(vehicle, credential)
+    vehicle, credential = await vehicle_enrolled()
+    comm, welcome = await uplink_welcomed(vehicle, credential)
     assert welcome["v"] == PROTOCOL_VERSION
     assert welcome["heartbeat_interval_s"] == settings.IOUV_HEARTBEAT_INTERVAL_S
     assert welcome["platform_public_key"] == await database_sync_to_async(platform_public_key_pem)()
@@ -179,8 +133,8 @@ async def test_good_hello_gets_welcome(settings):
 
 @pytest.mark.parametrize("which", ["credential", "vehicle"])
 async def test_bad_credential_is_closed_4401(which):
-    vehicle, credential = await _enrolled()
-    comm = await _open()
+    vehicle, credential = await vehicle_enrolled()
+    comm = await uplink_open()
     hello = {
         "type": "hello",
         "v": PROTOCOL_VERSION,
@@ -201,8 +155,8 @@ async def test_bad_credential_is_closed_4401(which):
 
 
 async def test_wrong_version_is_closed_4400():
-    vehicle, credential = await _enrolled()
-    comm = await _open()
+    vehicle, credential = await vehicle_enrolled()
+    comm = await uplink_open()
     # A v1 agent (signed documents before JWTs) meeting this platform is refused at hello.
     await comm.send_json_to(
         {"type": "hello", "v": 1, "vehicle_id": str(vehicle.pk), "credential": credential}
@@ -221,7 +175,7 @@ async def test_wrong_version_is_closed_4400():
     ids=["garbage", "heartbeat-first", "incomplete-hello"],
 )
 async def test_anything_but_a_valid_hello_first_is_closed_4401(frame):
-    comm = await _open()
+    comm = await uplink_open()
     await comm.send_to(text_data=frame)
     messages, code = await _closed(comm)
     assert code == 4401 and messages[0]["type"] == "error"
@@ -229,7 +183,7 @@ async def test_anything_but_a_valid_hello_first_is_closed_4401(frame):
 
 async def test_silent_connection_is_closed(settings):
     settings.IOUV_HELLO_TIMEOUT_S = 0.1
-    comm = await _open()
+    comm = await uplink_open()
     messages, code = await _closed(comm)
     assert code == 4408 and messages[0]["code"] == "hello_timeout"
 
@@ -238,13 +192,13 @@ async def test_silent_connection_is_closed(settings):
 
 
 async def test_profile_makes_the_vehicle_idle_with_its_control_url():
-    vehicle, credential = await _enrolled()
+    vehicle, credential = await vehicle_enrolled()
     connected, stop = _collect(agent_connected)
     try:
-        comm, _ = await _agent(vehicle, credential)
+        comm, _ = await uplink_welcomed(vehicle, credential)
         assert (await _get(vehicle)).status == Vehicle.Status.OFFLINE  # hello alone is not enough
         await comm.send_json_to(PROFILE)
-        await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+        await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
         stored = await _get(vehicle)
         assert stored.control_url == PROFILE["control_url"]
         assert stored.profile["commands"] == PROFILE["commands"]
@@ -273,11 +227,11 @@ async def test_profile_makes_the_vehicle_idle_with_its_control_url():
     ],
 )
 async def test_profile_keeps_platform_held_statuses(before, maintenance, after):
-    vehicle, credential = await _enrolled()
+    vehicle, credential = await vehicle_enrolled()
     await _update(vehicle, status=before, maintenance=maintenance)
-    comm, _ = await _agent(vehicle, credential)
+    comm, _ = await uplink_welcomed(vehicle, credential)
     await comm.send_json_to(PROFILE)
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).control_url != "")
+    await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).control_url != "")
     assert (await _get(vehicle)).status == after
     await comm.disconnect()
     # An uplink going away never takes a vehicle out of maintenance.
@@ -287,14 +241,14 @@ async def test_profile_keeps_platform_held_statuses(before, maintenance, after):
 
 async def test_heartbeats_update_last_seen_battery_and_status(settings):
     settings.IOUV_HEARTBEAT_INTERVAL_S = 0.2  # one write per 0.1 s at most
-    vehicle, comm = await _idle_agent()
+    vehicle, comm = await agent_idle(PROFILE)
     seen_at = (await _get(vehicle)).last_seen
 
     await asyncio.sleep(0.15)
     await comm.send_json_to(
         {"type": "heartbeat", "seq": 1, "battery": 70, "position": {"lat": 40.7, "lon": -8.6}}
     )
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 70)
+    await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 70)
     stored = await _get(vehicle)
     assert stored.last_seen > seen_at and (stored.lat, stored.lon, stored.alt) == (40.7, -8.6, None)
 
@@ -302,19 +256,19 @@ async def test_heartbeats_update_last_seen_battery_and_status(settings):
     await comm.send_json_to({"type": "heartbeat", "seq": 2, "battery": 60})
     await asyncio.sleep(0.15)
     await comm.send_json_to({"type": "heartbeat", "seq": 3, "battery": 50, "status": "failsafe"})
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 50)
+    await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 50)
     assert (await _get(vehicle)).status == "failsafe"
 
     await asyncio.sleep(0.15)
     await comm.send_json_to({"type": "heartbeat", "seq": 4, "status": "idle"})
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+    await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
     await comm.disconnect()
 
 
 async def test_heartbeat_flood_is_throttled(settings):
     settings.IOUV_HEARTBEAT_INTERVAL_S = 60.0
-    vehicle, credential = await _enrolled()
-    comm, _ = await _agent(vehicle, credential)
+    vehicle, credential = await vehicle_enrolled()
+    comm, _ = await uplink_welcomed(vehicle, credential)
     await comm.send_json_to(PROFILE)
     for seq in range(1, 30):
         await comm.send_json_to({"type": "heartbeat", "seq": seq, "battery": seq})
@@ -337,16 +291,16 @@ async def test_heartbeats_of_many_uplinks_are_written_together(monkeypatch):
     monkeypatch.setattr(uplink, "vehicle_record_heartbeats", counted)
     agents = []
     for _ in range(30):
-        vehicle, credential = await _enrolled()
-        comm, _ = await _agent(vehicle, credential)
+        vehicle, credential = await vehicle_enrolled()
+        comm, _ = await uplink_welcomed(vehicle, credential)
         await comm.send_json_to(PROFILE)
         agents.append((vehicle, comm))
     ids = [vehicle.pk for vehicle, _ in agents]
-    await _eventually(lambda: Vehicle.objects.filter(pk__in=ids, status="idle").count() == 30)
+    await eventually(lambda: Vehicle.objects.filter(pk__in=ids, status="idle").count() == 30)
 
     for n, (_, comm) in enumerate(agents):
         await comm.send_json_to({"type": "heartbeat", "seq": 1, "battery": n})
-    await _eventually(
+    await eventually(
         lambda: (
             sorted(Vehicle.objects.filter(pk__in=ids).values_list("battery", flat=True))
             == list(range(30))
@@ -361,7 +315,7 @@ async def test_heartbeats_of_many_uplinks_are_written_together(monkeypatch):
 async def test_a_failed_heartbeat_write_is_an_error_reply_not_a_lost_uplink(monkeypatch):
     from django.db import OperationalError
 
-    vehicle, comm = await _idle_agent()
+    vehicle, comm = await agent_idle(PROFILE)
     real = uplink.vehicle_record_heartbeats
 
     def failing(beats):
@@ -377,7 +331,7 @@ async def test_a_failed_heartbeat_write_is_an_error_reply_not_a_lost_uplink(monk
     monkeypatch.setattr(uplink, "vehicle_record_heartbeats", real)
     await asyncio.sleep(float(uplink.settings.IOUV_HEARTBEAT_INTERVAL_S) / 2)
     await comm.send_json_to({"type": "heartbeat", "seq": 2, "battery": 13})
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 13)
+    await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 13)
     await comm.disconnect()
 
 
@@ -386,7 +340,7 @@ async def test_relay_traffic_does_not_wait_for_a_slow_database(monkeypatch, slow
     # Relayed answers and everything sent to the agent are on the control path: neither
     # a heartbeat write stuck behind a lock nor another consumer's work on the process's
     # one thread for synchronous database calls may hold them.
-    vehicle, comm = await _idle_agent()
+    vehicle, comm = await agent_idle(PROFILE)
     entered, release = threading.Event(), threading.Event()
 
     def hold() -> None:
@@ -427,7 +381,7 @@ async def test_relay_traffic_does_not_wait_for_a_slow_database(monkeypatch, slow
         if busy is not None:
             await busy
     if slow == "heartbeat write":
-        await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 40)
+        await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 40)
     await comm.disconnect()
 
 
@@ -435,7 +389,7 @@ async def test_a_server_cancelling_the_uplink_leaves_none_of_its_tasks_pending()
     # A server shutting down cancels its application instances, without a disconnect.
     # The uplink's own tasks (the hello deadline, the database backlog) must end with it,
     # not be destroyed pending when the loop closes.
-    _, comm = await _idle_agent()
+    _, comm = await agent_idle(PROFILE)
     mine = {t for t in asyncio.all_tasks() if t.get_coro().__qualname__.startswith("AgentUplink")}
     assert mine, "the uplink runs its backlog in a task of its own"
     comm.future.cancel()
@@ -448,7 +402,7 @@ async def test_a_server_cancelling_the_uplink_leaves_none_of_its_tasks_pending()
 async def test_what_the_agent_said_before_leaving_is_stored_before_the_offline_mark(
     monkeypatch,
 ):
-    vehicle, comm = await _idle_agent()
+    vehicle, comm = await agent_idle(PROFILE)
     real = uplink.vehicle_record_heartbeats
 
     def slow(beats):
@@ -459,7 +413,7 @@ async def test_what_the_agent_said_before_leaving_is_stored_before_the_offline_m
     await comm.send_json_to({"type": "heartbeat", "seq": 1, "battery": 41})
     await comm.disconnect(code=1001)
     # The heartbeat went in first, so the offline mark is the last word.
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
+    await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
     await asyncio.sleep(0.6)
     stored = await _get(vehicle)
     assert stored.status == "offline" and stored.battery == 41
@@ -471,12 +425,12 @@ async def test_a_lost_push_does_not_lose_the_disconnect(monkeypatch):
     # skipped the rest, so the sessions never logged their vehicle going offline.
     from redis.exceptions import MaxConnectionsError
 
-    vehicle, credential = await _enrolled()
+    vehicle, credential = await vehicle_enrolled()
     gone, stop = _collect(agent_disconnected)
     try:
-        comm, _ = await _agent(vehicle, credential)
+        comm, _ = await uplink_welcomed(vehicle, credential)
         await comm.send_json_to(PROFILE)
-        await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+        await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
         layer = get_channel_layer()
         real_send = layer.group_send
 
@@ -487,29 +441,29 @@ async def test_a_lost_push_does_not_lose_the_disconnect(monkeypatch):
 
         monkeypatch.setattr(layer, "group_send", failing)
         await comm.disconnect(code=1006)
-        await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
-        await _eventually(lambda: len(gone) == 1)
+        await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
+        await eventually(lambda: len(gone) == 1)
         assert gone == [{"vehicle_id": str(vehicle.pk), "code": 1006}]
     finally:
         stop()
 
 
 async def test_disconnect_marks_offline_and_signals():
-    vehicle, credential = await _enrolled()
+    vehicle, credential = await vehicle_enrolled()
     gone, stop = _collect(agent_disconnected)
     try:
-        comm, _ = await _agent(vehicle, credential)
+        comm, _ = await uplink_welcomed(vehicle, credential)
         await comm.send_json_to(PROFILE)
-        await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+        await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
         await comm.disconnect(code=1001)
-        await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
+        await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
         assert gone == [{"vehicle_id": str(vehicle.pk), "code": 1001}]
     finally:
         stop()
 
 
 async def test_a_stale_uplink_does_not_mark_a_reconnected_vehicle_offline():
-    vehicle, _ = await _enrolled()
+    vehicle, _ = await vehicle_enrolled()
     await _update(vehicle, status="idle")
     stored = await _get(vehicle)
     old = stored.last_seen
@@ -547,8 +501,8 @@ async def test_a_stale_uplink_does_not_mark_a_reconnected_vehicle_offline():
     ids=["json", "not-object", "unknown-type", "bad-field", "oversized", "binary", "hello-again"],
 )
 async def test_bad_frame_gets_an_error_and_the_uplink_stays(frame, code):
-    vehicle, credential = await _enrolled()
-    comm, _ = await _agent(vehicle, credential)
+    vehicle, credential = await vehicle_enrolled()
+    comm, _ = await uplink_welcomed(vehicle, credential)
     await comm.send_to(**frame)
     reply = await comm.receive_json_from(timeout=5)
     assert reply["type"] == "error" and reply["code"] == code
@@ -558,13 +512,13 @@ async def test_bad_frame_gets_an_error_and_the_uplink_stays(frame, code):
     await comm.send_to(
         bytes_data=json.dumps({"type": "heartbeat", "seq": 1, "battery": 42}).encode()
     )
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 42)
+    await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 42)
     await comm.disconnect()
 
 
 async def test_flood_of_bad_frames_is_closed_4429():
-    vehicle, credential = await _enrolled()
-    comm, _ = await _agent(vehicle, credential)
+    vehicle, credential = await vehicle_enrolled()
+    comm, _ = await uplink_welcomed(vehicle, credential)
     for _ in range(uplink.BAD_FRAMES_MAX - 1):
         await comm.send_to(text_data="nope")
         assert (await comm.receive_json_from(timeout=5))["code"] == "bad_json"
@@ -577,12 +531,12 @@ async def test_flood_of_bad_frames_is_closed_4429():
 
 
 async def test_second_connection_replaces_the_first():
-    vehicle, credential = await _enrolled()
-    first, _ = await _agent(vehicle, credential)
+    vehicle, credential = await vehicle_enrolled()
+    first, _ = await uplink_welcomed(vehicle, credential)
     await first.send_json_to(PROFILE)
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+    await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
 
-    second, _ = await _agent(vehicle, credential)
+    second, _ = await uplink_welcomed(vehicle, credential)
     messages, code = await _closed(first)
     assert code == 4409 and messages[0]["code"] == "replaced"
     await second.send_json_to(PROFILE)
@@ -596,7 +550,7 @@ async def test_second_connection_replaces_the_first():
     )
     assert (await second.receive_json_from(timeout=5))["type"] == "relay_close"
     await second.disconnect()
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
+    await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
 
 
 # --- platform -> agent, agent -> platform ------------------------------------------------
@@ -619,7 +573,7 @@ def _message_state(vehicle: Vehicle) -> list[str]:
 
 
 async def test_an_owed_message_reaches_the_agent_with_an_id_until_acknowledged():
-    vehicle, comm = await _idle_agent()
+    vehicle, comm = await agent_idle(PROFILE)
     await _owe(vehicle, REVOKE)
     first = await comm.receive_json_from(timeout=5)
     assert first == {**message_to_dict(REVOKE), "id": first["id"]}
@@ -627,7 +581,7 @@ async def test_an_owed_message_reaches_the_agent_with_an_id_until_acknowledged()
     again = await comm.receive_json_from(timeout=5)
     assert again == first
     await comm.send_json_to({"type": "ack", "id": first["id"], "ok": True})
-    await _eventually(
+    await eventually(
         lambda: AgentMessage.objects.get(vehicle_id=vehicle.pk).state == AgentMessage.State.ACKED
     )
     assert await outbox().deliver_due() == 0  # acknowledged: owed no more
@@ -636,25 +590,25 @@ async def test_an_owed_message_reaches_the_agent_with_an_id_until_acknowledged()
 
 
 async def test_a_message_owed_while_the_agent_is_away_is_delivered_when_it_is_back():
-    vehicle, comm = await _idle_agent()
+    vehicle, comm = await agent_idle(PROFILE)
     await comm.disconnect()
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
+    await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
     await _owe(vehicle, REVOKE)
     credential = await database_sync_to_async(vehicle_issue_credential)(vehicle=vehicle)
-    back, _ = await _agent(vehicle, credential)
+    back, _ = await uplink_welcomed(vehicle, credential)
     await back.send_json_to({**PROFILE, "session_id": SESSION})
     message = await back.receive_json_from(timeout=5)
     assert message == {**message_to_dict(REVOKE), "id": message["id"]}
     # Until it confirms, the vehicle is busy with the session it still runs.
     assert (await _get(vehicle)).status == Vehicle.Status.RELEASING
     await back.send_json_to({"type": "ack", "id": message["id"], "ok": True})
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
+    await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
     assert await _message_state(vehicle) == ["acked"]
     await back.disconnect()
 
 
 async def test_a_replaced_credential_closes_the_live_uplink_within_a_second():
-    vehicle, comm = await _idle_agent()
+    vehicle, comm = await agent_idle(PROFILE)
     started = time.monotonic()
     await database_sync_to_async(vehicle_issue_credential)(vehicle=vehicle)
     messages, code = await _closed(comm)
@@ -667,7 +621,7 @@ async def test_a_replaced_credential_closes_the_uplink_without_the_channel_layer
     from fleet import outbox as outbox_module
 
     monkeypatch.setattr(outbox_module, "get_channel_layer", lambda: None)
-    vehicle, comm = await _idle_agent()
+    vehicle, comm = await agent_idle(PROFILE)
     # As if another process (a worker) issued it: this process's outbox is not woken.
     monkeypatch.setattr(outbox_module, "_outboxes", {})
     await database_sync_to_async(vehicle_issue_credential)(vehicle=vehicle)
@@ -688,10 +642,10 @@ def test_vehicle_send_refuses_a_bad_message():
 
 
 async def test_session_messages_are_published_as_signals():
-    vehicle, credential = await _enrolled()
+    vehicle, credential = await vehicle_enrolled()
     said, stop = _collect(agent_message)
     try:
-        comm, _ = await _agent(vehicle, credential)
+        comm, _ = await uplink_welcomed(vehicle, credential)
         sent = [
             {"type": "task_accepted", "session_id": "s-1"},
             {"type": "task_refused", "session_id": None, "code": "bad_signature", "reason": "x"},
@@ -712,17 +666,17 @@ async def test_session_messages_are_published_as_signals():
 
 
 async def test_a_failing_receiver_does_not_break_the_uplink():
-    vehicle, credential = await _enrolled()
+    vehicle, credential = await vehicle_enrolled()
 
     def broken(sender, **kwargs):
         raise RuntimeError("bug in a receiver")
 
     agent_message.connect(broken, weak=False)
     try:
-        comm, _ = await _agent(vehicle, credential)
+        comm, _ = await uplink_welcomed(vehicle, credential)
         await comm.send_json_to({"type": "task_accepted", "session_id": "s-1"})
         await comm.send_json_to({"type": "heartbeat", "seq": 1, "battery": 33})
-        await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 33)
+        await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 33)
         assert await comm.receive_nothing(timeout=0.1)
         await comm.disconnect()
     finally:
@@ -730,22 +684,22 @@ async def test_a_failing_receiver_does_not_break_the_uplink():
 
 
 async def test_a_platform_failure_is_answered_and_the_uplink_stays(monkeypatch):
-    vehicle, credential = await _enrolled()
+    vehicle, credential = await vehicle_enrolled()
 
     def broken(**kwargs):
         raise RuntimeError("database hiccup")
 
     monkeypatch.setattr(uplink, "vehicle_record_profile", broken)
-    comm, _ = await _agent(vehicle, credential)
+    comm, _ = await uplink_welcomed(vehicle, credential)
     await comm.send_json_to(PROFILE)
     assert (await comm.receive_json_from(timeout=5))["code"] == "internal"
     await comm.send_json_to({"type": "heartbeat", "seq": 1, "battery": 21})
-    await _eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 21)
+    await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 21)
     await comm.disconnect()
 
 
 async def test_a_platform_failure_during_hello_closes_for_a_retry(monkeypatch):
-    vehicle, credential = await _enrolled()
+    vehicle, credential = await vehicle_enrolled()
 
     def broken(**kwargs):
         raise RuntimeError("database down")
@@ -783,8 +737,8 @@ _frames = st.one_of(
 @pytest.fixture
 async def fuzz_agent(monkeypatch):
     monkeypatch.setattr(uplink, "BAD_FRAMES_MAX", 10_000)  # the fuzzer is not a flood
-    vehicle, credential = await _enrolled()
-    comm, _ = await _agent(vehicle, credential)
+    vehicle, credential = await vehicle_enrolled()
+    comm, _ = await uplink_welcomed(vehicle, credential)
     yield comm
     await comm.disconnect()
 
@@ -829,7 +783,7 @@ async def test_a_hello_that_waited_too_long_for_the_database_is_turned_away(monk
     from fleet import uplink
 
     monkeypatch.setattr(uplink, "ADMIT_WITHIN_S", -1.0)  # every hello has waited too long
-    vehicle, credential = await _enrolled()
+    vehicle, credential = await vehicle_enrolled()
     messages, code = await _hello_closed(vehicle, credential)
     assert code == 4503
     assert [m["code"] for m in messages] == ["busy"]

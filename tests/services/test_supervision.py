@@ -15,19 +15,16 @@ from datetime import UTC, datetime, timedelta
 import pytest
 import time_machine
 from channels.db import database_sync_to_async
-from channels.testing import WebsocketCommunicator
 from django.conf import settings
 from django.db import connections
 from django.utils import timezone
 
-from agents.protocol import PROTOCOL_VERSION, VehicleTask, parse_message
+from agents.protocol import VehicleTask, parse_message
 from agents.protocol.messages import Heartbeat
-from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
 from fleet.signals import agent_connected, agent_disconnected, agent_message
 from fleet.status import vehicles_mark_stale_offline
 from fleet.uplink import vehicle_record_heartbeat
-from iouv.asgi import application
 from services.assignment import session_request
 from services.deployment import session_deploy, session_end
 from services.models import Session
@@ -41,6 +38,7 @@ from services.supervision import (
     sessions_expire_undelivered,
 )
 from tests import factories as f
+from tests.uplink import uplink_welcomed, vehicle_enrolled
 
 pytestmark = pytest.mark.django_db
 
@@ -607,23 +605,8 @@ async def _close_worker_connections():
 
 @pytest.mark.django_db(transaction=True)
 async def test_agent_flow_over_the_uplink(_close_worker_connections):
-    @database_sync_to_async
-    def enrol():
-        vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type(), online=False)
-        return vehicle, vehicle_issue_credential(vehicle=vehicle)
-
-    vehicle, credential = await enrol()
-    agent = WebsocketCommunicator(application, "/ws/agent/")
-    assert (await agent.connect())[0]
-    await agent.send_json_to(
-        {
-            "type": "hello",
-            "v": PROTOCOL_VERSION,
-            "vehicle_id": str(vehicle.pk),
-            "credential": credential,
-        }
-    )
-    assert (await agent.receive_json_from(timeout=5))["type"] == "welcome"
+    vehicle, credential = await vehicle_enrolled()
+    agent, _ = await uplink_welcomed(vehicle, credential)
     await agent.send_json_to(
         {
             "type": "profile",
