@@ -13,6 +13,7 @@ from django.conf import settings
 
 from fleet.feed import FLEET_GROUP
 from fleet.liveness import in_redis
+from fleet.memberships import group_hold, group_release
 from iouv.consumers import DirectDispatch
 from iouv.layer import relay_ensure
 
@@ -41,7 +42,7 @@ class FleetFeedConsumer(DirectDispatch, AsyncJsonWebsocketConsumer):
         if user is None or not await database_sync_to_async(user.has_perm)("fleet.view_fleet"):
             await self.close(code=4403)
             return
-        await self.channel_layer.group_add(FLEET_GROUP, self.channel_name)
+        await group_hold(FLEET_GROUP, self.channel_name)
         await self.accept()
         await self._send_vehicles(await _snapshot(), full=True)
         if in_redis():
@@ -52,7 +53,7 @@ class FleetFeedConsumer(DirectDispatch, AsyncJsonWebsocketConsumer):
             self._live_task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._live_task
-        await self.channel_layer.group_discard(FLEET_GROUP, self.channel_name)
+        await group_release(FLEET_GROUP, self.channel_name)
 
     async def receive_json(self, content: Any, **kwargs: Any) -> None:
         # The feed is read-only; say so rather than silently dropping input.

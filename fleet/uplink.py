@@ -81,6 +81,7 @@ from agents.protocol.messages import Heartbeat as HeartbeatMessage
 from fleet.credentials import vehicle_authenticate
 from fleet.feed import fleet_notify
 from fleet.liveness import Live, in_redis, liveness_writer
+from fleet.memberships import group_hold, group_release
 from fleet.models import Vehicle
 from fleet.outbox import (
     agent_message_ack,
@@ -713,7 +714,6 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self._group: str | None = None
         self._first_frame_seen = False
         self._registered = False  # a profile was stored on this uplink
-        self._grouped = False  # member of the vehicle's channel-layer group
         #: The credential generation this uplink authenticated under (fleet.outbox
         #: closes it when a newer credential is issued).
         self.credential_generation = 0
@@ -776,13 +776,10 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             if self.vehicle_id is not None:
                 outbox().unregister(self.vehicle_id, self)
             if self._group is not None:
-                try:
-                    await self.channel_layer.group_discard(self._group, self.channel_name)
-                except Exception as exc:
-                    # E.g. the layer's connections all in use while a thousand uplinks
-                    # drop at once. The stale member only costs messages that expire
-                    # unread; the vehicle must still be marked offline below.
-                    log.warning("uplink %s: leaving its group failed: %s", self.vehicle_id, exc)
+                # Best effort (e.g. the layer's connections all in use while a thousand
+                # uplinks drop at once): a stale member only costs messages that expire
+                # unread, and ages out; the vehicle must still be marked offline below.
+                await group_release(self._group, self.channel_name)
             await self._tell_relays_gone()
             if self._backlog_task is not None and not self._backlog_task.done():
                 # What the agent said before it left is stored first: a heartbeat
@@ -992,28 +989,21 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             outbox().register(self.vehicle_id, self)
 
     async def _join_group(self) -> None:
-        """Join the vehicle's group; when Redis is away, the next heartbeat tries again.
+        """Join the vehicle's group and stay in it while the uplink lives, across Redis
+        restarts (fleet.memberships); a join that fails is made again from there.
 
         The group only carries relayed traffic and "look now" nudges: what the vehicle
         is owed reaches it through the database (fleet.outbox), so the agent is
         admitted either way.
         """
-        if self._grouped or self._group is None:
-            return
-        try:
-            await self.channel_layer.group_add(self._group, self.channel_name)
-        except Exception as exc:
-            log.warning("uplink %s: joining its group failed: %s", self.vehicle_id, exc)
-            return
-        self._grouped = True
+        if self._group is not None:
+            await group_hold(self._group, self.channel_name)
 
     async def _heartbeat(self, msg: HeartbeatMessage) -> None:
         """A heartbeat, on the consumer's own turn (not queued behind database work):
         with liveness in Redis most heartbeats end here, handed to the process's
         liveness writer without waiting; one that changes the vehicle's state (or any,
         embedded) queues its row write behind the uplink's earlier database work."""
-        if not self._grouped:
-            await self._later(self._join_group)
         # At most two per heartbeat interval: an agent that heartbeats too fast costs
         # nothing more. A skipped heartbeat is superseded by the next.
         mono = time.monotonic()
@@ -1144,7 +1134,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             outbox().unregister(self.vehicle_id, self)
         try:
             if self._group is not None:
-                await self.channel_layer.group_discard(self._group, self.channel_name)
+                await group_release(self._group, self.channel_name)
             await self._refuse(
                 "replaced", "another uplink of this vehicle took over", CLOSE_REPLACED
             )

@@ -198,6 +198,10 @@ if REDIS_URL:
                 "prefix": env_str("CHANNELS_PREFIX", "iouv"),
                 "capacity": 1000,
                 "expiry": 30,
+                # Members are added again every minute or so while their consumer
+                # lives (fleet.memberships): one left by a process that died is gone
+                # in three, not in channels_redis's default day.
+                "group_expiry": 180,
             },
         }
     }

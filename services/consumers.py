@@ -26,6 +26,7 @@ from agents.protocol.messages import (
     RelayToAgent,
     WebrtcOffer,
 )
+from fleet.memberships import group_hold, group_release
 from fleet.uplink import avehicle_send, relay_group
 from iouv.consumers import DirectDispatch
 from iouv.layer import relay_ensure
@@ -53,15 +54,13 @@ class SessionFeedConsumer(DirectDispatch, AsyncJsonWebsocketConsumer):
         if summary is None:
             await self.close(code=4403)
             return
-        await self.channel_layer.group_add(session_group(self.session_id), self.channel_name)
+        await group_hold(session_group(self.session_id), self.channel_name)
         await self.accept()
         await self.send_json({"type": "session", "session": summary})
 
     async def disconnect(self, code: int) -> None:
         if hasattr(self, "session_id"):
-            await self.channel_layer.group_discard(
-                session_group(self.session_id), self.channel_name
-            )
+            await group_release(session_group(self.session_id), self.channel_name)
 
     async def receive_json(self, content: Any, **kwargs: Any) -> None:
         await self.send_json({"type": "error", "code": "read_only", "message": "feed is read-only"})
@@ -89,12 +88,12 @@ class SessionsMonitorConsumer(DirectDispatch, AsyncJsonWebsocketConsumer):
         if user is None or not await database_sync_to_async(user.has_perm)("services.view_session"):
             await self.close(code=4403)
             return
-        await self.channel_layer.group_add(SESSIONS_GROUP, self.channel_name)
+        await group_hold(SESSIONS_GROUP, self.channel_name)
         await self.accept()
         await self.send_json({"type": "sessions", "sessions": await _live_sessions()})
 
     async def disconnect(self, code: int) -> None:
-        await self.channel_layer.group_discard(SESSIONS_GROUP, self.channel_name)
+        await group_release(SESSIONS_GROUP, self.channel_name)
 
     async def receive_json(self, content: Any, **kwargs: Any) -> None:
         await self.send_json({"type": "error", "code": "read_only", "message": "feed is read-only"})
@@ -172,7 +171,7 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
     async def disconnect(self, code: int) -> None:
         if self.vehicle_id is None:
             return
-        await self.channel_layer.group_discard(relay_group(self.conn), self.channel_name)
+        await group_release(relay_group(self.conn), self.channel_name)
         if code != CLOSED_BY_AGENT:
             await avehicle_send(
                 vehicle_id=self.vehicle_id,
@@ -232,7 +231,7 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         if grant.session_id != self.session_id:
             return ("wrong_session", "this grant is for another session")
         self.vehicle_id = vehicle_id
-        await self.channel_layer.group_add(relay_group(self.conn), self.channel_name)
+        await group_hold(relay_group(self.conn), self.channel_name)
         return None
 
     async def relay_from_agent(self, event: dict[str, Any]) -> None:
