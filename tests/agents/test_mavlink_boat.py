@@ -759,3 +759,23 @@ async def test_sent_out_by_another_ground_station_the_boat_is_caught_on_its_way(
     )
     assert farthest.value <= radius + BOAT_UNCOMMANDED_FENCE_MARGIN_M, farthest.value
     await ws.close()
+
+
+async def test_too_fast_on_its_way_the_boat_slows_down_as_ardurover_allows(
+    make_rig: RigFactory,
+):
+    """A waypoint at the autopilot's own speed (WP_SPEED, 5 m/s here) under a 2 m/s
+    limit: on its way to a position ArduRover takes DO_CHANGE_SPEED, so the envelope
+    slows it there."""
+    rig = await make_rig(make_task(max_speed_mps=2.0), simulator={"speedup": 1})
+    ws = await join(rig)
+    await arm(ws)
+    target = offset(ORIGIN, -150, 0)
+    ack = await command(ws, 2, "go_to_waypoint", lat=target[0], lon=target[1], speed_mps=0)
+    assert ack["ok"], ack
+    await watch(ws, lambda d: bool(rig.reported("envelope_restored")), 30, "slowed down")
+    [breach] = rig.reported("envelope_breach")
+    assert breach["limit"] == "speed" and breach["action"] == "1.6 m/s at most"
+    data = await watch(ws, lambda d: True, 2, "telemetry")
+    assert data["speed"] <= 2.0 and data["mode"] == "GUIDED"
+    await ws.close()
