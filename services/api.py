@@ -42,7 +42,7 @@ from services.deployment import (
     DeploymentError,
     InvalidTaskError,
     grant_issue,
-    session_end,
+    session_end_by_user,
     session_revoke,
     user_task_json,
 )
@@ -275,17 +275,14 @@ def session_grant(request: AuthenticatedHttpRequest, session_id: UUID) -> dict[s
 def session_finish(
     request: AuthenticatedHttpRequest, session_id: UUID, payload: schema.EndRequest | None = None
 ) -> Session:
-    """The owner ends the session on purpose; the vehicles are released."""
+    """The owner ends the session on purpose, in any live state: a request still
+    waiting for a vehicle is withdrawn (nothing was sent), else the vehicles are
+    released. The reason is the same as the portal's unless the body gives one."""
     # One transaction: the session is read locked, and what is ended is what was read.
     with transaction.atomic():
         session = _owned_session(request, session_id, "end", lock=True)
         try:
-            return session_end(
-                session=session,
-                reason=_reason(payload, "ended by the user"),
-                by_user=True,
-                locked=True,
-            )
+            return session_end_by_user(session=session, reason=_reason(payload, ""), locked=True)
         except SessionStateError as exc:
             raise ApiError(409, "session_state", str(exc)) from None
 

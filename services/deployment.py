@@ -550,7 +550,7 @@ def session_end(*, session: Session, reason: str, by_user: bool, locked: bool = 
     transaction this joins (see :func:`_close`).
 
     Raises services.sessions.SessionStateError when the session cannot end (already
-    final, or never assigned) or ``reason`` is empty.
+    final) or ``reason`` is empty.
     """
     return _close(
         session=session,
@@ -560,6 +560,37 @@ def session_end(*, session: Session, reason: str, by_user: bool, locked: bool = 
         data={"by_user": by_user},
         locked=locked,
     )
+
+
+#: Why a session ended when its user ended it: the same words on the page and through
+#: the API. A request still waiting for a vehicle is withdrawn: nothing went out.
+WITHDRAWN = "withdrawn by the user while it waited for a vehicle; no vehicle was sent"
+ENDED_BY_USER = "ended by the user"
+
+
+def session_end_by_user(*, session: Session, reason: str = "", locked: bool = False) -> Session:
+    """The user ends their own ``session``, in any live state (the portal's button and
+    the API's ``end`` both come here): one still waiting for a vehicle is withdrawn
+    (:data:`WITHDRAWN`), one under way ends (:data:`ENDED_BY_USER`, or ``reason`` if
+    given) and its vehicles perform the end as :func:`session_end` says. ``locked``: as
+    :func:`session_end`.
+
+    Raises services.sessions.SessionStateError when the session is already over.
+    """
+    if not reason:
+        waiting = session.state == Session.State.REQUESTED
+        reason = WITHDRAWN if waiting else ENDED_BY_USER
+    return session_end(session=session, reason=reason, by_user=True, locked=locked)
+
+
+def session_ended_words(session: Session) -> str:
+    """What the user is told once :func:`session_end_by_user` ended ``session``."""
+    if session.reason == WITHDRAWN:
+        return (
+            f"{session.service.name}: your request was withdrawn while it waited for a "
+            "vehicle; no vehicle had been sent."
+        )
+    return f"{session.service.name}: session ended ({session.reason})."
 
 
 def session_revoke(*, session: Session, reason: str, action: str) -> Session:

@@ -1,11 +1,14 @@
 """The session state machine.
 
     requested ──► assigned ──► active ──► ended
-        │            │           │
-        └────────────┴───────────┴──► failed / aborted
+        │  │         │           │
+        │  └─────────┴───────────┴──► failed / aborted
+        └──────────────────────────► ended (withdrawn before any vehicle was sent)
 
 Every change is logged with its reason; ended, failed and aborted are final and
-always carry a reason.
+always carry a reason. A user may end their session in any live state: a request
+still waiting for a vehicle (an autonomous kind's workflow finds one after the
+request) is withdrawn, and nothing was sent to any vehicle.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from services.models import Assignment, Session, SessionEvent
 
 S = Session.State
 TRANSITIONS: dict[str, set[str]] = {
-    S.REQUESTED: {S.ASSIGNED, S.FAILED, S.ABORTED},
+    S.REQUESTED: {S.ASSIGNED, S.ENDED, S.FAILED, S.ABORTED},
     S.ASSIGNED: {S.ACTIVE, S.ENDED, S.FAILED, S.ABORTED},
     S.ACTIVE: {S.ENDED, S.FAILED, S.ABORTED},
     S.ENDED: set(),

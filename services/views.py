@@ -23,7 +23,8 @@ from services.deployment import (
     DeploymentError,
     NotAssignedYet,
     grant_issue,
-    session_end,
+    session_end_by_user,
+    session_ended_words,
     session_revoke,
     user_task_json,
 )
@@ -32,7 +33,7 @@ from services.kinds import RequestError, ServiceKind, UnknownKind, kind_of
 from services.models import Service, Session
 from services.request import service_request
 from services.selectors import service_vehicles_matching, session_summary
-from services.sessions import FINAL
+from services.sessions import FINAL, SessionStateError
 
 
 def _kind(service: Service) -> ServiceKind:
@@ -197,9 +198,16 @@ def session_grant(request: AuthenticatedHttpRequest, session_id: str) -> JsonRes
 def session_finish(request: AuthenticatedHttpRequest, session_id: str) -> HttpResponse:
     """The user ends the session on purpose."""
     session = _own_session(request, session_id)
-    if session.state not in FINAL:
-        session_end(session=session, reason="ended by the user", by_user=True)
-        messages.success(request, f"{session.service.name}: session ended.")
+    if session.state in FINAL:
+        messages.info(request, f"{session.service.name}: the session was already over.")
+        return redirect("catalog")
+    try:
+        session_end_by_user(session=session)
+    except SessionStateError:
+        # Ended meanwhile (a monitor, its workflow): nothing left to end.
+        messages.info(request, f"{session.service.name}: the session was already over.")
+    else:
+        messages.success(request, session_ended_words(session))
     return redirect("catalog")
 
 

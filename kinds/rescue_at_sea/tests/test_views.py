@@ -5,11 +5,15 @@ from __future__ import annotations
 import json
 
 import pytest
+from django.test import Client
 from django.urls import reverse
 
+from accounts.tokens import token_issue
+from fleet.models import Vehicle
 from kinds.rescue_at_sea.models import Mission
 from kinds.rescue_at_sea.request import rescue_request
 from kinds.rescue_at_sea.tests.sea import area
+from kinds.rescue_at_sea.workflow import mission_advance
 from services.models import Session
 from tests import factories as f
 from tests.deployment import uncacheable
@@ -83,3 +87,52 @@ def test_the_rescue_mission_page_is_not_stored(client, world, skipper) -> None:
     page = client.get(reverse("session", args=[session.pk]))
     uncacheable(page)
     assert 'id="mission-map"' in page.content.decode()
+
+
+WITHDRAWN = "withdrawn by the user while it waited for a vehicle; no vehicle was sent"
+
+
+def test_a_rescue_waiting_for_its_drone_is_called_off_and_may_be_asked_again(
+    client, skipper
+) -> None:
+    # The search drone is out on another job: the rescue waits for it.
+    Vehicle.objects.filter(name="search-1").update(status=Vehicle.Status.IN_SERVICE)
+    url = reverse("service_request", args=["rescue-at-sea"])
+    opened = client.post(url, {"area": json.dumps(area())})
+    session = Session.objects.get()
+    mission_advance(session.pk)
+    assert Mission.objects.get(pk=session.pk).state == Mission.State.WAITING_SEARCH
+    assert "Call off the search" in client.get(opened.url).content.decode()
+
+    called_off = client.post(reverse("session_end", args=[session.pk]), follow=True)
+    assert called_off.status_code == 200
+    assert called_off.redirect_chain[-1][0] == reverse("catalog")
+    words = called_off.content.decode()
+    assert "your request was withdrawn while it waited for a vehicle" in words
+    session.refresh_from_db()
+    assert session.state == Session.State.ENDED and session.reason == WITHDRAWN
+    mission_advance(session.pk)
+    assert Mission.objects.get(pk=session.pk).state == Mission.State.ABORTED
+    # It no longer counts against the one-session limit.
+    again = client.post(url, {"area": json.dumps(area())})
+    assert again.status_code == 302 and Session.objects.count() == 2
+
+
+def test_a_waiting_rescue_is_withdrawn_through_the_api_with_the_same_words(client, skipper) -> None:
+    Vehicle.objects.filter(name="search-1").update(status=Vehicle.Status.OFFLINE)
+    client.post(reverse("service_request", args=["rescue-at-sea"]), {"area": json.dumps(area())})
+    session = Session.objects.get()
+    token = token_issue(user=skipper, name="tests")
+    answer = Client().post(
+        f"/api/v1/sessions/{session.pk}/end",
+        content_type="application/json",
+        HTTP_AUTHORIZATION=f"Bearer {token}",
+    )
+    assert answer.status_code == 200, answer.content
+    assert answer.json()["state"] == "ended" and answer.json()["reason"] == WITHDRAWN
+    again = Client().post(
+        f"/api/v1/sessions/{session.pk}/end",
+        content_type="application/json",
+        HTTP_AUTHORIZATION=f"Bearer {token}",
+    )
+    assert again.status_code == 409
