@@ -103,6 +103,9 @@ class Vehicle(DeclaredAttributes, models.Model):
         default=False, help_text="Out of service: never assigned, whatever the agent says."
     )
     last_seen = models.DateTimeField(null=True, blank=True)
+    #: The platform process that holds (or last held) the agent's uplink: while that
+    #: process is gone, the vehicle's silence is the platform's (fleet.servers).
+    uplink_server = models.UUIDField(null=True, blank=True, editable=False)
     control_url = models.CharField(max_length=300, blank=True)
     profile = models.JSONField(default=dict, blank=True, editable=False)
     lat = models.FloatField(null=True, blank=True)
@@ -209,3 +212,19 @@ class AgentMessage(models.Model):
 
     def __str__(self) -> str:
         return f"{self.kind} to {self.vehicle_id} ({self.state})"
+
+
+class UplinkServer(models.Model):
+    """A platform process that serves agent uplinks, as long as it beats: it writes
+    ``alive_at`` every ``IOUV_UPLINK_SERVER_BEAT_S`` while it runs (fleet.servers).
+    The supervisor's timers read these rows to tell the platform's own absence from a
+    vehicle's."""
+
+    id = models.UUIDField(primary_key=True)
+    started_at = models.DateTimeField()
+    alive_at = models.DateTimeField(db_index=True)
+    #: Where it runs, for people reading the table: host name and process id.
+    name = models.CharField(max_length=120, blank=True)
+
+    def __str__(self) -> str:
+        return self.name or str(self.pk)

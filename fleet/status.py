@@ -6,13 +6,16 @@ from collections.abc import Iterable
 from datetime import datetime
 from typing import Any
 
+from django.conf import settings
 from django.db import transaction
 from django.db.models import QuerySet
+from django.utils import timezone
 
 from fleet.feed import fleet_notify
-from fleet.liveness import Live, online_cutoff, vehicles_fresh, vehicles_live, vehicles_seen
+from fleet.liveness import Live, vehicles_fresh, vehicles_live, vehicles_seen
 from fleet.models import Vehicle
 from fleet.outbox import vehicle_group
+from fleet.servers import vehicles_silence
 from iouv.layer import group_send_after_commit
 
 BUSY = (Vehicle.Status.RESERVED, Vehicle.Status.IN_SERVICE)
@@ -71,21 +74,20 @@ def vehicles_mark_stale_offline(*, now: datetime | None = None) -> list[Any]:
     and its uplink, if one still lives somewhere, is told so that its next heartbeat
     reaches the row again.
     """
-    cutoff = online_cutoff(now)
-    rows = dict(Vehicle.objects.exclude(status__in=_NOT_ONLINE).values_list("pk", "last_seen"))
+    now = now or timezone.now()
+    rows = _rows(Vehicle.objects.exclude(status__in=_NOT_ONLINE))
     if not rows:
         return []
-    silent = _silent(rows, cutoff)
+    silent = _silent(rows, now)
     if not silent:
         return []
     with transaction.atomic():
-        locked = dict(
+        locked = _rows(
             Vehicle.objects.select_for_update(skip_locked=True)
             .filter(pk__in=silent)
             .exclude(status__in=_NOT_ONLINE)
-            .values_list("pk", "last_seen")
         )
-        stale = _silent(locked, cutoff)
+        stale = _silent(locked, now)
         for pk, heard in stale.items():
             Vehicle.objects.filter(pk=pk).update(status=Vehicle.Status.OFFLINE, last_seen=heard)
             group_send_after_commit(
@@ -99,16 +101,33 @@ def vehicles_mark_stale_offline(*, now: datetime | None = None) -> list[Any]:
     return list(stale)
 
 
-def _silent(rows: dict[Any, datetime | None], cutoff: datetime) -> dict[Any, datetime | None]:
-    """Of ``rows`` (id: the row's last_seen), those last heard before ``cutoff``, with
-    when they were last heard (None: never)."""
+def _rows(vehicles: QuerySet[Vehicle]) -> dict[Any, tuple[datetime | None, Any]]:
+    """id: (the row's last_seen, the process holding its uplink)."""
+    return {
+        pk: (seen, server)
+        for pk, seen, server in vehicles.values_list("pk", "last_seen", "uplink_server")
+    }
+
+
+def _silent(
+    rows: dict[Any, tuple[datetime | None, Any]], now: datetime
+) -> dict[Any, datetime | None]:
+    """Of ``rows`` (id: the row's last_seen and uplink server), those silent by their
+    own doing for longer than ``IOUV_OFFLINE_AFTER_S`` at ``now`` (fleet.servers: the
+    platform's own absence does not count), with when they were last heard (None:
+    never)."""
     heard = vehicles_seen(rows)
-    silent: dict[Any, datetime | None] = {}
-    for pk, row_seen in rows.items():
-        latest = max((at for at in (row_seen, heard.get(str(pk))) if at is not None), default=None)
-        if latest is None or latest < cutoff:
-            silent[pk] = latest
-    return silent
+    latest: dict[Any, tuple[datetime | None, Any]] = {}
+    for pk, (row_seen, server) in rows.items():
+        times = (at for at in (row_seen, heard.get(str(pk))) if at is not None)
+        latest[pk] = (max(times, default=None), server)
+    silence = vehicles_silence(((pk, seen, server) for pk, (seen, server) in latest.items()), now)
+    limit = float(settings.IOUV_OFFLINE_AFTER_S)
+    return {
+        pk: latest[pk][0]
+        for pk, silent_s in silence.items()
+        if silent_s is None or silent_s > limit
+    }
 
 
 def vehicle_summary(vehicle: Vehicle, live: Live | None = None) -> dict[str, Any]:

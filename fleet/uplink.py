@@ -89,6 +89,7 @@ from fleet.outbox import (
     outbox,
     vehicle_group,
 )
+from fleet.servers import uplink_server_ensure
 from fleet.signals import (
     agent_acked,
     agent_connected,
@@ -276,13 +277,17 @@ def _given(value: T | UnsetType) -> T | None:
     return None if value is UNSET else value
 
 
-def vehicle_record_hello(*, vehicle_id: Any, now: datetime) -> None:
-    """Note that ``vehicle_id``'s agent authenticated at ``now`` (last_seen only).
+def vehicle_record_hello(
+    *, vehicle_id: Any, now: datetime, server: uuid.UUID | None = None
+) -> None:
+    """Note that ``vehicle_id``'s agent authenticated at ``now``, on an uplink held by
+    platform process ``server`` (fleet.servers): last_seen and the server only.
 
     The status waits for the profile. Writing last_seen also marks the uplink that owns
     the vehicle from now on (see :func:`vehicle_record_disconnect`).
     """
-    Vehicle.objects.filter(pk=vehicle_id).update(last_seen=now)  # one statement: atomic
+    # One statement: atomic.
+    Vehicle.objects.filter(pk=vehicle_id).update(last_seen=now, uplink_server=server)
 
 
 def vehicle_record_profile(*, vehicle_id: Any, profile: Profile, now: datetime) -> None:
@@ -659,7 +664,12 @@ def _welcome(vehicle_id: str) -> Welcome:
 
 
 def _admit(
-    *, vehicle_id: str, credential: str, now: datetime, queued_at: float | None = None
+    *,
+    vehicle_id: str,
+    credential: str,
+    now: datetime,
+    server: uuid.UUID | None = None,
+    queued_at: float | None = None,
 ) -> tuple[Vehicle, Welcome] | Literal["busy"] | None:
     """A hello's database work in one call: the vehicle if the credential is its own
     (last_seen recorded at ``now``) and the ``welcome`` to send it, else None.
@@ -671,7 +681,7 @@ def _admit(
     vehicle = vehicle_authenticate(vehicle_id=vehicle_id, credential=credential)
     if vehicle is None:
         return None
-    vehicle_record_hello(vehicle_id=vehicle.pk, now=now)
+    vehicle_record_hello(vehicle_id=vehicle.pk, now=now, server=server)
     return vehicle, _welcome(str(vehicle.pk))
 
 
@@ -926,11 +936,19 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
                 "not_authenticated", "the first message must be hello", CLOSE_UNAUTHORIZED
             )
             return
+        # This process beats as the holder of uplinks before it admits one (its row
+        # must exist whenever a vehicle's names it).
+        try:
+            server: uuid.UUID | None = await uplink_server_ensure()
+        except Exception as exc:
+            log.warning("uplink: this process is not registered as a server: %s", exc)
+            server = None
         now = timezone.now()
         admitted = await _db(_admit)(
             vehicle_id=msg.vehicle_id,
             credential=msg.credential,
             now=now,
+            server=server,
             queued_at=time.monotonic(),
         )
         if admitted == BUSY:

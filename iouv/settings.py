@@ -341,6 +341,13 @@ IOUV_CONNECT_TIMEOUT_S = env_float("IOUV_CONNECT_TIMEOUT_S", 120.0)
 # A user-driven session whose vehicle has been offline this long ends: the platform can
 # no longer supervise it. The vehicle stays offline, not free, until its agent is back.
 IOUV_VEHICLE_LOST_S = env_float("IOUV_VEHICLE_LOST_S", IOUV_OFFLINE_AFTER_S)
+# Each platform process serving agent uplinks says it is alive this often (fleet.servers):
+# while it is gone, the silence of the vehicles it served is the platform's, not theirs.
+IOUV_UPLINK_SERVER_BEAT_S = env_float("IOUV_UPLINK_SERVER_BEAT_S", 1.0)
+# After the platform (or the process holding its uplink) was away, how long an agent may
+# take to come back before its silence counts again: the agents' longest reconnect
+# backoff (agents.config: reconnect_max_s).
+IOUV_AGENT_RECONNECT_S = env_float("IOUV_AGENT_RECONNECT_S", 30.0)
 # How often the supervisor's timers run (Celery beat), in seconds.
 IOUV_SUPERVISION_TICK_S = env_float("IOUV_SUPERVISION_TICK_S", 2.0)
 # More than this many commands refused for safety reasons within the window revokes

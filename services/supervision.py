@@ -34,7 +34,7 @@ from typing import Any
 
 from django.conf import settings
 from django.db import transaction
-from django.db.models import Q, Subquery
+from django.db.models import Subquery
 from django.utils import timezone
 
 from agents.protocol import CLOCK_SKEW_S
@@ -50,6 +50,7 @@ from fleet.outbox import (
     stored_message,
     vehicle_release_if_settled,
 )
+from fleet.servers import vehicles_silence
 from fleet.uplink import vehicle_send
 from iouv.prepared import Param, PreparedQuery
 from services.deployment import (
@@ -695,20 +696,22 @@ def sessions_end_vehicle_lost(*, now: datetime | None = None) -> list[str]:
     """
     now = now or timezone.now()
     lost_s = settings.IOUV_VEHICLE_LOST_S
-    cutoff = now - timedelta(seconds=lost_s)
-    lost = (
+    offline = list(
         Assignment.objects.filter(
             active=True,
             session__state__in=LIVE,
             session__service__kind__in=kinds_user_driven(),
             vehicle__status=Vehicle.Status.OFFLINE,
-        )
-        .filter(Q(vehicle__last_seen__lte=cutoff) | Q(vehicle__last_seen__isnull=True))
-        .select_related("session", "vehicle")
+        ).select_related("session", "vehicle")
+    )
+    # Silence the platform caused (its process holding the uplink gone) does not count.
+    silence = vehicles_silence(
+        ((a.vehicle_id, a.vehicle.last_seen, a.vehicle.uplink_server) for a in offline), now
     )
     ended: list[str] = []
-    for assignment in lost:
-        if str(assignment.session_id) in ended:
+    for assignment in offline:
+        silent_s = silence[assignment.vehicle_id]
+        if str(assignment.session_id) in ended or (silent_s is not None and silent_s <= lost_s):
             continue
         reason = (
             f"vehicle {assignment.vehicle.name} went offline (no word from it for {lost_s:g} s)"

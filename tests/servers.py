@@ -112,6 +112,20 @@ def platform_process(
     Another address (e.g. the public address of a tests.netlab lab, for clients in its
     namespaces) is added to ``ALLOWED_HOSTS``, unless ``extra_env`` sets that; with
     ``0.0.0.0`` the names clients use are the caller's to allow there."""
+    with platform_server(extra_env=extra_env, host=host, server=server) as platform:
+        yield platform.base
+
+
+@contextlib.contextmanager
+def platform_server(
+    *,
+    extra_env: dict[str, str] | None = None,
+    host: str = "127.0.0.1",
+    server: str = SERVERS[0],
+) -> Iterator[PlatformServer]:
+    """:func:`platform_process`, yielding a handle that can also kill the platform
+    (``kill``: SIGKILL, as a crash; ``terminate``: SIGTERM, as a deploy) and start it
+    again on the same address (``start``)."""
     port = free_port(host)
     env = {
         **os.environ,
@@ -125,36 +139,65 @@ def platform_process(
     url_host = "127.0.0.1" if host == "0.0.0.0" else host
     if url_host not in settings.ALLOWED_HOSTS and "ALLOWED_HOSTS" not in (extra_env or {}):
         env["ALLOWED_HOSTS"] = ",".join([*settings.ALLOWED_HOSTS, url_host])
-    log = open(settings.VAR_DIR / f"platform-{port}.log", "w")  # noqa: SIM115 - closed below
-    proc = subprocess.Popen(
+    platform = PlatformServer(
         server_command(server, host=host, port=port),
-        cwd=ROOT,
         env=env,
-        stdout=log,
-        stderr=subprocess.STDOUT,
+        base=f"http://{url_host}:{port}",
+        log_path=settings.VAR_DIR / f"platform-{port}.log",
     )
-    base = f"http://{url_host}:{port}"
     try:
-        deadline = time.monotonic() + 30
+        platform.start()
+        yield platform
+    finally:
+        platform.terminate()
+
+
+class PlatformServer:
+    """One platform process on a fixed address; see :func:`platform_server`."""
+
+    def __init__(self, command: list[str], *, env: dict[str, str], base: str, log_path: Path):
+        self.command = command
+        self.env = env
+        self.base = base
+        self.log_path = log_path
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.starts = 0
+
+    def start(self, within: float = 30.0) -> None:
+        """Start the process and return once it answers ``/healthz``."""
+        self.starts += 1
+        with open(self.log_path, "a") as log:  # the child keeps its own descriptor
+            self.proc = subprocess.Popen(
+                self.command, cwd=ROOT, env=self.env, stdout=log, stderr=subprocess.STDOUT
+            )
+        deadline = time.monotonic() + within
         while True:
             try:
-                with urllib.request.urlopen(f"{base}/healthz", timeout=1) as response:
+                with urllib.request.urlopen(f"{self.base}/healthz", timeout=1) as response:
                     if response.status == 200:
-                        break
+                        return
             except OSError:
-                if proc.poll() is not None or time.monotonic() > deadline:
+                if self.proc.poll() is not None or time.monotonic() > deadline:
                     raise RuntimeError(
-                        f"{server} did not start: {Path(log.name).read_text()[-2000:]}"
+                        f"the platform did not start: {self.log_path.read_text()[-2000:]}"
                     ) from None
                 time.sleep(0.2)
-        yield base
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        log.close()
+
+    def kill(self) -> None:
+        """SIGKILL: no goodbye to anyone, its sockets die with it."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=10)
+
+    def terminate(self) -> None:
+        """SIGTERM, as a deploy stops it, then SIGKILL after 10 s."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10)
 
 
 @contextlib.contextmanager

@@ -11,7 +11,13 @@ they happened.
 
 from __future__ import annotations
 
+import asyncio
+import json
+import urllib.error
+import urllib.request
 from typing import Any
+
+from websockets.asyncio.client import connect
 
 from agents.runtime import Agent
 from fleet.credentials import vehicle_issue_credential
@@ -20,7 +26,8 @@ from services.assignment import session_request
 from services.deployment import UserTask, session_deploy
 from services.models import Service, Session
 from tests import factories as f
-from tests.servers import db, until
+from tests.control import command, recv
+from tests.servers import agent_running, db, until
 
 #: The vehicle types, as (kind, adapter, name).
 CAR = ("ground", "car", "Raspberry Pi car")
@@ -148,3 +155,59 @@ async def unintentional_end_recorded(session: Session) -> list[tuple[str, dict[s
         return events if any(kind == "unintentional_end" for kind, _ in events) else []
 
     return await until(recorded, what="the platform to record the unintentional end")
+
+
+# --- a car session through the API, driven over the agent's own socket -------------------
+
+
+def api(base: str, method: str, path: str, token: str, body: Any = None) -> tuple[int, Any]:
+    """Call the JSON API; returns (status, body)."""
+    request = urllib.request.Request(
+        f"{base}/api/v1{path}",
+        method=method,
+        data=json.dumps(body).encode() if body is not None else None,
+        headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"},
+    )
+    try:
+        with urllib.request.urlopen(request, timeout=20) as response:
+            return response.status, json.loads(response.read())
+    except urllib.error.HTTPError as exc:
+        return exc.code, json.loads(exc.read())
+
+
+def car_agent(base: str, car: Vehicle, credential: str) -> Any:
+    """The car's agent, in this process, on its simulator (an async context manager)."""
+    return agent_running(
+        base=base,
+        vehicle=car,
+        credential=credential,
+        adapter="car",
+        options={"origin": list(f.HOME)},
+    )
+
+
+async def request_car(base: str, token: str) -> dict[str, Any]:
+    """The 201 body of a request for the car service through the API."""
+    status, body = await asyncio.to_thread(
+        api, base, "POST", "/sessions", token, {"service": "drive-car"}
+    )
+    assert status == 201, body
+    return body
+
+
+async def drive(task: dict[str, Any], seq: int) -> Any:
+    """Connect to the vehicle with the user task once its agent has accepted the
+    session's task (as the controller page does by retrying), and drive once."""
+    session_id = task["session_id"]
+
+    async def accepted() -> bool:
+        return await db(
+            lambda: Session.objects.get(pk=session_id).events.filter(kind="task_accepted").exists()
+        )
+
+    await until(accepted, within=15, what="the agent to accept its task")
+    ws = await connect(task["control_url"], proxy=None, compression=None)
+    await ws.send(json.dumps({"type": "auth", "grant": task["grant"]}))
+    assert (await recv(ws, "welcome"))["role"] == "controller"
+    assert (await command(ws, seq, "forward", speed=0.5))["ok"]
+    return ws

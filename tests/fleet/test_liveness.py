@@ -20,7 +20,7 @@ from django.utils import timezone
 
 from accounts.roles import MONITOR
 from fleet.liveness import Live, LivenessWriter, vehicles_fresh, vehicles_live, vehicles_seen
-from fleet.models import Vehicle
+from fleet.models import UplinkServer, Vehicle
 from fleet.signals import agent_disconnected
 from fleet.status import vehicles_mark_stale_offline
 from iouv.asgi import application
@@ -156,9 +156,16 @@ async def test_a_vehicle_the_sweep_marked_offline_is_back_with_its_next_heartbea
 
     agent_disconnected.connect(heard_of, weak=False)
     try:
-        # As if the agent had gone silent: the sweep looks from a minute later.
+        # As if the agent had gone silent: the sweep looks from a minute later, when
+        # its uplink's process still beats (fleet.servers: a process gone would
+        # excuse the silence).
         later = timezone.now() + timedelta(seconds=60)
-        marked = await database_sync_to_async(vehicles_mark_stale_offline)(now=later)
+
+        def sweep_later() -> list[Any]:
+            UplinkServer.objects.update(alive_at=later)
+            return vehicles_mark_stale_offline(now=later)
+
+        marked = await database_sync_to_async(sweep_later)()
         assert [str(pk) for pk in marked] == [str(vehicle.pk)]
         assert (await database_sync_to_async(_row)(vehicle)).status == "offline"
 

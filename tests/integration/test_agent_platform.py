@@ -18,7 +18,7 @@ from websockets.asyncio.client import connect
 from agents.runtime import Agent
 from fleet.models import Vehicle
 from tests import factories as f
-from tests.agents.test_control import command, recv
+from tests.control import command, recv
 from tests.servers import agent_running, db, platform_process
 from tests.vehicles import (
     CAR_COMMANDS,

@@ -21,7 +21,7 @@ from agents.geo import distance_m
 from agents.runtime import Agent
 from fleet.models import Vehicle
 from tests import factories as f
-from tests.agents.test_control import command, recv
+from tests.control import command, recv
 from tests.servers import agent_simulated, db, platform_process, until
 from tests.vehicles import (
     QUADCOPTER,

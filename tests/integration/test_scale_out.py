@@ -36,7 +36,7 @@ from benchmarks.nginx_proxy import (
 from fleet.models import Vehicle
 from services.models import Session
 from tests import factories as f
-from tests.agents.test_control import command, recv
+from tests.control import command, recv
 from tests.servers import agent_running, db, platform_process, until
 from tests.vehicles import car_served
 

@@ -16,15 +16,12 @@ import signal
 import subprocess
 import sys
 import time
-import urllib.error
-import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 from django.conf import settings
-from websockets.asyncio.client import connect
 
 from accounts.roles import MONITOR
 from accounts.tokens import token_issue
@@ -33,17 +30,16 @@ from fleet.models import AgentMessage, Vehicle
 from services.models import Session
 from services.signing import platform_public_key_pem
 from tests import factories as f
-from tests.agents.test_control import command, recv
+from tests.control import command
 from tests.servers import (
     ROOT,
-    agent_running,
     celery_worker_process,
     db,
     platform_process,
     redis_server_process,
     until,
 )
-from tests.vehicles import car_served
+from tests.vehicles import api, car_agent, car_served, drive, request_car
 
 pytestmark = [
     pytest.mark.postgres,
@@ -73,21 +69,6 @@ def servers() -> Iterator[str]:
         yield base
 
 
-def api(base: str, method: str, path: str, token: str, body: Any = None) -> tuple[int, Any]:
-    """Call the JSON API; returns (status, body)."""
-    request = urllib.request.Request(
-        f"{base}/api/v1{path}",
-        method=method,
-        data=json.dumps(body).encode() if body is not None else None,
-        headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"},
-    )
-    try:
-        with urllib.request.urlopen(request, timeout=20) as response:
-            return response.status, json.loads(response.read())
-    except urllib.error.HTTPError as exc:
-        return exc.code, json.loads(exc.read())
-
-
 async def _status(vehicle: Vehicle) -> str:
     return (await db(Vehicle.objects.get, pk=vehicle.pk)).status
 
@@ -98,44 +79,6 @@ async def _session(session_id: str) -> Session:
 
 async def _idle(vehicle: Vehicle) -> bool:
     return await _status(vehicle) == Vehicle.Status.IDLE
-
-
-def car_agent(base: str, car: Vehicle, credential: str) -> Any:
-    """The car's agent, in this process, on its simulator (an async context manager)."""
-    return agent_running(
-        base=base,
-        vehicle=car,
-        credential=credential,
-        adapter="car",
-        options={"origin": list(f.HOME)},
-    )
-
-
-async def request_car(base: str, token: str) -> dict[str, Any]:
-    """The 201 body of a request for the car service through the API."""
-    status, body = await asyncio.to_thread(
-        api, base, "POST", "/sessions", token, {"service": "drive-car"}
-    )
-    assert status == 201, body
-    return body
-
-
-async def drive(task: dict[str, Any], seq: int) -> Any:
-    """Connect to the vehicle with the user task once its agent has accepted the
-    session's task (as the controller page does by retrying), and drive once."""
-    session_id = task["session_id"]
-
-    async def accepted() -> bool:
-        return await db(
-            lambda: Session.objects.get(pk=session_id).events.filter(kind="task_accepted").exists()
-        )
-
-    await until(accepted, within=15, what="the agent to accept its task")
-    ws = await connect(task["control_url"], proxy=None, compression=None)
-    await ws.send(json.dumps({"type": "auth", "grant": task["grant"]}))
-    assert (await recv(ws, "welcome"))["role"] == "controller"
-    assert (await command(ws, seq, "forward", speed=0.5))["ok"]
-    return ws
 
 
 # --- an agent in a process of its own, to be killed --------------------------------------

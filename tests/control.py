@@ -1,0 +1,29 @@
+"""The browser's side of the control protocol, for tests that talk to an agent's
+control socket (directly or through the platform's relay) as a controller page does."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from typing import Any
+
+from websockets.asyncio.client import ClientConnection
+
+
+async def recv(ws: ClientConnection, kind: str, within: float = 3.0) -> dict[str, Any]:
+    """The next message of type ``kind`` (answering pings, skipping telemetry and
+    events); raises TimeoutError after ``within`` seconds."""
+    deadline = time.monotonic() + within
+    while True:
+        msg = json.loads(await asyncio.wait_for(ws.recv(), deadline - time.monotonic()))
+        if msg["type"] == kind:
+            return msg
+        if msg["type"] == "ping":
+            await ws.send(json.dumps({"type": "pong", "t": msg["t"]}))
+
+
+async def command(ws: ClientConnection, seq: int, name: str, **args: Any) -> dict[str, Any]:
+    """Send command ``name`` with ``args`` as number ``seq``; returns its ``ack``."""
+    await ws.send(json.dumps({"type": "command", "seq": seq, "name": name, "args": args}))
+    return await recv(ws, "ack")
