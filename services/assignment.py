@@ -193,7 +193,7 @@ def _at_least(name: str, minimum: float) -> Callable[[Facts], bool]:
     return lambda v: (_attr(v, name) or 0.0) >= minimum
 
 
-def _requirements(role: ServiceRole) -> list[tuple[str, Callable[[Facts], bool]]]:
+def role_requirements(role: ServiceRole) -> list[tuple[str, Callable[[Facts], bool]]]:
     """(description, test) pairs, checked in order; descriptions are user-facing."""
     checks: list[tuple[str, Callable[[Facts], bool]]] = []
     if role.kinds:
@@ -238,7 +238,7 @@ def _requirements(role: ServiceRole) -> list[tuple[str, Callable[[Facts], bool]]
 
 
 def _capable(role: ServiceRole) -> Q:
-    """The role's requirements the database can check, exactly as :func:`_requirements`
+    """The role's requirements the database can check, exactly as :func:`role_requirements`
     checks them (it checks them all again on the rows read, so this only narrows)."""
     q = Q(battery__gte=role.min_battery)  # also leaves out vehicles reporting none
     if role.kinds:
@@ -343,7 +343,7 @@ def _ranked(
     """``pool`` through the role's requirements, in order, then ranked."""
     if not pool:
         return Match(role, unmet="no vehicle is online and idle")
-    for description, test in _requirements(role):
+    for description, test in role_requirements(role):
         pool = [v for v in pool if test(v)]
         if not pool:
             return Match(role, unmet=f"no idle vehicle has {description}")

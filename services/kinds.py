@@ -41,7 +41,7 @@ if TYPE_CHECKING:
 
     from accounts.users import User
     from services.deployment import UserTask
-    from services.models import Assignment, Service, Session
+    from services.models import Assignment, Service, ServiceRole, Session
 
 #: The request fields, besides ``params``, a kind may read.
 REQUEST_FIELDS = frozenset({"target", "relay", "preferences"})
@@ -147,6 +147,25 @@ class ServiceKind:
         services.deployment.DeploymentError, or RequestError.
         """
         raise NotImplementedError
+
+    def request_role(self, service: Service) -> ServiceRole | None:
+        """The role whose vehicles the request page shows (those available now, and
+        where they reach): the service's first required role, else its first."""
+        roles = list(service.roles.all())
+        candidates = [role for role in roles if role.required] or roles
+        return candidates[0] if candidates else None
+
+    def request_map(self, service: Service) -> dict[str, Any]:
+        """What the request page's map shows (``stations``, the first one where it
+        opens, and ``reach``, circles of where the vehicles can go: see
+        services.feasibility.reach_map): the vehicles of the whole fleet that could
+        ever serve :meth:`request_role`, each from its station on a full battery."""
+        from services.feasibility import reach_map, role_capable, stations_all
+
+        role = self.request_role(service)
+        if role is None:
+            return {"stations": stations_all(), "reach": []}
+        return reach_map(role_capable(role).vehicles)
 
     def entry_url(self, service: Service) -> str:
         """Where the catalog sends a user who picks ``service``: its request page."""

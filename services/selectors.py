@@ -7,7 +7,7 @@ from typing import Any
 from fleet.liveness import vehicles_fresh
 from fleet.models import AgentMessage, Vehicle
 from fleet.outbox import ENDING, agent_messages_owed
-from services.models import Service, Session
+from services.models import Service, ServiceRole, Session
 from services.sessions import FINAL
 
 
@@ -113,13 +113,15 @@ def delivery_entry(
     }
 
 
-def service_vehicles_matching(service: Service) -> list[Vehicle]:
-    """Online idle vehicles that could fill the service's first role now (for the form):
-    heard from within the offline delay, as assignment will check (a vehicle that went
-    quiet since the last sweep is not offered)."""
+def service_vehicles_matching(service: Service, role: ServiceRole | None = None) -> list[Vehicle]:
+    """Online idle vehicles that could fill ``role`` now (default: the service's first
+    required role), for the request page: heard from within the offline delay, as
+    assignment will check (a vehicle that went quiet since the last sweep is not
+    offered)."""
     from services.assignment import role_match
 
-    role = service.roles.filter(required=True).first()
+    if role is None:
+        role = service.roles.filter(required=True).first()
     if role is None:
         return []
     ranked = [c.vehicle.pk for c in role_match(role=role).candidates]

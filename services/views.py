@@ -92,8 +92,8 @@ def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpRe
             messages.error(request, f"Not possible right now: {exc}")
         else:
             return redirect("session", session_id=opened.session.pk)
-    available = service_vehicles_matching(service)
-    stations = {v.station for v in available} or set(Station.objects.all())
+    # The map opens where the service can be given, and shows how far its vehicles
+    # reach (services.feasibility): a request beyond that is refused at once.
     return render(
         request,
         kind.request_template,
@@ -101,14 +101,8 @@ def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpRe
             "service": service,
             "kind": kind,
             "form": form,
-            "available": available,
-            "map": {
-                "stations": [
-                    {"name": s.name, "lat": s.lat, "lon": s.lon}
-                    for s in sorted(stations, key=lambda s: s.name)
-                ],
-                "tiles": settings.IOUV_MAP_TILES_URL,
-            },
+            "available": service_vehicles_matching(service, kind.request_role(service)),
+            "map": {**kind.request_map(service), "tiles": settings.IOUV_MAP_TILES_URL},
         },
     )
 

@@ -10,15 +10,17 @@ from django.conf import settings
 from django.http import HttpRequest
 
 from accounts.users import User
+from fleet.models import VehicleType
 from kinds.parcel_delivery.events import PARCEL_EVENTS, delivery_event, delivery_task_accepted
 from kinds.parcel_delivery.forms import ParcelRequestForm
 from kinds.parcel_delivery.missions import vehicle_mission
-from kinds.parcel_delivery.models import KIND, Delivery
+from kinds.parcel_delivery.models import CARRIER, KIND, Delivery
 from kinds.parcel_delivery.notifications import tracking_url
 from kinds.parcel_delivery.presentation import delivery_json
-from kinds.parcel_delivery.request import params_clean, parcel_request
+from kinds.parcel_delivery.request import MIN_TRIP_M, params_clean, parcel_request
+from services.feasibility import Reach, km, reach_map, role_capable
 from services.kinds import DemoService, EventHandler, Opened, Request, ServiceKind
-from services.models import Assignment, Service, Session
+from services.models import Assignment, Service, ServiceRole, Session
 
 
 def _on(name: str) -> EventHandler:
@@ -46,6 +48,22 @@ class ParcelDelivery(ServiceKind):
 
     def params_clean(self, params: Mapping[str, Any]) -> dict[str, Any]:
         return params_clean(params)
+
+    def request_role(self, service: Service) -> ServiceRole | None:
+        return service.roles.filter(name=CARRIER).first()
+
+    def request_map(self, service: Service) -> dict[str, Any]:
+        # Where a parcel can be picked up for the shortest trip: by air (land to land)
+        # or, for a boat, on the water.
+        def words(carrier: Reach, radius_m: float) -> str:
+            how = "on the water" if carrier.kind == VehicleType.Kind.AQUATIC else "by air"
+            return f"{how}: pickups within {km(radius_m)} of {carrier.station} ({carrier.name})"
+
+        role = self.request_role(service)
+        if role is None:
+            return super().request_map(service)
+        carriers = role_capable(role).vehicles
+        return reach_map(carriers, work_m=2 * MIN_TRIP_M, words=words)
 
     def request_from_form(self, form: forms.Form) -> Request:
         assert isinstance(form, ParcelRequestForm)

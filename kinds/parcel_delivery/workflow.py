@@ -24,9 +24,10 @@ from django.utils import timezone
 from kinds.parcel_delivery.conf import parcel_wait_s
 from kinds.parcel_delivery.models import CARRIER, FINAL_DELIVERY, Delivery
 from kinds.parcel_delivery.notifications import parcel_notices
-from kinds.parcel_delivery.planning import carrier_assign
+from kinds.parcel_delivery.planning import carrier_assign, carrier_role, trip_extra_m
 from services.assignment import AssignmentError
 from services.deployment import vehicle_task_deploy
+from services.feasibility import role_capable, trip_m, waiting_words
 from services.models import Assignment, Session
 from services.sessions import FINAL, session_transition
 from services.workflow import (
@@ -118,7 +119,7 @@ def _assign(delivery: Delivery) -> None:
         with transaction.atomic():
             assignment = carrier_assign(delivery, exclude=vehicles_unfit(delivery.session))
     except AssignmentError as exc:
-        _set(delivery, S.WAITING_CARRIER, f"waiting for a vehicle: {exc}")
+        _set(delivery, S.WAITING_CARRIER, f"waiting for a vehicle: {_waiting(delivery) or exc}")
         return
     session = delivery.session
     delivery.legs += 1
@@ -137,6 +138,19 @@ def _assign(delivery: Delivery) -> None:
         vehicle=str(assignment.vehicle_id),
         vehicle_name=assignment.vehicle.name,
     )
+
+
+def _waiting(delivery: Delivery) -> str:
+    """Why the parcel waits for a carrier the fleet has (busy, offline, charging), with
+    its place in the queue; "" when none of the fleet's could take it from here."""
+    role = carrier_role(delivery)
+    work = trip_extra_m(delivery)
+    serving = [
+        (carrier, trip)
+        for carrier in role_capable(role, exclude=vehicles_unfit(delivery.session)).vehicles
+        if carrier.fits(trip := trip_m(carrier, delivery.pickup, work))
+    ]
+    return waiting_words(session=delivery.session, role=role, serving=serving)
 
 
 def _supervise(delivery: Delivery) -> None:

@@ -31,7 +31,8 @@ from kinds.rescue_at_sea.presentation import timeline
 from services.assignment import AssignmentError, role_assign
 from services.deployment import vehicle_task_deploy
 from services.eventlog import event_append
-from services.models import Assignment, Session
+from services.feasibility import role_capable, trip_m, waiting_words
+from services.models import Assignment, ServiceRole, Session
 from services.sessions import FINAL, session_transition
 from services.workflow import (
     assignment_release,
@@ -147,7 +148,8 @@ def _assign_search(mission: Mission) -> None:
                 exclude=list(tried),
             )
     except AssignmentError as exc:
-        _set(mission, S.WAITING_SEARCH, f"waiting for a search vehicle: {exc}")
+        why = _waiting(mission, role, target, pattern_m, tried) or str(exc)
+        _set(mission, S.WAITING_SEARCH, f"waiting for a search vehicle: {why}")
         return
     if mission.progress < 0 and mission.search_legs == 0:
         # First vehicle: fly the pattern from the end nearest to it.
@@ -180,6 +182,25 @@ def _assign_search(mission: Mission) -> None:
         f"{assignment.vehicle.name} {what} ({len(mission.path)} waypoints)",
         vehicle=str(assignment.vehicle_id),
     )
+
+
+def _waiting(
+    mission: Mission,
+    role: ServiceRole,
+    target: tuple[float, float],
+    work_m: float,
+    exclude: list[Any],
+) -> str:
+    """Why the mission waits for a vehicle for ``role`` that the fleet has (busy,
+    offline, charging), with its place in the queue; "" when none of the fleet's
+    could fly it (the matching's own words then say why)."""
+    capable = role_capable(role, exclude=exclude)
+    serving = [
+        (drone, trip)
+        for drone in capable.vehicles
+        if drone.fits(trip := trip_m(drone, target, work_m))
+    ]
+    return waiting_words(session=mission.session, role=role, serving=serving)
 
 
 def _supervise_search(mission: Mission) -> None:
@@ -235,7 +256,8 @@ def _assign_delivery(mission: Mission) -> None:
                 session=session, role=role, target=target, exclude=[*tried, *busy]
             )
     except AssignmentError as exc:
-        _set(mission, S.WAITING_DELIVERY, f"person found; waiting for a delivery vehicle: {exc}")
+        why = _waiting(mission, role, target, 0.0, [*tried, *busy]) or str(exc)
+        _set(mission, S.WAITING_DELIVERY, f"person found; waiting for a delivery vehicle: {why}")
         return
     vehicle_task_deploy(session=session, assignment=assignment)
     _set(

@@ -9,6 +9,11 @@
  *   labels(map)                the map's labels, placed so that no two overlap:
  *                              add(latlng, html, options) -> { setLatLng, setHtml, remove }
  *   stationMarkers(map, list)  the stations, named
+ *   reachAreas(map, reach)     where the vehicles that can serve a request reach from
+ *                              their stations (services.feasibility.reach_map), faintly
+ *   requestView(map, config, aroundM)  a request map's first view: the station that
+ *                              serves it, framing aroundM metres each way (no more than
+ *                              its vehicles reach)
  *   escapeHtml(text), jsonScript(id), distanceM([lat, lon], [lat, lon])
  */
 (function () {
@@ -341,6 +346,37 @@
     }
   }
 
+  /* Circles around the stations, as far as each vehicle that can serve the request
+   * goes and comes back on a full battery: not interactive, so a tap inside one still
+   * picks a point. */
+  function reachAreas(map, reach) {
+    for (const r of reach || []) {
+      const circle = L.circle([r.lat, r.lon], {
+        radius: r.radius_m, color: "#3fb950", weight: 1.5, dashArray: "6 6", fillOpacity: 0.05,
+        interactive: false, className: "reach-area",
+      }).addTo(map);
+      const path = circle.getElement();
+      if (path) {
+        path.dataset.reach = r.vehicle;
+        path.dataset.radius = String(r.radius_m);
+      }
+    }
+  }
+
+  function requestView(map, config, aroundM) {
+    const stations = (config && config.stations) || [];
+    if (!stations.length) {
+      map.setView([0, 0], 2);
+      return;
+    }
+    const first = stations[0];
+    const reaches = ((config && config.reach) || [])
+      .filter((r) => r.station === first.name)
+      .map((r) => r.radius_m);
+    const half = Math.max(300, Math.min(aroundM, ...reaches));
+    map.fitBounds(L.latLng(first.lat, first.lon).toBounds(2 * half));
+  }
+
   /* Great-circle distance in metres. */
   function distanceM(a, b) {
     const R = 6371008.8;
@@ -351,5 +387,7 @@
     return 2 * R * Math.asin(Math.sqrt(h));
   }
 
-  window.IoUVMap = { makeMap, labels, stationMarkers, escapeHtml, jsonScript, distanceM };
+  window.IoUVMap = {
+    makeMap, labels, stationMarkers, reachAreas, requestView, escapeHtml, jsonScript, distanceM,
+  };
 })();

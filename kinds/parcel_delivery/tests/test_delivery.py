@@ -34,8 +34,9 @@ from tests import factories as f
 
 pytestmark = pytest.mark.django_db
 
-#: On land: near the campus station, and 600 m north-east of it.
-LAND_A = offset(f.HOME, 100, 100)
+#: On land: near the campus station (south-west of it: north-east is a pond), and 600 m
+#: north-east of it.
+LAND_A = offset(f.HOME, -100, -100)
 LAND_B = offset(f.HOME, 500, 400)
 #: At sea, west of the beach: a boat may take a parcel between these.
 SEA_A = (40.6440, -8.7600)
@@ -197,10 +198,26 @@ def test_between_two_points_at_sea_the_boat_may_carry_it(world) -> None:
     assert carrier(session).vehicle.name == "boat-1"
 
 
-def test_a_parcel_too_heavy_for_the_drone_waits_and_says_why(world) -> None:
-    session = request(world, params(LAND_A, LAND_B, weight_kg=5))
+def test_a_parcel_too_heavy_for_any_drone_is_refused_at_once_saying_what_would_work(
+    world,
+) -> None:
+    with pytest.raises(RequestError) as refused:
+        request(world, params(LAND_A, LAND_B, weight_kg=5))
+    assert refused.value.field == "params.weight_kg"
+    assert str(refused.value) == (
+        "no vehicle carries 5 kg by air: the heaviest parcel is 2 kg (drone-1); boat-1 "
+        "carries up to 20 kg between two points on the water"
+    )
+    assert not Session.objects.exists()
+
+
+def test_a_parcel_whose_drone_is_busy_waits_and_says_so(world) -> None:
+    Vehicle.objects.filter(pk=world["drone"].pk).update(status=Vehicle.Status.IN_SERVICE)
+    session = request(world, params(LAND_A, LAND_B))
     assert step(session) == Delivery.State.WAITING_CARRIER
-    assert "max_payload_kg" in delivery(session).status_text
+    assert delivery(session).status_text == (
+        "waiting for a vehicle: drone-1 is busy with another session: this request is next in line"
+    )
 
 
 # --- the workflow --------------------------------------------------------------------------

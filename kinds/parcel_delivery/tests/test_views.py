@@ -51,7 +51,7 @@ def test_a_parcel_waiting_for_its_carrier_is_cancelled_and_may_be_sent_again(
     session = Session.objects.get()
     delivery_advance(session.pk)
     assert Delivery.objects.get(pk=session.pk).state == Delivery.State.WAITING_CARRIER
-    assert "Cancel the delivery" in client.get(opened.url).content.decode()
+    assert "Cancel the delivery" in client.get(opened["Location"]).content.decode()
 
     cancelled = client.post(reverse("session_end", args=[session.pk]), follow=True)
     assert cancelled.status_code == 200
@@ -65,3 +65,74 @@ def test_a_parcel_waiting_for_its_carrier_is_cancelled_and_may_be_sent_again(
     assert Delivery.objects.get(pk=session.pk).state == Delivery.State.CANCELLED
     again = client.post(URL, form(PICKUP, DROPOFF))
     assert again.status_code == 302 and Session.objects.count() == 2
+
+
+# --- what can never be served -------------------------------------------------------------
+
+#: On the campus, far from the coast: the first place a newcomer clicks used to be here.
+CAMPUS_PICKUP = (40.6290, -8.6600)
+CAMPUS_DROPOFF = (40.6330, -8.6560)
+#: West of the beach, at sea; and a point on land north-west of the station.
+SEA = (40.6440, -8.7600)
+
+
+def test_the_request_map_opens_on_the_carriers_station_with_where_they_reach(
+    client: Client, demo: Service
+) -> None:
+    page = client.get(URL)
+    config = page.context["map"]
+    # Costa Nova, not the campus (first by name), where no vehicle carries a parcel.
+    assert [s["name"] for s in config["stations"]] == ["Costa Nova station"]
+    reach = {r["vehicle"]: r for r in config["reach"]}
+    assert set(reach) == {"lifeguard-1", "boat-1"}
+    assert reach["lifeguard-1"]["radius_m"] == 2980  # 6 km there and back, a 20 m trip
+    html = page.content.decode()
+    assert "by air: pickups within 3.0 km of Costa Nova station (lifeguard-1)" in html
+    assert "on the water: pickups within 7.5 km of Costa Nova station (boat-1)" in html
+    # lifeguard-1 is idle: it is listed as available (the carrier role is not required:
+    # the workflow assigns it, so "the first required role" found none).
+    assert "lifeguard-1" in [v.name for v in page.context["available"]]
+
+
+def test_a_parcel_on_the_campus_is_refused_at_once_saying_where_parcels_go(
+    client: Client, demo: Service
+) -> None:
+    page = client.post(URL, form(CAMPUS_PICKUP, CAMPUS_DROPOFF))
+    assert page.status_code == 200
+    html = page.content.decode()
+    assert (
+        "parcels on a 560 m trip can be picked up within 2.4 km of Costa Nova station "
+        "(lifeguard-1 on a full charge); this pickup is 7.4 km from it"
+    ) in html
+    assert not Session.objects.exists()
+    # Near the station it goes.
+    assert client.post(URL, form(PICKUP, DROPOFF)).status_code == 302
+
+
+def test_a_pickup_on_the_water_for_a_drop_off_on_land_is_refused(
+    client: Client, demo: Service
+) -> None:
+    page = client.post(URL, form(SEA, PICKUP))
+    assert page.status_code == 200
+    assert "the pickup is on the water and the other point on land" in page.content.decode()
+    page = client.post(URL, form(PICKUP, SEA))
+    assert "the drop-off is on the water and the other point on land" in page.content.decode()
+    assert not Session.objects.exists()
+
+
+def test_a_parcel_waiting_for_a_busy_carrier_says_so_with_its_place_in_the_queue(
+    client: Client, demo: Service
+) -> None:
+    Vehicle.objects.filter(name="lifeguard-1").update(status=Vehicle.Status.IN_SERVICE)
+    opened = client.post(URL, form(PICKUP, DROPOFF))
+    session = Session.objects.get()
+    delivery_advance(session.pk)
+    status = Delivery.objects.get(pk=session.pk).status_text
+    assert status == (
+        "waiting for a vehicle: lifeguard-1 is busy with another session: this request is "
+        "next in line"
+    )
+    assert (
+        "lifeguard-1 is busy with another session"
+        in client.get(opened["Location"]).content.decode()
+    )

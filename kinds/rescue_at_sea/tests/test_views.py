@@ -12,7 +12,7 @@ from accounts.tokens import token_issue
 from fleet.models import Vehicle
 from kinds.rescue_at_sea.models import Mission
 from kinds.rescue_at_sea.request import rescue_request
-from kinds.rescue_at_sea.tests.sea import area
+from kinds.rescue_at_sea.tests.sea import area, search_area
 from kinds.rescue_at_sea.workflow import mission_advance
 from services.models import Session
 from tests import factories as f
@@ -136,3 +136,61 @@ def test_a_waiting_rescue_is_withdrawn_through_the_api_with_the_same_words(clien
         HTTP_AUTHORIZATION=f"Bearer {token}",
     )
     assert again.status_code == 409
+
+
+# --- what can never be served, and what waits ---------------------------------------------
+
+
+def test_the_request_map_opens_on_the_search_drones_station_with_their_reach(
+    client, skipper
+) -> None:
+    page = client.get(reverse("service_request", args=["rescue-at-sea"]))
+    config = page.context["map"]
+    assert config["stations"][0]["name"] == "Costa Nova station"
+    (reach,) = config["reach"]
+    # search-1 flies 8 km on a full battery: 4 km out and back.
+    assert reach["vehicle"] == "search-1" and reach["radius_m"] == 4000
+    assert "search-1 reaches 4.0 km from Costa Nova station" in page.content.decode()
+
+
+def test_an_area_no_drone_can_search_is_refused_at_once_saying_what_would_work(
+    client, skipper
+) -> None:
+    # 0.37 km² around the castaway, 900 m off the beach: search-1, idle with a full
+    # battery, flies 8 km, of which the way there and back leaves about 6.8 km of
+    # pattern, its lines 35 m apart at 40 m.
+    url = reverse("service_request", args=["rescue-at-sea"])
+    page = client.post(url, {"area": json.dumps(search_area(760, 490))})
+    assert page.status_code == 200
+    words = page.content.decode()
+    assert "this area (0.37 km²) is larger than any search drone can cover there" in words
+    assert "the largest area search-1 from Costa Nova station can search is about 0.2 km²" in (
+        words
+    )
+    assert "Draw a smaller area or search from higher up." in words
+    assert not Session.objects.exists()
+    # The same area from 120 m up fits.
+    page = client.post(url, {"area": json.dumps(search_area(760, 490)), "altitude_m": "120"})
+    assert page.status_code == 302 and Session.objects.count() == 1
+
+
+def test_a_rescue_waiting_for_its_busy_drone_says_so_with_its_place_in_the_queue(
+    client, skipper
+) -> None:
+    Vehicle.objects.filter(name="search-1").update(status=Vehicle.Status.IN_SERVICE)
+    url = reverse("service_request", args=["rescue-at-sea"])
+    client.post(url, {"area": json.dumps(area())})
+    first = Session.objects.get()
+    other = Client()
+    other.force_login(f.user(username="second"))
+    other.post(url, {"area": json.dumps(area())})
+    second = Session.objects.exclude(pk=first.pk).get()
+    for session in (first, second):
+        mission_advance(session.pk)
+    assert Mission.objects.get(pk=first.pk).status_text == (
+        "waiting for a search vehicle: search-1 is busy with another session: this request "
+        "is next in line"
+    )
+    assert Mission.objects.get(pk=second.pk).status_text.endswith("this request is 2nd in line")
+    page = client.get(reverse("session", args=[first.pk]))
+    assert "search-1 is busy with another session" in page.content.decode()

@@ -228,7 +228,7 @@ def test_no_vehicle_the_mission_waits_and_says_so(world, client_user) -> None:
     Vehicle.objects.update(status=Vehicle.Status.OFFLINE)
     session = rescue_request(user=client_user, service=world, area=area())
     assert step(session) == Mission.State.WAITING_SEARCH
-    assert "no vehicle is online" in mission(session).status_text
+    assert "search-1 is offline: this request is next in line" in mission(session).status_text
     waits = kinds(session).count("mission_state")
     step(session)
     assert kinds(session).count("mission_state") == waits  # said once, not every tick

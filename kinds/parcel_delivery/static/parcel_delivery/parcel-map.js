@@ -10,7 +10,9 @@
 (function () {
   "use strict";
 
-  const { makeMap, labels, stationMarkers, escapeHtml, jsonScript, distanceM } = window.IoUVMap;
+  const {
+    makeMap, labels, stationMarkers, reachAreas, requestView, escapeHtml, jsonScript, distanceM,
+  } = window.IoUVMap;
   const COLORS = { pickup: "#d29922", dropoff: "#3fb950", carrier: "#a371f7", route: "#9fb3c8" };
 
   /* A point with its name; its label is placed with the map's others (map-base.js), so
@@ -28,7 +30,9 @@
     const config = jsonScript("map-config") || {};
     const map = makeMap(node, config.tiles);
     const stations = config.stations || [];
-    map.setView(stations.length ? [stations[0].lat, stations[0].lon] : [0, 0], stations.length ? 14 : 2);
+    // Opens on the carriers' station, and shows where a parcel can be picked up.
+    requestView(map, config, 2000);
+    reachAreas(map, config.reach);
     stationMarkers(map, stations);
     const fields = {
       pickup: document.querySelector("input[name=pickup]"),

@@ -24,7 +24,7 @@
     station: "#e6edf3",
   };
 
-  const { makeMap, labels, stationMarkers, escapeHtml, jsonScript } = window.IoUVMap;
+  const { makeMap, labels, stationMarkers, reachAreas, requestView, escapeHtml, jsonScript } = window.IoUVMap;
 
   /* Approximate area of a polygon in m² (equirectangular, fine for a few km). */
   function areaM2(points) {
@@ -49,11 +49,10 @@
     const config = jsonScript("map-config") || {};
     const map = makeMap(node, config.tiles);
     const stations = config.stations || [];
-    if (stations.length) {
-      map.setView([stations[0].lat, stations[0].lon], 15);
-    } else {
-      map.setView([0, 0], 2);
-    }
+    // Opens on the station of the search drones, with the sea 1.2 km around it in view
+    // (the demo's castaway is 900 m off the beach), and how far they reach.
+    requestView(map, config, 1200);
+    reachAreas(map, config.reach);
     stationMarkers(map, stations);
     const field = document.querySelector("input[name=area]");
     const info = document.querySelector("[data-area-info]");
