@@ -167,7 +167,7 @@ def test_an_area_no_drone_can_search_is_refused_at_once_saying_what_would_work(
     assert "the largest area search-1 from Costa Nova station can search is about 0.2 km²" in (
         words
     )
-    assert "Draw a smaller area or search from higher up." in words
+    assert "(about 0.7 km² from 120 m up). Draw a smaller area or search from higher up." in (words)
     assert not Session.objects.exists()
     # The same area from 120 m up fits.
     page = client.post(url, {"area": json.dumps(search_area(760, 490)), "altitude_m": "120"})
