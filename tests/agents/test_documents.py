@@ -40,63 +40,26 @@ from agents.protocol import (
     VehicleTask,
     WrongTargetError,
     claimed_session,
-    generate_keypair,
     jwks_from_keys,
     key_thumbprint,
-    load_private_key,
-    load_public_key,
     new_nonce,
+)
+from tests.agents.documents import (
+    NOW,
+    OTHER_PRIVATE,
+    OTHER_PUBLIC,
+    OTHER_PUBLIC_PEM,
+    PRIVATE,
+    PRIVATE_PEM,
+    PUBLIC,
+    PUBLIC_PEM,
+    make_grant,
+    make_task,
 )
 
 # joserfc warns that RFC 9864 prefers the fully specified "Ed25519" name; PyJWT signs
 # with "EdDSA" (RFC 8037), which both libraries and the protocol use.
 pytestmark = pytest.mark.filterwarnings("ignore:EdDSA is deprecated")
-
-NOW = 1_700_000_000.0
-
-PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
-PRIVATE = load_private_key(PRIVATE_PEM)
-PUBLIC = load_public_key(PUBLIC_PEM)
-OTHER_PRIVATE_PEM, OTHER_PUBLIC_PEM = generate_keypair()
-OTHER_PRIVATE = load_private_key(OTHER_PRIVATE_PEM)
-OTHER_PUBLIC = load_public_key(OTHER_PUBLIC_PEM)
-
-
-def make_task(**overrides: Any) -> VehicleTask:
-    values: dict[str, Any] = {
-        "session_id": "s-1",
-        "vehicle_id": "car-7",
-        "user": "alice",
-        "allowed_commands": ("drive", "stop"),
-        "limits": Limits(
-            max_speed_mps=3.0,
-            geofence_center=(43.7, 7.25),
-            geofence_radius_m=200.0,
-            link_loss_timeout_ms=800,
-            latency_soft_ms=150,
-            latency_hard_ms=400,
-            session_time_limit_s=600,
-        ),
-        "issued_at": NOW,
-        "expires_at": NOW + 60,
-        "mission": {"waypoints": [[43.7, 7.25, 10], [43.71, 7.26, 10]]},
-    }
-    values.update(overrides)
-    return VehicleTask(**values)
-
-
-def make_grant(**overrides: Any) -> UserGrant:
-    values: dict[str, Any] = {
-        "session_id": "s-1",
-        "vehicle_id": "car-7",
-        "user": "alice",
-        "role": "controller",
-        "allowed_commands": ("drive", "stop"),
-        "issued_at": NOW,
-        "expires_at": NOW + 60,
-    }
-    values.update(overrides)
-    return UserGrant(**values)
 
 
 def b64(data: bytes) -> str:

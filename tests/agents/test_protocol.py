@@ -38,16 +38,13 @@ from agents.protocol.messages import (
     message_to_dict,
     message_type,
 )
-from tests.agents.test_documents import (
+from tests.agents.documents import (
     NOW,
     PRIVATE_PEM,
     PUBLIC_PEM,
     make_grant,
     make_task,
 )
-
-# The documents these tests sign, and the keys, are test_documents' own.
-
 
 # ---------------------------------------------------------------------------------------
 # Keys
