@@ -8,6 +8,7 @@ and skipped, with the reason, on the other.
 
 from __future__ import annotations
 
+import fnmatch
 import os
 from pathlib import Path
 from typing import Any
@@ -72,12 +73,35 @@ def on_redis() -> bool:
     return "Redis" in settings.CHANNEL_LAYERS["default"]["BACKEND"]
 
 
+#: The slow tiers by where a test lives (a test module may also mark itself): the
+#: benchmarks' own machinery on short runs, and what runs real servers, agents and
+#: simulators on the wall clock. ``bin/test -m "not browser and not realtime"`` is the
+#: quick inner loop; CI runs everything.
+TIERS: dict[str, tuple[str, ...]] = {
+    "benchmark_harness": ("tests/benchmarks/*",),
+    "realtime": (
+        "tests/integration/*",
+        "kinds/*/tests/test_integration.py",
+        "tests/agents/test_mavlink*.py",
+        "tests/agents/test_spektrum.py",
+        "tests/agents/test_mission*.py",
+        "tests/agents/test_shutdown.py",
+        "tests/platform/test_worker_outage.py",
+        "tests/platform/test_db_pool.py",
+    ),
+}
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     skip_pg = pytest.mark.skip(reason="needs PostgreSQL (run bin/test with the server up)")
     skip_redis = pytest.mark.skip(reason="needs Redis (run bin/test with the server up)")
     chromium = chromium_missing_reason()
     skip_browser = pytest.mark.skip(reason=chromium or "")
     for item in items:
+        where = item.nodeid.split("::", 1)[0]
+        for marker, patterns in TIERS.items():
+            if any(fnmatch.fnmatch(where, pattern) for pattern in patterns):
+                item.add_marker(marker)
         if "browser" in item.keywords and chromium is not None:
             item.add_marker(skip_browser)
         if "postgres" in item.keywords and not on_postgres():

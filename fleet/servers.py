@@ -68,13 +68,12 @@ def uplink_server_id() -> uuid.UUID:
     return _process.id
 
 
-def _beat(now: datetime | None = None) -> None:
-    """Say this process is alive (and forget processes gone for a day)."""
+def _register(now: datetime | None = None) -> None:
+    """Write this process's row (alive now), and forget processes gone for a day."""
     server_id = uplink_server_id()
     assert _process is not None
     now = now or timezone.now()
-    updated = UplinkServer.objects.filter(pk=server_id).update(alive_at=now)
-    if not updated:
+    if not UplinkServer.objects.filter(pk=server_id).update(alive_at=now):
         UplinkServer.objects.create(
             pk=server_id,
             started_at=_process.started_at,
@@ -84,15 +83,23 @@ def _beat(now: datetime | None = None) -> None:
         UplinkServer.objects.filter(alive_at__lt=now - FORGET_AFTER).delete()
 
 
+def _beat() -> bool:
+    """Say this process is alive; False when its row is gone (deleted by someone: the
+    process then stops beating, and registers again with its next uplink)."""
+    return bool(UplinkServer.objects.filter(pk=uplink_server_id()).update(alive_at=timezone.now()))
+
+
 async def _beat_forever() -> None:
     period = float(settings.IOUV_UPLINK_SERVER_BEAT_S)
     beat = database_sync_to_async(_beat)
     while True:
+        await asyncio.sleep(period)
         try:
-            await beat()
+            if not await beat():
+                log.warning("uplink server %s: its row is gone; beating stops", uplink_server_id())
+                return
         except Exception as exc:  # the database away: the process then looks gone
             log.warning("uplink server beat failed: %s", exc)
-        await asyncio.sleep(period)
 
 
 _beats: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, asyncio.Task[None]] = (
@@ -107,7 +114,7 @@ async def uplink_server_ensure() -> uuid.UUID:
     loop = asyncio.get_running_loop()
     task = _beats.get(loop)
     if task is None or task.done():
-        await database_sync_to_async(_beat)()
+        await database_sync_to_async(_register)()
         _beats[loop] = loop.create_task(_beat_forever(), name="uplink-server-beat")
     return uplink_server_id()
 
@@ -127,6 +134,9 @@ class Availability:
     #: Since when some server has been there without a break: ``now`` when none is, None
     #: when no server ever beat (the registry unused: silence is judged as it is).
     since: datetime | None
+    #: ``since``, when a server had been there before it (the platform came back from
+    #: an outage then); None when the platform has been there since its first server.
+    back_at: datetime | None = None
 
     def silence(self, heard: datetime | None, server: uuid.UUID | None) -> float | None:
         """How long a vehicle last heard at ``heard``, whose uplink ``server`` held,
@@ -144,10 +154,10 @@ class Availability:
             back = max(self.since or self.now, gone) + grace
             return (witnessed + max(timedelta(0), self.now - back)).total_seconds()
         start = heard
-        if self.since is not None and self.since > heard:
+        if self.back_at is not None and self.back_at > heard:
             # Heard before the platform was last away entirely (its server unknown):
             # counted from the end of the grace after the platform came back.
-            start = self.since + grace
+            start = self.back_at + grace
         return max(0.0, (self.now - start).total_seconds())
 
 
@@ -168,7 +178,10 @@ def availability(now: datetime | None = None) -> Availability:
     for start, end in spans:
         if end >= since and start < since:
             since = start
-    return Availability(now=now, alive_at={pk: alive for pk, _s, alive in rows}, since=since)
+    back_at = since if any(end < since for _start, end in spans) else None
+    return Availability(
+        now=now, alive_at={pk: alive for pk, _s, alive in rows}, since=since, back_at=back_at
+    )
 
 
 def vehicles_silence(

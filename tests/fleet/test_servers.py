@@ -72,6 +72,11 @@ def test_after_the_whole_platform_was_away_the_grace_counts_from_its_return():
     assert silence(110, 40, uuid.UUID(int=3)) == 10
 
 
+def test_a_first_server_excuses_nothing_it_could_not_have_heard():
+    servers((A, 100, 200))  # the first server ever: the platform had no outage
+    assert silence(200, 40, None) == 160
+
+
 def test_servers_that_overlap_keep_the_platform_available():
     servers((A, 0, 60), (B, 55, 200))  # a rolling restart: B up before A went
     assert availability(s(200)).since == s(0)
