@@ -7,8 +7,6 @@ import contextlib
 import itertools
 import json
 import time
-from collections.abc import AsyncIterator
-from dataclasses import dataclass, field
 from typing import Any
 
 import pytest
@@ -17,136 +15,29 @@ from hypothesis import strategies as st
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
-from agents.control import REFUSAL_REPORT_S, ControlHub, ControlServer, refusal_text
+from agents.control import REFUSAL_REPORT_S, refusal_text
 from agents.geo import distance_m
 from agents.protocol import (
-    Limits,
-    UserGrant,
-    VehicleTask,
     generate_keypair,
     load_private_key,
-    load_public_key,
-    new_nonce,
 )
-from agents.simulation import adapter_simulated
 from agents.vehicles.base import AdapterError
-from agents.vehicles.car.adapter import CarAdapter
-from agents.vehicles.car.sim.world import CarWorld
-
-PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
-PRIVATE = load_private_key(PRIVATE_PEM)
-VEHICLE = "car-test-1"
-SESSION = "session-1"
-CAR_COMMANDS = (
-    "forward",
-    "backward",
-    "left",
-    "right",
-    "stop",
-    "camera_up",
-    "camera_down",
-    "camera_left",
-    "camera_right",
+from tests.agents.car_rig import (
+    CAR_COMMANDS,
+    SESSION,
+    Rig,
+    car_rig,
+    make_grant,
+    make_task,
 )
-
-
-@dataclass
-class Rig:
-    hub: ControlHub
-    server: ControlServer
-    car: CarAdapter
-    world: CarWorld
-    reports: list[tuple[str, str | None, dict[str, Any]]] = field(default_factory=list)
-    #: When each report was made (monotonic), in the same order.
-    stamps: list[float] = field(default_factory=list)
-
-    @property
-    def url(self) -> str:
-        return f"ws://127.0.0.1:{self.server.port}/"
-
-    def events(self, name: str) -> list[dict[str, Any]]:
-        return [data for event, _, data in self.reports if event == name]
-
-    def report(self, event: str, session: str | None, data: dict[str, Any]) -> None:
-        self.reports.append((event, session, data))
-        self.stamps.append(time.monotonic())
-
-
-def make_task(*, session: str = SESSION, user: str = "alice", **limits: Any) -> VehicleTask:
-    now = time.time()
-    return VehicleTask(
-        session_id=session,
-        vehicle_id=VEHICLE,
-        user=user,
-        allowed_commands=CAR_COMMANDS,
-        limits=Limits(**{"link_loss_timeout_ms": 500, "failsafe_action": "stop", **limits}),
-        issued_at=now,
-        expires_at=now + 60,
-        nonce=new_nonce(),
-    )
-
-
-def make_grant(
-    *,
-    session: str = SESSION,
-    user: str = "alice",
-    role: str = "controller",
-    vehicle: str = VEHICLE,
-    ttl: float = 60,
-    key: Any = PRIVATE,
-) -> str:
-    now = time.time()
-    return UserGrant(
-        session_id=session,
-        vehicle_id=vehicle,
-        user=user,
-        role=role,
-        allowed_commands=CAR_COMMANDS,
-        issued_at=min(now, now + ttl) - 1,
-        expires_at=now + ttl,
-        nonce=new_nonce(),
-    ).sign(key)
-
-
-@pytest.fixture
-async def rig() -> AsyncIterator[Rig]:
-    options = {"camera_arm": True, "distance_sensor": True, "origin": [40.63, -8.65]}
-    rigs: list[Rig] = []
-    async with adapter_simulated("car", options) as (car, simulation):
-        assert isinstance(car, CarAdapter)
-        hub = ControlHub(
-            vehicle_id=VEHICLE,
-            vehicle_name="car-1",
-            public_key=load_public_key(PUBLIC_PEM),
-            adapter=car,
-            report=lambda e, s, d: rigs[0].report(e, s, d),
-        )
-        async with hub, ControlServer(hub) as server:
-            rigs.append(Rig(hub, server, car, simulation.simulator))
-            hub.task_accept(make_task())
-            yield rigs[0]
-
-
-async def recv(ws: ClientConnection, kind: str, within: float = 3.0) -> dict[str, Any]:
-    """The next message of type ``kind`` (skipping pings, telemetry, events)."""
-    deadline = time.monotonic() + within
-    while True:
-        msg = json.loads(await asyncio.wait_for(ws.recv(), deadline - time.monotonic()))
-        if msg["type"] == kind:
-            return msg
-        if msg["type"] == "ping":
-            await ws.send(json.dumps({"type": "pong", "t": msg["t"]}))
+from tests.agents.waiting import until
+from tests.control import command, recv
 
 
 async def join(rig: Rig, grant: str | None = None) -> tuple[ClientConnection, dict[str, Any]]:
     ws = await connect(rig.url, compression=None, proxy=None)
     await ws.send(json.dumps({"type": "auth", "grant": grant or make_grant()}))
     return ws, await recv(ws, "welcome")
-
-
-async def command(ws: ClientConnection, seq: int, name: str, **args: Any) -> dict[str, Any]:
-    await ws.send(json.dumps({"type": "command", "seq": seq, "name": name, "args": args}))
-    return await recv(ws, "ack")
 
 
 async def close_code(ws: ClientConnection, within: float = 3.0) -> int | None:
@@ -458,24 +349,13 @@ async def test_flood_is_throttled_then_disconnected(rig: Rig):
 @settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
 @given(frames=st.lists(st.one_of(st.text(max_size=200), st.binary(max_size=200)), max_size=8))
 async def test_fuzzed_frames_never_break_the_agent(frames):
-    reports: list[Any] = []
-    async with adapter_simulated("car", {}) as (car, simulation):
-        hub = ControlHub(
-            vehicle_id=VEHICLE,
-            vehicle_name="car",
-            adapter=car,
-            public_key=load_public_key(PUBLIC_PEM),
-            report=lambda e, s, d: reports.append(e),
-        )
-        async with hub, ControlServer(hub) as server:
-            hub.task_accept(make_task())
-            rig = Rig(hub, server, car, simulation.simulator)
-            ws, _ = await join(rig)
-            for frame in frames:
-                await ws.send(frame)
-            # Every frame was answered or ignored; the agent still serves this client.
-            assert (await command(ws, 99, "stop"))["seq"] == 99
-            await ws.close()
+    async with car_rig({}) as rig:
+        ws, _ = await join(rig)
+        for frame in frames:
+            await ws.send(frame)
+        # Every frame was answered or ignored; the agent still serves this client.
+        assert (await command(ws, 99, "stop"))["seq"] == 99
+        await ws.close()
 
 
 # --- what the user and the platform are told ---------------------------------------------
@@ -517,15 +397,6 @@ async def test_every_refusal_the_user_sees_names_the_command(rig: Rig):
     rig.hub.controller.rtt_ms = 50.0
     ack = await command(ws, 1, "backward")
     assert ack["code"] == "latency" and ack["error"].startswith("backward refused: round trip")
-
-
-async def until(predicate: Any, *, within: float = 5.0, what: str = "") -> Any:
-    deadline = time.monotonic() + within
-    while not (value := predicate()):
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what or predicate}")
-        await asyncio.sleep(0.01)
-    return value
 
 
 async def refuse(ws: ClientConnection, seqs: range, name: str = "fly", **args: Any) -> int:

@@ -47,7 +47,7 @@ from agents.vehicles.mavlink.config import MavlinkConfig
 from agents.vehicles.mavlink.dialect import MAV, mavutil
 from agents.vehicles.mavlink.sim import simulator_command
 from agents.vehicles.registry import adapter_create
-from tests.agents.test_control import command, recv
+from tests.control import command, recv
 
 ROOT = Path(__file__).resolve().parents[2]
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()

@@ -24,8 +24,8 @@ from websockets.asyncio.client import ClientConnection
 from agents.geo import distance_m, offset
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.mavlink.dialect import MAV, mavutil
-from tests.agents.test_control import command
 from tests.agents.test_mavlink import HOME, Rig, RigFactory, join, make_task, rigs, watch
+from tests.control import command
 
 #: Stated in docs/vehicles/quadcopter.md: never more than this above the ceiling,
 #: whatever climbs (the user's keys, a waypoint, the autopilot's own return).

@@ -42,7 +42,7 @@ from agents.simulation import simulator_running
 from agents.thermal import SyntheticSeaThermal, ThermalFeed
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.registry import adapter_create
-from tests.agents.test_control import command, recv
+from tests.control import command, recv
 
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
 PRIVATE = load_private_key(PRIVATE_PEM)

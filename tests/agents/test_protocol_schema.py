@@ -19,7 +19,7 @@ from agents.protocol import CHANNELS, PROTOCOL_VERSION, ProtocolError, parse_mes
 from agents.protocol.messages import CommandSpec, Heartbeat, Position, Profile
 from agents.protocol.schema import schema_path, stale_files
 from agents.uplink import Uplink
-from tests.agents.test_control import Rig, make_grant, rig  # noqa: F401  (rig: a fixture)
+from tests.agents.car_rig import Rig, make_grant
 
 VALIDATORS = {
     channel: jsonschema.Draft202012Validator(
@@ -129,7 +129,7 @@ def test_cross_field_rules_are_the_parsers_alone(channel: str, msg: dict[str, An
 # --- captured from real components over real sockets --------------------------------------
 
 
-async def test_control_session_frames_obey_the_schemas(rig: Rig) -> None:  # noqa: F811
+async def test_control_session_frames_obey_the_schemas(rig: Rig) -> None:
     """A user drives the simulated car through the agent's control server; every frame
     in both directions is recorded as it crossed the socket, then validated."""
     sent: list[str] = []
@@ -190,7 +190,7 @@ async def test_control_session_frames_obey_the_schemas(rig: Rig) -> None:  # noq
     assert_valid("control_to_client", received)
 
 
-async def test_uplink_frames_obey_the_schemas(rig: Rig) -> None:  # noqa: F811
+async def test_uplink_frames_obey_the_schemas(rig: Rig) -> None:
     """The agent's real uplink client against a recording platform: hello, profile
     (the simulated car's real command vocabulary), heartbeats and acks one way,
     welcome and revoke the other."""

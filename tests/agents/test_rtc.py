@@ -15,11 +15,10 @@ import pytest
 
 from agents import control
 from benchmarks.rtc_client import RtcClientError, RtcControlClient
-from tests.agents.test_control import Rig, make_grant, rig, until
+from tests.agents.car_rig import Rig, make_grant
+from tests.agents.waiting import until
 
 LOOPBACK = ["127.0.0.1"]
-
-__all__ = ["rig"]  # the fixture, shared with test_control
 
 
 @pytest.fixture

@@ -39,8 +39,8 @@ from agents.protocol import (
     new_nonce,
 )
 from agents.vehicles.mavlink.dialect import MAV, mavutil
-from tests.agents.test_control import command, recv
 from tests.agents.test_mavlink import HOME, ROOT, start_simulator, watch
+from tests.control import command, recv
 
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
 PRIVATE = load_private_key(PRIVATE_PEM)

@@ -52,7 +52,7 @@ from agents.vehicles.spektrum.report import parse_report
 from agents.vehicles.spektrum.sim import cli
 from agents.vehicles.spektrum.sim.line import FrameChecker
 from agents.vehicles.spektrum.sim.model import SimParams, VtolModel
-from tests.agents.test_control import command, recv
+from tests.control import command, recv
 
 # --------------------------------------------------------------------------------------
 # The specification, independently of the adapter's code

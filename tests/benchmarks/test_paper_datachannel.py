@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import socket
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import cast
 
@@ -21,10 +21,8 @@ import pytest
 from benchmarks import paper
 from benchmarks.delay_proxy import UdpDelayProxy
 from benchmarks.turn_server import TurnServer, stun_answers, turn_server
-from tests.agents.test_control import Rig, make_grant, rig
+from tests.agents.car_rig import Rig, car_rig, make_grant
 from tests.netlab import ensure_packages
-
-__all__ = ["rig"]  # the fixture, shared with test_control
 
 # asyncio's timers may fire a hair early (clock resolution): lower bounds keep a margin.
 EARLY_S = 0.001
@@ -39,10 +37,12 @@ def turn(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TurnServer]:
 
 
 @pytest.fixture
-def agent(rig: Rig) -> Rig:
-    """The rig's agent offering host candidates on loopback only, as paper's agents do."""
-    rig.hub.webrtc_options = {"ice_host_addresses": list(paper.LOOPBACK)}
-    return rig
+async def agent() -> AsyncIterator[Rig]:
+    """The control tests' car rig (tests.agents.car_rig), its agent offering host
+    candidates on loopback only, as paper's agents do."""
+    async with car_rig() as rig:
+        rig.hub.webrtc_options = {"ice_host_addresses": list(paper.LOOPBACK)}
+        yield rig
 
 
 # --------------------------------------------------------------------------------------

@@ -22,7 +22,8 @@ from agents.runtime import Agent
 from agents.vehicles.spektrum.adapter import SpektrumAdapter
 from fleet.models import Vehicle
 from tests import factories as f
-from tests.agents.test_spektrum import FAST, command, recv
+from tests.agents.test_spektrum import FAST
+from tests.control import command, recv
 from tests.servers import agent_simulated, db, platform_process
 from tests.vehicles import (
     VTOL,

@@ -1,0 +1,18 @@
+"""Fixtures shared by the agent's tests. Plain helpers are in the modules beside this
+one, named for what they hold (car_rig, mavlink_rig, mission_rig, documents, ...)."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+
+import pytest
+
+from tests.agents.car_rig import Rig, car_rig
+
+
+@pytest.fixture
+async def rig() -> AsyncIterator[Rig]:
+    """The simulated car behind a control hub and server, alice's task accepted (see
+    :func:`tests.agents.car_rig.car_rig`)."""
+    async with car_rig() as built:
+        yield built
