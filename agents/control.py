@@ -14,8 +14,12 @@ relay. It
   (:meth:`~agents.vehicles.base.Adapter.stop_motion`), not left to run its hold;
 * streams telemetry per subscription at the requested rate, and answers pings;
 * pings the controller to know the round trip (latency-aware limits) and watches its
-  inputs: nothing within the task's link-loss timeout, or its socket closing, triggers
-  the adapter's safe action and a ``failsafe`` event to the platform;
+  inputs: nothing within the task's link-loss timeout triggers the adapter's safe
+  action and a ``failsafe`` event to the platform. A controller's socket closing (a
+  page reloading, a tab closed) holds the vehicle neutral at once and gives the same
+  user the rest of that timeout to come back: a page that reconnects in time takes
+  the controls back without the fail-safe; one that comes back later is told, in its
+  ``welcome``, the fail-safe the vehicle performed meanwhile (``vehicle.failsafe``);
 * runs the commands of the task's autonomous mission (:mod:`agents.mission`) through
   :meth:`ControlHub.mission_execute`, under the same lock, and counts the user
   commands and fail-safes that take over from it (:attr:`ControlHub.overrides`);
@@ -353,6 +357,10 @@ class ControlHub:
         self._refusals = _RefusalReports(report)
         # The controller the watchdog found silent, and its last input before that.
         self._silenced: tuple[_Client, float] | None = None
+        #: The fail-safe the vehicle performed on its own during the current task and
+        #: that no controller's command has taken over since (cause, action, when: Unix
+        #: seconds): a page that comes back is told (its ``welcome``).
+        self.failsafe_done: dict[str, Any] | None = None
         #: Called with the task as it ends, before the safe action (stops its mission).
         self.on_task_end = on_task_end
         #: True while an autonomous mission flies the vehicle (set by its runner).
@@ -414,6 +422,8 @@ class ControlHub:
         """Make ``task`` current. Raises Refusal("busy") while another session runs."""
         if self.task is not None and self.task.session_id != task.session_id:
             raise Refusal("busy", f"the vehicle is serving session {self.task.session_id}")
+        if self.task is None:
+            self.failsafe_done = None
         self.task = task
         watch = EnvelopeWatch(
             limits=task.limits,
@@ -582,9 +592,34 @@ class ControlHub:
             self._silenced = None
         if client is self.controller:
             self.controller = None
-            if self._armed:
-                # The controller's socket is gone: no need to wait for the timeout.
-                await self._failsafe("link_lost")
+            # The controller's socket is gone (a page reloading, a tab closed, a network
+            # that dropped): the vehicle stops what the user's keys were doing now, and
+            # the watchdog (still armed) performs the fail-safe once the link-loss
+            # timeout has passed since their last input, unless the same user's page
+            # connects again first (_auth: it takes over).
+            if self._armed and not self.autonomous:
+                try:
+                    async with self._exec:
+                        await self.adapter.neutral()
+                except Exception:  # the watchdog's fail-safe still comes
+                    log.exception("holding the vehicle neutral failed")
+            # The same user's other page, connected meanwhile (a reload whose new page
+            # authenticated before the old socket's close arrived), takes over.
+            heir = next(
+                (
+                    other
+                    for other in self.clients.values()
+                    if other.role == "viewer"
+                    and other.grant is not None
+                    and self.task is not None
+                    and other.grant.role == "controller"
+                    and other.grant.user == self.task.user
+                ),
+                None,
+            )
+            if heir is not None:
+                await self._set_controller(heir)
+                await self._send(heir, RoleChange(role="controller"))
 
     async def received(self, link: ClientLink, raw: str | bytes | Message) -> None:
         """Handle one frame from a user: its text, or the message struct already parsed
@@ -645,22 +680,31 @@ class ControlHub:
             return
         client.grant = grant
         wants_control = grant.role == "controller" and grant.user == task.user
+        failsafe = self.failsafe_done
         if wants_control and self.controller is None:
+            # Back within the link-loss timeout (a reload): the watchdog is disarmed
+            # before it fires, and the user drives on.
             await self._set_controller(client)
         else:
             client.role = "viewer"
+        vehicle: dict[str, Any] = {
+            "id": self.vehicle_id,
+            "name": self.vehicle_name,
+            "adapter": self.adapter.name,
+            "session_id": task.session_id,
+            "link_loss_timeout_ms": task.limits.link_loss_timeout_ms,
+            "video": self.video is not None,
+            # What each fail-safe action does to this vehicle, in words ("climb to its
+            # return altitude, fly back to its home point and land").
+            "safe_actions": dict(self.adapter.safe_action_words),
+        }
+        if failsafe is not None:
+            vehicle["failsafe"] = {**failsafe, "ago_s": round(time.time() - failsafe["at"], 1)}
         await self._send(
             client,
             ClientWelcome(
                 role=client.role,  # type: ignore[arg-type]  # controller or viewer by now
-                vehicle={
-                    "id": self.vehicle_id,
-                    "name": self.vehicle_name,
-                    "adapter": self.adapter.name,
-                    "session_id": task.session_id,
-                    "link_loss_timeout_ms": task.limits.link_loss_timeout_ms,
-                    "video": self.video is not None,
-                },
+                vehicle=vehicle,
                 commands=[
                     msgspec.convert(
                         {
@@ -756,6 +800,7 @@ class ControlHub:
                 await self._ack(client, seq, "timeout", f"{name} got no answer from the vehicle")
                 continue
             self.stats["commands"] += 1
+            self.failsafe_done = None  # the user has the vehicle again
             self._input()
             with contextlib.suppress(ConnectionError):
                 await client.link.send(CommandAck(seq=seq, ok=True, error=None))
@@ -1035,6 +1080,7 @@ class ControlHub:
             log.exception("fail-safe %s failed", action)
             self.report("safe_action_failed", task.session_id if task else None, {"action": action})
         log.warning("fail-safe: %s -> %s", cause, action)
+        self.failsafe_done = {"cause": cause, "action": action, "at": time.time()}
         for client in list(self.clients.values()):
             with contextlib.suppress(ConnectionError):
                 await client.link.send(

@@ -184,6 +184,12 @@ class ServiceKind:
         """Extra context for :attr:`session_template`."""
         return {}
 
+    def situation(self, session: Session) -> str:
+        """What a live session of a kind nobody drives is doing now, in a sentence for
+        its spectators ("search-1 searches the area: waypoint 3 of 12 reached"), or ""
+        (the core then says that it runs by itself)."""
+        return ""
+
     def session_data(self, session: Session) -> dict[str, Any] | None:
         """The kind's live state of a session as JSON (a mission map...), or None."""
         return None

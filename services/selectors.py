@@ -19,6 +19,23 @@ def vehicle_consequence(vehicle: Vehicle, action: str) -> str:
     return f"{vehicle.name} will {words or action.replace('_', ' ')}"
 
 
+#: Why a vehicle acted on its own (the cause of an agent's ``failsafe``), for people.
+FAILSAFE_CAUSES = {"link_lost": "the driver's link to the vehicle was lost"}
+
+
+def failsafe_sentence(*, cause: str, action: str, vehicle: Vehicle | None) -> str:
+    """What a fail-safe was, as a sentence without a code: "the driver's link to the
+    vehicle was lost, so quad-1 will climb to its return altitude, fly back to its home
+    point and land" (the vehicle's own words for ``action``, see
+    :func:`vehicle_consequence`)."""
+    why = FAILSAFE_CAUSES.get(
+        cause, f"the vehicle had to act on its own ({cause.replace('_', ' ')})"
+    )
+    if vehicle is None:
+        return f"{why}, so it performed its fail-safe ({action.replace('_', ' ')})"
+    return f"{why}, so {vehicle_consequence(vehicle, action)}"
+
+
 def session_consequence(session: Session, vehicles: list[Vehicle]) -> str:
     """What ending or stopping ``session`` makes its ``vehicles`` do, in one sentence
     for the person about to press the button."""

@@ -63,6 +63,7 @@ from services.deployment import (
 from services.eventlog import event_append
 from services.kinds import ServiceKind, UnknownKind, kind_of, kinds_user_driven
 from services.models import Assignment, Service, Session, SessionEvent
+from services.selectors import failsafe_sentence
 from services.sessions import SessionStateError, session_transition
 from services.signing import platform_jwks, platform_public_key_pem
 
@@ -582,14 +583,22 @@ def _controller_gone(session: Session) -> SessionEvent | None:
     return None
 
 
+def _failsafe_words(data: dict[str, Any]) -> str:
+    """An ``unintentional_end``'s fail-safe in words (services.selectors)."""
+    pk = data.get("vehicle")
+    vehicle = Vehicle.objects.filter(pk=pk).first() if pk else None
+    return failsafe_sentence(
+        cause=str(data.get("cause", "unknown")),
+        action=str(data.get("action", "stop")),
+        vehicle=vehicle,
+    )
+
+
 def _gone_reason(event: SessionEvent) -> str:
     data = event.data if isinstance(event.data, dict) else {}
     grace = settings.IOUV_RECONNECT_GRACE_S
     if event.kind == "unintentional_end":
-        return (
-            f"unintentional end: {data.get('cause', 'unknown')}, "
-            f"vehicle performed {data.get('action', 'unknown')}"
-        )
+        return f"{_failsafe_words(data)}; nobody took control again within {grace:g} s"
     if event.kind == "control_released":
         return f"the user released control and did not take it back within {grace:g} s"
     return f"the user left and did not come back within {grace:g} s"
@@ -604,6 +613,11 @@ def session_situation(session: Session) -> dict[str, Any]:
     on its own. The session ends unless the driver reconnects." A session's state
     alone ("active") would hide that.
     """
+    kind = _kind(session.service)
+    if kind is not None and not kind.user_drives:
+        # Nobody drives an autonomous session: the platform runs it.
+        words = kind.situation(session) or "It runs by itself: nobody drives it."
+        return {"live": True, "text": words, "ends_at": None}
     gone = _controller_gone(session)
     if gone is None:
         if session.state == Session.State.ASSIGNED:
@@ -613,12 +627,9 @@ def session_situation(session: Session) -> dict[str, Any]:
     data = gone.data if isinstance(gone.data, dict) else {}
     ends_at = gone.created_at + timedelta(seconds=settings.IOUV_RECONNECT_GRACE_S)
     if gone.kind == "unintentional_end":
-        cause = str(data.get("cause", "unknown")).replace("_", " ")
-        action = str(data.get("action", "its fail-safe")).replace("_", " ")
-        text = (
-            f"Nobody is in control ({cause}): the vehicle performed {action} on its own. "
-            "The session ends unless the driver reconnects."
-        )
+        words = _failsafe_words(data)
+        text = f"Nobody is in control: {words}. The session ends unless the driver reconnects."
+        text = text[0].upper() + text[1:]
     elif gone.kind == "control_released":
         text = "The driver released control. The session ends unless they take it back."
     else:
@@ -633,8 +644,9 @@ def sessions_expire_grace(
     ``IOUV_RECONNECT_GRACE_S``: after a fail-safe or the controller leaving, no
     controller connected again and no link recovered on the open socket since.
 
-    The reason says what happened: ``unintentional end: <cause>, vehicle performed
-    <action>``, or that the user left. ``session_ids`` limits the check. Returns the
+    The reason says what happened, in words (services.selectors.failsafe_sentence:
+    "the driver's link to the vehicle was lost, so quad-1 will ...; nobody took control
+    again within 30 s"), or that the user left. ``session_ids`` limits the check. Returns the
     ids of the sessions ended.
     """
     now = now or timezone.now()

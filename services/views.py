@@ -161,6 +161,15 @@ def session_page(request: AuthenticatedHttpRequest, session_id: str) -> HttpResp
         {
             "session": session,
             "summary": session_summary(session),
+            # Every vehicle the session had, as it had them: the page names them after
+            # the end too.
+            "session_vehicles": list(
+                dict.fromkeys(
+                    session.assignments.order_by("created_at").values_list(
+                        "vehicle__name", flat=True
+                    )
+                )
+            ),
             "user_task": task,
             # Open but no vehicle yet: the page asks for its grant once one is assigned.
             "session_open": session.state not in FINAL,

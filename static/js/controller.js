@@ -327,6 +327,17 @@
       this.setState("connected");
       this.hideBanner();
       this.setRole(msg.role);
+      if (msg.vehicle.failsafe) {
+        // The vehicle acted on its own while no page of this user was connected (a
+        // reload that took longer than the link-loss timeout, a network that dropped):
+        // say so, and what it is doing, rather than "connected" as if nothing happened.
+        const f = msg.vehicle.failsafe;
+        const ago = f.ago_s != null ? ` ${Math.max(1, Math.round(f.ago_s))} s ago` : "";
+        const next = msg.role === "controller"
+          ? "You are in control again: any command takes it over."
+          : "Take control to drive it again.";
+        this.showBanner(`While this page was away, ${this.failsafeWhy(f)}, so it performed its fail-safe${ago}: ${this.failsafeDoes(f)}. ${next}`, "warn");
+      }
       this.buildControls(msg.commands);
       this.telemetryInfo = msg.telemetry_info || {};
       if (msg.telemetry.length) {
@@ -386,11 +397,27 @@
       }
     }
 
+    // A fail-safe's cause and action in words, from the vehicle's own description of
+    // its actions (the welcome's safe_actions): no codes.
+    failsafeWhy(f) {
+      const name = (this.vehicle && this.vehicle.name) || "the vehicle";
+      const timeout = (this.vehicle && this.vehicle.link_loss_timeout_ms) || 500;
+      if (f.cause === "link_lost") return `nothing reached ${name} from you for ${(timeout / 1000).toFixed(1)} s`;
+      return `${name} had to act on its own (${String(f.cause || "").replace(/_/g, " ")})`;
+    }
+
+    failsafeDoes(f) {
+      const name = (this.vehicle && this.vehicle.name) || "the vehicle";
+      const words = ((this.vehicle && this.vehicle.safe_actions) || {})[f.action];
+      return `${name} will ${words || String(f.action || "stop").replace(/_/g, " ")}`;
+    }
+
     onEvent(msg) {
       if (msg.event === "failsafe") {
         this.stats.failsafes += 1;
         this.releaseAll(false);
-        this.showBanner(`Fail-safe: ${msg.data.cause.replace(/_/g, " ")} — the vehicle will ${msg.data.action.replace(/_/g, " ")}.`, "bad");
+        const why = this.failsafeWhy(msg.data);
+        this.showBanner(`The link was lost (${why}): ${this.failsafeDoes(msg.data)}.`, "bad");
       } else if (msg.event === "session_ended") {
         this.endSession(msg.data.reason);
       } else if (msg.event === "path") {

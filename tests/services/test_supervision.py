@@ -225,7 +225,11 @@ def test_failsafe_logs_an_unintentional_end_then_the_grace_ends_the_session(live
         ended = sessions_expire_grace(now=logged.created_at + timedelta(seconds=grace + 1))
     assert ended == [str(session.pk)]
     assert state(session) == Session.State.ENDED
-    assert session.reason == "unintentional end: link_lost, vehicle performed land"
+    # In words, not codes: what happened, what the vehicle did, and why it ended.
+    assert session.reason == (
+        f"the driver's link to the vehicle was lost, so {vehicle.name} will land; "
+        f"nobody took control again within {grace:g} s"
+    )
     (end,) = take()
     assert end["type"] == "end_task"
     take.ack(end)

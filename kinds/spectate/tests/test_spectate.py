@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import html
 from datetime import timedelta
 
 import pytest
@@ -63,7 +64,10 @@ def test_the_list_says_when_nobody_controls_the_vehicle_and_when_the_session_end
     )
     card = _card(client.get(reverse("spectate")).content.decode(), session)
     assert ">live<" not in card and "nobody in control" in card
-    assert "the vehicle performed stop on its own" in card
+    assert (
+        "Nobody is in control: the driver's link to the vehicle was lost, so it performed "
+        "its fail-safe (stop)."
+    ) in html.unescape(card)
     ends = gone.created_at + timedelta(seconds=settings.IOUV_RECONNECT_GRACE_S)
     assert f'datetime="{ends.isoformat()}"' in card
 
