@@ -4,16 +4,24 @@ its map, a request that cannot be served, withdrawing a request, the session pag
 from __future__ import annotations
 
 import json
+import os
+import re
+import subprocess
+from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import pytest
+from django.core import mail
 from django.test import Client
 from django.urls import reverse
 
 from fleet.models import Vehicle
 from kinds.parcel_delivery.models import Delivery
+from kinds.parcel_delivery.notifications import parcel_notices
 from kinds.parcel_delivery.workflow import delivery_advance
 from services.models import Service, Session
+from services.notices import notices_send
 
 pytestmark = pytest.mark.django_db
 
@@ -136,3 +144,38 @@ def test_a_parcel_waiting_for_a_busy_carrier_says_so_with_its_place_in_the_queue
         "lifeguard-1 is busy with another session"
         in client.get(opened["Location"]).content.decode()
     )
+
+
+# --- the recipient's link ------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[3]
+
+
+def test_the_demo_on_another_port_e_mails_links_to_that_port(
+    client: Client, demo: Service, settings: Any
+) -> None:
+    # What bin/demo gives its servers when started as PORT=8210 bin/demo.
+    shown = subprocess.run(
+        ["bin/demo", "--print-env"],
+        cwd=ROOT,
+        env={**os.environ, "PORT": "8210"},
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=30,
+    ).stdout
+    given = dict(line.split("=", 1) for line in shown.splitlines())
+    settings.IOUV_PUBLIC_URL = given["IOUV_PUBLIC_URL"]
+    settings.EMAIL_BACKEND = "django.core.mail.backends.locmem.EmailBackend"
+    client.post(URL, form(PICKUP, DROPOFF))
+    delivery = Delivery.objects.get()
+    parcel_notices(delivery, moment="dispatched")  # as the carrier loads it
+    notices_send(delivery.pk)
+    (sent,) = mail.outbox
+    link = re.search(r"https?://\S+", sent.body)
+    assert link is not None, sent.body
+    url = urlsplit(link.group(0))
+    assert (url.scheme, url.netloc) == ("http", "127.0.0.1:8210"), link.group(0)
+    # The path opens the recipient's page, with no account.
+    page = Client().get(url.path)
+    assert page.status_code == 200 and 'id="parcel-map"' in page.content.decode()

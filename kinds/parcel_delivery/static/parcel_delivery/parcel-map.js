@@ -122,15 +122,18 @@
       if (state.delivered) return "delivered";
       if (state.final) return "–";
       if (state.eta_s == null) return "waiting for a vehicle";
-      const at = new Date(state.eta_at).toLocaleTimeString([], { hour: "2-digit", minute: "2-digit" });
+      // The portal's one time format (24-hour, static/js/clock.js), as every other page.
+      const at = window.IoUV.clock(new Date(state.eta_at)).slice(0, 5);
       const min = Math.max(1, Math.round(state.eta_s / 60));
       return `in about ${min} min (${at})`;
     }
 
     function panel() {
+      // Every element that shows the value, but never the map itself: it carries the
+      // state as data-delivery-state too (for tests), and text written into it would
+      // wipe the map out (the recipient's page, where the map comes first).
       const set = (sel, text) => {
-        const el = document.querySelector(sel);
-        if (el) el.textContent = text;
+        for (const el of document.querySelectorAll(`${sel}:not([data-map-mode])`)) el.textContent = text;
       };
       set("[data-delivery-status]", state.status || state.state_label);
       set("[data-delivery-state]", state.state_label);
