@@ -172,7 +172,7 @@ def test_the_demo_on_another_port_e_mails_links_to_that_port(
     parcel_notices(delivery, moment="dispatched")  # as the carrier loads it
     notices_send(delivery.pk)
     (sent,) = mail.outbox
-    link = re.search(r"https?://\S+", sent.body)
+    link = re.search(r"https?://\S+", str(sent.body))
     assert link is not None, sent.body
     url = urlsplit(link.group(0))
     assert (url.scheme, url.netloc) == ("http", "127.0.0.1:8210"), link.group(0)
