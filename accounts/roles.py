@@ -2,7 +2,8 @@
 
 * client   - uses the services their grants allow
 * monitor  - watches the fleet and every session, can stop a session
-* operator - station staff: puts vehicles in and out of service
+* operator - station staff: puts vehicles in and out of service, and watches the fleet
+              and its sessions on the fleet monitor (without stopping them)
 * admin    - everything
 
 Permissions are named by string ("app_label.codename") so this module does not import
@@ -46,6 +47,9 @@ ROLE_PERMISSIONS: dict[str, tuple[str, ...]] = {
         "fleet.view_vehicle",
         "fleet.change_vehicle",
         "fleet.set_maintenance",
+        # The fleet monitor shows every session with the vehicles: an operator taking a
+        # vehicle out of service must see what it is doing.
+        "services.view_session",
     ),
     ADMIN: (),  # every permission, filled in by roles_ensure
 }

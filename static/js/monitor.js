@@ -121,7 +121,9 @@
     const body = root.querySelector("[data-sessions] tbody");
     body.textContent = "";
     const live = [...sessions.values()].filter((s) => !FINAL.includes(s.state));
-    root.querySelector("[data-no-sessions]").hidden = live.length > 0;
+    const none = root.querySelector("[data-no-sessions]");
+    none.textContent = "No live session.";
+    none.hidden = live.length > 0;
     for (const s of live) {
       const tr = document.createElement("tr");
       tr.dataset.session = s.id;
@@ -190,12 +192,20 @@
     if (body.session) { sessions.set(body.session.id, body.session); renderSessions(); }
   }
 
+  /* The page is live while every feed it opened is. */
+  const open = new Map();
   function feed(path, onMessage) {
     const ws = new WebSocket(`${scheme}://${location.host}${path}`);
+    const state = root.querySelector("[data-conn-state]");
+    const show = () => {
+      state.textContent = [...open.values()].every(Boolean) ? "live" : "reconnecting";
+    };
+    open.set(path, false);
     ws.onmessage = (event) => onMessage(JSON.parse(event.data));
-    ws.onopen = () => { root.querySelector("[data-conn-state]").textContent = "live"; };
+    ws.onopen = () => { open.set(path, true); show(); };
     ws.onclose = () => {
-      root.querySelector("[data-conn-state]").textContent = "reconnecting";
+      open.set(path, false);
+      show();
       setTimeout(() => feed(path, onMessage), 2000);
     };
   }
