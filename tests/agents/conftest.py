@@ -7,6 +7,7 @@ from collections.abc import AsyncIterator
 
 import pytest
 
+from tests.agents import mavlink_rig
 from tests.agents.car_rig import Rig, car_rig
 
 
@@ -16,3 +17,12 @@ async def rig() -> AsyncIterator[Rig]:
     :func:`tests.agents.car_rig.car_rig`)."""
     async with car_rig() as built:
         yield built
+
+
+@pytest.fixture
+async def make_quad_rig() -> AsyncIterator[mavlink_rig.RigFactory]:
+    """``await make_quad_rig(task=None, **options)``: a quadcopter on its own simulator
+    behind a control hub and server (see :func:`tests.agents.mavlink_rig.rigs`); all
+    closed at the end of the test."""
+    async with mavlink_rig.rigs() as build:
+        yield build

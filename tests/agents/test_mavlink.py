@@ -9,238 +9,46 @@ about where the drone goes and what the user is told, with loose time bounds onl
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import json
 import math
 import os
 import signal
 import socket
 import struct
-import subprocess
-import sys
 import threading
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable
-from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import pytest
-from websockets.asyncio.client import ClientConnection, connect
+from websockets.asyncio.client import ClientConnection
 
-from agents.control import ControlHub, ControlServer
 from agents.geo import distance_m, local_offset_m
-from agents.protocol import (
-    Limits,
-    UserGrant,
-    VehicleTask,
-    generate_keypair,
-    load_private_key,
-    load_public_key,
-    new_nonce,
-)
+from agents.protocol import Limits
 from agents.safety import CommandGate, Refusal
-from agents.simulation import simulator_running
 from agents.vehicles.base import AdapterError
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.mavlink.config import MavlinkConfig
 from agents.vehicles.mavlink.dialect import MAV, mavutil
 from agents.vehicles.mavlink.sim import simulator_command
 from agents.vehicles.registry import adapter_create
-from tests.control import command, recv
-
-ROOT = Path(__file__).resolve().parents[2]
-PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
-PRIVATE = load_private_key(PRIVATE_PEM)
-VEHICLE = "quad-test-1"
-HOME = (40.6306, -8.6588)
-DRONE_COMMANDS = (
-    "arm",
-    "disarm",
-    "take_off",
-    "up",
-    "down",
-    "rotate_left",
-    "rotate_right",
-    "front",
-    "back",
-    "left",
-    "right",
-    "land",
-    "return_to_home",
-    "go_to_waypoint",
+from tests.agents.mavlink_rig import (
+    DRONE_COMMANDS,
+    HOME,
+    SIM,
+    Rig,
+    RigFactory,
+    join,
+    poll,
+    start_simulator,
+    watch,
 )
-#: Fast flights: 4x flight time, RTL at 6 m with a short loiter above home.
-SIM = {"speedup": 4, "params": {"RTL_ALT": 600, "RTL_LOIT_TIME": 500}}
-
-
-@dataclass
-class Rig:
-    hub: ControlHub
-    server: ControlServer
-    drone: MavlinkAdapter
-    #: The simulator's process (``python -m agents sim mavlink``).
-    sim_process: subprocess.Popen[bytes]
-    reports: list[tuple[str, str | None, dict[str, Any]]] = field(default_factory=list)
-    events: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
-
-    @property
-    def url(self) -> str:
-        return f"ws://127.0.0.1:{self.server.port}/"
-
-    def reported(self, name: str) -> list[dict[str, Any]]:
-        return [data for event, _, data in self.reports if event == name]
-
-    def event_names(self) -> list[str]:
-        return [name for name, _ in self.events]
-
-
-def make_task(**limits: Any) -> VehicleTask:
-    now = time.time()
-    return VehicleTask(
-        session_id="session-1",
-        vehicle_id=VEHICLE,
-        user="alice",
-        allowed_commands=DRONE_COMMANDS,
-        limits=Limits(
-            **{
-                "link_loss_timeout_ms": 500,
-                "failsafe_action": "return_to_home",
-                "max_altitude_m": 6,
-                **limits,
-            }
-        ),
-        issued_at=now,
-        expires_at=now + 120,
-        nonce=new_nonce(),
-    )
-
-
-def make_grant() -> str:
-    now = time.time()
-    return UserGrant(
-        session_id="session-1",
-        vehicle_id=VEHICLE,
-        user="alice",
-        role="controller",
-        allowed_commands=DRONE_COMMANDS,
-        issued_at=now - 1,
-        expires_at=now + 120,
-        nonce=new_nonce(),
-    ).sign(PRIVATE)
-
-
-def drone_options(**overrides: Any) -> dict[str, Any]:
-    return {
-        "origin": list(HOME),
-        "simulator": SIM,
-        "heartbeat_timeout_s": 1.5,
-        "command_timeout_s": 2.0,
-        **overrides,
-    }
-
-
-RigFactory = Callable[..., Awaitable[Rig]]
-
-
-@contextlib.asynccontextmanager
-async def rigs() -> AsyncIterator[RigFactory]:
-    """Build rigs (simulator + drone + hub + server + task); everything is closed at
-    the end, the simulators last."""
-    opened: list[tuple[ControlServer, ControlHub, MavlinkAdapter]] = []
-    simulators = contextlib.AsyncExitStack()
-
-    async def build(task: VehicleTask | None = None, **options: Any) -> Rig:
-        simulation = await simulators.enter_async_context(
-            simulator_running("mavlink", drone_options(**options))
-        )
-        drone = adapter_create("mavlink", simulation.options)
-        assert isinstance(drone, MavlinkAdapter)
-        events: list[tuple[str, dict[str, Any]]] = []
-        drone.on_event = lambda name, data: events.append((name, data))
-        await drone.start()
-        reports: list[tuple[str, str | None, dict[str, Any]]] = []
-        hub = ControlHub(
-            vehicle_id=VEHICLE,
-            vehicle_name="quad-1",
-            public_key=load_public_key(PUBLIC_PEM),
-            adapter=drone,
-            report=lambda e, s, d: reports.append((e, s, d)),
-        )
-        await hub.start()
-        server = ControlServer(hub)
-        await server.start()
-        opened.append((server, hub, drone))
-        hub.task_accept(task or make_task())
-        return Rig(hub, server, drone, simulation.simulator, reports, events)
-
-    try:
-        yield build
-    finally:
-        for server, hub, drone in reversed(opened):
-            await server.close()
-            await hub.close()
-            await drone.close()
-        await simulators.aclose()
+from tests.control import command
 
 
 @pytest.fixture
-async def make_rig() -> AsyncIterator[RigFactory]:
-    """Build rigs (see :func:`rigs`)."""
-    async with rigs() as build:
-        yield build
-
-
-@pytest.fixture
-async def rig(make_rig: RigFactory) -> Rig:
-    return await make_rig()
-
-
-async def join(rig: Rig) -> ClientConnection:
-    ws = await connect(rig.url, compression=None, proxy=None)
-    await ws.send(json.dumps({"type": "auth", "grant": make_grant()}))
-    welcome = await recv(ws, "welcome")
-    assert welcome["role"] == "controller"
-    await ws.send(json.dumps({"type": "subscribe", "topics": TOPICS, "rate_hz": 10}))
-    return ws
-
-
-TOPICS = [
-    "altitude",
-    "location",
-    "heading",
-    "flight_mode",
-    "is_armed",
-    "autopilot_link",
-    "battery_level",
-    "number_of_gps_satellites",
-    "speed",
-]
-
-
-async def watch(
-    ws: ClientConnection, until: Callable[[dict[str, Any]], bool], within: float, what: str
-) -> dict[str, Any]:
-    """Read the telemetry stream (staying a live controller: keepalives, pongs) until
-    ``until(data)`` holds; returns that telemetry."""
-    deadline = time.monotonic() + within
-    last_keepalive = 0.0
-    data: dict[str, Any] = {}
-    while time.monotonic() < deadline:
-        if time.monotonic() - last_keepalive > 0.1:
-            await ws.send(json.dumps({"type": "keepalive"}))
-            last_keepalive = time.monotonic()
-        try:
-            msg = json.loads(await asyncio.wait_for(ws.recv(), 0.2))
-        except TimeoutError:
-            continue
-        if msg["type"] == "ping":
-            await ws.send(json.dumps({"type": "pong", "t": msg["t"]}))
-        elif msg["type"] == "telemetry":
-            data = msg["data"]
-            if until(data):
-                return data
-    raise AssertionError(f"timed out waiting for {what}; last telemetry {data}")
+async def rig(make_quad_rig: RigFactory) -> Rig:
+    """In this module, one quadcopter rig with the default task (conftest's ``rig`` is
+    the control tests' car)."""
+    return await make_quad_rig()
 
 
 async def hold(ws: ClientConnection, name: str, seconds: float, seq0: int, **args: Any) -> int:
@@ -254,25 +62,6 @@ async def hold(ws: ClientConnection, name: str, seconds: float, seq0: int, **arg
         seq += 1
         await asyncio.sleep(0.1)
     return seq
-
-
-async def poll(predicate: Callable[[], bool], within: float, what: str) -> None:
-    """Check ``predicate`` every 50 ms until it holds."""
-    for _ in range(int(within / 0.05)):
-        if predicate():
-            return
-        await asyncio.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
-def start_simulator(*args: str) -> subprocess.Popen[str]:
-    """``python -m agents sim mavlink ARGS`` with its stdout (the READY line) piped."""
-    return subprocess.Popen(
-        [sys.executable, "-m", "agents", "sim", "mavlink", *args],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
 
 
 def metres_from(origin: tuple[float, float], location: dict[str, float]) -> tuple[float, float]:
@@ -356,8 +145,8 @@ async def test_killed_controller_triggers_return_home_and_landing(rig: Rig):
     assert t.lat is not None and t.lon is not None and distance_m(HOME, (t.lat, t.lon)) < 2
 
 
-async def test_autopilot_refusal_reaches_the_user_in_its_words(make_rig: RigFactory):
-    rig = await make_rig(simulator={**SIM, "gps": "none"})
+async def test_autopilot_refusal_reaches_the_user_in_its_words(make_quad_rig: RigFactory):
+    rig = await make_quad_rig(simulator={**SIM, "gps": "none"})
     ws = await join(rig)
     ack = await command(ws, 1, "arm")
     assert ack["ok"] is False and ack["code"] == "autopilot_refused"
@@ -455,8 +244,8 @@ async def test_a_refusal_quotes_only_the_autopilots_answer_to_that_command():
             )
 
 
-async def test_unanswered_command_is_a_timeout(make_rig: RigFactory):
-    rig = await make_rig(heartbeat_timeout_s=5.0, command_timeout_s=1.0)
+async def test_unanswered_command_is_a_timeout(make_quad_rig: RigFactory):
+    rig = await make_quad_rig(heartbeat_timeout_s=5.0, command_timeout_s=1.0)
     process = rig.sim_process
     assert process is not None
     os.kill(process.pid, signal.SIGSTOP)  # silent for less than the heartbeat timeout
@@ -540,9 +329,9 @@ async def test_autopilot_silence_is_reported_and_refuses_commands(rig: Rig):
 # --- safety -----------------------------------------------------------------------------
 
 
-async def test_low_battery_returns_home_once_and_reports_it(make_rig: RigFactory):
+async def test_low_battery_returns_home_once_and_reports_it(make_quad_rig: RigFactory):
     # 27 % and 240 %/min of flight time at 4x: below 25 % about 0.1 s into the flight.
-    rig = await make_rig(
+    rig = await make_quad_rig(
         simulator={**SIM, "battery_pct": 27, "drain_pct_per_min": 240}, low_battery_pct=25
     )
     ws = await join(rig)
@@ -559,8 +348,8 @@ async def test_low_battery_returns_home_once_and_reports_it(make_rig: RigFactory
     await ws.close()
 
 
-async def test_failsafe_parameters_are_checked_against_the_task(make_rig: RigFactory):
-    rig = await make_rig()  # the spawned simulator has FS_GCS_ENABLE=1 (RTL)
+async def test_failsafe_parameters_are_checked_against_the_task(make_quad_rig: RigFactory):
+    rig = await make_quad_rig()  # the spawned simulator has FS_GCS_ENABLE=1 (RTL)
     drone = rig.drone
     assert await drone.check_failsafe_params("return_to_home") == []
     [problem] = await drone.check_failsafe_params("land")
@@ -568,7 +357,7 @@ async def test_failsafe_parameters_are_checked_against_the_task(make_rig: RigFac
     [problem] = await drone.check_failsafe_params("return_to_home", max_altitude_m=4)
     assert "RTL climbs to 6 m (RTL_ALT=600 cm), above the task's 4 m ceiling" in problem
 
-    stock = await make_rig(
+    stock = await make_quad_rig(
         simulator={"params": {"FS_GCS_ENABLE": 0, "SYSID_MYGCS": 250}}, command_timeout_s=1.0
     )
     problems = await stock.drone.check_failsafe_params("return_to_home")
@@ -577,35 +366,37 @@ async def test_failsafe_parameters_are_checked_against_the_task(make_rig: RigFac
     assert "follows system 250 (SYSID_MYGCS) but the agent is system 255" in problems[1]
 
 
-async def test_failsafe_check_reads_the_gcs_id_under_either_name(make_rig: RigFactory):
+async def test_failsafe_check_reads_the_gcs_id_under_either_name(make_quad_rig: RigFactory):
     """ArduPilot 4.7 renamed SYSID_MYGCS to MAV_GCS_SYSID (with MAV_GCS_SYSID_HI for a
     range): the check reads the newer name first and says which one the autopilot has."""
-    legacy = await make_rig()  # ArduCopter 4.5: SYSID_MYGCS
+    legacy = await make_quad_rig()  # ArduCopter 4.5: SYSID_MYGCS
     assert await legacy.drone.check_failsafe_params("return_to_home") == []
     assert legacy.drone.gcs_sysid_param == "SYSID_MYGCS"
 
-    current = await make_rig(simulator={**SIM, "firmware": "4.7"})
+    current = await make_quad_rig(simulator={**SIM, "firmware": "4.7"})
     assert await current.drone.check_failsafe_params("return_to_home") == []
     assert current.drone.gcs_sysid_param == "MAV_GCS_SYSID"
 
     params = {"FS_GCS_ENABLE": 1, "MAV_GCS_SYSID": 250}
-    other = await make_rig(simulator={**SIM, "firmware": "4.7", "params": params})
+    other = await make_quad_rig(simulator={**SIM, "firmware": "4.7", "params": params})
     [problem] = await other.drone.check_failsafe_params("return_to_home")
     assert problem == (
         "the autopilot's GCS fail-safe follows system 250 (MAV_GCS_SYSID) but the agent is "
         "system 255: it would never see the agent's heartbeats"
     )
     ranged = {"FS_GCS_ENABLE": 1, "MAV_GCS_SYSID": 250, "MAV_GCS_SYSID_HI": 255}
-    within = await make_rig(simulator={**SIM, "firmware": "4.7", "params": ranged})
+    within = await make_quad_rig(simulator={**SIM, "firmware": "4.7", "params": ranged})
     assert await within.drone.check_failsafe_params("return_to_home") == []
     apart = {"FS_GCS_ENABLE": 1, "MAV_GCS_SYSID": 200, "MAV_GCS_SYSID_HI": 210}
-    outside = await make_rig(simulator={**SIM, "firmware": "4.7", "params": apart})
+    outside = await make_quad_rig(simulator={**SIM, "firmware": "4.7", "params": apart})
     [problem] = await outside.drone.check_failsafe_params("return_to_home")
     assert "follows systems 200-210 (MAV_GCS_SYSID, MAV_GCS_SYSID_HI) but the agent is" in problem
 
 
-async def test_failsafe_check_names_both_gcs_id_parameters_when_unanswered(make_rig: RigFactory):
-    rig = await make_rig(heartbeat_timeout_s=5.0, command_timeout_s=1.0)
+async def test_failsafe_check_names_both_gcs_id_parameters_when_unanswered(
+    make_quad_rig: RigFactory,
+):
+    rig = await make_quad_rig(heartbeat_timeout_s=5.0, command_timeout_s=1.0)
     process = rig.sim_process
     assert process is not None
     os.kill(process.pid, signal.SIGSTOP)  # silent for less than the heartbeat timeout
@@ -621,10 +412,10 @@ async def test_failsafe_check_names_both_gcs_id_parameters_when_unanswered(make_
     assert rig.drone.gcs_sysid_param is None
 
 
-async def test_no_position_before_the_autopilots_gps_fix(make_rig: RigFactory):
+async def test_no_position_before_the_autopilots_gps_fix(make_quad_rig: RigFactory):
     """Before its first fix ArduCopter reports 0/0 with no satellites: users and the
     platform (the agent's heartbeat carries ``state()``'s position) get none at all."""
-    rig = await make_rig(simulator={**SIM, "gps_fix_after_s": 6})
+    rig = await make_quad_rig(simulator={**SIM, "gps_fix_after_s": 6})
     drone = rig.drone
     ws = await join(rig)
 
@@ -765,8 +556,8 @@ async def test_held_rotate_key_stops_turning_on_release(rig: Rig):
     await ws.close()
 
 
-async def test_payload_release_is_acknowledged(make_rig: RigFactory):
-    rig = await make_rig(payload={"method": "gripper"})
+async def test_payload_release_is_acknowledged(make_quad_rig: RigFactory):
+    rig = await make_quad_rig(payload={"method": "gripper"})
     names = [c.name for c in rig.drone.commands()]
     assert "release_payload" in names
     await rig.drone.execute("release_payload", {})

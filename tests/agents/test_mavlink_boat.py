@@ -45,7 +45,7 @@ from agents.vehicles.mavlink.rover import HOLD, RoverAdapter
 from agents.vehicles.mavlink.sim import simulator_command
 from agents.vehicles.mavlink.sim.cli import parse_args
 from agents.vehicles.registry import adapter_create
-from tests.agents.test_mavlink import poll, start_simulator, watch
+from tests.agents.mavlink_rig import poll, start_simulator, watch
 from tests.control import command, recv
 
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()

@@ -18,7 +18,7 @@ from agents.simulation import simulator_running
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.mavlink.dialect import MAV, mavutil
 from agents.vehicles.registry import adapter_create
-from tests.agents.test_mavlink import HOME, poll
+from tests.agents.mavlink_rig import HOME, poll
 
 SIM = {"speedup": 4, "params": {"RTL_ALT": 1500}}
 LAND, RTL = 9, 6

@@ -20,10 +20,9 @@ from typing import Any
 
 import pytest
 
-mavsdk = pytest.importorskip("mavsdk_grpc", reason="needs mavsdk-grpc (MAVSDK with mavsdk_server)")
+from tests.agents.mavlink_rig import HOME, ROOT
 
-ROOT = Path(__file__).resolve().parents[2]
-HOME = (40.6306, -8.6588)
+mavsdk = pytest.importorskip("mavsdk_grpc", reason="needs mavsdk-grpc (MAVSDK with mavsdk_server)")
 
 
 def _free_port(kind: socket.SocketKind) -> int:

@@ -18,13 +18,12 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from typing import Any
 
-import pytest
 from websockets.asyncio.client import ClientConnection
 
 from agents.geo import distance_m, offset
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.mavlink.dialect import MAV, mavutil
-from tests.agents.test_mavlink import HOME, Rig, RigFactory, join, make_task, rigs, watch
+from tests.agents.mavlink_rig import HOME, Rig, RigFactory, join, make_task, watch
 from tests.control import command
 
 #: Stated in docs/vehicles/quadcopter.md: never more than this above the ceiling,
@@ -132,22 +131,15 @@ async def other_ground_station(rig: Rig) -> AsyncIterator[Any]:
         gcs.close()
 
 
-@pytest.fixture
-async def make_rig() -> AsyncIterator[RigFactory]:
-    """Build rigs as test_mavlink's do."""
-    async with rigs() as build:
-        yield build
-
-
 # --- held keys --------------------------------------------------------------------------
 
 
-async def test_a_held_up_key_stops_under_the_ceiling(make_rig: RigFactory):
+async def test_a_held_up_key_stops_under_the_ceiling(make_quad_rig: RigFactory):
     """The issue's case: ceiling 15 m, the copter at 10 m, ``up`` at 2.5 m/s repeated
     every 100 ms. ArduCopter 4.7 went to 18.73 m with a gate that looked one second
     ahead and ignored the braking."""
     ceiling = 15.0
-    rig = await make_rig(make_task(max_altitude_m=ceiling), simulator=REAL_TIME)
+    rig = await make_quad_rig(make_task(max_altitude_m=ceiling), simulator=REAL_TIME)
     ws = await join(rig)
     async with Track(rig.drone) as track:
         await take_off_to(ws, 10)
@@ -166,13 +158,13 @@ async def test_a_held_up_key_stops_under_the_ceiling(make_rig: RigFactory):
 
 
 async def test_a_held_front_key_stops_at_the_fence_and_never_goes_out_twice(
-    make_rig: RigFactory,
+    make_quad_rig: RigFactory,
 ):
     """The issue's case: a 40 m fence, ``front`` held at 5 m/s. ArduCopter 4.7 went to
     47.66 m, was brought back, and the still-held key took it out again to 44.3 m."""
     radius = 40.0
     task = make_task(max_altitude_m=20, geofence_center=HOME, geofence_radius_m=radius)
-    rig = await make_rig(task, simulator=REAL_TIME)
+    rig = await make_quad_rig(task, simulator=REAL_TIME)
     ws = await join(rig)
     outside, exits = False, 0
 
@@ -212,9 +204,9 @@ async def test_a_held_front_key_stops_at_the_fence_and_never_goes_out_twice(
 # --- the envelope, whatever moved the copter --------------------------------------------
 
 
-async def test_the_ceiling_holds_whatever_climbs(make_rig: RigFactory):
+async def test_the_ceiling_holds_whatever_climbs(make_quad_rig: RigFactory):
     ceiling = 10.0
-    rig = await make_rig(make_task(max_altitude_m=ceiling), simulator=REAL_TIME)
+    rig = await make_quad_rig(make_task(max_altitude_m=ceiling), simulator=REAL_TIME)
     drone = rig.drone
     ws = await join(rig)
 
@@ -250,11 +242,11 @@ async def test_the_ceiling_holds_whatever_climbs(make_rig: RigFactory):
     await ws.close()
 
 
-async def test_out_of_the_geofence_the_drone_flies_back_in(make_rig: RigFactory):
+async def test_out_of_the_geofence_the_drone_flies_back_in(make_quad_rig: RigFactory):
     """The drone is out when the fence comes (flown there before the task had one, as
     a previous session may leave it): the envelope brings it back inside."""
     radius = 20.0
-    rig = await make_rig(make_task(max_altitude_m=20), simulator=REAL_TIME)
+    rig = await make_quad_rig(make_task(max_altitude_m=20), simulator=REAL_TIME)
     drone = rig.drone
     ws = await join(rig)
     async with Track(drone) as track:
@@ -285,14 +277,14 @@ async def test_out_of_the_geofence_the_drone_flies_back_in(make_rig: RigFactory)
 
 
 async def test_sent_out_by_another_ground_station_the_drone_is_caught_on_its_way(
-    make_rig: RigFactory,
+    make_quad_rig: RigFactory,
 ):
     """Another operator's ground station sends the drone 60 m out at the autopilot's
     5 m/s: no command of the agent's to refuse. The envelope sees where it would come
     to rest and brings it back before it is more than the tolerance out."""
     radius = 20.0
     task = make_task(max_altitude_m=20, geofence_center=HOME, geofence_radius_m=radius)
-    rig = await make_rig(task, simulator=REAL_TIME)
+    rig = await make_quad_rig(task, simulator=REAL_TIME)
     drone = rig.drone
     ws = await join(rig)
     async with Track(drone) as track, other_ground_station(rig) as gcs:
@@ -317,8 +309,8 @@ async def test_sent_out_by_another_ground_station_the_drone_is_caught_on_its_way
     await ws.close()
 
 
-async def test_too_fast_the_drone_slows_down(make_rig: RigFactory):
-    rig = await make_rig(make_task(max_altitude_m=20, max_speed_mps=2.0), simulator=REAL_TIME)
+async def test_too_fast_the_drone_slows_down(make_quad_rig: RigFactory):
+    rig = await make_quad_rig(make_task(max_altitude_m=20, max_speed_mps=2.0), simulator=REAL_TIME)
     drone = rig.drone
     ws = await join(rig)
     async with Track(drone) as track:

@@ -18,7 +18,7 @@ from typing import Any
 from agents.geo import distance_m, offset
 from agents.vehicles.mavlink.dialect import MAV, mavutil
 from agents.vehicles.mavlink.sim import BOAT_SIM_ORIGIN as BOAT_HOME
-from tests.agents.test_mavlink import HOME, ROOT, start_simulator
+from tests.agents.mavlink_rig import HOME, ROOT, start_simulator
 
 GCS_SYSID = 255
 

@@ -39,7 +39,7 @@ from agents.protocol import (
     new_nonce,
 )
 from agents.vehicles.mavlink.dialect import MAV, mavutil
-from tests.agents.test_mavlink import HOME, ROOT, start_simulator, watch
+from tests.agents.mavlink_rig import HOME, ROOT, start_simulator, watch
 from tests.control import command, recv
 
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
