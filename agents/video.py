@@ -338,10 +338,35 @@ class CameraPose:
 
 _SKY_TOP = np.array([38, 88, 170], dtype=np.float32)
 _SKY_HORIZON = np.array([178, 206, 232], dtype=np.float32)
-_GROUND_NEAR = np.array([72, 122, 52], dtype=np.float32)
-_GROUND_FAR = np.array([150, 170, 150], dtype=np.float32)
-_GRID = np.array([34, 60, 26], dtype=np.float32)
 _MOUNTAIN = np.array([96, 104, 128], dtype=np.uint8)
+
+
+class _Scene(NamedTuple):
+    """What the synthetic camera draws below the horizon (near, far, the grid's lines)
+    and how high the far skyline rises (a fraction of the picture)."""
+
+    near: npt.NDArray[np.float32]
+    far: npt.NDArray[np.float32]
+    grid: npt.NDArray[np.float32]
+    skyline: float
+
+
+#: The scenes a synthetic camera draws: grass and hills for a car or a drone over land;
+#: water with wave lines and a low, far coast for a boat.
+SCENES: Final[dict[str, _Scene]] = {
+    "land": _Scene(
+        near=np.array([72, 122, 52], dtype=np.float32),
+        far=np.array([150, 170, 150], dtype=np.float32),
+        grid=np.array([34, 60, 26], dtype=np.float32),
+        skyline=0.06,
+    ),
+    "sea": _Scene(
+        near=np.array([22, 74, 122], dtype=np.float32),
+        far=np.array([120, 160, 196], dtype=np.float32),
+        grid=np.array([70, 124, 170], dtype=np.float32),
+        skyline=0.012,
+    ),
+}
 
 
 class SyntheticCamera:
@@ -349,7 +374,8 @@ class SyntheticCamera:
 
     Sky with mountains and compass ticks that turn with the heading, a ground grid (2 m
     squares on the ground, coarser when flying high) that moves with the vehicle's
-    position, obstacles as orange pillars, the heading at the top, and at the bottom the
+    position (``scene`` ``"sea"``: water with wave lines under a low, far coast, for a
+    boat), obstacles as orange pillars, the heading at the top, and at the bottom the
     frame counter and the UTC time of day in large seven-segment digits. The top two
     block rows carry the counter and Unix milliseconds exactly (:func:`read_frame_code`).
 
@@ -369,7 +395,11 @@ class SyntheticCamera:
         *,
         hfov_deg: float = 70.0,
         mount_height_m: float = 0.5,
+        scene: str = "land",
     ) -> None:
+        if scene not in SCENES:
+            raise ValueError(f"scene must be one of {', '.join(sorted(SCENES))}")
+        self._scene = SCENES[scene]
         if width % 2 or height % 2 or height < 64:
             raise ValueError("width and height must be even and the height at least 64")
         _code_layout(width)  # raises when too narrow for the code rows
@@ -423,9 +453,10 @@ class SyntheticCamera:
             img[:hz] = self._sky(horizon)[:hz]
             # Mountains: a periodic silhouette of azimuth, so turning slides it sideways.
             az = np.radians(heading + self._col_az)
+            rise = self._scene.skyline
             mh = (
-                h * 0.06 * (1.3 + np.sin(3 * az) + 0.5 * np.sin(7 * az + 1.0))
-                + h * 0.02 * np.sin(17 * az)
+                h * rise * (1.3 + np.sin(3 * az) + 0.5 * np.sin(7 * az + 1.0))
+                + h * rise / 3 * np.sin(17 * az)
             ).astype(np.int32)
             band_h = min(int(h * 0.2), hz)
             if band_h > 0:
@@ -469,10 +500,11 @@ class SyntheticCamera:
             # times faster than per-pixel blending or fancy 2-D indexing.
             fog = np.clip(d / (cam_h * 25.0 + 30.0), 0, 1)[:, None]
             pal = np.empty((h - hz, 4, 3), dtype=np.float32)
-            pal[:, 0] = _GROUND_NEAR
-            pal[:, 1] = _GROUND_NEAR * 0.9
-            pal[:, 2:] = _GRID
-            pal = pal * (1 - fog[:, :, None]) + _GROUND_FAR * fog[:, :, None]
+            scene = self._scene
+            pal[:, 0] = scene.near
+            pal[:, 1] = scene.near * 0.9
+            pal[:, 2:] = scene.grid
+            pal = pal * (1 - fog[:, :, None]) + scene.far * fog[:, :, None]
             index = checker + 2 * line + 4 * np.arange(h - hz, dtype=np.int32)[:, None]
             img[hz:] = np.take(pal.astype(np.uint8).reshape(-1, 3), index, axis=0)
 
@@ -916,8 +948,9 @@ def video_source_create(
 ) -> VideoSource:
     """Build the source an agent's configuration describes.
 
-    ``{"source": "synthetic", "width": 640, "height": 480, "fps": 15}`` (``pose`` is the
-    callable giving the vehicle's pose); ``{"source": "v4l2", "device": "/dev/video0",
+    ``{"source": "synthetic", "width": 640, "height": 480, "fps": 15, "scene": "land"}``
+    (``pose`` is the callable giving the vehicle's pose; ``scene`` ``"sea"`` for a boat);
+    ``{"source": "v4l2", "device": "/dev/video0",
     "width": 640, "height": 480, "fps": 15, "input_format": "mjpeg"}``;
     ``{"source": "mjpeg", "url": "http://192.168.4.1:81/stream"}``; ``{"source":
     "thermal", "width": 640, "height": 480, "box_confidence": 0.6}`` shows ``thermal``,
@@ -928,7 +961,7 @@ def video_source_create(
     options = {k: v for k, v in config.items() if k not in SERVICE_OPTIONS}
     kind = options.pop("source", "synthetic")
     allowed: dict[str, set[str]] = {
-        "synthetic": {"width", "height", "fps", "hfov_deg", "mount_height_m"},
+        "synthetic": {"width", "height", "fps", "hfov_deg", "mount_height_m", "scene"},
         "v4l2": {"device", "width", "height", "fps", "input_format"},
         "mjpeg": {"url", "timeout_s", "reconnect_s"},
         "thermal": {"width", "height", "box_confidence"},

@@ -418,7 +418,11 @@ def vehicle_agent_config(
         options["distance_sensor"] = "obstacle_sensor" in vehicle.features
         options["max_speed_mps"] = attrs.get("max_speed_mps", 0.5)
     thermal = None
-    video = {"source": "synthetic"} if vehicle.cameras else None
+    video: dict[str, Any] | None = None
+    if vehicle.cameras:
+        # A vehicle that works only on the water sees the sea, not grass and hills.
+        environments = set(attrs.get("environments") or [])
+        video = {"source": "synthetic", "scene": "sea" if environments == {"sea"} else "land"}
     if "thermal" in vehicle.cameras:
         # The simulated sea holds the demo's castaway, so a search over it finds them;
         # the user watches the thermal view.

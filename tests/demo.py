@@ -30,13 +30,14 @@ PASSWORD = "demo-pass-for-tests"
 
 def demo_agent_config(path: Path, base: str) -> AgentConfig:
     """The agent of a demo config file against the platform at ``base``, with synthetic
-    video offered on loopback only (aioice would otherwise offer this machine's other
-    addresses), reconnecting quickly."""
+    video (of its scene: the boat's is the sea) offered on loopback only (aioice would
+    otherwise offer this machine's other addresses), reconnecting quickly."""
     config = AgentConfig.load(path)
+    scene = (config.video or {}).get("scene", "land")
     return dataclasses.replace(
         config,
         platform_url=base.replace("http://", "ws://"),
-        video={"source": "synthetic", "ice_host_addresses": ["127.0.0.1"]},
+        video={"source": "synthetic", "scene": scene, "ice_host_addresses": ["127.0.0.1"]},
         reconnect_min_s=0.2,
     )
 

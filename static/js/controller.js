@@ -359,7 +359,13 @@
       if (msg.ok) { this.stats.acks += 1; return; }
       this.stats.refused += 1;
       this.lastRefusal = { name: sent ? sent.name : "?", code: msg.code, error: msg.error };
-      this.toast(`${sent ? sent.name : "command"} refused: ${msg.error}`, "bad");
+      if (msg.code === "not_armed") {
+        // Moving with the motors off: the hint says what to press.
+        this.readyHint(false, true);
+        this.toast(`${sent ? sent.name.replace(/_/g, " ") : "command"}: the motors are off. Press Arm first.`, "bad");
+      } else {
+        this.toast(`${sent ? sent.name : "command"} refused: ${msg.error}`, "bad");
+      }
       if (sent) this.held.delete(sent.name); // don't keep hammering a refused command
     }
 
@@ -379,8 +385,30 @@
       return Math.min(MAX_INTERVAL_MS, Math.max(MIN_INTERVAL_MS, wanted));
     }
 
+    // A vehicle whose motors are armed by hand (a boat: it has Arm and no Take off)
+    // ignores the arrows until they are: while they are off, say what to press.
+    readyHint(armed, insist) {
+      const hint = this.root.querySelector("[data-ready-hint]");
+      if (!hint) return;
+      const byHand = this.commands.has("arm") && !this.commands.has("take_off");
+      if (!byHand || this.role !== "controller" || armed !== false) {
+        hint.hidden = true;
+        return;
+      }
+      const name = (this.vehicle && this.vehicle.name) || "The vehicle";
+      const steer = this.inputMode === "touch" ? "the sticks steer it" : "the arrow keys steer it";
+      hint.textContent = `${name}'s motors are off: press Arm first, then ${steer}.`;
+      hint.hidden = false;
+      if (insist) {
+        hint.classList.remove("attention");
+        void hint.offsetWidth; // restart the highlight
+        hint.classList.add("attention");
+      }
+    }
+
     onTelemetry(msg) {
       this.stats.telemetry += 1;
+      if ("is_armed" in msg.data) this.readyHint(msg.data.is_armed, false);
       const box = this.ui.telemetry;
       if (!box) return;
       for (const [topic, value] of Object.entries(msg.data)) {

@@ -89,3 +89,55 @@ async def test_client_steers_the_boat_from_the_browser(world: World) -> None:
 
     # Free again once its agent confirmed the end and it is back, at rest.
     await until(free, within=60, what="the boat to be free again")
+
+
+#: The mean colour (r, g, b) of the lower middle of the picture (below the horizon,
+#: above the digits): what the boat's camera sees of the world ahead.
+PICTURE_BELOW_HORIZON = """() => {
+  const video = document.querySelector("video");
+  const canvas = document.createElement("canvas");
+  canvas.width = video.videoWidth;
+  canvas.height = video.videoHeight;
+  const ctx = canvas.getContext("2d");
+  ctx.drawImage(video, 0, 0);
+  const top = Math.round(canvas.height * 0.58), rows = Math.round(canvas.height * 0.2);
+  const data = ctx.getImageData(0, top, canvas.width, rows).data;
+  const sum = [0, 0, 0];
+  for (let i = 0; i < data.length; i += 4) {
+    for (let c = 0; c < 3; c++) sum[c] += data[i + c];
+  }
+  const n = data.length / 4;
+  return sum.map((v) => v / n);
+}"""
+
+
+async def test_the_boat_says_to_arm_it_first_and_its_camera_sees_the_water(world: World) -> None:
+    page = await world.login("client")
+    await page.click("[data-service=drive-boat] a.button")
+    await page.select_option("#id_station", label="Costa Nova station")
+    await page.click("#request-button")
+    await page.wait_for_url("**/sessions/*/")
+    await wait_for(page, "c.role === 'controller' && c.stats.framesDecoded > 3")
+    boat = world.agents["boat-1"].adapter
+    assert not boat.state().armed
+
+    # Its motors are off: the page says what to press before the arrows do anything.
+    hint = page.locator("[data-ready-hint]")
+    await expect(hint).to_have_text(
+        "boat-1's motors are off: press Arm first, then the arrow keys steer it."
+    )
+    await page.keyboard.down("ArrowUp")
+    try:
+        await expect(page.locator("[data-toast]")).to_have_text(
+            "forward: the motors are off. Press Arm first."
+        )
+    finally:
+        await page.keyboard.up("ArrowUp")
+    assert not boat.state().armed and (boat.state().speed_mps or 0) < 0.1
+    await page.click("[data-command=arm]")
+    await expect(hint).to_be_hidden(timeout=10000)
+    assert boat.state().armed
+
+    # What its camera shows below the horizon is water: blue, not grass.
+    red, green, blue = await page.evaluate(PICTURE_BELOW_HORIZON)
+    assert blue > green > red and blue > 1.2 * green, (red, green, blue)
