@@ -7,7 +7,7 @@ from collections.abc import AsyncIterator
 
 import pytest
 
-from tests.agents import mavlink_rig
+from tests.agents import mavlink_rig, mission_rig
 from tests.agents.car_rig import Rig, car_rig
 
 
@@ -25,4 +25,13 @@ async def make_quad_rig() -> AsyncIterator[mavlink_rig.RigFactory]:
     behind a control hub and server (see :func:`tests.agents.mavlink_rig.rigs`); all
     closed at the end of the test."""
     async with mavlink_rig.rigs() as build:
+        yield build
+
+
+@pytest.fixture
+async def make_mission_rig() -> AsyncIterator[mission_rig.RigFactory]:
+    """``await make_mission_rig(persons=None, *, control=False, **options)``: the rescue
+    drone on its own simulator with the pieces the Agent wires together for missions
+    (see :func:`tests.agents.mission_rig.rigs`); all closed at the end of the test."""
+    async with mission_rig.rigs() as build:
         yield build

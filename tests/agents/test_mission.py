@@ -14,8 +14,7 @@ import contextlib
 import json
 import re
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable
-from dataclasses import dataclass, field
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 import pytest
@@ -23,34 +22,30 @@ from websockets.asyncio.client import connect
 from websockets.asyncio.server import ServerConnection, serve
 
 from agents.config import AgentConfig, ControlConfig
-from agents.control import ControlHub, ControlServer
 from agents.geo import distance_m, offset
-from agents.mission import MissionControl, MissionError, mission_parse
+from agents.mission import MissionError, mission_parse
 from agents.protocol import (
     PROTOCOL_VERSION,
-    Limits,
     UserGrant,
-    VehicleTask,
-    generate_keypair,
-    load_private_key,
-    load_public_key,
     new_nonce,
 )
 from agents.runtime import Agent
 from agents.safety import Refusal
 from agents.simulation import simulator_running
-from agents.thermal import SyntheticSeaThermal, ThermalFeed
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
-from agents.vehicles.registry import adapter_create
+from tests.agents.mission_rig import (
+    HOME,
+    PRIVATE,
+    PUBLIC_PEM,
+    SIM,
+    VEHICLE,
+    RigFactory,
+    drone_options,
+    make_task,
+    releases,
+)
 from tests.control import command, recv
 
-PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
-PRIVATE = load_private_key(PRIVATE_PEM)
-VEHICLE = "rescue-drone-1"
-HOME = (40.6306, -8.6588)
-#: 6x flight time: quick, yet the simulator's 50 Hz physics stays steady when the
-#: machine is busy (a starved step covers up to 0.2 s x speedup of flight).
-SIM = {"speedup": 6, "params": {"WPNAV_SPEED": 1000, "RTL_ALT": 1500}}
 #: Holding a position: the arrival radius (3 m) plus the simulator's wobble.
 HOLD_M = 5.0
 #: A 120 x 80 m search area starting 20 m north of home, lines 30 m apart at 40 m
@@ -85,36 +80,6 @@ def delivery(mission_id: str = "m-drop", **overrides: Any) -> dict[str, Any]:
     }
 
 
-def make_task(mission: dict[str, Any] | None, session: str = "s-1", **limits: Any) -> VehicleTask:
-    now = time.time()
-    return VehicleTask(
-        session_id=session,
-        vehicle_id=VEHICLE,
-        user="alice",
-        allowed_commands=(),
-        limits=Limits(**{"failsafe_action": "return_to_home", "max_altitude_m": 60, **limits}),
-        issued_at=now,
-        expires_at=now + 60,
-        nonce=new_nonce(),
-        mission=mission,
-    )
-
-
-def drone_options(**overrides: Any) -> dict[str, Any]:
-    return {
-        "origin": list(HOME),
-        "simulator": SIM,
-        "payload": {"method": "gripper"},
-        **overrides,
-    }
-
-
-def releases(drone: MavlinkAdapter) -> int:
-    """Payload releases the autopilot performed: it says so in a STATUSTEXT each time
-    (the adapter keeps the recent ones)."""
-    return sum(1 for _, _, text in drone.texts if text == "Gripper load released")
-
-
 async def until_near(
     drone: MavlinkAdapter, point: tuple[float, ...], metres: float, within: float = 5.0
 ) -> None:
@@ -128,93 +93,6 @@ async def until_near(
         if time.monotonic() > deadline:
             raise AssertionError(f"the drone is at {here}, not within {metres} m of {point}")
         await asyncio.sleep(0.05)
-
-
-# --- a rig: the pieces the Agent wires together ------------------------------------------
-
-
-@dataclass
-class Rig:
-    drone: MavlinkAdapter
-    hub: ControlHub
-    missions: MissionControl
-    feed: ThermalFeed
-    reports: list[tuple[str, str | None, dict[str, Any]]] = field(default_factory=list)
-    server: ControlServer | None = None
-
-    def accept(self, task: VehicleTask) -> None:
-        """What Agent._task does with a verified task."""
-        self.hub.task_accept(task)
-        self.missions.task_accepted(task)
-
-    def events(self, name: str | None = None) -> list[tuple[str, dict[str, Any]]]:
-        return [(e, d) for e, _, d in self.reports if name is None or e == name]
-
-    def progress(self) -> list[tuple[str, int | None]]:
-        return [(d["phase"], d["waypoint"]) for _, d in self.events("mission_progress")]
-
-    async def event(self, name: str, within: float, count: int = 1) -> dict[str, Any]:
-        """The ``count``-th ``name`` event, waiting for it."""
-        deadline = time.monotonic() + within
-        while time.monotonic() < deadline:
-            found = self.events(name)
-            if len(found) >= count:
-                return found[count - 1][1]
-            await asyncio.sleep(0.05)
-        raise AssertionError(f"no {name} within {within} s; reports: {self.reports}")
-
-
-RigFactory = Callable[..., Awaitable[Rig]]
-
-
-@pytest.fixture
-async def make_rig() -> AsyncIterator[RigFactory]:
-    opened: list[Rig] = []
-    simulators = contextlib.AsyncExitStack()
-
-    async def build(
-        persons: list[Any] | None = None, *, control: bool = False, **options: Any
-    ) -> Rig:
-        simulation = await simulators.enter_async_context(
-            simulator_running("mavlink", drone_options(**options))
-        )
-        drone = adapter_create("mavlink", simulation.options)
-        assert isinstance(drone, MavlinkAdapter)
-        await drone.start()
-        feed = ThermalFeed(SyntheticSeaThermal(drone.state, persons=persons or [], seed=3))
-        reports: list[tuple[str, str | None, dict[str, Any]]] = []
-        holder: list[MissionControl] = []
-        hub = ControlHub(
-            vehicle_id=VEHICLE,
-            vehicle_name="rescue-1",
-            public_key=load_public_key(PUBLIC_PEM),
-            adapter=drone,
-            report=lambda e, s, d: reports.append((e, s, d)),
-            on_task_end=lambda task: holder[0].task_ended(task),
-        )
-        await hub.start()
-        missions = MissionControl(
-            hub=hub, adapter=drone, report=lambda e, s, d: reports.append((e, s, d)), thermal=feed
-        )
-        holder.append(missions)
-        rig = Rig(drone, hub, missions, feed, reports)
-        if control:
-            rig.server = ControlServer(hub)
-            await rig.server.start()
-        opened.append(rig)
-        return rig
-
-    try:
-        yield build
-    finally:
-        for rig in reversed(opened):
-            await rig.missions.close()
-            if rig.server is not None:
-                await rig.server.close()
-            await rig.hub.close()
-            await rig.feed.close()
-            await rig.drone.close()
-        await simulators.aclose()
 
 
 # --- a fake platform for whole-agent tests ----------------------------------------------
@@ -396,9 +274,9 @@ async def test_agent_delivery_releases_once_however_often_the_task_comes() -> No
 
 
 async def test_search_without_a_person_completes_and_holds_at_the_last_waypoint(
-    make_rig: RigFactory,
+    make_mission_rig: RigFactory,
 ) -> None:
-    rig = await make_rig()
+    rig = await make_mission_rig()
     rig.accept(make_task(search()))
     done = await rig.event("search_complete", 35)
     assert done == {"mission": "m-search", "waypoint": 5}
@@ -416,9 +294,9 @@ async def test_search_without_a_person_completes_and_holds_at_the_last_waypoint(
 
 
 async def test_start_index_skips_waypoints_and_a_new_mission_replaces_the_old(
-    make_rig: RigFactory,
+    make_mission_rig: RigFactory,
 ) -> None:
-    rig = await make_rig()
+    rig = await make_mission_rig()
     rig.accept(make_task(search("m-first")))
     await rig.event("mission_progress", 15, count=2)  # on its way to the first waypoint
     rig.accept(make_task(search("m-second", start_index=4)))
@@ -468,8 +346,10 @@ def test_mission_defaults() -> None:
     assert (drop.drop_altitude_m, drop.speed_mps) == (5.0, 10.0)
 
 
-async def test_malformed_mission_is_reported_and_nothing_flies(make_rig: RigFactory) -> None:
-    rig = await make_rig()
+async def test_malformed_mission_is_reported_and_nothing_flies(
+    make_mission_rig: RigFactory,
+) -> None:
+    rig = await make_mission_rig()
     for i, (mission, reason) in enumerate(MALFORMED):
         rig.accept(make_task(mission))
         failed = await rig.event("mission_failed", 2, count=i + 1)
@@ -480,8 +360,10 @@ async def test_malformed_mission_is_reported_and_nothing_flies(make_rig: RigFact
     assert [e for e, _ in rig.events()] == ["mission_failed"] * len(MALFORMED)
 
 
-async def test_an_unconfirmed_release_is_never_flown_for_again(make_rig: RigFactory) -> None:
-    rig = await make_rig()
+async def test_an_unconfirmed_release_is_never_flown_for_again(
+    make_mission_rig: RigFactory,
+) -> None:
+    rig = await make_mission_rig()
     # As left by a runner stopped while its release_payload was in flight.
     rig.missions.release_attempted.add("m-drop")
     rig.accept(make_task(delivery()))
@@ -494,8 +376,8 @@ async def test_an_unconfirmed_release_is_never_flown_for_again(make_rig: RigFact
     assert rig.missions.runner is None and rig.drone.state().armed is False
 
 
-async def test_mission_commands_are_checked_inside_the_lock(make_rig: RigFactory) -> None:
-    rig = await make_rig()
+async def test_mission_commands_are_checked_inside_the_lock(make_mission_rig: RigFactory) -> None:
+    rig = await make_mission_rig()
     rig.hub.task_accept(make_task(None))
     with pytest.raises(Refusal) as exc:
         await rig.hub.mission_execute("s-other", "take_off", {"altitude_m": 10}, epoch=0)
@@ -513,17 +395,19 @@ async def test_mission_commands_are_checked_inside_the_lock(make_rig: RigFactory
 
 
 async def test_mission_outside_the_task_limits_fails_on_the_ground(
-    make_rig: RigFactory,
+    make_mission_rig: RigFactory,
 ) -> None:
-    rig = await make_rig()
+    rig = await make_mission_rig()
     rig.accept(make_task(search(), max_altitude_m=20))
     failed = await rig.event("mission_failed", 5)
     assert "above the 20 m limit" in failed["reason"]
     assert rig.drone.state().armed is False
 
 
-async def test_adapter_error_fails_the_mission_and_the_drone_holds(make_rig: RigFactory) -> None:
-    rig = await make_rig()
+async def test_adapter_error_fails_the_mission_and_the_drone_holds(
+    make_mission_rig: RigFactory,
+) -> None:
+    rig = await make_mission_rig()
     # 60 km away: the autopilot refuses to reposition that far, in its own words.
     rig.accept(make_task(delivery(target=list(offset(HOME, 60_000, 0)))))
     failed = await rig.event("mission_failed", 20)
@@ -546,8 +430,10 @@ async def wait_battery(drone: MavlinkAdapter) -> None:
     raise AssertionError("no battery level from the autopilot")
 
 
-async def test_adapter_refusal_on_the_ground_fails_the_mission(make_rig: RigFactory) -> None:
-    rig = await make_rig(simulator={**SIM, "battery_pct": 20})
+async def test_adapter_refusal_on_the_ground_fails_the_mission(
+    make_mission_rig: RigFactory,
+) -> None:
+    rig = await make_mission_rig(simulator={**SIM, "battery_pct": 20})
     await wait_battery(rig.drone)
     rig.accept(make_task(search()))
     failed = await rig.event("mission_failed", 10)
@@ -555,8 +441,10 @@ async def test_adapter_refusal_on_the_ground_fails_the_mission(make_rig: RigFact
     assert rig.drone.state().armed is False
 
 
-async def test_the_vehicles_own_low_battery_return_ends_the_mission(make_rig: RigFactory) -> None:
-    rig = await make_rig(simulator={**SIM, "battery_pct": 30, "drain_pct_per_min": 15})
+async def test_the_vehicles_own_low_battery_return_ends_the_mission(
+    make_mission_rig: RigFactory,
+) -> None:
+    rig = await make_mission_rig(simulator={**SIM, "battery_pct": 30, "drain_pct_per_min": 15})
     await wait_battery(rig.drone)
     rig.accept(make_task(search()))
     failed = await rig.event("mission_failed", 20)
@@ -565,8 +453,8 @@ async def test_the_vehicles_own_low_battery_return_ends_the_mission(make_rig: Ri
     assert rig.drone.state().mode == "RTL"  # the mission did not fight the return
 
 
-async def test_a_user_command_takes_over_from_the_mission(make_rig: RigFactory) -> None:
-    rig = await make_rig(control=True)
+async def test_a_user_command_takes_over_from_the_mission(make_mission_rig: RigFactory) -> None:
+    rig = await make_mission_rig(control=True)
     task = make_task(search())
     rig.accept(task)
     await rig.event("mission_progress", 15, count=3)  # at the first waypoint

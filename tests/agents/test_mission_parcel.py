@@ -13,7 +13,7 @@ import pytest
 from agents.geo import distance_m, offset
 from agents.geography import land_at
 from agents.mission import MissionError, ParcelMission, mission_parse
-from tests.agents.test_mission import HOME, make_rig, make_task, releases  # noqa: F401
+from tests.agents.mission_rig import HOME, RigFactory, make_task, releases
 
 PICKUP = offset(HOME, 30, 0)
 DROPOFF = offset(HOME, 30, 60)
@@ -55,9 +55,9 @@ def test_a_parcel_mission_is_validated() -> None:
 
 
 async def test_the_drone_collects_brings_releases_once_and_goes_home(
-    make_rig,  # noqa: F811 - the fixture imported above
+    make_mission_rig: RigFactory,
 ) -> None:
-    rig = await make_rig()
+    rig = await make_mission_rig()
     rig.accept(make_task(parcel()))
     loaded = await rig.event("parcel_loaded", within=90)
     assert distance_m((loaded["lat"], loaded["lon"]), PICKUP) < 5
@@ -89,11 +89,13 @@ BOAT_DROPOFF = offset(BOAT_HOME, 60, 80)
 
 
 async def test_a_boat_sails_the_parcel_mission_on_the_water(
-    make_rig,  # noqa: F811 - the fixture imported above
+    make_mission_rig: RigFactory,
 ) -> None:
     """No take-off, no descents: the boat is armed, sails to the pickup, waits to be
     loaded there, sails to the drop-off, releases once, and goes home, where it holds."""
-    rig = await make_rig(vehicle_class="boat", origin=list(BOAT_HOME), simulator={"speedup": 6})
+    rig = await make_mission_rig(
+        vehicle_class="boat", origin=list(BOAT_HOME), simulator={"speedup": 6}
+    )
     assert all(land_at(*p) is False for p in (BOAT_HOME, BOAT_PICKUP, BOAT_DROPOFF))
     assert rig.drone.state().armed is False
     rig.accept(make_task(parcel("m-boat", pickup=list(BOAT_PICKUP), dropoff=list(BOAT_DROPOFF))))
