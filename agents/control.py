@@ -27,6 +27,8 @@ relay. It
   into at most one ``command_refused`` report a second;
 * reports a controller that went silent (fail-safe) and then speaks again on the same
   link (``link_recovered``);
+* tells the controller what ending the session would make the vehicle do now
+  (``consequence``: a drone landing goes on landing, whatever its fail-safe says);
 * watches the vehicle's actual state against the task's limits while the task is
   current (:mod:`agents.envelope`): a breach is corrected under the same lock, takes
   over from a mission, and is reported (``envelope_breach``, ``envelope_restored``) to
@@ -294,6 +296,8 @@ class _Client:
     telemetry: asyncio.Task[None] | None = None
     commands: asyncio.Queue[Command] = field(default_factory=lambda: asyncio.Queue(COMMAND_QUEUE))
     worker: asyncio.Task[None] | None = None
+    #: The words last sent of what ending the session would make the vehicle do.
+    consequence: str | None = None
 
     def allow(self) -> bool:
         """Token bucket: True when this frame is within the client's budget."""
@@ -697,6 +701,7 @@ class ControlHub:
             # What each fail-safe action does to this vehicle, in words ("climb to its
             # return altitude, fly back to its home point and land").
             "safe_actions": dict(self.adapter.safe_action_words),
+            "consequence": self._consequence(task),
         }
         if failsafe is not None:
             vehicle["failsafe"] = {**failsafe, "ago_s": round(time.time() - failsafe["at"], 1)}
@@ -1029,13 +1034,30 @@ class ControlHub:
         except ConnectionError:
             return
 
+    def _consequence(self, task: VehicleTask) -> dict[str, str]:
+        """What ending ``task`` would make the vehicle do now: its end's action (the
+        task's fail-safe) and the words for it, as the vehicle stands."""
+        action = task.limits.failsafe_action
+        words = self.adapter.safe_action_now(action) or self.adapter.safe_action_words.get(
+            action, action.replace("_", " ")
+        )
+        return {"action": action, "words": words}
+
     async def _ping_controller(self) -> None:
         while True:
             await asyncio.sleep(PING_INTERVAL_S)
-            client = self.controller
-            if client is not None:
-                with contextlib.suppress(ConnectionError):
-                    await client.link.send(Ping(t=time.monotonic()))
+            client, task = self.controller, self.task
+            if client is None:
+                continue
+            with contextlib.suppress(ConnectionError):
+                await client.link.send(Ping(t=time.monotonic()))
+                if task is not None:
+                    # What ending the session would do changes as the vehicle flies
+                    # (landing, on the ground): the page's confirmation says it as it is.
+                    now = self._consequence(task)
+                    if now["words"] != client.consequence:
+                        client.consequence = now["words"]
+                        await client.link.send(ClientEvent(event="consequence", data=now))
 
     async def _watch(self) -> None:
         while True:

@@ -277,6 +277,13 @@ class Adapter(abc.ABC):
         vehicle cannot perform to the nearest one it can (a car cannot land: it stops).
         """
 
+    def safe_action_now(self, action: str) -> str | None:
+        """What :meth:`safe_action` ``action`` would do *now*, in the words of
+        :attr:`safe_action_words`, when that differs from them (a drone already landing
+        goes on landing; one on the ground stops its motors); None: what they say.
+        Called often; must not block."""
+        return None
+
     async def neutral(self) -> None:  # noqa: B027 - optional hook
         """Zero the user's inputs (sticks centred, motors stopped) without ending the
         task; called when the controller changes. Default: nothing to zero."""

@@ -324,6 +324,8 @@
     onWelcome(msg) {
       this.reconnects = 0;
       this.vehicle = msg.vehicle;
+      // Only the driver's: a watched mission's end concerns all its vehicles.
+      if (msg.vehicle.consequence && msg.role === "controller") this.setConsequence(msg.vehicle.consequence);
       this.setState("connected");
       this.hideBanner();
       this.setRole(msg.role);
@@ -450,6 +452,8 @@
         this.endSession(msg.data.reason);
       } else if (msg.event === "path") {
         this.setPath(msg.data.path);
+      } else if (msg.event === "consequence") {
+        this.setConsequence(msg.data);
       } else if (msg.event === "link_recovered") {
         this.showBanner("Link back: you are in control again.", "info");
       } else if (msg.event === "envelope_breach") {
@@ -462,6 +466,14 @@
       } else if (msg.event === "envelope_restored") {
         this.showBanner(`Back inside the ${msg.data.limit} limit.`, "info");
       }
+    }
+
+    // What ending the session would make the vehicle do now, as its agent says (a drone
+    // landing goes on landing): the End button's confirmation says it.
+    setConsequence(c) {
+      const name = (this.vehicle && this.vehicle.name) || "The vehicle";
+      this.consequence = `${name} will ${c.words}.`;
+      for (const form of document.querySelectorAll("form[data-confirm]")) form.dataset.consequence = this.consequence;
     }
 
     setRole(role) {
@@ -968,8 +980,10 @@
           const tag = this.root.querySelector("[data-session-state]");
           if (s && tag) { tag.textContent = s.state; tag.className = `tag state-${s.state}`; }
           if (s && s.consequence) {
-            // What ending it would make the vehicles do now (they change in a mission).
-            for (const form of document.querySelectorAll("form[data-confirm]")) form.dataset.consequence = s.consequence;
+            // What ending it would make the vehicles do now (they change in a mission);
+            // the vehicle's own word, when it gave one, is the more current.
+            const words = this.consequence || s.consequence;
+            for (const form of document.querySelectorAll("form[data-confirm]")) form.dataset.consequence = words;
           }
           if (s && ["ended", "failed", "aborted"].includes(s.state)) this.endSession(s.reason);
         };

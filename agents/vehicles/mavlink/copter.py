@@ -324,9 +324,11 @@ class CopterAdapter(MavlinkAdapter):
 
         ``return_to_home``: RTL (the autopilot climbs to RTL_ALT, flies home, lands and
         disarms), falling back to LAND; ``land``: LAND; ``stop``: hover (zero velocity),
-        then BRAKE, falling back to LOITER, then LAND. Armed on the ground: disarm.
-        Disarmed: nothing to do. Without a link to the autopilot nothing can be sent:
-        the autopilot's own GCS fail-safe (see :meth:`check_failsafe_params`) acts.
+        then BRAKE, falling back to LOITER, then LAND. Already landing (LAND): it goes on
+        landing, whatever the action (a return would climb back up from the last
+        metres). Armed on the ground: disarm. Disarmed: nothing to do. Without a link to
+        the autopilot nothing can be sent: the autopilot's own GCS fail-safe (see
+        :meth:`check_failsafe_params`) acts.
         """
         self.safe_action_done = True
         self._moving_until = None
@@ -344,6 +346,8 @@ class CopterAdapter(MavlinkAdapter):
             if not self._in_air():
                 await self._disarm_now()
                 return
+            if self.t.mode == LAND:
+                return  # landing already: finishing that is the safe thing
             steps: list[Any]
             if action == "land":
                 steps = [lambda: self._set_mode(LAND, owner="failsafe")]
@@ -365,6 +369,18 @@ class CopterAdapter(MavlinkAdapter):
         except Exception:
             logger.exception("mavlink: safe action %s failed", action)
             self.emit("safe_action_failed", {"action": action, "reason": "internal error"})
+
+    def safe_action_now(self, action: str) -> str | None:
+        """A drone landing goes on landing; one on the ground stops its motors (see
+        :meth:`safe_action`)."""
+        t = self.t
+        if not t.armed:
+            return "stay where it is (its motors are off)"
+        if not self._in_air():
+            return "stop its motors where it is"
+        if t.mode == LAND:
+            return "go on landing where it is"
+        return None
 
     async def envelope_recover(self, breach: Breach) -> str:
         """Bring the drone back inside a limit it crossed, whatever crossed it.
