@@ -52,6 +52,8 @@ from agents.vehicles.spektrum.report import parse_report
 from agents.vehicles.spektrum.sim import cli
 from agents.vehicles.spektrum.sim.line import FrameChecker
 from agents.vehicles.spektrum.sim.model import SimParams, VtolModel
+from tests.agents.vtol import FAST, VTOL_COMMANDS
+from tests.agents.waiting import until
 from tests.control import command, recv
 
 # --------------------------------------------------------------------------------------
@@ -89,26 +91,6 @@ def spec_decode(raw: bytes, t: float = 0.0) -> Frame:
         assert NAMES[channel] not in servos, "a channel twice in one frame"
         servos[NAMES[channel]] = word & 0x07FF
     return Frame(t, raw[0], raw[1], phase, servos)
-
-
-FAST = {  # a nimble model so flights fit in a test
-    "max_climb_mps": 8.0,
-    "max_descent_mps": 8.0,
-    "transition_s": 0.5,
-    "min_transition_altitude_m": 5.0,
-    "land_ramp_per_s": 1.0,
-}
-
-
-async def until(predicate: Callable[[], Any], *, within: float = 5.0, what: str = "") -> Any:
-    deadline = time.monotonic() + within
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what or predicate}")
-        await asyncio.sleep(0.01)
 
 
 # --------------------------------------------------------------------------------------
@@ -663,10 +645,6 @@ PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
 PRIVATE = load_private_key(PRIVATE_PEM)
 VEHICLE = "vtol-test-1"
 SESSION = "vtol-session"
-VTOL_COMMANDS = (
-    "arm", "disarm", "throttle_up", "throttle_down", "yaw_left", "yaw_right", "pitch_up",
-    "pitch_down", "roll_left", "roll_right", "change_to_vtol_mode", "change_to_aircraft_mode",
-)  # fmt: skip
 
 
 def make_task(**limits: Any) -> VehicleTask:

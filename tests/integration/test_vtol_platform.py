@@ -22,7 +22,7 @@ from agents.runtime import Agent
 from agents.vehicles.spektrum.adapter import SpektrumAdapter
 from fleet.models import Vehicle
 from tests import factories as f
-from tests.agents.test_spektrum import FAST
+from tests.agents.vtol import FAST, VTOL_COMMANDS
 from tests.control import command, recv
 from tests.servers import agent_simulated, db, platform_process
 from tests.vehicles import (
@@ -39,20 +39,6 @@ pytestmark = [
     pytest.mark.redis,
     pytest.mark.django_db(transaction=True),
 ]
-VTOL_COMMANDS = [
-    "arm",
-    "disarm",
-    "throttle_up",
-    "throttle_down",
-    "yaw_left",
-    "yaw_right",
-    "pitch_up",
-    "pitch_down",
-    "roll_left",
-    "roll_right",
-    "change_to_vtol_mode",
-    "change_to_aircraft_mode",
-]
 
 
 @pytest.fixture
@@ -62,7 +48,7 @@ async def running() -> AsyncIterator[tuple[Agent, Vehicle, Any, Any]]:
         "vtol-1",
         VTOL,
         service="fly-vtol",
-        commands=VTOL_COMMANDS,
+        commands=list(VTOL_COMMANDS),
         failsafe_action="land",
         attributes={"environments": ["air", "land"], "features": ["gps"]},
     )
