@@ -14,6 +14,7 @@ Two modes, chosen by ``DATABASE_URL``:
 from __future__ import annotations
 
 import secrets
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
@@ -90,10 +91,14 @@ INSTALLED_APPS = [
     "fleet",
     "services",
     *SERVICE_KIND_APPS,
+    # Login lockout (accounts.lockout): its tables of attempts and its admin pages.
+    "axes",
 ]
 
 MIDDLEWARE = [
     "django.middleware.security.SecurityMiddleware",
+    # A view that cannot reach the database answers 503 with Retry-After (iouv.outages).
+    "iouv.outages.DatabaseUnavailableMiddleware",
     # Early, so that every page answered below it, error pages included, carries the
     # policy (CONTENT_SECURITY_POLICY).
     "csp.middleware.CSPMiddleware",
@@ -103,6 +108,8 @@ MIDDLEWARE = [
     "django.contrib.auth.middleware.AuthenticationMiddleware",
     "django.contrib.messages.middleware.MessageMiddleware",
     "django.middleware.clickjacking.XFrameOptionsMiddleware",
+    # Last, as django-axes asks: turns a locked-out log-in into its answer (accounts.lockout).
+    "axes.middleware.AxesMiddleware",
 ]
 
 ROOT_URLCONF = "iouv.urls"
@@ -148,8 +155,16 @@ else:
         DATABASES["default"]["OPTIONS"]["pool"] = {
             "min_size": 1,
             "max_size": DB_POOL_SIZE,
-            # A request waits this long for a free connection before it fails.
-            "timeout": env_int("DB_POOL_TIMEOUT_S", 20),
+            # A request waits this long for a connection before it fails, and is
+            # answered 503 with Retry-After (iouv.outages): while PostgreSQL is away the
+            # pool has none to lend, and a client is told so at once, not after a wait.
+            "timeout": env_float("DB_POOL_TIMEOUT_S", 1.0),
+            # psycopg_pool retries a failed connection with a backoff that doubles for
+            # as long as this (its default: 5 minutes), so after a 40 s outage its next
+            # try could come half a minute after PostgreSQL was back. Past this it gives
+            # the attempt up and the next request that needs a connection starts a new
+            # one at once: the pool is back within seconds of the database.
+            "reconnect_timeout": env_float("DB_POOL_RECONNECT_S", 5.0),
         }
         DATABASES["default"]["CONN_MAX_AGE"] = 0  # the pool keeps them, not the threads
     else:
@@ -159,6 +174,12 @@ else:
     # kept one is reused (an empty round trip). After PostgreSQL restarted, or dropped
     # idle connections, the dead ones are replaced instead of failing a request each.
     DATABASES["default"]["CONN_HEALTH_CHECKS"] = True
+    # Connecting to a host that does not answer (a lost network, not a refused port)
+    # gives up after this many seconds (libpq's minimum is 2) instead of the system's
+    # minutes of TCP retries.
+    DATABASES["default"]["OPTIONS"].setdefault(
+        "connect_timeout", env_int("DB_CONNECT_TIMEOUT_S", 2)
+    )
     # Statements bound and prepared by PostgreSQL: psycopg sends the values apart from
     # the SQL instead of quoting them into it in Python, and a statement a connection
     # has run DB_PREPARE_THRESHOLD times is prepared there, parsed and planned once.
@@ -208,8 +229,28 @@ if REDIS_URL:
 else:
     CHANNEL_LAYERS = {"default": {"BACKEND": "channels.layers.InMemoryChannelLayer"}}
 
-# Django's ModelBackend, with a user's permissions read in one query (accounts.backends).
-AUTHENTICATION_BACKENDS = ["accounts.backends.RoleBackend"]
+# Django's cache: the login lockout's and the rate limits' counters (services.throttle),
+# in Redis when there is one, so that every platform process counts together; in the
+# process's memory otherwise (embedded mode has one platform process).
+CACHES: dict[str, dict[str, Any]]
+if REDIS_URL:
+    CACHES = {
+        "default": {
+            "BACKEND": "django.core.cache.backends.redis.RedisCache",
+            "LOCATION": REDIS_URL,
+            "KEY_PREFIX": env_str("CHANNELS_PREFIX", "iouv") + ":cache",
+            # A Redis that does not answer fails a limit's check in a second, not in
+            # the system's TCP timeouts (services.throttle then lets the call through).
+            "OPTIONS": {"socket_connect_timeout": 1, "socket_timeout": 1},
+        }
+    }
+else:
+    CACHES = {"default": {"BACKEND": "django.core.cache.backends.locmem.LocMemCache"}}
+
+# django-axes' lockout check first (accounts.lockout: a locked-out address or account is
+# refused before its password is hashed), then Django's ModelBackend with a user's
+# permissions read in one query (accounts.backends).
+AUTHENTICATION_BACKENDS = ["accounts.lockout.LoginLockoutBackend", "accounts.backends.RoleBackend"]
 
 AUTH_PASSWORD_VALIDATORS = [
     {"NAME": "django.contrib.auth.password_validation.UserAttributeSimilarityValidator"},
@@ -234,6 +275,12 @@ USE_TZ = True
 
 STATIC_URL = "static/"
 STATICFILES_DIRS = [BASE_DIR / "static"]
+# Django's finders, with a path that leaves their folders (/static/../..) not found (404)
+# instead of an error (iouv.static_finders).
+STATICFILES_FINDERS = [
+    "iouv.static_finders.FileSystemFinder",
+    "iouv.static_finders.AppDirectoriesFinder",
+]
 STATIC_ROOT = Path(env_str("STATIC_ROOT", str(VAR_DIR / "static")))
 # daphne serves /static/ itself in embedded mode; in production a proxy may do it.
 SERVE_STATIC = env_bool("SERVE_STATIC", True)
@@ -246,11 +293,14 @@ CSRF_COOKIE_SECURE = SESSION_COOKIE_SECURE
 SECURE_SSL_REDIRECT = env_bool("SECURE_SSL_REDIRECT", not EMBEDDED)
 # Health checks reach the processes behind the TLS proxy over plain http: a redirect to
 # https would read as "down".
-SECURE_REDIRECT_EXEMPT = [r"^healthz$"]
+SECURE_REDIRECT_EXEMPT = [r"^(healthz|readyz)$"]
 SECURE_HSTS_SECONDS = env_int("SECURE_HSTS_SECONDS", 0 if EMBEDDED else 31_536_000)
 SECURE_HSTS_INCLUDE_SUBDOMAINS = not EMBEDDED
 SECURE_HSTS_PRELOAD = not EMBEDDED
-if env_bool("BEHIND_PROXY", False):
+# Behind nginx: its X-Forwarded-Proto says whether the request came over TLS, and the last
+# entry of its X-Forwarded-For is the client's address (accounts.addresses).
+BEHIND_PROXY = env_bool("BEHIND_PROXY", False)
+if BEHIND_PROXY:
     SECURE_PROXY_SSL_HEADER = ("HTTP_X_FORWARDED_PROTO", "https")
 
 # --- Celery ----------------------------------------------------------------------------
@@ -386,6 +436,34 @@ IOUV_PUBLIC_URL = env_str("IOUV_PUBLIC_URL", "http://127.0.0.1:8000")
 # Notices' webhooks (services.notices): how long one delivery attempt may take.
 IOUV_WEBHOOK_TIMEOUT_S = env_float("IOUV_WEBHOOK_TIMEOUT_S", 5.0)
 
+# --- Abuse: login lockout and rate limits -----------------------------------------------
+# django-axes (accounts.lockout): this many failed log-ins from one address, or naming one
+# account, lock log-ins from that address or for that account for the cool-off, the right
+# password included; a successful log-in clears the address's and account's failures.
+AXES_FAILURE_LIMIT = env_int("IOUV_LOGIN_FAILURE_LIMIT", 10)
+AXES_COOLOFF_TIME = timedelta(seconds=env_int("IOUV_LOGIN_COOLOFF_S", 900))
+AXES_LOCKOUT_PARAMETERS = ["ip_address", "username"]
+AXES_RESET_ON_SUCCESS = True
+AXES_CLIENT_IP_CALLABLE = "accounts.addresses.client_address"
+AXES_LOCKOUT_CALLABLE = "accounts.lockout.login_locked_out"
+# One line per failed or locked-out attempt, none per success.
+AXES_VERBOSE = False
+# Budgets of the actions services.throttle limits, "N/<window>" per user and per client
+# address ("" or "off": none). IOUV_RATE_<ACTION>="<per user>,<per address>".
+IOUV_RATE_LIMITS: dict[str, dict[str, str]] = {}
+for _action, _default in {
+    "session_request": ["20/m", "60/m"],
+    "grant": ["60/m", "240/m"],
+    "webrtc_offer": ["30/m", "120/m"],
+}.items():
+    _per_user, _per_address = [*env_list(f"IOUV_RATE_{_action.upper()}", _default), "off"][:2]
+    IOUV_RATE_LIMITS[_action] = {"user": _per_user, "address": _per_address}
+# django-ratelimit's switch: IOUV_RATE_LIMITS=0 turns every budget off (benchmarks).
+RATELIMIT_ENABLE = env_bool("IOUV_RATE_LIMITS", True)
+# --- Faults: what clients are told while a server the platform needs is away -----------
+# The Retry-After of a 503 answered while PostgreSQL cannot be reached (iouv.outages).
+IOUV_RETRY_AFTER_S = env_int("IOUV_RETRY_AFTER_S", 5)
+
 # --- WebRTC: ICE servers handed to users and vehicles (services.ice) ----------------------
 # STUN finds a peer's public address behind NAT; TURN (coturn) relays when no direct
 # path exists. TURN credentials are minted per session from the secret coturn shares
@@ -433,5 +511,8 @@ LOGGING = {
     "loggers": {
         "django.channels.server": {"level": "WARNING"},
         "uvicorn.error": {"level": "WARNING"},
+        # django-axes says INFO for every log-in it sees; its warnings (repeated
+        # failures, a lockout) still show.
+        "axes": {"level": "WARNING"},
     },
 }

@@ -5,12 +5,16 @@ from django.templatetags.static import static
 from django.urls import include, path
 from django.views.generic.base import RedirectView
 
+from iouv.health import healthz, readyz
 from services.keys_views import jwks
 
 admin.site.site_header = "IoUV administration"
 admin.site.site_title = "IoUV"
 
 urlpatterns = [
+    # Liveness and readiness (iouv.health), first: nothing below is consulted for them.
+    path("healthz", healthz, name="healthz"),
+    path("readyz", readyz, name="readyz"),
     # Pages that do not name an icon (the admin's) make browsers ask for this one.
     path("favicon.ico", RedirectView.as_view(url=static("img/favicon.svg"), permanent=True)),
     path("admin/", admin.site.urls),

@@ -51,6 +51,7 @@ from services.kinds import Request, RequestError
 from services.models import Session
 from services.request import service_request
 from services.sessions import SessionStateError
+from services.throttle import request_keys, throttle_check, throttle_count, throttle_peek
 
 __all__ = ["MAX_BODY_BYTES", "PARAMS_MAX_DEPTH", "REASON_MAX", "ApiError", "api", "not_found"]
 
@@ -82,11 +83,12 @@ _CHALLENGE = {"WWW-Authenticate": {**_STRING, "description": 'Bearer realm="iouv
 
 def _doc(ok: dict[int, Any], *errors: int, **ok_extra: Any) -> dict[str, Any]:
     """An operation's answers for ninja: ``ok`` (status: schema) and the Error envelope
-    for 400 (every operation refuses unknown query parameters), 401, 500 and
-    ``errors``; ``ok_extra`` (headers, links) joins the success's entry of the document."""
+    for 400 (every operation refuses unknown query parameters), 401, 500, 503 (the
+    database cannot be reached) and ``errors``; ``ok_extra`` (headers, links) joins the
+    success's entry of the document."""
     (status,) = ok
     return {
-        "response": {**ok, **dict.fromkeys(sorted({400, 401, *errors, 500}), schema.Error)},
+        "response": {**ok, **dict.fromkeys(sorted({400, 401, *errors, 500, 503}), schema.Error)},
         "openapi_extra": {"responses": {401: {"headers": _CHALLENGE}, status: ok_extra}},
     }
 
@@ -184,6 +186,7 @@ def services_list(request: AuthenticatedHttpRequest) -> dict[str, Any]:
         409,
         413,
         422,
+        429,
         headers={"Location": _STRING},
         links=_LINKS,
     ),
@@ -196,8 +199,11 @@ def session_create(
     is deployed at once: 201 with the user task (control URL and grant). An
     asynchronous one is left to its kind's workflow (task null), which reads its own
     `params` (docs/api.md lists them). 422 names the requirement no vehicle met; 409
-    `session_limit` says the user already holds as many live sessions as it allows."""
+    `session_limit` says the user already holds as many live sessions as it allows.
+    429 `rate_limited` (with Retry-After): too many requests from the user or the
+    address (docs/operations.md, "Rate limits")."""
     _require_perm(request, "services.use_services", "request services")
+    throttle_check(action="session_request", **request_keys(request))
     service = service_usable_get(request.user, payload.service)
     if service is None:
         raise field_error("service", f"no service {payload.service!r}")
@@ -250,11 +256,15 @@ def session_read(request: AuthenticatedHttpRequest, session_id: UUID) -> Session
     f"{_SESSION_PATH}/grant",
     operation_id="session_grant",
     summary="A fresh controller grant for the session's owner (to reconnect)",
-    **_doc({200: schema.Grant}, 403, 404, 409),
+    **_doc({200: schema.Grant}, 403, 404, 409, 429),
 )
 @query()
 def session_grant(request: AuthenticatedHttpRequest, session_id: UUID) -> dict[str, Any]:
-    """A fresh controller grant for the session's owner, e.g. to reconnect."""
+    """A fresh controller grant for the session's owner, e.g. to reconnect. 429
+    `rate_limited` (with Retry-After): too many grants for the user or the address;
+    only grants given count."""
+    keys = request_keys(request)
+    throttle_peek(action="grant", **keys)
     session = _owned_session(request, session_id, "control")
     if session.service.mode != "sync":
         raise ApiError(409, "session_state", "this session is run by the platform, not driven")
@@ -262,6 +272,7 @@ def session_grant(request: AuthenticatedHttpRequest, session_id: UUID) -> dict[s
         task = grant_issue(session=session, user=request.user)
     except DeploymentError as exc:
         raise ApiError(409, "session_state", str(exc)) from None
+    throttle_count(action="grant", **keys)
     return {"task": user_task_json(task, request=request)}
 
 

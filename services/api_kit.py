@@ -26,7 +26,9 @@ from ninja.security import HttpBearer
 
 from accounts.tokens import token_authenticate
 from accounts.users import User
+from iouv.outages import DATABASE_UNAVAILABLE, database_unavailable_response
 from services.api_schemas import MAX_BODY_BYTES
+from services.throttle import Throttled
 
 # Under the API's name: the one operators know from the log lines of requests.
 logger = logging.getLogger("services.api")
@@ -120,6 +122,16 @@ def _http_error(request: HttpRequest, exc: HttpError) -> HttpResponse:
     if exc.status_code == 400:  # ninja could not parse the body
         return _not_json().response()
     return ApiError(exc.status_code, "invalid_field", str(exc)).response()
+
+
+def _throttled(request: HttpRequest, exc: Throttled) -> HttpResponse:
+    retry = {"Retry-After": str(exc.retry_after_s)}
+    return ApiError(429, "rate_limited", str(exc), headers=retry).response()
+
+
+def _database_unavailable(request: HttpRequest, exc: Exception) -> HttpResponse:
+    logger.warning("API: database unavailable on %s %s: %s", request.method, request.path, exc)
+    return database_unavailable_response(request)
 
 
 def _server_error(request: HttpRequest, exc: Exception) -> HttpResponse:
@@ -281,6 +293,9 @@ class IouvApi(NinjaAPI):
         on(AuthenticationError, lambda request, exc: _not_authenticated().response())
         on(RequestDataTooBig, lambda request, exc: _too_large().response())
         on(Http404, lambda request, exc: ApiError(404, "not_found", "no such resource").response())
+        on(Throttled, _throttled)
+        for unavailable in DATABASE_UNAVAILABLE:
+            on(unavailable, _database_unavailable)
         on(Exception, _server_error)
 
     def get_openapi_schema(

@@ -218,7 +218,9 @@ ErrorCode = Literal[
     "payload_too_large",
     "unmet_requirement",
     "invalid_task",
+    "rate_limited",
     "internal_error",
+    "database_unavailable",
 ]
 
 
@@ -226,7 +228,8 @@ class ErrorDetail(Schema):
     """``code`` is stable and machine-readable: invalid_json and invalid_field (400),
     not_authenticated and invalid_token (401), permission_denied (403), not_found (404),
     method_not_allowed (405), session_state and session_limit (409), payload_too_large
-    (413), unmet_requirement and invalid_task (422), internal_error (500)."""
+    (413), unmet_requirement and invalid_task (422), rate_limited (429, with
+    Retry-After), internal_error (500), database_unavailable (503, with Retry-After)."""
 
     code: ErrorCode
     message: str = Field(description="For humans; names the field or the unmet requirement.")

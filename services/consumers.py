@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import functools
 import secrets
 import time
 import uuid
 from typing import Any
 
 import msgspec
+from asgiref.sync import sync_to_async
 from channels.db import database_sync_to_async
 from channels.generic.websocket import AsyncJsonWebsocketConsumer, AsyncWebsocketConsumer
 
+from accounts.addresses import client_address_of_scope
 from agents.protocol import (
     ProtocolError,
     UserGrant,
@@ -30,13 +33,19 @@ from fleet.memberships import group_hold, group_release
 from fleet.uplink import avehicle_send, relay_group
 from iouv.consumers import DirectDispatch
 from iouv.layer import relay_ensure
+from iouv.outages import DATABASE_UNAVAILABLE
 from services.feed import SESSIONS_GROUP, session_group
 from services.ice import ice_servers_for
+from services.throttle import Throttled, counted_address, throttle_check
 
 #: The relay's own budget per browser, on top of the agent's: it protects the platform.
 RELAY_RATE_PER_S = 200.0
 RELAY_BURST = 400.0
 CLOSED_BY_AGENT = 4000
+#: The relay's close codes for a refused first frame: not admitted, or the platform
+#: could not check the grant now (its database is away: come back later).
+CLOSE_UNAUTHORIZED = 4401
+CLOSE_TRY_LATER = 4503
 
 
 class SessionFeedConsumer(DirectDispatch, AsyncJsonWebsocketConsumer):
@@ -154,7 +163,13 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
 
     It is also the WebRTC signalling path: a ``webrtc_offer`` is forwarded with the
     platform's STUN/TURN servers for the agent (``ice_servers``, TURN credentials minted
-    for this session), and the agent's ``webrtc_answer`` comes back like any answer.
+    for this session, expiring with the grant the connection authenticated with), and
+    the agent's ``webrtc_answer`` comes back like any answer. Offers count against the
+    user's and the address's budgets (services.throttle); one over them is answered
+    ``rate_limited`` and not forwarded.
+
+    A refused first frame closes the socket (4401, or 4503 when the grant could not be
+    checked now); frames the client had already sent after it are dropped unanswered.
     """
 
     async def connect(self) -> None:
@@ -166,6 +181,12 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         # there, not through the vehicle's group (see fleet.uplink.avehicle_send).
         self.uplink: str | None = None
         self.tokens, self.refill_at = RELAY_BURST, time.monotonic()
+        #: Set once the relay closed the socket: later frames are dropped, not answered.
+        self.closing = False
+        #: The admitted grant's user and end (Unix seconds), and the client's address.
+        self.user_id: str | None = None
+        self.grant_expires_at: float | None = None
+        self.address = counted_address(client_address_of_scope(self.scope))
         await self.accept()
 
     async def disconnect(self, code: int) -> None:
@@ -182,6 +203,8 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
             )
 
     async def receive(self, text_data: str | None = None, bytes_data: bytes | None = None) -> None:
+        if self.closing:
+            return  # sent before the client saw the close: there is no one to answer
         raw = text_data if text_data is not None else bytes_data or b""
         now = time.monotonic()
         self.tokens = min(RELAY_BURST, self.tokens + (now - self.refill_at) * RELAY_RATE_PER_S)
@@ -193,22 +216,30 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         try:
             payload: ControlToAgent = parse_message(raw, channel="control_to_agent")
         except ProtocolError as exc:
-            await self._error(exc.code, exc.message)
             if self.vehicle_id is None:
-                await self.close(code=4401)
+                await self._refuse(exc.code, exc.message, CLOSE_UNAUTHORIZED)
+            else:
+                await self._error(exc.code, exc.message)
             return
         if self.vehicle_id is None:
             refusal = await self._admit(payload)
             if refusal is not None:
-                await self._error(*refusal)
-                await self.close(code=4401)
+                await self._refuse(*refusal)
                 return
         assert self.vehicle_id is not None
         message = RelayToAgent(session_id=self.session_id, conn=self.conn, payload=payload)
         if isinstance(payload, WebrtcOffer):
-            # The agent's STUN/TURN for this connection, with TURN credentials of its own.
-            servers = msgspec.convert(ice_servers_for(self.session_id), list[IceServer])
-            message = msgspec.structs.replace(message, ice_servers=servers)
+            try:
+                await _offer_count(user_id=self.user_id, address=self.address)
+            except Throttled as exc:
+                await self._error("rate_limited", str(exc))
+                return
+            # The agent's STUN/TURN for this connection, with TURN credentials of its own
+            # that end with the grant this connection was admitted with.
+            servers = ice_servers_for(self.session_id, expires_at=self.grant_expires_at)
+            message = msgspec.structs.replace(
+                message, ice_servers=msgspec.convert(servers, list[IceServer])
+            )
         await avehicle_send(
             vehicle_id=self.vehicle_id,
             message=message,
@@ -216,21 +247,31 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
             reply_to=self.channel_name,
         )
 
-    async def _admit(self, payload: ControlToAgent) -> tuple[str, str] | None:
+    async def _admit(self, payload: ControlToAgent) -> tuple[str, str, int] | None:
         """Check the first frame's grant; on success join this connection's group.
-        Returns (code, message) when refused."""
+        Returns (code, message, close code) when refused."""
         if not isinstance(payload, Auth):
-            return ("unauthorized", "authenticate first")
-        vehicle_id = await _session_vehicle(self.session_id)
-        if vehicle_id is None:
-            return ("no_session", "this session is over or has no vehicle")
+            return ("unauthorized", "authenticate first", CLOSE_UNAUTHORIZED)
         try:
-            grant = UserGrant.verify(payload.grant, await _platform_keys(), vehicle_id=vehicle_id)
+            vehicle_id = await _session_vehicle(self.session_id)
+            keys = await _platform_keys()
+        except DATABASE_UNAVAILABLE:
+            return (
+                "unavailable",
+                "the platform cannot check grants right now; connect again shortly",
+                CLOSE_TRY_LATER,
+            )
+        if vehicle_id is None:
+            return ("no_session", "this session is over or has no vehicle", CLOSE_UNAUTHORIZED)
+        try:
+            grant = UserGrant.verify(payload.grant, keys, vehicle_id=vehicle_id)
         except ProtocolError as exc:
-            return (exc.code, exc.message)
+            return (exc.code, exc.message, CLOSE_UNAUTHORIZED)
         if grant.session_id != self.session_id:
-            return ("wrong_session", "this grant is for another session")
+            return ("wrong_session", "this grant is for another session", CLOSE_UNAUTHORIZED)
         self.vehicle_id = vehicle_id
+        self.user_id = grant.user
+        self.grant_expires_at = grant.expires_at
         await group_hold(relay_group(self.conn), self.channel_name)
         return None
 
@@ -254,6 +295,12 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
     async def _error(self, code: str, message: str) -> None:
         await self.send(text_data=encode_message(error_message(code, message)))
 
+    async def _refuse(self, code: str, message: str, close_code: int) -> None:
+        """Answer ``error`` and close the socket; nothing it sent after is looked at."""
+        self.closing = True
+        await self._error(code, message)
+        await self.close(code=close_code)
+
 
 def _sendable_close_code(code: Any) -> int:
     """The agent's close code for its relayed client, if a server may send it (1000 or
@@ -264,6 +311,13 @@ def _sendable_close_code(code: Any) -> int:
     if isinstance(code, int) and (code == 1000 or 3000 <= code <= 4999):
         return code
     return CLOSED_BY_AGENT
+
+
+#: A WebRTC offer counted against its user's and address's budgets, off the event loop
+#: (the counters live in Redis: a slow Redis must not hold the relay's other frames).
+_offer_count = sync_to_async(
+    functools.partial(throttle_check, action="webrtc_offer"), thread_sensitive=False
+)
 
 
 @database_sync_to_async

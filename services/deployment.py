@@ -633,11 +633,11 @@ def user_task_json(task: UserTask, *, request: HttpRequest) -> dict[str, Any]:
     path that always works, and where a WebRTC connection is signalled. A relayed
     session's ``control_url`` is that socket too. ``ice_servers`` are the STUN/TURN
     servers for the user's side of that WebRTC connection (TURN credentials of its
-    own, valid IOUV_TURN_TTL_S)."""
+    own, expiring with the grant: services.ice)."""
     data = dataclasses.asdict(task)
     scheme = "wss" if request.is_secure() else "ws"
     data["relay_url"] = f"{scheme}://{request.get_host()}/ws/relay/{task.session_id}/"
     if task.relay:
         data["control_url"] = data["relay_url"]
-    data["ice_servers"] = ice_servers_for(task.session_id)
+    data["ice_servers"] = ice_servers_for(task.session_id, expires_at=task.expires_at)
     return data

@@ -19,6 +19,5 @@ urlpatterns = [
     path("sessions/<uuid:session_id>/stop", views.session_stop, name="session_stop"),
     path("monitor/", views.monitor, name="monitor"),
     path("map/land.geo.json", views.land_map, name="land_map"),
-    path("healthz", views.healthz, name="healthz"),
     *_kind_urls(),
 ]

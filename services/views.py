@@ -8,7 +8,6 @@ from typing import Any
 from django.conf import settings
 from django.contrib import messages
 from django.contrib.auth.decorators import login_required, permission_required
-from django.db import connection
 from django.http import Http404, HttpRequest, HttpResponse, JsonResponse
 from django.shortcuts import get_object_or_404, redirect, render
 from django.views.decorators.cache import cache_control, never_cache
@@ -34,6 +33,7 @@ from services.models import Service, Session
 from services.request import service_request
 from services.selectors import service_vehicles_matching, session_summary
 from services.sessions import FINAL, SessionStateError
+from services.throttle import throttled
 
 
 def _kind(service: Service) -> ServiceKind:
@@ -64,6 +64,7 @@ def catalog(request: AuthenticatedHttpRequest) -> HttpResponse:
 
 
 @login_required
+@throttled("session_request", methods=("POST",))
 def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpResponse:
     """The request page of one service (its kind's form); a valid POST opens the
     session (services.request: the same path as the API) and shows its page."""
@@ -141,6 +142,7 @@ def _own_session(request: AuthenticatedHttpRequest, session_id: str) -> Session:
 # used, by someone else, until it expires.
 @never_cache
 @login_required
+@throttled("grant")  # every view of the page mints a grant
 def session_page(request: AuthenticatedHttpRequest, session_id: str) -> HttpResponse:
     """The user task: the page the session's kind opens on, with a fresh grant."""
     session = _own_session(request, session_id)
@@ -182,7 +184,8 @@ def session_page(request: AuthenticatedHttpRequest, session_id: str) -> HttpResp
 @never_cache
 @login_required
 @require_POST
-def session_grant(request: AuthenticatedHttpRequest, session_id: str) -> JsonResponse:
+@throttled("grant", json=True, done_if_ok=True)
+def session_grant(request: AuthenticatedHttpRequest, session_id: str) -> HttpResponse:
     """A fresh grant to reconnect (JSON for the controller script)."""
     session = _own_session(request, session_id)
     try:
@@ -268,10 +271,3 @@ def land_map(request: HttpRequest) -> HttpResponse:
     contributors, ODbL) that the maps draw as land and sea when no tile server is
     configured. Public, like any map tile: the recipient's tracking page shows it too."""
     return HttpResponse(_land_map_bytes(), content_type="application/geo+json")
-
-
-def healthz(request: HttpRequest) -> JsonResponse:
-    """Liveness for proxies and the demo script: answers once the database does."""
-    with connection.cursor() as cursor:
-        cursor.execute("SELECT 1")
-    return JsonResponse({"ok": True, "database": connection.vendor})

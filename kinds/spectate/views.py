@@ -17,6 +17,7 @@ from services.models import Service, Session
 from services.selectors import session_summary
 from services.sessions import FINAL
 from services.supervision import session_situation
+from services.throttle import throttled
 from services.views import log_lines
 
 
@@ -52,6 +53,7 @@ def spectate(request: AuthenticatedHttpRequest) -> HttpResponse:
 
 @never_cache  # the page carries a signed grant: no cache may keep it
 @login_required
+@throttled("grant")  # every view of the page mints a grant
 def spectate_session(request: AuthenticatedHttpRequest, session_id: str) -> HttpResponse:
     """Watch one session's vehicle: video and telemetry, view-only."""
     service = _spectate_service(request)

@@ -34,8 +34,24 @@ def test_servers_follow_the_configuration(settings: Any) -> None:
     settings.IOUV_STUN_URLS = ["stun:a.example.org", "stun:b.example.org:3479"]
     assert ice_servers_for("s1") == [{"urls": ["stun:a.example.org", "stun:b.example.org:3479"]}]
     settings.IOUV_TURN_SECRET = "shh"
-    servers = ice_servers_for("s1", ttl_s=60)
+    servers = ice_servers_for("s1")
     assert servers[1]["urls"] == ["turn:turn.example.org:3478"]
     assert servers[1]["username"].endswith(":s1")
     # Two sessions never share a credential.
     assert ice_servers_for("s2")[1]["credential"] != servers[1]["credential"]
+
+
+def test_turn_credentials_end_with_the_grant_they_come_with(settings: Any) -> None:
+    settings.IOUV_STUN_URLS = ["stun:a.example.org"]
+    settings.IOUV_TURN_URLS = ["turn:turn.example.org:3478"]
+    settings.IOUV_TURN_SECRET = "shh"
+    settings.IOUV_TURN_TTL_S = 3600
+    now = 1_000_000.0
+    # A grant of five minutes: its TURN credential ends with it, not an hour later.
+    stun, turn = ice_servers_for("s1", expires_at=now + 300, now=now)
+    assert turn["username"] == "1000300:s1"
+    # The configured lifetime still bounds a longer grant.
+    assert ice_servers_for("s1", expires_at=now + 7200, now=now)[1]["username"] == "1003600:s1"
+    # A grant already over brings no TURN server at all (STUN still).
+    assert ice_servers_for("s1", expires_at=now - 1, now=now) == [stun]
+    assert ice_servers_for("s1", expires_at=now + 0.5, now=now) == [stun]

@@ -12,6 +12,7 @@ import time
 from collections.abc import AsyncIterator
 from typing import Any
 
+import jwt
 import pytest
 from channels import DEFAULT_CHANNEL_LAYER
 from channels.db import database_sync_to_async
@@ -229,11 +230,13 @@ async def test_a_relayed_webrtc_offer_brings_the_agent_turn_credentials_of_its_o
 ) -> None:
     """The relay is where a WebRTC connection is signalled: an offer reaches the agent
     with the platform's STUN/TURN servers, TURN credentials minted for this session
-    (coturn checks them: tests/integration/test_netlab.py); other frames carry none."""
+    (coturn checks them: tests/integration/test_netlab.py) that end with the grant the
+    browser authenticated with, not the hour TURN credentials may last; other frames
+    carry none."""
     settings.IOUV_STUN_URLS = ["stun:turn.example.org:3478"]
     settings.IOUV_TURN_URLS = ["turn:turn.example.org:3478?transport=udp"]
     settings.IOUV_TURN_SECRET = "coturn-shared-secret"
-    settings.IOUV_TURN_TTL_S = 600
+    settings.IOUV_TURN_TTL_S = 3600
     vehicle_id, credential, session_id, grant = await _relayed_session()
     agent = await _uplink(vehicle_id, credential)
     browser = await _browser(session_id)
@@ -249,8 +252,36 @@ async def test_a_relayed_webrtc_offer_brings_the_agent_turn_credentials_of_its_o
         assert turn["urls"] == ["turn:turn.example.org:3478?transport=udp"]
         expiry, name = turn["username"].split(":")
         assert name == session_id
-        assert 590 <= int(expiry) - time.time() <= 601
+        grant_exp = jwt.decode(grant, options={"verify_signature": False})["exp"]
+        assert time.time() < int(expiry) <= grant_exp
         assert turn["credential"] and turn["credential"] != settings.IOUV_TURN_SECRET
+    finally:
+        await browser.disconnect()
+        await agent.disconnect()
+
+
+async def test_webrtc_offers_over_the_users_budget_are_refused_and_not_forwarded(
+    settings: Any,
+) -> None:
+    """Each offer reaches the vehicle (aiortc work, TURN credentials minted): past the
+    user's budget (services.throttle) the relay answers ``rate_limited`` itself."""
+    settings.IOUV_RATE_LIMITS = {"webrtc_offer": {"user": "2/m", "address": "off"}}
+    vehicle_id, credential, session_id, grant = await _relayed_session()
+    agent = await _uplink(vehicle_id, credential)
+    browser = await _browser(session_id)
+    try:
+        await _authenticate(browser, agent, grant)
+        offer = {"type": "webrtc_offer", "sdp": "v=0\r\n"}
+        for _ in range(2):
+            await browser.send_json_to(offer)
+            assert (await _relayed(agent))["payload"] == offer
+        await browser.send_json_to(offer)
+        refused = await browser.receive_json_from(timeout=10)
+        assert refused["type"] == "error" and refused["code"] == "rate_limited"
+        assert "WebRTC offers" in refused["message"]
+        # Other frames still go through, and the refused offer never reached the agent.
+        await browser.send_json_to({"type": "ping", "t": 1})
+        assert (await _relayed(agent))["payload"]["type"] == "ping"
     finally:
         await browser.disconnect()
         await agent.disconnect()
