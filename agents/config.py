@@ -10,7 +10,8 @@ Example::
       "platform_jwks_url": "https://iouv.example.org/.well-known/jwks.json",
       "adapter": "car",
       "adapter_options": {"distance_sensor": true},
-      "control": {"host": "0.0.0.0", "port": 8765, "public_url": "wss://car-1.example.org"},
+      "control": {"host": "0.0.0.0", "port": 8765, "public_url": "wss://car-1.example.org",
+                  "max_grant_lifetime_s": 900},
       "video": {"source": "v4l2", "device": "/dev/video0"},
       "webrtc": {"ice_servers": ["stun:stun.example.org:3478"]}
     }
@@ -60,13 +61,22 @@ class ConfigError(Exception):
     """The config file is missing, unreadable or wrong; the message names the field."""
 
 
+#: The longest user grant the agent accepts by default: three times the platform's
+#: default grant lifetime (IOUV_GRANT_TTL_S, 300 s). A platform set to give longer grants
+#: needs its agents' ``control.max_grant_lifetime_s`` raised to match.
+MAX_GRANT_LIFETIME_S: Final = 900.0
+
+
 @dataclass(frozen=True)
 class ControlConfig:
-    """Where the agent's control WebSocket listens and how users reach it."""
+    """Where the agent's control WebSocket listens and how users reach it, and the
+    longest grant it accepts (``exp - iat``, seconds): a grant valid longer is refused
+    with ``lifetime_too_long``."""
 
     host: str = "127.0.0.1"
     port: int = 0  # 0: any free port (simulated fleets)
     public_url: str | None = None  # what the platform gives users; default ws://host:port/
+    max_grant_lifetime_s: float = MAX_GRANT_LIFETIME_S
 
 
 @dataclass(frozen=True)
@@ -160,6 +170,9 @@ class AgentConfig:
         port = control.get("port", 0)
         if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
             raise ConfigError("control.port: must be a port number")
+        max_grant = control.get("max_grant_lifetime_s", MAX_GRANT_LIFETIME_S)
+        if isinstance(max_grant, bool) or not isinstance(max_grant, int | float) or max_grant <= 0:
+            raise ConfigError("control.max_grant_lifetime_s: must be a positive number of seconds")
         video = data.get("video")
         if video is not None and not isinstance(video, Mapping):
             raise ConfigError("video: must be an object or null")
@@ -195,6 +208,7 @@ class AgentConfig:
                 host=str(control.get("host", "127.0.0.1")),
                 port=port,
                 public_url=control.get("public_url") or None,
+                max_grant_lifetime_s=float(max_grant),
             ),
             video=dict(video) if video is not None else None,
             thermal=dict(thermal) if thermal is not None else None,

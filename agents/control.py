@@ -53,6 +53,7 @@ import msgspec
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
+from agents.config import MAX_GRANT_LIFETIME_S
 from agents.envelope import EnvelopeWatch
 from agents.protocol import (
     MAX_MESSAGE_BYTES,
@@ -330,8 +331,11 @@ class ControlHub:
         video: Any | None = None,
         on_task_end: TaskEnded | None = None,
         webrtc: Mapping[str, Any] | None = None,
+        max_grant_lifetime_s: float = MAX_GRANT_LIFETIME_S,
     ) -> None:
         self.vehicle_id = vehicle_id
+        #: A grant valid longer than this is refused (``lifetime_too_long``, agents.config).
+        self.max_grant_lifetime_s = max_grant_lifetime_s
         self.vehicle_name = vehicle_name
         #: The platform key(s) grants are verified with; the agent replaces it when the
         #: platform announces new keys (a rotation).
@@ -669,7 +673,11 @@ class ControlHub:
     async def _auth(self, client: _Client, token: str) -> None:
         try:
             grant = UserGrant.verify(
-                token, self.public_key, vehicle_id=self.vehicle_id, replay_guard=self.grants_seen
+                token,
+                self.public_key,
+                vehicle_id=self.vehicle_id,
+                replay_guard=self.grants_seen,
+                max_lifetime_s=self.max_grant_lifetime_s,
             )
         except ProtocolError as exc:
             await self._send(client, error_message(exc.code, exc.message))

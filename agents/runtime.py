@@ -103,6 +103,7 @@ class Agent:
                 video=self.video,
                 on_task_end=self._task_ended,
                 webrtc=self.config.webrtc,
+                max_grant_lifetime_s=self.config.control.max_grant_lifetime_s,
             )
             self.hub = await stack.enter_async_context(hub)
             self.missions = MissionControl(

@@ -321,21 +321,27 @@ class _Document(_Checked, frozen=True, kw_only=True, forbid_unknown_fields=True)
         issuer: str = ISSUER,
         now: float | None = None,
         replay_guard: ReplayGuard | None = None,
+        max_lifetime_s: float | None = None,
     ) -> Self:
         """Verify a token of this kind on the agent whose id is ``vehicle_id``.
 
         ``keys`` is the platform key, or a :class:`KeySet` from which the token's ``kid``
         picks one. ``now`` (Unix seconds, default ``time.time()``) is the verifier's clock;
-        ``CLOCK_SKEW_S`` is tolerated on ``exp``, ``nbf`` and ``iat``.
+        ``CLOCK_SKEW_S`` is tolerated on ``exp``, ``nbf`` and ``iat``. ``max_lifetime_s``:
+        a document valid longer than this (``exp - iat``) is refused, however it is
+        signed: a leaked one would open the vehicle for as long as it says, and its
+        ``jti`` would have to be remembered as long.
 
         Order: shape, key, signature, required claims, ``iss``, ``aud``, ``typ``, ``v``,
-        times, every claim's value, then, if ``replay_guard`` is given, the ``jti``.
+        times, every claim's value, the lifetime, then, if ``replay_guard`` is given, the
+        ``jti``.
 
         Returns the document. Raises only ProtocolError subclasses: SignatureError
         (``bad_signature``; UnknownKeyError ``unknown_key``), ExpiredError (``expired``),
         WrongTargetError (``wrong_vehicle``), ReplayError (``replayed``) or ProtocolError
         (``bad_token``, ``wrong_issuer``, ``wrong_kind``, ``bad_version``,
-        ``not_yet_valid``, ``bad_field``); ValueError only for an empty ``vehicle_id``.
+        ``not_yet_valid``, ``bad_field``, ``lifetime_too_long``); ValueError only for an
+        empty ``vehicle_id``.
         """
         claims = _decode(token, keys, kind=cls.KIND, vehicle_id=vehicle_id, issuer=issuer, now=now)
         doc = cls.from_payload(claims)
@@ -344,6 +350,14 @@ class _Document(_Checked, frozen=True, kw_only=True, forbid_unknown_fields=True)
                 f"document is for vehicle {doc.vehicle_id!r}, this is {vehicle_id!r}"
             )
             raise _with_field(err, "aud")
+        lifetime = doc.expires_at - doc.issued_at
+        if max_lifetime_s is not None and lifetime > max_lifetime_s:
+            raise ProtocolError(
+                "lifetime_too_long",
+                f"document is valid for {lifetime:g} s; this vehicle accepts at most "
+                f"{max_lifetime_s:g} s",
+                field="exp",
+            )
         # Replay last: a document refused for another reason must not burn its id.
         if replay_guard is not None:
             replay_guard.check_and_remember(doc.nonce, doc.expires_at, now=now)
