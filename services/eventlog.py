@@ -39,6 +39,7 @@ from django.db.transaction import get_connection
 from django.utils import timezone
 
 from iouv.prepared import Param, PreparedInsert, PreparedQuery
+from services.eventwords import event_text
 from services.feed import session_notify, session_notify_many
 from services.models import Session, SessionEvent
 
@@ -124,11 +125,12 @@ def _event_new(
 
 
 def _feed_item(event: SessionEvent) -> dict[str, Any]:
-    """An event as the session feeds carry it."""
+    """An event as the session feeds carry it, with its line in words (``text``)."""
     return {
         "seq": event.seq,
         "kind": event.kind,
         "data": event.data,
+        "text": event_text(event.kind, event.data),
         "at": event.created_at.isoformat(),
     }
 

@@ -27,6 +27,7 @@ from services.deployment import (
     session_revoke,
     user_task_json,
 )
+from services.eventwords import event_text
 from services.grants import services_for_user, services_usable
 from services.kinds import RequestError, ServiceKind, UnknownKind, kind_of
 from services.models import Service, Session
@@ -111,14 +112,10 @@ def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpRe
 def log_lines(session: Session) -> list[dict[str, Any]]:
     """The latest log events, oldest first (the session's story, in order), as the
     session pages list them; the page adds newer ones at the end."""
-    lines = []
-    for event in list(session.events.order_by("-seq")[:30])[::-1]:
-        data = event.data if isinstance(event.data, dict) else {}
-        detail = data.get("reason") or data.get("cause") or data.get("to") or ""
-        lines.append(
-            {"at": event.created_at, "label": event.kind.replace("_", " "), "detail": detail}
-        )
-    return lines
+    return [
+        {"at": event.created_at, "label": event_text(event.kind, event.data), "detail": ""}
+        for event in list(session.events.order_by("-seq")[:30])[::-1]
+    ]
 
 
 def session_watched(request: AuthenticatedHttpRequest, session_id: str) -> Session:

@@ -447,7 +447,7 @@
         this.stats.failsafes += 1;
         this.releaseAll(false);
         const why = this.failsafeWhy(msg.data);
-        this.showBanner(`The link was lost (${why}): ${this.failsafeDoes(msg.data)}.`, "bad");
+        this.showBanner(`The link was lost (${why}): ${this.failsafeDoes(msg.data)}.`, "bad", "failsafe");
       } else if (msg.event === "session_ended") {
         this.endSession(msg.data.reason);
       } else if (msg.event === "path") {
@@ -455,16 +455,22 @@
       } else if (msg.event === "consequence") {
         this.setConsequence(msg.data);
       } else if (msg.event === "link_recovered") {
-        this.showBanner("Link back: you are in control again.", "info");
+        // Said once, then gone: a banner for the rest of the session would push the
+        // controls down.
+        if (this.bannerTopic === "failsafe") this.hideBanner();
+        this.toast("Link back: you are in control again.", "ok");
       } else if (msg.event === "envelope_breach") {
         const d = msg.data || {};
         const unit = { altitude: "m", geofence: "m from the centre", speed: "m/s" }[d.limit] || "";
         const value = Number(d.value).toFixed(1);
         this.showBanner(
           `Safety limit: ${d.limit} ${value} ${unit} is past the ${d.limit_value} limit — ` +
-          `the vehicle corrects itself (${String(d.action || "").replace(/_/g, " ")}).`, "warn");
+          `the vehicle corrects itself (${String(d.action || "").replace(/_/g, " ")}).`, "warn", "envelope");
       } else if (msg.event === "envelope_restored") {
-        this.showBanner(`Back inside the ${msg.data.limit} limit.`, "info");
+        // The breach's banner goes: what stays is a moment's note, not a banner that
+        // pushes the controls below the fold for the rest of the session.
+        if (this.bannerTopic === "envelope") this.hideBanner();
+        this.toast(`Back inside the ${msg.data.limit} limit.`, "ok");
       }
     }
 
@@ -995,10 +1001,11 @@
 
     logEvent(event) {
       if (!this.ui.log) return;
-      const detail = event.data && (event.data.reason || event.data.cause || event.data.to || "");
-      // In order, the newest last: the log reads as the story of the session.
+      // The platform says each event in words (services.eventwords); in order, the
+      // newest last: the log reads as the story of the session.
+      const text = event.text || event.kind.replace(/_/g, " ");
       this.ui.log.append(el("li", {}, el("time", { class: "muted", dateTime: event.at }, window.IoUV.clock(event.at)),
-        " ", event.kind.replace(/_/g, " "), detail ? ` — ${detail}` : ""));
+        " ", text));
     }
 
     endSession(reason) {
@@ -1037,7 +1044,10 @@
       }
     }
 
-    showBanner(text, kind) {
+    // ``topic`` says what the banner is about, so that the news that ends it (back
+    // inside a limit, the link back) takes it away and no other one.
+    showBanner(text, kind, topic) {
+      this.bannerTopic = topic || null;
       const b = this.ui.banner;
       if (!b) return;
       b.textContent = text;
