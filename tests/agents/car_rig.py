@@ -15,17 +15,15 @@ from typing import Any
 
 from agents.control import ControlHub, ControlServer
 from agents.protocol import (
-    Limits,
-    UserGrant,
     VehicleTask,
     generate_keypair,
     load_private_key,
     load_public_key,
-    new_nonce,
 )
 from agents.simulation import adapter_simulated
 from agents.vehicles.car.adapter import CarAdapter
 from agents.vehicles.car.sim.world import CarWorld
+from tests.agents.documents import grant_for, task_for
 
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
 PRIVATE = load_private_key(PRIVATE_PEM)
@@ -69,16 +67,13 @@ class Rig:
 
 
 def make_task(*, session: str = SESSION, user: str = "alice", **limits: Any) -> VehicleTask:
-    now = time.time()
-    return VehicleTask(
-        session_id=session,
-        vehicle_id=VEHICLE,
+    return task_for(
+        VEHICLE,
+        CAR_COMMANDS,
+        session=session,
         user=user,
-        allowed_commands=CAR_COMMANDS,
-        limits=Limits(**{"link_loss_timeout_ms": 500, "failsafe_action": "stop", **limits}),
-        issued_at=now,
-        expires_at=now + 60,
-        nonce=new_nonce(),
+        ttl=60,
+        **{"link_loss_timeout_ms": 500, "failsafe_action": "stop", **limits},
     )
 
 
@@ -91,17 +86,7 @@ def make_grant(
     ttl: float = 60,
     key: Any = PRIVATE,
 ) -> str:
-    now = time.time()
-    return UserGrant(
-        session_id=session,
-        vehicle_id=vehicle,
-        user=user,
-        role=role,
-        allowed_commands=CAR_COMMANDS,
-        issued_at=min(now, now + ttl) - 1,
-        expires_at=now + ttl,
-        nonce=new_nonce(),
-    ).sign(key)
+    return grant_for(vehicle, CAR_COMMANDS, key, session=session, user=user, role=role, ttl=ttl)
 
 
 @contextlib.asynccontextmanager

@@ -1,9 +1,13 @@
 """The signed documents of the protocol as the tests build them: a task and a grant at a
 fixed time (``NOW``), unsigned, for the tests of fields, signing and replay
-(test_documents, test_protocol), and the key pairs they are signed with."""
+(test_documents, test_protocol), and the key pairs they are signed with; and a task and
+a grant issued now (:func:`task_for`, :func:`grant_for`), which each vehicle's rig
+makes with its own vehicle, commands and limits."""
 
 from __future__ import annotations
 
+import time
+from collections.abc import Sequence
 from typing import Any
 
 from agents.protocol import (
@@ -13,6 +17,7 @@ from agents.protocol import (
     generate_keypair,
     load_private_key,
     load_public_key,
+    new_nonce,
 )
 
 NOW = 1_700_000_000.0
@@ -64,3 +69,55 @@ def make_grant(**overrides: Any) -> UserGrant:
     }
     values.update(overrides)
     return UserGrant(**values)
+
+
+def task_for(
+    vehicle_id: str,
+    commands: Sequence[str],
+    *,
+    session: str = "session-1",
+    user: str = "alice",
+    ttl: float = 120,
+    mission: dict[str, Any] | None = None,
+    **limits: Any,
+) -> VehicleTask:
+    """``user``'s task on ``vehicle_id`` allowing ``commands``, issued now and ``ttl``
+    seconds long, with ``limits`` (the others Limits' defaults) and ``mission``."""
+    now = time.time()
+    return VehicleTask(
+        session_id=session,
+        vehicle_id=vehicle_id,
+        user=user,
+        allowed_commands=tuple(commands),
+        limits=Limits(**limits),
+        issued_at=now,
+        expires_at=now + ttl,
+        nonce=new_nonce(),
+        mission=mission,
+    )
+
+
+def grant_for(
+    vehicle_id: str,
+    commands: Sequence[str],
+    key: Any,
+    *,
+    session: str = "session-1",
+    user: str = "alice",
+    role: str = "controller",
+    ttl: float = 120,
+) -> str:
+    """``user``'s grant as ``role`` on ``vehicle_id`` allowing ``commands``, ``ttl``
+    seconds long (issued a second ago; a negative ``ttl``: one already expired), signed
+    with ``key``."""
+    now = time.time()
+    return UserGrant(
+        session_id=session,
+        vehicle_id=vehicle_id,
+        user=user,
+        role=role,
+        allowed_commands=tuple(commands),
+        issued_at=min(now, now + ttl) - 1,
+        expires_at=now + ttl,
+        nonce=new_nonce(),
+    ).sign(key)

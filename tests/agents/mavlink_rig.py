@@ -17,23 +17,22 @@ import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from websockets.asyncio.client import ClientConnection, connect
 
 from agents.control import ControlHub, ControlServer
 from agents.protocol import (
-    Limits,
-    UserGrant,
     VehicleTask,
     generate_keypair,
     load_private_key,
     load_public_key,
-    new_nonce,
 )
 from agents.simulation import simulator_running
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
+from agents.vehicles.mavlink.copter import CopterAdapter
 from agents.vehicles.registry import adapter_create
+from tests.agents.documents import grant_for, task_for
 from tests.control import recv
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -83,38 +82,20 @@ class Rig:
 
 
 def make_task(**limits: Any) -> VehicleTask:
-    now = time.time()
-    return VehicleTask(
-        session_id="session-1",
-        vehicle_id=VEHICLE,
-        user="alice",
-        allowed_commands=DRONE_COMMANDS,
-        limits=Limits(
-            **{
-                "link_loss_timeout_ms": 500,
-                "failsafe_action": "return_to_home",
-                "max_altitude_m": 6,
-                **limits,
-            }
-        ),
-        issued_at=now,
-        expires_at=now + 120,
-        nonce=new_nonce(),
+    return task_for(
+        VEHICLE,
+        DRONE_COMMANDS,
+        **{
+            "link_loss_timeout_ms": 500,
+            "failsafe_action": "return_to_home",
+            "max_altitude_m": 6,
+            **limits,
+        },
     )
 
 
 def make_grant() -> str:
-    now = time.time()
-    return UserGrant(
-        session_id="session-1",
-        vehicle_id=VEHICLE,
-        user="alice",
-        role="controller",
-        allowed_commands=DRONE_COMMANDS,
-        issued_at=now - 1,
-        expires_at=now + 120,
-        nonce=new_nonce(),
-    ).sign(PRIVATE)
+    return grant_for(VEHICLE, DRONE_COMMANDS, PRIVATE)
 
 
 def drone_options(**overrides: Any) -> dict[str, Any]:
@@ -128,47 +109,79 @@ def drone_options(**overrides: Any) -> dict[str, Any]:
 
 
 RigFactory = Callable[..., Awaitable[Rig]]
+Reports = list[tuple[str, str | None, dict[str, Any]]]
+Events = list[tuple[str, dict[str, Any]]]
+A = TypeVar("A", bound=MavlinkAdapter)
+R = TypeVar("R")
 
 
 @contextlib.asynccontextmanager
-async def rigs() -> AsyncIterator[RigFactory]:
-    """Build rigs (simulator + drone + hub + server + task); everything is closed at
-    the end, the simulators last."""
+async def control_rigs(
+    rig: Callable[[ControlHub, ControlServer, A, subprocess.Popen[bytes], Reports, Events], R],
+    *,
+    adapter: type[A],
+    options: Callable[..., dict[str, Any]],
+    default_task: Callable[[], VehicleTask],
+    vehicle_id: str,
+    vehicle_name: str,
+    public_pem: str,
+) -> AsyncIterator[Callable[..., Awaitable[R]]]:
+    """Build rigs of a vehicle on the MAVLink simulator, the quadcopter's (:func:`rigs`)
+    or the boat's (test_mavlink_boat): ``await build(task=None, **overrides)`` starts a
+    simulator with ``options(**overrides)``, the vehicle's ``adapter`` on it (its events
+    recorded), a ControlHub trusting ``public_pem`` (its reports recorded) with ``task``
+    (``default_task()`` when None) accepted, and the hub's ControlServer; returns
+    ``rig(hub, server, vehicle, simulator process, reports, events)``. Everything is
+    closed at the end, the simulators last."""
     opened: list[tuple[ControlServer, ControlHub, MavlinkAdapter]] = []
     simulators = contextlib.AsyncExitStack()
 
-    async def build(task: VehicleTask | None = None, **options: Any) -> Rig:
+    async def build(task: VehicleTask | None = None, **overrides: Any) -> R:
         simulation = await simulators.enter_async_context(
-            simulator_running("mavlink", drone_options(**options))
+            simulator_running("mavlink", options(**overrides))
         )
-        drone = adapter_create("mavlink", simulation.options)
-        assert isinstance(drone, MavlinkAdapter)
-        events: list[tuple[str, dict[str, Any]]] = []
-        drone.on_event = lambda name, data: events.append((name, data))
-        await drone.start()
-        reports: list[tuple[str, str | None, dict[str, Any]]] = []
+        vehicle = adapter_create("mavlink", simulation.options)
+        assert isinstance(vehicle, adapter)
+        events: Events = []
+        vehicle.on_event = lambda name, data: events.append((name, data))
+        await vehicle.start()
+        reports: Reports = []
         hub = ControlHub(
-            vehicle_id=VEHICLE,
-            vehicle_name="quad-1",
-            public_key=load_public_key(PUBLIC_PEM),
-            adapter=drone,
+            vehicle_id=vehicle_id,
+            vehicle_name=vehicle_name,
+            public_key=load_public_key(public_pem),
+            adapter=vehicle,
             report=lambda e, s, d: reports.append((e, s, d)),
         )
         await hub.start()
         server = ControlServer(hub)
         await server.start()
-        opened.append((server, hub, drone))
-        hub.task_accept(task or make_task())
-        return Rig(hub, server, drone, simulation.simulator, reports, events)
+        opened.append((server, hub, vehicle))
+        hub.task_accept(task or default_task())
+        return rig(hub, server, vehicle, simulation.simulator, reports, events)
 
     try:
         yield build
     finally:
-        for server, hub, drone in reversed(opened):
+        for server, hub, vehicle in reversed(opened):
             await server.close()
             await hub.close()
-            await drone.close()
+            await vehicle.close()
         await simulators.aclose()
+
+
+def rigs() -> contextlib.AbstractAsyncContextManager[RigFactory]:
+    """Build quadcopter rigs (:func:`control_rigs` with :func:`drone_options` and
+    :func:`make_task`)."""
+    return control_rigs(
+        Rig,
+        adapter=CopterAdapter,
+        options=drone_options,
+        default_task=make_task,
+        vehicle_id=VEHICLE,
+        vehicle_name="quad-1",
+        public_pem=PUBLIC_PEM,
+    )
 
 
 TOPICS = [

@@ -17,40 +17,42 @@ from typing import Any
 from agents.control import ControlHub, ControlServer
 from agents.mission import MissionControl
 from agents.protocol import (
-    Limits,
     VehicleTask,
     generate_keypair,
     load_private_key,
     load_public_key,
-    new_nonce,
 )
 from agents.simulation import simulator_running
 from agents.thermal import SyntheticSeaThermal, ThermalFeed
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.registry import adapter_create
-from tests.agents.mavlink_rig import HOME
+from tests.agents import mavlink_rig
+from tests.agents.documents import grant_for, task_for
 
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
 PRIVATE = load_private_key(PRIVATE_PEM)
 VEHICLE = "rescue-drone-1"
+#: The rescue drone takes off where the MAVLink tests' quadcopter does.
+HOME = mavlink_rig.HOME
 #: 6x flight time: quick, yet the simulator's 50 Hz physics stays steady when the
 #: machine is busy (a starved step covers up to 0.2 s x speedup of flight).
 SIM = {"speedup": 6, "params": {"WPNAV_SPEED": 1000, "RTL_ALT": 1500}}
 
 
 def make_task(mission: dict[str, Any] | None, session: str = "s-1", **limits: Any) -> VehicleTask:
-    now = time.time()
-    return VehicleTask(
-        session_id=session,
-        vehicle_id=VEHICLE,
-        user="alice",
-        allowed_commands=(),
-        limits=Limits(**{"failsafe_action": "return_to_home", "max_altitude_m": 60, **limits}),
-        issued_at=now,
-        expires_at=now + 60,
-        nonce=new_nonce(),
+    return task_for(
+        VEHICLE,
+        (),
+        session=session,
+        ttl=60,
         mission=mission,
+        **{"failsafe_action": "return_to_home", "max_altitude_m": 60, **limits},
     )
+
+
+def make_grant() -> str:
+    """alice's controller grant for the missions' session (s-1): no commands."""
+    return grant_for(VEHICLE, (), PRIVATE, session="s-1", ttl=60)
 
 
 def drone_options(**overrides: Any) -> dict[str, Any]:

@@ -28,13 +28,9 @@ from agents.control import ControlHub, ControlServer
 from agents.geo import distance_m, local_offset_m, offset
 from agents.geography import is_land, land_at
 from agents.protocol import (
-    Limits,
-    UserGrant,
     VehicleTask,
     generate_keypair,
     load_private_key,
-    load_public_key,
-    new_nonce,
 )
 from agents.simulation import simulator_running
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
@@ -45,7 +41,8 @@ from agents.vehicles.mavlink.rover import HOLD, RoverAdapter
 from agents.vehicles.mavlink.sim import simulator_command
 from agents.vehicles.mavlink.sim.cli import parse_args
 from agents.vehicles.registry import adapter_create
-from tests.agents.mavlink_rig import poll, start_simulator, watch
+from tests.agents.documents import grant_for, task_for
+from tests.agents.mavlink_rig import control_rigs, poll, start_simulator, watch
 from tests.control import command, recv
 
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
@@ -105,31 +102,15 @@ class Rig:
 
 
 def make_task(**limits: Any) -> VehicleTask:
-    now = time.time()
-    return VehicleTask(
-        session_id="session-1",
-        vehicle_id=VEHICLE,
-        user="alice",
-        allowed_commands=BOAT_COMMANDS,
-        limits=Limits(**{"link_loss_timeout_ms": 500, "failsafe_action": "stop", **limits}),
-        issued_at=now,
-        expires_at=now + 120,
-        nonce=new_nonce(),
+    return task_for(
+        VEHICLE,
+        BOAT_COMMANDS,
+        **{"link_loss_timeout_ms": 500, "failsafe_action": "stop", **limits},
     )
 
 
 def make_grant() -> str:
-    now = time.time()
-    return UserGrant(
-        session_id="session-1",
-        vehicle_id=VEHICLE,
-        user="alice",
-        role="controller",
-        allowed_commands=BOAT_COMMANDS,
-        issued_at=now - 1,
-        expires_at=now + 120,
-        nonce=new_nonce(),
-    ).sign(PRIVATE)
+    return grant_for(VEHICLE, BOAT_COMMANDS, PRIVATE)
 
 
 def boat_options(**overrides: Any) -> dict[str, Any]:
@@ -149,47 +130,25 @@ RigFactory = Callable[..., Awaitable[Rig]]
 
 @pytest.fixture
 async def make_rig() -> AsyncIterator[RigFactory]:
-    """Build rigs (simulator + boat + hub + server + task); everything is closed at the
-    end, the simulators last."""
-    opened: list[tuple[ControlServer, ControlHub, MavlinkAdapter]] = []
-    simulators = contextlib.AsyncExitStack()
-
-    async def build(task: VehicleTask | None = None, **options: Any) -> Rig:
-        simulation = await simulators.enter_async_context(
-            simulator_running("mavlink", boat_options(**options))
-        )
-        boat = adapter_create("mavlink", simulation.options)
-        assert isinstance(boat, RoverAdapter)
-        events: list[tuple[str, dict[str, Any]]] = []
-        boat.on_event = lambda name, data: events.append((name, data))
-        await boat.start()
-        reports: list[tuple[str, str | None, dict[str, Any]]] = []
-        hub = ControlHub(
-            vehicle_id=VEHICLE,
-            vehicle_name="boat-1",
-            public_key=load_public_key(PUBLIC_PEM),
-            adapter=boat,
-            report=lambda e, s, d: reports.append((e, s, d)),
-        )
-        await hub.start()
-        server = ControlServer(hub)
-        await server.start()
-        opened.append((server, hub, boat))
-        hub.task_accept(task or make_task())
-        return Rig(hub, server, boat, simulation.simulator, reports, events)
-
-    try:
+    """Build rigs (simulator + boat + hub + server + task; see
+    :func:`tests.agents.mavlink_rig.control_rigs`); everything is closed at the end, the
+    simulators last."""
+    async with control_rigs(
+        Rig,
+        adapter=RoverAdapter,
+        options=boat_options,
+        default_task=make_task,
+        vehicle_id=VEHICLE,
+        vehicle_name="boat-1",
+        public_pem=PUBLIC_PEM,
+    ) as build:
         yield build
-    finally:
-        for server, hub, boat in reversed(opened):
-            await server.close()
-            await hub.close()
-            await boat.close()
-        await simulators.aclose()
 
 
 @pytest.fixture
 async def rig(make_rig: RigFactory) -> Rig:
+    """In this module, one boat rig with the default task (conftest's ``rig`` is the
+    control tests' car)."""
     return await make_rig()
 
 

@@ -26,8 +26,6 @@ from agents.geo import distance_m, offset
 from agents.mission import MissionError, mission_parse
 from agents.protocol import (
     PROTOCOL_VERSION,
-    UserGrant,
-    new_nonce,
 )
 from agents.runtime import Agent
 from agents.safety import Refusal
@@ -41,6 +39,7 @@ from tests.agents.mission_rig import (
     VEHICLE,
     RigFactory,
     drone_options,
+    make_grant,
     make_task,
     releases,
 )
@@ -460,18 +459,7 @@ async def test_a_user_command_takes_over_from_the_mission(make_mission_rig: RigF
     await rig.event("mission_progress", 15, count=3)  # at the first waypoint
     assert rig.server is not None
     ws = await connect(f"ws://127.0.0.1:{rig.server.port}/", compression=None, proxy=None)
-    now = time.time()
-    grant = UserGrant(
-        session_id="s-1",
-        vehicle_id=VEHICLE,
-        user="alice",
-        role="controller",
-        allowed_commands=(),
-        issued_at=now,
-        expires_at=now + 60,
-        nonce=new_nonce(),
-    ).sign(PRIVATE)
-    await ws.send(json.dumps({"type": "auth", "grant": grant}))
+    await ws.send(json.dumps({"type": "auth", "grant": make_grant()}))
     assert (await recv(ws, "welcome"))["role"] == "controller"
     # Joining as controller does not stop the drone: the pattern goes on.
     await rig.event("mission_progress", 15, count=4)

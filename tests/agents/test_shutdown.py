@@ -31,14 +31,11 @@ from websockets.asyncio.server import ServerConnection, serve
 
 from agents.protocol import (
     PROTOCOL_VERSION,
-    Limits,
-    UserGrant,
-    VehicleTask,
     generate_keypair,
     load_private_key,
-    new_nonce,
 )
 from agents.vehicles.mavlink.dialect import MAV, mavutil
+from tests.agents.documents import grant_for, task_for
 from tests.agents.mavlink_rig import HOME, ROOT, start_simulator, watch
 from tests.control import command, recv
 
@@ -79,31 +76,19 @@ class Platform:
 
 
 def make_task() -> str:
-    now = time.time()
-    return VehicleTask(
-        session_id=SESSION,
-        vehicle_id=VEHICLE,
-        user="alice",
-        allowed_commands=COMMANDS,
-        limits=Limits(link_loss_timeout_ms=2000, failsafe_action="land", max_altitude_m=30),
-        issued_at=now,
-        expires_at=now + 300,
-        nonce=new_nonce(),
+    return task_for(
+        VEHICLE,
+        COMMANDS,
+        session=SESSION,
+        ttl=300,
+        link_loss_timeout_ms=2000,
+        failsafe_action="land",
+        max_altitude_m=30,
     ).sign(PRIVATE)
 
 
 def make_grant() -> str:
-    now = time.time()
-    return UserGrant(
-        session_id=SESSION,
-        vehicle_id=VEHICLE,
-        user="alice",
-        role="controller",
-        allowed_commands=COMMANDS,
-        issued_at=now - 1,
-        expires_at=now + 300,
-        nonce=new_nonce(),
-    ).sign(PRIVATE)
+    return grant_for(VEHICLE, COMMANDS, PRIVATE, session=SESSION, ttl=300)
 
 
 @contextlib.asynccontextmanager

@@ -35,12 +35,10 @@ from agents.control import ControlHub, ControlServer
 from agents.geo import offset
 from agents.protocol import (
     Limits,
-    UserGrant,
     VehicleTask,
     generate_keypair,
     load_private_key,
     load_public_key,
-    new_nonce,
 )
 from agents.safety import CommandGate, Refusal
 from agents.simulation import adapter_simulated
@@ -52,6 +50,7 @@ from agents.vehicles.spektrum.report import parse_report
 from agents.vehicles.spektrum.sim import cli
 from agents.vehicles.spektrum.sim.line import FrameChecker
 from agents.vehicles.spektrum.sim.model import SimParams, VtolModel
+from tests.agents.documents import grant_for, task_for
 from tests.agents.vtol import FAST, VTOL_COMMANDS
 from tests.agents.waiting import until
 from tests.control import command, recv
@@ -648,31 +647,16 @@ SESSION = "vtol-session"
 
 
 def make_task(**limits: Any) -> VehicleTask:
-    now = time.time()
-    return VehicleTask(
-        session_id=SESSION,
-        vehicle_id=VEHICLE,
-        user="alice",
-        allowed_commands=VTOL_COMMANDS,
-        limits=Limits(**{"link_loss_timeout_ms": 500, "failsafe_action": "land", **limits}),
-        issued_at=now,
-        expires_at=now + 120,
-        nonce=new_nonce(),
+    return task_for(
+        VEHICLE,
+        VTOL_COMMANDS,
+        session=SESSION,
+        **{"link_loss_timeout_ms": 500, "failsafe_action": "land", **limits},
     )
 
 
 def make_grant() -> str:
-    now = time.time()
-    return UserGrant(
-        session_id=SESSION,
-        vehicle_id=VEHICLE,
-        user="alice",
-        role="controller",
-        allowed_commands=VTOL_COMMANDS,
-        issued_at=now - 1,
-        expires_at=now + 120,
-        nonce=new_nonce(),
-    ).sign(PRIVATE)
+    return grant_for(VEHICLE, VTOL_COMMANDS, PRIVATE, session=SESSION)
 
 
 @dataclass
