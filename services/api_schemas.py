@@ -27,7 +27,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from fleet.attributes import CAMERAS
+from fleet.attributes import CAMERAS, FEATURES
 from fleet.models import Vehicle
 from services import models
 from services.eventlog import session_log, session_log_verify
@@ -117,6 +117,7 @@ Timestamp = Annotated[
 
 Mode = Literal["sync", "async"]
 Camera = Literal[CAMERAS]  # type: ignore[valid-type]  # the tuple is the vocabulary
+Feature = Literal[FEATURES]  # type: ignore[valid-type]
 
 
 class Closed(Schema):
@@ -144,6 +145,11 @@ class Preferences(Closed):
     min_battery: Percent = Field(
         default=0, description="A higher battery floor than the service's."
     )
+    features: list[Feature] = Field(
+        default_factory=list,
+        description="Features the vehicle must have too (a car's camera_arm, say).",
+        json_schema_extra={"uniqueItems": True},
+    )
 
     @field_validator("cameras")
     @classmethod
@@ -151,6 +157,13 @@ class Preferences(Closed):
         if len(set(cameras)) != len(cameras):
             raise _invalid("preferences.cameras", "must not repeat a camera")
         return cameras
+
+    @field_validator("features")
+    @classmethod
+    def _each_once(cls, features: list[str]) -> list[str]:
+        if len(set(features)) != len(features):
+            raise _invalid("preferences.features", "must not repeat a feature")
+        return features
 
 
 class SessionRequest(Closed):
@@ -330,7 +343,11 @@ class Delivery(Schema):
 class SessionEvent(Schema):
     seq: int = Field(ge=1)
     kind: str = Field(description="requested, assigned, state, task_deployed, grant_issued…")
-    created_at: Timestamp
+    created_at: Timestamp = Field(description="When it was written to the log.")
+    occurred_at: Timestamp | None = Field(
+        description="When it happened on the vehicle, by the vehicle's clock (events "
+        "logged from an agent's report; null for the platform's own)."
+    )
     data: dict[str, Any]
 
 

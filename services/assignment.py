@@ -577,9 +577,11 @@ def role_assign(
 
 def role_tightened(role: ServiceRole, preferences: dict[str, Any]) -> ServiceRole:
     """An unsaved copy of ``role`` with the user's wishes added: extra ``cameras`` and
-    a higher ``min_battery``. Preferences only ever narrow a service's requirements."""
+    ``features`` (a car's camera arm) and a higher ``min_battery``. Preferences only
+    ever narrow a service's requirements."""
     tight = copy.copy(role)
     tight.cameras = sorted(set(role.cameras) | set(preferences.get("cameras", [])))
+    tight.features = sorted(set(role.features) | set(preferences.get("features", [])))
     tight.min_battery = max(role.min_battery, float(preferences.get("min_battery") or 0))
     return tight
 

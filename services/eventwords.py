@@ -47,7 +47,8 @@ def _agent_event(d: Mapping[str, Any]) -> str:
     """An event of the vehicle's the platform logs without acting on it: in the words
     of its own kind when it has some (a breach of a limit, an autopilot's warning),
     else its name in words and what it said."""
-    inner: Mapping[str, Any] = d.get("data") if isinstance(d.get("data"), Mapping) else d
+    nested = d.get("data")
+    inner: Mapping[str, Any] = nested if isinstance(nested, Mapping) else d
     own = _TEXT.get(str(d.get("event")))
     if own is not None and own is not _agent_event:
         return own(inner)

@@ -6,8 +6,16 @@ from typing import Any
 
 from django import forms
 
-from fleet.attributes import CAMERAS
+from fleet.attributes import CAMERAS, FEATURES
 from fleet.models import Station
+
+#: The features a person may ask for, in words.
+FEATURE_WORDS = {
+    "camera_arm": "a camera arm (pan and tilt)",
+    "obstacle_sensor": "an obstacle sensor",
+    "payload_release": "a payload release",
+    "gps": "GPS",
+}
 
 
 class SessionRequestForm(forms.Form):
@@ -26,6 +34,12 @@ class SessionRequestForm(forms.Form):
         required=False,
         widget=forms.CheckboxSelectMultiple,
         help_text="The vehicle must carry these cameras too.",
+    )
+    features = forms.MultipleChoiceField(
+        choices=[(f, FEATURE_WORDS.get(f, f.replace("_", " "))) for f in FEATURES],
+        required=False,
+        widget=forms.CheckboxSelectMultiple,
+        help_text="The vehicle must have these too.",
     )
     min_battery = forms.FloatField(
         required=False, min_value=0, max_value=100, label="Minimum battery (%)"
@@ -55,6 +69,8 @@ class SessionRequestForm(forms.Form):
         prefs: dict[str, Any] = {}
         if self.cleaned_data.get("cameras"):
             prefs["cameras"] = list(self.cleaned_data["cameras"])
+        if self.cleaned_data.get("features"):
+            prefs["features"] = list(self.cleaned_data["features"])
         if self.cleaned_data.get("min_battery") is not None:
             prefs["min_battery"] = self.cleaned_data["min_battery"]
         return prefs

@@ -376,7 +376,12 @@ async def test_vocabulary_without_and_with_the_camera_arm(make_car: MakeCar) -> 
     ]:
         spec = plain[name]
         assert (spec.key, spec.motion, spec.speed_arg) == (key, True, "speed")
-        assert spec.args["speed"]["default"] == 0.5
+    assert plain["forward"].args["speed"]["default"] == plain["backward"].args["speed"]["default"]
+    assert plain["forward"].args["speed"]["default"] == 0.5
+    # Turning on the spot defaults to about 45°/s: 0.785 rad/s on a 0.15 m track is
+    # 0.059 m/s a wheel, 0.118 of the default car's 0.5 m/s.
+    for name in ("left", "right"):
+        assert plain[name].args["speed"]["default"] == 0.118
     assert plain["stop"].key == "Space"
 
     armed = {c.name: c for c in (await make_car(camera_arm=True)).commands()}

@@ -336,7 +336,8 @@ class CarAdapter(Adapter):
         if self.robot is None:
             raise AdapterError("the car is not started", code="not_ready")
         if name in ("forward", "backward", "left", "right"):
-            speed = min(1.0, max(0.0, float(args.get("speed", 0.5))))
+            default = self.config.turn_power if name in ("left", "right") else 0.5
+            speed = min(1.0, max(0.0, float(args.get("speed", default))))
             if name == "forward":
                 self._check_clear_ahead()
             getattr(self.robot, name)(speed)

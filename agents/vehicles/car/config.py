@@ -7,6 +7,7 @@ here: the platform reads the car's vocabulary from a config without gpiozero.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, TypeAlias
@@ -112,6 +113,8 @@ class CarConfig:
     watch_hz: float = 25.0
     max_speed_mps: float = 0.5
     track_width_m: float = 0.15
+    #: How fast a held turn key spins the car on the spot: slow enough to aim it.
+    turn_rate_deg_s: float = 45.0
     origin: tuple[float, float] | None = None
     heading_deg: float = 0.0
 
@@ -180,12 +183,20 @@ class CarConfig:
             watch_hz=watch_hz,
             max_speed_mps=o.number("max_speed_mps", 0.5, above=0),
             track_width_m=o.number("track_width_m", 0.15, above=0),
+            turn_rate_deg_s=o.number("turn_rate_deg_s", 45.0, above=0, max=720),
             origin=o.origin(),
             heading_deg=o.number("heading_deg", 0.0),
         )
         o.finish()
         config._check_pin_conflicts()
         return config
+
+    @property
+    def turn_power(self) -> float:
+        """The motor power (a fraction of full) that spins the car on the spot at
+        :attr:`turn_rate_deg_s`: each wheel at the rate times half the track."""
+        wheel_mps = math.radians(self.turn_rate_deg_s) * self.track_width_m / 2
+        return round(min(1.0, max(0.01, wheel_mps / self.max_speed_mps)), 3)
 
     def _check_pin_conflicts(self) -> None:
         # gpiozero would refuse too, but only at start() and naming its own devices.

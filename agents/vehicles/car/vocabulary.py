@@ -27,6 +27,10 @@ STEP_ARG = {"step_deg": {"type": "number", "min": 1, "max": 90, "default": 10, "
 MOVES = (
     ("forward", "Drive forwards (refused when an obstacle is close ahead)", "ArrowUp"),
     ("backward", "Drive backwards", "ArrowDown"),
+)
+#: Turning on the spot, slower by default (:attr:`CarConfig.turn_power`): a held key at
+#: the driving speed spun the car several turns a second, too fast to aim.
+TURNS = (
     ("left", "Turn left on the spot", "ArrowLeft"),
     ("right", "Turn right on the spot", "ArrowRight"),
 )
@@ -52,17 +56,26 @@ TELEMETRY_TOPICS = [
 
 def car_vocabulary(config: CarConfig) -> list[CommandSpec]:
     """Driving commands, plus the camera arm's when ``camera_arm`` is set."""
+    turn_arg = {
+        "speed": {
+            **SPEED_ARG["speed"],
+            "default": config.turn_power,
+            "description": f"fraction of full motor power (default: about "
+            f"{config.turn_rate_deg_s:g}°/s on the spot)",
+        }
+    }
     out = [
         CommandSpec(
             name,
             text,
             group="movement",
-            args=SPEED_ARG,
+            args=args,
             motion=True,
             speed_arg="speed",
             key=key,
         )
-        for name, text, key in MOVES
+        for moves, args in ((MOVES, SPEED_ARG), (TURNS, turn_arg))
+        for name, text, key in moves
     ]
     # Not a motion command: it moves nothing, and must pass every limit anyway.
     out.append(CommandSpec("stop", "Stop the motors", group="movement", key="Space"))
