@@ -32,7 +32,6 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass, field
-from datetime import datetime
 from typing import Any
 
 from django.core.serializers.json import DjangoJSONEncoder
@@ -82,18 +81,8 @@ _LOG_TAIL: PreparedQuery[Any] = PreparedQuery(
 
 
 def _event_hash(
-    *,
-    session_id: str,
-    seq: int,
-    kind: str,
-    data: Any,
-    created_at: str,
-    prev_hash: str,
-    occurred_at: str | None = None,
+    *, session_id: str, seq: int, kind: str, data: Any, created_at: str, prev_hash: str
 ) -> str:
-    # The vehicle's time joins the hashed content only when there is one: the events
-    # stored before it existed keep their hashes.
-    occurred = {"occurred_at": occurred_at} if occurred_at is not None else {}
     canonical = json.dumps(
         {
             "session": session_id,
@@ -102,7 +91,6 @@ def _event_hash(
             "data": data,
             "created_at": created_at,
             "prev": prev_hash,
-            **occurred,
         },
         sort_keys=True,
         separators=(",", ":"),
@@ -112,27 +100,18 @@ def _event_hash(
 
 
 def _event_new(
-    *,
-    session: Session,
-    seq: int,
-    prev_hash: str,
-    kind: str,
-    data: dict[str, Any] | None,
-    occurred_at: datetime | None = None,
+    *, session: Session, seq: int, prev_hash: str, kind: str, data: dict[str, Any] | None
 ) -> SessionEvent:
-    """The event ``seq`` of ``session``'s log, hashed and not yet saved. Its
-    ``occurred_at`` is ``occurred_at``, else the time :func:`events_occurred_at` gives."""
+    """The event ``seq`` of ``session``'s log, hashed and not yet saved."""
     # Round-trip through JSON so the hash covers exactly what the database stores.
     payload = json.loads(json.dumps(data or {}, cls=DjangoJSONEncoder))
     created_at = timezone.now()
-    occurred = occurred_at or _occurred.get()
     return SessionEvent(
         session=session,
         seq=seq,
         kind=kind,
         data=payload,
         created_at=created_at,
-        occurred_at=occurred,
         prev_hash=prev_hash,
         hash=_event_hash(
             session_id=str(session.pk),
@@ -141,25 +120,8 @@ def _event_new(
             data=payload,
             created_at=created_at.isoformat(),
             prev_hash=prev_hash,
-            occurred_at=occurred.isoformat() if occurred is not None else None,
         ),
     )
-
-
-_occurred: ContextVar[datetime | None] = ContextVar("iouv_events_occurred_at", default=None)
-
-
-@contextmanager
-def events_occurred_at(when: datetime | None) -> Iterator[None]:
-    """Within the block, the events appended to any session's log happened at ``when``
-    on a vehicle (their ``occurred_at``; None: the platform's own events). The
-    supervisor handles an agent's report inside one: what the report is logged as, and
-    what the platform logs because of it, carry the time it happened."""
-    token = _occurred.set(when)
-    try:
-        yield
-    finally:
-        _occurred.reset(token)
 
 
 def _feed_item(event: SessionEvent) -> dict[str, Any]:
@@ -276,12 +238,7 @@ def event_append(
 
 
 def _event_next(
-    *,
-    session: Session,
-    kind: str,
-    data: dict[str, Any] | None,
-    log: list[SessionEvent] | None,
-    occurred_at: datetime | None = None,
+    *, session: Session, kind: str, data: dict[str, Any] | None, log: list[SessionEvent] | None
 ) -> SessionEvent:
     """The event that follows ``log`` (the log's tail, read now, if None)."""
     if log is not None:
@@ -289,21 +246,12 @@ def _event_next(
     else:
         last = _LOG_TAIL.first(session=session.pk)
     seq, prev_hash = last if last else (0, GENESIS_HASH)
-    return _event_new(
-        session=session,
-        seq=seq + 1,
-        prev_hash=prev_hash,
-        kind=kind,
-        data=data,
-        occurred_at=occurred_at,
-    )
+    return _event_new(session=session, seq=seq + 1, prev_hash=prev_hash, kind=kind, data=data)
 
 
 def _event_renew(event: SessionEvent, *, session: Session, log: list[SessionEvent] | None) -> None:
     """``event`` moved to the place after ``log`` (its tail read now, if None)."""
-    fresh = _event_next(
-        session=session, kind=event.kind, data=event.data, log=log, occurred_at=event.occurred_at
-    )
+    fresh = _event_next(session=session, kind=event.kind, data=event.data, log=log)
     for name in ("seq", "prev_hash", "hash", "created_at"):
         setattr(event, name, getattr(fresh, name))
 
@@ -362,7 +310,6 @@ def session_log_verify(
             data=event.data,
             created_at=event.created_at.isoformat(),
             prev_hash=event.prev_hash,
-            occurred_at=event.occurred_at.isoformat() if event.occurred_at else None,
         )
         if recomputed != event.hash:
             return LogCheck(False, count, event.seq, "content does not match its hash")
