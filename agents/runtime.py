@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import logging
 import signal
+import time
 from collections.abc import Callable, Coroutine, Mapping
 from typing import Any
 from urllib.parse import urlsplit
@@ -223,9 +224,12 @@ class Agent:
         return Position(lat=state.lat, lon=state.lon, alt=state.alt)
 
     def report(self, event: str, session_id: str | None, data: dict[str, Any]) -> None:
-        """Tell the platform about a session event (queued while it is unreachable)."""
+        """Tell the platform about a session event (queued while it is unreachable),
+        with the time it happened now, by the vehicle's clock."""
         if self.uplink is not None:
-            self.uplink.send(Event(session_id=session_id, event=event, data=data))
+            self.uplink.send(
+                Event(session_id=session_id, event=event, data=data, at=round(time.time(), 3))
+            )
 
     # --- what the platform says ----------------------------------------------------------
     def on_welcome(self, msg: Any) -> None:

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import time
 import uuid
@@ -100,6 +101,7 @@ from fleet.signals import (
 )
 from iouv.consumers import DirectDispatch
 from iouv.layer import relay_ensure
+from iouv.outages import DATABASE_UNAVAILABLE
 
 log = logging.getLogger(__name__)
 
@@ -138,6 +140,11 @@ RELAYS_MAX = 256
 #: Frames of one uplink waiting for its database work (profile, heartbeats, reports);
 #: past this the uplink stops reading until they are handled (backpressure).
 BACKLOG_MAX = 64
+
+#: While PostgreSQL cannot be reached, a report is tried again after this long, doubling
+#: up to the maximum (AgentUplinkConsumer._until_stored).
+DATABASE_RETRY_MIN_S = 0.5
+DATABASE_RETRY_MAX_S = 4.0
 
 # Statuses the platform owns while a vehicle serves a session or gives one up: what the
 # agent says in its profile or heartbeats never overrides them (services and the
@@ -626,8 +633,13 @@ def vehicle_record_disconnect(
 
 
 def _signal_send(signal: Signal, **kwargs: Any) -> list[tuple[Any, Any]]:
-    """Send ``signal`` robustly: a failing receiver is logged, never raised here."""
+    """Send ``signal`` robustly: a failing receiver is logged, never raised here, but
+    for the database being unavailable, which is raised (after every receiver ran) for
+    the uplink to try again (AgentUplinkConsumer._until_stored)."""
     responses = signal.send_robust(sender=AgentUplinkConsumer, **kwargs)
+    for _receiver, result in responses:
+        if isinstance(result, DATABASE_UNAVAILABLE):
+            raise result
     for receiver, result in responses:
         if isinstance(result, Exception):
             message = kwargs.get("message")
@@ -882,11 +894,17 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         if isinstance(msg, Profile):
             await self._profile(msg)
         elif isinstance(msg, Ack):
-            await _db(_acked)(vehicle_id=self.vehicle_id, ack=msg)
+            await self._until_stored(
+                functools.partial(_db(_acked), vehicle_id=self.vehicle_id, ack=msg)
+            )
         elif isinstance(msg, RelayToPlatform | RelayClose):
             await self._bad_frame("bad_field", "a relayed message needs its conn")
         elif message_type(msg) in _PUBLISHED:
-            await _db(_signal_send)(agent_message, vehicle_id=self.vehicle_id, message=msg)
+            await self._until_stored(
+                functools.partial(
+                    _db(_signal_send), agent_message, vehicle_id=self.vehicle_id, message=msg
+                )
+            )
         else:  # hello again
             await self._bad_frame("already_authenticated", "this uplink already said hello")
 
@@ -907,6 +925,31 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         while (handle := await self._backlog.get()) is not None:
             if not self._closed:  # after a refusal the uplink ignores what follows
                 await self._guarded(handle)
+
+    async def _until_stored(self, handle: Callable[[], Awaitable[None]]) -> None:
+        """Run ``handle`` (an agent's report: an event, a task accepted or refused, an
+        ack), again while the database cannot be reached: the report waits in this
+        uplink's queue, in order, until PostgreSQL is back, instead of being lost. The
+        agent sent it once and does not send it again. What follows it waits too;
+        relayed control does not (it never enters this queue), and a heartbeat is not
+        written again (the next one supersedes it). Work cut by the outage between two
+        of its statements may be done twice (an event logged twice), never lost."""
+        delay = DATABASE_RETRY_MIN_S
+        while True:
+            try:
+                await handle()
+                return
+            except DATABASE_UNAVAILABLE as exc:
+                if self._closed:
+                    raise
+                log.warning(
+                    "uplink %s: the database is unavailable, the report waits (again in %g s): %s",
+                    self.vehicle_id,
+                    delay,
+                    exc,
+                )
+            await asyncio.sleep(delay)
+            delay = min(2 * delay, DATABASE_RETRY_MAX_S)
 
     async def _bad_frame(self, code: str, message: str) -> None:
         """Answer a refused frame; before authentication that ends the uplink."""

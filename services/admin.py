@@ -83,7 +83,7 @@ class AssignmentInline(ReadOnlyAdminMixin, admin.TabularInline[Assignment, Sessi
 class SessionEventInline(ReadOnlyAdminMixin, admin.TabularInline[SessionEvent, Session]):
     model = SessionEvent
     extra = 0
-    fields = ("seq", "kind", "event_data", "created_at", "hash")
+    fields = ("seq", "kind", "event_data", "occurred_at", "created_at", "hash")
     readonly_fields = fields
     ordering = ("seq",)
 
@@ -128,12 +128,12 @@ class SessionAdmin(UUIDSearchMixin, ReadOnlyAdminMixin, admin.ModelAdmin[Session
 
 @admin.register(SessionEvent)
 class SessionEventAdmin(UUIDSearchMixin, ReadOnlyAdminMixin, admin.ModelAdmin[SessionEvent]):
-    list_display = ("session", "seq", "kind", "created_at")
+    list_display = ("session", "seq", "kind", "occurred_at", "created_at")
     list_filter = ("kind",)
     list_select_related = ("session__service", "session__user")
     search_fields = ("kind", "session__user__username")
     uuid_search_fields = ("session_id",)
-    fields = ("session", "seq", "kind", "data", "created_at", "prev_hash", "hash")
+    fields = ("session", "seq", "kind", "data", "occurred_at", "created_at", "prev_hash", "hash")
     ordering = ("-pk",)
 
 

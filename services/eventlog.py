@@ -32,6 +32,7 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass, field
+from datetime import datetime
 from typing import Any
 
 from django.core.serializers.json import DjangoJSONEncoder
@@ -81,8 +82,18 @@ _LOG_TAIL: PreparedQuery[Any] = PreparedQuery(
 
 
 def _event_hash(
-    *, session_id: str, seq: int, kind: str, data: Any, created_at: str, prev_hash: str
+    *,
+    session_id: str,
+    seq: int,
+    kind: str,
+    data: Any,
+    created_at: str,
+    prev_hash: str,
+    occurred_at: str | None = None,
 ) -> str:
+    # The vehicle's time joins the hashed content only when there is one: the events
+    # stored before it existed keep their hashes.
+    occurred = {"occurred_at": occurred_at} if occurred_at is not None else {}
     canonical = json.dumps(
         {
             "session": session_id,
@@ -91,6 +102,7 @@ def _event_hash(
             "data": data,
             "created_at": created_at,
             "prev": prev_hash,
+            **occurred,
         },
         sort_keys=True,
         separators=(",", ":"),
@@ -100,18 +112,27 @@ def _event_hash(
 
 
 def _event_new(
-    *, session: Session, seq: int, prev_hash: str, kind: str, data: dict[str, Any] | None
+    *,
+    session: Session,
+    seq: int,
+    prev_hash: str,
+    kind: str,
+    data: dict[str, Any] | None,
+    occurred_at: datetime | None = None,
 ) -> SessionEvent:
-    """The event ``seq`` of ``session``'s log, hashed and not yet saved."""
+    """The event ``seq`` of ``session``'s log, hashed and not yet saved. Its
+    ``occurred_at`` is ``occurred_at``, else the time :func:`events_occurred_at` gives."""
     # Round-trip through JSON so the hash covers exactly what the database stores.
     payload = json.loads(json.dumps(data or {}, cls=DjangoJSONEncoder))
     created_at = timezone.now()
+    occurred = occurred_at or _occurred.get()
     return SessionEvent(
         session=session,
         seq=seq,
         kind=kind,
         data=payload,
         created_at=created_at,
+        occurred_at=occurred,
         prev_hash=prev_hash,
         hash=_event_hash(
             session_id=str(session.pk),
@@ -120,8 +141,25 @@ def _event_new(
             data=payload,
             created_at=created_at.isoformat(),
             prev_hash=prev_hash,
+            occurred_at=occurred.isoformat() if occurred is not None else None,
         ),
     )
+
+
+_occurred: ContextVar[datetime | None] = ContextVar("iouv_events_occurred_at", default=None)
+
+
+@contextmanager
+def events_occurred_at(when: datetime | None) -> Iterator[None]:
+    """Within the block, the events appended to any session's log happened at ``when``
+    on a vehicle (their ``occurred_at``; None: the platform's own events). The
+    supervisor handles an agent's report inside one: what the report is logged as, and
+    what the platform logs because of it, carry the time it happened."""
+    token = _occurred.set(when)
+    try:
+        yield
+    finally:
+        _occurred.reset(token)
 
 
 def _feed_item(event: SessionEvent) -> dict[str, Any]:
@@ -238,7 +276,12 @@ def event_append(
 
 
 def _event_next(
-    *, session: Session, kind: str, data: dict[str, Any] | None, log: list[SessionEvent] | None
+    *,
+    session: Session,
+    kind: str,
+    data: dict[str, Any] | None,
+    log: list[SessionEvent] | None,
+    occurred_at: datetime | None = None,
 ) -> SessionEvent:
     """The event that follows ``log`` (the log's tail, read now, if None)."""
     if log is not None:
@@ -246,12 +289,21 @@ def _event_next(
     else:
         last = _LOG_TAIL.first(session=session.pk)
     seq, prev_hash = last if last else (0, GENESIS_HASH)
-    return _event_new(session=session, seq=seq + 1, prev_hash=prev_hash, kind=kind, data=data)
+    return _event_new(
+        session=session,
+        seq=seq + 1,
+        prev_hash=prev_hash,
+        kind=kind,
+        data=data,
+        occurred_at=occurred_at,
+    )
 
 
 def _event_renew(event: SessionEvent, *, session: Session, log: list[SessionEvent] | None) -> None:
     """``event`` moved to the place after ``log`` (its tail read now, if None)."""
-    fresh = _event_next(session=session, kind=event.kind, data=event.data, log=log)
+    fresh = _event_next(
+        session=session, kind=event.kind, data=event.data, log=log, occurred_at=event.occurred_at
+    )
     for name in ("seq", "prev_hash", "hash", "created_at"):
         setattr(event, name, getattr(fresh, name))
 
@@ -310,6 +362,7 @@ def session_log_verify(
             data=event.data,
             created_at=event.created_at.isoformat(),
             prev_hash=event.prev_hash,
+            occurred_at=event.occurred_at.isoformat() if event.occurred_at else None,
         )
         if recomputed != event.hash:
             return LogCheck(False, count, event.seq, "content does not match its hash")

@@ -311,7 +311,12 @@ class SessionEvent(models.Model):
     seq = models.PositiveIntegerField()
     kind = models.CharField(max_length=40)
     data = models.JSONField(default=dict, blank=True)
+    #: When it was written.
     created_at = models.DateTimeField()
+    #: When it happened on the vehicle, by the vehicle's clock, for an event logged from
+    #: an agent's report (null for the platform's own): a report sent while the platform
+    #: or its database was away is written late.
+    occurred_at = models.DateTimeField(null=True, blank=True)
     prev_hash = models.CharField(max_length=64)
     hash = models.CharField(max_length=64)
 

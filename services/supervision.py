@@ -29,7 +29,7 @@ import contextlib
 import logging
 import uuid
 from collections.abc import Iterable
-from datetime import datetime, timedelta
+from datetime import UTC, datetime, timedelta
 from typing import Any
 
 from django.conf import settings
@@ -60,7 +60,7 @@ from services.deployment import (
     session_revoke,
     vehicle_task_deploy,
 )
-from services.eventlog import event_append
+from services.eventlog import event_append, events_occurred_at
 from services.kinds import ServiceKind, UnknownKind, kind_of, kinds_user_driven
 from services.models import Assignment, Service, Session, SessionEvent
 from services.selectors import failsafe_sentence
@@ -224,14 +224,25 @@ def _agent_event(*, vehicle_id: Any, message: Event) -> None:
         return  # a late report of a session that is over: nothing to act on or show
     kind = _kind(assignment.session.service)
     handler = _EVENT_HANDLERS.get(name) or (kind.event_handlers.get(name) if kind else None)
-    if handler is None:
-        event_append(
-            session=assignment.session,
-            kind="agent_event",
-            data={"vehicle": str(vehicle_id), "event": name, "data": data},
-        )
-        return
-    handler(assignment, data)
+    # What the report is logged as, and what is logged because of it, carry the time it
+    # happened on the vehicle beside the time it is written (a report that waited for
+    # the platform or its database is written late).
+    with events_occurred_at(_vehicle_time(message)):
+        if handler is None:
+            event_append(
+                session=assignment.session,
+                kind="agent_event",
+                data={"vehicle": str(vehicle_id), "event": name, "data": data},
+            )
+            return
+        handler(assignment, data)
+
+
+def _vehicle_time(message: Event) -> datetime | None:
+    """When the reported event happened by the vehicle's clock (``at``), if it says."""
+    if isinstance(message.at, float | int):
+        return datetime.fromtimestamp(message.at, tz=UTC)
+    return None
 
 
 def _log(assignment: Assignment, kind: str, data: dict[str, Any]) -> SessionEvent:

@@ -250,9 +250,20 @@ class Ack(Message, frozen=True, tag="ack"):
 
 
 class Event(Message, frozen=True, tag="event"):
+    """Something that happened on the vehicle (a report to the platform). ``at``: when,
+    by the vehicle's clock (Unix seconds); a report queued while the platform was away,
+    or written late, keeps the time it happened. Absent from agents before it."""
+
     session_id: Id | None
     event: Id
     data: Object
+    at: (
+        Annotated[
+            float,
+            Meta(gt=0, description="When it happened on the vehicle: Unix seconds, its clock"),
+        ]
+        | UnsetType
+    ) = UNSET
 
 
 class RelayClose(Message, frozen=True, tag="relay_close"):

@@ -27,7 +27,8 @@ from fleet.status import vehicles_mark_stale_offline
 from fleet.uplink import vehicle_record_heartbeat
 from services.assignment import session_request
 from services.deployment import session_deploy, session_end
-from services.models import Session
+from services.eventlog import session_log_verify
+from services.models import Session, SessionEvent
 from services.signing import platform_public_key
 from services.supervision import (
     LINK_QUALITY_EVERY_S,
@@ -337,6 +338,27 @@ def test_other_events_are_logged(live):
         "event": "speed_limited",
         "data": {"factor": 0.5},
     }
+
+
+def test_an_event_is_logged_with_the_time_it_happened_on_the_vehicle(live):
+    """A report that waited (the platform or its database away) is written late: the
+    log keeps when it happened, by the vehicle's clock, beside when it was written."""
+    session, vehicle, _ = live
+    happened = datetime(2026, 5, 4, 10, 21, 7, 500_000, tzinfo=UTC)
+    with time_machine.travel(happened + timedelta(seconds=12), tick=False):
+        say(vehicle, {**event(session, "speed_limited", factor=0.5), "at": happened.timestamp()})
+        say(vehicle, event(session, "user_connected", user="alice", role="controller"))
+    logged, connected, activated = session.events.order_by("-seq")[:3][::-1]
+    assert (logged.kind, logged.occurred_at) == ("agent_event", happened)
+    assert logged.created_at == happened + timedelta(seconds=12)
+    # An older agent says nothing of the time: nothing is made up.
+    assert (connected.kind, connected.occurred_at) == ("user_connected", None)
+    assert activated.kind == "state" and activated.occurred_at is None
+    # The vehicle's time is part of what the chain covers.
+    assert session_log_verify(session=session).ok
+    SessionEvent.objects.filter(pk=logged.pk).update(occurred_at=happened + timedelta(seconds=1))
+    check = session_log_verify(session=session)
+    assert not check.ok and check.bad_seq == logged.seq
 
 
 # --- agents coming and going ------------------------------------------------------------
