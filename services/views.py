@@ -118,6 +118,13 @@ def log_lines(session: Session) -> list[dict[str, Any]]:
     ]
 
 
+def session_vehicle_names(session: Session) -> list[str]:
+    """Every vehicle the session had, in the order it had them: a session page names
+    them after the end too."""
+    names = session.assignments.order_by("created_at").values_list("vehicle__name", flat=True)
+    return list(dict.fromkeys(names))
+
+
 def session_watched(request: AuthenticatedHttpRequest, session_id: str) -> Session:
     """The session if the request's user may watch it (its own user, or a monitor);
     404 otherwise, so others' sessions are not even confirmed to exist."""
@@ -160,15 +167,7 @@ def session_page(request: AuthenticatedHttpRequest, session_id: str) -> HttpResp
         {
             "session": session,
             "summary": session_summary(session),
-            # Every vehicle the session had, as it had them: the page names them after
-            # the end too.
-            "session_vehicles": list(
-                dict.fromkeys(
-                    session.assignments.order_by("created_at").values_list(
-                        "vehicle__name", flat=True
-                    )
-                )
-            ),
+            "session_vehicles": session_vehicle_names(session),
             "user_task": task,
             # Open but no vehicle yet: the page asks for its grant once one is assigned.
             "session_open": session.state not in FINAL,

@@ -82,6 +82,11 @@ class ParcelDelivery(ServiceKind):
             "tiles": settings.IOUV_MAP_TILES_URL,
         }
 
+    def situation(self, session: Session) -> str:
+        delivery = Delivery.objects.filter(pk=session.pk).first()
+        what = delivery.status_text if delivery is not None else ""
+        return f"Runs by itself, nobody drives it: {what}." if what else ""
+
     def session_data(self, session: Session) -> dict[str, Any] | None:
         delivery = Delivery.objects.filter(pk=session.pk).first()
         return delivery_json(delivery) if delivery is not None else None

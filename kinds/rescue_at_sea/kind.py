@@ -84,6 +84,11 @@ class RescueAtSea(ServiceKind):
             "tiles": settings.IOUV_MAP_TILES_URL,
         }
 
+    def situation(self, session: Session) -> str:
+        mission = Mission.objects.filter(pk=session.pk).first()
+        what = mission.status_text if mission is not None else ""
+        return f"Runs by itself, nobody drives it: {what}." if what else ""
+
     def session_data(self, session: Session) -> dict[str, Any] | None:
         mission = Mission.objects.filter(pk=session.pk).first()
         return mission_json(mission) if mission is not None else None

@@ -18,7 +18,7 @@ from services.selectors import session_summary
 from services.sessions import FINAL
 from services.supervision import session_situation
 from services.throttle import throttled
-from services.views import log_lines
+from services.views import log_lines, session_vehicle_names
 
 
 def sessions_spectatable() -> QuerySet[Session]:
@@ -69,6 +69,7 @@ def spectate_session(request: AuthenticatedHttpRequest, session_id: str) -> Http
         {
             "session": session,
             "summary": session_summary(session),
+            "session_vehicles": session_vehicle_names(session),
             "user_task": user_task_json(task, request=request),
             "events": log_lines(session),
             "watching": True,

@@ -1011,6 +1011,12 @@
     endSession(reason) {
       if (this.over) return;
       this.over = true;
+      // The header no longer says "active" (a spectator has no session feed to say so).
+      const tag = this.root.querySelector("[data-session-state]");
+      if (tag && !["ended", "failed", "aborted"].includes(tag.textContent)) {
+        tag.textContent = "over";
+        tag.className = "tag state-ended";
+      }
       this.releaseAll(false);
       this.showBanner(`Session over: ${reason || "ended"}.`, "info");
       this.setState("ended");
@@ -1073,21 +1079,59 @@
   window.IoUV = Object.assign(window.IoUV || {}, { Controller });
 
   // An open session whose workflow has not assigned a vehicle yet (an autonomous kind
-  // finds one after the request): ask the platform for a grant until it has one, then
-  // connect, so the page needs no reload. Resolves null once the session is over.
-  async function awaitTask(root) {
-    let delay = 1000;
-    for (;;) {
-      try {
-        const { ok, body } = await grantFetch(root.dataset.grantUrl);
-        if (ok) return body;
-        if (!body.error || body.error.code !== "no_vehicle_yet") return null;
-      } catch (e) {
-        // The platform is unreachable for now: keep asking, a little less often.
-      }
-      await new Promise((r) => setTimeout(r, delay));
-      delay = Math.min(3000, delay + 500);
-    }
+  // finds one after the request): the session's feed says when its log moves (a
+  // vehicle reserved, a task sent, the session over), and only then is the platform
+  // asked for a grant, so the page needs no reload and does not ask every few seconds
+  // for what is not there (each "not yet" a 409 in the platform's log). A slow ask
+  // now and then covers a feed that cannot connect. Resolves null once the session
+  // is over.
+  const SLOW_ASK_MS = 30000;
+  function awaitTask(root) {
+    return new Promise((resolve) => {
+      let done = false;
+      let asking = false;
+      let feed = null;
+      let slow = null;
+      const finish = (task) => {
+        if (done) return;
+        done = true;
+        clearTimeout(slow);
+        if (feed) { feed.onclose = null; feed.close(); }
+        resolve(task);
+      };
+      const ask = async () => {
+        if (done || asking) return;
+        asking = true;
+        try {
+          const { ok, body } = await grantFetch(root.dataset.grantUrl);
+          if (ok) finish(body);
+          else if (!body.error || body.error.code !== "no_vehicle_yet") finish(null);
+        } catch (e) {
+          // The platform is unreachable for now: the feed or the slow ask tries again.
+        } finally {
+          asking = false;
+        }
+      };
+      const slowly = () => {
+        clearTimeout(slow);
+        slow = setTimeout(() => { ask(); slowly(); }, SLOW_ASK_MS);
+      };
+      const connect = () => {
+        if (done || !root.dataset.feedUrl) return;
+        feed = new WebSocket(root.dataset.feedUrl);
+        feed.onmessage = (event) => {
+          const msg = JSON.parse(event.data);
+          const s = msg.session || {};
+          if (["ended", "failed", "aborted"].includes(s.state)) return finish(null);
+          // A vehicle now holds a role in it (on connecting: maybe since the page was
+          // made), or its log moved on: time to ask.
+          if ((s.vehicles || []).length && (msg.type === "session" || msg.type === "event")) ask();
+        };
+        feed.onclose = () => { if (!done) setTimeout(connect, 2000); };
+      };
+      connect();
+      slowly();
+    });
   }
 
   document.addEventListener("DOMContentLoaded", async () => {

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import html
 import json
 
 import pytest
@@ -194,3 +195,15 @@ def test_a_rescue_waiting_for_its_busy_drone_says_so_with_its_place_in_the_queue
     assert Mission.objects.get(pk=second.pk).status_text.endswith("this request is 2nd in line")
     page = client.get(reverse("session", args=[first.pk]))
     assert "search-1 is busy with another session" in page.content.decode()
+
+
+def test_the_spectate_list_says_a_rescue_runs_by_itself(client, skipper) -> None:
+    client.post(reverse("service_request", args=["rescue-at-sea"]), {"area": json.dumps(area())})
+    session = Session.objects.get()
+    mission_advance(session.pk)  # search-1 goes
+    Vehicle.objects.filter(name="search-1").update(profile={"video": True})
+    page = html.unescape(client.get(reverse("spectate")).content.decode())
+    card = page[page.index(f'data-spectate="{session.pk}"') :]
+    card = card[: card.index("</article>")]
+    assert "Runs by itself, nobody drives it: search-1 " in card
+    assert "in control" not in card
