@@ -38,6 +38,9 @@
     websocket: "the vehicle's own socket",
   };
   const KEY_ALIASES = { " ": "Space", Spacebar: "Space" };
+  // What a touch screen shows on the picture (its telemetry panel is below the fold
+  // there): the first of these the vehicle reports, in this order.
+  const HUD_TOPICS = ["altitude", "speed", "battery_level"];
   // How a key is written on its button (the arrows as arrows).
   const KEY_SHOWN = { ArrowUp: "↑", ArrowDown: "↓", ArrowLeft: "←", ArrowRight: "→", " ": "Space" };
 
@@ -176,6 +179,7 @@
         controls: root.querySelector("[data-controls]"),
         overlay: root.querySelector("[data-overlay-actions]"),
         sticks: root.querySelector("[data-sticks]"),
+        hud: root.querySelector("[data-hud]"),
         banner: root.querySelector("[data-banner]"),
         toast: root.querySelector("[data-toast]"),
         video: root.querySelector("video"),
@@ -411,6 +415,15 @@
     onTelemetry(msg) {
       this.stats.telemetry += 1;
       if ("is_armed" in msg.data) this.readyHint(msg.data.is_armed, false);
+      if (this.ui.hud) {
+        const shown = HUD_TOPICS.filter((t) => t in msg.data && msg.data[t] !== null);
+        this.ui.hud.replaceChildren(...shown.map((topic) => {
+          const info = this.telemetryInfo[topic] || {};
+          const plain = topic.replace(/_/g, " ");
+          return el("span", { "data-hud-topic": topic },
+            `${info.label || plain.charAt(0).toUpperCase() + plain.slice(1)} ${formatValue(msg.data[topic], info)}`);
+        }));
+      }
       const box = this.ui.telemetry;
       if (!box) return;
       for (const [topic, value] of Object.entries(msg.data)) {
