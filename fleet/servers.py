@@ -119,6 +119,28 @@ async def uplink_server_ensure() -> uuid.UUID:
     return uplink_server_id()
 
 
+def _stopped() -> None:
+    """Mark this process gone now: its last beat a period back."""
+    beat = timedelta(seconds=float(settings.IOUV_UPLINK_SERVER_BEAT_S))
+    UplinkServer.objects.filter(pk=uplink_server_id()).update(
+        alive_at=timezone.now() - beat - timedelta(milliseconds=1)
+    )
+
+
+async def uplink_server_stopping() -> None:
+    """This process is shutting down (its server closes the uplinks with 1012): it
+    stops vouching for its vehicles at once, so their silence is the platform's while
+    they reconnect to another process, however long the shutdown takes. Idempotent."""
+    task = _beats.pop(asyncio.get_running_loop(), None)
+    if task is None:
+        return
+    task.cancel()
+    try:
+        await database_sync_to_async(_stopped)()
+    except Exception as exc:
+        log.warning("uplink server %s: could not record its stop: %s", uplink_server_id(), exc)
+
+
 # --------------------------------------------------------------------------------------
 # Judging silence
 # --------------------------------------------------------------------------------------

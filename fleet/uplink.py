@@ -90,7 +90,7 @@ from fleet.outbox import (
     outbox,
     vehicle_group,
 )
-from fleet.servers import uplink_server_ensure
+from fleet.servers import uplink_server_ensure, uplink_server_stopping
 from fleet.signals import (
     agent_acked,
     agent_connected,
@@ -107,6 +107,8 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
+#: What the server sends every WebSocket as it shuts down (RFC 6455: "service restart").
+CLOSE_SERVICE_RESTART = 1012
 CLOSE_BAD_VERSION = 4400
 CLOSE_UNAUTHORIZED = 4401
 CLOSE_HELLO_TIMEOUT = 4408
@@ -793,6 +795,10 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
 
     async def disconnect(self, code: int) -> None:
         try:
+            if code == CLOSE_SERVICE_RESTART:
+                # The server is shutting down (a deploy): this process no longer holds
+                # its uplinks, and their agents reconnect to another (fleet.servers).
+                await uplink_server_stopping()
             if self._hello_timer is not None:
                 self._hello_timer.cancel()
             if self.vehicle_id is not None:
@@ -927,8 +933,8 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
                 await self._guarded(handle)
 
     async def _until_stored(self, handle: Callable[[], Awaitable[None]]) -> None:
-        """Run ``handle`` (an agent's report: an event, a task accepted or refused, an
-        ack), again while the database cannot be reached: the report waits in this
+        """Run ``handle`` (an agent's report: its profile, an event, a task accepted or
+        refused, an ack), again while the database cannot be reached: the report waits in this
         uplink's queue, in order, until PostgreSQL is back, instead of being lost. The
         agent sent it once and does not send it again. What follows it waits too;
         relayed control does not (it never enters this queue), and a heartbeat is not
@@ -1038,8 +1044,13 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         now = timezone.now()
         # Records the profile and converges the agent to what the platform wants (the
         # agent_connected receivers) in one transaction; only then does the outbox
-        # deliver what the vehicle is owed on this uplink.
-        await _db(vehicle_record_profile)(vehicle_id=self.vehicle_id, profile=msg, now=now)
+        # deliver what the vehicle is owed on this uplink. While the database is away,
+        # it waits for it, as the agent's reports do.
+        await self._until_stored(
+            functools.partial(
+                _db(vehicle_record_profile), vehicle_id=self.vehicle_id, profile=msg, now=now
+            )
+        )
         self._last_seen = self._heard = now
         self._registered = True
         self._reported_status = _given(msg.status)

@@ -1,0 +1,287 @@
+"""The production shape as the tests run it: the very files production uses (``deploy/``),
+with the test's own ports, certificate and folders put in.
+
+* :func:`units_rendered`: the systemd units with this checkout and its virtualenv in
+  place of ``/opt/iouv`` (for ``systemd-analyze verify``);
+* :func:`nginx_site`: ``deploy/nginx/iouv.conf`` with the test's upstream ports,
+  listening addresses, certificate and static folder; :func:`nginx_main` wraps it in a
+  main configuration whose every file (pid, logs, temporary bodies) lives in a private
+  prefix, so no system file is read or written;
+* :class:`ProductionShape`: the platform run that way: gunicorn's HTTP processes and
+  uvicorn's WebSocket processes (each restartable, as a deploy restarts them), nginx in
+  front with TLS, the Celery worker and beat.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import signal
+import ssl
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+
+from django.conf import settings
+
+from benchmarks.nginx_proxy import nginx_binary
+from tests.servers import ROOT, _test_database_url, celery_worker_process, free_port
+from tests.tls import Certificates, certificates_make
+
+DEPLOY = ROOT / "deploy"
+SITE = DEPLOY / "nginx" / "iouv.conf"
+UNITS = DEPLOY / "systemd"
+
+
+def units_rendered(into: Path) -> list[Path]:
+    """The units of ``deploy/systemd`` written to ``into`` with this checkout (and its
+    ``.venv``) where production has ``/opt/iouv``, and each template once instantiated
+    (``iouv-web@8001.service``...): what ``systemd-analyze verify`` can check here."""
+    written = []
+    for unit in sorted(UNITS.iterdir()):
+        text = unit.read_text().replace("/opt/iouv", str(ROOT))
+        names = [unit.name]
+        if unit.name.endswith("@.service"):
+            base = unit.name.removesuffix("@.service")
+            names = [f"{base}@{8001 if base == 'iouv-web' else 8101}.service"]
+        for name in names:
+            (into / name).write_text(text)
+            written.append(into / name)
+    return written
+
+
+def nginx_site(
+    *,
+    web: list[int],
+    ws: list[int],
+    https: int,
+    http: int,
+    certificates: Certificates,
+    static_root: Path,
+) -> str:
+    """``deploy/nginx/iouv.conf`` listening on loopback ports ``https`` and ``http``,
+    proxying to the HTTP processes on ports ``web`` and the WebSocket ones on ``ws``,
+    with ``certificates`` and ``static_root``. Raises AssertionError if the shipped file
+    no longer has a line this replaces (the test would not run what production runs)."""
+    text = SITE.read_text()
+
+    def upstream(name: str, ports: list[int]) -> None:
+        nonlocal text
+        block = re.compile(rf"(upstream {name} \{{\n)((?:    server [^\n]+\n)+)")
+        assert block.search(text), f"no upstream {name} in {SITE}"
+        servers = "".join(f"    server 127.0.0.1:{port} max_fails=0;\n" for port in ports)
+        text = block.sub(lambda m: m.group(1) + servers, text, count=1)
+
+    def replace(old: str, new: str) -> None:
+        nonlocal text
+        assert old in text, f"{old!r} is not in {SITE}"
+        text = text.replace(old, new)
+
+    upstream("iouv_web", web)
+    upstream("iouv_ws", ws)
+    replace("    listen [::]:80;\n", "")
+    replace("    listen [::]:443 ssl;\n", "")
+    replace("    listen 80;", f"    listen 127.0.0.1:{http};")
+    replace("    listen 443 ssl;", f"    listen 127.0.0.1:{https} ssl;")
+    replace(
+        "return 301 https://$host$request_uri;", f"return 301 https://$host:{https}$request_uri;"
+    )
+    replace("/etc/ssl/iouv/fullchain.pem", str(certificates.chain))
+    replace("/etc/ssl/iouv/privkey.pem", str(certificates.key))
+    replace("alias /srv/iouv/static/;", f"alias {static_root}/;")
+    return text
+
+
+def nginx_main(prefix: Path, site: str) -> str:
+    """A main nginx.conf around ``site`` keeping all nginx writes under ``prefix``: in
+    the foreground, one process (the test holds its pid)."""
+    temp = prefix / "temp"
+    return "\n".join(
+        [
+            "daemon off;",
+            "master_process off;",
+            "worker_processes 1;",
+            f"pid {prefix / 'nginx.pid'};",
+            "error_log stderr notice;",
+            "events { worker_connections 4096; }",
+            "http {",
+            "    include /etc/nginx/mime.types;",
+            f"    access_log {prefix / 'access.log'};",
+            f"    client_body_temp_path {temp / 'client_body'};",
+            f"    proxy_temp_path {temp / 'proxy'};",
+            f"    fastcgi_temp_path {temp / 'fastcgi'};",
+            f"    uwsgi_temp_path {temp / 'uwsgi'};",
+            f"    scgi_temp_path {temp / 'scgi'};",
+            site,
+            "}",
+            "",
+        ]
+    )
+
+
+def nginx_command(prefix: Path, *extra: str) -> list[str]:
+    """nginx on ``prefix``'s nginx.conf (``-e stderr``: no system log at start-up)."""
+    return [
+        str(nginx_binary()),
+        "-p",
+        f"{prefix}/",
+        "-c",
+        str(prefix / "nginx.conf"),
+        "-e",
+        "stderr",
+        *extra,
+    ]
+
+
+def nginx_prepared(prefix: Path, site: str) -> Path:
+    """Write the main configuration around ``site`` into ``prefix``; returns its path."""
+    (prefix / "temp").mkdir(parents=True, exist_ok=True)
+    conf = prefix / "nginx.conf"
+    conf.write_text(nginx_main(prefix, site))
+    return conf
+
+
+def _wait_http(url: str, *, context: ssl.SSLContext | None = None, within: float = 30.0) -> None:
+    deadline = time.monotonic() + within
+    while True:
+        try:
+            with urllib.request.urlopen(url, timeout=1, context=context) as response:
+                if response.status == 200:
+                    return
+        except OSError:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{url} did not answer within {within:g} s") from None
+            time.sleep(0.2)
+
+
+class Process:
+    """One server process on a fixed port, restartable as a deploy restarts it."""
+
+    def __init__(self, name: str, command: list[str], env: dict[str, str], port: int) -> None:
+        self.name = name
+        self.command = command
+        self.env = env
+        self.port = port
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.log_path = Path(settings.VAR_DIR) / f"{name}-{port}.log"
+
+    def start(self) -> None:
+        """Start it and return once it answers ``/healthz`` on its own port."""
+        with open(self.log_path, "a") as log:
+            self.proc = subprocess.Popen(
+                self.command, cwd=ROOT, env=self.env, stdout=log, stderr=subprocess.STDOUT
+            )
+        try:
+            _wait_http(f"http://127.0.0.1:{self.port}/healthz")
+        except RuntimeError:
+            raise RuntimeError(f"{self.name}: {self.log_path.read_text()[-2000:]}") from None
+
+    def signal(self, number: int) -> None:
+        assert self.proc is not None
+        self.proc.send_signal(number)
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """SIGTERM, as systemd stops it, and wait; SIGKILL past ``timeout``."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+
+    def restart(self) -> None:
+        self.stop()
+        self.start()
+
+
+class ProductionShape:
+    """The platform as deploy/ runs it, for one test; see the module docstring.
+
+    ``base`` is the https address of nginx (``certificates.ca`` signs it), ``web`` and
+    ``ws`` the HTTP and WebSocket processes."""
+
+    def __init__(self, workdir: Path, *, web: int = 2, ws: int = 2, env: dict[str, str]) -> None:
+        self.workdir = workdir
+        self.certificates = certificates_make(workdir / "tls")
+        self.https, self.http = free_port(), free_port()
+        self.base = f"https://127.0.0.1:{self.https}"
+        self.env = {
+            **os.environ,
+            "DATABASE_URL": _test_database_url(),
+            "DB_CONN_MAX_AGE": "0",
+            "PYTHONUNBUFFERED": "1",
+            "IOUV_FAST_PASSWORD_HASHER": "1",
+            "BEHIND_PROXY": "1",
+            "SERVE_STATIC": "0",
+            "STATIC_ROOT": str(workdir / "static"),
+            "ALLOWED_HOSTS": "127.0.0.1,localhost",
+            **env,
+        }
+        self.web = [
+            Process(
+                "gunicorn",
+                [
+                    sys.executable, "-m", "gunicorn", "-c", str(DEPLOY / "gunicorn.conf.py"),
+                    "--bind", f"127.0.0.1:{port}", "--workers", "2", "iouv.wsgi:application",
+                ],
+                self.env,
+                port,
+            )
+            for port in (free_port() for _ in range(web))
+        ]  # fmt: skip
+        self.ws = [
+            Process(
+                "uvicorn",
+                [sys.executable, "-m", "iouv.serve", "--host", "127.0.0.1", "--port", str(port)],
+                self.env,
+                port,
+            )
+            for port in (free_port() for _ in range(ws))
+        ]
+        self.nginx: subprocess.Popen[bytes] | None = None
+        self.context = self.certificates.client_context()
+
+    @contextlib.contextmanager
+    def running(self) -> Iterator[ProductionShape]:
+        """Everything started (static files collected first), stopped on exit."""
+        subprocess.run(
+            [sys.executable, "manage.py", "collectstatic", "--noinput", "-v", "0"],
+            cwd=ROOT,
+            env=self.env,
+            check=True,
+        )
+        prefix = self.workdir / "nginx"
+        site = nginx_site(
+            web=[p.port for p in self.web],
+            ws=[p.port for p in self.ws],
+            https=self.https,
+            http=self.http,
+            certificates=self.certificates,
+            static_root=self.workdir / "static",
+        )
+        nginx_prepared(prefix, site)
+        try:
+            for process in [*self.web, *self.ws]:
+                process.start()
+            with open(prefix / "error.log", "a") as log:
+                self.nginx = subprocess.Popen(
+                    nginx_command(prefix), stdout=log, stderr=subprocess.STDOUT
+                )
+            _wait_http(f"{self.base}/healthz", context=self.context)
+            with celery_worker_process(extra_env=self.env) as worker:
+                self.worker = worker
+                yield self
+        finally:
+            if self.nginx is not None and self.nginx.poll() is None:
+                self.nginx.send_signal(signal.SIGQUIT)
+                try:
+                    self.nginx.wait(10)
+                except subprocess.TimeoutExpired:
+                    self.nginx.kill()
+            for process in [*self.ws, *self.web]:
+                process.stop()
