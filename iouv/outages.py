@@ -45,6 +45,22 @@ def database_unavailable_response(request: HttpRequest) -> HttpResponse:
     return response
 
 
+class DatabaseUnavailableLogFilter(logging.Filter):
+    """A log record of an error that is the database being away keeps its line and the
+    error's words, not its traceback (``LOGGING``'s console handler): during an outage
+    every request, report and timer meets the same error, and a traceback each would
+    bury the log; the traceback says nothing the words do not."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        error = record.exc_info[1] if record.exc_info else None
+        if isinstance(error, DATABASE_UNAVAILABLE):
+            record.msg = f"{record.getMessage()} [{type(error).__name__}: {error}]"
+            record.args = None
+            record.exc_info = None
+            record.exc_text = None
+        return True
+
+
 class DatabaseUnavailableMiddleware:
     """Answers a view that raised one of :data:`DATABASE_UNAVAILABLE` with
     :func:`database_unavailable_response` (the API answers its own views the same way,

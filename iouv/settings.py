@@ -504,7 +504,16 @@ LOGGING = {
     "version": 1,
     "disable_existing_loggers": False,
     "formatters": {"plain": {"format": "%(asctime)s %(levelname)s %(name)s: %(message)s"}},
-    "handlers": {"console": {"class": "logging.StreamHandler", "formatter": "plain"}},
+    # An error that is the database being away is one line, not a traceback each time
+    # (iouv.outages).
+    "filters": {"database_away": {"()": "iouv.outages.DatabaseUnavailableLogFilter"}},
+    "handlers": {
+        "console": {
+            "class": "logging.StreamHandler",
+            "formatter": "plain",
+            "filters": ["database_away"],
+        }
+    },
     "root": {"handlers": ["console"], "level": env_str("LOG_LEVEL", "INFO")},
     # The servers' lines for each socket opened or closed (daphne's, uvicorn's): a busy
     # process's log would be little else. Their warnings and errors still show.
