@@ -59,7 +59,8 @@ class ApiTokenAdmin(admin.ModelAdmin[ApiToken]):
     list_filter = (("revoked_at", admin.EmptyFieldListFilter),)
     list_select_related = ("user",)
     search_fields = ("name", "prefix", "user__username")
-    raw_id_fields = ("user",)
+    # Found by typing a name (the user admin's search), not by a raw user id.
+    autocomplete_fields = ("user",)
     actions = ("revoke",)
     readonly_fields = ("user", "name", "display", "created_at", "last_used_at", "revoked_at")
 

@@ -208,3 +208,15 @@ def test_monitors_cannot_see_tokens(alice):
     client = Client()
     client.login(username="mon", password="pw-for-tests")
     assert client.get(reverse("admin:accounts_apitoken_changelist")).status_code == 403
+
+
+def test_the_admin_finds_the_tokens_user_by_name_not_by_a_raw_id(as_admin, alice):
+    page = as_admin.get(reverse("admin:accounts_apitoken_add")).content.decode()
+    assert "vForeignKeyRawIdAdminField" not in page  # no raw id to type
+    assert 'class="admin-autocomplete' in page and 'name="user"' in page
+    # Typing part of the name finds the user.
+    found = as_admin.get(
+        reverse("admin:autocomplete"),
+        {"app_label": "accounts", "model_name": "apitoken", "field_name": "user", "term": "ali"},
+    ).json()
+    assert [r["text"] for r in found["results"]] == [alice.get_username()]

@@ -86,7 +86,9 @@ class SpektrumAdapter(Adapter):
     name = "spektrum"
     telemetry_labels = {
         "throttle": TopicInfo("Throttle (0 to 1)", decimals=2),
-        "channels": TopicInfo("Receiver channels", "µs", 0),
+        # Servo positions as the receiver frames carry them (0..2047, centre 1024; 100 %
+        # travel 342..1706), not pulse widths: no unit.
+        "channels": TopicInfo("Receiver channels (position, 1024 = centre)", decimals=0),
         "frame_period_ms": TopicInfo("Receiver frame period", "ms", 1),
         "landing": TopicInfo("Landing", yes="landing", no="no"),
     }
