@@ -293,7 +293,7 @@ CSRF_COOKIE_SECURE = SESSION_COOKIE_SECURE
 SECURE_SSL_REDIRECT = env_bool("SECURE_SSL_REDIRECT", not EMBEDDED)
 # Health checks reach the processes behind the TLS proxy over plain http: a redirect to
 # https would read as "down".
-SECURE_REDIRECT_EXEMPT = [r"^(healthz|readyz)$"]
+SECURE_REDIRECT_EXEMPT = [r"^(healthz|readyz|metrics)$"]
 SECURE_HSTS_SECONDS = env_int("SECURE_HSTS_SECONDS", 0 if EMBEDDED else 31_536_000)
 SECURE_HSTS_INCLUDE_SUBDOMAINS = not EMBEDDED
 SECURE_HSTS_PRELOAD = not EMBEDDED
@@ -460,6 +460,9 @@ for _action, _default in {
     IOUV_RATE_LIMITS[_action] = {"user": _per_user, "address": _per_address}
 # django-ratelimit's switch: IOUV_RATE_LIMITS=0 turns every budget off (benchmarks).
 RATELIMIT_ENABLE = env_bool("IOUV_RATE_LIMITS", True)
+# /metrics for Prometheus (services.metrics): with a token, scrapes must send it as a
+# bearer token; without one, only clients on the platform's own machine are answered.
+IOUV_METRICS_TOKEN = env_secret("IOUV_METRICS_TOKEN")
 # --- Faults: what clients are told while a server the platform needs is away -----------
 # The Retry-After of a 503 answered while PostgreSQL cannot be reached (iouv.outages).
 IOUV_RETRY_AFTER_S = env_int("IOUV_RETRY_AFTER_S", 5)

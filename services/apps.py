@@ -37,3 +37,9 @@ class ServicesConfig(AppConfig):
         agent_welcome.connect(
             supervision.receive_agent_welcome, dispatch_uid="services.supervision.welcome"
         )
+        # Celery's workers count their failed tasks where /metrics reads them.
+        from celery.signals import task_failure
+
+        from services.metrics import celery_task_failed
+
+        task_failure.connect(celery_task_failed, dispatch_uid="services.metrics.task_failure")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import json
 import secrets
 import time
 import uuid
@@ -23,6 +24,7 @@ from agents.protocol import (
 )
 from agents.protocol.messages import (
     Auth,
+    Command,
     ControlToAgent,
     IceServer,
     RelayClose,
@@ -36,6 +38,7 @@ from iouv.layer import relay_ensure
 from iouv.outages import DATABASE_UNAVAILABLE
 from services.feed import SESSIONS_GROUP, session_group
 from services.ice import ice_servers_for
+from services.metrics import RELAY_ACKS, RELAY_ROUND_TRIP
 from services.throttle import Throttled, counted_address, throttle_check
 
 #: The relay's own budget per browser, on top of the agent's: it protects the platform.
@@ -187,6 +190,9 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self.user_id: str | None = None
         self.grant_expires_at: float | None = None
         self.address = counted_address(client_address_of_scope(self.scope))
+        #: Relayed commands awaiting the vehicle's ack: seq -> when they came (monotonic),
+        #: for the relay's round trip (services.metrics).
+        self.commands_out: dict[int, float] = {}
         await self.accept()
 
     async def disconnect(self, code: int) -> None:
@@ -227,6 +233,10 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
                 await self._refuse(*refusal)
                 return
         assert self.vehicle_id is not None
+        if isinstance(payload, Command):
+            if len(self.commands_out) >= COMMANDS_TIMED_MAX:
+                self.commands_out.pop(next(iter(self.commands_out)))  # never acknowledged
+            self.commands_out[payload.seq] = now
         message = RelayToAgent(session_id=self.session_id, conn=self.conn, payload=payload)
         if isinstance(payload, WebrtcOffer):
             try:
@@ -283,6 +293,8 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self.uplink = event.get("uplink") or self.uplink
         if "text" in event:
             await self.send(text_data=event["text"])
+            if self.commands_out and event["text"].startswith(_ACK_PREFIX):
+                _ack_timed(event["text"], self.commands_out)
         else:
             await self.close(code=_sendable_close_code(event.get("close")))
 
@@ -300,6 +312,23 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self.closing = True
         await self._error(code, message)
         await self.close(code=close_code)
+
+
+#: How a command's acknowledgement starts as the uplink encodes it (agents.protocol).
+_ACK_PREFIX = '{"type":"ack",'
+#: Commands a relayed connection times at once (the controller keeps one in flight).
+COMMANDS_TIMED_MAX = 64
+
+
+def _ack_timed(text: str, commands_out: dict[int, float]) -> None:
+    """Count the vehicle's acknowledgement of a relayed command and its round trip."""
+    try:
+        ack = json.loads(text)
+        sent = commands_out.pop(int(ack["seq"]))
+    except (ValueError, KeyError, TypeError):
+        return
+    RELAY_ACKS.labels(ok="true" if ack.get("ok") else "false").inc()
+    RELAY_ROUND_TRIP.observe(time.monotonic() - sent)
 
 
 def _sendable_close_code(code: Any) -> int:

@@ -19,6 +19,7 @@ from channels.db import database_sync_to_async
 from channels.layers import channel_layers, get_channel_layer
 from channels.testing import WebsocketCommunicator
 from django.db import connections
+from prometheus_client import REGISTRY
 
 from agents.protocol import PROTOCOL_VERSION
 from fleet.credentials import vehicle_issue_credential
@@ -285,3 +286,40 @@ async def test_webrtc_offers_over_the_users_budget_are_refused_and_not_forwarded
     finally:
         await browser.disconnect()
         await agent.disconnect()
+
+
+async def test_a_relayed_commands_acknowledgement_and_round_trip_are_counted() -> None:
+    """What operators watch (services.metrics): each relayed command the vehicle
+    acknowledged, accepted or refused, and the time it took through the platform."""
+    counts = _relay_counts()
+    vehicle_id, credential, session_id, grant = await _relayed_session()
+    agent = await _uplink(vehicle_id, credential)
+    browser = await _browser(session_id)
+    try:
+        relayed = await _authenticate(browser, agent, grant)
+        for seq, ok in ((1, True), (2, False)):
+            await browser.send_json_to({"type": "command", "seq": seq, "name": "front"})
+            await _relayed(agent)
+            payload = {"type": "ack", "seq": seq, "ok": ok, "error": None if ok else "no"}
+            await agent.send_json_to(
+                {"type": "relay", "session_id": session_id, "conn": relayed["conn"]}
+                | {"payload": payload}
+            )
+            assert json.loads(await browser.receive_from(timeout=10))["seq"] == seq
+        assert _relay_counts() == (counts[0] + 1, counts[1] + 1, counts[2] + 2)
+    finally:
+        await browser.disconnect()
+        await agent.disconnect()
+
+
+def _relay_counts() -> tuple[float, float, float]:
+    """(commands acknowledged ok, refused, round trips timed) as /metrics reads them."""
+
+    def value(name: str, **labels: str) -> float:
+        return REGISTRY.get_sample_value(name, labels) or 0.0
+
+    return (
+        value("iouv_relay_commands_acked_total", ok="true"),
+        value("iouv_relay_commands_acked_total", ok="false"),
+        value("iouv_relay_round_trip_seconds_count"),
+    )
