@@ -7,6 +7,7 @@ A platform process as production runs it (tests/servers.py), its log read after.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import http.client
 import json
 import urllib.error
@@ -94,3 +95,41 @@ def test_the_health_checks_say_what_they_found(platform: str) -> None:
         assert body["ok"] and body["live"] and body["ready"]
         assert set(body["checks"]) == {"database", "redis"}
         assert all(check["ok"] for check in body["checks"].values())
+
+
+def test_no_frame_before_authentication_leaves_a_traceback(platform: str) -> None:
+    """Whatever an unauthenticated client sends on any socket, back to back: answered
+    or dropped, never an error in the platform's log."""
+    ws_base = platform.replace("http", "ws")
+    frames: list[str | bytes] = [
+        json.dumps({"type": "hello", "v": 2, "vehicle_id": str(uuid.uuid4()), "credential": "x"}),
+        json.dumps({"type": "auth", "grant": "a.b.c"}),
+        "not json",
+        b"\xff\xfe binary",
+        json.dumps({"type": "heartbeat", "seq": 1}),
+        json.dumps([1, 2, 3]),
+        "{" * 10_000,
+    ]
+
+    async def flood(path: str, first: int) -> None:
+        try:
+            async with websockets.connect(ws_base + path, origin=platform) as ws:
+                for frame in frames[first:] + frames[:first]:  # each kind of frame first
+                    await ws.send(frame)
+                with contextlib.suppress(asyncio.TimeoutError, websockets.ConnectionClosed):
+                    while True:
+                        await asyncio.wait_for(ws.recv(), 3)
+        except websockets.InvalidStatus:
+            pass  # refused at the handshake (a browser socket without a login)
+
+    for path in (
+        "/ws/agent/",
+        f"/ws/relay/{uuid.uuid4()}/",
+        f"/ws/sessions/{uuid.uuid4()}/",
+        "/ws/sessions/",
+        "/ws/fleet/",
+    ):
+        for first in range(len(frames)):
+            asyncio.run(flood(path, first))
+    log = platform_log(platform).read_text()
+    assert "Traceback" not in log and " ERROR " not in log, log[-3000:]
