@@ -150,8 +150,12 @@ def metered(monkeypatch: pytest.MonkeyPatch) -> Iterator[Meter]:
 def test_requesting_and_ending_a_session_stay_within_their_query_budget(
     inbox, monkeypatch, settings
 ):
-    # As deployed: iouv.settings reads permissions in one query (accounts.backends).
-    assert settings.AUTHENTICATION_BACKENDS == ["accounts.backends.RoleBackend"]
+    # As deployed: iouv.settings reads permissions in one query (accounts.backends); the
+    # login lockout's backend before it (accounts.lockout) answers no permission.
+    assert settings.AUTHENTICATION_BACKENDS == [
+        "accounts.lockout.LoginLockoutBackend",
+        "accounts.backends.RoleBackend",
+    ]
     vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type(), name="drone-1")
     Vehicle.objects.filter(pk=vehicle.pk).update(
         control_url="ws://10.0.0.7:8765/control", profile={"commands": COMMANDS}
