@@ -1,7 +1,7 @@
 """The quadcopter on the MAVLink simulator behind the agent's control hub and its
 WebSocket server, as the MAVLink tests fly it, and what they share: the simulator
-started as its own process (``python -m agents sim mavlink``), a controller's telemetry
-watched, a condition polled.
+started as its own process (``python -m agents sim mavlink``) and another ground station
+on it, a controller's telemetry watched, a condition polled.
 
 ``tests/agents/conftest.py`` hands the rigs out as the ``make_quad_rig`` fixture.
 """
@@ -14,7 +14,7 @@ import json
 import subprocess
 import sys
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -31,6 +31,7 @@ from agents.protocol import (
 from agents.simulation import simulator_running
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.mavlink.copter import CopterAdapter
+from agents.vehicles.mavlink.dialect import MAV, mavutil
 from agents.vehicles.registry import adapter_create
 from tests.agents.documents import grant_for, task_for
 from tests.control import recv
@@ -241,11 +242,56 @@ async def poll(predicate: Callable[[], bool], within: float, what: str) -> None:
     raise AssertionError(f"timed out waiting for {what}")
 
 
-def start_simulator(*args: str) -> subprocess.Popen[str]:
-    """``python -m agents sim mavlink ARGS`` with its stdout (the READY line) piped."""
-    return subprocess.Popen(
-        [sys.executable, "-m", "agents", "sim", "mavlink", *args],
+@contextlib.contextmanager
+def simulator_listening(*args: str) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    """``python -m agents sim mavlink --listen udpin:127.0.0.1:0 ARGS``: the simulator in
+    its own process on a free UDP port, as an autopilot the agent did not start. Yields
+    the process and the address to reach it at (``udpout:127.0.0.1:PORT``, from its
+    READY line). At the end it is sent SIGTERM; one still running 5 s later is killed
+    and fails the test."""
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "agents", "sim", "mavlink", "--listen", "udpin:127.0.0.1:0", *args],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         text=True,
     )
+    try:
+        assert sim.stdout is not None
+        ready = sim.stdout.readline().split()
+        assert ready and ready[0] == "READY", ready
+        yield sim, ready[1].replace("udpin:", "udpout:")
+    finally:
+        sim.terminate()
+        try:
+            sim.wait(5)
+        except subprocess.TimeoutExpired:
+            sim.kill()
+            sim.wait()
+            raise AssertionError("the simulator was still running 5 s after SIGTERM") from None
+
+
+@contextlib.contextmanager
+def ground_station(address: str) -> Iterator[Any]:
+    """Another ground station (system 200) on the autopilot at ``address``, as a second
+    operator's laptop would be; closed at the end."""
+    gcs = mavutil.mavlink_connection(address, source_system=200)
+    try:
+        yield gcs
+    finally:
+        gcs.close()
+
+
+async def modes_until(
+    gcs: Any, *, until: int, within: float, vehicle_type: int | None = None
+) -> list[int]:
+    """The autopilot's modes (``custom_mode``) in the heartbeats ``gcs`` sees (of
+    ``vehicle_type`` only, when given), heartbeating itself, until mode ``until`` shows
+    or ``within`` seconds passed."""
+    modes: list[int] = []
+    deadline = time.monotonic() + within
+    while time.monotonic() < deadline and until not in modes:
+        gcs.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        beat = await asyncio.to_thread(gcs.recv_match, type="HEARTBEAT", blocking=True, timeout=0.5)
+        if beat is not None and (vehicle_type is None or beat.type == vehicle_type):
+            modes.append(int(beat.custom_mode))
+    return modes

@@ -36,9 +36,11 @@ from tests.agents.mavlink_rig import (
     SIM,
     Rig,
     RigFactory,
+    ground_station,
     join,
+    modes_until,
     poll,
-    start_simulator,
+    simulator_listening,
     watch,
 )
 from tests.control import command
@@ -504,16 +506,10 @@ async def test_a_dead_agent_leaves_the_drone_to_the_autopilots_own_failsafe():
     """A real deployment's path: the adapter reaches an autopilot it did not start
     (``connection``). When the agent dies its heartbeats stop, and the autopilot's GCS
     fail-safe (FS_GCS_ENABLE=1, after FS_GCS_TIMEOUT) brings the drone home."""
-    sim = start_simulator(
-        "--listen", "udpin:127.0.0.1:0", "--home", f"{HOME[0]},{HOME[1]}",
+    with simulator_listening(
+        "--home", f"{HOME[0]},{HOME[1]}",
         "--speedup", "4", "--param", "FS_GCS_ENABLE=1", "--param", "FS_GCS_TIMEOUT=1",
-    )  # fmt: skip
-    observer = None
-    try:
-        assert sim.stdout is not None
-        ready = sim.stdout.readline().split()
-        assert ready[0] == "READY", ready
-        address = ready[1].replace("udpin:", "udpout:")
+    ) as (_, address):  # fmt: skip
         drone = adapter_create("mavlink", {"connection": address, "close_action": "none"})
         assert isinstance(drone, MavlinkAdapter)
         async with drone:
@@ -522,22 +518,9 @@ async def test_a_dead_agent_leaves_the_drone_to_the_autopilots_own_failsafe():
             await poll(lambda: (drone.t.alt or 0) > 2.5, 5, "3 m")
             assert drone.t.mode == 4
         # The agent is gone (close_action "none": like a crash). Listen as another GCS.
-        observer = mavutil.mavlink_connection(address, source_system=200)
-        deadline = time.monotonic() + 10
-        modes: list[int] = []
-        while time.monotonic() < deadline and 6 not in modes:
-            observer.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-            beat = await asyncio.to_thread(
-                observer.recv_match, type="HEARTBEAT", blocking=True, timeout=0.5
-            )
-            if beat is not None:
-                modes.append(int(beat.custom_mode))
+        with ground_station(address) as observer:
+            modes = await modes_until(observer, until=6, within=10)
         assert 6 in modes, f"no RTL after the agent died; modes seen {modes}"
-    finally:
-        if observer is not None:
-            observer.close()
-        sim.terminate()
-        sim.wait(5)
 
 
 async def test_held_rotate_key_stops_turning_on_release(rig: Rig):

@@ -42,7 +42,14 @@ from agents.vehicles.mavlink.sim import simulator_command
 from agents.vehicles.mavlink.sim.cli import parse_args
 from agents.vehicles.registry import adapter_create
 from tests.agents.documents import grant_for, task_for
-from tests.agents.mavlink_rig import control_rigs, poll, start_simulator, watch
+from tests.agents.mavlink_rig import (
+    control_rigs,
+    ground_station,
+    modes_until,
+    poll,
+    simulator_listening,
+    watch,
+)
 from tests.control import command, recv
 
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
@@ -532,17 +539,11 @@ async def test_a_dead_agent_leaves_the_boat_to_ardurovers_own_failsafe():
     """A real deployment's path: the adapter reaches an autopilot it did not start.
     When the agent dies its heartbeats stop, and ArduRover's GCS fail-safe
     (FS_GCS_ENABLE=1: 2 s of silence, then FS_TIMEOUT) does FS_ACTION=1: RTL."""
-    sim = start_simulator(
-        "--vehicle-class", "boat", "--listen", "udpin:127.0.0.1:0",
+    with simulator_listening(
+        "--vehicle-class", "boat",
         "--home", f"{ORIGIN[0]},{ORIGIN[1]}", "--speedup", "4",
         "--param", "FS_GCS_ENABLE=1", "--param", "FS_ACTION=1", "--param", "WP_SPEED=4",
-    )  # fmt: skip
-    observer = None
-    try:
-        assert sim.stdout is not None
-        ready = sim.stdout.readline().split()
-        assert ready[0] == "READY", ready
-        address = ready[1].replace("udpin:", "udpout:")
+    ) as (_, address):  # fmt: skip
         boat = adapter_create(
             "mavlink", {"vehicle_class": "boat", "connection": address, "close_action": "none"}
         )
@@ -558,24 +559,13 @@ async def test_a_dead_agent_leaves_the_boat_to_ardurovers_own_failsafe():
             await poll(lambda: not near_state(boat, ORIGIN, 10), 10, "10 m out")
         gone = time.monotonic()
         # The agent is gone (close_action "none": like a crash). Listen as another GCS.
-        observer = mavutil.mavlink_connection(address, source_system=200)
-        modes: list[int] = []
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and 11 not in modes:
-            observer.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-            beat = await asyncio.to_thread(
-                observer.recv_match, type="HEARTBEAT", blocking=True, timeout=0.5
+        with ground_station(address) as observer:
+            modes = await modes_until(
+                observer, until=11, within=10, vehicle_type=MAV.MAV_TYPE_SURFACE_BOAT
             )
-            if beat is not None and beat.type == MAV.MAV_TYPE_SURFACE_BOAT:
-                modes.append(int(beat.custom_mode))
         assert 11 in modes, f"no RTL after the agent died; modes seen {modes}"
         # 2 s of silence, then FS_TIMEOUT's 1.5 s, counted from the agent's last heartbeat.
         assert time.monotonic() - gone > 2.0
-    finally:
-        if observer is not None:
-            observer.close()
-        sim.terminate()
-        sim.wait(5)
 
 
 # --- options ------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ from typing import Any
 from agents.geo import distance_m, offset
 from agents.vehicles.mavlink.dialect import MAV, mavutil
 from agents.vehicles.mavlink.sim import BOAT_SIM_ORIGIN as BOAT_HOME
-from tests.agents.mavlink_rig import HOME, ROOT, start_simulator
+from tests.agents.mavlink_rig import HOME, ROOT, simulator_listening
 
 GCS_SYSID = 255
 
@@ -29,26 +29,13 @@ def simulator(*args: str) -> Iterator[Any]:
     talking to it; both closed at the end. Only a heartbeat is sent, so the simulator
     knows where to send: no stream is asked for."""
     home = () if "--home" in args else ("--home", f"{HOME[0]},{HOME[1]}")
-    sim = start_simulator("--listen", "udpin:127.0.0.1:0", *home, *args)
-    gcs = None
-    try:
-        assert sim.stdout is not None
-        ready = sim.stdout.readline().split()
-        assert ready and ready[0] == "READY", ready
-        gcs = mavutil.mavlink_connection(
-            ready[1].replace("udpin:", "udpout:"), source_system=GCS_SYSID, source_component=190
-        )
-        gcs.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-        yield gcs
-    finally:
-        if gcs is not None:
-            gcs.close()
-        sim.terminate()
+    with simulator_listening(*home, *args) as (_, address):
+        gcs = mavutil.mavlink_connection(address, source_system=GCS_SYSID, source_component=190)
         try:
-            sim.wait(5)
-        except subprocess.TimeoutExpired:
-            sim.kill()
-            sim.wait()
+            gcs.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            yield gcs
+        finally:
+            gcs.close()
 
 
 def first(gcs: Any, kind: str, within: float, where: Callable[[Any], bool] = lambda m: True) -> Any:

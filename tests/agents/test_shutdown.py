@@ -34,9 +34,16 @@ from agents.protocol import (
     generate_keypair,
     load_private_key,
 )
-from agents.vehicles.mavlink.dialect import MAV, mavutil
+from agents.vehicles.mavlink.dialect import MAV
 from tests.agents.documents import grant_for, task_for
-from tests.agents.mavlink_rig import HOME, ROOT, start_simulator, watch
+from tests.agents.mavlink_rig import (
+    HOME,
+    ROOT,
+    ground_station,
+    modes_until,
+    simulator_listening,
+    watch,
+)
 from tests.control import command, recv
 
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
@@ -95,17 +102,8 @@ def make_grant() -> str:
 async def simulator() -> AsyncIterator[str]:
     """The simulated ArduCopter (4x flight time, GCS fail-safe off: only the agent acts)
     on a free port; yields the address to reach it."""
-    sim = start_simulator(
-        "--listen", "udpin:127.0.0.1:0", "--home", f"{HOME[0]},{HOME[1]}", "--speedup", "4",
-    )  # fmt: skip
-    try:
-        assert sim.stdout is not None
-        ready = sim.stdout.readline().split()
-        assert ready[0] == "READY", ready
-        yield ready[1].replace("udpin:", "udpout:")
-    finally:
-        sim.terminate()
-        sim.wait(5)
+    with simulator_listening("--home", f"{HOME[0]},{HOME[1]}", "--speedup", "4") as (_, address):
+        yield address
 
 
 def agent_config(folder: Path, platform_port: int, autopilot: str) -> Path:
@@ -147,23 +145,14 @@ def logged_at(line: str) -> float:
 async def modes_seen(address: str, until: int, within: float) -> tuple[list[int], float]:
     """The autopilot's modes as another ground station (system 200) sees them in its
     heartbeats, until ``until`` shows; and its FENCE_ENABLE then."""
-    observer = mavutil.mavlink_connection(address, source_system=200)
-    modes: list[int] = []
-    try:
-        deadline = time.monotonic() + within
-        while time.monotonic() < deadline and until not in modes:
-            observer.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-            beat = await asyncio.to_thread(
-                observer.recv_match, type="HEARTBEAT", blocking=True, timeout=0.5
-            )
-            if beat is not None and beat.type == MAV.MAV_TYPE_QUADROTOR:
-                modes.append(int(beat.custom_mode))
+    with ground_station(address) as observer:
+        modes = await modes_until(
+            observer, until=until, within=within, vehicle_type=MAV.MAV_TYPE_QUADROTOR
+        )
         observer.mav.param_request_read_send(1, 1, b"FENCE_ENABLE", -1)
         value = await asyncio.to_thread(
             observer.recv_match, type="PARAM_VALUE", blocking=True, timeout=5
         )
-    finally:
-        observer.close()
     return modes, -1.0 if value is None else float(value.param_value)
 
 
