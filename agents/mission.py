@@ -14,6 +14,9 @@ vehicle's ordinary commands and reports what happens as session events. Two kind
     take off if needed, fly to ``target`` at ``altitude_m``, descend to
     ``drop_altitude_m``, release the payload once (``payload_released``), climb back
     and hold.
+``return``
+    fly home with the vehicle's own ``return_to_home`` (a copter lands there), the
+    session still open: its users watch the way back (a rescue's last phase).
 ``parcel``
     take off if needed, fly to ``pickup``, descend to ``load_altitude_m`` and wait
     ``load_s`` for the parcel to be put on board (``parcel_loaded``), fly it to
@@ -126,7 +129,15 @@ class ParcelMission:
     kind: str = "parcel"
 
 
-Mission: TypeAlias = SearchMission | DeliveryMission | ParcelMission
+@dataclass(frozen=True)
+class ReturnMission:
+    """Go home (``return_to_home``) while the session stays open."""
+
+    id: str
+    kind: str = "return"
+
+
+Mission: TypeAlias = SearchMission | DeliveryMission | ParcelMission | ReturnMission
 
 _FIELDS: Final = {
     "search": {
@@ -139,6 +150,7 @@ _FIELDS: Final = {
         "min_confidence",
     },
     "delivery": {"kind", "id", "target", "altitude_m", "drop_altitude_m", "speed_mps"},
+    "return": {"kind", "id"},
     "parcel": {
         "kind",
         "id",
@@ -198,6 +210,8 @@ def mission_parse(raw: Any) -> Mission:
     mission_id = raw.get("id")
     if not isinstance(mission_id, str) or not 0 < len(mission_id) <= 100:
         raise MissionError("mission.id: a non-empty string of at most 100 characters")
+    if kind == "return":
+        return ReturnMission(id=mission_id)
     altitude = _num(raw, "altitude_m", None, 1.0, MAX_ALTITUDE_M)
     speed = _num(raw, "speed_mps", 10.0, 0.1, MAX_SPEED_MPS)
     if kind == "parcel":
@@ -368,6 +382,9 @@ class MissionRunner:
                 await self._search(self.mission)
             elif isinstance(self.mission, ParcelMission):
                 await self._parcel(self.mission)
+            elif isinstance(self.mission, ReturnMission):
+                self._progress("returning")
+                await self._command("return_to_home", {})
             else:
                 await self._deliver(self.mission)
         except _Interrupted as exc:

@@ -34,6 +34,9 @@ def vehicle_mission(*, assignment: Assignment) -> dict[str, Any] | None:
     # The id names the session, the role and this assignment: the agent keeps one
     # running mission per id and never repeats it.
     mission_id = f"{assignment.session_id}-{assignment.role}-{assignment.pk}"
+    if mission.state == Mission.State.RETURNING:
+        # The last leg, with the session open: home, watched by the user.
+        return {"kind": "return", "id": f"{mission_id}-home"}
     if assignment.role == SEARCH:
         start = _start_index(mission, assignment)
         return {

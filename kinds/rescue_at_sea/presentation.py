@@ -92,6 +92,41 @@ def mission_phase(mission: Mission, assignments: list[Assignment]) -> dict[str, 
     }
 
 
+def vehicle_doing(assignment: Assignment, mission: Mission) -> str:
+    """What a vehicle of the mission is doing, in words: its status while it works the
+    mission, "flying home, 895 m from Costa Nova station" once its part is done (the
+    agent may call itself idle on its way back), "home" once there."""
+    v = assignment.vehicle
+    if v.status == v.Status.OFFLINE:
+        return "offline"
+    working = assignment.active and mission.state in WORKING
+    if working:
+        return v.get_status_display()
+    station = (v.station.lat, v.station.lon)
+    here = _where(assignment)
+    away_m = distance_m(here, station) if here is not None else 0.0
+    flying = v.alt is not None and v.alt > 1.0
+    if away_m > 30 or flying:
+        return f"flying home, {away_m:,.0f} m from {v.station.name}"
+    return "home"
+
+
+def mission_headline(mission: Mission, phase: dict[str, Any], search_name: str | None) -> str:
+    """The mission's banner: its status, but while the search drone flies it, what the
+    phase says (on its way, searching), so the banner and "Now" never disagree."""
+    if (
+        mission.state == Mission.State.SEARCHING
+        and search_name
+        and phase.get("label")
+        in (
+            "on the way to the search area",
+            "searching",
+        )
+    ):
+        return f"{search_name} is {phase['label']}"
+    return mission.status_text
+
+
 def mission_json(mission: Mission) -> dict[str, Any]:
     """The mission as the live map shows it: area, path, progress, detection, vehicles
     (with where they are now) and the log's milestones."""
@@ -109,6 +144,7 @@ def mission_json(mission: Mission) -> dict[str, Any]:
                 "role": a.role,
                 "active": a.active,
                 "status": v.status,
+                "doing": vehicle_doing(a, mission),
                 "lat": v.lat,
                 "lon": v.lon,
                 "alt": v.alt,
@@ -132,13 +168,15 @@ def mission_json(mission: Mission) -> dict[str, Any]:
         {"seq": e.seq, "at": e.created_at.isoformat(), "kind": e.kind, "data": e.data}
         for e in session.events.filter(kind__in=shown).order_by("seq")
     ]
+    phase = mission_phase(mission, assignments)
+    search = next((a.vehicle.name for a in assignments if a.active and a.role == SEARCH), None)
     return {
         "session": {"id": str(session.pk), "state": session.state, "reason": session.reason},
         "state": mission.state,
         "state_label": Mission.State(mission.state).label,
         "final": mission.state in FINAL_MISSION,
         "working": mission.state in WORKING,
-        "status": mission.status_text,
+        "status": mission_headline(mission, phase, search),
         "area": mission.area,
         "path": mission.path,
         "progress": mission.progress,
@@ -147,6 +185,6 @@ def mission_json(mission: Mission) -> dict[str, Any]:
         "detection": mission.detection,
         "released": mission.released_at is not None,
         "vehicles": vehicles,
-        "phase": mission_phase(mission, assignments),
+        "phase": phase,
         "timeline": timeline,
     }

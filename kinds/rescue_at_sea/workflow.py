@@ -11,6 +11,10 @@ everything they change is committed with the state that records it, and a step t
 runs twice (a worker killed before its ack, a timer and an event together) finds the
 work done. Celery runs them (``tasks``) with late acknowledgement, and a periodic timer
 re-runs every unfinished mission, so a lost message delays a mission by one tick.
+
+The session stays open while the vehicles fly home (``returning``: each is sent home
+with a task of its own), so that its user watches the way back; it ends once they are
+home (``completed``).
 """
 
 from __future__ import annotations
@@ -270,7 +274,7 @@ def _assign_delivery(mission: Mission) -> None:
 
 def _supervise_delivery(mission: Mission) -> None:
     if mission.released_at is not None:
-        _end(mission, S.RETURNING, "life jacket delivered; vehicles returning to their stations")
+        _return_home(mission)
         return
     assignment = _active(mission, DELIVERY)
     if assignment is None:
@@ -290,6 +294,17 @@ def _supervise_delivery(mission: Mission) -> None:
         _assign_delivery(mission)
         return
     task_redeploy_if_unaccepted(session=mission.session, assignment=assignment)
+
+
+def _return_home(mission: Mission) -> None:
+    """The life jacket is out: every vehicle still on the session is sent home with a
+    task of its own (mission ``return``), the session staying open so that its user
+    watches them fly back; it ends once they are home (:func:`_check_returned`)."""
+    _set(mission, S.RETURNING, "life jacket delivered; the vehicles fly home")
+    for assignment in Assignment.objects.filter(session_id=mission.pk, active=True).select_related(
+        "vehicle__vehicle_type", "vehicle__station"
+    ):
+        vehicle_task_deploy(session=mission.session, assignment=assignment)
 
 
 def _end(mission: Mission, state: str, text: str) -> None:
@@ -316,6 +331,7 @@ def _check_returned(mission: Mission) -> None:
     text = "mission completed: person found, life jacket delivered, vehicles home"
     if away:
         text = f"mission completed; not yet back: {', '.join(sorted(away))}"
+    session_close(session=mission.session, reason=text)
     _set(mission, S.COMPLETED, text, timeline=timeline(mission))
 
 

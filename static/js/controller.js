@@ -859,10 +859,14 @@
 
     showTrack(pc, event) {
       this.ui.video.srcObject = event.streams[0] || new MediaStream([event.track]);
-      if (this.ui.videoNote) this.ui.videoNote.textContent = "";
       const count = () => {
         if (this.pc !== pc) return;
         this.stats.framesDecoded += 1;
+        if (this.stats.framesDecoded === 1) {
+          // The picture is here: no "connected" over a black box before it.
+          if (this.ui.videoNote) this.ui.videoNote.textContent = "";
+          if (this.connState === "connected") this.setState("connected");
+        }
         this.lastFrameAt = performance.now();
         this.ui.video.requestVideoFrameCallback(count);
       };
@@ -1031,7 +1035,13 @@
         tag.className = "tag state-ended";
       }
       this.releaseAll(false);
-      this.showBanner(`Session over: ${reason || "ended"}.`, "info");
+      // A page with a status banner of its own (a rescue's mission) says it there: one
+      // banner, not two saying the same.
+      if (this.root.querySelector("[data-mission-status]")) {
+        if (this.ui.banner) this.ui.banner.hidden = true;
+      } else {
+        this.showBanner(`Session over: ${reason || "ended"}.`, "info");
+      }
       this.setState("ended");
       this.root.classList.add("over");
       if (this.ws) this.ws.close(1000, "session over");
@@ -1058,7 +1068,10 @@
     setState(state) {
       this.connState = state;
       if (this.ui.state) {
-        this.ui.state.textContent = state;
+        // Connected but no picture yet: say so rather than "connected" over a black
+        // video (the first frames can take seconds).
+        const waiting = state === "connected" && this.vehicle && this.vehicle.video && !this.stats.framesDecoded;
+        this.ui.state.textContent = waiting ? "connected, waiting for the picture" : state;
         this.ui.state.dataset.connState = state;
       }
     }

@@ -157,14 +157,25 @@ def test_whole_rescue_from_area_to_completed(world, client_user, settings) -> No
         lon=person[1],
     )
     assert step(session) == Mission.State.RETURNING
+    # Both vehicles are sent home with a task of their own, the session still open: its
+    # user watches the way back.
     session.refresh_from_db()
-    assert session.state == Session.State.ENDED
-    assert "delivered" in session.reason
-    # Both vehicles fly home; the mission completes once they have landed there.
-    Vehicle.objects.filter(pk=search.vehicle_id).update(status=Vehicle.Status.RETURNING, alt=40)
+    assert session.state == Session.State.ACTIVE
+    for vehicle in (search, delivery):
+        home = vehicle_mission(assignment=Assignment.objects.get(pk=vehicle.pk))
+        assert home is not None and home["kind"] == "return" and home["id"].endswith("-home")
+    home_tasks = session.events.filter(kind="task_deployed").order_by("-seq")[:2]
+    assert {e.data["vehicle"] for e in home_tasks} == {
+        str(search.vehicle_id),
+        str(delivery.vehicle_id),
+    }
+    # The mission completes, and the session ends, once they have landed there.
+    Vehicle.objects.filter(pk=search.vehicle_id).update(alt=40)
     assert step(session) == Mission.State.RETURNING
     online("search-1", "lifeguard-1")
     assert step(session) == Mission.State.COMPLETED
+    session.refresh_from_db()
+    assert session.state == Session.State.ENDED and "mission completed" in session.reason
     final = session.events.filter(kind="mission_state").order_by("-seq").first()
     assert set(final.data["timeline"]) == {
         "requested",

@@ -195,7 +195,7 @@
             const li = document.createElement("li");
             const battery = v.battery != null ? ` · ${Math.round(v.battery)}%` : "";
             const alt = v.alt != null ? ` · ${v.alt.toFixed(0)} m` : "";
-            li.textContent = `${v.name} (${v.role}${v.active ? "" : ", released"}) · ${v.status}${alt}${battery}`;
+            li.textContent = `${v.name} (${v.role}${v.active ? "" : ", released"}) · ${v.doing || v.status}${alt}${battery}`;
             return li;
           }),
         );
@@ -230,7 +230,13 @@
         case "search_leg": return d.start_index ? `${d.vehicle_name} continues from waypoint ${d.start_index + 1}` : `${d.vehicle_name} starts the search`;
         case "mission_state": return d.text || d.to;
         case "person_detected": return `person detected at ${Number(d.lat).toFixed(5)}, ${Number(d.lon).toFixed(5)}`;
-        case "notice_sent": return `${d.channel === "dashboard" ? "monitors alerted" : "rescue team notified"} (${d.channel})`;
+        case "notice_sent": {
+          // Which notice: the monitors hear of a wait and of the person found, the team
+          // of the person found by e-mail and webhook; each line says which.
+          const who = d.channel === "dashboard" ? "monitors alerted" : `rescue team told by ${d.channel === "email" ? "e-mail" : d.channel}`;
+          const what = String(d.message || d.topic || "").split("\n")[0].replace(/_/g, " ");
+          return what ? `${who}: ${what}` : who;
+        }
         case "payload_released": return "life jacket released";
         case "vehicle_released": return `${d.vehicle_name} released: ${d.reason}`;
         case "state": return `session ${d.to}${d.reason ? ": " + d.reason : ""}`;
