@@ -7,9 +7,11 @@ from __future__ import annotations
 import base64
 import hashlib
 import hmac
+import time
 from typing import Any
 
 import pytest
+from django.urls import reverse
 
 from services.ice import ice_servers_for, turn_credentials
 
@@ -55,3 +57,17 @@ def test_turn_credentials_end_with_the_grant_they_come_with(settings: Any) -> No
     # A grant already over brings no TURN server at all (STUN still).
     assert ice_servers_for("s1", expires_at=now - 1, now=now) == [stun]
     assert ice_servers_for("s1", expires_at=now + 0.5, now=now) == [stun]
+
+
+@pytest.mark.django_db
+def test_a_user_tasks_turn_credential_ends_with_its_grant(settings: Any, client, live_session):
+    """A viewer or a controller who kept a user task cannot use its TURN credential
+    after the grant's end (it used to stay valid an hour)."""
+    settings.IOUV_TURN_URLS = ["turn:turn.example.org:3478"]
+    settings.IOUV_TURN_SECRET = "shh"
+    settings.IOUV_TURN_TTL_S = 3600
+    session, _ = live_session
+    task = client.post(reverse("session_grant", args=[session.pk])).json()
+    (turn,) = task["ice_servers"]
+    expiry = int(turn["username"].split(":")[0])
+    assert time.time() < expiry <= task["expires_at"] <= time.time() + settings.IOUV_GRANT_TTL_S
