@@ -35,3 +35,12 @@ accesslog = None
 errorlog = "-"
 loglevel = "info"
 proc_name = "iouv-web"
+
+
+def child_exit(server: object, worker: object) -> None:
+    """A worker process ended: with prometheus-client's multiprocess mode (the unit
+    sets ``PROMETHEUS_MULTIPROC_DIR``), its live gauges stop counting (services.metrics)."""
+    if os.environ.get("PROMETHEUS_MULTIPROC_DIR"):
+        from prometheus_client import multiprocess
+
+        multiprocess.mark_process_dead(worker.pid)  # type: ignore[attr-defined]

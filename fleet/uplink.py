@@ -107,8 +107,9 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-#: What the server sends every WebSocket as it shuts down (RFC 6455: "service restart").
-CLOSE_SERVICE_RESTART = 1012
+#: What the server closes every WebSocket with as it shuts down (RFC 6455, "service
+#: restart"): received, never sent, by the uplink.
+SERVER_SHUTTING_DOWN = 1012
 CLOSE_BAD_VERSION = 4400
 CLOSE_UNAUTHORIZED = 4401
 CLOSE_HELLO_TIMEOUT = 4408
@@ -795,7 +796,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
 
     async def disconnect(self, code: int) -> None:
         try:
-            if code == CLOSE_SERVICE_RESTART:
+            if code == SERVER_SHUTTING_DOWN:
                 # The server is shutting down (a deploy): this process no longer holds
                 # its uplinks, and their agents reconnect to another (fleet.servers).
                 await uplink_server_stopping()
