@@ -195,5 +195,9 @@ async def test_the_spectate_list_follows_a_session_whose_driver_is_gone(world: W
         timeout=30000,
     )
     text = await watcher.locator(f'[data-spectate="{session_id}"]').inner_text()
-    assert "Nobody is in control (link lost): the vehicle performed stop on its own" in text
+    # In words, not codes: why nobody is, and what the car did, in its own words.
+    assert (
+        "Nobody is in control: the driver's link to the vehicle was lost, so car-1 will "
+        "stop where it is." in text
+    )
     assert "if nobody takes control" in text
