@@ -8,7 +8,8 @@ Order of checks, first failure wins and is reported with its code:
 4. ``latency``         - round trip past the task's hard limit: only stop/land/RTL pass
 5. ``altitude_limit``  - the command would take the vehicle above the task's ceiling
 6. ``geofence``        - ... or outside the task's geofence
-and speeds are clamped to the task's max speed and, past the soft latency limit,
+and speeds are clamped to the task's max speed (every speed a command carries: 0, the
+vehicle's own cruise speed, becomes the max) and, past the soft latency limit,
 lowered linearly down to :data:`MIN_SPEED_FACTOR` at the hard limit.
 
 **Limits, as the vehicle stops.** A command that goes to a point (a take-off, a
@@ -164,6 +165,7 @@ class CommandGate:
             )
         if spec.speed_arg and spec.speed_arg in clean:
             clean[spec.speed_arg] = self._speed(spec, clean[spec.speed_arg], factor)
+        self._cap_speeds(spec, clean)
         slowed = self._check_envelope(name, clean, spec)
         return Checked(name, clean, factor if spec.speed_arg else 1.0, slowed)
 
@@ -173,6 +175,19 @@ class CommandGate:
         if self.limits.max_speed_mps is not None and unit == "m/s":
             speed = min(speed, self.limits.max_speed_mps)
         return speed
+
+    def _cap_speeds(self, spec: CommandSpec, args: dict[str, Any]) -> None:
+        """Every speed a command carries (an argument in m/s: a waypoint's, a mission
+        leg's) at most the task's maximum; 0, which asks for the vehicle's own cruise
+        speed (an autopilot's WPNAV_SPEED, faster than any limit may be), becomes the
+        maximum itself."""
+        limit = self.limits.max_speed_mps
+        if limit is None:
+            return
+        for arg, arg_spec in spec.args.items():
+            if arg_spec.get("unit") == "m/s" and isinstance(args.get(arg), int | float):
+                value = float(args[arg])
+                args[arg] = limit if value == 0 else min(value, limit)
 
     # --- the limits ----------------------------------------------------------------------
     def _check_envelope(self, name: str, args: dict[str, Any], spec: CommandSpec) -> str | None:

@@ -58,6 +58,8 @@ DRONE_COMMANDS = (
     "go_to_waypoint",
 )
 #: Fast flights: 4x flight time, RTL at 6 m with a short loiter above home.
+#: The tasks' link-loss timeout (see make_task).
+LINK_LOSS_TIMEOUT_MS = 2000
 SIM = {"speedup": 4, "params": {"RTL_ALT": 600, "RTL_LOIT_TIME": 500}}
 
 
@@ -87,7 +89,9 @@ def make_task(**limits: Any) -> VehicleTask:
         VEHICLE,
         DRONE_COMMANDS,
         **{
-            "link_loss_timeout_ms": 500,
+            # Not 500 ms: a test's loop stalled that long by a loaded machine would trip
+            # the fail-safe in tests about something else (the link-loss tests wait).
+            "link_loss_timeout_ms": LINK_LOSS_TIMEOUT_MS,
             "failsafe_action": "return_to_home",
             "max_altitude_m": 6,
             **limits,

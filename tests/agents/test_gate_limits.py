@@ -204,3 +204,30 @@ def test_a_vehicle_that_says_nothing_of_its_braking_is_judged_by_the_projected_p
     with pytest.raises(Refusal) as refused:
         gate.check("up", {"speed_mps": 2.5})  # 15.5 m
     assert str(refused.value) == "up would climb to 15.5 m, above the 15 m limit"
+
+
+def test_every_speed_a_command_carries_is_capped_and_the_vehicles_own_becomes_the_limit():
+    """A waypoint's speed above the task's maximum is capped; speed 0 (the vehicle's
+    own cruise speed, which may be faster than any limit) becomes the maximum."""
+    waypoint = CommandSpec(
+        "go_to_waypoint",
+        args={
+            "lat": {"type": "number", "min": -90, "max": 90},
+            "lon": {"type": "number", "min": -180, "max": 180},
+            "speed_mps": {"type": "number", "min": 0, "max": 20, "default": 0, "unit": "m/s"},
+        },
+    )
+
+    class Waypoints(Vehicle):
+        def commands(self) -> list[CommandSpec]:
+            return [*super().commands(), waypoint]
+
+    limited = CommandGate(
+        Waypoints(), allowed=("go_to_waypoint",), limits=Limits(max_speed_mps=2.0)
+    )
+    here = {"lat": CENTRE[0], "lon": CENTRE[1]}
+    assert limited.check("go_to_waypoint", {**here, "speed_mps": 15}).args["speed_mps"] == 2.0
+    assert limited.check("go_to_waypoint", {**here, "speed_mps": 0}).args["speed_mps"] == 2.0
+    assert limited.check("go_to_waypoint", {**here, "speed_mps": 1.5}).args["speed_mps"] == 1.5
+    free = CommandGate(Waypoints(), allowed=("go_to_waypoint",), limits=Limits())
+    assert free.check("go_to_waypoint", {**here, "speed_mps": 0}).args["speed_mps"] == 0

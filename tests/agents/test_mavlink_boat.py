@@ -43,6 +43,7 @@ from agents.vehicles.mavlink.sim.cli import parse_args
 from agents.vehicles.registry import adapter_create
 from tests.agents.documents import grant_for, task_for
 from tests.agents.mavlink_rig import (
+    LINK_LOSS_TIMEOUT_MS,
     control_rigs,
     ground_station,
     modes_until,
@@ -50,6 +51,7 @@ from tests.agents.mavlink_rig import (
     simulator_listening,
     watch,
 )
+from tests.agents.waiting import Sampler
 from tests.control import command, recv
 
 PRIVATE_PEM, PUBLIC_PEM = generate_keypair()
@@ -112,7 +114,7 @@ def make_task(**limits: Any) -> VehicleTask:
     return task_for(
         VEHICLE,
         BOAT_COMMANDS,
-        **{"link_loss_timeout_ms": 500, "failsafe_action": "stop", **limits},
+        **{"link_loss_timeout_ms": LINK_LOSS_TIMEOUT_MS, "failsafe_action": "stop", **limits},
     )
 
 
@@ -224,28 +226,17 @@ def near(location: dict[str, float] | None, point: tuple[float, float], metres: 
     return location is not None and distance_m((location["lat"], location["lon"]), point) < metres
 
 
-class Track:
+class Track(Sampler):
     """Every position the adapter reports, sampled every 20 ms."""
 
     def __init__(self, boat: MavlinkAdapter) -> None:
         self.boat = boat
         self.positions: list[tuple[float, float]] = []
-        self._task: asyncio.Task[None] | None = None
 
-    async def _run(self) -> None:
-        while True:
-            position = self.boat.state().position
-            if position is not None:
-                self.positions.append(position)
-            await asyncio.sleep(0.02)
-
-    async def __aenter__(self) -> Track:
-        self._task = asyncio.create_task(self._run())
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        assert self._task is not None
-        self._task.cancel()
+    def sample(self) -> None:
+        position = self.boat.state().position
+        if position is not None:
+            self.positions.append(position)
 
 
 # --- a boat, not a copter -----------------------------------------------------------------
@@ -626,27 +617,26 @@ BOAT_FENCE_MARGIN_M = 1.0
 BOAT_UNCOMMANDED_FENCE_MARGIN_M = 2.5
 
 
-class Farthest:
+class Farthest(Sampler):
     """The boat's greatest distance from ``centre``, sampled every 20 ms."""
 
     def __init__(self, boat: MavlinkAdapter, centre: tuple[float, float]) -> None:
         self.boat, self.centre, self.value = boat, centre, 0.0
-        self._task: asyncio.Task[None] | None = None
 
-    async def _run(self) -> None:
-        while True:
-            here = self.boat.state().position
-            if here is not None:
-                self.value = max(self.value, distance_m(self.centre, here))
-            await asyncio.sleep(0.02)
+    def sample(self) -> None:
+        here = self.boat.state().position
+        if here is not None:
+            self.value = max(self.value, distance_m(self.centre, here))
 
-    async def __aenter__(self) -> Farthest:
-        self._task = asyncio.create_task(self._run())
-        return self
 
-    async def __aexit__(self, *exc: object) -> None:
-        assert self._task is not None
-        self._task.cancel()
+class Fastest(Sampler):
+    """The boat's greatest ground speed, sampled every 20 ms."""
+
+    def __init__(self, boat: MavlinkAdapter) -> None:
+        self.boat, self.value = boat, 0.0
+
+    def sample(self) -> None:
+        self.value = max(self.value, self.boat.t.speed or 0.0)
 
 
 async def test_a_held_forward_key_stops_the_boat_inside_its_fence(make_rig: RigFactory):
@@ -710,19 +700,52 @@ async def test_sent_out_by_another_ground_station_the_boat_is_caught_on_its_way(
     await ws.close()
 
 
-async def test_too_fast_on_its_way_the_boat_slows_down_as_ardurover_allows(
+async def test_a_waypoint_at_the_autopilots_own_speed_keeps_the_boat_to_the_limit(
     make_rig: RigFactory,
 ):
-    """A waypoint at the autopilot's own speed (WP_SPEED, 5 m/s here) under a 2 m/s
-    limit: on its way to a position ArduRover takes DO_CHANGE_SPEED, so the envelope
-    slows it there."""
+    """Speed 0 asks for ArduRover's own WP_SPEED (5 m/s here), faster than the task's
+    2 m/s: the gate sends the limit instead (after the position, as ArduRover takes
+    it), and the boat never breaks it."""
     rig = await make_rig(make_task(max_speed_mps=2.0), simulator={"speedup": 1})
     ws = await join(rig)
     await arm(ws)
-    target = offset(ORIGIN, -150, 0)
-    ack = await command(ws, 2, "go_to_waypoint", lat=target[0], lon=target[1], speed_mps=0)
-    assert ack["ok"], ack
-    await watch(ws, lambda d: bool(rig.reported("envelope_restored")), 30, "slowed down")
+    target = offset(ORIGIN, -60, 0)
+    async with Fastest(rig.boat) as fastest:
+        ack = await command(ws, 2, "go_to_waypoint", lat=target[0], lon=target[1], speed_mps=0)
+        assert ack["ok"], ack
+        await watch(
+            ws,
+            lambda d: distance_m(target, point(d["location"])) < 3 and d["speed"] < 0.1,
+            60,
+            "arrived",
+        )
+    print(f"\nboat, 2 m/s limit, a waypoint at speed 0: fastest {fastest.value:.2f} m/s")
+    assert fastest.value <= 2.0 + 0.2, fastest.value
+    assert not rig.reported("envelope_breach")
+    await ws.close()
+
+
+async def test_too_fast_on_its_way_the_boat_slows_down_as_ardurover_allows(
+    make_rig: RigFactory,
+):
+    """Another ground station sends the boat off at ArduRover's own WP_SPEED (5 m/s
+    here) under a 2 m/s limit: on its way to a position ArduRover takes DO_CHANGE_SPEED,
+    so the envelope slows it there."""
+    rig = await make_rig(make_task(max_speed_mps=2.0), simulator={"speedup": 1})
+    ws = await join(rig)
+    await arm(ws)
+    lat, lon = offset(ORIGIN, -150, 0)
+    gcs = mavutil.mavlink_connection(rig.boat.config.connection, source_system=200)
+    try:
+        gcs.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        gcs.mav.command_int_send(
+            1, 1, MAV.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, MAV.MAV_CMD_DO_REPOSITION, 0, 0,
+            -1, MAV.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, 0,
+            round(lat * 1e7), round(lon * 1e7), 0,
+        )  # fmt: skip
+        await watch(ws, lambda d: bool(rig.reported("envelope_restored")), 30, "slowed down")
+    finally:
+        gcs.close()
     [breach] = rig.reported("envelope_breach")
     assert breach["limit"] == "speed" and breach["action"] == "1.6 m/s at most"
     data = await watch(ws, lambda d: True, 2, "telemetry")

@@ -24,6 +24,7 @@ from agents.geo import distance_m, offset
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.mavlink.dialect import MAV, mavutil
 from tests.agents.mavlink_rig import HOME, Rig, RigFactory, join, make_task, watch
+from tests.agents.waiting import Sampler
 from tests.control import command
 
 #: Stated in docs/vehicles/quadcopter.md: never more than this above the ceiling,
@@ -37,34 +38,31 @@ QUAD_FENCE_MARGIN_M = 1.0
 #: ... and one sent out at 5 m/s by someone else (another ground station) at most this
 #: far: the tolerance (1 m) and a check's worth of flight, caught on its way out.
 QUAD_UNCOMMANDED_FENCE_MARGIN_M = 2.5
+#: A waypoint under a speed limit flies at most this much faster than the limit (the
+#: autopilot's speed controller settling on the speed it was sent).
+QUAD_SPEED_TOLERANCE_MPS = 0.2
+#: Sent off faster than the limit by someone else, the drone is at most this much over
+#: it before the envelope's correction takes: the tolerance (0.1 m/s), the check and the
+#: autopilot's jerk-limited slowing down (measured 0.9-1.0 quiet, up to 1.02 with both
+#: cores busy).
+QUAD_SPEED_MARGIN_MPS = 1.5
 #: Real time, and RTL climbs to 15 m: above a 10 m ceiling.
 REAL_TIME = {"speedup": 1, "params": {"RTL_ALT": 1500, "RTL_LOIT_TIME": 500}}
 
 
-class Track:
+class Track(Sampler):
     """Samples the drone's altitude, distance from home and speed every 20 ms."""
 
     def __init__(self, drone: MavlinkAdapter) -> None:
         self.drone = drone
         self.highest = self.farthest = self.fastest = 0.0
-        self._task: asyncio.Task[None] | None = None
 
-    async def _run(self) -> None:
-        while True:
-            t = self.drone.t
-            self.highest = max(self.highest, t.alt or 0.0)
-            if t.lat is not None and t.lon is not None:
-                self.farthest = max(self.farthest, distance_m(HOME, (t.lat, t.lon)))
-            self.fastest = max(self.fastest, t.speed or 0.0)
-            await asyncio.sleep(0.02)
-
-    async def __aenter__(self) -> Track:
-        self._task = asyncio.create_task(self._run())
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        assert self._task is not None
-        self._task.cancel()
+    def sample(self) -> None:
+        t = self.drone.t
+        self.highest = max(self.highest, t.alt or 0.0)
+        if t.lat is not None and t.lon is not None:
+            self.farthest = max(self.farthest, distance_m(HOME, (t.lat, t.lon)))
+        self.fastest = max(self.fastest, t.speed or 0.0)
 
 
 async def take_off_to(ws: ClientConnection, altitude: float) -> None:
@@ -309,20 +307,46 @@ async def test_sent_out_by_another_ground_station_the_drone_is_caught_on_its_way
     await ws.close()
 
 
-async def test_too_fast_the_drone_slows_down(make_quad_rig: RigFactory):
+async def test_a_waypoint_at_the_autopilots_own_speed_keeps_to_the_limit(
+    make_quad_rig: RigFactory,
+):
+    """Speed 0 asks for the autopilot's own cruise speed (5 m/s here), faster than the
+    task's 2 m/s: the gate sends the limit instead, and the drone never breaks it."""
     rig = await make_quad_rig(make_task(max_altitude_m=20, max_speed_mps=2.0), simulator=REAL_TIME)
     drone = rig.drone
     ws = await join(rig)
     async with Track(drone) as track:
         await take_off_to(ws, 5)
-        # Speed 0: the autopilot's own cruise speed (5 m/s), which the gate cannot clamp.
         lat, lon = offset(HOME, 40.0, 0.0)
         ack = await command(ws, 2, "go_to_waypoint", lat=lat, lon=lon, alt_m=5, speed_mps=0)
         assert ack["ok"]
+        await watch(ws, lambda d: from_home(rig) > 35 and d["speed"] < 0.2, 40, "arrived")
+    print(f"\nquad, 2 m/s limit, a waypoint at speed 0: fastest {track.fastest:.2f} m/s")
+    assert track.fastest <= 2.0 + QUAD_SPEED_TOLERANCE_MPS, track.fastest
+    assert rig.reported("envelope_breach") == []
+    await ws.close()
+
+
+async def test_too_fast_the_drone_slows_down(make_quad_rig: RigFactory):
+    """Another operator's ground station sends the drone off at the autopilot's own
+    5 m/s, past the task's 2 m/s: no command of the agent's to cap. The envelope slows
+    it down."""
+    rig = await make_quad_rig(make_task(max_altitude_m=20, max_speed_mps=2.0), simulator=REAL_TIME)
+    drone = rig.drone
+    ws = await join(rig)
+    async with Track(drone) as track, other_ground_station(rig) as gcs:
+        await take_off_to(ws, 5)
+        lat, lon = offset(HOME, 40.0, 0.0)
+        target = drone.link.target_or_default()
+        gcs.mav.command_int_send(
+            target[0], target[1], MAV.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            MAV.MAV_CMD_DO_REPOSITION, 0, 0, -1, 0, 0, 0,
+            round(lat * 1e7), round(lon * 1e7), 5,
+        )  # fmt: skip
         await watch(ws, lambda d: bool(rig.reported("envelope_restored")), 15, "slowed down")
     [breach] = rig.reported("envelope_breach")
     assert breach["limit"] == "speed" and breach["action"] == "slow down to 1.6 m/s"
-    print(f"\nquad, 2 m/s limit, a 5 m/s waypoint leg: fastest {track.fastest:.2f} m/s")
-    assert track.fastest <= 2.0 + 1.0, track.fastest
+    print(f"\nquad, 2 m/s limit, sent off at 5 m/s: fastest {track.fastest:.2f} m/s")
+    assert track.fastest <= 2.0 + QUAD_SPEED_MARGIN_MPS, track.fastest
     assert (drone.t.speed or 0) <= 2.0
     await ws.close()
