@@ -52,7 +52,7 @@ from agents.vehicles.spektrum.sim.line import FrameChecker
 from agents.vehicles.spektrum.sim.model import SimParams, VtolModel
 from tests.agents.documents import grant_for, task_for
 from tests.agents.vtol import FAST, VTOL_COMMANDS
-from tests.agents.waiting import until
+from tests.agents.waiting import Sampler, until
 from tests.control import command, recv
 
 # --------------------------------------------------------------------------------------
@@ -789,29 +789,16 @@ VTOL_MARGIN_M = 3.0
 DEFAULT_RATES = {"max_climb_mps": 4.0, "max_descent_mps": 4.0}
 
 
-class Altimeter:
+class Altimeter(Sampler):
     """Samples the simulator's altitude every 20 ms while in use: the highest point is
     caught between the test's own steps."""
 
     def __init__(self, rig: HubRig) -> None:
         self.rig = rig
         self.highest = 0.0
-        self._task: asyncio.Task[None] | None = None
 
-    async def _run(self) -> None:
-        while True:
-            self.highest = max(self.highest, self.rig.sim().get("alt", 0.0))
-            await asyncio.sleep(0.02)
-
-    async def __aenter__(self) -> Altimeter:
-        self._task = asyncio.create_task(self._run())
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        assert self._task is not None
-        self._task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await self._task
+    def sample(self) -> None:
+        self.highest = max(self.highest, self.rig.sim().get("alt", 0.0))
 
 
 async def live(
