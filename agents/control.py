@@ -693,10 +693,18 @@ class ControlHub:
         client.grant = grant
         wants_control = grant.role == "controller" and grant.user == task.user
         failsafe = self.failsafe_done
+        # The controller's link went silent and the fail-safe acted, its socket still
+        # counted open here (a relay cut with its platform process, a network that
+        # dropped without a close): the user's new connection takes the controls.
+        silent = self.controller is not None and (
+            self._silenced is not None and self._silenced[0] is self.controller
+        )
         if wants_control and self.controller is None:
             # Back within the link-loss timeout (a reload): the watchdog is disarmed
             # before it fires, and the user drives on.
             await self._set_controller(client)
+        elif wants_control and silent:
+            await self._hand_over(client, task)
         else:
             client.role = "viewer"
         vehicle: dict[str, Any] = {
@@ -886,21 +894,25 @@ class ControlHub:
             await self._send(client, error_message("view_only", "your grant is view-only"))
             return
         if client is not self.controller:
-            previous = self.controller
-            await self._set_controller(client)
-            # The platform follows who holds the sticks: a hand-over between the
-            # user's devices, or control taken up again after the controller left.
-            self.report(
-                "control_handover",
-                task.session_id,
-                {
-                    "user": client.grant.user,
-                    "from": previous.link.id if previous is not None else None,
-                    "to": client.link.id,
-                    "role": "controller",
-                },
-            )
+            await self._hand_over(client, task)
         await self._send(client, RoleChange(role="controller"))
+
+    async def _hand_over(self, client: _Client, task: VehicleTask) -> None:
+        """``client`` (the session's user) takes the controls. The platform follows who
+        holds the sticks: a hand-over between the user's devices, control taken up
+        again after the controller left, or from a controller gone silent."""
+        previous = self.controller
+        await self._set_controller(client)
+        self.report(
+            "control_handover",
+            task.session_id,
+            {
+                "user": client.grant.user if client.grant is not None else None,
+                "from": previous.link.id if previous is not None else None,
+                "to": client.link.id,
+                "role": "controller",
+            },
+        )
 
     async def _on_release_control(self, client: _Client, msg: ReleaseControl) -> None:
         if client is self.controller:

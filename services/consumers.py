@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import functools
 import json
 import secrets
@@ -45,6 +46,9 @@ from services.throttle import Throttled, counted_address, throttle_check
 RELAY_RATE_PER_S = 200.0
 RELAY_BURST = 400.0
 CLOSED_BY_AGENT = 4000
+#: A relayed connection whose vehicle has not answered its authentication in this long
+#: is closed with CLOSE_TRY_LATER: the page connects again with a fresh grant.
+RELAY_ANSWER_S = 3.0
 #: The relay's close codes for a refused first frame: not admitted, or the platform
 #: could not check the grant now (its database is away: come back later).
 CLOSE_UNAUTHORIZED = 4401
@@ -193,9 +197,14 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         #: Relayed commands awaiting the vehicle's ack: seq -> when they came (monotonic),
         #: for the relay's round trip (services.metrics).
         self.commands_out: dict[int, float] = {}
+        #: Closes the socket when the vehicle never answers its authentication.
+        self.answer_watch: asyncio.Task[None] | None = None
+        self.answered = False
         await self.accept()
 
     async def disconnect(self, code: int) -> None:
+        if self.answer_watch is not None:
+            self.answer_watch.cancel()
         if self.vehicle_id is None:
             return
         await group_release(relay_group(self.conn), self.channel_name)
@@ -232,6 +241,7 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
             if refusal is not None:
                 await self._refuse(*refusal)
                 return
+            self.answer_watch = asyncio.create_task(self._expect_answer())
         assert self.vehicle_id is not None
         if isinstance(payload, Command):
             if len(self.commands_out) >= COMMANDS_TIMED_MAX:
@@ -285,11 +295,25 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         await group_hold(relay_group(self.conn), self.channel_name)
         return None
 
+    async def _expect_answer(self) -> None:
+        """The vehicle answers an authentication at once when its uplink is there; when
+        it was not (the agent reconnecting after a platform process restarted, or gone),
+        the authentication was lost on the way: the client is told to connect again
+        (4503) rather than wait for an answer that never comes."""
+        await asyncio.sleep(RELAY_ANSWER_S)
+        if not self.answered and not self.closing:
+            await self._refuse(
+                "vehicle_unreachable",
+                "the vehicle did not answer: connect again shortly",
+                CLOSE_TRY_LATER,
+            )
+
     async def relay_from_agent(self, event: dict[str, Any]) -> None:
         """The agent's answer, as the frame's text (the uplink checked and encoded it),
         or ``close`` (the agent dropped this client, with its close code or none)."""
         if event["vehicle_id"] != self.vehicle_id:
             return  # only the session's vehicle may answer on this connection
+        self.answered = True
         self.uplink = event.get("uplink") or self.uplink
         if "text" in event:
             await self.send(text_data=event["text"])

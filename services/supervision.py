@@ -333,6 +333,17 @@ def _on_link_recovered(assignment: Assignment, data: dict[str, Any]) -> None:
     """The controller's input came back on the socket it kept open after a fail-safe:
     the user drives again, and the session goes on (see :func:`sessions_expire_grace`)."""
     _log(assignment, "link_recovered", data)
+    _back_in_service(assignment)
+
+
+def _on_control_handover(assignment: Assignment, data: dict[str, Any]) -> None:
+    """The user took the controls on another connection (a page back after its relay
+    was cut, another device): after a fail-safe the vehicle is in service again."""
+    _log(assignment, "control_handover", data)
+    _back_in_service(assignment)
+
+
+def _back_in_service(assignment: Assignment) -> None:
     if Vehicle.objects.filter(
         pk=assignment.vehicle_id, maintenance=False, status=Vehicle.Status.FAILSAFE
     ).update(status=Vehicle.Status.IN_SERVICE):
@@ -398,7 +409,7 @@ _EVENT_HANDLERS = {
     "failsafe": _on_failsafe,
     "task_ended": _logged_as("task_ended"),
     "link_recovered": _on_link_recovered,
-    "control_handover": _logged_as("control_handover"),
+    "control_handover": _on_control_handover,
     "control_released": _logged_as("control_released"),
     "link_quality": _on_link_quality,
     "control_path": _on_control_path,
@@ -472,10 +483,14 @@ def agent_connected_handle(*, vehicle_id: Any, state: dict[str, Any] | None = No
             if session.state == Session.State.ACTIVE
             else Vehicle.Status.RESERVED
         )
+        # Its session holds it, whatever the agent says it is doing: an agent back after
+        # a platform process restarted reports a fail-safe its user may well recover from
+        # (the session decides that, from the events), and nobody else may have the
+        # vehicle meanwhile.
         if Vehicle.objects.filter(
             pk=vehicle_id,
             maintenance=False,
-            status__in=[Vehicle.Status.IDLE, Vehicle.Status.RELEASING],
+            status__in=[Vehicle.Status.IDLE, Vehicle.Status.RELEASING, Vehicle.Status.FAILSAFE],
         ).update(status=held):
             fleet_notify([vehicle_id])
         if reported == desired:
@@ -548,7 +563,9 @@ def vehicles_back_handle(*, vehicle_ids: Iterable[Any]) -> None:
                 else Vehicle.Status.RESERVED
             )
             Vehicle.objects.filter(
-                pk=assignment.vehicle_id, maintenance=False, status=Vehicle.Status.IDLE
+                pk=assignment.vehicle_id,
+                maintenance=False,
+                status__in=[Vehicle.Status.IDLE, Vehicle.Status.FAILSAFE],
             ).update(status=held)
             _log(assignment, "vehicle_online", {"after": "silence"})
             fleet_notify([assignment.vehicle_id])

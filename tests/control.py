@@ -27,3 +27,13 @@ async def command(ws: ClientConnection, seq: int, name: str, **args: Any) -> dic
     """Send command ``name`` with ``args`` as number ``seq``; returns its ``ack``."""
     await ws.send(json.dumps({"type": "command", "seq": seq, "name": name, "args": args}))
     return await recv(ws, "ack")
+
+
+async def event_named(ws: ClientConnection, name: str, within: float = 3.0) -> dict[str, Any]:
+    """The next ``event`` named ``name``, past the others (a ``consequence`` the agent
+    sends as what ending the session would do changes); TimeoutError after ``within``."""
+    deadline = time.monotonic() + within
+    while True:
+        event = await recv(ws, "event", within=max(0.0, deadline - time.monotonic()))
+        if event["event"] == name:
+            return event

@@ -31,7 +31,7 @@ from tests.agents.car_rig import (
     make_task,
 )
 from tests.agents.waiting import until
-from tests.control import command, recv
+from tests.control import command, event_named, recv
 
 
 async def join(rig: Rig, grant: str | None = None) -> tuple[ClientConnection, dict[str, Any]]:
@@ -254,8 +254,8 @@ async def test_silent_controller_triggers_failsafe_after_timeout(rig: Rig):
     assert (await command(ws, 1, "forward", speed=1.0))["ok"]
     silent_at = await keep_alive(ws, 0.8)
     assert rig.world.speed_mps > 0  # keepalives hold the link
-    event = await recv(ws, "event", within=3)  # the agent tells the user why it stopped
-    assert event["event"] == "failsafe"
+    # The agent tells the user why it stopped.
+    await event_named(ws, "failsafe", within=3)
     # Not before the 500 ms timeout; the upper bound is loose for a busy machine.
     assert 0.45 <= time.monotonic() - silent_at <= 1.5
     assert rig.car.telemetry()["motors"] == {"left": 0.0, "right": 0.0}
@@ -464,10 +464,10 @@ async def test_a_controller_back_after_a_silence_is_reported_once(rig: Rig):
     ws, _ = await join(rig)
     assert (await command(ws, 1, "forward", speed=0.5))["ok"]
     silent_at = time.monotonic()
-    assert (await recv(ws, "event", within=3))["event"] == "failsafe"  # 500 ms of nothing
+    await event_named(ws, "failsafe", within=3)  # 500 ms of nothing
     await ws.send(json.dumps({"type": "keepalive"}))
-    back = await recv(ws, "event")
-    assert back["event"] == "link_recovered" and back["data"]["user"] == "alice"
+    back = await event_named(ws, "link_recovered")
+    assert back["data"]["user"] == "alice"
     after_ms = back["data"]["after_ms"]
     assert 500 <= after_ms <= (time.monotonic() - silent_at) * 1000 + 50
     assert rig.events("link_recovered") == [{"user": "alice", "after_ms": after_ms}]
@@ -562,3 +562,30 @@ async def test_a_car_rolling_out_of_its_geofence_is_stopped(rig: Rig):
     assert rig.events("envelope_restored")[0]["limit"] == "geofence"
     await rig.hub.task_end("fenced", reason="done", action="stop")
     assert rig.hub._envelope is None  # the watch ends with the task
+
+
+async def test_a_new_connection_of_the_user_takes_over_from_a_controller_gone_silent(rig: Rig):
+    """The controller's socket still counts open here but nothing comes on it (a relay
+    cut with its platform process): the fail-safe acts, and the user's new connection
+    is the controller at once, no take_control needed; the platform hears the hand-over."""
+    old, _ = await join(rig)
+    assert (await command(old, 1, "forward", speed=0.5))["ok"]
+    await event_named(old, "failsafe", within=3)  # 500 ms of nothing
+    new, welcome = await join(rig)
+    assert welcome["role"] == "controller"
+    assert (await recv(old, "role"))["role"] == "viewer"
+    assert (await command(new, 2, "forward", speed=0.5))["ok"]
+    assert rig.events("control_handover")[-1]["role"] == "controller"
+    await old.close()
+    await new.close()
+
+
+async def test_a_second_connection_of_the_user_watches_while_the_controller_drives(rig: Rig):
+    """A live controller keeps the controls: another connection of the same user is a
+    viewer until it asks for them (take_control)."""
+    driving, _ = await join(rig)
+    assert (await command(driving, 1, "forward", speed=0.5))["ok"]
+    other, welcome = await join(rig)
+    assert welcome["role"] == "viewer"
+    await driving.close()
+    await other.close()

@@ -323,3 +323,17 @@ def _relay_counts() -> tuple[float, float, float]:
         value("iouv_relay_commands_acked_total", ok="false"),
         value("iouv_relay_round_trip_seconds_count"),
     )
+
+
+async def test_an_authentication_the_vehicle_never_answers_is_closed_to_be_tried_again():
+    """The vehicle's uplink is not there (its agent reconnecting after a platform
+    process restarted): the relayed authentication is lost on the way, and the browser
+    is told to connect again (4503) instead of waiting for ever."""
+    _vehicle_id, _credential, session_id, grant = await _relayed_session()
+    browser = await _browser(session_id)
+    await browser.send_json_to({"type": "auth", "grant": grant})
+    error = await browser.receive_json_from(timeout=10)
+    assert error["type"] == "error" and error["code"] == "vehicle_unreachable", error
+    closed = await browser.receive_output(timeout=10)
+    assert closed == {"type": "websocket.close", "code": 4503}
+    await browser.disconnect()

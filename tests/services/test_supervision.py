@@ -384,6 +384,23 @@ def test_uplink_loss_and_return_during_a_session(live, committing):
     assert len(nonces) == 2 and task.nonce == nonces[-1] != nonces[0]
 
 
+def test_an_agent_back_in_fail_safe_with_its_session_gets_the_sessions_status(live):
+    """A platform process restarted: the agent reconnects and says it is in fail-safe
+    (its relayed user was cut off with the process). Its session still holds it: the
+    user comes back and drives on, and nobody else may have it meanwhile."""
+    session, vehicle, _ = live
+    say(vehicle, event(session, "user_connected", role="controller"))
+    # What the uplink's profile made of the report "failsafe" (fleet.uplink).
+    Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.FAILSAFE)
+    agent_connected.send(
+        sender=None,
+        vehicle_id=str(vehicle.pk),
+        state={"session_id": str(session.pk), "controller": False, "status": "failsafe"},
+    )
+    assert status(vehicle) == Vehicle.Status.IN_SERVICE
+    assert state(session) == Session.State.ACTIVE
+
+
 def test_an_idle_vehicle_coming_online_is_left_alone():
     vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type())
     agent_connected.send(sender=None, vehicle_id=str(vehicle.pk))
