@@ -285,6 +285,25 @@ def ground_station(address: str) -> Iterator[Any]:
         gcs.close()
 
 
+def sent_off(
+    gcs: Any,
+    point: tuple[float, float],
+    alt_m: float,
+    *,
+    target: tuple[int, int] = (1, 1),
+    change_mode: bool = False,
+) -> None:
+    """Another ground station (``gcs``) sends the vehicle to ``point`` at ``alt_m``
+    (DO_REPOSITION, at the autopilot's own speed; ``change_mode``: to GUIDED first):
+    a move no command of the agent's asked for."""
+    flags = MAV.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE if change_mode else 0
+    gcs.mav.command_int_send(
+        target[0], target[1], MAV.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+        MAV.MAV_CMD_DO_REPOSITION, 0, 0, -1, flags, 0, 0,
+        round(point[0] * 1e7), round(point[1] * 1e7), alt_m,
+    )  # fmt: skip
+
+
 async def modes_until(
     gcs: Any, *, until: int, within: float, vehicle_type: int | None = None
 ) -> list[int]:

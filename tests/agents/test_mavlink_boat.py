@@ -48,6 +48,7 @@ from tests.agents.mavlink_rig import (
     ground_station,
     modes_until,
     poll,
+    sent_off,
     simulator_listening,
     watch,
 )
@@ -675,13 +676,8 @@ async def test_sent_out_by_another_ground_station_the_boat_is_caught_on_its_way(
     gcs = mavutil.mavlink_connection(rig.boat.config.connection, source_system=200)
     try:
         async with Farthest(rig.boat, ORIGIN) as farthest:
-            lat, lon = offset(ORIGIN, -150.0, 0.0)
             gcs.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-            gcs.mav.command_int_send(
-                1, 1, MAV.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, MAV.MAV_CMD_DO_REPOSITION, 0, 0,
-                -1, MAV.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, 0,
-                round(lat * 1e7), round(lon * 1e7), 0,
-            )  # fmt: skip
+            sent_off(gcs, offset(ORIGIN, -150.0, 0.0), 0, change_mode=True)
             await watch(ws, lambda d: bool(rig.reported("envelope_breach")), 60, "the envelope")
             await watch(
                 ws,
@@ -734,15 +730,10 @@ async def test_too_fast_on_its_way_the_boat_slows_down_as_ardurover_allows(
     rig = await make_rig(make_task(max_speed_mps=2.0), simulator={"speedup": 1})
     ws = await join(rig)
     await arm(ws)
-    lat, lon = offset(ORIGIN, -150, 0)
     gcs = mavutil.mavlink_connection(rig.boat.config.connection, source_system=200)
     try:
         gcs.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-        gcs.mav.command_int_send(
-            1, 1, MAV.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, MAV.MAV_CMD_DO_REPOSITION, 0, 0,
-            -1, MAV.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, 0,
-            round(lat * 1e7), round(lon * 1e7), 0,
-        )  # fmt: skip
+        sent_off(gcs, offset(ORIGIN, -150, 0), 0, change_mode=True)
         await watch(ws, lambda d: bool(rig.reported("envelope_restored")), 30, "slowed down")
     finally:
         gcs.close()

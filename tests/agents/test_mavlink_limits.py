@@ -23,7 +23,7 @@ from websockets.asyncio.client import ClientConnection
 from agents.geo import distance_m, offset
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.mavlink.dialect import MAV, mavutil
-from tests.agents.mavlink_rig import HOME, Rig, RigFactory, join, make_task, watch
+from tests.agents.mavlink_rig import HOME, Rig, RigFactory, join, make_task, sent_off, watch
 from tests.agents.waiting import Sampler
 from tests.control import command
 
@@ -287,13 +287,7 @@ async def test_sent_out_by_another_ground_station_the_drone_is_caught_on_its_way
     ws = await join(rig)
     async with Track(drone) as track, other_ground_station(rig) as gcs:
         await take_off_to(ws, 5)
-        lat, lon = offset(HOME, 60.0, 0.0)
-        target = drone.link.target_or_default()
-        gcs.mav.command_int_send(
-            target[0], target[1], MAV.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-            MAV.MAV_CMD_DO_REPOSITION, 0, 0, -1, 0, 0, 0,
-            round(lat * 1e7), round(lon * 1e7), 5,
-        )  # fmt: skip
+        sent_off(gcs, offset(HOME, 60.0, 0.0), 5, target=drone.link.target_or_default())
         await watch(ws, lambda d: bool(rig.reported("envelope_breach")), 20, "the envelope")
         await watch(ws, lambda d: from_home(rig) < radius and d["speed"] < 0.2, 30, "back, holding")
     [breach] = rig.reported("envelope_breach")
@@ -336,13 +330,7 @@ async def test_too_fast_the_drone_slows_down(make_quad_rig: RigFactory):
     ws = await join(rig)
     async with Track(drone) as track, other_ground_station(rig) as gcs:
         await take_off_to(ws, 5)
-        lat, lon = offset(HOME, 40.0, 0.0)
-        target = drone.link.target_or_default()
-        gcs.mav.command_int_send(
-            target[0], target[1], MAV.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-            MAV.MAV_CMD_DO_REPOSITION, 0, 0, -1, 0, 0, 0,
-            round(lat * 1e7), round(lon * 1e7), 5,
-        )  # fmt: skip
+        sent_off(gcs, offset(HOME, 40.0, 0.0), 5, target=drone.link.target_or_default())
         await watch(ws, lambda d: bool(rig.reported("envelope_restored")), 15, "slowed down")
     [breach] = rig.reported("envelope_breach")
     assert breach["limit"] == "speed" and breach["action"] == "slow down to 1.6 m/s"

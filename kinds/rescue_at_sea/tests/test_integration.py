@@ -90,15 +90,26 @@ async def _assert_rescued_and_home(session_id: Any, *, delivery: str = "lifeguar
         )
     )
     assert roles == [("delivery", delivery), ("search", "search-1")]
-    homes = await db(
-        lambda: {
-            v.name: (v.status, distance_m(v.position, (v.station.lat, v.station.lon)))
-            for v in Vehicle.objects.select_related("station").filter(
-                name__in=["search-1", delivery]
+    homes: dict[str, tuple[str, float]] = {}
+
+    async def both_home_and_free() -> bool:
+        # Free once each agent has confirmed the end it was sent (releasing until then).
+        homes.update(
+            await db(
+                lambda: {
+                    v.name: (v.status, distance_m(v.position, (v.station.lat, v.station.lon)))
+                    for v in Vehicle.objects.select_related("station").filter(
+                        name__in=["search-1", delivery]
+                    )
+                }
             )
-        }
-    )
-    assert all(s == Vehicle.Status.IDLE and d < 30 for s, d in homes.values()), homes
+        )
+        return all(s == Vehicle.Status.IDLE and d < 30 for s, d in homes.values())
+
+    try:
+        await until(both_home_and_free, within=30, what="both vehicles home and free")
+    except AssertionError:
+        raise AssertionError(f"not home and free: {homes}") from None
     final = await db(
         lambda: (
             Session.objects.get(pk=session_id)
