@@ -45,17 +45,17 @@ def demo_agent_config(path: Path, base: str) -> AgentConfig:
 #: A drone's simulator on a mission: flying at 15 m/s, returning home at 20 m, at 20x;
 #: a drone with a thermal camera at 10x, for its camera's ~9 frames a second (on the
 #: wall clock) to see the sea every 17 m of a search (its footprint is about 30 m wide).
-SIM = {"speedup": 20, "params": {"WPNAV_SPEED": 1500, "RTL_ALT": 2000}}
-SEARCH_SIM = {**SIM, "speedup": 10}
+SIM: dict[str, Any] = {"speedup": 20, "params": {"WPNAV_SPEED": 1500, "RTL_ALT": 2000}}
+SEARCH_SIM: dict[str, Any] = {**SIM, "speedup": 10}
 #: The boat's simulator on a mission: ArduRover's own parameters, at 20x.
-BOAT_SIM = {"speedup": 20}
+BOAT_SIM: dict[str, Any] = {"speedup": 20}
 
 
 def mission_agent_config(path: Path, base: str, *, video: bool = False) -> AgentConfig:
     """The agent of a demo config file against the platform at ``base``, on its fast
     simulator (:data:`SIM`, :data:`SEARCH_SIM`, :data:`BOAT_SIM`), so that a mission
-    takes seconds; with its
-    camera's video offered on loopback if ``video`` (and it has a camera), else none."""
+    takes seconds; with its camera's video offered on loopback if ``video`` (and it has
+    a camera), else none."""
     config = AgentConfig.load(path)
     simulator = SEARCH_SIM if config.thermal is not None else SIM
     if config.adapter_options.get("vehicle_class") == "boat":
