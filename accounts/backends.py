@@ -22,10 +22,9 @@ from django.db.models import Func, OuterRef, Q, QuerySet, Subquery, TextField, V
 from django.db.models.functions import Concat
 
 from accounts.users import User
-from iouv.prepared import Param, PreparedQuery
 
 
-def _permission_rows(user: User | Param | OuterRef) -> QuerySet[Permission]:
+def _permission_rows(user: User | OuterRef) -> QuerySet[Permission]:
     """``user``'s permissions: every one for a superuser, else their own and their
     groups'. Two subqueries rather than joins both ways, which would multiply a
     permission's rows by the users of every group holding it."""
@@ -44,7 +43,7 @@ def _permission_rows(user: User | Param | OuterRef) -> QuerySet[Permission]:
     )
 
 
-def _permissions_of(user: User | Param) -> QuerySet[Permission, tuple[str, str]]:
+def _permissions_of(user: User) -> QuerySet[Permission, tuple[str, str]]:
     """``user``'s permissions as (app_label, codename)."""
     rows = _permission_rows(user)
     return rows.values_list("content_type__app_label", "codename").order_by()
@@ -79,12 +78,6 @@ def permissions_cache(user: User, joined: str | None) -> None:
         user._perm_cache = set(joined.split(",")) if joined else set()  # type: ignore[attr-defined]
 
 
-# What every API request that checks a permission reads: composed once (iouv.prepared).
-_PERMISSIONS: PreparedQuery[Any] = PreparedQuery(
-    lambda: _permissions_of(Param("user", User._meta.pk))
-)
-
-
 class RoleBackend(ModelBackend):
     """ModelBackend whose ``get_all_permissions`` (what ``has_perm`` asks) is one query.
 
@@ -97,11 +90,7 @@ class RoleBackend(ModelBackend):
         if not user_obj.is_active or user_obj.is_anonymous or obj is not None:
             return set()
         if not hasattr(user_obj, "_perm_cache"):
-            rows = (
-                _permissions_of(user_obj)
-                if user_obj.is_superuser
-                else _PERMISSIONS.all(user=user_obj.pk)
-            )
+            rows = _permissions_of(user_obj)
             perms = {f"{label}.{codename}" for label, codename in rows}
             user_obj._perm_cache = perms  # type: ignore[attr-defined]
         return user_obj._perm_cache  # type: ignore[attr-defined,no-any-return]

@@ -20,7 +20,6 @@ from django.utils import timezone
 from accounts.backends import permissions_cache, permissions_joined
 from accounts.models import ApiToken
 from accounts.users import User
-from iouv.prepared import Param, PreparedQuery
 
 SCHEME = "iouv"
 PREFIX_BYTES = 5  # 10 hex digits: room for about a million tokens without retries
@@ -76,18 +75,6 @@ def token_issue(*, user: User, name: str) -> str:
     raise RuntimeError("could not find a free token prefix")  # pragma: no cover
 
 
-# Every API request reads its token, with its user and the user's permissions
-# (accounts.backends): composed once (iouv.prepared).
-_TOKEN_BY_PREFIX: PreparedQuery[ApiToken] = PreparedQuery(
-    lambda: (
-        ApiToken.objects.select_related("user")
-        .annotate(permissions=permissions_joined(OuterRef("user_id")))
-        .filter(prefix=Param("prefix", ApiToken.prefix), revoked_at__isnull=True)
-        .order_by("pk")[:1]
-    )
-)
-
-
 def token_authenticate(raw: str) -> User | None:
     """The active user ``raw`` belongs to, else None (never raises on bad input).
 
@@ -98,7 +85,14 @@ def token_authenticate(raw: str) -> User | None:
     if parsed is None:
         return None
     prefix, secret = parsed
-    token: ApiToken | None = _TOKEN_BY_PREFIX.first(prefix=prefix)
+    # With its user and the user's permissions (accounts.backends), in one query.
+    token: ApiToken | None = (
+        ApiToken.objects.select_related("user")
+        .annotate(permissions=permissions_joined(OuterRef("user_id")))
+        .filter(prefix=prefix, revoked_at__isnull=True)
+        .order_by("pk")
+        .first()
+    )
     if token is None or not hmac.compare_digest(token.digest, _digest(secret)):
         return None
     if not token.user.is_active:

@@ -24,7 +24,6 @@ from ninja import Status, Swagger
 from accounts.users import AuthenticatedHttpRequest
 from fleet.models import Vehicle
 from fleet.status import fleet_snapshot
-from iouv.prepared import Param, PreparedQuery
 from services import api_schemas as schema
 from services.api_kit import (
     ApiError,
@@ -121,29 +120,15 @@ def _visible_session(request: AuthenticatedHttpRequest, session_id: UUID) -> Ses
     return session
 
 
-def _own_session(lock: bool) -> PreparedQuery[Session]:
-    def build() -> Any:
-        rows = Session.objects.select_related("service", "user")
-        if lock:
-            rows = rows.select_for_update(of=("self",), no_key=True)
-        return rows.filter(
-            pk=Param("session", Session.id), user_id=Param("user", Session.user)
-        ).order_by("pk")[:1]
-
-    return PreparedQuery(build)
-
-
-# Every call on one's own session reads it: composed once (iouv.prepared).
-_OWN_SESSION, _OWN_SESSION_LOCKED = _own_session(False), _own_session(True)
-
-
 def _owned_session(
     request: AuthenticatedHttpRequest, session_id: UUID, action: str, *, lock: bool = False
 ) -> Session:
     """The session if the user owns it; 403 if they may only view it, else 404.
     ``lock``: read it locked, in the caller's transaction (only one's own is locked)."""
-    statement = _OWN_SESSION_LOCKED if lock else _OWN_SESSION
-    session: Session | None = statement.first(session=session_id, user=request.user.pk)
+    rows = Session.objects.select_related("service", "user")
+    if lock:
+        rows = rows.select_for_update(of=("self",), no_key=True)
+    session = rows.filter(pk=session_id, user_id=request.user.pk).order_by("pk").first()
     if session is None:
         _visible_session(request, session_id)  # 404 unless the user may view it
         raise ApiError(403, "permission_denied", f"only the session's user may {action} it")

@@ -9,13 +9,12 @@ from django.db.models import BooleanField, Exists, OuterRef, Q, QuerySet, Value
 from django_stubs_ext import WithAnnotations
 
 from accounts.users import User
-from iouv.prepared import Param, PreparedQuery
 from services.models import Service, ServiceGrant
 
 
 def _granted(user_id: Any) -> Exists:
-    """Whether the outer service is granted to the user ``user_id`` (an id, or the
-    :class:`Param` of a prepared statement) or to one of their groups."""
+    """Whether the outer service is granted to the user ``user_id`` or to one of their
+    groups."""
     grants = ServiceGrant.objects.filter(service=OuterRef("pk"))
     return Exists(
         grants.filter(Q(user_id=user_id) | Q(group__in=Group.objects.filter(user=user_id)))
@@ -40,24 +39,10 @@ def services_usable(user: User | AnonymousUser) -> QuerySet[WithAnnotations[Serv
     return active.annotate(usable=_granted(user.pk))
 
 
-# A request's service with the user's right to it (a client's, the usual case), in one
-# statement composed once (iouv.prepared): as services_usable(user).filter(slug=slug).
-_SERVICE_USABLE_BY: PreparedQuery[Service] = PreparedQuery(
-    lambda: Service.objects.filter(is_active=True, slug=Param("slug", Service.slug)).annotate(
-        usable=_granted(Param("user", User._meta.pk))
-    )[:1]
-)
-
-
 def service_usable_get(
     user: User | AnonymousUser, slug: str
 ) -> WithAnnotations[Service, Usable] | None:
     """The active service ``slug`` with ``usable`` (as :func:`services_usable`), or None."""
-    if user.is_authenticated and not user.is_superuser and user.has_perm("services.use_services"):
-        found: WithAnnotations[Service, Usable] | None = _SERVICE_USABLE_BY.first(
-            slug=slug, user=user.pk
-        )
-        return found
     return services_usable(user).filter(slug=slug).first()
 
 

@@ -52,7 +52,6 @@ from fleet.outbox import (
 )
 from fleet.servers import vehicles_silence
 from fleet.uplink import vehicle_send
-from iouv.prepared import Param, PreparedQuery
 from services.deployment import (
     LIVE,
     session_end,
@@ -78,22 +77,6 @@ LINK_QUALITY_EVERY_S = 10.0
 _REASON_MAX = 300
 
 
-# Every report of an agent reads its assignment: composed once (iouv.prepared).
-_ASSIGNMENT_FOR: PreparedQuery[Assignment] = PreparedQuery(
-    lambda: (
-        Assignment.objects.filter(
-            session_id=Param("session", Assignment.session),
-            vehicle_id=Param("vehicle", Assignment.vehicle),
-        )
-        # The session and its service are what every report needs (its log, its kind);
-        # the vehicle and the user are read when a message needs them (a refusal's reason,
-        # some kinds' handlers). Joined too, they were most of a report's cost.
-        .select_related("session__service")
-        .order_by("-active", "-created_at")[:1]
-    )
-)
-
-
 def _assignment_for(*, vehicle_id: Any, session_id: Any) -> Assignment | None:
     """The vehicle's assignment in the session, active first; None (logged) if it has
     none, i.e. the agent talks about a session that is not its own or does not exist."""
@@ -102,7 +85,15 @@ def _assignment_for(*, vehicle_id: Any, session_id: Any) -> Assignment | None:
     except ValueError:
         log.warning("vehicle %s reported on a malformed session id %.40r", vehicle_id, session_id)
         return None
-    assignment: Assignment | None = _ASSIGNMENT_FOR.first(session=pk, vehicle=vehicle_id)
+    assignment = (
+        Assignment.objects.filter(session_id=pk, vehicle_id=vehicle_id)
+        # The session and its service are what every report needs (its log, its kind);
+        # the vehicle and the user are read when a message needs them (a refusal's
+        # reason, some kinds' handlers). Joined too, they were most of a report's cost.
+        .select_related("session__service")
+        .order_by("-active", "-created_at")
+        .first()
+    )
     if assignment is None:
         if Session.objects.filter(pk=pk).exists():
             log.warning("vehicle %s reported on session %s it is not assigned to", vehicle_id, pk)
@@ -511,26 +502,17 @@ def _stale_session(session_id: Any) -> Session | None:
     return Session.objects.filter(pk=pk).first()
 
 
-# The session with the vehicle's name, in one query composed once (iouv.prepared).
-_SESSION_WITH_VEHICLE_NAME: PreparedQuery[Session] = PreparedQuery(
-    lambda: (
-        Session.objects.filter(pk=Param("session", Session.id))
-        .annotate(
-            vehicle_name=Subquery(
-                Vehicle.objects.filter(pk=Param("vehicle", Vehicle.id)).values("name")[:1]
-            )
-        )
-        .order_by()[:1]
-    )
-)
-
-
 def agent_acked_handle(*, vehicle_id: Any, acked: Acked) -> None:
     """An agent confirmed the end (or revoke) of a session: the session log says the
     platform's word reached the vehicle, and when."""
     if acked.kind not in ENDING or acked.session_id is None:
         return
-    session = _SESSION_WITH_VEHICLE_NAME.first(session=acked.session_id, vehicle=vehicle_id)
+    # The session with the vehicle's name, in one query.
+    session = (
+        Session.objects.filter(pk=acked.session_id)
+        .annotate(vehicle_name=Subquery(Vehicle.objects.filter(pk=vehicle_id).values("name")[:1]))
+        .first()
+    )
     if session is None:
         return
     name = session.vehicle_name
