@@ -11,7 +11,8 @@ runs in no transaction of its own, appends with two statements and no lock: it u
 to take five (BEGIN, the session's row locked, the tail, the event, COMMIT), and a
 session has several such reports. A writer inside a transaction still locks the
 session's row first, as it did: that transaction may go on to lock the row itself,
-and taking the lock first keeps every writer's locks in one order. Session rows are
+and taking the lock first keeps every writer's locks in one order; its insert runs in
+a savepoint, so that a place found taken does not abort the transaction. Session rows are
 locked ``FOR NO KEY UPDATE`` everywhere: the lock keeps writers of the session in
 turn without blocking the inserts that refer to it, such as a report's event (an
 insert's foreign-key check waits for ``FOR UPDATE``, and a report waiting there while
@@ -36,49 +37,20 @@ from datetime import datetime
 from typing import Any
 
 from django.core.serializers.json import DjangoJSONEncoder
+from django.db import IntegrityError, transaction
 from django.db.transaction import get_connection
 from django.utils import timezone
 
-from iouv.prepared import Param, PreparedInsert, PreparedQuery
 from services.eventwords import event_text
 from services.feed import session_notify, session_notify_many
 from services.models import Session, SessionEvent
 
 GENESIS_HASH = "0" * 64
 
-# An append's two reads, composed once (iouv.prepared): they run for every event an
-# agent's report or a supervisor logs.
-_SESSION_LOCK: PreparedQuery[Any] = PreparedQuery(
-    lambda: (
-        Session.objects.select_for_update(no_key=True)
-        .filter(pk=Param("session", Session.id))
-        .values_list("pk", flat=True)
-    )
-)
-_INSERT: PreparedInsert[SessionEvent] = PreparedInsert(SessionEvent, skip_conflicts=True)
-# The same, held by an open write batch (iouv.prepared.writes_batched): for a writer
-# that holds the lock and read the log, whose event follows what it read.
-_INSERT_HELD: PreparedInsert[SessionEvent] = PreparedInsert(
-    SessionEvent, skip_conflicts=True, batched=True
-)
-# A new session's first events, written in one go (events_staged), held likewise.
-_INSERT_NEW: PreparedInsert[SessionEvent] = PreparedInsert(SessionEvent, batched=True)
 # How often a writer may find its event's place taken before it gives up: each time,
 # another event was written in between, so only a flood of writers to one session
 # gets near it.
 _PLACE_TRIES = 100
-_LOG: PreparedQuery[SessionEvent] = PreparedQuery(
-    lambda: SessionEvent.objects.filter(session_id=Param("session", SessionEvent.session)).order_by(
-        "seq"
-    )
-)
-_LOG_TAIL: PreparedQuery[Any] = PreparedQuery(
-    lambda: (
-        SessionEvent.objects.filter(session_id=Param("session", SessionEvent.session))
-        .order_by("-seq")
-        .values_list("seq", "hash")[:1]
-    )
-)
 
 
 def _event_hash(
@@ -193,8 +165,7 @@ _staging: ContextVar[_Staged | None] = ContextVar("iouv_events_staged", default=
 def events_staged(*, session_id: Any) -> Iterator[list[SessionEvent]]:
     """Within the block, :func:`event_append` for the session ``session_id`` stages its
     events; when the block ends without an error they are written with one INSERT, in
-    order (held by an open write batch, iouv.prepared.writes_batched, if there is
-    one), and announced to the monitors' feed in one message. Yields the staged
+    order, and announced to the monitors' feed in one message. Yields the staged
     events' list.
 
     Only for a session created in the block's transaction, with no event logged yet:
@@ -212,7 +183,7 @@ def events_staged(*, session_id: Any) -> Iterator[list[SessionEvent]]:
     finally:
         _staging.reset(token)
     if staged.events:
-        _INSERT_NEW.save_all(staged.events)
+        SessionEvent.objects.bulk_create(staged.events)
         # The session is new: no page follows it yet (its id is not even known
         # outside this transaction), so only the monitors' feed is told.
         session_notify_many(
@@ -223,8 +194,7 @@ def events_staged(*, session_id: Any) -> Iterator[list[SessionEvent]]:
 def session_log(*, session: Session) -> list[SessionEvent]:
     """``session``'s whole log, in order. Read by a holder of the session's lock, it is
     where the next event goes (:func:`event_append`'s ``log``)."""
-    events: list[SessionEvent] = _LOG.all(session=session.pk)
-    return events
+    return list(SessionEvent.objects.filter(session_id=session.pk).order_by("seq"))
 
 
 def event_append(
@@ -254,25 +224,42 @@ def event_append(
         return event
     if log is None and not locked and get_connection().in_atomic_block:
         # Inside a transaction: lock first, as every writer in one does (above).
-        _SESSION_LOCK.all(session=session.pk)
+        list(
+            Session.objects.select_for_update(no_key=True)
+            .filter(pk=session.pk)
+            .values_list("pk", flat=True)
+        )
     event = _event_next(session=session, kind=kind, data=data, log=log)
     if log is None:
         _event_place(session=session, event=event, log=None)
         return event
 
-    # The caller holds the lock and read the log: the event follows what it read, sent
-    # with the transaction's other writes if they are batched (iouv.prepared). Only a
-    # lock-free writer (an agent's report) can have taken its place meanwhile.
-    def placed(saved: SessionEvent | None) -> None:
-        if saved is None:
-            log[:] = session_log(session=session)
-            _event_renew(event, session=session, log=log)
-            _event_place(session=session, event=event, log=log)
-        else:
-            _event_placed(session=session, event=event, log=log)
-
-    _INSERT_HELD.save_unless_taken(event, then=placed)
+    # The caller holds the lock and read the log: the event follows what it read. Only
+    # a lock-free writer (an agent's report) can have taken its place meanwhile.
+    if _event_saved_unless_taken(event):
+        _event_placed(session=session, event=event, log=log)
+    else:
+        log[:] = session_log(session=session)
+        _event_renew(event, session=session, log=log)
+        _event_place(session=session, event=event, log=log)
     return event
+
+
+def _event_saved_unless_taken(event: SessionEvent) -> bool:
+    """Insert ``event``; False, with nothing written, if another event holds its place
+    (its session's ``seq``, unique). Raises IntegrityError for any other constraint."""
+    try:
+        if get_connection().in_atomic_block:
+            # A savepoint: the place found taken must not abort the caller's transaction.
+            with transaction.atomic():
+                event.save(force_insert=True)
+        else:
+            event.save(force_insert=True)
+    except IntegrityError:
+        if SessionEvent.objects.filter(session_id=event.session_id, seq=event.seq).exists():
+            return False
+        raise
+    return True
 
 
 def _event_next(
@@ -287,7 +274,12 @@ def _event_next(
     if log is not None:
         last = (log[-1].seq, log[-1].hash) if log else None
     else:
-        last = _LOG_TAIL.first(session=session.pk)
+        last = (
+            SessionEvent.objects.filter(session_id=session.pk)
+            .order_by("-seq")
+            .values_list("seq", "hash")
+            .first()
+        )
     seq, prev_hash = last if last else (0, GENESIS_HASH)
     return _event_new(
         session=session,
@@ -311,7 +303,7 @@ def _event_renew(event: SessionEvent, *, session: Session, log: list[SessionEven
 def _event_place(*, session: Session, event: SessionEvent, log: list[SessionEvent] | None) -> None:
     """Write ``event`` in its place, or after the events that took it."""
     for _ in range(_PLACE_TRIES):
-        if _INSERT.save_unless_taken(event) is not None:
+        if _event_saved_unless_taken(event):
             break
         # Another writer's event took the place: follow it.
         if log is not None:
