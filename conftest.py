@@ -18,6 +18,7 @@ import pytest
 from django.conf import settings
 
 from tests.browser import chromium_missing_reason
+from tests.scheduling import longest_first
 
 
 def pytest_report_header(config: pytest.Config) -> list[str]:
@@ -108,6 +109,10 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(skip_pg)
         if "redis" in item.keywords and not on_redis():
             item.add_marker(skip_redis)
+    # Under pytest-xdist (each worker collects, in the same order): the slow modules
+    # spread over the workers' first slices, longest first (tests/scheduling.py).
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
+    items[:] = longest_first(items, workers)
 
 
 @pytest.fixture(autouse=True)

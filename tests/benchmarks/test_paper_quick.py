@@ -176,6 +176,7 @@ def _tables(markdown: str) -> list[list[list[str]]]:
 @pytest.mark.postgres
 @pytest.mark.redis
 @pytest.mark.django_db(transaction=True)
+@pytest.mark.cost(50)  # the benchmark's quick run, end to end
 async def test_quick_mode_writes_every_output(tmp_path: Path) -> None:
     ensure_packages("coturn", log_path=tmp_path / "apt.log")  # the datachannel_turn column
     plan = paper.Plan.quick()

@@ -418,6 +418,7 @@ def _number(text: str) -> float:
 @pytest.mark.postgres
 @pytest.mark.redis
 @pytest.mark.django_db(transaction=True)
+@pytest.mark.cost(30)  # the benchmark's quick run, end to end
 def test_quick_mode_writes_every_output(nginx: Path, tmp_path: Path) -> None:
     params = scale.Params.quick_mode(agents=20)
     scale.run(params, out=tmp_path, command="pytest quick mode", database_url=_database_url())

@@ -41,7 +41,7 @@ import websockets
 from agents.protocol import PROTOCOL_VERSION
 from tests.servers import ROOT, free_port, platform_log, platform_server
 
-pytestmark = [pytest.mark.postgres, pytest.mark.realtime]
+pytestmark = [pytest.mark.postgres, pytest.mark.realtime, pytest.mark.cost(50)]
 
 #: The issue's bounds.
 ANSWER_WITHIN_S = 2.0

@@ -34,6 +34,7 @@ pytestmark = [
     pytest.mark.postgres,
     pytest.mark.redis,
     pytest.mark.django_db(transaction=True),
+    pytest.mark.cost(30),  # a delivery flown end to end
 ]
 #: On land north-west of the coastal station (about 700 m and 1 km from it), 480 m
 #: apart: a drone's parcel, not a boat's.

@@ -36,6 +36,7 @@ pytestmark = [
     pytest.mark.postgres,
     pytest.mark.redis,
     pytest.mark.django_db(transaction=True),
+    pytest.mark.cost(60),  # a rescue flown end to end: about a minute each
 ]
 
 

@@ -27,6 +27,7 @@ pytestmark = [
     pytest.mark.redis,
     pytest.mark.django_db(transaction=True),
     needs_chromium,
+    pytest.mark.cost(45),  # a rescue watched to its end
 ]
 
 FRAMES = "() => (window.iouvController ? window.iouvController.stats.framesDecoded : 0)"

@@ -1,0 +1,85 @@
+"""The suite's order for pytest-xdist (tests/scheduling.py): the same tests, the slow
+modules spread over the workers' slices, each slice as long as worksteal cuts it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+from typing import Any
+
+from tests.scheduling import longest_first
+
+
+@dataclass
+class Collected:
+    nodeid: str
+    keywords: set[str] = field(default_factory=set)
+    cost: float | None = None
+
+    def get_closest_marker(self, name: str) -> Any:
+        return SimpleNamespace(args=(self.cost,)) if name == "cost" and self.cost else None
+
+
+def _suite() -> list[Collected]:
+    tests: list[Collected] = []
+    # Collection order: the slow modules bunched together, as the directories put them.
+    for m in range(5):
+        tests += [Collected(f"a/test_quick{m}.py::t{i}") for i in range(20)]
+    tests += [Collected(f"b/test_rescue.py::t{i}", {"realtime"}) for i in range(4)]
+    tests += [Collected(f"b/test_pages.py::t{i}", {"browser"}) for i in range(3)]
+    tests += [Collected(f"b/test_limits.py::t{i}", {"realtime"}) for i in range(3)]
+    tests += [Collected(f"b/test_bench.py::t{i}", {"benchmark_harness"}) for i in range(2)]
+    # Two missions of a minute each, marked as such: alone in their slice.
+    tests += [Collected(f"c/test_missions.py::t{i}", {"realtime"}, 60.0) for i in range(2)]
+    tests += [Collected(f"d/test_quick.py::t{i}") for i in range(20)]
+    return tests
+
+
+def _slices(ordered: list[Collected], workers: int) -> list[list[Collected]]:
+    """Cut as pytest-xdist's worksteal does: len // remaining, front first."""
+    out, rest = [], list(ordered)
+    for remaining in range(workers, 0, -1):
+        n = len(rest) // remaining
+        out.append(rest[:n])
+        rest = rest[n:]
+    return out
+
+
+def _slow_cost(tests: list[Collected]) -> float:
+    def one(t: Collected) -> float:
+        if t.cost:
+            return t.cost
+        if "benchmark_harness" in t.keywords:
+            return 15.0
+        return 12.0 if t.keywords else 0.0
+
+    return sum(one(t) for t in tests)
+
+
+def test_the_same_tests_each_module_in_its_own_order() -> None:
+    suite = _suite()
+    ordered = longest_first(suite, 4)
+    assert sorted(t.nodeid for t in ordered) == sorted(t.nodeid for t in suite)
+    for module in {t.nodeid.split("::")[0] for t in suite}:
+        mine = [t.nodeid for t in ordered if t.nodeid.startswith(module + "::")]
+        assert mine == [t.nodeid for t in suite if t.nodeid.startswith(module + "::")]
+
+
+def test_every_slice_starts_with_its_share_of_the_slow_modules() -> None:
+    slices = _slices(longest_first(_suite(), 4), 4)
+    costs = [_slow_cost(s) for s in slices]
+    # 270 s of slow tests in all: in collection order one slice held all of it.
+    assert sorted(_slow_cost(s) for s in _slices(_suite(), 4)) == [0, 0, 0, 270]
+    # Longest first onto the least loaded: the missions' 120 s alone, the rest spread.
+    assert sorted(costs) == [36, 48, 66, 120], costs
+    for s in slices:
+        slow = [t.keywords != set() for t in s]
+        # Slow first, then quick: nothing slow left for the end of a slice.
+        assert slow == sorted(slow, reverse=True)
+
+
+def test_one_worker_or_a_tiny_run_keeps_collection_order() -> None:
+    suite = _suite()
+    assert longest_first(suite, 0) == suite
+    assert longest_first(suite, 1) == suite
+    assert longest_first(suite[:5], 4) == suite[:5]
