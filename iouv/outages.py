@@ -1,8 +1,9 @@
 """What a client is told while PostgreSQL cannot be reached: 503 with ``Retry-After``.
 
 A request whose view cannot get a database connection fails within the pool's wait
-(``DB_POOL_TIMEOUT_S``, a second: settings) with Django's ``OperationalError``;
-``InterfaceError`` is a connection that broke under it. Either is an outage of the
+(``DB_POOL_TIMEOUT_S``, a second: settings) with Django's ``OperationalError`` (Django's
+backend re-raises psycopg_pool's ``PoolTimeout``, a psycopg ``OperationalError``, as its
+own); ``InterfaceError`` is a connection that broke under it. Either is an outage of the
 database, not a fault of the request: the client gets 503 and ``Retry-After:
 IOUV_RETRY_AFTER_S``, JSON under ``/api/`` (the API's error envelope, code
 ``database_unavailable``) and a short page elsewhere, and the log gets one line, not a
