@@ -2093,7 +2093,10 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
         ("open_files_limit", "open files limit"),
         ("db_conn_max_age", "DB_CONN_MAX_AGE of the platform (without a pool)"),
         ("db_pool_size", "DB_POOL_SIZE of the platform (a tree older than the pool has none)"),
-        ("http_concurrency", "IOUV_HTTP_CONCURRENCY (HTTP requests at once per process)"),
+        (
+            "http_concurrency",
+            "IOUV_HTTP_CONCURRENCY (HTTP requests at once per process; None: no such limit)",
+        ),
         ("heartbeat_s", "IOUV_HEARTBEAT_INTERVAL_S"),
         ("offline_after_s", "IOUV_OFFLINE_AFTER_S"),
     ):

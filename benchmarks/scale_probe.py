@@ -57,7 +57,8 @@ def settings_info() -> dict[str, Any]:
 
     return {
         "var_dir": str(settings.VAR_DIR),
-        "http_concurrency": settings.IOUV_HTTP_CONCURRENCY,
+        # A tree older than Django's own ASGI handler limited its HTTP requests at once.
+        "http_concurrency": getattr(settings, "IOUV_HTTP_CONCURRENCY", None),
         "heartbeat_s": settings.IOUV_HEARTBEAT_INTERVAL_S,
         "offline_after_s": settings.IOUV_OFFLINE_AFTER_S,
     }

@@ -108,9 +108,8 @@ def _push(layer: Any, group: str, message: dict[str, Any]) -> None:
     database work) the push is handed to the server's loop and the thread goes on at
     once: the loop sends its pushes one after the other, in the order they came
     (:class:`_Pushes`). The thread used to wait for each send, a hop to the loop and
-    back and two Redis round trips, three to four times per request; the request
-    held the process's one HTTP slot (IOUV_HTTP_CONCURRENCY) all that while, behind
-    a loop busy with a thousand agents' frames. A push to a loop that has stopped (a
+    back and two Redis round trips, three to four times per request, behind a loop
+    busy with a thousand agents' frames. A push to a loop that has stopped (a
     server shutting down, while a closing uplink's database work is still in a
     thread) is dropped with a line. Elsewhere (a Celery worker, a command)
     ``async_to_sync`` runs the send on a loop of its own and returns when it is done.

@@ -1,15 +1,22 @@
 """The platform's server: uvicorn serving ``iouv.asgi`` as production runs it.
 
 ``python -m iouv.serve --host 127.0.0.1 --port 8001``.
-The demo (bin/demo), the integration tests (tests/servers.py), the scale benchmark and
-the production layout (docs/operations.md) all start the platform with this, so they
-run one configuration. The choices, and why (:data:`OPTIONS`):
+The production layout's WebSocket processes (``deploy/systemd/iouv-ws@.service``,
+behind nginx, which sends them ``/ws/`` only), the demo (bin/demo), the integration
+tests (tests/servers.py) and the scale benchmark all start the platform with this, so
+they run one configuration. The choices, all uvicorn's public settings, and why
+(:data:`OPTIONS`):
 
 * **uvloop and httptools**: the event loop and HTTP parser in C. Measured against
   daphne on the same application (docs/benchmarks/scale, "The server"), a heartbeat
   costs about a third less CPU and a process carries about a third more sessions.
-* **httptools with head limits** (:mod:`iouv.http_limits`): oversized request lines
-  and headers get a 414 or 431; httptools alone buffers them without limit.
+* **No head limits here**: httptools sets none on a request's line or headers. In
+  production nginx refuses an oversized head before it reaches any platform process
+  (``deploy/nginx/iouv.conf``: ``client_header_buffer_size``,
+  ``large_client_header_buffers``; tests/integration/test_head_limits.py): a process
+  that anyone but its own machine can reach belongs behind nginx. (uvicorn's h11
+  parser bounds a head, ``h11_max_incomplete_event_size``, answered with a 400, at
+  the cost of parsing in Python.)
 * **websockets-sansio**: uvicorn's WebSocket protocol on the ``websockets`` library's
   current core (the agents' own library). uvicorn's older ``websockets`` protocol can
   leave a consumer waiting forever on a send to a client that closes at that moment;
@@ -43,7 +50,7 @@ APPLICATION = "iouv.asgi:application"
 #: uvicorn's settings for every platform process (see the module for why).
 OPTIONS: dict[str, Any] = {
     "loop": "uvloop",
-    "http": "iouv.http_limits:LimitedHttpToolsProtocol",
+    "http": "httptools",
     "ws": "websockets-sansio",
     "ws_per_message_deflate": False,
     "ws_ping_interval": 20.0,
