@@ -28,6 +28,12 @@ timeout = 30
 graceful_timeout = 20
 # The application is loaded by each worker, so a reload (SIGHUP) picks up new code.
 preload_app = False
+# Request heads: nginx refuses what is over its own limits (a line over 8 KiB,
+# deploy/nginx/iouv.conf); these take every line it passes (8190 is gunicorn's largest
+# request line) and answer 431 to more than 100 header fields, which nginx does not count.
+limit_request_line = 8190
+limit_request_field_size = 8190
+limit_request_fields = 100
 # nginx is the only client: it sets X-Forwarded-Proto, which Django reads when
 # BEHIND_PROXY=1; gunicorn itself trusts nothing from the request.
 forwarded_allow_ips = ""

@@ -203,10 +203,20 @@ class ProductionShape:
     """The platform as deploy/ runs it, for one test; see the module docstring.
 
     ``base`` is the https address of nginx (``certificates.ca`` signs it), ``web`` and
-    ``ws`` the HTTP and WebSocket processes."""
+    ``ws`` the HTTP and WebSocket processes; ``worker``: whether the Celery worker (with
+    its beat) runs too, as ``worker`` once running."""
 
-    def __init__(self, workdir: Path, *, web: int = 2, ws: int = 2, env: dict[str, str]) -> None:
+    def __init__(
+        self,
+        workdir: Path,
+        *,
+        web: int = 2,
+        ws: int = 2,
+        worker: bool = True,
+        env: dict[str, str],
+    ) -> None:
         self.workdir = workdir
+        self.with_worker = worker
         self.certificates = certificates_make(workdir / "tls")
         self.https, self.http = free_port(), free_port()
         self.base = f"https://127.0.0.1:{self.https}"
@@ -273,6 +283,9 @@ class ProductionShape:
                     nginx_command(prefix), stdout=log, stderr=subprocess.STDOUT
                 )
             _wait_http(f"{self.base}/healthz", context=self.context)
+            if not self.with_worker:
+                yield self
+                return
             with celery_worker_process(extra_env=self.env) as worker:
                 self.worker = worker
                 yield self
