@@ -3,8 +3,9 @@
 Two modes, chosen by ``DATABASE_URL``:
 
 * **Embedded** (unset, the default): SQLite under ``var/``, an in-memory channel layer
-  unless ``REDIS_URL`` is set, Celery on kombu's filesystem transport so a separate
-  worker process works with no server, and generated secrets kept under ``var/``.
+  unless ``REDIS_URL`` is set, Celery on kombu's SQLAlchemy transport over a SQLite file
+  so a separate worker process works with no server, and generated secrets kept under
+  ``var/``.
   Nothing to install but Python.
 * **Production** (``DATABASE_URL`` set, Postgres): ``REDIS_URL`` for the channel layer
   and the Celery broker, ``SECRET_KEY`` (or ``SECRET_KEY_FILE``) required, HTTPS-only
@@ -306,10 +307,6 @@ if BEHIND_PROXY:
 # --- Celery ----------------------------------------------------------------------------
 if REDIS_URL:
     CELERY_BROKER_URL = REDIS_URL
-    # kombu's Redis transport could turn a Redis outage into an "unrecoverable error"
-    # that ends the worker and its beat; this one reports it as the lost connection it
-    # is, and the worker reconnects (iouv/redis_broker.py).
-    CELERY_BROKER_TRANSPORT = "iouv.redis_broker:Transport"
     CELERY_BROKER_TRANSPORT_OPTIONS: dict[str, object] = {
         # A task whose worker died unacknowledged (acks_late) is delivered again after
         # this long; workflow steps are idempotent, so a second run changes nothing.
@@ -324,21 +321,12 @@ if REDIS_URL:
         "health_check_interval": 10,
     }
 else:
-    # kombu's filesystem transport: daphne and a separate worker process share a
-    # queue through files, with no server to install.
-    _broker_dir = VAR_DIR / "celery-broker"
-    for _sub in ("processed", "control"):
-        (_broker_dir / _sub).mkdir(parents=True, exist_ok=True)
-    CELERY_BROKER_URL = "filesystem://"
-    # The stock transport can hand a worker a half-written message (iouv/broker.py).
-    CELERY_BROKER_TRANSPORT = "iouv.broker:Transport"
-    CELERY_BROKER_TRANSPORT_OPTIONS = {
-        "data_folder_in": str(_broker_dir),
-        "data_folder_out": str(_broker_dir),
-        "processed_folder": str(_broker_dir / "processed"),
-        "control_folder": str(_broker_dir / "control"),
-        "store_processed": False,
-    }
+    # kombu's SQLAlchemy transport on a SQLite file of its own: the platform and a
+    # separate worker process share a queue with no server to install, and a message is
+    # a row, written and taken in transactions. (kombu's filesystem transport creates a
+    # message's file before writing it: a worker polling the folder could take it
+    # empty, lose the message and stop on the empty JSON.)
+    CELERY_BROKER_URL = f"sqla+sqlite:///{VAR_DIR / 'celery-broker.sqlite3'}"
 CELERY_TASK_ACKS_LATE = True
 CELERY_TASK_REJECT_ON_WORKER_LOST = True
 CELERY_WORKER_PREFETCH_MULTIPLIER = 1

@@ -1,41 +1,65 @@
-"""The embedded broker: a consumer never sees a half-written message."""
+"""The embedded broker (no Redis): what the platform's process queues while a worker
+polls arrives whole, every message once."""
 
 from __future__ import annotations
 
-import threading
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
 
 from kombu import Connection, Exchange, Queue
 
-from iouv.broker import Transport
+from tests.servers import ROOT
 
+SENT = 400
 
-def test_messages_written_while_a_consumer_polls_all_arrive_whole(tmp_path) -> None:
-    (tmp_path / "control").mkdir()
-    options = {
-        "data_folder_in": str(tmp_path),
-        "data_folder_out": str(tmp_path),
-        "control_folder": str(tmp_path / "control"),  # else "control/" in the cwd
-    }
+#: A platform process queueing SENT messages on the broker at argv[1].
+PRODUCER = textwrap.dedent(
+    f"""
+    import sys
+    from kombu import Connection, Exchange, Queue
+
     queue = Queue("steps", Exchange("steps"), routing_key="steps")
-    sent = 400
+    with Connection(sys.argv[1]) as conn:
+        producer = conn.Producer()
+        for i in range({SENT}):
+            producer.publish({{"n": i, "pad": "x" * 4000}}, exchange=queue.exchange,
+                             routing_key="steps", declare=[queue])
+    """
+)
 
-    def produce() -> None:
-        with Connection(transport=Transport, transport_options=options) as conn:
-            producer = conn.Producer()
-            for i in range(sent):
-                producer.publish({"n": i, "pad": "x" * 4000}, exchange=queue.exchange,
-                                 routing_key="steps", declare=[queue])  # fmt: skip
 
+def _embedded_broker_url(var_dir: Path) -> str:
+    """The broker URL that iouv.settings chooses without DATABASE_URL and REDIS_URL."""
+    env = {k: v for k, v in os.environ.items() if k not in ("DATABASE_URL", "REDIS_URL")}
+    env["IOUV_VAR_DIR"] = str(var_dir)
+    read = "from iouv import settings; print(settings.CELERY_BROKER_URL)"
+    out = subprocess.run(
+        [sys.executable, "-c", read], cwd=ROOT, env=env, capture_output=True, text=True
+    )
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip()
+
+
+def test_messages_queued_by_another_process_while_a_worker_polls_all_arrive_whole(
+    tmp_path: Path,
+) -> None:
+    url = _embedded_broker_url(tmp_path)
+    assert str(tmp_path) in url  # a file under var/, no server
+    queue = Queue("steps", Exchange("steps"), routing_key="steps")
     received: list[int] = []
-    writer = threading.Thread(target=produce)
-    with Connection(transport=Transport, transport_options=options) as conn:
+    with Connection(url) as conn:
         simple = conn.SimpleQueue(queue)
-        writer.start()
-        while len(received) < sent:
-            message = simple.get(timeout=10)
-            received.append(message.payload["n"])
-            message.ack()
+        producer = subprocess.Popen([sys.executable, "-c", PRODUCER, url], cwd=ROOT)
+        try:
+            while len(received) < SENT:
+                message = simple.get(timeout=20)
+                received.append(message.payload["n"])
+                message.ack()
+        finally:
+            assert producer.wait(timeout=30) == 0
+        assert simple.qsize() == 0
         simple.close()
-    writer.join()
-    assert sorted(received) == list(range(sent))
-    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".partial")]
+    assert sorted(received) == list(range(SENT))

@@ -1,19 +1,23 @@
-"""The Celery worker and its beat outlive a Redis outage, so the supervision timers run
-again once Redis is back.
+"""The supervision timers run again after a Redis outage, with the Celery worker run as
+its unit runs it.
 
 A real worker with its embedded beat runs on a private redis-server (the machine's
 shared one must stay up). The cheapest real timer is fleet's offline sweep: a vehicle
 whose heartbeats stopped is marked offline. Redis is killed while the worker holds an
 unacknowledged task (the sweep, held up by a lock on the vehicle table: tasks are
-acknowledged late), which is the moment a lost connection used to end the worker.
+acknowledged late). That is the moment kombu's Redis transport fails to close the dead
+connection (``AttributeError: 'NoneType' object has no attribute 'hostname'``, which
+Celery reports as an unrecoverable error) and the worker exits: it must exit rather
+than hang, and its unit (``Restart=always``) starts it again.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 import threading
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Iterator
 from datetime import timedelta
 from typing import Any
 
@@ -23,7 +27,7 @@ from django.utils import timezone
 
 from fleet.models import Vehicle
 from tests import factories
-from tests.servers import celery_worker_process, db, redis_server_process, until
+from tests.servers import ROOT, celery_worker_process, db, redis_server_process, until
 
 pytestmark = [
     pytest.mark.postgres,
@@ -95,45 +99,87 @@ def vehicle_table_locked() -> Iterator[None]:
         holder.join(timeout=30)
 
 
-async def test_periodic_timers_run_again_after_a_redis_outage() -> None:
+#: The worker's unit, as deploy/ ships it.
+WORKER_UNIT = ROOT / "deploy" / "systemd" / "iouv-worker.service"
+
+
+def _unit_setting(name: str) -> str:
+    found = re.search(rf"^{name}=(.*)$", WORKER_UNIT.read_text(), re.MULTILINE)
+    assert found, f"{WORKER_UNIT.name} sets no {name}"
+    return found.group(1).strip()
+
+
+@contextlib.asynccontextmanager
+async def supervised(worker: Any) -> AsyncIterator[list[str]]:
+    """Start ``worker`` again whenever it exits, ``RestartSec`` later, as systemd does
+    with the unit's ``Restart=always``; yields the end of the output of each run that
+    ended."""
+    assert _unit_setting("Restart") == "always"
+    restart_s = float(_unit_setting("RestartSec"))
+    ended: list[str] = []
+
+    async def watch() -> None:
+        while True:
+            await asyncio.sleep(0.2)
+            if not worker.alive():
+                ended.append(worker.output())
+                worker.kill()  # closes the ended run's log
+                await asyncio.sleep(restart_s)
+                worker.start()
+
+    watcher = asyncio.create_task(watch())
+    try:
+        yield ended
+    finally:
+        watcher.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await watcher
+
+
+async def _outage_under_a_busy_worker(broker: Any, worker: Any) -> None:
+    """Sweep once, then take Redis away for OUTAGE_S while the worker holds a sweep
+    waiting for the vehicle table, and bring it back; returns once that sweep ran."""
+    before = await db(_silent_vehicle, "silent-before-the-outage")
+    await until(lambda: db(_offline, before), within=30, what="the sweep before the outage")
+
+    # The sweep locks only the rows it found silent: give it one to lock.
+    during = await db(_silent_vehicle, "silent-during-the-outage")
+    with vehicle_table_locked():
+
+        async def sweep_alone_and_waiting() -> bool:
+            # Between two bursts of timers, with nothing else in flight: Redis
+            # goes away while the worker holds exactly one unacknowledged task.
+            return (
+                worker.tasks_in_flight() == ["fleet.sweep_offline"]
+                and worker.quiet_for() > 0.3
+                and await db(_sweep_waiting_for_the_lock)
+            )
+
+        await until(
+            sweep_alone_and_waiting,
+            within=30,
+            what="a sweep in the worker, alone, waiting for the vehicle table",
+        )
+        broker.kill()
+        await asyncio.sleep(OUTAGE_S)  # the outage itself, not a wait for a result
+        broker.start()
+
+    await until(lambda: db(_offline, during), within=60, what="the sweep held up")
+
+
+async def test_periodic_timers_run_again_after_a_redis_outage(record_property: Any) -> None:
     with (
         redis_server_process() as broker,
         celery_worker_process(
             extra_env={"REDIS_URL": broker.url, "IOUV_OFFLINE_AFTER_S": str(OFFLINE_AFTER_S)}
         ) as worker,
     ):
-        before = await db(_silent_vehicle, "silent-before-the-outage")
-        await until(lambda: db(_offline, before), within=30, what="the sweep before the outage")
-
-        # The sweep locks only the rows it found silent: give it one to lock.
-        during = await db(_silent_vehicle, "silent-during-the-outage")
-        with vehicle_table_locked():
-
-            async def sweep_alone_and_waiting() -> bool:
-                # Between two bursts of timers, with nothing else in flight: Redis
-                # goes away while the worker holds exactly one unacknowledged task.
-                return (
-                    worker.tasks_in_flight() == ["fleet.sweep_offline"]
-                    and worker.quiet_for() > 0.3
-                    and await db(_sweep_waiting_for_the_lock)
-                )
-
-            await until(
-                sweep_alone_and_waiting,
-                within=30,
-                what="a sweep in the worker, alone, waiting for the vehicle table",
-            )
-            broker.kill()
-            await asyncio.sleep(OUTAGE_S)  # the outage itself, not a wait for a result
-            broker.start()
-
-        await until(lambda: db(_offline, during), within=60, what="the sweep held up")
-        after = await db(_silent_vehicle, "silent-after-the-outage")
-        try:
-            await until(lambda: db(_offline, after), within=60, what="a sweep after the outage")
-        except AssertionError:
-            pytest.fail(
-                "no sweep ran after Redis came back; worker "
-                f"{'alive' if worker.alive() else 'dead'}:\n{worker.output()}"
-            )
-        assert worker.alive(), worker.output()
+        async with supervised(worker) as ended:
+            await _outage_under_a_busy_worker(broker, worker)
+            after = await db(_silent_vehicle, "silent-after-the-outage")
+            try:
+                await until(lambda: db(_offline, after), within=60, what="a sweep after the outage")
+            except AssertionError:
+                runs = "\n---\n".join([*ended, worker.output()])
+                pytest.fail(f"no sweep ran after Redis came back; the worker's runs:\n{runs}")
+        record_property("worker_runs_ended_by_the_outage", len(ended))
