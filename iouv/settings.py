@@ -22,6 +22,8 @@ from typing import Any
 import django_stubs_ext
 from csp.constants import NONE, SELF
 from django.core.exceptions import ImproperlyConfigured
+from redis.asyncio.retry import Retry as RedisRetry
+from redis.backoff import ExponentialBackoff
 
 from iouv.csp_sources import csp_origin_of_template
 from iouv.env import (
@@ -200,29 +202,37 @@ CHANNEL_LAYERS: dict[str, dict[str, Any]]
 if REDIS_URL:
     CHANNEL_LAYERS = {
         "default": {
-            "BACKEND": "iouv.redis_layer.WaitingRedisChannelLayer",
+            "BACKEND": "channels_redis.core.RedisChannelLayer",
             "CONFIG": {
-                # redis-py 8 times reads out after 5 s by default, the same 5 s that
-                # channels-redis blocks in BZPOPMIN waiting for messages: an idle socket
-                # would then crash its consumer. Reads may wait longer than that pop.
-                # When all max_connections are busy (a thousand agents reconnecting at
-                # once, each leaving and joining its group), a caller waits up to
-                # `timeout` seconds for one rather than failing its frame.
+                # Each host's keys go to redis-py's connection pool, as its from_url
+                # takes them.
                 "hosts": [
                     {
                         "address": REDIS_URL,
-                        "socket_timeout": 30,
-                        "socket_connect_timeout": 5,
-                        "max_connections": env_int("REDIS_MAX_CONNECTIONS", 1000),
-                        "timeout": 10,
+                        # channels_redis blocks 5 s in BZPOPMIN waiting for messages:
+                        # a read may wait longer than that without failing.
+                        "socket_timeout": 10,
+                        "socket_connect_timeout": 2,
+                        # redis-py's pool fails a call past this many connections (its
+                        # default is 100): a thousand agents reconnecting at once each
+                        # join their group while pushes and relayed frames go on.
+                        "max_connections": env_int("REDIS_MAX_CONNECTIONS", 2000),
+                        # A lost connection is retried, after 0.1 s, 0.2 s, 0.4 s, then
+                        # every 0.5 s for about 15 s: a restart or a fail-over of Redis
+                        # is waited out instead of ending every consumer of the process
+                        # (a receive that fails ends its consumer and closes its
+                        # socket). Past that, the sockets close and their clients
+                        # connect again, as after a platform restart.
+                        "retry": RedisRetry(ExponentialBackoff(cap=0.5, base=0.05), 30),
                     }
                 ],
                 "prefix": env_str("CHANNELS_PREFIX", "iouv"),
                 "capacity": 1000,
                 "expiry": 30,
                 # Members are added again every minute or so while their consumer
-                # lives (fleet.memberships): one left by a process that died is gone
-                # in three, not in channels_redis's default day.
+                # lives, and at once after Redis restarted (fleet.memberships): one left
+                # by a process that died is gone in three, not in channels_redis's
+                # default day.
                 "group_expiry": 180,
             },
         }
