@@ -89,6 +89,7 @@ TIERS: dict[str, tuple[str, ...]] = {
         "tests/agents/test_shutdown.py",
         "tests/platform/test_worker_outage.py",
         "tests/platform/test_db_pool.py",
+        "tests/platform/test_worker_connections.py",
     ),
 }
 

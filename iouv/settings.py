@@ -147,12 +147,13 @@ if EMBEDDED:
     }
 else:
     DATABASES = {"default": database_from_url(DATABASE_URL)}
-    # A pool of connections per process (psycopg_pool, as Django runs it). Under ASGI
-    # Django's connections belong to each request (asgiref's context-local storage),
-    # not to a thread that outlives it: without a pool, every request opened a new
-    # connection (a PostgreSQL backend started and torn down for each). DB_POOL_SIZE=0
-    # turns the pool off; connections are then kept for DB_CONN_MAX_AGE seconds where
-    # Django can keep them (a worker's thread).
+    # Django's own pool of connections, one per process (OPTIONS["pool"]: psycopg_pool).
+    # Under ASGI Django's connections belong to each request (asgiref's context-local
+    # storage), not to a thread that outlives it, and Celery's Django fixup closes a
+    # task's connections when it ends: without a pool, every request and every task
+    # opened a new connection (a PostgreSQL backend started and torn down for each).
+    # DB_POOL_SIZE=0 turns the pool off; connections are then kept for DB_CONN_MAX_AGE
+    # seconds where Django can keep them (a gunicorn thread).
     DB_POOL_SIZE = env_int("DB_POOL_SIZE", 16)
     if DB_POOL_SIZE > 0:
         DATABASES["default"]["OPTIONS"]["pool"] = {
@@ -172,10 +173,10 @@ else:
         DATABASES["default"]["CONN_MAX_AGE"] = 0  # the pool keeps them, not the threads
     else:
         DATABASES["default"]["CONN_MAX_AGE"] = env_int("DB_CONN_MAX_AGE", 60)
-    # A connection is checked before use: with the pool, as it is lent (by its socket,
-    # with a round trip only when something waits there: iouv.db_pool), else when a
-    # kept one is reused (an empty round trip). After PostgreSQL restarted, or dropped
-    # idle connections, the dead ones are replaced instead of failing a request each.
+    # A connection is checked before use (an empty statement): with the pool, as it is
+    # lent (psycopg_pool's check, which Django hands the pool), else when a kept one is
+    # reused. After PostgreSQL restarted, or dropped idle connections, the dead ones
+    # are replaced instead of failing a request each.
     DATABASES["default"]["CONN_HEALTH_CHECKS"] = True
     # Connecting to a host that does not answer (a lost network, not a refused port)
     # gives up after this many seconds (libpq's minimum is 2) instead of the system's
@@ -186,10 +187,11 @@ else:
     # Statements bound and prepared by PostgreSQL: psycopg sends the values apart from
     # the SQL instead of quoting them into it in Python, and a statement a connection
     # has run DB_PREPARE_THRESHOLD times is prepared there, parsed and planned once.
-    # The platform's statements are few and repeat (iouv.prepared composes them once),
-    # so both cut the process's CPU per statement and PostgreSQL's. A pooler in
-    # transaction mode (PgBouncer before 1.21) cannot keep prepared statements:
-    # DB_PREPARE_THRESHOLD=0 turns preparing off.
+    # The platform's statements are few and repeat (a session's request, end and
+    # reports run the same ORM queries with new values), so both cut the process's
+    # CPU per statement and PostgreSQL's. A pooler in transaction mode (PgBouncer
+    # before 1.21) cannot keep prepared statements: DB_PREPARE_THRESHOLD=0 turns
+    # preparing off.
     DATABASES["default"]["OPTIONS"].setdefault("server_side_binding", True)
     _prepare_after = env_int("DB_PREPARE_THRESHOLD", 2)
     DATABASES["default"]["OPTIONS"].setdefault(
@@ -340,6 +342,13 @@ else:
 CELERY_TASK_ACKS_LATE = True
 CELERY_TASK_REJECT_ON_WORKER_LOST = True
 CELERY_WORKER_PREFETCH_MULTIPLIER = 1
+# A worker runs its tasks on threads, all borrowing from the process's pool of database
+# connections. Celery's Django fixup hands a task's connection back when the task ends,
+# and the next task borrows it again; in a prefork worker the fixup closes the child's
+# whole pool after every task instead, so each task started a PostgreSQL backend of its
+# own. The tasks wait on PostgreSQL and Redis, not on the CPU. Keep a worker's
+# --concurrency at most DB_POOL_SIZE.
+CELERY_WORKER_POOL = "threads"
 CELERY_TASK_IGNORE_RESULT = True
 CELERY_TASK_ALWAYS_EAGER = env_bool("CELERY_TASK_ALWAYS_EAGER", False)
 CELERY_BROKER_CONNECTION_RETRY_ON_STARTUP = True
@@ -403,14 +412,6 @@ IOUV_SUPERVISION_TICK_S = env_float("IOUV_SUPERVISION_TICK_S", 2.0)
 IOUV_UNSAFE_REFUSALS_MAX = env_int("IOUV_UNSAFE_REFUSALS_MAX", 5)
 IOUV_UNSAFE_REFUSALS_WINDOW_S = env_float("IOUV_UNSAFE_REFUSALS_WINDOW_S", 10.0)
 
-# HTTP requests one platform process runs at once (0: no limit); the rest wait their
-# turn. Their threads share the interpreter with the WebSockets' event loop, which
-# must keep its share (iouv.concurrency).
-IOUV_HTTP_CONCURRENCY = env_int("IOUV_HTTP_CONCURRENCY", 1)
-# How long a thread of a platform process may hold the interpreter while another
-# waits for it, in milliseconds (Python's own default is 5): the event loop waits for
-# the request threads at most this long each time (iouv.asgi, iouv.concurrency).
-IOUV_SWITCH_INTERVAL_MS = env_float("IOUV_SWITCH_INTERVAL_MS", 1.0)
 # Net allocations between two collections of the garbage collector's youngest
 # generation in a platform process (Python's default: 700; 0 keeps it). See
 # iouv.collector: a request's objects then die young instead of filling the oldest

@@ -19,7 +19,7 @@ import subprocess
 import sys
 import time
 import urllib.request
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -201,10 +201,13 @@ class PlatformServer:
 
 
 @contextlib.contextmanager
-def celery_worker_process(*, extra_env: dict[str, str] | None = None) -> Iterator[Any]:
-    """Run a Celery worker with its beat on the test database and Redis; yields a
-    handle whose ``kill()`` SIGKILLs the worker (as a crash would) and ``start()``
-    starts a fresh one."""
+def celery_worker_process(
+    *, extra_env: dict[str, str] | None = None, extra_args: Sequence[str] = ()
+) -> Iterator[Any]:
+    """Run a Celery worker with its beat on the test database and Redis (``extra_args``
+    added to its command line, e.g. ``--include`` a module of tasks); yields a handle
+    whose ``kill()`` SIGKILLs the worker (as a crash would) and ``start()`` starts a
+    fresh one."""
     env = {
         **os.environ,
         "DATABASE_URL": _test_database_url(),
@@ -212,7 +215,7 @@ def celery_worker_process(*, extra_env: dict[str, str] | None = None) -> Iterato
         "PYTHONUNBUFFERED": "1",
         **(extra_env or {}),
     }
-    handle = _Worker(env)
+    handle = _Worker(env, extra_args)
     handle.start()
     try:
         yield handle
@@ -221,8 +224,9 @@ def celery_worker_process(*, extra_env: dict[str, str] | None = None) -> Iterato
 
 
 class _Worker:
-    def __init__(self, env: dict[str, str]) -> None:
+    def __init__(self, env: dict[str, str], extra_args: Sequence[str] = ()) -> None:
         self.env = env
+        self.extra_args = list(extra_args)
         self.proc: subprocess.Popen[bytes] | None = None
         self.runs = 0
 
@@ -235,6 +239,7 @@ class _Worker:
                 sys.executable, "-m", "celery", "-A", "iouv", "worker", "--beat",
                 "--loglevel", "INFO", "--concurrency", "2", "--without-gossip",
                 "--without-mingle", "--schedule", str(settings.VAR_DIR / f"beat-{tag}"),
+                *self.extra_args,
             ],
             cwd=ROOT,
             env=self.env,
