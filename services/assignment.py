@@ -35,7 +35,7 @@ from functools import reduce
 from typing import Any
 
 from django.contrib.auth import get_user_model
-from django.db import DEFAULT_DB_ALIAS, connection, transaction
+from django.db import connection, transaction
 from django.db.models import (
     Exists,
     ExpressionWrapper,
@@ -55,14 +55,6 @@ from fleet.feed import fleet_notify
 from fleet.liveness import vehicles_fresh
 from fleet.models import Vehicle
 from fleet.status import vehicles_online
-from iouv.prepared import (
-    Param,
-    PreparedFamily,
-    PreparedInsert,
-    PreparedQuery,
-    PreparedUpdate,
-    writes_batched,
-)
 from services.eventlog import event_append, events_staged
 from services.grants import user_can_use
 from services.models import Assignment, Service, ServiceRole, Session
@@ -272,11 +264,6 @@ def _pool(
     """The online idle vehicles (meeting ``narrow``), as plain facts. With ``page``
     (offset, size) and a ``target``: only that slice of them, nearest to the target
     first (by the database, on an equirectangular approximation of the distance)."""
-    if page is not None and target is not None and narrow is not None and not exclude:
-        # A request's usual read, composed once per role's requirements and page.
-        lat, lon = target
-        nearest = _PAGES[(narrow, page)].all(lat=lat, lon=lon, east=_east(lat))
-        return [Facts.from_row(row) for row in nearest]
     values = _candidates(narrow=narrow, positioned=target is not None).exclude(pk__in=exclude)
     if page is not None and target is not None:
         lat, lon = target
@@ -317,21 +304,6 @@ def _nearest_first(
             north_d * north_d + east_d * east_d * east, output_field=FloatField()
         )
     ).order_by("near", "pk")[offset : offset + size]
-
-
-#: Pages of candidates composed once (iouv.prepared), per role requirements and page.
-_PAGES: PreparedFamily[PreparedQuery[Any]] = PreparedFamily(
-    lambda shape: PreparedQuery(
-        lambda: _nearest_first(
-            _candidates(narrow=shape[0], positioned=True),
-            Param("lat", Vehicle.lat),  # the type the three numbers bind as
-            Param("lon", Vehicle.lat),
-            Param("east", Vehicle.lat),
-            shape[1],
-        )
-    ),
-    keep=256,
-)
 
 
 def _ranked(
@@ -430,63 +402,6 @@ TAKEN = "every matching vehicle was just taken by other requests"
 QUIET = "no vehicle is online and idle"
 
 
-# What a request runs for every session, composed once (iouv.prepared).
-#
-# A candidate reserved, if it is still idle, in one statement that gives its row back
-# (what its task needs): the row is locked in a subquery that skips a row another
-# request holds (it is being reserved: skipped, not waited for). Not one still holding
-# an active assignment (found silent, then heard from again): the unique index would
-# refuse the assignment, and checking here needs no savepoint to go on. The update's
-# own condition holds on SQLite too, which has no row locks (its writers take turns).
-_VEHICLE_COLUMNS = tuple(field.attname for field in Vehicle._meta.concrete_fields)
-_RESERVE = PreparedUpdate(
-    lambda: (
-        Vehicle.objects.filter(
-            pk__in=Vehicle.objects.select_for_update(skip_locked=True, of=("self",))
-            .filter(pk=Param("vehicle", Vehicle.id), status=Vehicle.Status.IDLE, maintenance=False)
-            .filter(~Exists(Assignment.objects.filter(vehicle_id=OuterRef("pk"), active=True)))
-            .order_by()
-            .values("pk")
-        ),
-        {"status": Vehicle.Status.RESERVED},
-    ),
-    returning=_VEHICLE_COLUMNS,
-)
-# Held by the request's write batch (iouv.prepared.writes_batched): nothing in its
-# transaction reads them back.
-_ASSIGNMENT_INSERT: PreparedInsert[Assignment] = PreparedInsert(Assignment, batched=True)
-_SESSION_INSERT: PreparedInsert[Session] = PreparedInsert(Session, batched=True)
-_REQUIRED_ROLES: PreparedQuery[ServiceRole] = PreparedQuery(
-    lambda: ServiceRole.objects.filter(
-        service_id=Param("service", ServiceRole.service), required=True
-    )
-)
-# The user's row is the lock: two requests of one user are counted one after the other,
-# so together they cannot pass the cap. The count is a statement of its own: under READ
-# COMMITTED a statement sees what was committed when it began, and the lock may be
-# waited for; counted in the locking statement, a racing request's session, committed
-# while this one waited, would not be seen.
-_USER_LOCK: PreparedQuery[Any] = PreparedQuery(
-    lambda: (
-        get_user_model()
-        .objects.select_for_update()
-        .filter(pk=Param("user", get_user_model()._meta.pk))
-        .values_list("pk", flat=True)
-    )
-)
-_LIVE_SESSIONS: PreparedQuery[Any] = PreparedQuery(
-    lambda: (
-        Session.objects.filter(
-            user_id=Param("user", Session.user),
-            service_id=Param("service", Session.service),
-            state__in=LIVE_STATES,
-        )
-        .order_by()
-        .values_list("pk", flat=True)
-    )
-)
-
-
 def _reserve_first(
     *, session: Session, match: Match, now: datetime | None = None
 ) -> tuple[Assignment, Facts] | str:
@@ -502,18 +417,28 @@ def _reserve_first(
             # Its agent is not heard from (the sweep has not marked it offline yet):
             # not this one.
             continue
-        reserved = _RESERVE.run_returning(vehicle=facts.pk)
-        if not reserved:
+        # Reserved if it is still idle: the row is locked in a subquery that skips a
+        # row another request holds (it is being reserved: skipped, not waited for).
+        # Not one still holding an active assignment (found silent, then heard from
+        # again): the unique index would refuse the assignment, and checking here needs
+        # no savepoint to go on. The update's own condition holds on SQLite too, which
+        # has no row locks (its writers take turns).
+        free = (
+            Vehicle.objects.select_for_update(skip_locked=True, of=("self",))
+            .filter(pk=facts.pk, status=Vehicle.Status.IDLE, maintenance=False)
+            .filter(~Exists(Assignment.objects.filter(vehicle_id=OuterRef("pk"), active=True)))
+            .order_by()
+            .values("pk")
+        )
+        if not Vehicle.objects.filter(pk__in=free).update(status=Vehicle.Status.RESERVED):
             why = TAKEN  # another request got it first
             continue
-        vehicle = Vehicle.from_db(DEFAULT_DB_ALIAS, _VEHICLE_COLUMNS, reserved[0])
-        assignment = _ASSIGNMENT_INSERT.save(
-            Assignment(
-                session=session,
-                role=match.role.name,
-                vehicle=vehicle,
-                distance_m=round(candidate.distance_m, 1),
-            )
+        vehicle = Vehicle.objects.get(pk=facts.pk)  # its row as reserved, locked by now
+        assignment = Assignment.objects.create(
+            session=session,
+            role=match.role.name,
+            vehicle=vehicle,
+            distance_m=round(candidate.distance_m, 1),
         )
         fleet_notify([vehicle.pk])
         return assignment, facts
@@ -606,8 +531,15 @@ def session_record(
     instance (services.sessions) and the caller writes it once, as they leave it, with
     :func:`session_write` before its transaction ends (what refers to it, its
     assignments and its log, is checked against it at the commit)."""
-    _USER_LOCK.all(user=user.pk)
-    live = len(_LIVE_SESSIONS.all(user=user.pk, service=service.pk))
+    # The user's row is the lock: two requests of one user are counted one after the
+    # other, so together they cannot pass the cap. The count is a statement of its own:
+    # under READ COMMITTED a statement sees what was committed when it began, and the
+    # lock may be waited for; counted in the locking statement, a racing request's
+    # session, committed while this one waited, would not be seen.
+    list(
+        get_user_model().objects.select_for_update().filter(pk=user.pk).values_list("pk", flat=True)
+    )
+    live = Session.objects.filter(user=user, service=service, state__in=LIVE_STATES).count()
     cap = service.max_sessions_per_user
     if live >= cap:
         raise AssignmentError(
@@ -626,7 +558,7 @@ def session_record(
     if pk is not None:
         session.pk = pk
     if write:
-        _SESSION_INSERT.save(session)
+        session.save(force_insert=True)
     event_append(
         session=session,
         kind="requested",
@@ -643,7 +575,8 @@ def session_record(
 
 def session_write(session: Session) -> Session:
     """Write a session :func:`session_record` left unwritten, as it is now."""
-    return _SESSION_INSERT.save(session)
+    session.save(force_insert=True)
+    return session
 
 
 def service_grant_require(*, user: User, service: Service) -> None:
@@ -695,7 +628,7 @@ def session_roles_assign(
     vehicle stays reserved) and AssignmentError is raised: the caller catches it and
     commits the failure. Returns the assignments, with their vehicles read.
     """
-    roles = _REQUIRED_ROLES.all(service=service.pk)
+    roles = list(ServiceRole.objects.filter(service=service, required=True))
     reserved: list[tuple[Assignment, dict[str, Any]]] = []
     # All roles or none. With one role nothing is written before a refusal; with more,
     # a savepoint takes back the vehicles reserved for the roles before the one failing.
@@ -745,9 +678,8 @@ def session_request(
     refused: AssignmentError | None = None
     pk = uuid.uuid4()
     # One transaction, and the log written in one go at its end (services.eventlog).
-    # The session written once, assigned or failed (session_record's write); the
-    # session, its assignments and its log sent in one statement (writes_batched).
-    with transaction.atomic(), writes_batched(), events_staged(session_id=pk):
+    # The session written once, assigned or failed (session_record's write).
+    with transaction.atomic(), events_staged(session_id=pk):
         session = session_record(
             user=user,
             service=service,

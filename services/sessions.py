@@ -15,12 +15,11 @@ from __future__ import annotations
 
 from typing import Any
 
-from django.db import DatabaseError, transaction
+from django.db import transaction
 from django.utils import timezone
 
 from fleet.feed import fleet_notify
 from fleet.models import Vehicle
-from iouv.prepared import Param, PreparedFamily, PreparedQuery, PreparedUpdate
 from services.eventlog import event_append
 from services.models import Assignment, Session, SessionEvent
 
@@ -61,35 +60,6 @@ def session_transition(
     return session
 
 
-# A state change's update, per set of fields changed, composed once (iouv.prepared).
-_UPDATES: PreparedFamily[PreparedUpdate] = PreparedFamily(
-    lambda fields: PreparedUpdate(
-        lambda: (
-            Session.objects.filter(pk=Param("session", Session.id)),
-            {name: Param(name, Session._meta.get_field(name)) for name in fields},
-        )
-    )
-)
-
-
-def _session_update(session: Session, fields: list[str]) -> None:
-    """``session.save(update_fields=fields)``, composed once per set of fields (and held
-    by an open write batch, iouv.prepared.writes_batched); nothing for a session not
-    written yet (services.assignment.session_record's ``write``), which is written with
-    its changes."""
-    if session._state.adding:
-        return
-
-    def updated(rows: int) -> None:
-        if not rows:
-            raise DatabaseError("Save with update_fields did not affect any rows.")
-
-    key = tuple(fields)
-    _UPDATES[key].run_later(
-        then=updated, session=session.pk, **{name: getattr(session, name) for name in key}
-    )
-
-
 def session_transition_locked(
     *,
     session: Session,
@@ -127,7 +97,10 @@ def session_transition_locked(
         session.ended_at = now
         fields.append("ended_at")
         released = assignments_release(session=session, free_vehicles=free_vehicles)
-    _session_update(session, fields)
+    # A session not written yet (services.assignment.session_record's ``write``) is
+    # written with its changes.
+    if not session._state.adding:
+        session.save(update_fields=fields)
     event_append(
         session=session,
         kind="state",
@@ -138,23 +111,6 @@ def session_transition_locked(
     return released
 
 
-# What every session's end runs, composed once (iouv.prepared).
-_ASSIGNMENTS_LOCKED: PreparedQuery[Assignment] = PreparedQuery(
-    lambda: (
-        Assignment.objects.select_for_update(of=("self",))
-        .select_related("vehicle")
-        .filter(session_id=Param("session", Assignment.session))
-    )
-)
-# Under the locks of all the session's assignments: the active ones are those just read.
-_ASSIGNMENTS_END = PreparedUpdate(
-    lambda: (
-        Assignment.objects.filter(session_id=Param("session", Assignment.session), active=True),
-        {"active": False, "released_at": Param("now", Assignment.released_at)},
-    )
-)
-
-
 def assignments_release(*, session: Session, free_vehicles: bool = True) -> list[Any]:
     """End ``session``'s active assignments; with ``free_vehicles``, vehicles still
     reserved or in service become idle again. Returns the released vehicle ids.
@@ -163,13 +119,21 @@ def assignments_release(*, session: Session, free_vehicles: bool = True) -> list
     on ``session.known_assignments`` as they are once released."""
     # No savepoint: nothing is caught in here; outside a transaction it makes one.
     with transaction.atomic(savepoint=False):
-        assignments: list[Assignment] = _ASSIGNMENTS_LOCKED.all(session=session.pk)
+        assignments = list(
+            Assignment.objects.select_for_update(of=("self",))
+            .select_related("vehicle")
+            .filter(session_id=session.pk)
+        )
         session.known_assignments = assignments
         active = [a for a in assignments if a.active]
         if not active:
             return []
         now = timezone.now()
-        _ASSIGNMENTS_END.run_later(session=session.pk, now=now)
+        # Under the locks of all the session's assignments: the active ones are those
+        # just read.
+        Assignment.objects.filter(session_id=session.pk, active=True).update(
+            active=False, released_at=now
+        )
         for assignment in active:
             assignment.active, assignment.released_at = False, now
         ids = [a.vehicle_id for a in active]
