@@ -38,7 +38,7 @@ from asgiref.sync import async_to_sync
 from channels.db import database_sync_to_async
 from channels.layers import get_channel_layer
 from django.db import connection, transaction
-from django.db.models import Exists, F, OuterRef, Q, QuerySet
+from django.db.models import Exists, F, OuterRef, Q
 from django.utils import timezone
 
 from agents.protocol.messages import (
@@ -53,15 +53,6 @@ from agents.protocol.messages import (
 from fleet.feed import fleet_notify
 from fleet.models import AgentMessage, Vehicle
 from iouv import layer
-from iouv.prepared import (
-    Param,
-    PreparedFamily,
-    PreparedInsert,
-    PreparedQuery,
-    PreparedUpdate,
-    params_in,
-    values_in,
-)
 
 log = logging.getLogger(__name__)
 
@@ -98,11 +89,6 @@ def _db(func: Any) -> Any:
 # --------------------------------------------------------------------------------------
 
 
-# Every task and every end owed to an agent: composed once (iouv.prepared), and held
-# by an open write batch (a session's request and end send their writes together).
-_ENQUEUE: PreparedInsert[AgentMessage] = PreparedInsert(AgentMessage, batched=True)
-
-
 def agent_message_enqueue(
     *, vehicle_id: Any, message: Task | Revoke | EndTask, session_id: Any = None
 ) -> AgentMessage:
@@ -119,13 +105,11 @@ def agent_message_enqueue(
     # (a struct's constructor checks no limits).
     encode_message(msgspec.structs.replace(message, id="0"), channel="uplink_to_agent")
     pk = uuid.UUID(str(vehicle_id))
-    row = _ENQUEUE.save(
-        AgentMessage(
-            vehicle_id=pk,
-            session_id=session_id or getattr(message, "session_id", None),
-            kind=message_type(message),
-            message=message_to_dict(message),  # stored as the JSON it travels as
-        )
+    row = AgentMessage.objects.create(
+        vehicle_id=pk,
+        session_id=session_id or getattr(message, "session_id", None),
+        kind=message_type(message),
+        message=message_to_dict(message),  # stored as the JSON it travels as
     )
     transaction.on_commit(lambda: outbox_nudge(pk), robust=True)
     return row
@@ -211,47 +195,6 @@ class Acked:
     released: bool  # the vehicle left ``releasing`` with this acknowledgement
 
 
-# An agent's ack, which every delivered message gets, in one statement composed once
-# (iouv.prepared): a conditional update, no transaction, giving back what the ack is
-# about. Of two acks of one message (a repeat crossing a redelivery) one changes the
-# row, the other finds it acked already.
-_ACK = PreparedUpdate(
-    lambda: (
-        AgentMessage.objects.filter(
-            key=Param("key", AgentMessage.key),
-            vehicle_id=Param("vehicle", AgentMessage.vehicle),
-            state=AgentMessage.State.PENDING,
-        ),
-        {
-            "state": AgentMessage.State.ACKED,
-            "acked_at": Param("now", AgentMessage.acked_at),
-            "result": Param("result", AgentMessage.result),
-        },
-    ),
-    returning=("session_id", "kind", "message"),
-)
-# A releasing vehicle whose agent owes no session end, made idle: the check and the
-# change in one statement.
-_RELEASE_IF_SETTLED = PreparedUpdate(
-    lambda: (
-        Vehicle.objects.filter(
-            pk=Param("vehicle", Vehicle.id),
-            status=Vehicle.Status.RELEASING,
-            maintenance=False,
-        ).filter(
-            ~Exists(
-                AgentMessage.objects.filter(
-                    vehicle_id=OuterRef("pk"),
-                    state=AgentMessage.State.PENDING,
-                    kind__in=ENDING,
-                )
-            )
-        ),
-        {"status": Vehicle.Status.IDLE},
-    )
-)
-
-
 def agent_message_ack(*, vehicle_id: Any, key: str, ok: bool, detail: str = "") -> Acked | None:
     """Record the agent's ``ack`` of message ``key``; None when it is not one of the
     vehicle's pending messages (a repeat, a stranger's id, a cancelled one).
@@ -264,12 +207,17 @@ def agent_message_ack(*, vehicle_id: Any, key: str, ok: bool, detail: str = "") 
     except ValueError:
         return None
     detail = detail[:200]
-    acked = _ACK.run_returning(
-        key=pk, vehicle=vehicle_id, now=timezone.now(), result={"ok": ok, "detail": detail}
-    )
-    if not acked:
+    # A conditional update, no transaction: of two acks of one message (a repeat
+    # crossing a redelivery) one changes the row, the other finds it acked already.
+    # What the ack is about is then read from the row, which no longer changes.
+    mine = AgentMessage.objects.filter(key=pk, vehicle_id=vehicle_id)
+    if not mine.filter(state=AgentMessage.State.PENDING).update(
+        state=AgentMessage.State.ACKED,
+        acked_at=timezone.now(),
+        result={"ok": ok, "detail": detail},
+    ):
         return None
-    ((session_id, kind, message),) = acked
+    session_id, kind, message = mine.values_list("session_id", "kind", "message").get()
     released = kind in ENDING and vehicle_release_if_settled(vehicle_id=vehicle_id)
     return Acked(
         vehicle_id=str(vehicle_id),
@@ -285,7 +233,20 @@ def agent_message_ack(*, vehicle_id: Any, key: str, ok: bool, detail: str = "") 
 def vehicle_release_if_settled(*, vehicle_id: Any) -> bool:
     """A ``releasing`` vehicle whose agent owes no session end becomes ``idle``; True
     if it did. (Its next heartbeat says ``returning`` if it is still flying home.)"""
-    changed = _RELEASE_IF_SETTLED.run(vehicle=vehicle_id)
+    # The check and the change in one statement.
+    changed = (
+        Vehicle.objects.filter(pk=vehicle_id, status=Vehicle.Status.RELEASING, maintenance=False)
+        .filter(
+            ~Exists(
+                AgentMessage.objects.filter(
+                    vehicle_id=OuterRef("pk"),
+                    state=AgentMessage.State.PENDING,
+                    kind__in=ENDING,
+                )
+            )
+        )
+        .update(status=Vehicle.Status.IDLE)
+    )
     if changed:
         fleet_notify([vehicle_id])
     return bool(changed)
@@ -305,46 +266,7 @@ def _retry_after(attempts: int) -> float:
     return min(RETRY_MAX_S, RETRY_S * 2.0 ** max(0, attempts - 1))
 
 
-# What the outbox runs on every pass, composed once (iouv.prepared): the rows owed,
-# then those of this process's vehicles locked and marked sent, per number of rows.
-_OWED: PreparedQuery[Any] = PreparedQuery(
-    lambda: (
-        AgentMessage.objects.filter(state=AgentMessage.State.PENDING)
-        .order_by()
-        .values_list("id", "vehicle_id")
-    )
-)
 _DUE_FIELDS = ("id", "key", "vehicle_id", "kind", "message", "sent_at", "attempts", "created_at")
-
-
-# Locked, skipping rows another transaction holds: a task being withdrawn as its session
-# ends is either sent before that decision or not at all, so the decision always knows
-# whether the agent may have it.
-def _owed_locked(ids: Sequence[Any]) -> QuerySet[AgentMessage, tuple[Any, ...]]:
-    return (
-        AgentMessage.objects.select_for_update(skip_locked=True)
-        .filter(state=AgentMessage.State.PENDING, pk__in=ids)
-        .order_by("id")
-        .values_list(*_DUE_FIELDS)
-    )
-
-
-def _sent(ids: Sequence[Any], now: Any) -> tuple[QuerySet[AgentMessage], dict[str, Any]]:
-    """The rows ``ids`` marked sent at ``now``: the queryset and its changes."""
-    return AgentMessage.objects.filter(pk__in=ids), {"sent_at": now, "attempts": F("attempts") + 1}
-
-
-_OWED_LOCKED: PreparedFamily[PreparedQuery[Any]] = PreparedFamily(
-    lambda count: PreparedQuery(lambda: _owed_locked(params_in("id", AgentMessage.id, count)))
-)
-_SENT: PreparedFamily[PreparedUpdate] = PreparedFamily(
-    lambda count: PreparedUpdate(
-        lambda: _sent(params_in("id", AgentMessage.id, count), Param("now", AgentMessage.sent_at))
-    )
-)
-#: The most rows a pass reads or marks with a prepared statement; more (a backlog after
-#: an outage) are read with the ORM.
-_PREPARED_ROWS = 32
 
 
 def _take_due(*, vehicle_ids: Collection[str], fresh: Sequence[str], now: datetime) -> list[Any]:
@@ -362,14 +284,24 @@ def _take_due(*, vehicle_ids: Collection[str], fresh: Sequence[str], now: dateti
     # vehicles twice a second (building that query alone cost 15 % of a process
     # holding 2,000 uplinks).
     ours = vehicle_ids if isinstance(vehicle_ids, (set, frozenset)) else set(vehicle_ids)
-    owed = [pk for pk, vehicle_id in _OWED.all() if str(vehicle_id) in ours]
+    pending = AgentMessage.objects.filter(state=AgentMessage.State.PENDING)
+    owed = [
+        pk
+        for pk, vehicle_id in pending.order_by().values_list("id", "vehicle_id")
+        if str(vehicle_id) in ours
+    ]
     if not owed:
         return []
     with transaction.atomic():
-        if len(owed) <= _PREPARED_ROWS:
-            found = _OWED_LOCKED[len(owed)].all(**values_in("id", owed))
-        else:
-            found = list(_owed_locked(owed))
+        # Locked, skipping rows another transaction holds: a task being withdrawn as its
+        # session ends is either sent before that decision or not at all, so the
+        # decision always knows whether the agent may have it.
+        found = (
+            pending.select_for_update(skip_locked=True)
+            .filter(pk__in=owed)
+            .order_by("id")
+            .values_list(*_DUE_FIELDS)
+        )
         rows = [dict(zip(_DUE_FIELDS, row, strict=True)) for row in found]
         due = []
         stale_disconnects = []
@@ -389,11 +321,10 @@ def _take_due(*, vehicle_ids: Collection[str], fresh: Sequence[str], now: dateti
             ):
                 due.append(row)
         sending = [r["id"] for r in due if r["kind"] != AgentMessage.Kind.DISCONNECT]
-        if sending and len(sending) <= _PREPARED_ROWS:
-            _SENT[len(sending)].run(now=now, **values_in("id", sending))
-        elif sending:
-            marked, changes = _sent(sending, now)
-            marked.update(**changes)
+        if sending:
+            AgentMessage.objects.filter(pk__in=sending).update(
+                sent_at=now, attempts=F("attempts") + 1
+            )
         if stale_disconnects:
             AgentMessage.objects.filter(pk__in=stale_disconnects).update(
                 state=AgentMessage.State.CANCELLED

@@ -28,7 +28,6 @@ from fleet.feed import fleet_notify
 from fleet.models import AgentMessage, Vehicle
 from fleet.outbox import agent_messages_cancel
 from fleet.uplink import vehicle_send
-from iouv.prepared import Param, PreparedQuery, PreparedUpdate, writes_batched
 from services.assignment import (
     AssignmentError,
     service_grant_require,
@@ -336,10 +335,8 @@ def session_request_deploy(
         service_grant_require(user=user, service=service)
     refused: AssignmentError | InvalidTaskError | None = None
     pk = uuid.uuid4()
-    # The session written once, as the block leaves it (session_record's write); the
-    # session, its assignments, its tasks and its log sent in one statement
-    # (writes_batched).
-    with transaction.atomic(), writes_batched() as batch, events_staged(session_id=pk) as log:
+    # The session written once, as the block leaves it (session_record's write).
+    with transaction.atomic(), events_staged(session_id=pk) as log:
         session = session_record(
             user=user,
             service=service,
@@ -361,7 +358,6 @@ def session_request_deploy(
         except AssignmentError as exc:
             refused = exc  # the failed session is committed, then the refusal raised
         except InvalidTaskError as exc:
-            batch.flush()  # the failure reads the assignments back to release them
             session_transition_locked(session=session, to=Session.State.FAILED, reason=str(exc))
             exc.session = session
             refused = exc
@@ -418,37 +414,6 @@ _HELD = [
     Vehicle.Status.FAILSAFE,
     Vehicle.Status.IDLE,
 ]
-# What every session's end runs per vehicle, composed once (iouv.prepared).
-# A vehicle the supervisor marked fail-safe is freed too: if its agent still is in
-# fail-safe, its next heartbeat says so and marks it again.
-_FREE = PreparedUpdate(
-    lambda: (
-        Vehicle.objects.filter(
-            pk=Param("vehicle", Vehicle.id), maintenance=False, status__in=_HELD[:3]
-        ),
-        {"status": Vehicle.Status.IDLE},
-    )
-)
-# An offline vehicle stays offline: it is told when it reconnects.
-_RELEASING = PreparedUpdate(
-    lambda: (
-        Vehicle.objects.filter(
-            pk=Param("vehicle", Vehicle.id), maintenance=False, status__in=_HELD
-        ),
-        {"status": Vehicle.Status.RELEASING},
-    )
-)
-_TASKS_LOCKED: PreparedQuery[Any] = PreparedQuery(
-    lambda: (
-        AgentMessage.objects.select_for_update()
-        .filter(
-            vehicle_id=Param("vehicle", AgentMessage.vehicle),
-            session_id=Param("session", AgentMessage.session_id),
-            kind=AgentMessage.Kind.TASK,
-        )
-        .values_list("pk", "state", "attempts")
-    )
-)
 
 
 def vehicle_release(*, vehicle_id: Any, session_id: Any, message: EndTask | Revoke) -> bool:
@@ -462,18 +427,18 @@ def vehicle_release(*, vehicle_id: Any, session_id: Any, message: EndTask | Revo
     agent has to confirm, False when the vehicle was freed at once.
     """
     sent = _task_withdraw(vehicle_id=vehicle_id, session_id=session_id)
-
-    def changed(rows: int) -> None:
-        if rows:
-            fleet_notify([vehicle_id])
-
-    # Held by an open write batch (iouv.prepared.writes_batched), as the end is.
+    vehicle = Vehicle.objects.filter(pk=vehicle_id, maintenance=False)
     if not sent:
-        _FREE.run_later(then=changed, vehicle=vehicle_id)
-        return False
-    vehicle_send(vehicle_id=vehicle_id, message=message)
-    _RELEASING.run_later(then=changed, vehicle=vehicle_id)
-    return True
+        # A vehicle the supervisor marked fail-safe is freed too: if its agent still is
+        # in fail-safe, its next heartbeat says so and marks it again.
+        changed = vehicle.filter(status__in=_HELD[:3]).update(status=Vehicle.Status.IDLE)
+    else:
+        vehicle_send(vehicle_id=vehicle_id, message=message)
+        # An offline vehicle stays offline: it is told when it reconnects.
+        changed = vehicle.filter(status__in=_HELD).update(status=Vehicle.Status.RELEASING)
+    if changed:
+        fleet_notify([vehicle_id])
+    return sent
 
 
 def _task_withdraw(*, vehicle_id: Any, session_id: Any) -> bool:
@@ -485,7 +450,11 @@ def _task_withdraw(*, vehicle_id: Any, session_id: Any) -> bool:
     the outbox skips it. One read for both questions (what to withdraw, and whether the
     agent may have it); an update only when something is withdrawn.
     """
-    tasks = _TASKS_LOCKED.all(vehicle=vehicle_id, session=session_id)
+    tasks = list(
+        AgentMessage.objects.select_for_update()
+        .filter(vehicle_id=vehicle_id, session_id=session_id, kind=AgentMessage.Kind.TASK)
+        .values_list("pk", "state", "attempts")
+    )
     pending = [pk for pk, state, _ in tasks if state == AgentMessage.State.PENDING]
     if pending:
         AgentMessage.objects.filter(pk__in=pending).update(state=AgentMessage.State.CANCELLED)
@@ -506,9 +475,7 @@ def _close(
     refusal then spoils that transaction: no savepoint is made). The session is left
     with its assignments and its whole log as this transaction leaves them
     (``known_assignments``, ``known_events``)."""
-    # The session's, its assignments', its vehicles' and its log's writes, and the
-    # messages owed, sent in one statement at the block's end (writes_batched).
-    with transaction.atomic(savepoint=not locked), writes_batched():
+    with transaction.atomic(savepoint=not locked):
         row = (
             session if locked else Session.objects.select_for_update(no_key=True).get(pk=session.pk)
         )
