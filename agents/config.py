@@ -33,6 +33,10 @@ the platform's ``welcome`` carries (a key rotation), unless
 loopback-only machine), ``max_peers``, or ``"enabled": false`` to answer no WebRTC
 offer at all. Absent, the agent accepts offers with the platform's servers alone.
 
+``records`` says where the flight record waits for the platform (:mod:`agents.recording`,
+docs/records.md): ``{"dir": "records", "max_bytes": 268435456}``; by default
+``$IOUV_VAR_DIR/agent/<vehicle id>/records`` (``var/`` without the variable), 256 MiB.
+
 Relative paths are taken from the config file's folder.
 """
 
@@ -40,6 +44,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import os
 import urllib.error
 import urllib.request
 from collections.abc import Mapping
@@ -54,6 +59,8 @@ from agents.protocol import KeySet, ProtocolError
 JWKS_FETCH_TIMEOUT_S: Final = 10.0
 JWKS_MAX_BYTES: Final = 64 * 1024
 #: What the ``webrtc`` section may hold.
+#: How much of the flight record may wait on the vehicle for the platform by default.
+RECORD_MAX_BYTES: Final = 256 * 1024 * 1024
 WEBRTC_OPTIONS: Final = frozenset({"enabled", "ice_servers", "ice_host_addresses", "max_peers"})
 
 
@@ -80,6 +87,22 @@ class ControlConfig:
 
 
 @dataclass(frozen=True)
+class RecordsConfig:
+    """Where the flight record waits on the vehicle until the platform has it
+    (agents.recording), and how much of it may wait. ``directory`` None: the agent's
+    var directory (``$IOUV_VAR_DIR``, else ``var/``), ``agent/<vehicle id>/records``."""
+
+    directory: Path | None = None
+    max_bytes: int = RECORD_MAX_BYTES
+
+    def path_for(self, vehicle_id: str) -> Path:
+        """The directory of ``vehicle_id``'s record."""
+        if self.directory is not None:
+            return self.directory
+        return Path(os.environ.get("IOUV_VAR_DIR") or "var") / "agent" / vehicle_id / "records"
+
+
+@dataclass(frozen=True)
 class AgentConfig:
     """Everything one agent needs to run its vehicle."""
 
@@ -101,6 +124,7 @@ class AgentConfig:
     platform_jwks: Mapping[str, Any] | None = None
     #: Adopt the key set the platform's ``welcome`` carries (how rotations reach agents).
     platform_jwks_from_welcome: bool = True
+    records: RecordsConfig = field(default_factory=RecordsConfig)
 
     @property
     def uplink_url(self) -> str:
@@ -197,6 +221,15 @@ class AgentConfig:
             raise ConfigError("webrtc.enabled: must be true or false")
         if video is not None and video.get("source") == "thermal" and thermal is None:
             raise ConfigError("video: the thermal source needs a thermal section")
+        records = data.get("records", {})
+        if not isinstance(records, Mapping):
+            raise ConfigError("records: must be an object")
+        record_dir = records.get("dir")
+        if record_dir is not None and not (isinstance(record_dir, str) and record_dir):
+            raise ConfigError("records.dir: must be a directory path")
+        record_max = records.get("max_bytes", RECORD_MAX_BYTES)
+        if isinstance(record_max, bool) or not isinstance(record_max, int) or record_max <= 0:
+            raise ConfigError("records.max_bytes: must be a positive number of bytes")
         config = cls(
             platform_url=url,
             vehicle_id=text("vehicle_id"),
@@ -216,6 +249,9 @@ class AgentConfig:
             name=str(data.get("vehicle_name") or data.get("name") or ""),
             platform_jwks=jwks,
             platform_jwks_from_welcome=from_welcome,
+            records=RecordsConfig(
+                directory=base / record_dir if record_dir else None, max_bytes=record_max
+            ),
         )
         config.platform_keys()  # refuse unusable keys now, naming the field
         return config

@@ -89,6 +89,7 @@ from agents.protocol.messages import (
     WebrtcRequest,
     message_type,
 )
+from agents.recording import NullRecorder, RecordSink, Source
 from agents.safety import LIMIT_CODES, CommandGate, Refusal
 from agents.vehicles.base import SAFE_COMMANDS, Adapter, AdapterError, Breach
 
@@ -332,8 +333,11 @@ class ControlHub:
         on_task_end: TaskEnded | None = None,
         webrtc: Mapping[str, Any] | None = None,
         max_grant_lifetime_s: float = MAX_GRANT_LIFETIME_S,
+        recorder: RecordSink | None = None,
     ) -> None:
         self.vehicle_id = vehicle_id
+        #: The flight record: every command's outcome and every session's bounds.
+        self.recorder: RecordSink = recorder or NullRecorder()
         #: A grant valid longer than this is refused (``lifetime_too_long``, agents.config).
         self.max_grant_lifetime_s = max_grant_lifetime_s
         self.vehicle_name = vehicle_name
@@ -396,10 +400,12 @@ class ControlHub:
             try:
                 async with self._exec:
                     await self.adapter.safe_action(action)
-            except Exception:  # the rest of the shutdown must happen whatever
+            except Exception as exc:  # the rest of the shutdown must happen whatever
                 log.exception("the shutdown's safe action %s failed", action)
+                self._record_safe_action("failsafe", action, exc, cause="shutdown")
             else:
                 log.warning("shutdown: %s under way", action)
+                self._record_safe_action("failsafe", action, None, cause="shutdown")
         for client in list(self.clients.values()):
             await self._drop(client, 1001, "agent shutting down")
         if self.rtc is not None:
@@ -433,6 +439,7 @@ class ControlHub:
         if self.task is None:
             self.failsafe_done = None
         self.task = task
+        self.recorder.session_start(task.session_id)
         watch = EnvelopeWatch(
             limits=task.limits,
             state=self.adapter.state,
@@ -477,10 +484,17 @@ class ControlHub:
             with contextlib.suppress(ConnectionError):
                 await client.link.send(ClientEvent(event="session_ended", data={"reason": reason}))
             await self._drop(client, CLOSE_FORBIDDEN, reason[:120])
-        async with self._exec:
-            await self.adapter.safe_action(action or task.limits.failsafe_action)
+        safe = action or task.limits.failsafe_action
+        try:
+            async with self._exec:
+                await self.adapter.safe_action(safe)
+        except Exception as exc:
+            self._record_safe_action("platform", safe, exc, cause=reason)
+            raise
+        self._record_safe_action("platform", safe, None, cause=reason)
         self._refusals.close()  # the platform hears them before the end, never after
         self.report("task_ended", session_id, {"reason": reason})
+        self.recorder.session_end()
         return True
 
     async def _expire(self, session_id: str, limit_s: float) -> None:
@@ -512,17 +526,24 @@ class ControlHub:
                 raise Refusal("overridden", self.override_reason or "someone else took over")
             vocabulary = tuple(c.name for c in self.adapter.commands())
             gate = CommandGate(self.adapter, allowed=vocabulary, limits=task.limits)
-            checked = gate.check(name, args)
             try:
-                # Not asyncio.wait_for: on Python 3.11 it swallows a cancellation that
-                # arrives as the command completes, and a cancelled (replaced, ended)
-                # mission would then fly on.
-                async with asyncio.timeout(COMMAND_TIMEOUT_S):
-                    await self.adapter.execute(checked.name, checked.args)
-            except TimeoutError:
-                raise AdapterError(
-                    f"{name} got no answer from the vehicle", code="timeout"
-                ) from None
+                checked = gate.check(name, args)
+                try:
+                    # Not asyncio.wait_for: on Python 3.11 it swallows a cancellation
+                    # that arrives as the command completes, and a cancelled (replaced,
+                    # ended) mission would then fly on.
+                    async with asyncio.timeout(COMMAND_TIMEOUT_S):
+                        await self.adapter.execute(checked.name, checked.args)
+                except TimeoutError:
+                    raise AdapterError(
+                        f"{name} got no answer from the vehicle", code="timeout"
+                    ) from None
+            except (Refusal, AdapterError) as exc:
+                self.recorder.command(
+                    source="mission", name=name, args=args, ok=False, code=exc.code, error=str(exc)
+                )
+                raise
+            self.recorder.command(source="mission", name=name, args=args, ok=True)
 
     def _override(self, reason: str) -> None:
         """A user command, a fail-safe or the envelope acted on the vehicle: a mission
@@ -540,6 +561,22 @@ class ControlHub:
             try:
                 async with asyncio.timeout(COMMAND_TIMEOUT_S):
                     action = await self.adapter.envelope_recover(breach)
+                self.recorder.command(
+                    source="safety",
+                    name="envelope_recover",
+                    args={"limit": breach.limit, "action": action},
+                    ok=True,
+                )
+            except Exception as exc:
+                self.recorder.command(
+                    source="safety",
+                    name="envelope_recover",
+                    args={"limit": breach.limit},
+                    ok=False,
+                    code=getattr(exc, "code", type(exc).__name__),
+                    error=str(exc),
+                )
+                raise
             finally:
                 # Counted before the lock is free, whatever happened: the vehicle may
                 # have been moved, and a mission step must not fly on regardless.
@@ -767,7 +804,7 @@ class ControlHub:
         name = msg.name
         if client is not self.controller:
             await self._ack(
-                client, msg.seq, "view_only", f"{name}: you are watching; take control first"
+                client, msg, "view_only", f"{name}: you are watching; take control first"
             )
             return
         await self._heard(client)
@@ -777,13 +814,13 @@ class ControlHub:
             while not client.commands.empty():
                 dropped = client.commands.get_nowait()
                 await self._ack(
-                    client, dropped.seq, "superseded", f"{dropped.name}: superseded by {name}"
+                    client, dropped, "superseded", f"{dropped.name}: superseded by {name}"
                 )
         try:
             client.commands.put_nowait(msg)
         except asyncio.QueueFull:
             await self._ack(
-                client, msg.seq, "busy", f"{name}: commands are arriving faster than applied"
+                client, msg, "busy", f"{name}: commands are arriving faster than applied"
             )
 
     async def _run_commands(self, client: _Client) -> None:
@@ -792,11 +829,11 @@ class ControlHub:
             msg = await client.commands.get()
             seq, name, args = msg.seq, msg.name, msg.args
             if client is not self.controller or self.gate is None or self.task is None:
-                await self._ack(client, seq, "view_only", f"{name}: you no longer hold control")
+                await self._ack(client, msg, "view_only", f"{name}: you no longer hold control")
                 continue
             late = self._too_old(client, msg)
             if late is not None:
-                await self._ack(client, seq, "stale", late)
+                await self._ack(client, msg, "stale", late)
                 continue
             try:
                 checked = self.gate.check(name, args, rtt_ms=client.rtt_ms)
@@ -812,17 +849,18 @@ class ControlHub:
                     await self._stop_motion(name)
                 self.stats["refused"] += 1
                 reason = refusal_text(name, str(exc))
-                await self._ack(client, seq, exc.code, reason)
+                await self._ack(client, msg, exc.code, reason)
                 self._refusals.add(
                     self.task.session_id if self.task else None, name, exc.code, reason
                 )
                 continue
             except TimeoutError:
-                await self._ack(client, seq, "timeout", f"{name} got no answer from the vehicle")
+                await self._ack(client, msg, "timeout", f"{name} got no answer from the vehicle")
                 continue
             self.stats["commands"] += 1
             self.failsafe_done = None  # the user has the vehicle again
             self._input()
+            self._record_command(client, msg, ok=True)
             with contextlib.suppress(ConnectionError):
                 await client.link.send(CommandAck(seq=seq, ok=True, error=None))
 
@@ -1117,10 +1155,13 @@ class ControlHub:
         try:
             async with self._exec:
                 await self.adapter.safe_action(action)
-        except Exception:
+        except Exception as exc:
             # The watchdog must survive an adapter bug: report it and keep watching.
             log.exception("fail-safe %s failed", action)
+            self._record_safe_action("failsafe", action, exc, cause=cause)
             self.report("safe_action_failed", task.session_id if task else None, {"action": action})
+        else:
+            self._record_safe_action("failsafe", action, None, cause=cause)
         log.warning("fail-safe: %s -> %s", cause, action)
         self.failsafe_done = {"cause": cause, "action": action, "at": time.time()}
         for client in list(self.clients.values()):
@@ -1133,9 +1174,46 @@ class ControlHub:
         )
 
     # --- helpers -----------------------------------------------------------------------
-    async def _ack(self, client: _Client, seq: int, code: str, error: str) -> None:
+    async def _ack(self, client: _Client, msg: Command, code: str, error: str) -> None:
+        """Refuse the user's command ``msg`` (its ``ack``), and record that."""
+        self._record_command(client, msg, ok=False, code=code, error=error)
         with contextlib.suppress(ConnectionError):
-            await client.link.send(CommandAck(seq=seq, ok=False, error=error, code=code))
+            await client.link.send(CommandAck(seq=msg.seq, ok=False, error=error, code=code))
+
+    def _record_command(
+        self,
+        client: _Client,
+        msg: Command,
+        *,
+        ok: bool,
+        code: str | None = None,
+        error: str | None = None,
+    ) -> None:
+        """A user's command and its acknowledgement go into the flight record, with its
+        age when it carried its send time and the clocks are aligned."""
+        age = client.clock.age_ms(float(msg.t)) if isinstance(msg.t, float | int) else None
+        self.recorder.command(
+            source="user",
+            name=msg.name,
+            args=msg.args,
+            ok=ok,
+            code=code,
+            error=error,
+            age_ms=age,
+            seq=msg.seq,
+        )
+
+    def _record_safe_action(
+        self, source: Source, action: str, failure: Exception | None, *, cause: str
+    ) -> None:
+        self.recorder.command(
+            source=source,
+            name=action,
+            args={"cause": cause},
+            ok=failure is None,
+            code=None if failure is None else getattr(failure, "code", type(failure).__name__),
+            error=None if failure is None else str(failure),
+        )
 
     async def _send(self, client: _Client, message: Message) -> None:
         with contextlib.suppress(ConnectionError):

@@ -24,6 +24,7 @@ from agents.protocol import (
     claimed_session,
 )
 from agents.protocol.messages import (
+    Ack,
     CommandSpec,
     EndTask,
     Error,
@@ -41,6 +42,7 @@ from agents.protocol.messages import (
     TaskRefused,
     message_type,
 )
+from agents.recording import FlightRecorder
 from agents.safety import Refusal
 from agents.thermal import ThermalFeed, thermal_feed_create
 from agents.uplink import Uplink
@@ -80,6 +82,14 @@ class Agent:
         self.relay_links: dict[str, _RelayLink] = {}
         self._checks: set[asyncio.Task[None]] = set()
         self.adapter.on_event = self._adapter_event
+        #: The flight record of each session (agents.recording).
+        self.recorder = FlightRecorder(
+            directory=config.records.path_for(config.vehicle_id),
+            state=self.adapter.state,
+            telemetry=self.adapter.telemetry,
+            max_bytes=config.records.max_bytes,
+        )
+        self.adapter.on_raw = self.recorder.raw
 
     def _adapter_event(self, name: str, data: dict[str, Any]) -> None:
         """Something the vehicle itself reported (autopilot link, low battery...):
@@ -90,6 +100,8 @@ class Agent:
     async def run(self) -> None:
         """Start everything, serve until cancelled, then leave the vehicle safe."""
         async with contextlib.AsyncExitStack() as stack:
+            # Entered first, left last: it writes what the hub's shutdown recorded.
+            await stack.enter_async_context(self.recorder)
             await stack.enter_async_context(self.adapter)
             if self.config.thermal is not None:
                 self.thermal = await stack.enter_async_context(self._thermal_feed())
@@ -105,6 +117,7 @@ class Agent:
                 on_task_end=self._task_ended,
                 webrtc=self.config.webrtc,
                 max_grant_lifetime_s=self.config.control.max_grant_lifetime_s,
+                recorder=self.recorder,
             )
             self.hub = await stack.enter_async_context(hub)
             self.missions = MissionControl(
@@ -129,6 +142,7 @@ class Agent:
                 reconnect_max_s=self.config.reconnect_max_s,
                 on_welcome=self.on_welcome,
             )
+            self.recorder.uplink = self.uplink
             self.ready.set()
             log.info(
                 "%s: control on %s", self.config.name or self.config.vehicle_id, self.control_url
@@ -225,7 +239,9 @@ class Agent:
 
     def report(self, event: str, session_id: str | None, data: dict[str, Any]) -> None:
         """Tell the platform about a session event (queued while it is unreachable),
-        with the time it happened now, by the vehicle's clock."""
+        with the time it happened now, by the vehicle's clock; the session's flight
+        record keeps it too."""
+        self.recorder.event(event, session_id, data)
         if self.uplink is not None:
             self.uplink.send(
                 Event(session_id=session_id, event=event, data=data, at=round(time.time(), 3))
@@ -278,6 +294,9 @@ class Agent:
                 link = self.relay_links.pop(msg.conn, None)
                 if link is not None:
                     await hub.disconnected(link)
+            case Ack():
+                if not self.recorder.acked(msg):
+                    log.info("ignored an ack of %s", msg.id)
             case Error():
                 log.warning("platform error %s: %s", msg.code, msg.message)
             case _:

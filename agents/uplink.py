@@ -191,6 +191,11 @@ class Uplink:
 
     async def _handle(self, msg: Message) -> None:
         """Hand ``msg`` to ``on_message`` (once per id) and acknowledge it if it has one."""
+        if isinstance(msg, Ack):
+            # The platform acknowledging what the agent sent (a flight-record batch):
+            # an answer, never itself acknowledged.
+            await self.on_message(msg)
+            return
         mid = getattr(msg, "id", None)  # task, revoke, end_task; UNSET when absent
         if isinstance(mid, str) and mid in self._handled:
             self._handled.move_to_end(mid)

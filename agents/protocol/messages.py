@@ -266,6 +266,41 @@ class Event(Message, frozen=True, tag="event"):
     ) = UNSET
 
 
+#: The kinds of flight-record samples (docs/records.md).
+RecordKind = Literal["telemetry", "command", "event", "tlog", "dropped"]
+#: Samples in one ``record`` batch at most (the frame's byte limit binds first).
+RECORD_SAMPLES_MAX: Final = 1000
+
+
+class RecordSample(msgspec.Struct, frozen=True):
+    """One numbered sample of a session's flight record: ``seq`` counts from 1 per
+    session without a gap, ``t`` is when it happened by the vehicle's clock (Unix
+    seconds)."""
+
+    seq: Annotated[int, Meta(ge=1)]
+    t: Annotated[float, Meta(gt=0, description="Unix seconds, the vehicle's clock")]
+    kind: RecordKind
+    data: Object
+
+
+class Record(Message, frozen=True, tag="record"):
+    """A batch of a session's flight record, samples ``first`` .. ``first + n - 1`` in
+    order. The platform answers ``ack`` with ``id`` once it is stored (or was already);
+    the agent keeps the batch on disk and sends it again until then."""
+
+    id: Id
+    session_id: Id
+    first: Annotated[int, Meta(ge=1)]
+    samples: Annotated[list[RecordSample], Meta(min_length=1, max_length=RECORD_SAMPLES_MAX)]
+
+    def __post_init__(self) -> None:
+        for offset, sample in enumerate(self.samples):
+            if sample.seq != self.first + offset:
+                raise _invalid(
+                    f"samples[{offset}].seq", f"must be {self.first + offset} (no gap, in order)"
+                )
+
+
 class RelayClose(Message, frozen=True, tag="relay_close"):
     """A relayed client went away or was dropped (both uplink directions)."""
 
@@ -471,8 +506,12 @@ UplinkToPlatform: TypeAlias = (
     | Event
     | RelayToPlatform
     | RelayClose
+    | Record
 )
-UplinkToAgent: TypeAlias = Welcome | Task | Revoke | EndTask | RelayToAgent | RelayClose | Error
+# ``ack`` both ways: the platform acknowledges the agent's ``record`` batches by their id.
+UplinkToAgent: TypeAlias = (
+    Welcome | Task | Revoke | EndTask | RelayToAgent | RelayClose | Error | Ack
+)
 
 #: channel -> the union of the message structs it accepts.
 CHANNEL_TYPES: Final[dict[str, Any]] = {

@@ -187,6 +187,7 @@ class Braking:
 
 #: Receives what the vehicle itself reports: ``(event name, JSON-ready data)``.
 EventSink = Callable[[str, dict[str, Any]], None]
+RawSink = Callable[[float, bytes], None]
 
 
 class Adapter(abc.ABC):
@@ -214,6 +215,11 @@ class Adapter(abc.ABC):
         #: link lost, a low battery, a warning): the agent sets it to forward them to
         #: the platform. Called on the event loop's thread; must not block.
         self.on_event: EventSink | None = None
+        #: Where an adapter whose vehicle speaks a message protocol of its own (MAVLink)
+        #: hands every message it receives, as ``(Unix seconds, the message's bytes)``:
+        #: the agent's flight record keeps them (a ``.tlog``). Called on the event
+        #: loop's thread; must not block.
+        self.on_raw: RawSink | None = None
 
     # --- lifecycle ---------------------------------------------------------------------
     async def start(self) -> None:  # noqa: B027 - optional hook

@@ -201,6 +201,12 @@ MINIMAL: dict[str, dict[str, dict[str, Any]]] = {
             "payload": {"type": "ack", "seq": 1, "ok": True, "error": None},
         },
         "relay_close": {"session_id": "s", "conn": "c-1"},
+        "record": {
+            "id": "record:s-1:1",
+            "session_id": "s-1",
+            "first": 1,
+            "samples": [{"seq": 1, "t": 1.5, "kind": "telemetry", "data": {"lat": 1.0}}],
+        },
     },
     "uplink_to_agent": {
         "welcome": {"v": PROTOCOL_VERSION, "heartbeat_interval_s": 5},
@@ -213,6 +219,7 @@ MINIMAL: dict[str, dict[str, dict[str, Any]]] = {
         },
         "relay_close": {"session_id": "s", "conn": "c-1"},
         "error": {"code": "bad_credential", "message": "unknown vehicle"},
+        "ack": {"id": "record:s-1:1", "ok": True},
     },
     "control_to_agent": {
         "auth": {"grant": "abc.def"},

@@ -261,6 +261,8 @@ class MavlinkAdapter(Adapter, abc.ABC):
     # --- receiving (event loop) ----------------------------------------------------------
     def _dispatch(self, msg: Any) -> None:
         """One message from the autopilot (the link already took its answers)."""
+        if self.on_raw is not None:
+            self.on_raw(time.time(), bytes(msg.get_msgbuf()))
         kind = msg.get_type()
         source = (msg.get_srcSystem(), msg.get_srcComponent())
         if kind == "HEARTBEAT":
