@@ -69,6 +69,7 @@ from agents.protocol.messages import (
     Message,
     Position,
     Profile,
+    Record,
     RelayClose,
     RelayToAgent,
     RelayToPlatform,
@@ -90,6 +91,7 @@ from fleet.outbox import (
     outbox,
     vehicle_group,
 )
+from fleet.records import record_keep
 from fleet.servers import uplink_server_ensure, uplink_server_stopping
 from fleet.signals import (
     agent_acked,
@@ -904,6 +906,8 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             await self._until_stored(
                 functools.partial(_db(_acked), vehicle_id=self.vehicle_id, ack=msg)
             )
+        elif isinstance(msg, Record):
+            await self._until_stored(functools.partial(self._record, msg))
         elif isinstance(msg, RelayToPlatform | RelayClose):
             await self._bad_frame("bad_field", "a relayed message needs its conn")
         elif message_type(msg) in _PUBLISHED:
@@ -914,6 +918,12 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             )
         else:  # hello again
             await self._bad_frame("already_authenticated", "this uplink already said hello")
+
+    async def _record(self, msg: Record) -> None:
+        """A flight-record batch: kept (fleet.records), then acknowledged by its id, so
+        the agent deletes its copy only once the platform has it."""
+        outcome = await _db(record_keep)(vehicle_id=self.vehicle_id, message=msg)
+        await self._send_message(Ack(id=msg.id, ok=outcome.ok, detail=outcome.detail))
 
     async def _later(self, handle: Callable[[], Awaitable[None]]) -> None:
         """Queue ``handle`` behind this uplink's earlier database work.

@@ -411,6 +411,9 @@ IOUV_SUPERVISION_TICK_S = env_float("IOUV_SUPERVISION_TICK_S", 2.0)
 # the session.
 IOUV_UNSAFE_REFUSALS_MAX = env_int("IOUV_UNSAFE_REFUSALS_MAX", 5)
 IOUV_UNSAFE_REFUSALS_WINDOW_S = env_float("IOUV_UNSAFE_REFUSALS_WINDOW_S", 10.0)
+# Flight records (services.records) older than this many days are deleted by the
+# daily sweep; 0 keeps them until an admin deletes them.
+IOUV_RECORD_RETENTION_DAYS = env_int("IOUV_RECORD_RETENTION_DAYS", 90)
 
 # Net allocations between two collections of the garbage collector's youngest
 # generation in a platform process (Python's default: 700; 0 keeps it). See

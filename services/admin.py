@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from django.contrib import admin
+from django.contrib import admin, messages
+from django.db.models import QuerySet
 from django.http import HttpRequest
 from django.utils.html import format_html
 
@@ -16,6 +17,7 @@ from fleet.admin import UUIDSearchMixin
 from fleet.forms import json_pretty
 from services.eventlog import session_log_verify
 from services.models import Assignment, Service, ServiceGrant, ServiceRole, Session, SessionEvent
+from services.records import record_delete
 
 
 class ReadOnlyAdminMixin:
@@ -116,6 +118,19 @@ class SessionAdmin(UUIDSearchMixin, ReadOnlyAdminMixin, admin.ModelAdmin[Session
         name for entry in fields for name in (entry if isinstance(entry, tuple) else (entry,))
     )
     inlines = (AssignmentInline, SessionEventInline)
+    actions = ("delete_flight_records",)
+
+    @admin.action(description="Delete the flight records of the selected sessions")
+    def delete_flight_records(self, request: HttpRequest, queryset: QuerySet[Session]) -> None:
+        # Only the record goes: the session and its log stay, and the log says who
+        # deleted the record (services.records.record_delete).
+        if not request.user.is_superuser:
+            self.message_user(request, "Only an administrator may delete records.", messages.ERROR)
+            return
+        samples = sum(
+            record_delete(session=session, by=request.user.get_username()) for session in queryset
+        )
+        self.message_user(request, f"Deleted {samples} samples of flight records.")
 
     @admin.display(description="log chain")
     def log_chain(self, obj: Session) -> str:

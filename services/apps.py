@@ -37,6 +37,11 @@ class ServicesConfig(AppConfig):
         agent_welcome.connect(
             supervision.receive_agent_welcome, dispatch_uid="services.supervision.welcome"
         )
+        # The flight records vehicles upload are kept with their sessions.
+        from fleet.records import record_keeper_set
+        from services.records import record_batch_store
+
+        record_keeper_set(record_batch_store)
         # Celery's workers count their failed tasks where /metrics reads them.
         from celery.signals import task_failure
 

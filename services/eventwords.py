@@ -66,6 +66,8 @@ _TEXT: dict[str, Callable[[Mapping[str, Any]], str]] = {
     "state": _state,
     "task_deployed": lambda d: f"task sent to {_who(d)}",
     "task_accepted": lambda d: "the vehicle accepted its task",
+    "record_batch": lambda d: f"flight record received: samples {d['first']} to {d['last']}",
+    "record_deleted": lambda d: f"flight record deleted by {d['by']}",
     "task_refused": lambda d: f"the vehicle refused its task: {d.get('reason', 'no reason given')}",
     "task_ended": lambda d: f"the vehicle ended its task: {d.get('reason', '')}".rstrip(": "),
     "grant_issued": lambda d: (

@@ -381,3 +381,52 @@ class Notice(models.Model):
 
     def __str__(self) -> str:
         return f"{self.topic} by {self.channel} for {self.session_id}"
+
+
+class RecordBatch(models.Model):
+    """One batch of a session's flight record as a vehicle's agent uploaded it
+    (services.records): samples ``first`` .. ``last``, their SHA-256 (``digest``, which
+    the session's hash-chained log holds too). Stored once per (session, vehicle,
+    first): a batch the agent sends again is acknowledged, not stored twice."""
+
+    session = models.ForeignKey(Session, on_delete=models.CASCADE, related_name="record_batches")
+    vehicle = models.ForeignKey(Vehicle, on_delete=models.PROTECT, related_name="record_batches")
+    first = models.PositiveIntegerField()
+    last = models.PositiveIntegerField()
+    digest = models.CharField(max_length=64)
+    received_at = models.DateTimeField(auto_now_add=True)
+
+    class Meta:
+        constraints = [
+            models.UniqueConstraint(
+                fields=["session", "vehicle", "first"], name="unique_record_batch"
+            )
+        ]
+        ordering = ["session", "vehicle", "first"]
+
+    def __str__(self) -> str:
+        return f"record {self.first}-{self.last} of {self.vehicle_id}"
+
+
+class RecordSample(models.Model):
+    """One numbered sample of a flight record (agents.recording): ``t`` is Unix seconds
+    by the vehicle's clock, ``kind`` telemetry, command, event, tlog or dropped."""
+
+    batch = models.ForeignKey(RecordBatch, on_delete=models.CASCADE, related_name="samples")
+    session = models.ForeignKey(Session, on_delete=models.CASCADE, related_name="record_samples")
+    vehicle = models.ForeignKey(Vehicle, on_delete=models.PROTECT, related_name="+")
+    seq = models.PositiveIntegerField()
+    t = models.FloatField()
+    kind = models.CharField(max_length=12)
+    data = models.JSONField(default=dict)
+
+    class Meta:
+        constraints = [
+            models.UniqueConstraint(
+                fields=["session", "vehicle", "seq"], name="unique_record_sample"
+            )
+        ]
+        ordering = ["session", "vehicle", "seq"]
+
+    def __str__(self) -> str:
+        return f"#{self.seq} {self.kind}"

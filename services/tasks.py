@@ -14,6 +14,7 @@ from django.conf import settings
 
 from iouv.celery import app
 from services.notices import NoticeNotSent, notices_pending, notices_send, notices_send_or_retry
+from services.records import records_expire
 from services.supervision import (
     sessions_end_vehicle_lost,
     sessions_expire_grace,
@@ -23,6 +24,12 @@ from services.supervision import (
 )
 
 log = logging.getLogger(__name__)
+
+
+@shared_task(name="services.records_expire")
+def services_records_expire() -> int:
+    """Delete the flight records older than the retention setting."""
+    return records_expire()
 
 
 @shared_task(name="services.expire_grace")
@@ -94,3 +101,4 @@ def _schedule(sender, **kwargs) -> None:  # type: ignore[no-untyped-def]
     )
     sender.add_periodic_task(15.0, services_expire_undelivered.s(), name="fail undelivered tasks")
     sender.add_periodic_task(10.0, services_notices_retry.s(), name="retry unsent notices")
+    sender.add_periodic_task(3600.0, services_records_expire.s(), name="expire flight records")
