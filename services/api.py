@@ -18,7 +18,7 @@ from typing import Any
 from uuid import UUID
 
 from django.db import transaction
-from django.http import HttpResponse
+from django.http import Http404, HttpResponse
 from ninja import Status, Swagger
 
 from accounts.users import AuthenticatedHttpRequest
@@ -48,6 +48,7 @@ from services.deployment import (
 from services.grants import service_usable_get, services_for_user
 from services.kinds import Request, RequestError
 from services.models import Session
+from services.record_views import EXPORTS, record_file, record_summary
 from services.request import service_request
 from services.sessions import SessionStateError
 from services.throttle import request_keys, throttle_check, throttle_count, throttle_peek
@@ -326,3 +327,53 @@ def vehicles_list(
     if station is not None:
         vehicles = vehicles.filter(station__name=station)
     return {"vehicles": fleet_snapshot(vehicles.values_list("pk", flat=True))}
+
+
+# --- flight records --------------------------------------------------------------------------
+
+_EXPORT_TYPES = sorted({content_type.split(";")[0] for _, content_type, _ in EXPORTS.values()})
+
+
+@api.get(
+    _SESSION_PATH + "/record",
+    operation_id="session_record",
+    summary="A session's flight record: what it holds, its check, its exports",
+    **_doc({200: schema.RecordSummary}, 404),
+)
+@query()
+def session_record(request: AuthenticatedHttpRequest, session_id: UUID) -> dict[str, Any]:
+    """For the session's owner, monitors and admins; 404 for anyone else."""
+    session = _visible_session(request, session_id)
+    return record_summary(
+        session, url_for=lambda name: f"{BASE_PATH}/sessions/{session.pk}/record/{name}"
+    )
+
+
+@api.get(
+    _SESSION_PATH + "/record/{str:name}",
+    operation_id="session_record_export",
+    summary="One export of a session's flight record (GPX, KML, CSV, tlog, zip)",
+    response={404: schema.Error, **dict.fromkeys((400, 401, 500, 503), schema.Error)},
+    openapi_extra={
+        "responses": {
+            200: {
+                "description": "The export as a download.",
+                "content": {
+                    t: {"schema": {"type": "string", "format": "binary"}} for t in _EXPORT_TYPES
+                },
+            },
+            401: {"headers": _CHALLENGE},
+        }
+    },
+)
+@query()
+def session_record_export(
+    request: AuthenticatedHttpRequest, session_id: UUID, name: schema.RecordExport
+) -> HttpResponse:
+    """For the session's owner, monitors and admins; 404 for anyone else, and for a
+    ``tlog`` the record does not have."""
+    session = _visible_session(request, session_id)
+    try:
+        return record_file(session, name)
+    except Http404 as exc:
+        raise ApiError(404, "not_found", str(exc)) from None

@@ -489,3 +489,29 @@ class FleetVehicle(Schema):
 
 class Fleet(Schema):
     vehicles: list[FleetVehicle]
+
+
+# --- flight records ----------------------------------------------------------------------
+
+#: The exports of a flight record (docs/records.md).
+RecordExport = Literal["gpx", "kml", "track.csv", "commands.csv", "events.csv", "tlog", "zip"]
+
+
+class RecordCheck(Schema):
+    """The record checked against the session's hash-chained log."""
+
+    ok: bool
+    batches: int
+    samples: int
+    problems: list[str] = Field(description="What does not hold, in words; empty when ok.")
+
+
+class RecordSummary(Schema):
+    """What a session's flight record holds, its check, and where its exports are."""
+
+    session: uuid.UUID
+    samples: dict[str, int] = Field(
+        description="Samples by kind: telemetry, command, event, tlog, dropped."
+    )
+    verification: RecordCheck
+    exports: dict[str, str] = Field(description="Export name -> its URL (tlog only if any).")

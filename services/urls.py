@@ -2,7 +2,7 @@
 
 from django.urls import include, path
 
-from services import views
+from services import record_views, views
 from services.kinds import kinds
 
 
@@ -17,6 +17,12 @@ urlpatterns = [
     path("sessions/<uuid:session_id>/grant", views.session_grant, name="session_grant"),
     path("sessions/<uuid:session_id>/end", views.session_finish, name="session_end"),
     path("sessions/<uuid:session_id>/stop", views.session_stop, name="session_stop"),
+    path("sessions/<uuid:session_id>/record/", record_views.session_record, name="session_record"),
+    path(
+        "sessions/<uuid:session_id>/record/<str:name>",
+        record_views.session_record_export,
+        name="session_record_export",
+    ),
     path("monitor/", views.monitor, name="monitor"),
     path("map/land.geo.json", views.land_map, name="land_map"),
     *_kind_urls(),

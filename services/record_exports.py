@@ -1,0 +1,207 @@
+"""A session's flight record in the formats pilots, tools and authorities read
+(docs/records.md): GPX 1.1 and KML 2.2 tracks with altitude and time, CSV of the track,
+the commands and the events, the MAVLink ``.tlog``, and one zip archive of everything
+with the session's hash-chained log and its verification.
+
+Altitude is what the vehicle reports: metres above its home point (GPX ``ele``, KML
+``relativeToGround``). Times are UTC, from the vehicle's clock.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import zipfile
+from collections.abc import Iterator
+from datetime import UTC, datetime
+from typing import Any
+from xml.etree import ElementTree as ET
+
+from django.core.serializers.json import DjangoJSONEncoder
+
+from services.eventlog import session_log
+from services.models import RecordSample, Session
+from services.records import record_samples, record_tlog, record_verify
+
+GPX_NS = "http://www.topografix.com/GPX/1/1"
+KML_NS = "http://www.opengis.net/kml/2.2"
+GX_NS = "http://www.google.com/kml/ext/2.2"
+
+TRACK_COLUMNS = (
+    "vehicle", "seq", "time_utc", "lat", "lon", "alt", "heading", "speed", "battery",
+    "mode", "armed", "roll", "pitch",
+)  # fmt: skip
+COMMAND_COLUMNS = (
+    "vehicle", "seq", "time_utc", "source", "name", "args", "ok", "code", "error",
+    "age_ms", "client_seq",
+)  # fmt: skip
+EVENT_COLUMNS = ("vehicle", "seq", "time_utc", "kind", "event", "data")
+
+
+def _utc(t: float) -> str:
+    """ISO 8601 UTC with milliseconds and a Z (what GPX and KML readers expect)."""
+    return datetime.fromtimestamp(t, tz=UTC).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+
+
+def track_points(session: Session) -> dict[str, list[RecordSample]]:
+    """Each vehicle's telemetry samples that have a position, in order."""
+    tracks: dict[str, list[RecordSample]] = {}
+    for sample in record_samples(session=session, kinds=["telemetry"]):
+        if sample.data.get("lat") is not None and sample.data.get("lon") is not None:
+            tracks.setdefault(str(sample.vehicle_id), []).append(sample)
+    return tracks
+
+
+def record_gpx(session: Session) -> bytes:
+    """The track as GPX 1.1: one ``trk`` per vehicle, a ``trkpt`` per sample with
+    ``ele`` (metres above home, when known) and ``time``."""
+    ET.register_namespace("", GPX_NS)
+    root = ET.Element(f"{{{GPX_NS}}}gpx", {"version": "1.1", "creator": "IoUV"})
+    meta = ET.SubElement(root, f"{{{GPX_NS}}}metadata")
+    ET.SubElement(meta, f"{{{GPX_NS}}}name").text = f"IoUV session {session.pk}"
+    for vehicle, points in track_points(session).items():
+        trk = ET.SubElement(root, f"{{{GPX_NS}}}trk")
+        ET.SubElement(trk, f"{{{GPX_NS}}}name").text = f"vehicle {vehicle}"
+        seg = ET.SubElement(trk, f"{{{GPX_NS}}}trkseg")
+        for sample in points:
+            d = sample.data
+            pt = ET.SubElement(
+                seg, f"{{{GPX_NS}}}trkpt", {"lat": repr(d["lat"]), "lon": repr(d["lon"])}
+            )
+            if d.get("alt") is not None:
+                ET.SubElement(pt, f"{{{GPX_NS}}}ele").text = repr(float(d["alt"]))
+            ET.SubElement(pt, f"{{{GPX_NS}}}time").text = _utc(sample.t)
+    return bytes(ET.tostring(root, encoding="utf-8", xml_declaration=True))
+
+
+def record_kml(session: Session) -> bytes:
+    """The track as KML 2.2: a ``Placemark`` per vehicle holding a ``gx:Track`` (a
+    ``when`` and a ``gx:coord`` "lon lat alt" per sample, altitude relative to the
+    ground at home)."""
+    ET.register_namespace("", KML_NS)
+    ET.register_namespace("gx", GX_NS)
+    root = ET.Element(f"{{{KML_NS}}}kml")
+    doc = ET.SubElement(root, f"{{{KML_NS}}}Document")
+    ET.SubElement(doc, f"{{{KML_NS}}}name").text = f"IoUV session {session.pk}"
+    for vehicle, points in track_points(session).items():
+        placemark = ET.SubElement(doc, f"{{{KML_NS}}}Placemark")
+        ET.SubElement(placemark, f"{{{KML_NS}}}name").text = f"vehicle {vehicle}"
+        track = ET.SubElement(placemark, f"{{{GX_NS}}}Track")
+        ET.SubElement(track, f"{{{KML_NS}}}altitudeMode").text = "relativeToGround"
+        for sample in points:
+            ET.SubElement(track, f"{{{KML_NS}}}when").text = _utc(sample.t)
+        for sample in points:
+            d = sample.data
+            alt = float(d["alt"]) if d.get("alt") is not None else 0.0
+            ET.SubElement(track, f"{{{GX_NS}}}coord").text = f"{d['lon']!r} {d['lat']!r} {alt!r}"
+    return bytes(ET.tostring(root, encoding="utf-8", xml_declaration=True))
+
+
+def _csv(columns: tuple[str, ...], rows: Iterator[dict[str, Any]]) -> bytes:
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=columns, lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: "" if v is None else v for k, v in row.items()})
+    return out.getvalue().encode()
+
+
+def record_track_csv(session: Session) -> bytes:
+    """Every telemetry sample, one row each (positions missing left empty)."""
+
+    def rows() -> Iterator[dict[str, Any]]:
+        for s in record_samples(session=session, kinds=["telemetry"]):
+            d = s.data
+            yield {
+                "vehicle": s.vehicle_id,
+                "seq": s.seq,
+                "time_utc": _utc(s.t),
+                **{c: d.get(c) for c in TRACK_COLUMNS[3:]},
+            }
+
+    return _csv(TRACK_COLUMNS, rows())
+
+
+def record_commands_csv(session: Session) -> bytes:
+    """Every command: who sent it (``source``), its acknowledgement, its age."""
+
+    def rows() -> Iterator[dict[str, Any]]:
+        for s in record_samples(session=session, kinds=["command"]):
+            d = s.data
+            yield {
+                "vehicle": s.vehicle_id,
+                "seq": s.seq,
+                "time_utc": _utc(s.t),
+                "source": d.get("source"),
+                "name": d.get("name"),
+                "args": json.dumps(d.get("args", {}), sort_keys=True),
+                "ok": d.get("ok"),
+                "code": d.get("code"),
+                "error": d.get("error"),
+                "age_ms": d.get("age_ms"),
+                "client_seq": d.get("seq"),
+            }
+
+    return _csv(COMMAND_COLUMNS, rows())
+
+
+def record_events_csv(session: Session) -> bytes:
+    """The vehicle's events (refusals, envelope interventions, fail-safes) and what
+    the record says it dropped."""
+
+    def rows() -> Iterator[dict[str, Any]]:
+        for s in record_samples(session=session, kinds=["event", "dropped"]):
+            data = dict(s.data)
+            yield {
+                "vehicle": s.vehicle_id,
+                "seq": s.seq,
+                "time_utc": _utc(s.t),
+                "kind": s.kind,
+                "event": data.pop("event", ""),
+                "data": json.dumps(data, sort_keys=True),
+            }
+
+    return _csv(EVENT_COLUMNS, rows())
+
+
+def record_archive(session: Session) -> bytes:
+    """One zip: every export above, the samples as uploaded (``samples.jsonl``), the
+    session's log with its hash chain (``log.json``) and the check of the record
+    against it (``verification.json``)."""
+    log = [
+        {
+            "seq": e.seq,
+            "kind": e.kind,
+            "data": e.data,
+            "created_at": e.created_at,
+            "occurred_at": e.occurred_at,
+            "prev_hash": e.prev_hash,
+            "hash": e.hash,
+        }
+        for e in session_log(session=session)
+    ]
+    samples = "".join(
+        json.dumps(
+            {"vehicle": str(s.vehicle_id), "seq": s.seq, "t": s.t, "kind": s.kind, "data": s.data},
+            sort_keys=True,
+        )
+        + "\n"
+        for s in record_samples(session=session)
+    )
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("track.gpx", record_gpx(session))
+        archive.writestr("track.kml", record_kml(session))
+        archive.writestr("track.csv", record_track_csv(session))
+        archive.writestr("commands.csv", record_commands_csv(session))
+        archive.writestr("events.csv", record_events_csv(session))
+        tlog = record_tlog(session=session)
+        if tlog:
+            archive.writestr("flight.tlog", tlog)
+        archive.writestr("samples.jsonl", samples)
+        archive.writestr("log.json", json.dumps(log, cls=DjangoJSONEncoder, indent=1))
+        archive.writestr(
+            "verification.json", json.dumps(record_verify(session=session).as_dict(), indent=1)
+        )
+    return out.getvalue()

@@ -1,0 +1,93 @@
+"""The portal's flight-record answers: a session's record summarised with its check,
+and its exports (services.record_exports). Who may open them: the session's user,
+monitors, admins (services.records.record_visible); anyone else is told there is no
+such session (404)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Final
+
+from django.contrib.auth.decorators import login_required
+from django.http import Http404, HttpResponse, JsonResponse
+from django.shortcuts import get_object_or_404
+from django.urls import reverse
+from django.views.decorators.cache import never_cache
+from django.views.decorators.http import require_GET
+
+from accounts.users import AuthenticatedHttpRequest
+from services import record_exports as exports
+from services.models import RecordSample, Session
+from services.records import record_tlog, record_verify, record_visible
+
+#: Export name -> (builder, content type, file name suffix).
+EXPORTS: Final[dict[str, tuple[Callable[[Session], bytes], str, str]]] = {
+    "gpx": (exports.record_gpx, "application/gpx+xml", "track.gpx"),
+    "kml": (exports.record_kml, "application/vnd.google-earth.kml+xml", "track.kml"),
+    "track.csv": (exports.record_track_csv, "text/csv; charset=utf-8", "track.csv"),
+    "commands.csv": (exports.record_commands_csv, "text/csv; charset=utf-8", "commands.csv"),
+    "events.csv": (exports.record_events_csv, "text/csv; charset=utf-8", "events.csv"),
+    "tlog": (lambda s: record_tlog(session=s), "application/octet-stream", "flight.tlog"),
+    "zip": (exports.record_archive, "application/zip", "record.zip"),
+}
+
+
+def record_session(*, user: object, session_id: object) -> Session:
+    """The session whose record ``user`` may open; Http404 otherwise (other users'
+    sessions are not even confirmed to exist)."""
+    session = get_object_or_404(Session.objects.select_related("service"), pk=session_id)
+    if not record_visible(session=session, user=user):
+        raise Http404("no such session")
+    return session
+
+
+def record_file(session: Session, name: str) -> HttpResponse:
+    """The export ``name`` of ``session``'s record as a download; Http404 for an
+    unknown name, or a ``.tlog`` the record does not have."""
+    if name not in EXPORTS:
+        raise Http404("no such export")
+    build, content_type, suffix = EXPORTS[name]
+    body = build(session)
+    if name == "tlog" and not body:
+        raise Http404("this record has no MAVLink log")
+    response = HttpResponse(body, content_type=content_type)
+    response["Content-Disposition"] = f'attachment; filename="session-{session.pk}-{suffix}"'
+    return response
+
+
+def record_summary(session: Session, *, url_for: Callable[[str], str]) -> dict[str, object]:
+    """How much the record holds (samples by kind), its check, and where its exports
+    are (``url_for(export name)``; no ``tlog`` without a MAVLink log)."""
+    counts: dict[str, int] = {}
+    for kind in RecordSample.objects.filter(session=session).values_list("kind", flat=True):
+        counts[kind] = counts.get(kind, 0) + 1
+    exports_urls = {name: url_for(name) for name in EXPORTS if name != "tlog" or counts.get("tlog")}
+    return {
+        "session": str(session.pk),
+        "samples": counts,
+        "verification": record_verify(session=session).as_dict(),
+        "exports": exports_urls,
+    }
+
+
+@never_cache
+@login_required
+@require_GET
+def session_record(request: AuthenticatedHttpRequest, session_id: str) -> HttpResponse:
+    """The record's summary (JSON)."""
+    session = record_session(user=request.user, session_id=session_id)
+    return JsonResponse(
+        record_summary(
+            session, url_for=lambda name: reverse("session_record_export", args=[session.pk, name])
+        )
+    )
+
+
+@never_cache
+@login_required
+@require_GET
+def session_record_export(
+    request: AuthenticatedHttpRequest, session_id: str, name: str
+) -> HttpResponse:
+    """One export of the record (GPX, KML, CSV, tlog, zip)."""
+    return record_file(record_session(user=request.user, session_id=session_id), name)
