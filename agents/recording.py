@@ -196,6 +196,7 @@ class FlightRecorder:
         self._wake = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
         self._last_sample = 0.0
+        self._pending_bytes = 0
 
     # --- lifecycle -----------------------------------------------------------------------
     async def __aenter__(self) -> Self:
@@ -225,11 +226,23 @@ class FlightRecorder:
         for path in sorted(self.directory.glob("*/batch-*.json")):
             session_id = path.parent.name
             first = int(path.stem.split("-", 1)[1])
-            self.pending[batch_id(session_id, first)] = _Pending(path, path.stat().st_size)
+            self._pending_add(batch_id(session_id, first), _Pending(path, path.stat().st_size))
 
     @property
     def pending_bytes(self) -> int:
-        return sum(p.size for p in self.pending.values())
+        """Bytes of the batches waiting for the platform (kept as a running total: it
+        is read for every sample, and a long outage leaves thousands of batches)."""
+        return self._pending_bytes
+
+    def _pending_add(self, mid: str, pending: _Pending) -> None:
+        self.pending[mid] = pending
+        self._pending_bytes += pending.size
+
+    def _pending_drop(self, mid: str) -> _Pending | None:
+        pending = self.pending.pop(mid, None)
+        if pending is not None:
+            self._pending_bytes -= pending.size
+        return pending
 
     # --- sessions ------------------------------------------------------------------------
     def session_start(self, session_id: str) -> None:
@@ -370,7 +383,7 @@ class FlightRecorder:
         except OSError:
             log.exception("could not write flight-record batch %s", path)
             return
-        self.pending[message.id] = _Pending(path, len(body))
+        self._pending_add(message.id, _Pending(path, len(body)))
         self._wake.set()
 
     def _sample_telemetry(self, at: float) -> None:
@@ -422,7 +435,7 @@ class FlightRecorder:
         session, say) goes too, logged: sending it again would be refused again."""
         if not ack.id.startswith(_ID_PREFIX):
             return False
-        pending = self.pending.pop(ack.id, None)
+        pending = self._pending_drop(ack.id)
         if pending is not None:
             if not ack.ok:
                 log.error("the platform refused flight-record batch %s: %s", ack.id, ack.detail)
@@ -460,7 +473,7 @@ class FlightRecorder:
                 message = msgspec.json.decode(body, type=Record)
             except (OSError, msgspec.DecodeError, msgspec.ValidationError) as exc:
                 log.error("dropped unreadable flight-record batch %s: %s", pending.path, exc)
-                self.pending.pop(mid, None)
+                self._pending_drop(mid)
                 continue
             uplink.send(message)
             pending.sent_on, pending.sent_at = uplink.connections, now

@@ -108,11 +108,12 @@ async def test_a_full_buffer_drops_telemetry_and_says_so_in_the_record(tmp_path:
         rec.raw(1.0e9, b"x" * 10)
         rec.command(source="failsafe", name="land", args={}, ok=True)  # kept: under 2x
         # Room again: the next sample is preceded by what was dropped.
-        rec.pending.clear()
+        for mid in list(rec.pending):
+            rec.acked(Ack(id=mid, ok=True))
         rec._sample_telemetry(1.0e9 + 1)
         rec.flush()
-    samples = samples_on_disk(tmp_path)
-    assert [s["seq"] for s in samples] == list(range(1, len(samples) + 1))
+    samples = samples_on_disk(tmp_path)  # after the first batch, acknowledged
+    assert [s["seq"] for s in samples] == list(range(2, len(samples) + 2))
     [dropped] = [s for s in samples if s["kind"] == "dropped"]
     assert dropped["data"]["telemetry"] == 1 and dropped["data"]["tlog_bytes"] == 10
 
