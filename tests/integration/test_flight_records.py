@@ -1,0 +1,340 @@
+"""Flight records end to end (docs/records.md): the platform (iouv.serve, Postgres, Redis)
+and a simulated MAVLink quadcopter's agent; a user flies it while the platform is killed
+and started again; the record reaches the platform whole and is exported.
+
+What a reader of the exports sees is checked with independent readers: gpxpy for the
+GPX, ElementTree for the KML, pymavlink's own log reader for the ``.tlog``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import time
+import zipfile
+from collections.abc import AsyncIterator
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+from xml.etree import ElementTree as ET
+
+import gpxpy
+import pytest
+from django.test import Client
+from websockets.asyncio.client import connect
+
+from accounts.roles import MONITOR
+from agents.config import AgentConfig, ControlConfig, RecordsConfig
+from agents.protocol import PROTOCOL_VERSION
+from agents.protocol.messages import Ack, Record
+from agents.protocol.messages import RecordSample as Sample
+from agents.runtime import Agent
+from agents.vehicles.mavlink.dialect import mavutil
+from fleet.credentials import vehicle_issue_credential
+from fleet.models import Vehicle
+from services.models import RecordBatch, RecordSample, Service, Session
+from services.records import record_verify
+from services.signing import platform_public_key_pem
+from tests import factories as f
+from tests.control import command, recv
+from tests.servers import PlatformServer, agent_configured, db, platform_server, until
+from tests.vehicles import QUADCOPTER, agent_registered, session_deployed, vehicle_served
+
+pytestmark = [
+    pytest.mark.postgres,
+    pytest.mark.redis,
+    pytest.mark.django_db(transaction=True),
+]
+COMMANDS = ["arm", "take_off", "front", "land"]
+KML = "{http://www.opengis.net/kml/2.2}"
+GX = "{http://www.google.com/kml/ext/2.2}"
+
+
+@pytest.fixture
+async def flight(
+    tmp_path: Path,
+) -> AsyncIterator[tuple[PlatformServer, Agent, Vehicle, Service]]:
+    quad, credential, service = await db(
+        vehicle_served,
+        "quad-rec",
+        QUADCOPTER,
+        service="fly-recorded",
+        commands=COMMANDS,
+        failsafe_action="land",
+        link_loss_timeout_ms=3000,
+        attributes={"features": ["gps"]},
+        max_altitude_m=30,
+    )
+    with platform_server() as platform:
+        config = AgentConfig(
+            platform_url=platform.base.replace("http", "ws"),
+            vehicle_id=str(quad.pk),
+            credential=credential,
+            platform_public_key=await db(platform_public_key_pem),
+            adapter="mavlink",
+            adapter_options={
+                "origin": [f.HOME[0], f.HOME[1]],
+                "simulator": {"speedup": 4},
+            },
+            control=ControlConfig(host="127.0.0.1", port=0),
+            name=quad.name,
+            # Back quickly after the platform's restart.
+            reconnect_max_s=1.0,
+            records=RecordsConfig(directory=tmp_path / "records"),
+        )
+        async with agent_configured(config) as (agent, _):
+            yield platform, agent, quad, service
+
+
+async def _fly_through_an_outage(
+    platform: PlatformServer, agent: Agent, url: str, grant: str
+) -> None:
+    """Take off, fly forward, lose the platform for 6 s while flying, land."""
+    async with connect(url, proxy=None, compression=None) as ws:
+        await ws.send(json.dumps({"type": "auth", "grant": grant}))
+        assert (await recv(ws, "welcome"))["role"] == "controller"
+        assert (await command(ws, 1, "take_off", altitude_m=5))["ok"]
+        drone: Any = agent.adapter
+        deadline = time.monotonic() + 15
+        while (drone.t.alt or 0) < 4.5:
+            assert time.monotonic() < deadline, "the drone did not climb"
+            await ws.send(json.dumps({"type": "keepalive"}))
+            await asyncio.sleep(0.2)
+        seq = 2
+        platform.kill()
+        killed = time.monotonic()
+        while time.monotonic() - killed < 6:  # flying while the platform is away
+            assert (await command(ws, seq, "front", speed_mps=3))["ok"]
+            seq += 1
+            await asyncio.sleep(0.2)
+        assert agent.recorder.pending, "batches wait on the vehicle meanwhile"
+        await asyncio.to_thread(platform.start)
+        # A refused command is recorded with its acknowledgement too.
+        refused = await command(ws, seq, "take_off", altitude_m=500)
+        assert not refused["ok"]
+        assert (await command(ws, seq + 1, "land"))["ok"]
+        while drone.t.armed:
+            await ws.send(json.dumps({"type": "keepalive"}))
+            await asyncio.sleep(0.2)
+            assert time.monotonic() - killed < 40, "the drone did not land"
+
+
+async def _all_uploaded(agent: Agent, session: Session) -> list[RecordSample]:
+    agent.recorder.flush()
+    written = agent.recorder.session.next_seq - 1 if agent.recorder.session else 0
+
+    async def stored() -> bool:
+        count = await db(RecordSample.objects.filter(session_id=session.pk).count)
+        return not agent.recorder.pending and count >= written
+
+    await until(stored, within=20, what="every batch to reach the platform")
+    return await db(
+        lambda: list(RecordSample.objects.filter(session_id=session.pk).order_by("seq"))
+    )
+
+
+def _another_vehicle(quad: Vehicle) -> tuple[Vehicle, str]:
+    other = f.vehicle(station=f.station(), vtype=quad.vehicle_type, name="quad-other", online=False)
+    return other, vehicle_issue_credential(vehicle=other)
+
+
+def _utc(t: float) -> datetime:
+    ms = round(t * 1000)
+    return datetime.fromtimestamp(ms // 1000, tz=UTC).replace(microsecond=ms % 1000 * 1000)
+
+
+def _get(user: Any, path: str) -> Any:
+    client = Client()
+    if user is not None:
+        client.force_login(user)
+    return client.get(path)
+
+
+async def test_a_flight_through_a_platform_outage_is_recorded_whole_and_exported(flight, tmp_path):
+    platform, agent, quad, service = flight
+    await agent_registered(quad, within=20, positioned=True)
+    session, user_task = await session_deployed(agent, service)
+    await _fly_through_an_outage(platform, agent, user_task.control_url, user_task.grant)
+    samples = await _all_uploaded(agent, session)
+
+    # Nothing lost: contiguous numbers, each batch stored once, the record checks out.
+    assert [s.seq for s in samples] == list(range(1, len(samples) + 1))
+    kinds = {s.kind for s in samples}
+    assert {"telemetry", "command", "event", "tlog"} <= kinds
+    commands = [s.data for s in samples if s.kind == "command"]
+    assert [c["name"] for c in commands if c["source"] == "user"][:2] == ["take_off", "front"]
+    assert any(not c["ok"] and c["code"] for c in commands if c["source"] == "user")
+    track = [s for s in samples if s.kind == "telemetry" and s.data["lat"] is not None]
+    moving = [s for s in track if s.data["armed"]]
+    span = moving[-1].t - moving[0].t
+    assert len(moving) >= 2 * span, "at least 2 Hz while flying"
+    check = await db(record_verify, session=session)
+    assert check.ok, check.problems
+
+    # The exports, as the session's user downloads them.
+    owner = await db(lambda: Session.objects.get(pk=session.pk).user)
+    base = f"/sessions/{session.pk}/record/"
+
+    gpx_answer = await db(_get, owner, base + "gpx")
+    assert gpx_answer.status_code == 200
+    gpx = gpxpy.parse(gpx_answer.content.decode())
+    points = [p for t in gpx.tracks for seg in t.segments for p in seg.points]
+    assert [(p.latitude, p.longitude, p.elevation) for p in points] == [
+        (s.data["lat"], s.data["lon"], s.data["alt"]) for s in track
+    ]
+    assert [p.time for p in points] == [_utc(s.t) for s in track]
+
+    kml = ET.fromstring((await db(_get, owner, base + "kml")).content)
+    coords = [c.text.split() for c in kml.iter(f"{GX}coord")]
+    assert [(float(lon), float(lat), float(alt)) for lon, lat, alt in coords] == [
+        (s.data["lon"], s.data["lat"], s.data["alt"]) for s in track
+    ]
+    assert len(list(kml.iter(f"{KML}when"))) == len(track)
+
+    # pymavlink reads the .tlog: the positions the track holds are the ones it says.
+    tlog = (await db(_get, owner, base + "tlog")).content
+    tlog_path = tmp_path / "export.tlog"
+    await asyncio.to_thread(tlog_path.write_bytes, tlog)
+    reader = mavutil.mavlink_connection(str(tlog_path))
+    positions = set()
+    times = []
+    while (msg := reader.recv_match(type="GLOBAL_POSITION_INT")) is not None:
+        positions.add((msg.lat / 1e7, msg.lon / 1e7))
+        times.append(msg._timestamp)
+    assert positions
+    # The track's samples while the tlog runs (a batch can carry telemetry whose
+    # MAVLink message rides in the next batch's tlog piece).
+    logged = [s for s in track if times[0] + 0.5 < s.t <= times[-1]]
+    assert len(logged) > len(track) / 2
+    assert all((s.data["lat"], s.data["lon"]) in positions for s in logged)
+
+    archive = zipfile.ZipFile(io.BytesIO((await db(_get, owner, base + "zip")).content))
+    assert {"track.gpx", "track.kml", "track.csv", "commands.csv", "flight.tlog"} <= set(
+        archive.namelist()
+    )
+    assert json.loads(archive.read("verification.json"))["ok"] is True
+    chain = json.loads(archive.read("log.json"))
+    batches = await db(RecordBatch.objects.filter(session_id=session.pk).count)
+    assert sum(e["kind"] == "record_batch" for e in chain) == batches
+    assert archive.read("commands.csv").decode().count("\n") == len(commands) + 1
+
+    # Who may open it: the user and monitors; another client is told nothing exists.
+    stranger = await db(f.user, "mallory")
+    monitor = await db(f.user, "mona", roles=(MONITOR,))
+    assert (await db(_get, stranger, base)).status_code == 404
+    assert (await db(_get, stranger, base + "zip")).status_code == 404
+    assert (await db(_get, None, base + "gpx")).status_code == 302  # to the login page
+    summary = await db(_get, monitor, base)
+    assert summary.status_code == 200 and summary.json()["verification"]["ok"]
+
+    # One sample changed in the database: the record no longer checks out.
+    await db(
+        lambda: RecordSample.objects.filter(pk=track[3].pk).update(
+            data={**track[3].data, "lat": track[3].data["lat"] + 0.001}
+        )
+    )
+    tampered = await db(record_verify, session=session)
+    assert not tampered.ok
+    assert any("does not match its digest" in p for p in tampered.problems)
+
+
+async def test_bad_record_frames_are_refused_and_a_batch_sent_twice_is_stored_once(flight):
+    platform, agent, quad, service = flight
+    await agent_registered(quad, within=20, positioned=True)
+    session, _ = await session_deployed(agent, service)
+    other, credential = await db(_another_vehicle, quad)
+    stored_before = await db(RecordSample.objects.filter(session_id=session.pk).count)
+    uplink = platform.base.replace("http", "ws") + "/ws/agent/"
+    async with connect(uplink, proxy=None, compression=None, max_size=None) as ws:
+        await ws.send(
+            json.dumps(
+                {
+                    "type": "hello",
+                    "v": PROTOCOL_VERSION,
+                    "vehicle_id": str(other.pk),
+                    "credential": credential,
+                }
+            )
+        )
+        assert json.loads(await ws.recv())["type"] == "welcome"
+
+        def batch(first: int, seqs: list[int], session_id: str = str(session.pk)) -> str:
+            return json.dumps(
+                {
+                    "type": "record",
+                    "id": f"record:{session_id}:{first}",
+                    "session_id": session_id,
+                    "first": first,
+                    "samples": [
+                        {"seq": n, "t": 1.8e9, "kind": "telemetry", "data": {"lat": 1.0}}
+                        for n in seqs
+                    ],
+                }
+            )
+
+        async def answer() -> dict[str, Any]:
+            while True:
+                msg = json.loads(await asyncio.wait_for(ws.recv(), 10))
+                if msg["type"] in ("error", "ack"):
+                    return msg
+
+        await ws.send(batch(1, [1, 3]))  # a gap
+        refused = await answer()
+        assert refused["type"] == "error" and refused["code"] == "bad_field"
+        assert "samples[1].seq" in refused["message"]
+        await ws.send(batch(1, [1])[:-1] + ', "pad": "' + "x" * 70_000 + '"}')  # too big
+        assert (await answer())["code"] == "too_large"
+        # Another vehicle's session: refused for good, by its id.
+        await ws.send(batch(1, [1]))
+        assert await answer() == {
+            "type": "ack",
+            "id": f"record:{session.pk}:1",
+            "ok": False,
+            "detail": "not a session of this vehicle",
+        }
+    # The flight's own record is untouched by all that.
+    samples = await _all_uploaded(agent, session)
+    assert not any(s.t == 1.8e9 for s in samples)
+    assert [s.seq for s in samples] == list(range(1, len(samples) + 1))
+    assert stored_before <= len(samples)
+
+    # Its first batch sent again: acknowledged again, stored once, chained once.
+    acks: list[Ack] = []
+    keep = agent.recorder.acked
+
+    def acked(ack: Ack) -> bool:
+        acks.append(ack)
+        return keep(ack)
+
+    agent.recorder.acked = acked
+    first = await db(lambda: RecordBatch.objects.filter(session_id=session.pk).order_by("first")[0])
+    rows = await db(lambda: list(first.samples.order_by("seq")))
+    again = Record(
+        id=f"record:{session.pk}:{first.first}",
+        session_id=str(session.pk),
+        first=first.first,
+        samples=[Sample(seq=r.seq, t=r.t, kind=r.kind, data=r.data) for r in rows],
+    )
+    events_before = await db(
+        lambda: Session.objects.get(pk=session.pk).events.filter(kind="record_batch").count()
+    )
+    agent.uplink.send(again)
+
+    async def answered() -> bool:
+        return any(a.id == again.id for a in acks)
+
+    await until(answered, within=10, what="the platform to acknowledge the repeated batch")
+    [repeat] = [a for a in acks if a.id == again.id]
+    assert repeat.ok and repeat.detail == "already stored"
+    assert await db(RecordBatch.objects.filter(session_id=session.pk, first=1).count) == 1
+    chained = await db(
+        lambda: (
+            Session.objects.get(pk=session.pk)
+            .events.filter(kind="record_batch", data__first=1)
+            .count()
+        )
+    )
+    assert chained == 1
+    assert events_before >= 1
+    assert (await db(record_verify, session=session)).ok
