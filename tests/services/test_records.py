@@ -7,6 +7,7 @@ from datetime import timedelta
 from typing import Any
 
 import pytest
+from django.contrib import admin
 from django.contrib.messages.storage.fallback import FallbackStorage
 from django.test import Client
 from django.utils import timezone
@@ -75,9 +76,9 @@ def test_an_admin_deletes_a_record_and_the_log_says_so(live_session, rf) -> None
     admin_user.save()
     request = rf.post("/admin/services/session/")
     request.user = admin_user
-    request.session = {}  # type: ignore[attr-defined]
-    request._messages = FallbackStorage(request)  # type: ignore[attr-defined]
-    SessionAdmin(Session, None).delete_flight_records(
+    request.session = {}
+    request._messages = FallbackStorage(request)
+    SessionAdmin(Session, admin.site).delete_flight_records(
         request, Session.objects.filter(pk=session.pk)
     )
     assert not RecordBatch.objects.filter(session=session).exists()
