@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import uuid
 from typing import Any
 
 import pytest
@@ -25,3 +26,16 @@ def live_session(client: Client) -> tuple[Session, str]:
     session, vehicle = alices_session()
     client.force_login(session.user)
     return session, str(vehicle.pk)
+
+
+@pytest.fixture
+def rate_counters(settings: Any) -> str:
+    """Rate-limit counters of this test's own (a cache key prefix no other test or
+    earlier run uses): the counters live in Redis, which outlives the test database,
+    whose user ids start again at 1 on every run."""
+    prefix = f"test-{uuid.uuid4().hex}"
+    settings.CACHES = {
+        **settings.CACHES,
+        "default": {**settings.CACHES["default"], "KEY_PREFIX": prefix},
+    }
+    return prefix

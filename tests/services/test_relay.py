@@ -262,11 +262,11 @@ async def test_a_relayed_webrtc_offer_brings_the_agent_turn_credentials_of_its_o
 
 
 async def test_webrtc_offers_over_the_users_budget_are_refused_and_not_forwarded(
-    settings: Any,
+    settings: Any, rate_counters: str
 ) -> None:
     """Each offer reaches the vehicle (aiortc work, TURN credentials minted): past the
     user's budget (services.throttle) the relay answers ``rate_limited`` itself."""
-    settings.IOUV_RATE_LIMITS = {"webrtc_offer": {"user": "2/m", "address": "off"}}
+    settings.IOUV_RATE_LIMITS = {"webrtc_offer": {"user": "2/h", "address": "off"}}
     vehicle_id, credential, session_id, grant = await _relayed_session()
     agent = await _uplink(vehicle_id, credential)
     browser = await _browser(session_id)

@@ -2,9 +2,10 @@
 one per client address, on the API and on the portal; one over a budget is answered 429
 with Retry-After and does nothing (no session row, no grant in the log).
 
-The budgets are lowered for these tests (``IOUV_RATE_LIMITS``); the counters live in the
-test's Redis (Django's cache), keyed by user id and address, so each test counts on its
-own: user ids are never reused and each test has addresses of its own."""
+The budgets are lowered for these tests (``IOUV_RATE_LIMITS``), per hour: a counter is
+a fixed window, and a test's few requests must not straddle the end of one. The
+counters live in the test's Redis (Django's cache) under a key prefix of the test's own
+(``rate_counters``), and each test has addresses of its own."""
 
 from __future__ import annotations
 
@@ -28,11 +29,11 @@ _addresses = (f"198.51.100.{n}" for n in itertools.count(1))
 
 
 @pytest.fixture
-def budgets(settings: Any) -> dict[str, dict[str, str]]:
+def budgets(settings: Any, rate_counters: str) -> dict[str, dict[str, str]]:
     settings.BEHIND_PROXY = True
     settings.IOUV_RATE_LIMITS = {
-        "session_request": {"user": "3/m", "address": "5/m"},
-        "grant": {"user": "2/m", "address": "off"},
+        "session_request": {"user": "3/h", "address": "5/h"},
+        "grant": {"user": "2/h", "address": "off"},
         "webrtc_offer": {"user": "off", "address": "off"},
     }
     return settings.IOUV_RATE_LIMITS
@@ -51,7 +52,7 @@ def _api(method: str, path: str, token: str, address: str, body: Any = None) -> 
 
 def _rate_limited(response: Any) -> str:
     assert response.status_code == 429, response.content
-    assert 1 <= int(response["Retry-After"]) <= 60
+    assert 1 <= int(response["Retry-After"]) <= 3600
     error = response.json()["error"]
     assert error["code"] == "rate_limited"
     return str(error["message"])
@@ -71,7 +72,7 @@ def test_a_user_over_the_session_request_budget_is_refused_and_nothing_is_record
     for _ in range(3):
         assert _api("POST", "/sessions", token, address, {"service": "fly"}).status_code == 422
     message = _rate_limited(_api("POST", "/sessions", token, address, {"service": "fly"}))
-    assert "at most 3 per 60 s from one user" in message
+    assert "at most 3 per 3600 s from one user" in message
     assert Session.objects.filter(user=user).count() == 3
     # Another user from another address is not held back by it.
     _, other = _user_token()
@@ -128,7 +129,7 @@ def test_the_portal_request_page_over_the_budget_says_so(budgets: Any, client: C
     client.force_login(user)
     url = reverse("service_request", args=[service.slug])
     address = next(_addresses)
-    budgets["session_request"]["user"] = "1/m"
+    budgets["session_request"]["user"] = "1/h"
     client.post(url, {}, HTTP_X_FORWARDED_FOR=address)
     refused = client.post(url, {}, HTTP_X_FORWARDED_FOR=address)
     assert refused.status_code == 429 and int(refused["Retry-After"]) >= 1
