@@ -12,6 +12,11 @@ from uvicorn.protocols.utils import ClientDisconnected
 
 from iouv.consumers import DirectDispatch
 
+# Channels' disconnect closes the database connections it finds stale on its executor's
+# thread (close_old_connections); a connection an earlier test left there is checked,
+# which is database access.
+pytestmark = pytest.mark.django_db
+
 
 class _Answering(AsyncWebsocketConsumer):
     """Answers every frame twice; records what its disconnect saw."""
