@@ -55,6 +55,7 @@ from benchmarks.nginx_proxy import (
 from benchmarks.scale_compare import compare_md
 from benchmarks.scale_platform import SITECUSTOMIZE, PlatformTree
 from services.api_schemas import MAX_BODY_BYTES
+from tests.agents.waiting import until
 from tests.tls import certificates_make
 
 
@@ -191,7 +192,9 @@ async def test_nginx_routes_by_the_longest_prefix_and_carries_websockets(
         # nginx's own rule for a prefix ending in "/": the bare name is redirected to it.
         assert (await _get(proxy.port, "/ws/agent"))[0] == 301
 
-        # nginx logs a WebSocket once it has ended; all of the above have.
+        # nginx logs a WebSocket once it has ended, and a request just after answering
+        # it: the last line may come a moment after the answer.
+        await until(lambda: len(proxy.requests()) >= len(sockets) + 3, within=5, what="the log")
         assert proxy.requests() == [
             *(AccessEntry("GET", path, 101, str(routes.backend_for(path))) for path in sockets),
             AccessEntry("GET", "/api/v1/sessions?x=1", 200, str(backends["users"].backend)),

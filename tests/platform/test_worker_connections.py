@@ -30,8 +30,10 @@ pytestmark = [pytest.mark.postgres, pytest.mark.redis, pytest.mark.django_db(tra
 #: Tasks per batch: far more than the connections a worker should open for them.
 TASKS = 30
 #: The worker's concurrency (tests/servers.py): each task it runs at once holds one
-#: connection; the pool may open one more while it grows to meet them.
-MOST_CONNECTIONS = 2 + 1
+#: connection; psycopg's pool may open one more while it grows to meet them, and after
+#: PostgreSQL dropped its connections one more again, refilling while a task waits (a
+#: run saw 4 after the drop). Far below one per task either way.
+MOST_CONNECTIONS = 2 + 2
 
 
 def _pids(path: Path) -> list[int]:
