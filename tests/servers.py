@@ -447,3 +447,25 @@ async def agent_running(
         base=base, vehicle=vehicle, credential=credential, adapter=adapter, options=options
     ) as (agent, _):
         yield agent
+
+
+def postgres_terminate(where: str, params: Sequence[Any]) -> int:
+    """End the PostgreSQL backends ``pg_stat_activity`` rows matching ``where`` (an SQL
+    condition with ``%s`` placeholders for ``params``) from outside, as a restart or an
+    idle timeout would; how many ended."""
+    import psycopg  # PostgreSQL-only tests call this
+
+    db = settings.DATABASES["default"]
+    with psycopg.connect(
+        host=db.get("HOST") or "127.0.0.1",
+        port=db.get("PORT") or 5432,
+        user=db.get("USER") or None,
+        password=db.get("PASSWORD") or None,
+        dbname="postgres",
+        autocommit=True,
+    ) as admin:
+        rows = admin.execute(
+            f"SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE {where}",
+            list(params),
+        ).fetchall()
+    return sum(1 for (ended,) in rows if ended)

@@ -18,11 +18,10 @@ import urllib.error
 import urllib.request
 import uuid
 
-import psycopg
 import pytest
 from django.conf import settings
 
-from tests.servers import _test_database_url, platform_process
+from tests.servers import _test_database_url, platform_process, postgres_terminate
 
 pytestmark = [pytest.mark.postgres, pytest.mark.django_db(transaction=True)]
 
@@ -32,21 +31,10 @@ READY_AGAIN_WITHIN_S = 3.0
 
 def _kill(application_name: str) -> int:
     """Terminate the test database's connections opened under ``application_name``."""
-    db = settings.DATABASES["default"]
-    with psycopg.connect(
-        host=db.get("HOST") or "127.0.0.1",
-        port=db.get("PORT") or 5432,
-        user=db.get("USER") or None,
-        password=db.get("PASSWORD") or None,
-        dbname="postgres",
-        autocommit=True,
-    ) as admin:
-        rows = admin.execute(
-            "SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
-            "WHERE datname = %s AND application_name = %s",
-            [db["NAME"], application_name],
-        ).fetchall()
-    return len(rows)
+    return postgres_terminate(
+        "datname = %s AND application_name = %s",
+        [settings.DATABASES["default"]["NAME"], application_name],
+    )
 
 
 def _ready(base: str) -> bool:

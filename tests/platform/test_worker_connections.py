@@ -18,12 +18,10 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import psycopg
 import pytest
-from django.conf import settings
 
 from iouv.celery import app
-from tests.servers import celery_worker_process
+from tests.servers import celery_worker_process, postgres_terminate
 
 pytestmark = [pytest.mark.postgres, pytest.mark.redis, pytest.mark.django_db(transaction=True)]
 
@@ -74,20 +72,7 @@ def _until_a_task_runs(path: Path, *, tries: int = 5) -> None:
 
 def _terminate(pids: set[int]) -> int:
     """End these backends from outside, as a PostgreSQL restart or an idle timeout would."""
-    db = settings.DATABASES["default"]
-    with psycopg.connect(
-        host=db.get("HOST") or "127.0.0.1",
-        port=db.get("PORT") or 5432,
-        user=db.get("USER") or None,
-        password=db.get("PASSWORD") or None,
-        dbname="postgres",
-        autocommit=True,
-    ) as admin:
-        rows = admin.execute(
-            "SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE pid = ANY(%s)",
-            [list(pids)],
-        ).fetchall()
-    return sum(1 for (ended,) in rows if ended)
+    return postgres_terminate("pid = ANY(%s)", [list(pids)])
 
 
 def test_a_worker_running_many_tasks_opens_few_connections_and_replaces_dropped_ones(
