@@ -33,6 +33,7 @@ from agents.vehicles.registry import adapter_create
 from tests.agents.mavlink_rig import (
     DRONE_COMMANDS,
     HOME,
+    LINK_LOSS_TIMEOUT_MS,
     SIM,
     Rig,
     RigFactory,
@@ -134,10 +135,11 @@ async def test_killed_controller_triggers_return_home_and_landing(rig: Rig):
 
     killed = time.monotonic()
     ws.transport.abort()
-    for _ in range(100):
-        if rig.reported("failsafe"):
-            break
-        await asyncio.sleep(0.02)
+    # The agent holds the drone for the link-loss timeout (the same user may come back,
+    # a reload), then acts: wait past that timeout, with room for a loaded machine.
+    await poll(
+        lambda: bool(rig.reported("failsafe")), LINK_LOSS_TIMEOUT_MS / 1000 + 8, "the fail-safe"
+    )
     assert rig.reported("failsafe") == [{"cause": "link_lost", "action": "return_to_home"}]
     assert rig.drone.t.mode == 6  # RTL, acknowledged by the autopilot
     await poll(lambda: rig.drone.t.armed is False, 30, "landing and disarming")
