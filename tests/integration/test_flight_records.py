@@ -120,9 +120,18 @@ async def _fly_through_an_outage(
             assert time.monotonic() - killed < 40, "the drone did not land"
 
 
-async def _all_uploaded(agent: Agent, session: Session) -> list[RecordSample]:
-    agent.recorder.flush()
-    written = agent.recorder.session.next_seq - 1 if agent.recorder.session else 0
+async def _all_uploaded(
+    agent: Agent, session: Session, *, ended: bool = False
+) -> list[RecordSample]:
+    """The session's samples once every one written has reached the platform; with
+    ``ended``, the vehicle stops recording the session first (as the task's end makes
+    it), so that nothing is added after: what the exports hold is then exactly that."""
+    recording = agent.recorder.session
+    if ended:
+        agent.recorder.session_end()
+    else:
+        agent.recorder.flush()
+    written = recording.next_seq - 1 if recording else 0
 
     async def stored() -> bool:
         count = await db(RecordSample.objects.filter(session_id=session.pk).count)
@@ -156,7 +165,7 @@ async def test_a_flight_through_a_platform_outage_is_recorded_whole_and_exported
     await agent_registered(quad, within=20, positioned=True)
     session, user_task = await session_deployed(agent, service)
     await _fly_through_an_outage(platform, agent, user_task.control_url, user_task.grant)
-    samples = await _all_uploaded(agent, session)
+    samples = await _all_uploaded(agent, session, ended=True)
 
     # Nothing lost: contiguous numbers, each batch stored once, the record checks out.
     assert [s.seq for s in samples] == list(range(1, len(samples) + 1))
