@@ -127,7 +127,7 @@ async def request_drone(world: World, page: Page) -> Any:
     await wait_for(page, "c.role === 'controller' && c.stats.framesDecoded > 3")
     drone = world.agents["quad-1"].adapter
     await page.keyboard.press("t")  # take off to the default 5 m
-    for _ in range(150):
+    for _ in range(300):  # 30 s: a loaded machine's simulator climbs slower
         if (drone.telemetry().get("altitude") or 0) > 4.5:
             break
         await asyncio.sleep(0.1)

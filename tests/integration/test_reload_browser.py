@@ -127,8 +127,11 @@ async def test_a_tab_closed_for_good_ends_in_a_sentence_and_its_page_names_what_
         return "unintentional_end" in await db(_log, session_id)
 
     await until(failsafe_logged, within=10, what="the fail-safe in the session log")
-    assert await db(_end_after_the_grace, session_id) == [session_id]
+    # The rule ends it now, unless the worker's own timer, on a slow machine, already
+    # ran it (the reason below says it was that rule either way).
+    ended = await db(_end_after_the_grace, session_id)
     session: Any = await db(Session.objects.get, pk=session_id)
+    assert ended == [session_id] or session.state == Session.State.ENDED
     grace = settings.IOUV_RECONNECT_GRACE_S
     assert session.reason == (
         "the driver's link to the vehicle was lost, so car-1 will stop where it is; nobody "
