@@ -26,6 +26,7 @@ from channels.security.websocket import AllowedHostsOriginValidator  # noqa: E40
 from django.conf import settings  # noqa: E402
 
 from iouv.collector import collector_tune  # noqa: E402
+from iouv.layer import ServerLoop  # noqa: E402
 from iouv.routing import (  # noqa: E402
     browser_websocket_urlpatterns,
     self_authenticating_websocket_urlpatterns,
@@ -39,23 +40,25 @@ if settings.SERVE_STATIC:
     # Where no nginx serves /static/ (the demo, the tests): the pages' own files.
     http_app = ASGIStaticFilesHandler(django_asgi_app)
 
-application = ProtocolTypeRouter(
-    {
-        "http": http_app,
-        "websocket": URLRouter(
-            [
-                *self_authenticating_websocket_urlpatterns,
-                # Everything else is opened by browsers: origin-checked, cookie-authenticated.
-                websocket_path(
-                    r"^",
-                    AllowedHostsOriginValidator(
-                        AuthMiddlewareStack(URLRouter(browser_websocket_urlpatterns))
+application = ServerLoop(
+    ProtocolTypeRouter(
+        {
+            "http": http_app,
+            "websocket": URLRouter(
+                [
+                    *self_authenticating_websocket_urlpatterns,
+                    # Everything else is opened by browsers: origin-checked, cookie-authenticated.
+                    websocket_path(
+                        r"^",
+                        AllowedHostsOriginValidator(
+                            AuthMiddlewareStack(URLRouter(browser_websocket_urlpatterns))
+                        ),
+                        regex=True,
                     ),
-                    regex=True,
-                ),
-            ]
-        ),
-    }
+                ]
+            ),
+        }
+    )
 )
 
 # Last: what exists now (the platform's modules, classes and schemas) lives as long as

@@ -16,12 +16,12 @@ from __future__ import annotations
 import asyncio
 import collections
 import logging
-import os
 import time
 import weakref
+from contextvars import ContextVar
 from typing import Any, Protocol
 
-from asgiref.sync import SyncToAsync, async_to_sync
+from asgiref.sync import async_to_sync
 from channels.db import database_sync_to_async
 from channels.layers import get_channel_layer
 from django.conf import settings
@@ -91,14 +91,33 @@ def group_send_after_commit(group: str, message: dict[str, Any]) -> None:
     transaction.on_commit(send, robust=True)
 
 
+#: The event loop of the ASGI server handling the current connection, set by
+#: :class:`ServerLoop` in the connection's context. asgiref's ``sync_to_async`` runs
+#: synchronous code (a view, a consumer's database work) in a thread with a copy of
+#: the caller's context, so that code sees it too; a Celery worker or a command never
+#: does.
+_server_loop_var: ContextVar[asyncio.AbstractEventLoop | None] = ContextVar(
+    "iouv_server_loop", default=None
+)
+
+
+class ServerLoop:
+    """ASGI middleware: marks each connection's context with the server's event loop,
+    so that pushes from its worker threads are handed to that loop (:func:`_push`)."""
+
+    def __init__(self, app: Any) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> Any:
+        # Each connection runs in a task of its own, with a context of its own: the
+        # mark stays with this connection.
+        _server_loop_var.set(asyncio.get_running_loop())
+        return await self.app(scope, receive, send)
+
+
 def _server_loop() -> asyncio.AbstractEventLoop | None:
-    """The ASGI server's event loop when this thread runs for it (sync_to_async)."""
-    if getattr(SyncToAsync.threadlocal, "main_event_loop_pid", None) != os.getpid():
-        return None
-    loop: asyncio.AbstractEventLoop | None = getattr(
-        SyncToAsync.threadlocal, "main_event_loop", None
-    )
-    return loop
+    """The ASGI server's event loop when this code runs for one of its connections."""
+    return _server_loop_var.get()
 
 
 def _push(layer: Any, group: str, message: dict[str, Any]) -> None:

@@ -64,20 +64,33 @@ async def test_a_push_from_a_server_thread_reaches_a_consumer() -> None:
     assert (await asyncio.wait_for(channel_layer.receive(channel), 5))["type"] == "feed.update"
 
 
+async def test_a_connections_worker_threads_know_its_server_loop_and_nobody_else_does() -> None:
+    from asgiref.sync import sync_to_async
+
+    seen: list[Any] = []
+
+    async def app(scope: Any, receive: Any, send: Any) -> None:
+        # A view or a consumer's database work, in a thread of the server.
+        seen.append(await sync_to_async(layer._server_loop)())
+
+    # The server runs each connection in a task of its own.
+    await asyncio.create_task(layer.ServerLoop(app)({"type": "http"}, None, None))
+    assert seen == [asyncio.get_running_loop()]
+    # Code outside a connection (a Celery task, a command) sends on a loop of its own.
+    assert await sync_to_async(layer._server_loop)() is None
+
+
 @override_settings(CHANNEL_LAYERS=IN_MEMORY)
 def test_a_push_while_the_server_stops_is_dropped_instead_of_holding_the_thread() -> None:
     # A server shutting down stops its loop while a closing uplink's database work is
     # still in a thread: its push must give up, or the process waits for ever to exit.
     import threading
 
-    from asgiref.sync import SyncToAsync
-
     stopped = asyncio.new_event_loop()  # the server's loop, no longer running
     done = threading.Event()
 
     def consumer_thread() -> None:
-        SyncToAsync.threadlocal.main_event_loop = stopped
-        SyncToAsync.threadlocal.main_event_loop_pid = __import__("os").getpid()
+        layer._server_loop_var.set(stopped)  # as layer.ServerLoop marks a connection
         layer._push(get_channel_layer(), "feed-x", {"type": "feed.update"})
         done.set()
 
@@ -114,13 +127,10 @@ class _BusyServer:
         """``count`` pushes from a worker thread of this server, which must finish."""
         import threading
 
-        from asgiref.sync import SyncToAsync
-
         finished: list[bool] = []
 
         def consumer_thread() -> None:
-            SyncToAsync.threadlocal.main_event_loop = self.loop
-            SyncToAsync.threadlocal.main_event_loop_pid = __import__("os").getpid()
+            layer._server_loop_var.set(self.loop)  # as layer.ServerLoop marks a connection
             for i in range(count):
                 # Outside a transaction: pushed at once, from this (the consumer's) thread.
                 layer.group_send_after_commit("feed-x", {"type": "feed.update", "i": i})
