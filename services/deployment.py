@@ -136,7 +136,14 @@ def _mission_for(*, session: Session, assignment: Assignment) -> MissionSpec | N
         kind = kind_of(session.service)
     except UnknownKind:
         return None
-    return kind.vehicle_mission(assignment=assignment)
+    mission = kind.vehicle_mission(assignment=assignment)
+    if mission is not None and not isinstance(mission, kind.missions):
+        # A kind deploys only the missions it declares (ServiceKind.missions).
+        raise InvalidTaskError(
+            f"cannot make a vehicle task: the {kind.name} service does not deploy "
+            f"{type(mission).mission_kind()!r} missions"
+        )
+    return mission
 
 
 def _vehicle_task_sign(*, session: Session, assignment: Assignment) -> tuple[VehicleTask, str]:

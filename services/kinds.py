@@ -36,6 +36,8 @@ import dataclasses
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any, ClassVar
 
+from agents.missions.registry import missions as agent_missions
+
 if TYPE_CHECKING:
     from django import forms
     from django.http import HttpRequest
@@ -229,7 +231,14 @@ class UnknownKind(LookupError):
 
 def kind_register(kind: ServiceKind) -> ServiceKind:
     """Make ``kind`` available under its name (call from the kind app's ``ready()``).
-    Registering a second kind under a taken name is a bug and raises ValueError."""
+    Registering a second kind under a taken name, or a kind declaring a mission no
+    agent mission folder provides, is a bug and raises ValueError."""
+    installed = {m.spec for m in agent_missions().values()}
+    unknown = sorted(spec.__name__ for spec in kind.missions if spec not in installed)
+    if unknown:
+        raise ValueError(
+            f"service kind {kind.name!r} declares missions no agent has: {', '.join(unknown)}"
+        )
     existing = _REGISTRY.get(kind.name)
     if existing is not None and type(existing) is not type(kind):
         raise ValueError(f"service kind {kind.name!r} is registered twice")
