@@ -17,7 +17,7 @@ import contextlib
 import re
 from collections.abc import Iterator
 from contextvars import ContextVar
-from typing import Annotated, Any, Final, TypeAlias, TypeVar
+from typing import Annotated, Any, Final, TypeAlias
 
 import msgspec
 from msgspec import Meta
@@ -40,7 +40,6 @@ LowAltitude: TypeAlias = Annotated[float, Meta(ge=0.5, le=MAX_ALTITUDE_M)]
 #: Capped later at the vehicle's declared top speed.
 Speed: TypeAlias = Annotated[float, Meta(ge=0.1, le=MAX_SPEED_MPS)]
 
-_S = TypeVar("_S", bound="MissionSpec")
 
 # True while msgspec builds specs from data it is checking (see MissionSpec).
 _DECODING: Final[ContextVar[bool]] = ContextVar("iouv_mission_decoding", default=False)
