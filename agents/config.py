@@ -16,9 +16,11 @@ Example::
       "webrtc": {"ice_servers": ["stun:stun.example.org:3478"]}
     }
 
-A search drone adds its thermal camera, ``"thermal": {"source": "v4l2", "device":
-"/dev/video1"}`` (see :func:`agents.thermal.thermal_source_create` and
-docs/rescue-agent.md), and ``"video": {"source": "thermal"}`` shows it to users.
+A mission's sensor has a section of its own, named by the mission
+(:class:`agents.missions.registry.Sensor`): a search drone adds its thermal camera,
+``"thermal": {"source": "v4l2", "device": "/dev/video1"}`` (see
+:func:`agents.missions.search.thermal.thermal_source_create` and docs/rescue-agent.md),
+and ``"video": {"source": "thermal"}`` shows it to users.
 
 The platform's public keys come from any of ``platform_public_key`` (PEM text),
 ``platform_public_key_file`` (a PEM file), ``platform_jwks_file`` (a JWKS file) and
@@ -53,6 +55,7 @@ from pathlib import Path
 from typing import Any, Final
 from urllib.parse import urlsplit
 
+from agents.missions.registry import sensors as mission_sensors
 from agents.protocol import KeySet, ProtocolError
 
 #: Bounds on fetching ``platform_jwks_url``: a JWKS is a few hundred bytes.
@@ -115,7 +118,8 @@ class AgentConfig:
     adapter_options: Mapping[str, Any] = field(default_factory=dict)
     control: ControlConfig = field(default_factory=ControlConfig)
     video: Mapping[str, Any] | None = None
-    thermal: Mapping[str, Any] | None = None
+    #: The sections of the missions' sensors this vehicle has, by name (``thermal``).
+    sensors: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     webrtc: Mapping[str, Any] = field(default_factory=dict)
     name: str = ""
     reconnect_min_s: float = 0.5
@@ -200,17 +204,7 @@ class AgentConfig:
         video = data.get("video")
         if video is not None and not isinstance(video, Mapping):
             raise ConfigError("video: must be an object or null")
-        thermal = data.get("thermal")
-        if thermal is not None:
-            if not isinstance(thermal, Mapping):
-                raise ConfigError("thermal: must be an object or null")
-            # Imported here: the numpy detector is only needed with a thermal camera.
-            from agents.thermal import thermal_config_check
-
-            try:
-                thermal_config_check(thermal)
-            except ValueError as exc:
-                raise ConfigError(str(exc)) from None
+        sensors = _sensors_configured(data)
         webrtc = data.get("webrtc", {})
         if not isinstance(webrtc, Mapping):
             raise ConfigError("webrtc: must be an object")
@@ -219,8 +213,9 @@ class AgentConfig:
             raise ConfigError(f"webrtc: unknown option(s) {', '.join(sorted(unknown))}")
         if not isinstance(webrtc.get("enabled", True), bool):
             raise ConfigError("webrtc.enabled: must be true or false")
-        if video is not None and video.get("source") == "thermal" and thermal is None:
-            raise ConfigError("video: the thermal source needs a thermal section")
+        source = video.get("source") if video is not None else None
+        if source in mission_sensors() and source not in sensors:
+            raise ConfigError(f"video: the {source} source needs a {source} section")
         records = data.get("records", {})
         if not isinstance(records, Mapping):
             raise ConfigError("records: must be an object")
@@ -244,7 +239,7 @@ class AgentConfig:
                 max_grant_lifetime_s=float(max_grant),
             ),
             video=dict(video) if video is not None else None,
-            thermal=dict(thermal) if thermal is not None else None,
+            sensors=sensors,
             webrtc=dict(webrtc),
             name=str(data.get("vehicle_name") or data.get("name") or ""),
             platform_jwks=jwks,
@@ -267,6 +262,24 @@ class AgentConfig:
         except json.JSONDecodeError as exc:
             raise ConfigError(f"{p}: not JSON: {exc}") from None
         return cls.from_mapping(data, base_dir=p.parent)
+
+
+def _sensors_configured(data: Mapping[str, Any]) -> dict[str, Mapping[str, Any]]:
+    """The sections of the missions' sensors in ``data``, each checked by its mission
+    (nothing is opened). Raises ConfigError naming the bad key."""
+    sensors: dict[str, Mapping[str, Any]] = {}
+    for section, sensor in mission_sensors().items():
+        options = data.get(section)
+        if options is None:
+            continue
+        if not isinstance(options, Mapping):
+            raise ConfigError(f"{section}: must be an object or null")
+        try:
+            sensor.check(options)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        sensors[section] = dict(options)
+    return sensors
 
 
 def _jwks_configured(data: Mapping[str, Any], base: Path) -> dict[str, Any] | None:

@@ -20,7 +20,7 @@ relay. It
   user the rest of that timeout to come back: a page that reconnects in time takes
   the controls back without the fail-safe; one that comes back later is told, in its
   ``welcome``, the fail-safe the vehicle performed meanwhile (``vehicle.failsafe``);
-* runs the commands of the task's autonomous mission (:mod:`agents.mission`) through
+* runs the commands of the task's autonomous mission (:mod:`agents.missions`) through
   :meth:`ControlHub.mission_execute`, under the same lock, and counts the user
   commands and fail-safes that take over from it (:attr:`ControlHub.overrides`);
 * names the command in every refusal it acks, and folds a burst of refused commands

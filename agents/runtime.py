@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import signal
 import time
@@ -15,7 +16,8 @@ import msgspec
 
 from agents.config import AgentConfig, is_loopback_host
 from agents.control import ControlHub, ControlServer
-from agents.mission import MissionControl
+from agents.missions.control import MissionControl
+from agents.missions.registry import sensors as mission_sensors
 from agents.protocol import (
     KeySet,
     ProtocolError,
@@ -44,7 +46,6 @@ from agents.protocol.messages import (
 )
 from agents.recording import FlightRecorder
 from agents.safety import Refusal
-from agents.thermal import ThermalFeed, thermal_feed_create
 from agents.uplink import Uplink
 from agents.vehicles.base import Adapter
 from agents.vehicles.registry import adapter_create
@@ -77,7 +78,9 @@ class Agent:
         self.hub: ControlHub | None = None
         self.uplink: Uplink | None = None
         self.video: Any | None = None
-        self.thermal: ThermalFeed | None = None
+        #: The open sensors the missions need, by configuration section (the search's
+        #: ``thermal`` camera: a ThermalFeed); see agents.missions.registry.Sensor.
+        self.sensors: dict[str, Any] = {}
         self.missions: MissionControl | None = None
         self.relay_links: dict[str, _RelayLink] = {}
         self._checks: set[asyncio.Task[None]] = set()
@@ -103,8 +106,9 @@ class Agent:
             # Entered first, left last: it writes what the hub's shutdown recorded.
             await stack.enter_async_context(self.recorder)
             await stack.enter_async_context(self.adapter)
-            if self.config.thermal is not None:
-                self.thermal = await stack.enter_async_context(self._thermal_feed())
+            for section, options in self.config.sensors.items():
+                sensor = mission_sensors()[section].create(options, self._camera_pose)
+                self.sensors[section] = await stack.enter_async_context(sensor)
             if self.config.video is not None:
                 self.video = await stack.enter_async_context(self._video_service())
             hub = ControlHub(
@@ -121,7 +125,7 @@ class Agent:
             )
             self.hub = await stack.enter_async_context(hub)
             self.missions = MissionControl(
-                hub=hub, adapter=self.adapter, report=self.report, thermal=self.thermal
+                hub=hub, adapter=self.adapter, report=self.report, sensors=self.sensors
             )
             # Closed before the hub and the adapter (exit order is reversed).
             stack.push_async_callback(self.missions.close)
@@ -153,12 +157,15 @@ class Agent:
         # Imported here: aiortc and av are only loaded by agents with a camera.
         from agents.video import video_service_create
 
+        # A sensor that shows as video (the thermal camera) is a source by its section.
+        sources = {
+            section: functools.partial(video, self.sensors[section])
+            for section, sensor in mission_sensors().items()
+            if section in self.sensors and (video := sensor.video) is not None
+        }
         return video_service_create(
-            self.config.video or {}, pose=self._camera_pose, thermal=self.thermal
+            self.config.video or {}, pose=self._camera_pose, sources=sources
         )
-
-    def _thermal_feed(self) -> ThermalFeed:
-        return thermal_feed_create(self.config.thermal or {}, pose=self._camera_pose)
 
     def _camera_pose(self) -> dict[str, Any]:
         """Where the camera is and looks, for the synthetic camera."""

@@ -20,10 +20,10 @@ owns everything after it:
 * Sources (:class:`VideoSource`): :class:`SyntheticCamera` draws a scene from the
   vehicle's pose with a frame counter and a timestamp readable from the pixels
   (:func:`read_frame_code`); :class:`V4L2Camera` reads a Linux camera (Raspberry Pi
-  camera, USB webcam); :class:`MjpegCamera` reads an HTTP MJPEG stream (ESP32-CAM);
-  :class:`ThermalVideo` shows the agent's thermal camera (agents.thermal) in false
-  colour with its detections. :func:`video_source_create` builds one from the agent's
-  configuration.
+  camera, USB webcam); :class:`MjpegCamera` reads an HTTP MJPEG stream (ESP32-CAM).
+  A mission's sensor may add its own source (the search mission's thermal camera in
+  false colour, :mod:`agents.missions.search.video`), handed in as ``sources``.
+  :func:`video_source_create` builds one from the agent's configuration.
 
 Nothing here imports Django: this runs on the vehicle's companion computer.
 """
@@ -70,7 +70,6 @@ from aiortc import (
 from aiortc.mediastreams import MediaStreamError
 
 from agents.geo import local_offset_m
-from agents.thermal import Blob, ThermalFeed, colour_range, false_colour
 
 __all__ = [
     "CODE_BITS",
@@ -80,11 +79,11 @@ __all__ = [
     "MjpegCamera",
     "SharedVp8Encoder",
     "SyntheticCamera",
-    "ThermalVideo",
     "V4L2Camera",
     "VideoError",
     "VideoService",
     "VideoSource",
+    "draw_text",
     "read_frame_code",
     "restrict_ice_host_addresses",
     "stamp_frame_code",
@@ -257,7 +256,7 @@ _SEGMENTS: Final[dict[str, str]] = {
 }
 
 
-def _draw_text(img: RGB, text: str, x: int, y: int, height: int, color: tuple[int, ...]) -> int:
+def draw_text(img: RGB, text: str, x: int, y: int, height: int, color: tuple[int, ...]) -> int:
     """Draw ``text`` (digits, space, '-', ':', '.') in a seven-segment font with its top
     left corner at (x, y); returns the x after the last character. Characters that fall
     outside ``img`` are clipped by numpy slicing."""
@@ -513,7 +512,7 @@ class SyntheticCamera:
         # Overlays: heading at the top, counter and time of day at the bottom.
         block, _ = _code_layout(w)
         digit_h = max(16, h // 12)
-        _draw_text(
+        draw_text(
             img,
             f"{round(heading) % 360:03d}",
             w // 2 - digit_h,
@@ -524,9 +523,9 @@ class SyntheticCamera:
         big = max(20, h // 10)
         box_top = h - big - 12
         np.right_shift(img[box_top:], 2, out=img[box_top:])  # darken behind the digits
-        x = _draw_text(img, f"{counter % 1_000_000:06d}", 10, box_top + 6, big, (255, 255, 80))
+        x = draw_text(img, f"{counter % 1_000_000:06d}", 10, box_top + 6, big, (255, 255, 80))
         clock = time.strftime("%H:%M:%S", time.gmtime(ts_ms / 1000)) + f".{ts_ms % 1000:03d}"
-        _draw_text(img, clock, x + big // 2, box_top + 6, big, (255, 255, 255))
+        draw_text(img, clock, x + big // 2, box_top + 6, big, (255, 255, 255))
         stamp_frame_code(img, counter, ts_ms)
         return img
 
@@ -861,70 +860,6 @@ async def _multipart_jpegs(body: AsyncIterator[bytes], boundary: bytes) -> Async
                     yield part[start : stop + 2]
 
 
-class ThermalVideo:
-    """The agent's thermal camera as video: each frame of its
-    :class:`~agents.thermal.ThermalFeed` in an ironbow palette, upscaled to ``width`` x
-    ``height``, with a box and the confidence over each detection (green from
-    ``box_confidence``), and at the bottom the palette's temperature range.
-
-    It shares the feed with the search mission (one camera, each frame captured and
-    analysed once) and is paced by it. ``close()`` only forgets the position in the
-    feed: the camera belongs to the agent, which closes it on shutdown.
-    """
-
-    def __init__(
-        self,
-        feed: ThermalFeed,
-        *,
-        width: int = 640,
-        height: int = 480,
-        box_confidence: float = 0.6,
-    ) -> None:
-        if width % 2 or height % 2 or not (64 <= width <= 1920 and 64 <= height <= 1080):
-            raise ValueError("thermal video width and height must be even, 64..1920x1080")
-        self.feed = feed
-        self.width, self.height = width, height
-        self.box_confidence = box_confidence
-        self._seq = 0
-
-    async def frame(self) -> av.VideoFrame:
-        """The next thermal frame, drawn (in a worker thread)."""
-        thermal = await self.feed.frame(newer_than=self._seq)
-        self._seq = thermal.seq
-        img = await asyncio.to_thread(self.render, thermal.celsius, thermal.blobs)
-        return av.VideoFrame.from_ndarray(img, format="rgb24")
-
-    def render(self, celsius: npt.NDArray[np.float32], blobs: Sequence[Blob] = ()) -> RGB:
-        """One picture (H x W x 3 RGB) of a frame in degrees Celsius and its blobs."""
-        img = false_colour(
-            celsius,
-            blobs,
-            width=self.width,
-            height=self.height,
-            box_confidence=self.box_confidence,
-        )
-        sy, sx = self.height / celsius.shape[0], self.width / celsius.shape[1]
-        digit_h = max(14, self.height // 28)
-        for blob in blobs:
-            r0, c0, _, _ = blob.box
-            colour = (0, 255, 0) if blob.confidence >= self.box_confidence else (255, 220, 0)
-            y = max(0, int(r0 * sy) - digit_h - 8)
-            _draw_text(img, f"{blob.confidence:.2f}", int(c0 * sx), y, digit_h, colour)
-        # The palette's range: the temperatures of its two ends, in degC.
-        low, high = colour_range(celsius)
-        band = img[self.height - digit_h - 8 :]
-        np.right_shift(band, 1, out=band)  # darken behind the digits
-        y = self.height - digit_h - 4
-        _draw_text(img, f"{low:.1f}", 6, y, digit_h, (255, 255, 255))
-        text = f"{high:.1f}"
-        x = self.width - 6 - len(text) * (digit_h // 2 + 2 * max(2, digit_h // 8))
-        _draw_text(img, text, x, y, digit_h, (255, 255, 255))
-        return img
-
-    async def close(self) -> None:
-        self._seq = 0
-
-
 #: Keys of the agent's ``video`` configuration that configure :class:`VideoService`
 #: rather than the source; :func:`video_source_create` ignores them, so one mapping can
 #: hold both (see :func:`video_service_create`).
@@ -944,7 +879,7 @@ def video_source_create(
     config: Mapping[str, Any],
     *,
     pose: Callable[[], Any] | None = None,
-    thermal: ThermalFeed | None = None,
+    sources: Mapping[str, Callable[[Mapping[str, Any]], VideoSource]] | None = None,
 ) -> VideoSource:
     """Build the source an agent's configuration describes.
 
@@ -952,9 +887,10 @@ def video_source_create(
     (``pose`` is the callable giving the vehicle's pose; ``scene`` ``"sea"`` for a boat);
     ``{"source": "v4l2", "device": "/dev/video0",
     "width": 640, "height": 480, "fps": 15, "input_format": "mjpeg"}``;
-    ``{"source": "mjpeg", "url": "http://192.168.4.1:81/stream"}``; ``{"source":
-    "thermal", "width": 640, "height": 480, "box_confidence": 0.6}`` shows ``thermal``,
-    the agent's own thermal feed (never a second camera). Keys in
+    ``{"source": "mjpeg", "url": "http://192.168.4.1:81/stream"}``. ``sources`` adds
+    the agent's sensors that show as video, by name: ``{"source": "thermal", "width":
+    640, "height": 480, "box_confidence": 0.6}`` shows the search mission's thermal
+    camera (never a second camera), its factory called with the other keys. Keys in
     :data:`SERVICE_OPTIONS` are ignored; other unknown keys, an unknown source or a bad
     value raise VideoError naming them. Nothing is opened until the first frame.
     """
@@ -964,22 +900,25 @@ def video_source_create(
         "synthetic": {"width", "height", "fps", "hfov_deg", "mount_height_m", "scene"},
         "v4l2": {"device", "width", "height", "fps", "input_format"},
         "mjpeg": {"url", "timeout_s", "reconnect_s"},
-        "thermal": {"width", "height", "box_confidence"},
     }
-    if kind not in allowed:
-        raise VideoError(f"unknown video source {kind!r} (one of: {', '.join(sorted(allowed))})")
-    unknown = set(options) - allowed[kind]
-    if unknown:
-        raise VideoError(f"unknown option(s) for {kind} video: {', '.join(sorted(unknown))}")
+    extra = dict(sources or {})
+    if kind not in allowed and kind not in extra:
+        known = ", ".join(sorted({*allowed, *extra}))
+        raise VideoError(
+            f"unknown video source {kind!r} (one of: {known}; a sensor's source needs "
+            "its section, e.g. thermal)"
+        )
+    if kind in allowed:
+        unknown = set(options) - allowed[kind]
+        if unknown:
+            raise VideoError(f"unknown option(s) for {kind} video: {', '.join(sorted(unknown))}")
     try:
+        if kind in extra:
+            return extra[kind](options)
         if kind == "synthetic":
             return SyntheticCamera(pose=pose, **options)
         if kind == "v4l2":
             return V4L2Camera(**options)
-        if kind == "thermal":
-            if thermal is None:
-                raise VideoError("thermal video needs the agent's thermal camera section")
-            return ThermalVideo(thermal, **options)
         if "url" not in options:
             raise VideoError("mjpeg video needs a 'url'")
         return MjpegCamera(**options)
@@ -991,12 +930,12 @@ def video_service_create(
     config: Mapping[str, Any],
     *,
     pose: Callable[[], Any] | None = None,
-    thermal: ThermalFeed | None = None,
+    sources: Mapping[str, Callable[[Mapping[str, Any]], VideoSource]] | None = None,
 ) -> VideoService:
     """The :class:`VideoService` for an agent's whole ``video`` configuration: the
     source from :func:`video_source_create`, the :data:`SERVICE_OPTIONS` for the
     service. Raises VideoError on a bad configuration."""
-    source = video_source_create(config, pose=pose, thermal=thermal)
+    source = video_source_create(config, pose=pose, sources=sources)
     options = {k: v for k, v in config.items() if k in SERVICE_OPTIONS}
     try:
         return VideoService(source, **options)

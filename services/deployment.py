@@ -22,6 +22,7 @@ from django.db import transaction
 from django.http import HttpRequest
 
 from accounts.users import User
+from agents.missions.spec import MissionError, MissionSpec
 from agents.protocol import FAILSAFE_ACTIONS, Limits, ProtocolError, UserGrant, VehicleTask
 from agents.protocol.messages import EndTask, Revoke, Task, message_to_dict, message_type
 from fleet.feed import fleet_notify
@@ -128,14 +129,21 @@ def _primary(assignments: list[Assignment]) -> Assignment:
     return assignments[0]
 
 
-def _mission_for(*, session: Session, assignment: Assignment) -> dict[str, Any] | None:
+def _mission_for(*, session: Session, assignment: Assignment) -> MissionSpec | None:
     """The autonomous mission of this vehicle's task: its kind's (from the workflow's
     recorded state), else none."""
     try:
         kind = kind_of(session.service)
     except UnknownKind:
         return None
-    return kind.vehicle_mission(assignment=assignment)
+    mission = kind.vehicle_mission(assignment=assignment)
+    if mission is not None and not isinstance(mission, kind.missions):
+        # A kind deploys only the missions it declares (ServiceKind.missions).
+        raise InvalidTaskError(
+            f"cannot make a vehicle task: the {kind.name} service does not deploy "
+            f"{type(mission).mission_kind()!r} missions"
+        )
+    return mission
 
 
 def _vehicle_task_sign(*, session: Session, assignment: Assignment) -> tuple[VehicleTask, str]:
@@ -158,6 +166,8 @@ def _vehicle_task_sign(*, session: Session, assignment: Assignment) -> tuple[Veh
         )
     except ProtocolError as exc:
         raise InvalidTaskError(f"cannot make a vehicle task: {exc.message}") from None
+    except MissionError as exc:
+        raise InvalidTaskError(f"cannot make a vehicle task: {exc}") from None
     return task, task.sign(platform_private_key())
 
 

@@ -18,8 +18,9 @@ What a kind declares:
   page (:attr:`ServiceKind.form_class`, :attr:`ServiceKind.request_template`);
 * **the user task**: the page the session opens on (:attr:`ServiceKind.session_template`,
   with :meth:`ServiceKind.session_context`) and the grant role it hands the browser;
-* **the vehicle tasks**: the autonomous mission signed into each vehicle's task
-  (:meth:`ServiceKind.vehicle_mission`);
+* **the vehicle tasks**: the missions it deploys (:attr:`ServiceKind.missions`, specs
+  of the agent's missions, agents/missions/<name>/spec.py) and the one signed into each
+  vehicle's task (:meth:`ServiceKind.vehicle_mission`);
 * **the platform task**: :meth:`ServiceKind.open` (what a request sets going), the
   agent events it handles (:attr:`ServiceKind.event_handlers`), what an accepted task
   means (:meth:`ServiceKind.task_accepted`); Celery steps and timers live in its own
@@ -35,11 +36,14 @@ import dataclasses
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any, ClassVar
 
+from agents.missions.registry import missions as agent_missions
+
 if TYPE_CHECKING:
     from django import forms
     from django.http import HttpRequest
 
     from accounts.users import User
+    from agents.missions.spec import MissionSpec
     from services.deployment import UserTask
     from services.models import Assignment, Service, ServiceRole, Session
 
@@ -127,6 +131,9 @@ class ServiceKind:
     #: Agent events of this kind's sessions the kind handles (name -> handler); the
     #: core logs the others.
     event_handlers: ClassVar[Mapping[str, EventHandler]] = {}
+    #: The agent missions this kind deploys (their specs); :meth:`vehicle_mission`
+    #: returns one of these or None.
+    missions: ClassVar[tuple[type[MissionSpec], ...]] = ()
 
     # --- request -------------------------------------------------------------------------
     def params_clean(self, params: Mapping[str, Any]) -> dict[str, Any]:
@@ -195,8 +202,10 @@ class ServiceKind:
         return None
 
     # --- the vehicle and platform tasks --------------------------------------------------
-    def vehicle_mission(self, *, assignment: Assignment) -> dict[str, Any] | None:
-        """The autonomous mission signed into this vehicle's task, or None."""
+    def vehicle_mission(self, *, assignment: Assignment) -> MissionSpec | None:
+        """The autonomous mission signed into this vehicle's task (an instance of one of
+        :attr:`missions`, built from the kind's recorded state so a re-sent task carries
+        the same), or None. Raises MissionError when that state makes no valid one."""
         return None
 
     def task_accepted(self, *, assignment: Assignment) -> None:
@@ -222,7 +231,14 @@ class UnknownKind(LookupError):
 
 def kind_register(kind: ServiceKind) -> ServiceKind:
     """Make ``kind`` available under its name (call from the kind app's ``ready()``).
-    Registering a second kind under a taken name is a bug and raises ValueError."""
+    Registering a second kind under a taken name, or a kind declaring a mission no
+    agent mission folder provides, is a bug and raises ValueError."""
+    installed = {m.spec for m in agent_missions().values()}
+    unknown = sorted(spec.__name__ for spec in kind.missions if spec not in installed)
+    if unknown:
+        raise ValueError(
+            f"service kind {kind.name!r} declares missions no agent has: {', '.join(unknown)}"
+        )
     existing = _REGISTRY.get(kind.name)
     if existing is not None and type(existing) is not type(kind):
         raise ValueError(f"service kind {kind.name!r} is registered twice")

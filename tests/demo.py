@@ -57,7 +57,7 @@ def mission_agent_config(path: Path, base: str, *, video: bool = False) -> Agent
     takes seconds; with its camera's video offered on loopback if ``video`` (and it has
     a camera), else none."""
     config = AgentConfig.load(path)
-    simulator = SEARCH_SIM if config.thermal is not None else SIM
+    simulator = SEARCH_SIM if "thermal" in config.sensors else SIM
     if config.adapter_options.get("vehicle_class") == "boat":
         simulator = BOAT_SIM
     return dataclasses.replace(

@@ -1,8 +1,10 @@
 """Wire protocol shared by the IoUV platform and the vehicle agent.
 
 This module is the only code the Django platform and the vehicle agent have in common, so it
-imports nothing but the standard library, ``cryptography`` and PyJWT: the agent runs on
-small companion computers without Django.
+imports nothing but the standard library, msgspec, ``cryptography``, PyJWT and the
+missions' specs (``agents/missions/<name>/spec.py``, msgspec only: the vehicle task's
+``mission`` is their tagged union): the agent runs on small companion computers without
+Django.
 
 It provides:
 

@@ -35,6 +35,9 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import (
 from jwt.utils import base64url_decode, base64url_encode
 from msgspec import Meta, field
 
+from agents.missions.registry import mission_union
+from agents.missions.spec import MissionSpec as MissionSpecBase
+from agents.missions.spec import spec_decoding
 from agents.protocol.base import (
     _LINK_LOSS_RANGE_MS,
     _MAX_TOKEN_CHARS,
@@ -112,6 +115,13 @@ else:  # msgspec refuses any other value
 
 _T = TypeVar("_T")
 
+if TYPE_CHECKING:
+    from agents.missions.spec import MissionSpec
+else:
+    # The tagged union of the installed missions' specs (agents.missions.registry),
+    # resolved by msgspec from this module's globals.
+    MissionSpec = mission_union()
+
 # True while msgspec builds a struct from values it has checked (see _Checked).
 _CONVERTING: Final[ContextVar[bool]] = ContextVar("iouv_documents_converting", default=False)
 
@@ -124,19 +134,12 @@ def _convert(data: Any, type_: type[_T]) -> _T:
     """
     token = _CONVERTING.set(True)
     try:
-        return msgspec.convert(data, type_)
+        with spec_decoding():  # a mission spec inside is being checked too
+            return msgspec.convert(data, type_)
     except msgspec.ValidationError as exc:
         raise _protocol_error(exc) from None
     finally:
         _CONVERTING.reset(token)
-
-
-def _check_json(value: Any, path: str) -> None:
-    # PyJWT would write NaN/Infinity, which no other JSON parser reads back.
-    try:
-        json.dumps(value, allow_nan=False)
-    except (TypeError, ValueError, RecursionError):
-        raise _invalid(path, "must be JSON-serialisable (no NaN/inf)") from None
 
 
 def _plain(obj: msgspec.Struct) -> dict[str, Any]:
@@ -380,19 +383,18 @@ class VehicleTask(_Document, frozen=True, kw_only=True, forbid_unknown_fields=Tr
     KIND: ClassVar[Kind] = "vehicle_task"
 
     limits: Limits
-    #: Free-form plan for autonomous tasks (e.g. waypoints); any JSON object.
-    mission: dict[str, Any] | None = None
+    #: The autonomous mission the vehicle flies for this session, one of the installed
+    #: missions' specs (agents/missions/<name>/spec.py), tagged by its ``kind``.
+    mission: MissionSpec | None = None
 
     def __post_init__(self) -> None:
-        # Converting would turn a dict into Limits; code must hand over checked Limits.
+        # Converting would turn a dict into Limits (or a mission spec); code must hand
+        # over checked ones.
         if not isinstance(self.limits, Limits):
             raise _bad("limits", "must be a Limits object")
+        if self.mission is not None and not isinstance(self.mission, MissionSpecBase):
+            raise _bad("mission", "must be a mission spec (agents/missions/<name>/spec.py)")
         super().__post_init__()
-
-    def _check(self) -> None:
-        super()._check()
-        if self.mission is not None:
-            _check_json(self.mission, "mission")
 
 
 VehicleTask.CLAIMS = _claims_of(VehicleTask)

@@ -1,5 +1,6 @@
 """The published JSON Schema (draft 2020-12) of each WebSocket channel, generated from
-the message structs of :mod:`agents.protocol.messages`.
+the message structs of :mod:`agents.protocol.messages`, and of the vehicle task's
+``mission`` claim, generated from the installed missions' specs.
 
     python -m agents.protocol.schema --write   # regenerate docs/protocol/schema/
     python -m agents.protocol.schema --check   # exit 1 when the files differ from the code
@@ -9,6 +10,11 @@ channel's tagged union (``anyOf`` of ``$ref``, with an OpenAPI-style ``discrimin
 on ``type``) and every struct it uses under ``$defs``. Cross-field rules (repeated
 command names, a default outside its min/max, min/max on a non-numeric argument) are
 checked by ``parse_message`` only.
+
+``docs/protocol/schema/mission.schema.json``: the tagged union of the missions' specs
+(agents/missions/<name>/spec.py; ``discriminator`` on ``kind``). Its rules across fields
+(a start index past the last waypoint, a drop above the cruise altitude) are the
+specs' own (``MissionSpec.check``).
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from typing import Any
 
 import msgspec
 
+from agents.missions.registry import mission_union
 from agents.protocol.base import CHANNELS, PROTOCOL_VERSION
 from agents.protocol.messages import CHANNEL_TYPES, ArgSpec
 
@@ -47,9 +54,28 @@ def channel_schema(channel: str) -> dict[str, Any]:
     }
 
 
+def mission_schema() -> dict[str, Any]:
+    """The JSON Schema of the vehicle task's ``mission`` claim: one of the installed
+    missions' specs, by ``kind``."""
+    (root,), defs = msgspec.json.schema_components([mission_union()], ref_template="#/$defs/{name}")
+    return {
+        "$schema": _DIALECT,
+        "title": f"IoUV protocol v{PROTOCOL_VERSION}: vehicle task mission",
+        "description": "Generated from agents/missions/*/spec.py; do not edit.",
+        **root,
+        "$defs": dict(sorted(defs.items())),
+    }
+
+
+#: The published files besides the channels': name -> schema.
+DOCUMENTS: dict[str, Any] = {"mission": mission_schema}
+
+
 def schema_text(channel: str) -> str:
-    """The file content for ``channel``: stable, indented JSON with a final newline."""
-    return json.dumps(channel_schema(channel), indent=2, ensure_ascii=False) + "\n"
+    """The file content for ``channel`` (or a name of :data:`DOCUMENTS`): stable,
+    indented JSON with a final newline."""
+    schema = DOCUMENTS[channel]() if channel in DOCUMENTS else channel_schema(channel)
+    return json.dumps(schema, indent=2, ensure_ascii=False) + "\n"
 
 
 def schema_path(channel: str, directory: Path = SCHEMA_DIR) -> Path:
@@ -60,7 +86,7 @@ def stale_files(directory: Path = SCHEMA_DIR) -> list[Path]:
     """The schema files that are missing or differ from the code."""
     return [
         path
-        for channel in CHANNELS
+        for channel in (*CHANNELS, *DOCUMENTS)
         if not (path := schema_path(channel, directory)).exists()
         or path.read_text(encoding="utf-8") != schema_text(channel)
     ]
@@ -75,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.write:
         args.dir.mkdir(parents=True, exist_ok=True)
-        for channel in CHANNELS:
+        for channel in (*CHANNELS, *DOCUMENTS):
             schema_path(channel, args.dir).write_text(schema_text(channel), encoding="utf-8")
             print(schema_path(channel, args.dir))
         return 0

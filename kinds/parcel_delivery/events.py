@@ -14,7 +14,7 @@ from services.eventlog import event_append
 from services.models import Assignment
 from services.workflow import session_task_accepted
 
-#: The carrier's mission events (agents.mission, kind ``parcel``).
+#: The carrier's mission events (agents/missions/parcel/, kind ``parcel``).
 PARCEL_EVENTS = frozenset(
     {"mission_progress", "parcel_loaded", "payload_released", "mission_failed"}
 )

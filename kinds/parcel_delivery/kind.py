@@ -10,10 +10,11 @@ from django.conf import settings
 from django.http import HttpRequest
 
 from accounts.users import User
+from agents.missions.spec import MissionSpec
 from fleet.models import VehicleType
 from kinds.parcel_delivery.events import PARCEL_EVENTS, delivery_event, delivery_task_accepted
 from kinds.parcel_delivery.forms import ParcelRequestForm
-from kinds.parcel_delivery.missions import vehicle_mission
+from kinds.parcel_delivery.missions import MISSIONS, vehicle_mission
 from kinds.parcel_delivery.models import CARRIER, KIND, Delivery
 from kinds.parcel_delivery.notifications import tracking_url
 from kinds.parcel_delivery.presentation import delivery_json
@@ -45,6 +46,7 @@ class ParcelDelivery(ServiceKind):
     session_template = "parcel_delivery/session.html"
     urls = "kinds.parcel_delivery.urls"
     event_handlers = {name: _on(name) for name in sorted(PARCEL_EVENTS)}
+    missions = MISSIONS
 
     def params_clean(self, params: Mapping[str, Any]) -> dict[str, Any]:
         return params_clean(params)
@@ -91,7 +93,7 @@ class ParcelDelivery(ServiceKind):
         delivery = Delivery.objects.filter(pk=session.pk).first()
         return delivery_json(delivery) if delivery is not None else None
 
-    def vehicle_mission(self, *, assignment: Assignment) -> dict[str, Any] | None:
+    def vehicle_mission(self, *, assignment: Assignment) -> MissionSpec | None:
         return vehicle_mission(assignment=assignment)
 
     def task_accepted(self, *, assignment: Assignment) -> None:

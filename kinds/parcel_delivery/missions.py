@@ -3,8 +3,8 @@ carries the same mission, with the same id, and the agent never repeats it)."""
 
 from __future__ import annotations
 
-from typing import Any
-
+from agents.missions.parcel.spec import ParcelSpec
+from agents.missions.spec import MissionSpec
 from kinds.parcel_delivery.conf import load_s
 from kinds.parcel_delivery.models import CARRIER, Delivery
 from kinds.parcel_delivery.planning import (
@@ -18,21 +18,25 @@ from services.models import Assignment
 DEFAULT_SPEED_MPS = 8.0
 
 
-def vehicle_mission(*, assignment: Assignment) -> dict[str, Any] | None:
-    """The carrier's ``parcel`` mission: collect the parcel where it waits, bring it
-    to the drop-off, release it, go home. None for another role or no delivery."""
+#: The missions this kind deploys (:attr:`services.kinds.ServiceKind.missions`).
+MISSIONS: tuple[type[MissionSpec], ...] = (ParcelSpec,)
+
+
+def vehicle_mission(*, assignment: Assignment) -> ParcelSpec | None:
+    """The carrier's ``parcel`` mission (agents/missions/parcel/): collect the parcel
+    where it waits, bring it to the drop-off, release it, go home. None for another
+    role or no delivery. Raises MissionError if the recorded state makes no valid one."""
     delivery = Delivery.objects.filter(pk=assignment.session_id).first()
     if delivery is None or assignment.role != CARRIER:
         return None
     speed = float(assignment.vehicle.attributes.get("max_speed_mps") or DEFAULT_SPEED_MPS)
-    return {
-        "kind": "parcel",
-        "id": f"{assignment.session_id}-{CARRIER}-{assignment.pk}",
-        "pickup": list(delivery.pickup),
-        "dropoff": list(delivery.dropoff),
-        "altitude_m": CRUISE_ALTITUDE_M,
-        "load_altitude_m": LOAD_ALTITUDE_M,
-        "load_s": load_s(),
-        "drop_altitude_m": DROP_ALTITUDE_M,
-        "speed_mps": speed,
-    }
+    return ParcelSpec(
+        id=f"{assignment.session_id}-{CARRIER}-{assignment.pk}",
+        pickup=(delivery.pickup[0], delivery.pickup[1]),
+        dropoff=(delivery.dropoff[0], delivery.dropoff[1]),
+        altitude_m=CRUISE_ALTITUDE_M,
+        load_altitude_m=LOAD_ALTITUDE_M,
+        load_s=load_s(),
+        drop_altitude_m=DROP_ALTITUDE_M,
+        speed_mps=speed,
+    )

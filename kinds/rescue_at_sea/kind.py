@@ -10,9 +10,10 @@ from django.conf import settings
 from django.http import HttpRequest
 
 from accounts.users import User
+from agents.missions.spec import MissionSpec
 from kinds.rescue_at_sea.events import MISSION_EVENTS, mission_event, mission_task_accepted
 from kinds.rescue_at_sea.forms import RescueRequestForm
-from kinds.rescue_at_sea.missions import vehicle_mission
+from kinds.rescue_at_sea.missions import MISSIONS, vehicle_mission
 from kinds.rescue_at_sea.models import KIND, Mission
 from kinds.rescue_at_sea.presentation import mission_json
 from kinds.rescue_at_sea.request import MAX_ALTITUDE_M, MIN_ALTITUDE_M, rescue_request
@@ -41,6 +42,7 @@ class RescueAtSea(ServiceKind):
     session_template = "rescue_at_sea/mission.html"
     urls = "kinds.rescue_at_sea.urls"
     event_handlers = {name: _on_mission_event(name) for name in sorted(MISSION_EVENTS)}
+    missions = MISSIONS
 
     def params_clean(self, params: Mapping[str, Any]) -> dict[str, Any]:
         unknown = sorted(set(params) - {"area", "altitude_m"})
@@ -93,7 +95,7 @@ class RescueAtSea(ServiceKind):
         mission = Mission.objects.filter(pk=session.pk).first()
         return mission_json(mission) if mission is not None else None
 
-    def vehicle_mission(self, *, assignment: Assignment) -> dict[str, Any] | None:
+    def vehicle_mission(self, *, assignment: Assignment) -> MissionSpec | None:
         return vehicle_mission(assignment=assignment)
 
     def task_accepted(self, *, assignment: Assignment) -> None:

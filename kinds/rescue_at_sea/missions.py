@@ -1,10 +1,17 @@
 """The missions signed into the rescue vehicles' tasks, built from the recorded state,
-so a re-sent task carries the same mission (and the same id) as the first."""
+so a re-sent task carries the same mission (and the same id) as the first.
+
+Each is a spec of the agent's mission (agents/missions/<name>/spec.py): ``search``
+for the search drones, ``delivery`` for the one bringing the life ring, ``return`` for
+the way home; building one checks it as the agent will (MissionError naming the field).
+"""
 
 from __future__ import annotations
 
-from typing import Any
-
+from agents.missions.delivery.spec import DeliverySpec
+from agents.missions.return_home.spec import ReturnSpec
+from agents.missions.search.spec import SearchSpec
+from agents.missions.spec import MissionSpec
 from fleet.models import Vehicle
 from kinds.rescue_at_sea.models import DELIVERY, SEARCH, Mission
 from services.models import Assignment
@@ -23,7 +30,11 @@ def vehicle_speed(vehicle: Vehicle, cap: float | None = None) -> float:
     return min(top, cap) if cap is not None else top
 
 
-def vehicle_mission(*, assignment: Assignment) -> dict[str, Any] | None:
+#: The missions this kind deploys (:attr:`services.kinds.ServiceKind.missions`).
+MISSIONS: tuple[type[MissionSpec], ...] = (SearchSpec, DeliverySpec, ReturnSpec)
+
+
+def vehicle_mission(*, assignment: Assignment) -> MissionSpec | None:
     """The ``mission`` signed into ``assignment``'s vehicle task, from the recorded
     state, so a re-sent task carries the same mission (and the same id) as the first.
     None when the session has no mission."""
@@ -36,27 +47,25 @@ def vehicle_mission(*, assignment: Assignment) -> dict[str, Any] | None:
     mission_id = f"{assignment.session_id}-{assignment.role}-{assignment.pk}"
     if mission.state == Mission.State.RETURNING:
         # The last leg, with the session open: home, watched by the user.
-        return {"kind": "return", "id": f"{mission_id}-home"}
+        return ReturnSpec(id=f"{mission_id}-home")
     if assignment.role == SEARCH:
         start = _start_index(mission, assignment)
-        return {
-            "kind": "search",
-            "id": mission_id,
-            "altitude_m": mission.altitude_m,
-            "speed_mps": vehicle_speed(vehicle, mission.speed_mps),
-            "waypoints": mission.path,
-            "start_index": start,
-            "min_confidence": MIN_CONFIDENCE,
-        }
+        return SearchSpec(
+            id=mission_id,
+            altitude_m=mission.altitude_m,
+            speed_mps=vehicle_speed(vehicle, mission.speed_mps),
+            waypoints=tuple((lat, lon) for lat, lon in mission.path),
+            start_index=start,
+            min_confidence=MIN_CONFIDENCE,
+        )
     if assignment.role == DELIVERY and mission.detection is not None:
-        return {
-            "kind": "delivery",
-            "id": mission_id,
-            "target": [mission.detection["lat"], mission.detection["lon"]],
-            "altitude_m": DELIVERY_ALTITUDE_M,
-            "drop_altitude_m": DROP_ALTITUDE_M,
-            "speed_mps": vehicle_speed(vehicle),
-        }
+        return DeliverySpec(
+            id=mission_id,
+            target=(mission.detection["lat"], mission.detection["lon"]),
+            altitude_m=DELIVERY_ALTITUDE_M,
+            drop_altitude_m=DROP_ALTITUDE_M,
+            speed_mps=vehicle_speed(vehicle),
+        )
     return None
 
 

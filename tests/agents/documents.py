@@ -10,6 +10,9 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+from agents.missions.registry import mission_decode
+from agents.missions.search.spec import SearchSpec
+from agents.missions.spec import MissionSpec
 from agents.protocol import (
     Limits,
     UserGrant,
@@ -49,7 +52,9 @@ def make_task(**overrides: Any) -> VehicleTask:
         ),
         "issued_at": NOW,
         "expires_at": NOW + 60,
-        "mission": {"waypoints": [[43.7, 7.25, 10], [43.71, 7.26, 10]]},
+        "mission": SearchSpec(
+            id="m-1", altitude_m=10, waypoints=((43.7, 7.25), (43.71, 7.26)), speed_mps=2
+        ),
     }
     values.update(overrides)
     return VehicleTask(**values)
@@ -78,11 +83,14 @@ def task_for(
     session: str = "session-1",
     user: str = "alice",
     ttl: float = 120,
-    mission: dict[str, Any] | None = None,
+    mission: MissionSpec | dict[str, Any] | None = None,
     **limits: Any,
 ) -> VehicleTask:
     """``user``'s task on ``vehicle_id`` allowing ``commands``, issued now and ``ttl``
-    seconds long, with ``limits`` (the others Limits' defaults) and ``mission``."""
+    seconds long, with ``limits`` (the others Limits' defaults) and ``mission`` (a spec,
+    or its JSON object, decoded as the agent does: MissionError when malformed)."""
+    if isinstance(mission, dict):
+        mission = mission_decode(mission)
     now = time.time()
     return VehicleTask(
         session_id=session,

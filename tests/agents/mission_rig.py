@@ -1,6 +1,6 @@
 """The rescue drone of the mission tests: the MAVLink simulator and the pieces the Agent
 wires together for missions (adapter, ControlHub, MissionControl, ThermalFeed), with its
-task and options (test_mission, test_mission_parcel).
+task and options, and a small fake platform for whole-agent tests (tests/agents/missions/).
 
 ``tests/agents/conftest.py`` hands the rigs out as the ``make_mission_rig`` fixture.
 """
@@ -9,21 +9,33 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import jwt
+import pytest
+from websockets.asyncio.server import ServerConnection, serve
+
+from agents.config import AgentConfig, ControlConfig
 from agents.control import ControlHub, ControlServer
-from agents.mission import MissionControl
+from agents.geo import distance_m, offset
+from agents.missions.control import MissionControl
+from agents.missions.search.thermal import SyntheticSeaThermal, ThermalFeed
+from agents.missions.spec import MissionSpec
 from agents.protocol import (
+    PROTOCOL_VERSION,
+    TOKEN_TYPES,
     VehicleTask,
     generate_keypair,
+    key_thumbprint,
     load_private_key,
     load_public_key,
 )
+from agents.runtime import Agent
 from agents.simulation import simulator_running
-from agents.thermal import SyntheticSeaThermal, ThermalFeed
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.registry import adapter_create
 from tests.agents import mavlink_rig
@@ -39,7 +51,9 @@ HOME = mavlink_rig.HOME
 SIM = {"speedup": 6, "params": {"WPNAV_SPEED": 1000, "RTL_ALT": 1500}}
 
 
-def make_task(mission: dict[str, Any] | None, session: str = "s-1", **limits: Any) -> VehicleTask:
+def make_task(
+    mission: MissionSpec | dict[str, Any] | None, session: str = "s-1", **limits: Any
+) -> VehicleTask:
     return task_for(
         VEHICLE,
         (),
@@ -48,6 +62,15 @@ def make_task(mission: dict[str, Any] | None, session: str = "s-1", **limits: An
         mission=mission,
         **{"failsafe_action": "return_to_home", "max_altitude_m": 60, **limits},
     )
+
+
+def raw_task_token(mission: Any, session: str = "s-1") -> str:
+    """A task token carrying ``mission`` as it is (not decoded into a spec), signed with
+    the platform's key as :meth:`VehicleTask.sign` signs: for what the agent must refuse."""
+    claims = make_task(None, session).to_payload()
+    claims["mission"] = mission
+    headers = {"kid": key_thumbprint(PRIVATE), "typ": TOKEN_TYPES["vehicle_task"]}
+    return jwt.encode(claims, PRIVATE, algorithm="EdDSA", headers=headers)
 
 
 def make_grant() -> str:
@@ -135,7 +158,10 @@ async def rigs() -> AsyncIterator[RigFactory]:
         )
         await hub.start()
         missions = MissionControl(
-            hub=hub, adapter=drone, report=lambda e, s, d: reports.append((e, s, d)), thermal=feed
+            hub=hub,
+            adapter=drone,
+            report=lambda e, s, d: reports.append((e, s, d)),
+            sensors={"thermal": feed},
         )
         holder.append(missions)
         rig = Rig(drone, hub, missions, feed, reports)
@@ -156,3 +182,172 @@ async def rigs() -> AsyncIterator[RigFactory]:
             await rig.feed.close()
             await rig.drone.close()
         await simulators.aclose()
+
+
+# --- the missions flown in the tests ----------------------------------------------------
+
+#: Holding a position: the arrival radius (3 m) plus the simulator's wobble.
+HOLD_M = 5.0
+#: A 120 x 80 m search area starting 20 m north of home, lines 30 m apart at 40 m
+#: (the camera sees a strip 43 m wide): (north, east) metres from home.
+AREA_WAYPOINTS = [(35, 0), (35, 120), (65, 120), (65, 0), (95, 0), (95, 120)]
+WAYPOINTS = [list(offset(HOME, n, e)) for n, e in AREA_WAYPOINTS]
+PERSON = offset(HOME, 72, 40)  # under the second line, seen flying west
+
+
+def search(mission_id: str = "m-search", **overrides: Any) -> dict[str, Any]:
+    return {
+        "kind": "search",
+        "id": mission_id,
+        "altitude_m": 40,
+        "speed_mps": 10,
+        "waypoints": WAYPOINTS,
+        "start_index": 0,
+        "min_confidence": 0.6,
+        **overrides,
+    }
+
+
+def delivery(mission_id: str = "m-drop", **overrides: Any) -> dict[str, Any]:
+    return {
+        "kind": "delivery",
+        "id": mission_id,
+        "target": list(offset(HOME, 30, 20)),
+        "altitude_m": 30,
+        "drop_altitude_m": 5,
+        "speed_mps": 10,
+        **overrides,
+    }
+
+
+async def until_near(
+    drone: MavlinkAdapter, point: tuple[float, ...], metres: float, within: float = 5.0
+) -> None:
+    """Wait for the drone to be within ``metres`` of ``point`` (it overshoots a little
+    at corners and settles)."""
+    deadline = time.monotonic() + within
+    while True:
+        here = drone.state().position
+        if here is not None and distance_m(here, (point[0], point[1])) <= metres:
+            return
+        if time.monotonic() > deadline:
+            raise AssertionError(f"the drone is at {here}, not within {metres} m of {point}")
+        await asyncio.sleep(0.05)
+
+
+# --- a fake platform for whole-agent tests ----------------------------------------------
+
+
+class FakePlatform:
+    """The platform's side of the uplink, enough for one agent: answers ``hello`` with
+    ``welcome`` and records everything the agent sends; ``send`` pushes a message."""
+
+    def __init__(self) -> None:
+        self.received: list[dict[str, Any]] = []
+        self.ws: ServerConnection | None = None
+        self.registered = asyncio.Event()
+        self.port = 0
+
+    async def handle(self, ws: ServerConnection) -> None:
+        hello = json.loads(await ws.recv())
+        assert hello["type"] == "hello" and hello["vehicle_id"] == VEHICLE
+        await ws.send(
+            json.dumps({"type": "welcome", "v": PROTOCOL_VERSION, "heartbeat_interval_s": 1})
+        )
+        self.ws = ws
+        with contextlib.suppress(Exception):
+            async for raw in ws:
+                msg = json.loads(raw)
+                self.received.append(msg)
+                if msg["type"] == "profile":
+                    self.registered.set()
+
+    async def send(self, msg: dict[str, Any]) -> None:
+        assert self.ws is not None
+        await self.ws.send(json.dumps(msg))
+
+    async def task(self, mission: dict[str, Any] | None, session: str = "s-1") -> None:
+        """A freshly signed task (new nonce), as the platform re-sends one."""
+        await self.send({"type": "task", "token": make_task(mission, session).sign(PRIVATE)})
+
+    async def task_unchecked(self, mission: dict[str, Any], session: str = "s-1") -> None:
+        """A task signed with ``mission`` as given, unchecked: what a platform that
+        knows other missions (or a faulty one) could sign."""
+        await self.send({"type": "task", "token": raw_task_token(mission, session)})
+
+    def events(self, name: str) -> list[dict[str, Any]]:
+        return [m["data"] for m in self.received if m["type"] == "event" and m["event"] == name]
+
+    def of_type(self, kind: str) -> list[dict[str, Any]]:
+        return [m for m in self.received if m["type"] == kind]
+
+    async def wait(self, predicate: Callable[[], Any], within: float, what: str) -> Any:
+        deadline = time.monotonic() + within
+        while time.monotonic() < deadline:
+            value = predicate()
+            if value:
+                return value
+            await asyncio.sleep(0.05)
+        raise AssertionError(f"timed out waiting for {what}; received {self.received}")
+
+
+@contextlib.asynccontextmanager
+async def agent_with_platform(
+    thermal: dict[str, Any] | None, video: dict[str, Any] | None = None
+) -> AsyncIterator[tuple[Agent, FakePlatform]]:
+    """The whole Agent of the rescue drone (its ``thermal`` section and ``video``, if
+    any) on its own simulator, registered with a :class:`FakePlatform`; cancelled at
+    the end."""
+    platform = FakePlatform()
+    async with (
+        contextlib.AsyncExitStack() as stack,
+        serve(platform.handle, "127.0.0.1", 0) as server,
+    ):
+        port = next(iter(server.sockets)).getsockname()[1]
+        simulation = await stack.enter_async_context(simulator_running("mavlink", drone_options()))
+        config = AgentConfig(
+            platform_url=f"ws://127.0.0.1:{port}",
+            vehicle_id=VEHICLE,
+            credential="secret",
+            platform_public_key=PUBLIC_PEM,
+            adapter="mavlink",
+            adapter_options=simulation.options,
+            control=ControlConfig(host="127.0.0.1", port=0),
+            video=video,
+            sensors={"thermal": thermal} if thermal is not None else {},
+            name="rescue-1",
+        )
+        agent = Agent(config)
+        run = asyncio.create_task(agent.run())
+        try:
+            await asyncio.wait_for(platform.registered.wait(), 30)
+            yield agent, platform
+        finally:
+            run.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await run
+
+
+#: Missions the agent cannot fly, and what its refusal of the task says (``field
+#: 'mission.<path>': <problem>``): an unknown or missing kind, a wrong type, a value out
+#: of range, a rule across fields, an unknown field.
+MALFORMED: list[tuple[Any, str]] = [
+    ({"kind": "rescue", "id": "m"}, "mission.kind"),
+    ({"id": "m", "altitude_m": 40}, "mission.kind': is missing"),
+    ("search", "got `str`"),
+    (search(altitude_m=-5), "mission.altitude_m"),
+    (search(altitude_m="high"), "mission.altitude_m"),
+    (search(waypoints=[]), "mission.waypoints"),
+    (search(waypoints=[[100, 0]]), "mission.waypoints[0]"),
+    (search(waypoints=[[40.6, -8.7, 3]]), "mission.waypoints[0]"),
+    (search(start_index=6), "mission.start_index"),
+    (search(start_index=True), "mission.start_index"),
+    (search(min_confidence=2), "mission.min_confidence"),
+    (search(pattern="spiral"), "mission.pattern': is not known"),
+    ({**search(), "altitude_m": None}, "mission.altitude_m"),
+    (delivery(drop_altitude_m=40), "mission.drop_altitude_m"),
+    (delivery(target="here"), "mission.target"),
+    (delivery(speed_mps=0), "mission.speed_mps"),
+    ({**delivery(), "id": ""}, "mission.id"),
+    ({"kind": "return", "id": "h", "target": [0, 0]}, "mission.target': is not known"),
+]

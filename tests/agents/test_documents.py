@@ -337,7 +337,10 @@ def test_bad_claim_values_refused_naming_the_claim(claim: str, value: Any) -> No
         ("limits.geofence_center", [43.7]),
         ("limits.geofence_center.1", 181),
         ("limits.failsafe_action", "explode"),
-        ("mission", {"x": math.nan}),
+        ("mission", {"x": math.nan}),  # no kind: not a mission
+        ("mission.altitude_m", math.nan),
+        ("mission.kind", "dance"),  # a mission this agent does not know
+        ("mission.waypoints", []),
         ("type", "task"),  # an unknown claim, whatever its name
         ("", "x"),
     ],
@@ -351,7 +354,10 @@ def test_bad_task_claims_refused_naming_the_path(path: str, value: Any) -> None:
     target[int(last) if isinstance(target, list) else last] = value
     error = refused(pyjwt_token(claims, typ="iouv-task+jwt"), VehicleTask)
     assert error.code == "bad_field"
-    assert error.field == path.replace(".1", "[1]")
+    if path == "mission" and isinstance(value, dict):
+        assert error.field == "mission.kind"  # what a mission needs first
+    else:
+        assert error.field == path.replace(".1", "[1]")
 
 
 def test_constructed_values_normalised_as_verified_ones() -> None:

@@ -13,6 +13,7 @@ from django.conf import settings
 from django.core.exceptions import ImproperlyConfigured
 
 from accounts.roles import MONITOR
+from agents.missions.return_home.spec import ReturnSpec
 from agents.protocol import Limits, UserGrant, VehicleTask, generate_keypair
 from fleet.models import Vehicle
 from services.assignment import session_request
@@ -24,6 +25,7 @@ from services.deployment import (
     session_end,
     session_revoke,
 )
+from services.kinds import ServiceKind, UnknownKind, kind_named, kind_of, kind_register
 from services.models import Session
 from services.sessions import SessionStateError
 from services.signing import platform_private_key, platform_public_key, platform_public_key_pem
@@ -144,6 +146,34 @@ def test_invalid_limits_fail_the_session_and_send_nothing():
     assert session.state == Session.State.FAILED and "max_speed_mps" in session.reason
     assert not session.events.filter(kind="task_deployed").exists()
     assert Vehicle.objects.get(pk=vehicle.pk).status == Vehicle.Status.IDLE
+
+
+def test_a_mission_its_kind_does_not_declare_is_never_signed(monkeypatch):
+    session, vehicle = alices_session()
+    kind = kind_of(session.service)
+    assert ReturnSpec not in kind.missions
+    monkeypatch.setattr(kind, "vehicle_mission", lambda *, assignment: ReturnSpec(id="m-1"))
+    with pytest.raises(InvalidTaskError, match="does not deploy 'return' missions"):
+        session_deploy(session=session)
+    session.refresh_from_db()
+    assert session.state == Session.State.FAILED
+    assert not session.events.filter(kind="task_deployed").exists()
+    assert Vehicle.objects.get(pk=vehicle.pk).status == Vehicle.Status.IDLE
+
+
+def test_a_kind_may_declare_only_missions_an_agent_has():
+    class Private(ReturnSpec, frozen=True, kw_only=True, tag="private"):
+        """A spec no folder under agents/missions/ declares."""
+
+    class Rogue(ServiceKind):
+        name = "rogue"
+        label = "Rogue"
+        missions = (Private,)
+
+    with pytest.raises(ValueError, match="declares missions no agent has: Private"):
+        kind_register(Rogue())
+    with pytest.raises(UnknownKind):
+        kind_named("rogue")
 
 
 # --- grants -----------------------------------------------------------------------------

@@ -18,6 +18,7 @@ from django.urls import reverse
 from django.utils import timezone
 
 from agents.geo import distance_m, offset
+from agents.missions.spec import MissionSpec
 from agents.protocol import parse_message
 from fleet.models import Vehicle
 from fleet.signals import agent_message
@@ -41,6 +42,12 @@ LAND_B = offset(f.HOME, 500, 400)
 #: At sea, west of the beach: a boat may take a parcel between these.
 SEA_A = (40.6440, -8.7600)
 SEA_B = (40.6500, -8.7700)
+
+
+def wire(spec: MissionSpec | None) -> dict[str, Any]:
+    """The mission as it travels in the signed task (the JSON the agent decodes)."""
+    assert spec is not None
+    return spec.to_payload()
 
 
 @pytest.fixture
@@ -227,7 +234,7 @@ def test_from_pickup_to_drop_off_with_the_recipient_told(world) -> None:
     session = request(world, params(LAND_A, LAND_B))
     assert step(session) == Delivery.State.TO_PICKUP
     drone = carrier(session)
-    doc = vehicle_mission(assignment=drone)
+    doc = wire(vehicle_mission(assignment=drone))
     assert doc["kind"] == "parcel"
     assert doc["pickup"] == list(LAND_A) and doc["dropoff"] == list(LAND_B)
     say(drone.vehicle, session, {"type": "task_accepted"})
@@ -275,7 +282,7 @@ def test_a_carrier_lost_with_the_parcel_hands_it_over_where_it_is(world, setting
     assert second.vehicle_id == spare.pk
     d = delivery(session)
     assert distance_m(d.pickup, midway) < 1 and d.loaded_at is None
-    assert vehicle_mission(assignment=second)["pickup"] == list(d.pickup)
+    assert wire(vehicle_mission(assignment=second))["pickup"] == list(d.pickup)
     released = session.events.get(kind="vehicle_released").data
     assert released["cause"] == "offline" and released["vehicle_name"] == "drone-1"
 

@@ -11,6 +11,7 @@ import http.server
 import json
 import threading
 from datetime import timedelta
+from typing import Any
 
 import pytest
 import time_machine
@@ -18,6 +19,7 @@ from django.core import mail
 from django.utils import timezone
 
 from agents.geo import offset
+from agents.missions.spec import MissionSpec
 from agents.protocol import parse_message
 from fleet.models import Vehicle
 from fleet.signals import agent_message
@@ -35,6 +37,12 @@ from services.notices import notices_send as notifications_send
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db
+
+
+def wire(spec: MissionSpec | None) -> dict[str, Any]:
+    """The mission as it travels in the signed task (the JSON the agent decodes)."""
+    assert spec is not None
+    return spec.to_payload()
 
 
 def say(vehicle: Vehicle, msg: dict) -> None:
@@ -87,7 +95,7 @@ def test_whole_rescue_from_area_to_completed(world, client_user, settings) -> No
     search = Assignment.objects.get(session=session, role="search")
     assert search.vehicle.name == "search-1"
     m = mission(session)
-    doc = vehicle_mission(assignment=search)
+    doc = wire(vehicle_mission(assignment=search))
     assert doc["kind"] == "search" and doc["start_index"] == 0 and doc["waypoints"] == m.path
     # The first waypoint is the end of the pattern nearest the drone's station.
     station = (search.vehicle.station.lat, search.vehicle.station.lon)
@@ -132,7 +140,7 @@ def test_whole_rescue_from_area_to_completed(world, client_user, settings) -> No
     assert step(session) == Mission.State.DELIVERING
     delivery = Assignment.objects.get(session=session, role="delivery")
     assert delivery.vehicle.name == "lifeguard-1"
-    doc = vehicle_mission(assignment=delivery)
+    doc = wire(vehicle_mission(assignment=delivery))
     assert doc["kind"] == "delivery" and doc["target"] == [person[0], person[1]]
     # The rescue team heard once, by e-mail and on the dashboard, with the position.
     assert len(mail.outbox) == 1
@@ -162,8 +170,8 @@ def test_whole_rescue_from_area_to_completed(world, client_user, settings) -> No
     session.refresh_from_db()
     assert session.state == Session.State.ACTIVE
     for vehicle in (search, delivery):
-        home = vehicle_mission(assignment=Assignment.objects.get(pk=vehicle.pk))
-        assert home is not None and home["kind"] == "return" and home["id"].endswith("-home")
+        home = wire(vehicle_mission(assignment=Assignment.objects.get(pk=vehicle.pk)))
+        assert home["kind"] == "return" and home["id"].endswith("-home")
     home_tasks = session.events.filter(kind="task_deployed").order_by("-seq")[:2]
     assert {e.data["vehicle"] for e in home_tasks} == {
         str(search.vehicle_id),
@@ -211,7 +219,7 @@ def test_offline_search_drone_hands_its_remaining_lines_to_another(
     assert not Assignment.objects.get(pk=first.pk).active
     second = Assignment.objects.get(session=session, role="search", active=True)
     assert second.vehicle_id != first.vehicle_id
-    doc = vehicle_mission(assignment=second)
+    doc = wire(vehicle_mission(assignment=second))
     assert doc["start_index"] == 3 and doc["waypoints"] == mission(session).path
     released = session.events.get(kind="vehicle_released")
     assert "went offline" in released.data["reason"] and released.data["progress"] == 3

@@ -1,4 +1,4 @@
-"""Thermal camera and person-in-water detection for search drones.
+"""Thermal camera and person-in-water detection: what the search mission alone needs.
 
 A search drone looks straight down (nadir) with a small radiometric thermal camera
 (default: FLIR Lepton 3.5, 160x120 pixels, 57 degree horizontal field of view, ~9 fps).
@@ -8,15 +8,15 @@ Frames are float32 arrays of temperatures in degrees Celsius (H x W).
   the vehicle's pose with persons, boats and sun-glint patches from a scene description
   (demos and tests); :class:`V4L2Thermal` reads a UVC thermal camera delivering Y16
   (a Lepton on a PureThermal board) through PyAV. :func:`thermal_source_create` builds
-  one from the agent's ``thermal`` configuration.
-* :class:`ThermalFeed` owns the agent's one source and shares its frames: the mission
+  one from the agent's ``thermal`` configuration (the search mission's sensor).
+* :class:`ThermalFeed` owns the agent's one source and shares its frames: the search
   runner (detection) and the video (false colour) both read it, and each frame is
   captured and analysed once, whoever asks.
 * :func:`detect_persons` finds warm, person-sized blobs against the water
   (thresholds and their reasons in :class:`DetectorSettings`); :func:`geolocate`
   turns a blob's pixel position into latitude and longitude.
 * :func:`false_colour` draws a frame in an ironbow palette with boxes round the
-  detections, for :class:`agents.video.ThermalVideo`.
+  detections, for :class:`agents.missions.search.video.ThermalVideo`.
 
 Everything but :class:`V4L2Thermal` is numpy only; docs/rescue-agent.md has the
 algorithm, its figures and its limits.

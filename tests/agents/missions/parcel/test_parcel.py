@@ -1,4 +1,4 @@
-"""The ``parcel`` mission (agents.mission) flown on the MAVLink simulator: collect a
+"""The ``parcel`` mission (agents/missions/parcel/) flown on the MAVLink simulator: collect a
 parcel at the pickup, bring it to the drop-off, release it once, go home."""
 
 from __future__ import annotations
@@ -12,7 +12,9 @@ import pytest
 
 from agents.geo import distance_m, offset
 from agents.geography import land_at
-from agents.mission import MissionError, ParcelMission, mission_parse
+from agents.missions.parcel.spec import ParcelSpec
+from agents.missions.registry import mission_decode
+from agents.missions.spec import MissionError
 from tests.agents.mission_rig import HOME, RigFactory, make_task, releases
 
 PICKUP = offset(HOME, 30, 0)
@@ -42,16 +44,25 @@ async def until(done: Callable[[], bool], *, within: float) -> None:
 
 
 def test_a_parcel_mission_is_validated() -> None:
-    mission = mission_parse(parcel())
-    assert isinstance(mission, ParcelMission) and mission.pickup == PICKUP
+    mission = mission_decode(parcel())
+    assert isinstance(mission, ParcelSpec) and mission.pickup == PICKUP
+    assert mission.to_payload() == parcel()  # as it travels
     with pytest.raises(MissionError, match="dropoff"):
-        mission_parse(parcel(dropoff=[95, 0]))
+        mission_decode(parcel(dropoff=[95, 0]))
     with pytest.raises(MissionError, match="above altitude_m"):
-        mission_parse(parcel(drop_altitude_m=20))
+        mission_decode(parcel(drop_altitude_m=20))
     with pytest.raises(MissionError, match="load_s"):
-        mission_parse(parcel(load_s=-1))
+        mission_decode(parcel(load_s=-1))
     with pytest.raises(MissionError, match="unknown field"):
-        mission_parse(parcel(colour="red"))
+        mission_decode(parcel(colour="red"))
+    with pytest.raises(MissionError, match="load_altitude_m"):
+        mission_decode(parcel(load_altitude_m=None))
+    defaults = mission_decode(
+        {"kind": "parcel", "id": "p", "pickup": PICKUP, "dropoff": DROPOFF, "altitude_m": 20}
+    )
+    assert isinstance(defaults, ParcelSpec)
+    assert (defaults.load_altitude_m, defaults.load_s, defaults.drop_altitude_m) == (2.0, 10.0, 3.0)
+    assert defaults.speed_mps == 10.0
 
 
 async def test_the_drone_collects_brings_releases_once_and_goes_home(

@@ -1,5 +1,5 @@
-"""agents.thermal: the synthetic sea, person detection, geolocation, the shared feed and
-its false-colour video. Pure numpy frames; no camera, no vehicle."""
+"""agents.missions.search.thermal: the synthetic sea, person detection, geolocation,
+the shared feed and its false-colour video. Pure numpy frames; no camera, no vehicle."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ import pytest
 
 from agents.config import AgentConfig, ConfigError
 from agents.geo import distance_m, offset
-from agents.protocol import generate_keypair
-from agents.thermal import (
+from agents.missions.registry import mission
+from agents.missions.search.thermal import (
     DetectorSettings,
     SyntheticSeaThermal,
     ThermalFeed,
@@ -30,7 +30,9 @@ from agents.thermal import (
     thermal_source_create,
     y16_to_celsius,
 )
-from agents.video import ThermalVideo, VideoError, video_source_create
+from agents.missions.search.video import ThermalVideo
+from agents.protocol import generate_keypair
+from agents.video import VideoError, video_source_create
 
 SEA = (40.6406, -8.6788)
 W, H, HFOV = 160, 120, 57.0
@@ -177,7 +179,7 @@ def test_detector_settings_from_config() -> None:
 
 
 def test_geolocate_turns_image_offsets_with_the_heading() -> None:
-    from agents.thermal import Blob
+    from agents.missions.search.thermal import Blob
 
     # A blob 10 pixels right of the centre at 40 m: right of the nose, whatever the
     # heading; heading east puts it south of the drone.
@@ -266,7 +268,7 @@ def test_source_create_dispatches() -> None:
 
 
 async def test_v4l2_without_a_device_raises_thermal_error() -> None:
-    from agents.thermal import ThermalError
+    from agents.missions.search.thermal import ThermalError
 
     camera = V4L2Thermal(no_pose, device="/dev/nonexistent-thermal")
     with pytest.raises(ThermalError, match="cannot open"):
@@ -286,7 +288,7 @@ def test_agent_config_thermal_section() -> None:
     config = AgentConfig.from_mapping(
         {**base, "thermal": {"source": "synthetic"}, "video": {"source": "thermal"}}
     )
-    assert config.thermal == {"source": "synthetic"}
+    assert config.sensors == {"thermal": {"source": "synthetic"}}
     with pytest.raises(ConfigError, match="thermal"):
         AgentConfig.from_mapping({**base, "thermal": {"source": "synthetic", "bad": 1}})
     with pytest.raises(ConfigError, match="thermal section"):
@@ -325,7 +327,11 @@ async def test_thermal_video_draws_the_detection_box() -> None:
     pose = {"lat": SEA[0], "lon": SEA[1], "alt": 40.0, "heading_deg": 0.0}
     feed = thermal_feed_create({"source": "synthetic", "persons": [list(person)]}, lambda: pose)
     async with feed:
-        source = video_source_create({"source": "thermal"}, thermal=feed)
+        # The search mission's sensor offers its video as the agent's runtime hands it.
+        video = mission("search").sensor
+        assert video is not None and video.video is not None
+        sources = {"thermal": lambda options: video.video(feed, options)}
+        source = video_source_create({"source": "thermal"}, sources=sources)
         assert isinstance(source, ThermalVideo)
         frame = await source.frame()
         assert (frame.width, frame.height) == (640, 480)
@@ -345,4 +351,4 @@ async def test_thermal_video_draws_the_detection_box() -> None:
     with pytest.raises(VideoError, match="thermal"):
         video_source_create({"source": "thermal"})
     with pytest.raises(VideoError, match="unknown option"):
-        video_source_create({"source": "thermal", "palette": "rainbow"}, thermal=feed)
+        video_source_create({"source": "thermal", "palette": "rainbow"}, sources=sources)

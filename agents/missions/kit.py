@@ -1,0 +1,406 @@
+"""The flight kit every mission's runner is built on.
+
+:class:`MissionRunner` flies one mission for one session with the vehicle's ordinary
+commands, through :meth:`agents.control.ControlHub.mission_execute`: the same lock as
+users' commands and fail-safes (never interleaved), the task's ceiling and geofence,
+and only while the session is current and nobody took over. A runner subclass writes
+only :meth:`MissionRunner.fly` from the steps here:
+
+* :meth:`~MissionRunner.take_off_if_needed` (a vehicle on the surface is armed instead),
+  :meth:`~MissionRunner.fly_to`, :meth:`~MissionRunner.descend` and
+  :meth:`~MissionRunner.climb` (nothing for a vehicle on the surface),
+  :meth:`~MissionRunner.hold_for`, :meth:`~MissionRunner.release_over` (a payload is
+  released once ever per mission id), :meth:`~MissionRunner.return_home`;
+* :meth:`~MissionRunner.until` waits for a state, each leg with a time limit from its
+  distance and speed, and can ``sample`` a sensor on every turn (the search's thermal
+  camera);
+* :meth:`~MissionRunner.progress` and :meth:`~MissionRunner.report` tell the platform
+  (``mission_progress`` on every phase change and waypoint, then the mission's events).
+
+Whatever ends the mission is handled here once for all: a user command or a fail-safe
+during the mission (``mission_failed``, "interrupted", the vehicle left to whoever
+took over); an adapter error, a step that cannot finish (:class:`StepFailed`) or a bug
+(``mission_failed``, and the vehicle holds where it is: ``stop``).
+"""
+
+from __future__ import annotations
+
+import abc
+import asyncio
+import logging
+import time
+from collections.abc import Awaitable, Callable, Mapping
+from typing import Any, ClassVar, Final, Generic, Protocol, TypeAlias, TypeVar
+
+from agents.geo import distance_m
+from agents.missions.spec import LatLon, MissionSpec
+from agents.safety import Refusal
+from agents.vehicles.base import Adapter, AdapterError, VehicleState
+
+log = logging.getLogger(__name__)
+
+Reporter: TypeAlias = Callable[[str, str | None, dict[str, Any]], None]
+
+#: A waypoint counts as reached within this horizontal distance.
+ARRIVE_M: Final = 3.0
+#: Above this the vehicle counts as flying (below it a mission takes off first).
+MIN_FLYING_M: Final = 1.0
+#: Holding over a point (the person, the drop) means slower than this (m/s) there.
+SETTLED_MPS: Final = 0.5
+#: An altitude counts as reached within this much.
+ALTITUDE_TOLERANCE_M: Final = 1.0
+#: Per-leg time limit: this much plus LEG_TIME_FACTOR x (distance / speed).
+LEG_MARGIN_S: Final = 30.0
+LEG_TIME_FACTOR: Final = 3.0
+#: Climb or descent rate assumed for the time limit of a vertical move (m/s).
+VERTICAL_RATE_MPS: Final = 1.0
+#: How often the position is checked when no sensor paces the loop.
+POLL_S: Final = 0.1
+
+_S = TypeVar("_S", bound=MissionSpec)
+
+
+class MissionHub(Protocol):
+    """What a runner needs from the agent's ControlHub (see its mission_execute)."""
+
+    overrides: int
+    override_reason: str
+    autonomous: bool
+
+    async def mission_execute(
+        self, session_id: str, name: str, args: Mapping[str, Any], *, epoch: int
+    ) -> None: ...
+
+
+class Interrupted(Exception):
+    """Someone else acts on the vehicle (a user, a fail-safe, the autopilot itself): the
+    mission ends without sending anything more."""
+
+
+class StepFailed(Exception):
+    """A step could not be completed (timeout, sensor failure): the mission ends and the
+    vehicle holds. The message is the reason the platform hears."""
+
+
+class MissionRunner(abc.ABC, Generic[_S]):
+    """Flies one mission (its spec, ``mission``) for one session.
+
+    ``start()`` runs it in a task (after ``previous``, a replaced runner's task, has
+    finished cancelling); ``cancel()`` stops it without touching the vehicle (the
+    caller decides what the vehicle does next). After it ends, ``result`` holds the
+    terminal event reported (``(event, data)``, one of :attr:`RESULT_EVENTS` or
+    ``mission_failed``), ``phase`` the last phase. ``released`` and
+    ``release_attempted`` are shared with the agent's
+    :class:`~agents.missions.control.MissionControl` so a payload is never released
+    twice whatever happens to the runner. ``sensors`` are the agent's open sensors by
+    configuration section (see :class:`agents.missions.registry.Sensor`).
+    """
+
+    #: The events that end this mission well: a re-sent task for it hears them again.
+    RESULT_EVENTS: ClassVar[frozenset[str]] = frozenset({"payload_released"})
+
+    def __init__(
+        self,
+        mission: _S,
+        *,
+        session_id: str,
+        hub: MissionHub,
+        adapter: Adapter,
+        report: Reporter,
+        sensors: Mapping[str, Any] | None = None,
+        released: dict[str, dict[str, Any]] | None = None,
+        release_attempted: set[str] | None = None,
+        arrive_m: float = ARRIVE_M,
+    ) -> None:
+        self.mission = mission
+        self.session_id = session_id
+        self.hub = hub
+        self.adapter = adapter
+        self.sensors: Mapping[str, Any] = sensors or {}
+        self.arrive_m = arrive_m
+        self.released = released if released is not None else {}
+        self.release_attempted = release_attempted if release_attempted is not None else set()
+        self._report_fn = report
+        self.phase: str | None = None
+        self.result: tuple[str, dict[str, Any]] | None = None
+        #: What ``mission_progress`` reports as ``of`` (a search's waypoint count).
+        self.progress_of: int | None = None
+        self.task: asyncio.Task[None] | None = None
+        self.cancelled = False
+        self._epoch = 0
+        self._mode: str | None = None
+
+    @abc.abstractmethod
+    async def fly(self) -> None:
+        """The mission, from the steps of this kit. Raise StepFailed (the vehicle then
+        holds) for anything that keeps it from finishing."""
+
+    @property
+    def done(self) -> bool:
+        return self.task is not None and self.task.done()
+
+    def start(self, previous: asyncio.Task[None] | None = None) -> None:
+        self.task = asyncio.create_task(self._run(previous), name=f"mission {self.mission.id}")
+
+    def cancel(self) -> None:
+        """Stop flying the mission (no command is sent)."""
+        self.cancelled = True
+        if self.task is not None:
+            self.task.cancel()
+
+    async def wait(self) -> None:
+        """Until the runner has finished or finished cancelling."""
+        if self.task is not None:
+            await asyncio.wait([self.task])
+
+    # --- reporting -----------------------------------------------------------------------
+    def report(self, event: str, **data: Any) -> None:
+        """Tell the platform ``event`` about this mission (its id added as ``mission``)."""
+        payload = {"mission": self.mission.id, **data}
+        if event in self.RESULT_EVENTS or (event == "mission_failed" and self.result is None):
+            self.result = (event, payload)
+        self._report_fn(event, self.session_id, payload)
+
+    def where(self) -> dict[str, Any]:
+        """The vehicle's position for an event: ``lat``, ``lon``, ``alt`` (None unknown)."""
+        st = self.adapter.state()
+        return {
+            "lat": None if st.lat is None else round(st.lat, 7),
+            "lon": None if st.lon is None else round(st.lon, 7),
+            "alt": None if st.alt is None else round(st.alt, 1),
+        }
+
+    def progress(self, phase: str, waypoint: int | None = None) -> None:
+        """A ``mission_progress`` event: on a phase change or a waypoint reached."""
+        self.phase = phase
+        self.report(
+            "mission_progress", phase=phase, waypoint=waypoint, of=self.progress_of, **self.where()
+        )
+
+    # --- the run -------------------------------------------------------------------------
+    async def _run(self, previous: asyncio.Task[None] | None) -> None:
+        if previous is not None:
+            await asyncio.wait([previous])  # never raises what ended it
+        self._epoch = self.hub.overrides
+        self.hub.autonomous = True
+        try:
+            await self.fly()
+        except Interrupted as exc:
+            log.warning("mission %s interrupted: %s", self.mission.id, exc)
+            self.report("mission_failed", reason=f"interrupted: {exc}")
+        except Refusal as exc:
+            if exc.code == "no_task":
+                return  # the session ended under us: the hub made the vehicle safe
+            if exc.code == "overridden":
+                self.report("mission_failed", reason=f"interrupted: {exc}")
+                return
+            self.report("mission_failed", reason=str(exc))
+            await self._hold_after_failure()
+        except (AdapterError, StepFailed) as exc:
+            log.warning("mission %s failed: %s", self.mission.id, exc)
+            self.report("mission_failed", reason=str(exc))
+            await self._hold_after_failure()
+        except Exception as exc:  # a bug must not end the agent; the vehicle holds
+            log.exception("mission %s crashed", self.mission.id)
+            self.report("mission_failed", reason=f"internal error: {exc!r}")
+            await self._hold_after_failure()
+        finally:
+            self.hub.autonomous = False
+
+    async def _hold_after_failure(self) -> None:
+        """Stop where it is (hover); never raises."""
+        try:
+            await self.hub.mission_execute(self.session_id, "stop", {}, epoch=self._epoch)
+        except (AdapterError, Refusal) as exc:
+            log.warning("mission %s: could not hold: %s", self.mission.id, exc)
+
+    async def command(self, name: str, args: Mapping[str, Any]) -> None:
+        """Send one command of the vehicle's vocabulary (see :meth:`_within_declared`)."""
+        self._check_interference()
+        await self.hub.mission_execute(
+            self.session_id, name, self._within_declared(name, args), epoch=self._epoch
+        )
+        # The mode our own command left the vehicle in; any other change is not ours.
+        self._mode = self.adapter.state().mode
+
+    def _within_declared(self, name: str, args: Mapping[str, Any]) -> dict[str, Any]:
+        """``args`` with a speed above the vehicle's declared top speed lowered to it
+        (the plan may ask for more than this airframe does), and the arguments the
+        vehicle does not declare dropped (a boat's waypoint takes no altitude; one
+        without a speed argument goes at its own cruise speed)."""
+        spec = next((c.args for c in self.adapter.commands() if c.name == name), None)
+        if spec is None:
+            return dict(args)
+        out = {key: value for key, value in args.items() if key in spec}
+        declared = spec.get("speed_mps")
+        if (
+            "speed_mps" in out
+            and declared is not None
+            and isinstance(declared.get("max"), int | float)
+        ):
+            out["speed_mps"] = min(float(out["speed_mps"]), float(declared["max"]))
+        return out
+
+    def on_surface(self) -> bool:
+        """A vehicle that cannot take off (a boat, a car): no climbs, no descents."""
+        return not any(c.name == "take_off" for c in self.adapter.commands())
+
+    def _check_interference(self) -> None:
+        if self.cancelled:
+            # Belt and braces: a cancellation lost in some await must not let a
+            # replaced or ended mission fly on.
+            raise asyncio.CancelledError
+        if self.hub.overrides != self._epoch:
+            raise Interrupted(self.hub.override_reason or "a user command or fail-safe")
+        mode = self.adapter.state().mode
+        if self._mode is not None and mode is not None and mode != self._mode:
+            raise Interrupted(f"the vehicle switched to {mode} by itself")
+
+    # --- the steps -----------------------------------------------------------------------
+    async def take_off_if_needed(self, altitude: float) -> None:
+        """Take off to ``altitude`` unless flying already (``takeoff`` progress); a
+        vehicle on the surface is armed instead (:meth:`arm_if_needed`)."""
+        if self.on_surface():
+            await self.arm_if_needed()
+            return
+        st = self.adapter.state()
+        in_air = self.adapter.telemetry().get("in_air")
+        if in_air is None:  # an adapter without the topic: judge by the altitude
+            in_air = bool(st.armed) and st.alt is not None and st.alt >= MIN_FLYING_M
+        if in_air and st.alt is not None and st.alt >= MIN_FLYING_M:
+            return  # already flying
+        self.progress("takeoff")
+        target = altitude
+        if in_air:
+            # A take-off is under way (a replaced mission started it): let it clear
+            # the ground; the first waypoint sets this mission's altitude.
+            target = MIN_FLYING_M + ALTITUDE_TOLERANCE_M
+        else:
+            await self.command("take_off", {"altitude_m": altitude})
+        await self.until(
+            lambda s: s.alt is not None and s.alt >= target - ALTITUDE_TOLERANCE_M,
+            timeout_s=LEG_MARGIN_S + target / VERTICAL_RATE_MPS,
+            what=f"the climb to {target:g} m",
+        )
+
+    async def arm_if_needed(self) -> None:
+        """A vehicle on the surface has nothing to take off, but its autopilot drives
+        only armed (a boat's ArduRover refuses a waypoint before): arm it. Nothing when
+        it is armed already, or has no ``arm`` command (it needs none)."""
+        if self.adapter.state().armed or not any(c.name == "arm" for c in self.adapter.commands()):
+            return
+        await self.command("arm", {})
+
+    async def fly_to(
+        self,
+        point: LatLon,
+        altitude: float,
+        *,
+        speed: float,
+        settle: bool = False,
+        sample: Callable[[], Awaitable[None]] | None = None,
+    ) -> None:
+        """go_to_waypoint and wait to be within ``arrive_m`` of it (horizontally);
+        ``settle``: and slowed down to a hover there (a pass through the radius at
+        cruise speed is not a hold); ``sample``: see :meth:`until`."""
+        st = self.adapter.state()
+        here = st.position
+        distance = distance_m(here, point) if here is not None else 1000.0
+        climb = 0.0 if self.on_surface() else abs(altitude - (st.alt or 0.0))
+
+        def arrived(s: VehicleState) -> bool:
+            if s.position is None or distance_m(s.position, point) > self.arrive_m:
+                return False
+            return not settle or s.speed_mps is None or s.speed_mps <= SETTLED_MPS
+
+        await self.command(
+            "go_to_waypoint",
+            {"lat": point[0], "lon": point[1], "alt_m": altitude, "speed_mps": speed},
+        )
+        await self.until(
+            arrived,
+            timeout_s=LEG_MARGIN_S
+            + LEG_TIME_FACTOR * (distance / speed + climb / VERTICAL_RATE_MPS),
+            what=f"the flight to {point[0]:.6f}, {point[1]:.6f}",
+            sample=sample,
+        )
+
+    async def until(
+        self,
+        done: Callable[[VehicleState], bool],
+        *,
+        timeout_s: float,
+        what: str,
+        sample: Callable[[], Awaitable[None]] | None = None,
+    ) -> None:
+        """Wait for ``done(state)``, watching for interference; raises StepFailed after
+        ``timeout_s``. With ``sample`` the loop awaits it on every turn instead of
+        polling every :data:`POLL_S` (a sensor paces the loop and may raise to end the
+        leg: the search's thermal camera, which raises on a detection)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self._check_interference()
+            if done(self.adapter.state()):
+                return
+            if time.monotonic() > deadline:
+                raise StepFailed(f"{what} did not finish within {timeout_s:.0f} s")
+            if sample is not None:
+                await sample()
+            else:
+                await asyncio.sleep(POLL_S)
+
+    async def descend(self, point: LatLon, high: float, low: float, speed: float) -> None:
+        """Down to ``low`` over ``point`` (nothing for a vehicle on the surface)."""
+        if self.on_surface():
+            return
+        await self.fly_to(point, low, speed=speed, settle=True)
+        await self.until(
+            lambda s: s.alt is not None and s.alt <= low + ALTITUDE_TOLERANCE_M,
+            timeout_s=LEG_MARGIN_S + (high - low) / VERTICAL_RATE_MPS,
+            what=f"the descent to {low:g} m",
+        )
+
+    async def climb(self, point: LatLon, low: float, high: float, speed: float) -> None:
+        """Back up to ``high`` over ``point`` (nothing for a vehicle on the surface)."""
+        if self.on_surface():
+            return
+        await self.fly_to(point, high, speed=speed)
+        await self.until(
+            lambda s: s.alt is not None and s.alt >= high - ALTITUDE_TOLERANCE_M,
+            timeout_s=LEG_MARGIN_S + (high - low) / VERTICAL_RATE_MPS,
+            what=f"the climb back to {high:g} m",
+        )
+
+    async def release_over(self, point: LatLon, high: float, low: float, speed: float) -> None:
+        """Descend over ``point``, release the payload once ever for this mission's id
+        (``payload_released``), climb back."""
+        mission_id = self.mission.id
+        await self.descend(point, high, low, speed)
+        if mission_id in self.release_attempted:
+            raise StepFailed("this mission's payload release was already attempted")
+        # Recorded before sending: whatever the answer, it is never sent twice.
+        self.release_attempted.add(mission_id)
+        await self.command("release_payload", {})
+        where = self.where()
+        self.released[mission_id] = {
+            "mission": mission_id,
+            "lat": where["lat"],
+            "lon": where["lon"],
+        }
+        self.report("payload_released", lat=where["lat"], lon=where["lon"])
+        await self.climb(point, low, high, speed)
+
+    async def hold_for(self, seconds: float) -> None:
+        """Stay put for ``seconds``, still watching for interference."""
+        until = time.monotonic() + seconds
+        await self.until(
+            lambda _s: time.monotonic() >= until,
+            timeout_s=seconds + LEG_MARGIN_S,
+            what=f"a wait of {seconds:g} s",
+        )
+
+    async def return_home(self) -> None:
+        """Fly home with the vehicle's own ``return_to_home`` (``returning`` progress;
+        a copter lands there). The session stays open: its users watch the way back."""
+        self.progress("returning")
+        await self.command("return_to_home", {})
