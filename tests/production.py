@@ -173,7 +173,12 @@ class Process:
         """Start it and return once it answers ``/healthz`` on its own port."""
         with open(self.log_path, "a") as log:
             self.proc = subprocess.Popen(
-                self.command, cwd=ROOT, env=self.env, stdout=log, stderr=subprocess.STDOUT
+                self.command,
+                cwd=ROOT,
+                env=self.env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,  # kill() takes its worker processes too
             )
         try:
             _wait_http(f"http://127.0.0.1:{self.port}/healthz")
@@ -194,8 +199,22 @@ class Process:
                 self.proc.kill()
                 self.proc.wait(10)
 
+    def kill(self) -> None:
+        """SIGKILL the process and its children (a gunicorn's workers), as a crash and
+        then systemd's clean-up of the unit's control group would: no goodbye on any
+        socket, requests in progress cut."""
+        if self.proc is not None and self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(10)
+
     def restart(self) -> None:
+        """Stopped with SIGTERM, then started, as a deploy restarts it."""
         self.stop()
+        self.start()
+
+    def crash(self) -> None:
+        """Killed, then started again, as systemd's ``Restart=always`` brings it back."""
+        self.kill()
         self.start()
 
 

@@ -37,6 +37,9 @@ pytestmark = [
 #: vehicle silent 2 s is offline, offline 2 s more is lost; a user gone 3 s is gone.
 TIMERS = {
     "IOUV_OFFLINE_AFTER_S": "2",
+    # Four heartbeats in that time, as production has three (2 s in 6 s): a live
+    # agent on a loaded machine is never a heartbeat away from being called silent.
+    "IOUV_HEARTBEAT_INTERVAL_S": "0.5",
     "IOUV_VEHICLE_LOST_S": "2",
     "IOUV_RECONNECT_GRACE_S": "3",
     "IOUV_SUPERVISION_TICK_S": "0.5",

@@ -1,17 +1,21 @@
 """The production shape, run from deploy/'s own files (tests.production): nginx with TLS
 in front, two gunicorn HTTP processes, two uvicorn WebSocket processes, the Celery
-worker with its beat, PostgreSQL and Redis; two cars whose agents dial in through nginx.
+worker with its beat, PostgreSQL and Redis; the demo's four cars and its sea rescue
+fleet, whose agents dial in through nginx.
 
-A deploy restarts every process one at a time while one user drives point-to-point (on
-the car's own socket, as over WebRTC), another over the platform's relay, and a program
-reads the API: no session ends, no direct command is lost, the relayed user drives
-again within 5 s of each restart that cut them off, and the API never fails.
+Every platform process, one at a time, is restarted as a deploy restarts it, or killed
+and brought back as systemd brings back a crashed unit, while three users drive over
+WebRTC, a fourth over the platform's relay, a rescue at sea runs and a program reads the
+API: no session ends, no WebRTC command is lost, the relayed user drives again within
+5 s of each restart that cut them off, the API never fails, and the rescue completes,
+once.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import itertools
 import json
 import ssl
@@ -25,14 +29,18 @@ import pytest
 from websockets.asyncio.client import ClientConnection, connect
 
 from accounts.tokens import token_issue
-from fleet.credentials import vehicle_issue_credential
+from agents.config import AgentConfig
+from benchmarks.rtc_client import RtcClientError, RtcControlClient
 from fleet.models import Vehicle
+from kinds.rescue_at_sea.models import Mission
+from kinds.rescue_at_sea.tests.sea import client_requests_rescue, search_area
+from services.demo import demo_seed
 from services.models import Session
 from tests import factories as f
 from tests.control import command, recv
+from tests.demo import PASSWORD, agents_online, mission_agent_config
 from tests.production import ProductionShape
-from tests.servers import agent_running, db, until
-from tests.vehicles import car_served
+from tests.servers import db, until
 
 pytestmark = [
     pytest.mark.postgres,
@@ -45,23 +53,20 @@ pytestmark = [
 #: lost-vehicle timeouts. A relayed user cut off by a restart has the grace to come back.
 TIMERS = {
     "IOUV_OFFLINE_AFTER_S": "2",
+    # Four heartbeats in that time, as production has three (2 s in 6 s): a live
+    # agent on a loaded machine is never a heartbeat away from being called silent.
+    "IOUV_HEARTBEAT_INTERVAL_S": "0.5",
     "IOUV_VEHICLE_LOST_S": "2",
     "IOUV_RECONNECT_GRACE_S": "10",
     "IOUV_SUPERVISION_TICK_S": "0.5",
 }
-
-
-def _fleet() -> tuple[list[Vehicle], list[str]]:
-    """Two cars at one station, both matching the drive-car service."""
-    car, credential, _service = car_served("car-1", service="drive-car")
-    other = f.vehicle(
-        station=car.station,
-        vtype=car.vehicle_type,
-        name="car-2",
-        online=False,
-        **car.attributes,
-    )
-    return [car, other], [credential, vehicle_issue_credential(vehicle=other)]
+#: The rescue's steps every second; a task a killed worker held goes to the next
+#: after 5 s; e-mail to files (EMAIL_FILE_PATH, per test).
+MISSIONS = {
+    "IOUV_MISSION_TICK_S": "1",
+    "CELERY_VISIBILITY_TIMEOUT_S": "5",
+    "EMAIL_BACKEND": "django.core.mail.backends.filebased.EmailBackend",
+}
 
 
 def _api(base: str, context: ssl.SSLContext, method: str, path: str, token: str) -> tuple[int, Any]:
@@ -107,14 +112,12 @@ class Reader:
 
 
 class Driver:
-    """A user holding ``forward``, a command every 100 ms. ``direct``: on the car's
-    own socket (the platform is not on that path); else over the relay, reconnecting
-    with a fresh grant whenever the socket closes, as the controller page does."""
+    """A user holding ``forward`` over the platform's relay, a command every 100 ms,
+    reconnecting with a fresh grant whenever the socket closes, as the controller page
+    does when it has no WebRTC."""
 
-    def __init__(
-        self, shape: ProductionShape, token: str, task: dict[str, Any], *, direct: bool
-    ) -> None:
-        self.shape, self.token, self.task, self.direct = shape, token, task, direct
+    def __init__(self, shape: ProductionShape, token: str, task: dict[str, Any]) -> None:
+        self.shape, self.token, self.task = shape, token, task
         self.sent = self.acked = 0
         #: The last answer that refused a fresh grant (a failure says it).
         self.refused: Any = None
@@ -125,11 +128,8 @@ class Driver:
         self._runner = asyncio.create_task(self._run())
 
     async def _connect(self) -> ClientConnection:
-        if self.direct:
-            ws = await connect(self.task["control_url"], proxy=None, compression=None)
-        else:
-            url = f"wss://127.0.0.1:{self.shape.https}/ws/relay/{self.task['session_id']}/"
-            ws = await connect(url, ssl=self.shape.context, proxy=None, compression=None)
+        url = f"wss://127.0.0.1:{self.shape.https}/ws/relay/{self.task['session_id']}/"
+        ws = await connect(url, ssl=self.shape.context, proxy=None, compression=None)
         await ws.send(json.dumps({"type": "auth", "grant": self.task["grant"]}))
         # The vehicle may still count the socket the restart cut as its controller:
         # gone silent, it hands the controls to the user's new connection.
@@ -149,8 +149,6 @@ class Driver:
                         self.acked_at.append(time.monotonic())
                     await asyncio.sleep(0.1)
             except Exception as exc:
-                if self.direct:
-                    raise  # the car's own socket never goes through the platform
                 self.log.append((time.monotonic(), f"{type(exc).__name__}: {exc}"[:120]))
                 # The relay's process restarted: a fresh grant, and on again.
                 await asyncio.sleep(0.2)
@@ -191,90 +189,228 @@ class Driver:
             await self.ws.close()
 
 
-async def test_a_rolling_restart_of_every_process_ends_no_session(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+class RtcDriver:
+    """A user driving over WebRTC, as the controller page does: authenticated on the
+    relay through nginx, then on the vehicle's data channels, a command every 100 ms.
+    The platform is not on that path: a restart may take the relay socket, never the
+    driving, and every command must be acknowledged."""
+
+    def __init__(self, shape: ProductionShape, task: dict[str, Any]) -> None:
+        url = f"wss://127.0.0.1:{shape.https}/ws/relay/{task['session_id']}/"
+        # Late is not lost: on a saturated machine an answer may take a while.
+        self.user = RtcControlClient(url, task["grant"], ice_host_addresses=["127.0.0.1"],
+                                     timeout_s=20)  # fmt: skip
+        self.sent = self.acked = self.answered = 0
+        #: Commands the vehicle answered with a refusal: (seq, code, error).
+        self.refusals: list[tuple[int, Any, Any]] = []
+        self._runner: asyncio.Task[None] | None = None
+        self._keepalive: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        await self.user.start()
+        assert self.user.welcome["role"] == "controller"
+        assert await self.user.path_is("webrtc_direct") == "webrtc_direct"
+        self._runner = asyncio.create_task(self._run())
+        self._keepalive = asyncio.create_task(self._keep_alive())
+
+    async def _keep_alive(self) -> None:
+        # As the controller page does, whatever the commands' answers are doing: the
+        # agent's link-loss watchdog (500 ms here) hears the user between commands.
+        while True:
+            self.user.send({"type": "keepalive"})
+            await asyncio.sleep(0.1)
+
+    async def _run(self) -> None:
+        for seq in itertools.count(1):
+            self.sent += 1
+            ack = await self.user.command(seq, "forward", speed=0.3)
+            self.answered += 1
+            if ack["ok"]:
+                self.acked += 1
+            else:
+                self.refusals.append((seq, ack.get("code"), ack.get("error")))
+            await asyncio.sleep(0.1)
+
+    async def until_acked(self, more: int) -> None:
+        target = self.acked + more
+
+        async def done() -> bool:
+            self.check()
+            return self.acked >= target
+
+        await until(done, within=30, what=f"{more} more commands acknowledged over WebRTC")
+
+    def check(self) -> None:
+        """Raise what stopped the driving, if something did."""
+        for task in (self._runner, self._keepalive):
+            if task is not None and task.done():
+                task.result()
+
+    async def stop(self) -> None:
+        """Stop driving (what stopped it earlier is :meth:`check`'s to say)."""
+        for task in (self._runner, self._keepalive):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, RtcClientError):
+                    await task
+        await self.user.close()
+
+
+def _world(directory: Path, platform_url: str) -> dict[str, str]:
+    """The demo world (its agents' configs in ``directory``, dialling ``platform_url``)
+    and four more clients; their API tokens by name."""
+    demo_seed(password=PASSWORD, credentials_dir=directory, platform_url=platform_url)
+    return {
+        name: token_issue(user=f.user(username=name), name="t")
+        for name in ("ana", "bea", "carl", "dora")
+    }
+
+
+def _rescue_kinds(session_id: Any) -> list[str]:
+    return list(
+        Session.objects.get(pk=session_id).events.order_by("seq").values_list("kind", flat=True)
+    )
+
+
+def _rescue_completions(session_id: Any) -> int:
+    return (
+        Session.objects.get(pk=session_id)
+        .events.filter(kind="mission_state", data__to=Mission.State.COMPLETED)
+        .count()
+    )
+
+
+@pytest.mark.cost(75)
+@pytest.mark.parametrize("how", ["restart", "kill"])
+async def test_every_platform_process_restarted_or_killed_in_turn_ends_no_session(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, how: str
 ) -> None:
-    shape = ProductionShape(tmp_path, env=TIMERS)
-    # The agents' uplinks (in this process) trust the test's CA, as a vehicle trusts
-    # the platform's certificate.
+    """Three users drive cars over WebRTC, a fourth over the relay, a rescue at sea runs
+    by itself, and a program reads the API; each platform process in turn is restarted
+    as a deploy does (``restart``: SIGTERM, then started) or killed and brought back as
+    systemd brings back a crashed unit (``kill``: SIGKILL of its process group)."""
+    shape = ProductionShape(
+        tmp_path, env={**TIMERS, **MISSIONS, "EMAIL_FILE_PATH": str(tmp_path / "mail")}
+    )
+    # The agents' uplinks and the users (in this process) trust the test's CA, as a
+    # vehicle and a browser trust the platform's certificate.
     monkeypatch.setenv("SSL_CERT_FILE", str(shape.certificates.ca))
-    cars, credentials = await db(_fleet)
-    alice = await db(lambda: token_issue(user=f.user(username="alice"), name="t"))
-    bob = await db(lambda: token_issue(user=f.user(username="bob"), name="t"))
+    configs_dir = tmp_path / "agents"
+    uplink = shape.base.replace("https://", "wss://")
+    tokens = await db(_world, configs_dir, uplink)
+    cars = ("car-1", "car-2", "car-3", "car-4")
+    configs = {
+        name: dataclasses.replace(
+            AgentConfig.load(configs_dir / f"{name}.json"), video=None, reconnect_min_s=0.2
+        )
+        for name in cars
+    }
+    for name in ("search-1", "lifeguard-1"):
+        configs[name] = mission_agent_config(configs_dir / f"{name}.json", uplink)
     with shape.running():
-        async with contextlib.AsyncExitStack() as stack:
-            for car, credential in zip(cars, credentials, strict=True):
-                await stack.enter_async_context(
-                    agent_running(
-                        base=shape.base,
-                        vehicle=car,
-                        credential=credential,
-                        adapter="car",
-                        options={"origin": list(f.HOME)},
-                    )
-                )
-
-            async def both_idle() -> bool:
-                statuses = await db(lambda: set(Vehicle.objects.values_list("status", flat=True)))
-                return statuses == {Vehicle.Status.IDLE}
-
-            await until(both_idle, within=30, what="both agents registered through nginx")
-
-            seen: list[Any] = []
-
-            async def both_in_service() -> bool:
-                seen[:] = await db(lambda: sorted(Vehicle.objects.values_list("name", "status")))
-                return {status for _, status in seen} == {Vehicle.Status.IN_SERVICE}
-
-            sessions = []
-            drivers = []
-            for token, direct in ((alice, True), (bob, False)):
-                status, body = await asyncio.to_thread(
-                    _api, shape.base, shape.context, "POST", "/sessions", token
-                )
-                assert status == 201, body
-                sessions.append(body["session"]["id"])
-                await _task_accepted(body["session"]["id"])
-                drivers.append(Driver(shape, token, body["task"], direct=direct))
-            direct_driver, relayed = drivers
-            reader = Reader(shape, alice)
+        async with agents_online(configs, within=60, positioned=False, what="the fleet online"):
+            sessions: list[str] = []
+            rtc: list[RtcDriver] = []
+            relayed: Driver | None = None
+            reader = Reader(shape, tokens["ana"])
             try:
-                for driver in drivers:
+                for name in ("ana", "bea", "carl", "dora"):
+                    status, body = await asyncio.to_thread(
+                        _api, shape.base, shape.context, "POST", "/sessions", tokens[name]
+                    )
+                    assert status == 201, body
+                    sessions.append(body["session"]["id"])
+                    await _task_accepted(body["session"]["id"])
+                    if name == "dora":
+                        relayed = Driver(shape, tokens[name], body["task"])
+                    else:
+                        rtc.append(RtcDriver(shape, body["task"]))
+                        await rtc[-1].start()
+                assert relayed is not None
+                for driver in [*rtc, relayed]:
                     await driver.until_acked(5)
+                rescue = await db(client_requests_rescue, search_area())
+
+                async def searching() -> bool:
+                    return "task_accepted" in await db(_rescue_kinds, rescue.pk)
+
+                await until(searching, within=60, what="the search drone under way")
+
+                def again(process: Any) -> None:
+                    process.restart() if how == "restart" else process.crash()
 
                 # The deploy: each HTTP process, then each WebSocket process, then the
-                # worker (with its beat), one at a time.
+                # worker (with its beat), one at a time, each once the last is back.
                 for process in shape.web:
-                    await asyncio.to_thread(process.restart)
-                    await direct_driver.until_acked(3)
+                    await asyncio.to_thread(again, process)
+                    for driver in rtc:
+                        await driver.until_acked(3)
                 for process in shape.ws:
-                    restarted = time.monotonic()
-                    await asyncio.to_thread(process.restart)
+                    cut = time.monotonic()
+                    await asyncio.to_thread(again, process)
                     await relayed.until_acked(5)
-                    gap = relayed.longest_gap(restarted)
-                    happened = [(round(t - restarted, 2), what) for t, what in relayed.log]
+                    gap = relayed.longest_gap(cut)
+                    happened = [(round(t - cut, 2), what) for t, what in relayed.log]
                     assert gap <= 5.0, f"relayed driving stopped for {gap:.1f} s: {happened}"
-                    # As a deploy does: the next one once the agents are back.
-                    try:
-                        await until(both_in_service, within=30, what="both agents back")
-                    except AssertionError:
-                        raise AssertionError(f"the agents are not back: {seen}") from None
-                await asyncio.to_thread(shape.worker.stop)
+                    await until(
+                        lambda: _all_back(configs), within=30, what="every agent back on an uplink"
+                    )
+                if how == "restart":
+                    await asyncio.to_thread(shape.worker.stop)
+                else:
+                    await asyncio.to_thread(shape.worker.kill)
                 await asyncio.to_thread(shape.worker.start)
 
                 # Past every timer with everything back.
                 back = time.monotonic()
                 while time.monotonic() - back < 6.0:
-                    await direct_driver.until_acked(1)
+                    for driver in rtc:
+                        await driver.until_acked(1)
                 for session_id in sessions:
                     session = await db(Session.objects.get, pk=session_id)
                     assert session.state == Session.State.ACTIVE, session.reason
-                assert direct_driver.sent - direct_driver.acked <= 1
+                for driver in rtc:
+                    driver.check()
+                    # Every command reached the vehicle and was answered (the one in
+                    # flight now aside); a refusal is an answer (one that came too late
+                    # on a saturated machine is refused as stale), but never because
+                    # the user lost the controls.
+                    assert driver.sent - driver.answered <= 1, (driver.sent, driver.answered)
+                    assert all(code != "view_only" for _, code, _ in driver.refusals), (
+                        driver.refusals
+                    )
                 assert reader.answered > 0 and reader.failures == [], reader.failures[:5]
+
+                # The rescue, its steps run by workers that came and went, ends once.
+                async def completed() -> bool:
+                    return await db(_rescue_completions, rescue.pk) >= 1
+
+                try:
+                    await until(completed, within=180, what="the rescue completed")
+                except AssertionError:
+                    mission = await db(Mission.objects.get, pk=rescue.pk)
+                    kinds = await db(_rescue_kinds, rescue.pk)
+                    raise AssertionError(f"rescue {mission.state}: {kinds}") from None
+                kinds = await db(_rescue_kinds, rescue.pk)
+                assert kinds.count("person_detected") == 1, kinds
+                assert kinds.count("payload_released") == 1, kinds
+                assert await db(_rescue_completions, rescue.pk) == 1, kinds
+                for driver in rtc:
+                    driver.check()  # they drove all along
             finally:
                 await reader.stop()
-                for driver in drivers:
+                for driver in [*rtc, *([relayed] if relayed else [])]:
                     await driver.stop()
+
+
+async def _all_back(configs: dict[str, AgentConfig]) -> bool:
+    """Every vehicle of ``configs`` is on an uplink again (in service or idle)."""
+    statuses = await db(
+        lambda: list(
+            Vehicle.objects.filter(name__in=list(configs)).values_list("status", flat=True)
+        )
+    )
+    return Vehicle.Status.OFFLINE not in statuses and len(statuses) == len(configs)
 
 
 async def _task_accepted(session_id: str) -> None:
