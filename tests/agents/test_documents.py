@@ -590,7 +590,9 @@ def test_fuzz_verify_text(token: str) -> None:
 def test_fuzz_validly_signed_garbage(body: bytes, header: dict[str, Any]) -> None:
     # Past the signature the claims are trusted bytes; a platform bug there must still
     # surface as ProtocolError, never as a crash in the agent.
-    headers = {**header, "kid": key_thumbprint(PUBLIC), "typ": "iouv-grant+jwt"}
+    # A generated "alg" header would be PyJWT's algorithm for signing: the platform's is
+    # EdDSA, whatever else the header says.
+    headers = {**header, "alg": "EdDSA", "kid": key_thumbprint(PUBLIC), "typ": "iouv-grant+jwt"}
     token = pyjwt.api_jws.encode(body, PRIVATE, algorithm="EdDSA", headers=headers)
     for cls in (VehicleTask, UserGrant):
         with contextlib.suppress(ProtocolError):
