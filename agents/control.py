@@ -1003,7 +1003,12 @@ class ControlHub:
             return
         servers = getattr(client.link.signal, "ice_servers", ())
         try:
-            sdp = await rtc.accept(client.link.id, msg.sdp, ice_servers=servers)
+            sdp = await rtc.accept(
+                client.link.id,
+                msg.sdp,
+                ice_servers=servers,
+                controller=client.grant is not None and client.grant.role == "controller",
+            )
         except Exception as exc:  # any WebRTC failure is reported to the user, not fatal
             await self._send(client, error_message("webrtc", str(exc)))
             return

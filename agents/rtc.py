@@ -122,6 +122,8 @@ class _RtcPeer:
     track: Any | None = None
     tasks: set[asyncio.Task[Any]] = field(default_factory=set)
     closed: bool = False
+    #: Offered by a holder of the session's controlling grant (not a spectator's).
+    controller: bool = False
 
 
 class _InputLink:
@@ -140,7 +142,9 @@ class RtcPeers:
       carries when the offer asks for video; None for a vehicle without one.
     * ``ice_servers``: the agent's own STUN/TURN servers, used beside the ones each
       offer brings; ``ice_host_addresses``: restrict host candidates (loopback tests).
-    * ``max_peers``: connections beyond this are refused.
+    * ``max_peers``: connections beyond this are refused; the last place is kept for
+      the session's controller: spectators get at most ``max_peers - 1``, so however
+      many come, they never push the pilot off WebRTC onto the relay.
     """
 
     def __init__(
@@ -179,17 +183,26 @@ class RtcPeers:
         sdp: str,
         *,
         ice_servers: Sequence[RTCIceServer | Mapping[str, Any] | str] = (),
+        controller: bool = False,
     ) -> str:
         """Apply the browser's offer for ``peer_id`` (replacing its previous connection)
         and return the complete SDP answer (every candidate gathered: no trickle).
-        ``ice_servers`` come with this offer (the platform's, for this session). Raises
-        VideoError, with a sentence for the user, on bad SDP, a video offer from a
-        vehicle without a camera, too many peers, or a closed service."""
+        ``ice_servers`` come with this offer (the platform's, for this session);
+        ``controller``: the offer comes from a holder of the controlling grant, who may
+        take the place spectators may not. Raises VideoError, with a sentence for the
+        user, on bad SDP, a video offer from a vehicle without a camera, too many peers,
+        or a closed service."""
         if self._closed:
             raise VideoError("this vehicle is shutting down")
         await self.close_peer(peer_id)
         if len(self._peers) >= self.max_peers:
             raise VideoError(f"too many WebRTC connections (at most {self.max_peers})")
+        spectators = sum(1 for p in self._peers.values() if not p.controller)
+        if not controller and spectators >= self.max_peers - 1:
+            raise VideoError(
+                f"too many spectators over WebRTC (at most {self.max_peers - 1}; the last "
+                "place is kept for the pilot)"
+            )
         if not (_APPLICATION.search(sdp) or _VIDEO.search(sdp)):
             raise VideoError("bad SDP offer: it asks for neither data channels nor video")
         wants_video = bool(_VIDEO.search(sdp))
@@ -200,7 +213,7 @@ class RtcPeers:
         except (TypeError, ValueError) as exc:
             raise VideoError(f"bad ICE server: {exc}") from exc
         pc = RTCPeerConnection(RTCConfiguration(iceServers=servers))
-        peer = _RtcPeer(pc)
+        peer = _RtcPeer(pc, controller=controller)
         self._peers[peer_id] = peer
         if wants_video:
             peer.track = self.video.attach(pc)  # type: ignore[union-attr]  # checked above

@@ -174,6 +174,37 @@ async def test_offers_are_limited_to_one_a_second(rig: Rig, user: RtcControlClie
     assert (await user.command(9, "camera_up", step_deg=5))["ok"] is True
 
 
+async def test_spectators_never_take_the_pilots_place_on_webrtc(rig: Rig):
+    """However many spectators come, the last WebRTC place is the controller's: the pilot
+    is never pushed onto the relay by strangers watching."""
+    rig.hub.webrtc_options = {"ice_host_addresses": LOOPBACK, "max_peers": 3}
+    watching: list[RtcControlClient] = []
+    pilot = RtcControlClient(rig.url, make_grant(), ice_host_addresses=LOOPBACK, timeout_s=10)
+    try:
+        await pilot.start(rtc=False)
+        for name in ("bob", "carol", "dave"):
+            spectator = RtcControlClient(
+                rig.url,
+                make_grant(user=name, role="viewer"),
+                ice_host_addresses=LOOPBACK,
+                timeout_s=10,
+            )
+            watching.append(spectator)
+            await spectator.start(rtc=False)
+            assert spectator.welcome["role"] == "viewer"
+        await watching[0].negotiate()
+        await watching[1].negotiate()
+        with pytest.raises(RtcClientError, match="kept for the pilot"):
+            await watching[2].negotiate()  # the third of three places is the pilot's
+        await pilot.negotiate()
+        assert await pilot.path_is("webrtc_direct") == "webrtc_direct"
+        assert (await pilot.command(1, "camera_up", step_deg=5))["ok"] is True
+        assert rig.hub.rtc is not None and rig.hub.rtc.peer_count == 3
+    finally:
+        for client in [pilot, *watching]:
+            await client.close()
+
+
 def test_the_agent_follows_the_browser_to_a_pair_it_nominates_after_ice_completed():
     """aioice cancels the checks in progress when ICE completes and leaves their pairs
     "in progress" for good, so a pair the browser nominates later (the direct one, after
