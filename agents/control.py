@@ -86,7 +86,6 @@ from agents.protocol.messages import (
     Unsubscribe,
     WebrtcAnswer,
     WebrtcOffer,
-    WebrtcRequest,
     message_type,
 )
 from agents.recording import NullRecorder, RecordSink, Source
@@ -126,7 +125,7 @@ CLOCK_SAMPLES = 16
 OFFER_MIN_INTERVAL_S = 1.0
 
 #: Messages that negotiate a WebRTC connection: only on the link the user signals on.
-_SIGNALLING: Final = frozenset({WebrtcRequest, WebrtcOffer, WebrtcAnswer})
+_SIGNALLING: Final = frozenset({WebrtcOffer})
 
 Reporter = Callable[[str, str | None, dict[str, Any]], None]
 TaskEnded = Callable[[VehicleTask], None]
@@ -621,9 +620,6 @@ class ControlHub:
             return
         del self.clients[link.id]
         self._stop_client_tasks(client)
-        if self.video is not None:
-            with contextlib.suppress(Exception):
-                await self.video.close_peer(link.id)
         if self.rtc is not None:
             with contextlib.suppress(Exception):
                 await self.rtc.close_peer(link.id, notify=False)
@@ -965,26 +961,6 @@ class ControlHub:
         viewer = client.role == "viewer"
         await self._send(client, RoleChange(role="viewer" if viewer else "controller"))
 
-    async def _on_webrtc_request(self, client: _Client, msg: WebrtcRequest) -> None:
-        if self.video is None:
-            await self._send(client, error_message("no_video", "this vehicle has no camera"))
-            return
-        try:
-            sdp = await self.video.offer(client.link.id)
-        except Exception as exc:  # any video failure is reported to the user, not fatal
-            await self._send(client, error_message("video", str(exc)))
-            return
-        await self._send(client, WebrtcOffer(sdp=sdp))
-
-    async def _on_webrtc_answer(self, client: _Client, msg: WebrtcAnswer) -> None:
-        if self.video is None:
-            await self._send(client, error_message("no_video", "this vehicle has no camera"))
-            return
-        try:
-            await self.video.answer(client.link.id, msg.sdp)
-        except Exception as exc:  # as above
-            await self._send(client, error_message("video", str(exc)))
-
     async def _on_webrtc_offer(self, client: _Client, msg: WebrtcOffer) -> None:
         """The browser's offer: one connection for its data channels and the camera
         (:mod:`agents.rtc`), with the ICE servers the platform sent along."""
@@ -1076,8 +1052,6 @@ class ControlHub:
         Unsubscribe: _on_unsubscribe,
         TakeControl: _on_take_control,
         ReleaseControl: _on_release_control,
-        WebrtcRequest: _on_webrtc_request,
-        WebrtcAnswer: _on_webrtc_answer,
         WebrtcOffer: _on_webrtc_offer,
     }
 

@@ -208,6 +208,8 @@ class RtcPeers:
         wants_video = bool(_VIDEO.search(sdp))
         if wants_video and self.video is None:
             raise VideoError("this vehicle has no camera: offer data channels only")
+        if wants_video and "VP8/90000" not in sdp:
+            raise VideoError("bad SDP offer: the video must offer VP8 (every WebRTC browser does)")
         try:
             servers = [*self.ice_servers, *(ice_server(s) for s in ice_servers)]
         except (TypeError, ValueError) as exc:

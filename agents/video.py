@@ -3,10 +3,10 @@
 The agent's control WebSocket carries the signalling (``docs/video.md``); this module
 owns everything after it:
 
-* :class:`VideoService` keeps one ``RTCPeerConnection`` per viewer. ``offer``/``answer``
-  serve the agent-offers flow (``webrtc_request`` -> ``webrtc_offer`` ->
-  ``webrtc_answer``), ``accept_offer`` the browser-offers flow. SDP is complete (ICE
-  candidates gathered before it is returned); there is no trickle ICE.
+* :class:`VideoService` is the camera behind every WebRTC connection: the connections
+  themselves are :mod:`agents.rtc`'s, one per user, negotiated in one flow (the
+  browser offers, ``webrtc_offer`` -> ``webrtc_answer``), and each that asks for video
+  gets the camera with :meth:`VideoService.attach`.
 * The vehicle's frames are **encoded once** (VP8, libvpx through PyAV) by a shared
   encoder and the resulting ``av.Packet``\\ s are handed to every viewer's
   ``RTCRtpSender``. aiortc's sender packetises a packet without re-encoding it
@@ -15,8 +15,8 @@ owns everything after it:
   video does not grow with the number of viewers. A viewer's picture-loss requests
   (PLI/FIR) are routed to the shared encoder, which then emits a keyframe for everyone.
 * The source is polled only while at least one viewer's sender is actually pulling
-  frames (a connected peer): an unanswered offer or an idle vehicle captures nothing,
-  and the source is closed (camera released) when the last viewer leaves.
+  frames (a connected peer): a connection not yet up or an idle vehicle captures
+  nothing, and the source is closed (camera released) when the last viewer leaves.
 * Sources (:class:`VideoSource`): :class:`SyntheticCamera` draws a scene from the
   vehicle's pose with a frame counter and a timestamp readable from the pixels
   (:func:`read_frame_code`); :class:`V4L2Camera` reads a Linux camera (Raspberry Pi
@@ -60,12 +60,10 @@ import numpy as np
 import numpy.typing as npt
 from aiortc import (
     MediaStreamTrack,
-    RTCConfiguration,
     RTCIceServer,
     RTCPeerConnection,
     RTCRtpCodecCapability,
     RTCRtpSender,
-    RTCSessionDescription,
 )
 from aiortc.mediastreams import MediaStreamError
 
@@ -863,16 +861,14 @@ async def _multipart_jpegs(body: AsyncIterator[bytes], boundary: bytes) -> Async
 #: Keys of the agent's ``video`` configuration that configure :class:`VideoService`
 #: rather than the source; :func:`video_source_create` ignores them, so one mapping can
 #: hold both (see :func:`video_service_create`).
-SERVICE_OPTIONS: Final = frozenset(
-    {
-        "ice_servers",
-        "ice_host_addresses",
-        "bitrate",
-        "keyframe_interval_s",
-        "max_peers",
-        "answer_timeout_s",
-    }
-)
+SERVICE_OPTIONS: Final = frozenset({"ice_host_addresses", "bitrate", "keyframe_interval_s"})
+#: Options a ``video`` section held when the camera kept connections of its own; where
+#: each went, for the message that refuses an old configuration.
+MOVED_OPTIONS: Final = {
+    "ice_servers": "the webrtc section (webrtc.ice_servers)",
+    "max_peers": "the webrtc section (webrtc.max_peers)",
+    "answer_timeout_s": "nowhere: the browser offers, the agent answers at once",
+}
 
 
 def video_source_create(
@@ -894,6 +890,11 @@ def video_source_create(
     :data:`SERVICE_OPTIONS` are ignored; other unknown keys, an unknown source or a bad
     value raise VideoError naming them. Nothing is opened until the first frame.
     """
+    moved = sorted(set(config) & set(MOVED_OPTIONS))
+    if moved:
+        raise VideoError(
+            "; ".join(f"video.{key} has moved to {MOVED_OPTIONS[key]}" for key in moved)
+        )
     options = {k: v for k, v in config.items() if k not in SERVICE_OPTIONS}
     kind = options.pop("source", "synthetic")
     allowed: dict[str, set[str]] = {
@@ -1181,60 +1182,37 @@ def ice_server(spec: RTCIceServer | Mapping[str, Any] | str) -> RTCIceServer:
     )
 
 
-@dataclass
-class _Peer:
-    pc: RTCPeerConnection
-    track: MediaStreamTrack
-    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
-    watchdog: asyncio.Task[None] | None = None
-
-
 class VideoService:
-    """All WebRTC viewers of one vehicle's video, fed by one shared encoder.
+    """The vehicle's camera for every WebRTC connection, fed by one shared encoder.
 
-    Use as ``async with VideoService(source) as video:``; leaving the block closes every
-    peer connection, stops capture and closes the source (the service owns it).
+    Use as ``async with VideoService(source) as video:``; leaving the block stops
+    capture and closes the source (the service owns it). The connections are
+    :class:`agents.rtc.RtcPeers`'s: each that asks for video gets the camera with
+    :meth:`attach`.
 
-    * ``ice_servers``: STUN/TURN servers (RTCIceServer, ``{"urls", "username",
-      "credential"}`` or a URL string); default none, so nothing contacts the internet.
-    * ``ice_host_addresses``: offer only these local addresses as ICE host candidates
-      (``["127.0.0.1"]`` for loopback-only tests); None lets aioice choose (all but
-      loopback).
+    * ``ice_host_addresses``: the local addresses the connections offer as ICE host
+      candidates (``["127.0.0.1"]`` for loopback-only tests); None lets aioice choose
+      (all but loopback). RtcPeers uses them unless its own configuration says.
     * ``bitrate``: the shared encoder's target (bit/s); one bitrate for every viewer,
       since they share the stream.
-    * ``max_peers``: viewers beyond this are refused with VideoError.
-    * ``answer_timeout_s``: an offer not answered in time is dropped.
-
-    Every method raises :class:`VideoError` on bad input and leaves the other viewers
-    streaming. A peer whose connection fails or closes is removed automatically.
+    * ``keyframe_interval_s``: a keyframe at least this often.
     """
 
     def __init__(
         self,
         source: VideoSource,
         *,
-        ice_servers: Sequence[RTCIceServer | Mapping[str, Any] | str] = (),
         ice_host_addresses: Sequence[str] | None = None,
         bitrate: int = 1_000_000,
         keyframe_interval_s: float = 3.0,
-        max_peers: int = 8,
-        answer_timeout_s: float = 30.0,
     ) -> None:
         self.encoder = SharedVp8Encoder(
             source, bitrate=bitrate, keyframe_interval_s=keyframe_interval_s
         )
-        # A lone server or address (a common configuration slip) means a list of one.
-        if isinstance(ice_servers, str | Mapping | RTCIceServer):
-            ice_servers = [ice_servers]
+        # A lone address (a common configuration slip) means a list of one.
         if isinstance(ice_host_addresses, str):
             ice_host_addresses = [ice_host_addresses]
-        #: the STUN/TURN servers given to every peer connection
-        self.ice_servers = [ice_server(s) for s in ice_servers]
         self._ice_hosts = list(ice_host_addresses) if ice_host_addresses is not None else None
-        self.max_peers = max_peers
-        self.answer_timeout_s = answer_timeout_s
-        self._peers: dict[str, _Peer] = {}
-        self._tasks: set[asyncio.Task[Any]] = set()
         self._closed = False
 
     async def __aenter__(self) -> Self:
@@ -1249,71 +1227,10 @@ class VideoService:
         await self.close()
 
     @property
-    def peer_count(self) -> int:
-        """Viewers with a peer connection (offered, answered or connected)."""
-        return len(self._peers)
-
-    @property
     def frames_encoded(self) -> int:
         """Frames the shared encoder has encoded (once per captured frame, whatever the
         number of viewers)."""
         return self.encoder.frames_encoded
-
-    async def offer(self, peer_id: str) -> str:
-        """Start a viewer (agent-offers flow): a new peer connection sending the video
-        (sendonly, VP8); returns the complete SDP offer for the ``webrtc_offer`` message.
-        An existing peer with this id is replaced (a browser that reloaded)."""
-        peer = await self._new_peer(peer_id)
-        async with peer.lock:
-            try:
-                with restrict_ice_host_addresses(self._ice_hosts):
-                    await peer.pc.setLocalDescription(await peer.pc.createOffer())
-            except Exception as exc:  # aiortc raises many types; report them uniformly
-                await self.close_peer(peer_id)
-                raise VideoError(f"could not create a video offer: {exc}") from exc
-            peer.watchdog = self._spawn(self._answer_watchdog(peer_id, peer))
-            return str(peer.pc.localDescription.sdp)
-
-    async def answer(self, peer_id: str, sdp: str) -> None:
-        """Apply the browser's answer (``webrtc_answer``) to our offer. Bad SDP raises
-        VideoError and drops that peer (the client may ask again)."""
-        peer = self._peers.get(peer_id)
-        if peer is None:
-            raise VideoError(f"no video offer pending for {peer_id}")
-        async with peer.lock:
-            if peer.pc.signalingState != "have-local-offer":
-                raise VideoError("no video offer pending for this connection")
-            try:
-                await peer.pc.setRemoteDescription(RTCSessionDescription(sdp=sdp, type="answer"))
-            except Exception as exc:  # garbage SDP: ValueError, KeyError, aiortc errors...
-                await self.close_peer(peer_id)
-                raise VideoError(f"bad SDP answer: {exc or type(exc).__name__}") from exc
-            if peer.watchdog is not None:
-                peer.watchdog.cancel()
-
-    async def accept_offer(self, peer_id: str, sdp: str) -> str:
-        """Start a viewer (browser-offers flow): apply the browser's offer (``recvonly``
-        or ``sendrecv`` video, VP8 among its codecs) and return the complete SDP answer
-        for ``webrtc_answer``. Bad SDP or no VP8 raises VideoError."""
-        peer = await self._new_peer(peer_id)
-        async with peer.lock:
-            try:
-                await peer.pc.setRemoteDescription(RTCSessionDescription(sdp=sdp, type="offer"))
-                transceiver = next(
-                    t for t in peer.pc.getTransceivers() if t.sender.track is peer.track
-                )
-                if transceiver.mid is None:
-                    raise VideoError("bad SDP offer: no video section")
-                with restrict_ice_host_addresses(self._ice_hosts):
-                    await peer.pc.setLocalDescription(await peer.pc.createAnswer())
-            except Exception as exc:
-                await self.close_peer(peer_id)
-                if isinstance(exc, VideoError):
-                    raise
-                raise VideoError(
-                    f"bad SDP offer (video must offer VP8): {exc or type(exc).__name__}"
-                ) from exc
-            return str(peer.pc.localDescription.sdp)
 
     def attach(self, pc: RTCPeerConnection) -> MediaStreamTrack:
         """Add the camera to ``pc`` (a connection another part of the agent negotiates,
@@ -1333,57 +1250,10 @@ class VideoService:
         """The local addresses ICE may offer (None: aioice's choice)."""
         return self._ice_hosts
 
-    async def close_peer(self, peer_id: str) -> None:
-        """Hang up one viewer; unknown ids are ignored. The others keep streaming."""
-        peer = self._peers.pop(peer_id, None)
-        if peer is None:
-            return
-        if peer.watchdog is not None and peer.watchdog is not asyncio.current_task():
-            peer.watchdog.cancel()
-        peer.track.stop()  # unsubscribes: the last viewer leaving stops capture
-        try:
-            await peer.pc.close()
-        except Exception:  # a half-negotiated connection may fail to close cleanly
-            logger.exception("closing video peer %s", peer_id)
-
     async def close(self) -> None:
-        """Hang up everyone, stop capture and close the source. Idempotent."""
+        """Stop capture and close the source. Idempotent."""
+        if self._closed:
+            return
         self._closed = True
-        for peer_id in list(self._peers):
-            await self.close_peer(peer_id)
-        for task in list(self._tasks):
-            task.cancel()
-        if self._tasks:
-            await asyncio.gather(*self._tasks, return_exceptions=True)
         await self.encoder.close()
         await self.encoder.source.close()
-
-    async def _new_peer(self, peer_id: str) -> _Peer:
-        if self._closed:
-            raise VideoError("video service is closed")
-        await self.close_peer(peer_id)
-        if len(self._peers) >= self.max_peers:
-            raise VideoError(f"too many video viewers (at most {self.max_peers})")
-        pc = RTCPeerConnection(RTCConfiguration(iceServers=list(self.ice_servers)))
-        peer = _Peer(pc, self.attach(pc))
-        self._peers[peer_id] = peer
-
-        @pc.on("connectionstatechange")
-        async def on_state() -> None:
-            if pc.connectionState in ("failed", "closed") and self._peers.get(peer_id) is peer:
-                logger.info("video peer %s %s", peer_id, pc.connectionState)
-                self._spawn(self.close_peer(peer_id))
-
-        return peer
-
-    async def _answer_watchdog(self, peer_id: str, peer: _Peer) -> None:
-        await asyncio.sleep(self.answer_timeout_s)
-        if self._peers.get(peer_id) is peer and peer.pc.remoteDescription is None:
-            logger.info("video peer %s never answered; dropped", peer_id)
-            await self.close_peer(peer_id)
-
-    def _spawn(self, coro: Any) -> asyncio.Task[Any]:
-        task = asyncio.create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
-        return task

@@ -398,10 +398,6 @@ class ReleaseControl(Message, frozen=True, tag="release_control"):
     pass
 
 
-class WebrtcRequest(Message, frozen=True, tag="webrtc_request"):
-    pass
-
-
 class WebrtcOffer(Message, frozen=True, tag="webrtc_offer"):
     sdp: str
 
@@ -461,9 +457,7 @@ ControlToAgent: TypeAlias = (
     | Keepalive
     | TakeControl
     | ReleaseControl
-    | WebrtcRequest
     | WebrtcOffer
-    | WebrtcAnswer
 )
 ControlToClient: TypeAlias = (
     ClientWelcome
@@ -472,7 +466,6 @@ ControlToClient: TypeAlias = (
     | ClientPong
     | Ping
     | ClientEvent
-    | WebrtcOffer
     | WebrtcAnswer
     | Error
     | RoleChange

@@ -316,7 +316,6 @@
         case "ping": return this.send({ type: "pong", t: msg.t, client_t: Date.now() });
         case "role": return this.setRole(msg.role);
         case "event": return this.onEvent(msg);
-        case "webrtc_offer": return this.onOffer(msg);
         case "webrtc_answer": return this.onAnswer(msg);
         case "error":
           if (msg.code === "webrtc" || msg.code === "no_webrtc") return this.rtcFailed(msg.message);
@@ -847,14 +846,31 @@
     }
 
     // --- video -----------------------------------------------------------------------
-    startVideo() {
+    // Video alone, while control stays on a socket (the relay the user asked for, or
+    // the vehicle's own): the same offer as startRtc's, without the data channels.
+    async startVideo() {
       if (!window.RTCPeerConnection || !this.ui.video) return;
       this.closeVideo();
       const pc = new RTCPeerConnection({ iceServers: this.task.ice_servers || [] });
       this.pc = pc;
+      pc.addTransceiver("video", { direction: "recvonly" });
       pc.ontrack = (event) => this.showTrack(pc, event);
+      pc.onconnectionstatechange = () => {
+        if (this.pc !== pc || pc.connectionState !== "failed") return;
+        this.closeVideo();
+        if (this.ui.videoNote) this.ui.videoNote.textContent = "No video: the vehicle could not be reached directly.";
+      };
       if (this.ui.videoNote) this.ui.videoNote.textContent = "Starting video…";
-      this.sendSignal({ type: "webrtc_request" });
+      try {
+        await pc.setLocalDescription(await pc.createOffer());
+        await iceGathered(pc, 3000);
+      } catch (e) {
+        if (this.pc === pc) this.closeVideo();
+        if (this.ui.videoNote) this.ui.videoNote.textContent = `No video: ${e}`;
+        return;
+      }
+      if (this.pc !== pc) return;
+      this.sendSignal({ type: "webrtc_offer", sdp: pc.localDescription.sdp });
     }
 
     showTrack(pc, event) {
@@ -972,15 +988,6 @@
         this.ui.path.textContent = path ? PATH_WORDS[path] || path : "–";
         this.ui.path.dataset.path = path || "";
       }
-    }
-
-    async onOffer(msg) {
-      const pc = this.pc;
-      if (!pc) return;
-      await pc.setRemoteDescription({ type: "offer", sdp: msg.sdp });
-      await pc.setLocalDescription(await pc.createAnswer());
-      await iceGathered(pc, 1500);
-      this.sendSignal({ type: "webrtc_answer", sdp: pc.localDescription.sdp });
     }
 
     closeVideo() {

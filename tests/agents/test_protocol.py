@@ -232,8 +232,6 @@ MINIMAL: dict[str, dict[str, dict[str, Any]]] = {
         "take_control": {},
         "release_control": {},
         "webrtc_offer": {"sdp": "v=0..."},
-        "webrtc_request": {},
-        "webrtc_answer": {"sdp": "v=0..."},
     },
     "control_to_client": {
         "welcome": {
@@ -247,7 +245,6 @@ MINIMAL: dict[str, dict[str, dict[str, Any]]] = {
         "pong": {"t": 1.5, "server_t": 1.6},
         "ping": {"t": 99.0},
         "event": {"event": "role_changed", "data": {}},
-        "webrtc_offer": {"sdp": "v=0..."},
         "webrtc_answer": {"sdp": "v=0..."},
         "error": {"code": "bad_json", "message": "nope"},
         "role": {"role": "controller"},

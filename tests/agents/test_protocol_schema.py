@@ -167,7 +167,7 @@ async def test_control_session_frames_obey_the_schemas(rig: Rig) -> None:
         await say({"type": "keepalive"})
         await say({"type": "subscribe", "topics": ["no_such_topic"], "rate_hz": 1})
         await until("error")
-        await say({"type": "webrtc_request"})
+        await say({"type": "webrtc_offer", "sdp": "v=0\r\n"})  # no media: refused
         await until("error")
         await say({"type": "release_control"})
         await until("role")
