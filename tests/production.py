@@ -66,12 +66,17 @@ def nginx_site(
     http: int,
     certificates: Certificates,
     static_root: Path,
+    server_options: str = "max_fails=0",
+    upstream_keepalive: bool = True,
 ) -> str:
     """``deploy/nginx/iouv.conf`` listening on loopback ports ``https`` and ``http``,
     proxying to the HTTP processes ``web`` and the WebSocket ones ``ws`` (each a port on
     127.0.0.1, or ``"host:port"`` for a process on another machine), with
-    ``certificates`` and ``static_root``. Raises AssertionError if the shipped file no
-    longer has a line this replaces (the test would not run what production runs)."""
+    ``certificates`` and ``static_root``; ``server_options`` end each upstream server's
+    line (the shipped file's are for processes on nginx's own machine). Raises
+    AssertionError if the shipped file no longer has a line this replaces (the test
+    would not run what production runs). ``upstream_keepalive`` False drops the HTTP
+    upstream's idle connections to the processes (``keepalive``)."""
     text = SITE.read_text()
 
     def upstream(name: str, servers_at: Sequence[int | str]) -> None:
@@ -79,7 +84,7 @@ def nginx_site(
         block = re.compile(rf"(upstream {name} \{{\n)((?:    server [^\n]+\n)+)")
         assert block.search(text), f"no upstream {name} in {SITE}"
         addresses = [f"127.0.0.1:{at}" if isinstance(at, int) else at for at in servers_at]
-        servers = "".join(f"    server {address} max_fails=0;\n" for address in addresses)
+        servers = "".join(f"    server {address} {server_options};\n" for address in addresses)
         text = block.sub(lambda m: m.group(1) + servers, text, count=1)
 
     def replace(old: str, new: str) -> None:
@@ -88,6 +93,8 @@ def nginx_site(
         text = text.replace(old, new)
 
     upstream("iouv_web", web)
+    if not upstream_keepalive:
+        replace("    keepalive 32;\n", "")
     upstream("iouv_ws", ws)
     replace("    listen [::]:80;\n", "")
     replace("    listen [::]:443 ssl;\n", "")
@@ -241,7 +248,8 @@ class ProductionShape:
     ``base`` is the https address of nginx (``certificates.ca`` signs it), ``web`` and
     ``ws`` the HTTP and WebSocket processes (that many on each of ``hosts``, if given:
     ports 8001... and 8101..., as production's units); ``worker``: whether the Celery
-    worker (with its beat) runs too, on this machine, as ``worker`` once running."""
+    worker (with its beat) runs too, on this machine, as ``worker`` once running;
+    ``server_options``, ``upstream_keepalive``: see :func:`nginx_site`."""
 
     def __init__(
         self,
@@ -252,7 +260,11 @@ class ProductionShape:
         worker: bool = True,
         env: dict[str, str],
         hosts: Sequence[Host] = (),
+        server_options: str = "max_fails=0",
+        upstream_keepalive: bool = True,
     ) -> None:
+        self.server_options = server_options
+        self.upstream_keepalive = upstream_keepalive
         self.workdir = workdir
         self.with_worker = worker
         self.certificates = certificates_make(workdir / "tls")
@@ -333,6 +345,8 @@ class ProductionShape:
             http=self.http,
             certificates=self.certificates,
             static_root=self.workdir / "static",
+            server_options=self.server_options,
+            upstream_keepalive=self.upstream_keepalive,
         )
         nginx_prepared(prefix, site)
         try:

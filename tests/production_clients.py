@@ -56,15 +56,18 @@ def api(base: str, context: ssl.SSLContext, method: str, path: str, token: str) 
 
 
 class Reader:
-    """A program reading the API through nginx every 100 ms, counting failures."""
+    """A program reading the API through nginx every 100 ms, counting failures, and
+    timing the answers: ``answered_at`` holds (when it was asked, seconds it took)."""
 
     def __init__(self, shape: ProductionShape, token: str) -> None:
         self.failures: list[Any] = []
         self.answered = 0
+        self.answered_at: list[tuple[float, float]] = []
         self._task = asyncio.create_task(self._read(shape, token))
 
     async def _read(self, shape: ProductionShape, token: str) -> None:
         while True:
+            asked = time.monotonic()
             try:
                 status, body = await asyncio.to_thread(
                     api, shape.base, shape.context, "GET", "/services", token
@@ -73,6 +76,7 @@ class Reader:
                 status, body = 0, str(exc)
             if status == 200:
                 self.answered += 1
+                self.answered_at.append((asked, time.monotonic() - asked))
             else:
                 self.failures.append((status, body))
             await asyncio.sleep(0.1)
