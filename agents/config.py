@@ -35,6 +35,10 @@ the platform's ``welcome`` carries (a key rotation), unless
 loopback-only machine), ``max_peers``, or ``"enabled": false`` to answer no WebRTC
 offer at all. Absent, the agent accepts offers with the platform's servers alone.
 
+``uplink_ping_interval_s`` (2) and ``uplink_ping_timeout_s`` (3) set the uplink's
+keepalive: an uplink whose pong is that late is given up, and the agent reconnects
+(through nginx, to a platform machine that is there); see agents.uplink.
+
 ``records`` says where the flight record waits for the platform (:mod:`agents.recording`,
 docs/records.md): ``{"dir": "records", "max_bytes": 268435456}``; by default
 ``$IOUV_VAR_DIR/agent/<vehicle id>/records`` (``var/`` without the variable), 256 MiB.
