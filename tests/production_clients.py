@@ -26,17 +26,22 @@ from tests.servers import db, until
 from tests.vehicles import car_served
 
 
-def fleet_of_two() -> tuple[list[Vehicle], list[str]]:
-    """Two cars at one station, both matching the drive-car service; their credentials."""
+def car_fleet(count: int = 2) -> tuple[list[Vehicle], list[str]]:
+    """``count`` cars (car-1, car-2...) at one station, all matching the drive-car
+    service; their credentials."""
     car, credential, _service = car_served("car-1", service="drive-car")
-    other = f.vehicle(
-        station=car.station,
-        vtype=car.vehicle_type,
-        name="car-2",
-        online=False,
-        **car.attributes,
-    )
-    return [car, other], [credential, vehicle_issue_credential(vehicle=other)]
+    cars, credentials = [car], [credential]
+    for number in range(2, count + 1):
+        other = f.vehicle(
+            station=car.station,
+            vtype=car.vehicle_type,
+            name=f"car-{number}",
+            online=False,
+            **car.attributes,
+        )
+        cars.append(other)
+        credentials.append(vehicle_issue_credential(vehicle=other))
+    return cars, credentials
 
 
 def api(base: str, context: ssl.SSLContext, method: str, path: str, token: str) -> tuple[int, Any]:

@@ -23,7 +23,7 @@ from fleet.models import Vehicle
 from services.models import Session
 from tests import factories as f
 from tests.production import ProductionShape
-from tests.production_clients import Driver, Reader, api, fleet_of_two, task_accepted
+from tests.production_clients import Driver, Reader, api, car_fleet, task_accepted
 from tests.servers import agent_running, db, until
 
 pytestmark = [
@@ -50,7 +50,7 @@ async def test_a_rolling_restart_of_every_process_ends_no_session(
     # The agents' uplinks (in this process) trust the test's CA, as a vehicle trusts
     # the platform's certificate.
     monkeypatch.setenv("SSL_CERT_FILE", str(shape.certificates.ca))
-    cars, credentials = await db(fleet_of_two)
+    cars, credentials = await db(car_fleet)
     alice = await db(lambda: token_issue(user=f.user(username="alice"), name="t"))
     bob = await db(lambda: token_issue(user=f.user(username="bob"), name="t"))
     with shape.running():

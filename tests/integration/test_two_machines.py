@@ -4,15 +4,17 @@ Machines A and B are network namespaces on a tests.netlab lab's bridge, each run
 the platform's HTTP process (gunicorn) and WebSocket process (``python -m iouv.serve``)
 on production's ports, reaching PostgreSQL and Redis (on this machine's loopback)
 through the lab's forwarders. nginx (deploy/nginx/iouv.conf, TLS) spreads over both;
-the Celery worker with its beat runs beside nginx, as do the cars' agents, one user
-driving on a car's own socket, one over the platform's relay, and a program reading the
-API through nginx.
+the Celery worker with its beat runs beside nginx, as do three cars' agents (nginx
+spreads their uplinks over both machines), one user driving a car on its own socket,
+one driving another over the platform's relay, and a program reading the API through
+nginx.
 
-Then the machine holding car-1's uplink loses its network: its veth goes down, and
-whatever it sends or is sent vanishes, nothing is closed (a pulled cable, a dead
-switch). Every agent it held is back on an uplink through the other machine within
+Then the machine holding the uplink of the relayed user's car loses its network: its
+veth goes down, and whatever it sends or is sent vanishes, nothing is closed (a pulled
+cable, a dead switch). Every agent it held is back on an uplink through the other machine within
 10 s of the cut (the agents' keepalive gives a silent uplink up, agents.uplink); the
-sessions stay active past every supervision timer; the direct user never misses a
+sessions stay active past every supervision timer and no car changes status; the
+direct user never misses a
 command, the relayed one drives again, and the API never fails: with the upstream
 settings docs/operations.md gives for several machines, nginx moves a request that
 meets the dead machine to the other after ``proxy_connect_timeout`` and then skips it.
@@ -33,11 +35,11 @@ from django.conf import settings
 from accounts.tokens import token_issue
 from agents.runtime import Agent
 from fleet.models import UplinkServer, Vehicle
-from services.models import Session
+from services.models import Assignment, Session
 from tests import factories as f
 from tests.netlab import NetLab, netlab_available
 from tests.production import Host, ProductionShape
-from tests.production_clients import Driver, Reader, api, fleet_of_two, task_accepted
+from tests.production_clients import Driver, Reader, api, car_fleet, task_accepted
 from tests.servers import agent_running, db, until
 
 pytestmark = [
@@ -89,6 +91,10 @@ def _machine_env(lab: NetLab) -> dict[str, str]:
     }
 
 
+def _statuses() -> dict[str, str]:
+    return dict(Vehicle.objects.values_list("name", "status"))
+
+
 async def _holders(vehicles: list[Vehicle], shape: ProductionShape) -> dict[str, str]:
     """Each vehicle's id -> the name of the host whose WebSocket process holds its
     uplink ("?" when none yet), read from Vehicle.uplink_server and the server rows
@@ -114,7 +120,7 @@ async def test_a_machine_cut_off_hands_its_agents_to_the_other_within_10_s(
     available, why = netlab_available()
     if not available:
         pytest.skip(why)
-    cars, credentials = await db(fleet_of_two)
+    cars, credentials = await db(car_fleet, 3)
     alice = await db(lambda: token_issue(user=f.user(username="alice"), name="t"))
     bob = await db(lambda: token_issue(user=f.user(username="bob"), name="t"))
     # PostgreSQL and Redis listen on this machine's loopback, on these ports.
@@ -182,7 +188,14 @@ async def test_a_machine_cut_off_hands_its_agents_to_the_other_within_10_s(
                 try:
                     for driver in drivers:
                         await driver.until_acked(5)
-                    await _cut_and_recover(lab, shape, cars, agents, drivers, reader, alice)
+                    relayed_car = await db(
+                        lambda: str(
+                            Assignment.objects.get(session_id=sessions[1], active=True).vehicle_id
+                        )
+                    )
+                    await _cut_and_recover(
+                        lab, shape, cars, agents, drivers, reader, alice, relayed_car
+                    )
                     for session_id in sessions:
                         session = await db(Session.objects.get, pk=session_id)
                         assert session.state == Session.State.ACTIVE, session.reason
@@ -200,16 +213,23 @@ async def _cut_and_recover(
     drivers: list[Driver],
     reader: Reader,
     alice_token: str,
+    relayed_car: str,
 ) -> None:
-    """Cut off the machine holding car-1's uplink; assert what the module promises."""
+    """Cut off the machine holding ``relayed_car``'s uplink; assert what the module
+    promises."""
     direct_driver, relayed = drivers
     holders = await _holders(cars, shape)
     assert "?" not in holders.values(), holders
-    cut = holders[str(cars[0].pk)]
+    cut = holders[relayed_car]
     other = "b" if cut == "a" else "a"
     moved = [pk for pk, host in holders.items() if host == cut]
     before = {pk: agents[pk].uplink.connections for pk in moved}
     on_cut = [p for p in [*shape.web, *shape.ws] if p.host == lab.machine(cut).ip]
+    # Two cars in service (the users'), one idle: as they will be after the cut.
+    statuses_before = await db(_statuses)
+    assert sorted(statuses_before.values()) == sorted(
+        [Vehicle.Status.IDLE] + [Vehicle.Status.IN_SERVICE] * 2
+    ), statuses_before
 
     cut_at = time.monotonic()
     lab.link_down(cut)
@@ -248,8 +268,7 @@ async def _cut_and_recover(
         while time.monotonic() - cut_at < PAST_TIMERS_S:
             await direct_driver.until_acked(1)
         await relayed.until_acked(5)
-        statuses = await db(lambda: dict(Vehicle.objects.values_list("name", "status")))
-        assert set(statuses.values()) == {Vehicle.Status.IN_SERVICE}, statuses
+        assert await db(_statuses) == statuses_before
         assert direct_driver.sent - direct_driver.acked <= 1
         gap = relayed.longest_gap(cut_at)
         print(f"relayed driving stopped for at most {gap:.1f} s; log {relayed.log}")
