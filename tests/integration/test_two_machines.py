@@ -47,7 +47,7 @@ pytestmark = [
     pytest.mark.redis,
     pytest.mark.realtime,
     pytest.mark.django_db(transaction=True),
-    pytest.mark.cost(60),
+    pytest.mark.cost(30),
 ]
 
 #: What the issue asks: the agents of a machine cut off are back through another
