@@ -35,6 +35,10 @@ the platform's ``welcome`` carries (a key rotation), unless
 loopback-only machine), ``max_peers``, or ``"enabled": false`` to answer no WebRTC
 offer at all. Absent, the agent accepts offers with the platform's servers alone.
 
+``uplink_ping_interval_s`` (2) and ``uplink_ping_timeout_s`` (3) set the uplink's
+keepalive: an uplink whose pong is that late is given up, and the agent reconnects
+(through nginx, to a platform machine that is there); see agents.uplink.
+
 ``records`` says where the flight record waits for the platform (:mod:`agents.recording`,
 docs/records.md): ``{"dir": "records", "max_bytes": 268435456}``; by default
 ``$IOUV_VAR_DIR/agent/<vehicle id>/records`` (``var/`` without the variable), 256 MiB.
@@ -57,6 +61,7 @@ from urllib.parse import urlsplit
 
 from agents.missions.registry import sensors as mission_sensors
 from agents.protocol import KeySet, ProtocolError
+from agents.uplink import PING_INTERVAL_S, PING_TIMEOUT_S
 
 #: Bounds on fetching ``platform_jwks_url``: a JWKS is a few hundred bytes.
 JWKS_FETCH_TIMEOUT_S: Final = 10.0
@@ -124,6 +129,11 @@ class AgentConfig:
     name: str = ""
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 30.0
+    #: The uplink's keepalive (agents.uplink): a ping this often, the uplink given up
+    #: when its pong is this late. Together (plus 1 s to close) they bound how long an
+    #: agent stays on a platform machine that dropped off the network.
+    uplink_ping_interval_s: float = PING_INTERVAL_S
+    uplink_ping_timeout_s: float = PING_TIMEOUT_S
     #: A JWK Set (parsed JSON) of further trusted platform keys, from a file or a URL.
     platform_jwks: Mapping[str, Any] | None = None
     #: Adopt the key set the platform's ``welcome`` carries (how rotations reach agents).
@@ -225,6 +235,15 @@ class AgentConfig:
         record_max = records.get("max_bytes", RECORD_MAX_BYTES)
         if isinstance(record_max, bool) or not isinstance(record_max, int) or record_max <= 0:
             raise ConfigError("records.max_bytes: must be a positive number of bytes")
+        keepalive: dict[str, float] = {}
+        for name, default in (
+            ("uplink_ping_interval_s", PING_INTERVAL_S),
+            ("uplink_ping_timeout_s", PING_TIMEOUT_S),
+        ):
+            value = data.get(name, default)
+            if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
+                raise ConfigError(f"{name}: must be a positive number of seconds")
+            keepalive[name] = float(value)
         config = cls(
             platform_url=url,
             vehicle_id=text("vehicle_id"),
@@ -244,6 +263,8 @@ class AgentConfig:
             name=str(data.get("vehicle_name") or data.get("name") or ""),
             platform_jwks=jwks,
             platform_jwks_from_welcome=from_welcome,
+            uplink_ping_interval_s=keepalive["uplink_ping_interval_s"],
+            uplink_ping_timeout_s=keepalive["uplink_ping_timeout_s"],
             records=RecordsConfig(
                 directory=base / record_dir if record_dir else None, max_bytes=record_max
             ),

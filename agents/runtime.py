@@ -145,6 +145,8 @@ class Agent:
                 reconnect_min_s=self.config.reconnect_min_s,
                 reconnect_max_s=self.config.reconnect_max_s,
                 on_welcome=self.on_welcome,
+                ping_interval_s=self.config.uplink_ping_interval_s,
+                ping_timeout_s=self.config.uplink_ping_timeout_s,
             )
             self.recorder.uplink = self.uplink
             self.ready.set()

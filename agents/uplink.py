@@ -11,6 +11,18 @@ The platform sends the messages that change what the vehicle does (``task``,
 The uplink answers ``ack`` with that id once the message has been handled, and hands a
 message it has already handled (a resend after a reconnect) to nobody: it only
 acknowledges it again.
+
+A platform machine that drops off the network closes nothing: the agent's TCP
+connection to nginx stays up while nginx's to the dead machine hears nothing. Only the
+agent's own WebSocket pings notice (websockets' public keepalive options): a ping every
+``ping_interval_s``, the uplink failed when its pong has not come ``ping_timeout_s``
+later, and closed for good :data:`CLOSE_TIMEOUT_S` after that (nobody answers the close
+frame either). A blackholed uplink is therefore given up at most ``ping_interval_s +
+ping_timeout_s + CLOSE_TIMEOUT_S`` after the cut (6 s by default), and the agent
+reconnects, through nginx, to a platform process that is there
+(tests/integration/test_two_machines.py). The price is ``1 / ping_interval_s`` pings per
+agent per second, each answered by the platform's WebSocket server without reaching
+Django (a heartbeat costs far more).
 """
 
 from __future__ import annotations
@@ -48,6 +60,14 @@ from agents.protocol.messages import (
 log = logging.getLogger(__name__)
 
 WELCOME_TIMEOUT_S = 10.0
+#: Keepalive defaults (see the module docstring): a blackholed uplink is given up within
+#: PING_INTERVAL_S + PING_TIMEOUT_S + CLOSE_TIMEOUT_S = 6 s.
+PING_INTERVAL_S = 2.0
+PING_TIMEOUT_S = 3.0
+#: How long a closing uplink waits for the platform's side of the close before dropping
+#: the connection. A live platform answers in a round trip; a machine cut off never does,
+#: and websockets' default (10 s) would be most of the reconnect time.
+CLOSE_TIMEOUT_S = 1.0
 OUTBOX_SIZE = 1000
 #: Ids of handled platform messages remembered, to recognise resends.
 HANDLED_IDS = 4096
@@ -69,7 +89,8 @@ class Uplink:
     ``on_message`` gets every validated platform message except ``welcome``, which goes
     to ``on_welcome`` (if given) before the profile is sent; ``profile()`` and
     ``heartbeat()`` build the messages sent on connect and at the interval the platform
-    asks for.
+    asks for. ``ping_interval_s`` and ``ping_timeout_s`` bound how long a silent
+    uplink is kept (see the module docstring).
     """
 
     def __init__(
@@ -84,8 +105,12 @@ class Uplink:
         reconnect_min_s: float = 0.5,
         reconnect_max_s: float = 30.0,
         on_welcome: Callable[[Any], None] | None = None,
+        ping_interval_s: float = PING_INTERVAL_S,
+        ping_timeout_s: float = PING_TIMEOUT_S,
     ) -> None:
         self.url = url
+        self.ping_interval_s = ping_interval_s
+        self.ping_timeout_s = ping_timeout_s
         self.on_welcome = on_welcome
         self.vehicle_id = vehicle_id
         self.credential = credential
@@ -119,8 +144,9 @@ class Uplink:
                     compression=None,
                     proxy=None,
                     open_timeout=10,
-                    ping_interval=10,
-                    ping_timeout=10,
+                    ping_interval=self.ping_interval_s,
+                    ping_timeout=self.ping_timeout_s,
+                    close_timeout=CLOSE_TIMEOUT_S,
                 ) as ws:
                     await self._register(ws)
                     attempt = 0

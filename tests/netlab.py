@@ -16,6 +16,15 @@ Topology (one lab)::
       +-- veth <tag>w2 ---- wan 203.0.113.3  [router ns <tag>-user-gw]     NAT
                             lan 10.77.2.1 ---- eth0 10.77.2.2  [site ns <tag>-user]
 
+A lab may also have **machines** (``NetLab(machines=["a", "b"])``): namespaces on the
+bridge itself, with a public address of their own (the subnet's 21st, 22nd, ...) and no
+NAT, reachable from the root namespace as the platform's servers are from its nginx::
+
+      +-- veth <tag>m1 ---- eth0 203.0.113.21  [machine ns <tag>-a]
+      +-- veth <tag>m2 ---- eth0 203.0.113.22  [machine ns <tag>-b]
+
+``link_down("a")`` cuts a machine off as it cuts a site's uplink.
+
 The root namespace plays the internet because the services the platform needs listen on
 its loopback; it does not forward anything (all public hosts share one bridge), so its
 ``ip_forward`` is left alone. Routers have no default route: a site reaches the public
@@ -61,6 +70,7 @@ can run, with the reason when not.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import ctypes
 import dataclasses
@@ -76,12 +86,14 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
 import pytest
 
+from benchmarks.delay_proxy import DelayProxy
 from benchmarks.turn_server import TurnServer, TurnServerError, turn_server
 
 NatMode = Literal["eim", "symmetric"]
@@ -451,6 +463,19 @@ class Site:
     root_veth: str
 
 
+@dataclasses.dataclass(frozen=True)
+class Machine:
+    """One machine: a namespace on the lab's bridge with a public address, no NAT."""
+
+    name: str
+    #: Namespace of the machine (run its servers here).
+    netns: str
+    #: Its address on the bridge, reachable from the root namespace and every site.
+    ip: str
+    #: Root-namespace end of its veth (a port of the bridge).
+    root_veth: str
+
+
 #: A running coturn of a lab: the benchmarks' own helper, on the lab's public address.
 Turn = TurnServer
 
@@ -461,19 +486,33 @@ class NetLab:
     after a failure; ``close()`` may be called twice.
 
     ``nat`` maps site names (lowercase letters and digits) to a NAT mode, in the order
-    the sites get 10.77.1.0/24, 10.77.2.0/24, ... ``workdir`` keeps the logs (coturn's)
-    after the lab closes; by default they go to a temp dir deleted on close.
+    the sites get 10.77.1.0/24, 10.77.2.0/24, ... (default: a "vehicle" and a "user"
+    site, unless the lab has ``machines``); ``machines`` names the machines on the
+    bridge. ``workdir`` keeps the logs (coturn's) after the lab closes; by default they
+    go to a temp dir deleted on close.
     """
 
     def __init__(
         self,
         nat: Mapping[str, NatMode] | None = None,
         *,
+        machines: Sequence[str] = (),
         workdir: Path | None = None,
     ) -> None:
-        self.nat: dict[str, NatMode] = dict(nat or {"vehicle": "eim", "user": "eim"})
-        if not 1 <= len(self.nat) <= 9:
-            raise ValueError("a lab has 1 to 9 sites")
+        if nat is None and not machines:
+            nat = {"vehicle": "eim", "user": "eim"}
+        self.nat: dict[str, NatMode] = dict(nat or {})
+        self.machine_names = list(machines)
+        if not len(self.nat) <= 9 or not len(self.machine_names) <= 9:
+            raise ValueError("a lab has up to 9 sites and up to 9 machines")
+        if not self.nat and not self.machine_names:
+            raise ValueError("a lab has a site or a machine")
+        names = [*self.nat, *self.machine_names]
+        if len(set(names)) != len(names):
+            raise ValueError(f"sites and machines need distinct names: {names}")
+        for name in self.machine_names:
+            if not _SITE_NAME_RE.fullmatch(name):
+                raise ValueError(f"machine name {name!r}: lowercase letters and digits, <=16")
         for name, mode in self.nat.items():
             if not _SITE_NAME_RE.fullmatch(name):
                 raise ValueError(f"site name {name!r}: lowercase letters and digits, <=16")
@@ -485,6 +524,7 @@ class NetLab:
         self.workdir = workdir
         self._public: ipaddress.IPv4Network | None = None
         self._sites: dict[str, Site] = {}
+        self._machines: dict[str, Machine] = {}
         self._processes: list[subprocess.Popen[Any]] = []
         self._root_rules: list[list[str]] = []
         self._open = False
@@ -510,6 +550,9 @@ class NetLab:
 
     def site(self, name: str) -> Site:
         return self._sites[name]
+
+    def machine(self, name: str) -> Machine:
+        return self._machines[name]
 
     @property
     def logdir(self) -> Path:
@@ -540,6 +583,8 @@ class NetLab:
                 self._build_bridge()
             for index, (name, mode) in enumerate(self.nat.items(), start=1):
                 self._build_site(index, name, mode)
+            for index, name in enumerate(self.machine_names, start=1):
+                self._build_machine(index, name)
         except BaseException:
             self.close()
             raise
@@ -576,6 +621,7 @@ class NetLab:
             if _tag_of(link) == self.tag:
                 subprocess.run(["ip", "link", "del", link], capture_output=True)
         self._sites.clear()
+        self._machines.clear()
         # The state dir holds coturn's pidfile and database, and the logs unless a
         # workdir keeps them.
         shutil.rmtree(self._state_dir, ignore_errors=True)
@@ -691,6 +737,24 @@ COMMIT
             root_veth=root_veth,
         )
 
+    def _build_machine(self, index: int, name: str) -> None:
+        ns = f"{self.tag}-{name}"
+        root_veth = f"{self.tag}m{index}"
+        ip = str(self.public_network[20 + index])
+        _run(["ip", "netns", "add", ns])
+        self._sysctl(ns, "net.ipv6.conf.all.disable_ipv6", "1")
+        self._sysctl(ns, "net.ipv6.conf.default.disable_ipv6", "1")
+        _run(["ip", "link", "add", root_veth, "type", "veth", "peer", "name", "eth0", "netns", ns])
+        _disable_ipv6(root_veth)
+        _run(["ip", "link", "set", root_veth, "master", self.bridge, "up"])
+        batch = [
+            "link set lo up",
+            f"addr add {ip}/{self.public_network.prefixlen} dev eth0",
+            "link set eth0 up",
+        ]
+        _run(["ip", "-n", ns, "-batch", "-"], input="\n".join(batch) + "\n")
+        self._machines[name] = Machine(name=name, netns=ns, ip=ip, root_veth=root_veth)
+
     @staticmethod
     def _sysctl(ns: str, key: str, value: str) -> None:
         _run(["ip", "netns", "exec", ns, "sysctl", "-q", "-w", f"{key}={value}"])
@@ -698,7 +762,10 @@ COMMIT
     # -- running things in a site
 
     def command(self, site: str, argv: Sequence[str], *, router: bool = False) -> list[str]:
-        """``argv`` prefixed to run in the site's host (or router) namespace."""
+        """``argv`` prefixed to run in the site's host (or router) namespace, or in the
+        namespace of the machine named ``site``."""
+        if site in self._machines:
+            return ["ip", "netns", "exec", self._machines[site].netns, *argv]
         s = self._sites[site]
         return ["ip", "netns", "exec", s.router_netns if router else s.netns, *argv]
 
@@ -737,15 +804,63 @@ COMMIT
         rule = self._block_rule(ip, port, proto)
         _run(self.command(site, ["iptables", "-w", "-D", *rule], router=True))
 
+    def _root_veth(self, name: str) -> str:
+        if name in self._machines:
+            return self._machines[name].root_veth
+        return self._sites[name].root_veth
+
     def link_down(self, site: str) -> None:
-        """Cut the site's uplink: its router's WAN loses carrier (the root end of the veth
-        goes down), packets vanish silently in both directions as with a pulled cable or
-        a dead radio link; addresses, routes and NAT state stay."""
-        _run(["ip", "link", "set", self._sites[site].root_veth, "down"])
+        """Cut the site's uplink (or the machine named ``site`` off the network): its
+        router's WAN loses carrier (the root end of the veth goes down), packets vanish
+        silently in both directions as with a pulled cable or a dead radio link;
+        addresses, routes, NAT state and open sockets stay."""
+        _run(["ip", "link", "set", self._root_veth(site), "down"])
 
     def link_up(self, site: str) -> None:
-        """Restore the site's uplink after ``link_down``."""
-        _run(["ip", "link", "set", self._sites[site].root_veth, "up"])
+        """Restore the site's uplink (the machine's link) after ``link_down``."""
+        _run(["ip", "link", "set", self._root_veth(site), "up"])
+
+    # -- the root namespace's services
+
+    @contextlib.contextmanager
+    def loopback_offered(self, ports: Sequence[int]) -> Iterator[None]:
+        """What listens on the root namespace's 127.0.0.1 at ``ports`` (PostgreSQL,
+        Redis) reachable from the lab at ``public_ip`` on the same ports, for the
+        machines: a plain TCP forwarder per port (benchmarks.delay_proxy with no delay),
+        in a thread and event loop of its own so the test's loop never slows it. A
+        machine cut off loses these connections as it loses every other."""
+        ready = threading.Event()
+        failed: list[BaseException] = []
+        loop = asyncio.new_event_loop()
+        stop = asyncio.Event()
+
+        async def serve() -> None:
+            try:
+                async with contextlib.AsyncExitStack() as stack:
+                    for port in ports:
+                        proxy = DelayProxy(
+                            target_port=port, listen_host=self.public_ip, listen_port=port
+                        )
+                        await stack.enter_async_context(proxy)
+                    ready.set()
+                    await stop.wait()
+            except BaseException as exc:
+                failed.append(exc)
+                ready.set()
+
+        thread = threading.Thread(
+            target=loop.run_until_complete, args=(serve(),), name=f"{self.tag}-forward"
+        )
+        thread.start()
+        try:
+            ready.wait()
+            if failed:
+                raise NetLabError(f"cannot offer {ports} on {self.public_ip}: {failed[0]}")
+            yield
+        finally:
+            loop.call_soon_threadsafe(stop.set)
+            thread.join(30)
+            loop.close()
 
     # -- coturn
 

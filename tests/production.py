@@ -9,12 +9,16 @@ with the test's own ports, certificate and folders put in.
   prefix, so no system file is read or written;
 * :class:`ProductionShape`: the platform run that way: gunicorn's HTTP processes and
   uvicorn's WebSocket processes (each restartable, as a deploy restarts them), nginx in
-  front with TLS, the Celery worker and beat.
+  front with TLS, the Celery worker and beat. By default every process is on this
+  machine's loopback; with ``hosts`` (:class:`Host`: e.g. the machines of a
+  tests.netlab lab) each host runs its own HTTP and WebSocket processes, on the ports
+  production's units use, and nginx spreads over all of them.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import re
 import signal
@@ -23,7 +27,7 @@ import subprocess
 import sys
 import time
 import urllib.request
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 from django.conf import settings
@@ -56,24 +60,31 @@ def units_rendered(into: Path) -> list[Path]:
 
 def nginx_site(
     *,
-    web: list[int],
-    ws: list[int],
+    web: Sequence[int | str],
+    ws: Sequence[int | str],
     https: int,
     http: int,
     certificates: Certificates,
     static_root: Path,
+    server_options: str = "max_fails=0",
+    upstream_keepalive: bool = True,
 ) -> str:
     """``deploy/nginx/iouv.conf`` listening on loopback ports ``https`` and ``http``,
-    proxying to the HTTP processes on ports ``web`` and the WebSocket ones on ``ws``,
-    with ``certificates`` and ``static_root``. Raises AssertionError if the shipped file
-    no longer has a line this replaces (the test would not run what production runs)."""
+    proxying to the HTTP processes ``web`` and the WebSocket ones ``ws`` (each a port on
+    127.0.0.1, or ``"host:port"`` for a process on another machine), with
+    ``certificates`` and ``static_root``; ``server_options`` end each upstream server's
+    line (the shipped file's are for processes on nginx's own machine). Raises
+    AssertionError if the shipped file no longer has a line this replaces (the test
+    would not run what production runs). ``upstream_keepalive`` False drops the HTTP
+    upstream's idle connections to the processes (``keepalive``)."""
     text = SITE.read_text()
 
-    def upstream(name: str, ports: list[int]) -> None:
+    def upstream(name: str, servers_at: Sequence[int | str]) -> None:
         nonlocal text
         block = re.compile(rf"(upstream {name} \{{\n)((?:    server [^\n]+\n)+)")
         assert block.search(text), f"no upstream {name} in {SITE}"
-        servers = "".join(f"    server 127.0.0.1:{port} max_fails=0;\n" for port in ports)
+        addresses = [f"127.0.0.1:{at}" if isinstance(at, int) else at for at in servers_at]
+        servers = "".join(f"    server {address} {server_options};\n" for address in addresses)
         text = block.sub(lambda m: m.group(1) + servers, text, count=1)
 
     def replace(old: str, new: str) -> None:
@@ -82,6 +93,8 @@ def nginx_site(
         text = text.replace(old, new)
 
     upstream("iouv_web", web)
+    if not upstream_keepalive:
+        replace("    keepalive 32;\n", "")
     upstream("iouv_ws", ws)
     replace("    listen [::]:80;\n", "")
     replace("    listen [::]:443 ssl;\n", "")
@@ -159,15 +172,32 @@ def _wait_http(url: str, *, context: ssl.SSLContext | None = None, within: float
 
 
 class Process:
-    """One server process on a fixed port, restartable as a deploy restarts it."""
+    """One server process on a fixed port, restartable as a deploy restarts it.
 
-    def __init__(self, name: str, command: list[str], env: dict[str, str], port: int) -> None:
+    ``host``: the address it listens on, where the test reaches it (a machine of a
+    tests.netlab lab: ``command`` then runs in its namespace)."""
+
+    def __init__(
+        self,
+        name: str,
+        command: list[str],
+        env: dict[str, str],
+        port: int,
+        *,
+        host: str = "127.0.0.1",
+    ) -> None:
         self.name = name
         self.command = command
         self.env = env
         self.port = port
+        self.host = host
         self.proc: subprocess.Popen[bytes] | None = None
         self.log_path = Path(settings.VAR_DIR) / f"{name}-{port}.log"
+
+    @property
+    def address(self) -> str:
+        """``host:port``, as nginx's upstream names it."""
+        return f"{self.host}:{self.port}"
 
     def start(self) -> None:
         """Start it and return once it answers ``/healthz`` on its own port."""
@@ -181,7 +211,7 @@ class Process:
                 start_new_session=True,  # kill() takes its worker processes too
             )
         try:
-            _wait_http(f"http://127.0.0.1:{self.port}/healthz")
+            _wait_http(f"http://{self.address}/healthz")
         except RuntimeError:
             raise RuntimeError(f"{self.name}: {self.log_path.read_text()[-2000:]}") from None
 
@@ -218,12 +248,27 @@ class Process:
         self.start()
 
 
+@dataclasses.dataclass(frozen=True)
+class Host:
+    """A machine the platform's processes run on: they listen on ``address`` (nginx
+    reaches them there), their command lines start with ``prefix`` (e.g. ``ip netns exec
+    <namespace>``), and ``env`` is added to their environment (e.g. a ``DATABASE_URL``
+    that reaches PostgreSQL from there)."""
+
+    name: str
+    address: str
+    prefix: tuple[str, ...] = ()
+    env: Mapping[str, str] = dataclasses.field(default_factory=dict)
+
+
 class ProductionShape:
     """The platform as deploy/ runs it, for one test; see the module docstring.
 
     ``base`` is the https address of nginx (``certificates.ca`` signs it), ``web`` and
-    ``ws`` the HTTP and WebSocket processes; ``worker``: whether the Celery worker (with
-    its beat) runs too, as ``worker`` once running."""
+    ``ws`` the HTTP and WebSocket processes (that many on each of ``hosts``, if given:
+    ports 8001... and 8101..., as production's units); ``worker``: whether the Celery
+    worker (with its beat) runs too, on this machine, as ``worker`` once running;
+    ``server_options``, ``upstream_keepalive``: see :func:`nginx_site`."""
 
     def __init__(
         self,
@@ -233,7 +278,12 @@ class ProductionShape:
         ws: int = 2,
         worker: bool = True,
         env: dict[str, str],
+        hosts: Sequence[Host] = (),
+        server_options: str = "max_fails=0",
+        upstream_keepalive: bool = True,
     ) -> None:
+        self.server_options = server_options
+        self.upstream_keepalive = upstream_keepalive
         self.workdir = workdir
         self.with_worker = worker
         self.certificates = certificates_make(workdir / "tls")
@@ -251,27 +301,49 @@ class ProductionShape:
             "ALLOWED_HOSTS": "127.0.0.1,localhost",
             **env,
         }
-        self.web = [
-            Process(
-                "gunicorn",
-                [
-                    sys.executable, "-m", "gunicorn", "-c", str(DEPLOY / "gunicorn.conf.py"),
-                    "--bind", f"127.0.0.1:{port}", "--workers", "2", "iouv.wsgi:application",
-                ],
-                self.env,
-                port,
+        places = [
+            (host, [8001 + i for i in range(web)], [8101 + i for i in range(ws)]) for host in hosts
+        ] or [
+            (
+                Host("local", "127.0.0.1"),
+                [free_port() for _ in range(web)],
+                [free_port() for _ in range(ws)],
             )
-            for port in (free_port() for _ in range(web))
-        ]  # fmt: skip
-        self.ws = [
-            Process(
-                "uvicorn",
-                [sys.executable, "-m", "iouv.serve", "--host", "127.0.0.1", "--port", str(port)],
-                self.env,
-                port,
-            )
-            for port in (free_port() for _ in range(ws))
         ]
+        self.web: list[Process] = []
+        self.ws: list[Process] = []
+        for host, web_ports, ws_ports in places:
+            env_there = {**self.env, **host.env}
+            if host.address != "127.0.0.1":
+                # Its /healthz is asked for at its own address.
+                env_there["ALLOWED_HOSTS"] += f",{host.address}"
+            self.web += [
+                Process(
+                    "gunicorn" if not hosts else f"gunicorn-{host.name}",
+                    [
+                        *host.prefix, sys.executable, "-m", "gunicorn",
+                        "-c", str(DEPLOY / "gunicorn.conf.py"), "--bind", f"{host.address}:{port}",
+                        "--workers", "2", "iouv.wsgi:application",
+                    ],
+                    env_there,
+                    port,
+                    host=host.address,
+                )
+                for port in web_ports
+            ]  # fmt: skip
+            self.ws += [
+                Process(
+                    "uvicorn" if not hosts else f"uvicorn-{host.name}",
+                    [
+                        *host.prefix, sys.executable, "-m", "iouv.serve",
+                        "--host", host.address, "--port", str(port),
+                    ],
+                    env_there,
+                    port,
+                    host=host.address,
+                )
+                for port in ws_ports
+            ]  # fmt: skip
         self.nginx: subprocess.Popen[bytes] | None = None
         self.context = self.certificates.client_context()
 
@@ -286,12 +358,14 @@ class ProductionShape:
         )
         prefix = self.workdir / "nginx"
         site = nginx_site(
-            web=[p.port for p in self.web],
-            ws=[p.port for p in self.ws],
+            web=[p.address for p in self.web],
+            ws=[p.address for p in self.ws],
             https=self.https,
             http=self.http,
             certificates=self.certificates,
             static_root=self.workdir / "static",
+            server_options=self.server_options,
+            upstream_keepalive=self.upstream_keepalive,
         )
         nginx_prepared(prefix, site)
         try:

@@ -17,16 +17,11 @@ import asyncio
 import contextlib
 import dataclasses
 import itertools
-import json
-import ssl
 import time
-import urllib.error
-import urllib.request
 from pathlib import Path
 from typing import Any
 
 import pytest
-from websockets.asyncio.client import ClientConnection, connect
 
 from accounts.tokens import token_issue
 from agents.config import AgentConfig
@@ -37,9 +32,9 @@ from kinds.rescue_at_sea.tests.sea import client_requests_rescue, search_area
 from services.demo import demo_seed
 from services.models import Session
 from tests import factories as f
-from tests.control import command, recv
 from tests.demo import PASSWORD, agents_online, mission_agent_config
 from tests.production import ProductionShape
+from tests.production_clients import Driver, Reader, api, task_accepted
 from tests.servers import db, until
 
 pytestmark = [
@@ -67,126 +62,6 @@ MISSIONS = {
     "CELERY_VISIBILITY_TIMEOUT_S": "5",
     "EMAIL_BACKEND": "django.core.mail.backends.filebased.EmailBackend",
 }
-
-
-def _api(base: str, context: ssl.SSLContext, method: str, path: str, token: str) -> tuple[int, Any]:
-    request = urllib.request.Request(
-        f"{base}/api/v1{path}",
-        method=method,
-        data=json.dumps({"service": "drive-car"}).encode() if method == "POST" else None,
-        headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"},
-    )
-    try:
-        with urllib.request.urlopen(request, timeout=20, context=context) as response:
-            return response.status, json.loads(response.read())
-    except urllib.error.HTTPError as exc:
-        return exc.code, exc.read()
-
-
-class Reader:
-    """A program reading the API through nginx every 100 ms, counting failures."""
-
-    def __init__(self, shape: ProductionShape, token: str) -> None:
-        self.failures: list[Any] = []
-        self.answered = 0
-        self._task = asyncio.create_task(self._read(shape, token))
-
-    async def _read(self, shape: ProductionShape, token: str) -> None:
-        while True:
-            try:
-                status, body = await asyncio.to_thread(
-                    _api, shape.base, shape.context, "GET", "/services", token
-                )
-            except OSError as exc:
-                status, body = 0, str(exc)
-            if status == 200:
-                self.answered += 1
-            else:
-                self.failures.append((status, body))
-            await asyncio.sleep(0.1)
-
-    async def stop(self) -> None:
-        self._task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await self._task
-
-
-class Driver:
-    """A user holding ``forward`` over the platform's relay, a command every 100 ms,
-    reconnecting with a fresh grant whenever the socket closes, as the controller page
-    does when it has no WebRTC."""
-
-    def __init__(self, shape: ProductionShape, token: str, task: dict[str, Any]) -> None:
-        self.shape, self.token, self.task = shape, token, task
-        self.sent = self.acked = 0
-        #: The last answer that refused a fresh grant (a failure says it).
-        self.refused: Any = None
-        #: What happened to the connection, with when (monotonic): a failure says it.
-        self.log: list[tuple[float, str]] = []
-        self.acked_at: list[float] = []
-        self.ws: ClientConnection | None = None
-        self._runner = asyncio.create_task(self._run())
-
-    async def _connect(self) -> ClientConnection:
-        url = f"wss://127.0.0.1:{self.shape.https}/ws/relay/{self.task['session_id']}/"
-        ws = await connect(url, ssl=self.shape.context, proxy=None, compression=None)
-        await ws.send(json.dumps({"type": "auth", "grant": self.task["grant"]}))
-        # The vehicle may still count the socket the restart cut as its controller:
-        # gone silent, it hands the controls to the user's new connection.
-        assert (await recv(ws, "welcome", within=10))["role"] == "controller"
-        return ws
-
-    async def _run(self) -> None:
-        seq = 0
-        while True:
-            try:
-                self.ws = await self._connect()
-                while True:
-                    seq += 1
-                    self.sent += 1
-                    if (await command(self.ws, seq, "forward", speed=0.3))["ok"]:
-                        self.acked += 1
-                        self.acked_at.append(time.monotonic())
-                    await asyncio.sleep(0.1)
-            except Exception as exc:
-                self.log.append((time.monotonic(), f"{type(exc).__name__}: {exc}"[:120]))
-                # The relay's process restarted: a fresh grant, and on again.
-                await asyncio.sleep(0.2)
-                status, body = await asyncio.to_thread(
-                    _api,
-                    self.shape.base,
-                    self.shape.context,
-                    "POST",
-                    f"/sessions/{self.task['session_id']}/grant",
-                    self.token,
-                )
-                if status == 200:
-                    self.task = body["task"]
-                else:
-                    self.refused = (status, body)
-
-    def longest_gap(self, since: float) -> float:
-        """The longest time without an acknowledged command since ``since``."""
-        times = [since, *(t for t in self.acked_at if t > since), time.monotonic()]
-        return max(b - a for a, b in itertools.pairwise(times))
-
-    async def until_acked(self, more: int) -> None:
-        target = self.acked + more
-
-        async def done() -> bool:
-            if self._runner.done():
-                self._runner.result()
-            return self.acked >= target
-
-        what = f"{more} more commands acknowledged (last grant refusal: {self.refused})"
-        await until(done, within=30, what=what)
-
-    async def stop(self) -> None:
-        self._runner.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await self._runner
-        if self.ws is not None:
-            await self.ws.close()
 
 
 class RtcDriver:
@@ -316,13 +191,13 @@ async def test_every_platform_process_restarted_or_killed_in_turn_ends_no_sessio
             try:
                 for name in ("ana", "bea", "carl", "dora"):
                     status, body = await asyncio.to_thread(
-                        _api, shape.base, shape.context, "POST", "/sessions", tokens[name]
+                        api, shape.base, shape.context, "POST", "/sessions", tokens[name]
                     )
                     assert status == 201, body
                     sessions.append(body["session"]["id"])
-                    await _task_accepted(body["session"]["id"])
+                    await task_accepted(body["session"]["id"])
                     if name == "dora":
-                        relayed = Driver(shape, tokens[name], body["task"])
+                        relayed = Driver(shape, tokens[name], body["task"], direct=False)
                     else:
                         rtc.append(RtcDriver(shape, body["task"]))
                         await rtc[-1].start()
@@ -411,12 +286,3 @@ async def _all_back(configs: dict[str, AgentConfig]) -> bool:
         )
     )
     return Vehicle.Status.OFFLINE not in statuses and len(statuses) == len(configs)
-
-
-async def _task_accepted(session_id: str) -> None:
-    async def accepted() -> bool:
-        return await db(
-            lambda: Session.objects.get(pk=session_id).events.filter(kind="task_accepted").exists()
-        )
-
-    await until(accepted, within=15, what="the agent to accept its task")

@@ -1,0 +1,188 @@
+"""Users and programs on the production shape (tests.production): the cars they ask
+for, a program reading the API through nginx, a user driving on the car's own socket or
+over the platform's relay, counting what was acknowledged and when."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import json
+import ssl
+import time
+import urllib.error
+import urllib.request
+from typing import Any
+
+from websockets.asyncio.client import ClientConnection, connect
+
+from fleet.credentials import vehicle_issue_credential
+from fleet.models import Vehicle
+from services.models import Session
+from tests import factories as f
+from tests.control import command, recv
+from tests.production import ProductionShape
+from tests.servers import db, until
+from tests.vehicles import car_served
+
+
+def car_fleet(count: int = 2) -> tuple[list[Vehicle], list[str]]:
+    """``count`` cars (car-1, car-2...) at one station, all matching the drive-car
+    service; their credentials."""
+    car, credential, _service = car_served("car-1", service="drive-car")
+    cars, credentials = [car], [credential]
+    for number in range(2, count + 1):
+        other = f.vehicle(
+            station=car.station,
+            vtype=car.vehicle_type,
+            name=f"car-{number}",
+            online=False,
+            **car.attributes,
+        )
+        cars.append(other)
+        credentials.append(vehicle_issue_credential(vehicle=other))
+    return cars, credentials
+
+
+def api(base: str, context: ssl.SSLContext, method: str, path: str, token: str) -> tuple[int, Any]:
+    """One API request through nginx (a POST asks for the drive-car service): its status
+    and its JSON body (the raw body of an error)."""
+    request = urllib.request.Request(
+        f"{base}/api/v1{path}",
+        method=method,
+        data=json.dumps({"service": "drive-car"}).encode() if method == "POST" else None,
+        headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"},
+    )
+    try:
+        with urllib.request.urlopen(request, timeout=20, context=context) as response:
+            return response.status, json.loads(response.read())
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.read()
+
+
+class Reader:
+    """A program reading the API through nginx every 100 ms, counting failures, and
+    timing the answers: ``answered_at`` holds (when it was asked, seconds it took)."""
+
+    def __init__(self, shape: ProductionShape, token: str) -> None:
+        self.failures: list[Any] = []
+        self.answered = 0
+        self.answered_at: list[tuple[float, float]] = []
+        self._task = asyncio.create_task(self._read(shape, token))
+
+    async def _read(self, shape: ProductionShape, token: str) -> None:
+        while True:
+            asked = time.monotonic()
+            try:
+                status, body = await asyncio.to_thread(
+                    api, shape.base, shape.context, "GET", "/services", token
+                )
+            except OSError as exc:
+                status, body = 0, str(exc)
+            if status == 200:
+                self.answered += 1
+                self.answered_at.append((asked, time.monotonic() - asked))
+            else:
+                self.failures.append((status, body))
+            await asyncio.sleep(0.1)
+
+    async def stop(self) -> None:
+        self._task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._task
+
+
+class Driver:
+    """A user holding ``forward``, a command every 100 ms. ``direct``: on the car's
+    own socket (the platform is not on that path); else over the relay, reconnecting
+    with a fresh grant whenever the socket closes, as the controller page does."""
+
+    def __init__(
+        self, shape: ProductionShape, token: str, task: dict[str, Any], *, direct: bool
+    ) -> None:
+        self.shape, self.token, self.task, self.direct = shape, token, task, direct
+        self.sent = self.acked = 0
+        #: The last answer that refused a fresh grant (a failure says it).
+        self.refused: Any = None
+        #: What happened to the connection, with when (monotonic): a failure says it.
+        self.log: list[tuple[float, str]] = []
+        self.acked_at: list[float] = []
+        self.ws: ClientConnection | None = None
+        self._runner = asyncio.create_task(self._run())
+
+    async def _connect(self) -> ClientConnection:
+        if self.direct:
+            ws = await connect(self.task["control_url"], proxy=None, compression=None)
+        else:
+            url = f"wss://127.0.0.1:{self.shape.https}/ws/relay/{self.task['session_id']}/"
+            ws = await connect(url, ssl=self.shape.context, proxy=None, compression=None)
+        await ws.send(json.dumps({"type": "auth", "grant": self.task["grant"]}))
+        # The vehicle may still count the socket the restart cut as its controller:
+        # gone silent, it hands the controls to the user's new connection.
+        assert (await recv(ws, "welcome", within=10))["role"] == "controller"
+        return ws
+
+    async def _run(self) -> None:
+        seq = 0
+        while True:
+            try:
+                self.ws = await self._connect()
+                while True:
+                    seq += 1
+                    self.sent += 1
+                    if (await command(self.ws, seq, "forward", speed=0.3))["ok"]:
+                        self.acked += 1
+                        self.acked_at.append(time.monotonic())
+                    await asyncio.sleep(0.1)
+            except Exception as exc:
+                if self.direct:
+                    raise  # the car's own socket never goes through the platform
+                self.log.append((time.monotonic(), f"{type(exc).__name__}: {exc}"[:120]))
+                # The relay's process restarted: a fresh grant, and on again.
+                await asyncio.sleep(0.2)
+                status, body = await asyncio.to_thread(
+                    api,
+                    self.shape.base,
+                    self.shape.context,
+                    "POST",
+                    f"/sessions/{self.task['session_id']}/grant",
+                    self.token,
+                )
+                if status == 200:
+                    self.task = body["task"]
+                else:
+                    self.refused = (status, body)
+
+    def longest_gap(self, since: float) -> float:
+        """The longest time without an acknowledged command since ``since``."""
+        times = [since, *(t for t in self.acked_at if t > since), time.monotonic()]
+        return max(b - a for a, b in itertools.pairwise(times))
+
+    async def until_acked(self, more: int) -> None:
+        target = self.acked + more
+
+        async def done() -> bool:
+            if self._runner.done():
+                self._runner.result()
+            return self.acked >= target
+
+        what = f"{more} more commands acknowledged (last grant refusal: {self.refused})"
+        await until(done, within=30, what=what)
+
+    async def stop(self) -> None:
+        self._runner.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._runner
+        if self.ws is not None:
+            await self.ws.close()
+
+
+async def task_accepted(session_id: str) -> None:
+    """Wait until the agent accepted the session's task."""
+
+    async def accepted() -> bool:
+        return await db(
+            lambda: Session.objects.get(pk=session_id).events.filter(kind="task_accepted").exists()
+        )
+
+    await until(accepted, within=15, what="the agent to accept its task")
