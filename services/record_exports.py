@@ -13,7 +13,7 @@ import csv
 import io
 import json
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from typing import Any
 from xml.etree import ElementTree as ET
@@ -107,62 +107,57 @@ def _csv(columns: tuple[str, ...], rows: Iterator[dict[str, Any]]) -> bytes:
     return out.getvalue().encode()
 
 
+def _sample_rows(
+    session: Session, kind: list[str], fields: Callable[[RecordSample], dict[str, Any]]
+) -> Iterator[dict[str, Any]]:
+    """One CSV row per sample of the given kinds, in order: the columns every CSV
+    shares (``vehicle``, ``seq``, ``time_utc``) and then what ``fields`` reads from
+    the sample."""
+    for s in record_samples(session=session, kinds=kind):
+        yield {"vehicle": s.vehicle_id, "seq": s.seq, "time_utc": _utc(s.t), **fields(s)}
+
+
+def _track_fields(s: RecordSample) -> dict[str, Any]:
+    return {c: s.data.get(c) for c in TRACK_COLUMNS[3:]}
+
+
+def _command_fields(s: RecordSample) -> dict[str, Any]:
+    d = s.data
+    return {
+        "source": d.get("source"),
+        "name": d.get("name"),
+        "args": json.dumps(d.get("args", {}), sort_keys=True),
+        "ok": d.get("ok"),
+        "code": d.get("code"),
+        "error": d.get("error"),
+        "age_ms": d.get("age_ms"),
+        "client_seq": d.get("seq"),
+    }
+
+
+def _event_fields(s: RecordSample) -> dict[str, Any]:
+    data = dict(s.data)
+    return {
+        "kind": s.kind,
+        "event": data.pop("event", ""),
+        "data": json.dumps(data, sort_keys=True),
+    }
+
+
 def record_track_csv(session: Session) -> bytes:
     """Every telemetry sample, one row each (positions missing left empty)."""
-
-    def rows() -> Iterator[dict[str, Any]]:
-        for s in record_samples(session=session, kinds=["telemetry"]):
-            d = s.data
-            yield {
-                "vehicle": s.vehicle_id,
-                "seq": s.seq,
-                "time_utc": _utc(s.t),
-                **{c: d.get(c) for c in TRACK_COLUMNS[3:]},
-            }
-
-    return _csv(TRACK_COLUMNS, rows())
+    return _csv(TRACK_COLUMNS, _sample_rows(session, ["telemetry"], _track_fields))
 
 
 def record_commands_csv(session: Session) -> bytes:
     """Every command: who sent it (``source``), its acknowledgement, its age."""
-
-    def rows() -> Iterator[dict[str, Any]]:
-        for s in record_samples(session=session, kinds=["command"]):
-            d = s.data
-            yield {
-                "vehicle": s.vehicle_id,
-                "seq": s.seq,
-                "time_utc": _utc(s.t),
-                "source": d.get("source"),
-                "name": d.get("name"),
-                "args": json.dumps(d.get("args", {}), sort_keys=True),
-                "ok": d.get("ok"),
-                "code": d.get("code"),
-                "error": d.get("error"),
-                "age_ms": d.get("age_ms"),
-                "client_seq": d.get("seq"),
-            }
-
-    return _csv(COMMAND_COLUMNS, rows())
+    return _csv(COMMAND_COLUMNS, _sample_rows(session, ["command"], _command_fields))
 
 
 def record_events_csv(session: Session) -> bytes:
     """The vehicle's events (refusals, envelope interventions, fail-safes) and what
     the record says it dropped."""
-
-    def rows() -> Iterator[dict[str, Any]]:
-        for s in record_samples(session=session, kinds=["event", "dropped"]):
-            data = dict(s.data)
-            yield {
-                "vehicle": s.vehicle_id,
-                "seq": s.seq,
-                "time_utc": _utc(s.t),
-                "kind": s.kind,
-                "event": data.pop("event", ""),
-                "data": json.dumps(data, sort_keys=True),
-            }
-
-    return _csv(EVENT_COLUMNS, rows())
+    return _csv(EVENT_COLUMNS, _sample_rows(session, ["event", "dropped"], _event_fields))
 
 
 def record_archive(session: Session) -> bytes:
