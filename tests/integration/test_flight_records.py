@@ -217,6 +217,14 @@ async def test_a_flight_through_a_platform_outage_is_recorded_whole_and_exported
     logged = [s for s in track if times[0] + 0.5 < s.t <= times[-1]]
     assert len(logged) > len(track) / 2
     assert all((s.data["lat"], s.data["lon"]) in positions for s in logged)
+    # It holds what the agent sent the autopilot too, as a ground station's .tlog does:
+    # the take-off's COMMAND_LONG and the "front" setpoints, from the agent's system id.
+    reader = mavutil.mavlink_connection(str(tlog_path))
+    sent = set()
+    while msg := reader.recv_match(type=["COMMAND_LONG", "SET_POSITION_TARGET_LOCAL_NED"]):
+        sent.add((msg.get_type(), msg.get_srcSystem()))
+    agent_system = agent.adapter.link.config.source_system
+    assert {("COMMAND_LONG", agent_system), ("SET_POSITION_TARGET_LOCAL_NED", agent_system)} <= sent
 
     archive = zipfile.ZipFile(io.BytesIO((await db(_get, owner, base + "zip")).content))
     assert {"track.gpx", "track.kml", "track.csv", "commands.csv", "flight.tlog"} <= set(

@@ -113,6 +113,7 @@ class MavlinkAdapter(Adapter, abc.ABC):
         self.config = MavlinkConfig.from_options(options)
         self.vehicle_class = self.config.vehicle_class
         self.link = AutopilotLink(self.config, on_message=self._dispatch)
+        self.link.on_sent = self._sent
         self.t = Telemetry()
         self._tasks: list[asyncio.Task[None]] = []
         self._last_heartbeat: float | None = None
@@ -259,6 +260,11 @@ class MavlinkAdapter(Adapter, abc.ABC):
         await self.link.close()
 
     # --- receiving (event loop) ----------------------------------------------------------
+    def _sent(self, at: float, frame: bytes) -> None:
+        """A message the link sent the autopilot: into the raw stream too."""
+        if self.on_raw is not None:
+            self.on_raw(at, frame)
+
     def _dispatch(self, msg: Any) -> None:
         """One message from the autopilot (the link already took its answers)."""
         if self.on_raw is not None:

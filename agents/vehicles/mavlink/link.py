@@ -66,6 +66,10 @@ class AutopilotLink:
     def __init__(self, config: MavlinkConfig, *, on_message: Callable[[Any], None]) -> None:
         self.config = config
         self.on_message = on_message
+        #: Gets (Unix time, frame) for every message sent to the autopilot, on the event
+        #: loop once the writer thread has sent it (the flight record's tlog keeps both
+        #: directions, as a ground station's .tlog does).
+        self.on_sent: Callable[[float, bytes], None] | None = None
         self.conn: Any = None
         #: Whether the autopilot is heard (its owner keeps this up to date).
         self.ok = False
@@ -194,6 +198,18 @@ class AutopilotLink:
             except Exception as exc:  # a dropped TCP peer, a serial write timeout
                 self.send_errors += 1
                 logger.debug("mavlink: send failed: %s", exc)
+                continue
+            self._sent(msg)
+
+    def _sent(self, msg: Any) -> None:
+        """Hand a sent message's frame to :attr:`on_sent` on the event loop (its sink
+        is not thread-safe). The frame is read after ``send``: pymavlink packs it then,
+        with the sequence number and signature the autopilot got."""
+        sink, loop = self.on_sent, self._loop
+        if sink is None or loop is None:
+            return
+        with contextlib.suppress(RuntimeError):  # the loop is closed: shutting down
+            loop.call_soon_threadsafe(sink, time.time(), bytes(msg.get_msgbuf()))
 
     def send(self, msg: Any) -> None:
         """Queue ``msg`` for the writer thread; never blocks (a full queue drops it)."""
