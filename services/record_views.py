@@ -8,9 +8,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Final
 
+from django.conf import settings
 from django.contrib.auth.decorators import login_required
 from django.http import Http404, HttpResponse, JsonResponse
-from django.shortcuts import get_object_or_404
+from django.shortcuts import get_object_or_404, render
 from django.urls import reverse
 from django.views.decorators.cache import never_cache
 from django.views.decorators.http import require_GET
@@ -76,11 +77,11 @@ def record_summary(session: Session, *, url_for: Callable[[str], str]) -> dict[s
 def session_record(request: AuthenticatedHttpRequest, session_id: str) -> HttpResponse:
     """The record's summary (JSON)."""
     session = record_session(user=request.user, session_id=session_id)
-    return JsonResponse(
-        record_summary(
-            session, url_for=lambda name: reverse("session_record_export", args=[session.pk, name])
-        )
+    summary = record_summary(
+        session, url_for=lambda name: reverse("session_record_export", args=[session.pk, name])
     )
+    summary["replay"] = reverse("session_replay", args=[session.pk])
+    return JsonResponse(summary)
 
 
 @never_cache
@@ -91,3 +92,76 @@ def session_record_export(
 ) -> HttpResponse:
     """One export of the record (GPX, KML, CSV, tlog, zip)."""
     return record_file(record_session(user=request.user, session_id=session_id), name)
+
+
+#: Samples one replay answer holds at most; the page asks again from the last one.
+REPLAY_PAGE: Final = 2000
+#: What the replay page shows of each kind (tlog pieces are for tools, not the page).
+REPLAY_KINDS: Final = ("telemetry", "command", "event", "dropped")
+
+
+def replay_samples(session: Session, *, after: int) -> dict[str, object]:
+    """The record's samples the replay page shows that were stored after the sample
+    whose ``id`` is ``after`` (0: from the start), at most :data:`REPLAY_PAGE`, in the
+    order they were stored; ``more`` says whether the page should ask again at once.
+    The cursor is the stored row's id rather than the vehicle's sequence number, so a
+    session with several vehicles (each numbering its own) still has one cursor."""
+    rows = list(
+        RecordSample.objects.filter(session=session, kind__in=REPLAY_KINDS, pk__gt=after)
+        .order_by("pk")
+        .values("pk", "vehicle_id", "seq", "t", "kind", "data")[: REPLAY_PAGE + 1]
+    )
+    more = len(rows) > REPLAY_PAGE
+    rows = rows[:REPLAY_PAGE]
+    return {
+        "samples": [
+            {
+                "id": r["pk"],
+                "vehicle": str(r["vehicle_id"]),
+                "seq": r["seq"],
+                "t": r["t"],
+                "kind": r["kind"],
+                "data": r["data"],
+            }
+            for r in rows
+        ],
+        "next": rows[-1]["pk"] if rows else after,
+        "more": more,
+        # Still recording: the page keeps asking for what comes next.
+        "live": session.state
+        in (Session.State.REQUESTED, Session.State.ASSIGNED, Session.State.ACTIVE),
+    }
+
+
+@never_cache
+@login_required
+@require_GET
+def session_replay(request: AuthenticatedHttpRequest, session_id: str) -> HttpResponse:
+    """The replay page: the track on the map, a time slider, the gauges at that instant,
+    the commands and events on a timeline (static/js/replay.js draws it from
+    :func:`session_replay_samples`)."""
+    session = record_session(user=request.user, session_id=session_id)
+    return render(
+        request,
+        "services/replay.html",
+        {
+            "session": session,
+            "replay": {
+                "samples_url": reverse("session_replay_samples", args=[session.pk]),
+                "tiles": settings.IOUV_MAP_TILES_URL,
+                "poll_ms": 2000,
+            },
+        },
+    )
+
+
+@never_cache
+@login_required
+@require_GET
+def session_replay_samples(request: AuthenticatedHttpRequest, session_id: str) -> HttpResponse:
+    """JSON: :func:`replay_samples` after ``?after=<id>`` (a whole number; 400 if not)."""
+    session = record_session(user=request.user, session_id=session_id)
+    raw = request.GET.get("after", "0")
+    if not raw.isdigit():
+        return JsonResponse({"error": "after must be a whole number (a sample id)"}, status=400)
+    return JsonResponse(replay_samples(session, after=int(raw)))

@@ -18,6 +18,12 @@ urlpatterns = [
     path("sessions/<uuid:session_id>/end", views.session_finish, name="session_end"),
     path("sessions/<uuid:session_id>/stop", views.session_stop, name="session_stop"),
     path("sessions/<uuid:session_id>/record/", record_views.session_record, name="session_record"),
+    path("sessions/<uuid:session_id>/replay/", record_views.session_replay, name="session_replay"),
+    path(
+        "sessions/<uuid:session_id>/replay/samples",
+        record_views.session_replay_samples,
+        name="session_replay_samples",
+    ),
     path(
         "sessions/<uuid:session_id>/record/<str:name>",
         record_views.session_record_export,

@@ -22,6 +22,7 @@ from xml.etree import ElementTree as ET
 import gpxpy
 import pytest
 from django.test import Client
+from playwright.async_api import expect
 from websockets.asyncio.client import connect
 
 from accounts.roles import MONITOR
@@ -37,7 +38,9 @@ from services.models import RecordBatch, RecordSample, Service, Session
 from services.records import record_verify
 from services.signing import platform_public_key_pem
 from tests import factories as f
+from tests.browser import chromium_browser, needs_chromium
 from tests.control import command, recv
+from tests.portal import sign_in
 from tests.servers import PlatformServer, agent_configured, db, platform_server, until
 from tests.vehicles import QUADCOPTER, agent_registered, session_deployed, vehicle_served
 
@@ -355,3 +358,82 @@ async def test_bad_record_frames_are_refused_and_a_batch_sent_twice_is_stored_on
     assert chained == 1
     assert events_before >= 1
     assert (await db(record_verify, session=session)).ok
+
+
+async def _fly_a_hop(agent: Agent, url: str, grant: str) -> None:
+    """Take off, fly forward for a few seconds, land and wait until disarmed."""
+    async with connect(url, proxy=None, compression=None) as ws:
+        await ws.send(json.dumps({"type": "auth", "grant": grant}))
+        assert (await recv(ws, "welcome"))["role"] == "controller"
+        assert (await command(ws, 1, "take_off", altitude_m=5))["ok"]
+        drone: Any = agent.adapter
+
+        async def climbed() -> bool:
+            await ws.send(json.dumps({"type": "keepalive"}))
+            return (drone.t.alt or 0) >= 4.5
+
+        await until(climbed, within=20, what="the drone to climb")
+        for seq in range(2, 12):
+            assert (await command(ws, seq, "front", speed_mps=3))["ok"]
+        assert (await command(ws, 12, "land"))["ok"]
+
+        async def landed() -> bool:
+            await ws.send(json.dumps({"type": "keepalive"}))
+            return not drone.t.armed
+
+        await until(landed, within=40, what="the drone to land")
+
+
+@needs_chromium
+async def test_the_replay_page_moves_the_marker_and_gauges_with_its_slider(flight):
+    platform, agent, quad, service = flight
+    await agent_registered(quad, within=20, positioned=True)
+    session, user_task = await session_deployed(agent, service)
+    await _fly_a_hop(agent, user_task.control_url, user_task.grant)
+    samples = await _all_uploaded(agent, session, ended=True)
+    track = [s for s in samples if s.kind == "telemetry" and s.data["lat"] is not None]
+    commands = [s.data for s in samples if s.kind == "command"]
+    owner = await db(lambda: Session.objects.get(pk=session.pk).user)
+
+    async with chromium_browser() as browser:
+        page = await browser.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        await sign_in(page, platform.base, owner.username, password="pw-for-tests")
+        await page.goto(f"{platform.base}/sessions/{session.pk}/replay/")
+        await expect(page.locator("#replay")).to_have_attribute("data-loaded", "true")
+        await expect(page.locator("[data-replay-no-video]")).to_have_text(
+            "No video was recorded for this session."
+        )
+        # The marker starts at the track's first point.
+        first = track[0].data
+        assert await page.evaluate("() => window.IoUVReplay.markerLatLng()") == [
+            first["lat"],
+            first["lon"],
+        ]
+        # The slider moved to a sample in flight: the marker and gauges are that sample's.
+        index = max(i for i, s in enumerate(track) if s.data["armed"] and s.data["alt"] > 3)
+        sample = track[index].data
+        await page.locator("[data-replay-slider]").fill(str(index))
+        assert await page.evaluate("() => window.IoUVReplay.markerLatLng()") == [
+            sample["lat"],
+            sample["lon"],
+        ]
+        await expect(page.locator('[data-gauge="alt"]')).to_have_text(f"{sample['alt']:.1f} m")
+        speed = "–" if sample["speed"] is None else f"{sample['speed']:.1f} m/s"
+        await expect(page.locator('[data-gauge="speed"]')).to_have_text(speed)
+        await expect(page.locator('[data-gauge="mode"]')).to_have_text(sample["mode"])
+        # The timeline says who sent each command, what it was and how it was answered.
+        items = page.locator('[data-replay-timeline] li[data-kind="command"]')
+        await expect(items).to_have_count(len(commands))
+        texts = await items.all_text_contents()
+        assert "user · take_off · ok" in texts[0]
+        assert any("user · front · ok" in t for t in texts)
+        assert not errors
+
+        # Another user is told there is no such session.
+        stranger = await db(f.user, "mallory")
+        other = await browser.new_page()
+        await sign_in(other, platform.base, stranger.username, password="pw-for-tests")
+        answer = await other.goto(f"{platform.base}/sessions/{session.pk}/replay/")
+        assert answer is not None and answer.status == 404
