@@ -15,6 +15,7 @@ from django.utils import timezone
 from accounts.roles import ADMIN
 from accounts.tokens import token_issue
 from agents.protocol.messages import Record, RecordSample
+from services import record_views
 from services.admin import SessionAdmin
 from services.models import RecordBatch, Session
 from services.records import record_batch_store, record_verify, records_expire
@@ -141,3 +142,29 @@ def test_the_api_serves_the_record_to_its_user_and_monitors_only(live_session) -
     stranger = get(f.user("mallory"), base + "/gpx")
     assert stranger.status_code == 404 and stranger.json()["error"]["code"] == "not_found"
     assert get(session.user, base + "/tlog").status_code == 404
+
+
+def test_the_replay_reads_the_samples_after_its_cursor_and_refuses_bad_input(
+    live_session, monkeypatch
+) -> None:
+    session, vehicle = live_session
+    record_batch_store(vehicle_id=vehicle, message=_batch(session, 1))
+    client = Client()
+    client.force_login(session.user)
+    url = f"/sessions/{session.pk}/replay/samples"
+    monkeypatch.setattr(record_views, "REPLAY_PAGE", 2)
+    first = client.get(url).json()
+    assert [s["seq"] for s in first["samples"]] == [1, 2] and first["more"] and first["live"]
+    rest = client.get(url, {"after": first["next"]}).json()
+    assert [s["seq"] for s in rest["samples"]] == [3] and not rest["more"]
+    record_batch_store(vehicle_id=vehicle, message=_batch(session, 4, n=1))
+    new = client.get(url, {"after": rest["next"]}).json()
+    assert [s["seq"] for s in new["samples"]] == [4]
+    assert new["samples"][0]["data"]["lat"] == 40.0
+
+    bad = client.get(url, {"after": "-1"})
+    assert bad.status_code == 400 and "whole number" in bad.json()["error"]
+    stranger = Client()
+    stranger.force_login(f.user("mallory"))
+    assert stranger.get(url).status_code == 404
+    assert stranger.get(f"/sessions/{session.pk}/replay/").status_code == 404
