@@ -9,7 +9,9 @@ GPX, ElementTree for the KML, pymavlink's own log reader for the ``.tlog``.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import io
+import itertools
 import json
 import time
 import zipfile
@@ -91,9 +93,10 @@ async def flight(
 
 
 async def _fly_through_an_outage(
-    platform: PlatformServer, agent: Agent, url: str, grant: str
+    platform: PlatformServer, agent: Agent, url: str, grant: str, *, outage_s: float = 6
 ) -> None:
-    """Take off, fly forward, lose the platform for 6 s while flying, land."""
+    """Take off, fly forward, lose the platform for ``outage_s`` while flying (forward
+    for its first 6 s, then hovering: the user keeps the link alive), land."""
     async with connect(url, proxy=None, compression=None) as ws:
         await ws.send(json.dumps({"type": "auth", "grant": grant}))
         assert (await recv(ws, "welcome"))["role"] == "controller"
@@ -107,10 +110,17 @@ async def _fly_through_an_outage(
         seq = 2
         platform.kill()
         killed = time.monotonic()
-        while time.monotonic() - killed < 6:  # flying while the platform is away
-            assert (await command(ws, seq, "front", speed_mps=3))["ok"]
-            seq += 1
-            await asyncio.sleep(0.2)
+        while time.monotonic() - killed < outage_s:  # flying while the platform is away
+            if time.monotonic() - killed < 6:
+                assert (await command(ws, seq, "front", speed_mps=3))["ok"]
+                seq += 1
+                await asyncio.sleep(0.2)
+            else:
+                await ws.send(json.dumps({"type": "keepalive"}))
+                # Read what the agent says meanwhile (pings, events): a client that
+                # stops reading stops answering its socket's pings and is cut off.
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(ws.recv(), 0.2)
         assert agent.recorder.pending, "batches wait on the vehicle meanwhile"
         await asyncio.to_thread(platform.start)
         # A refused command is recorded with its acknowledgement too.
@@ -120,7 +130,7 @@ async def _fly_through_an_outage(
         while drone.t.armed:
             await ws.send(json.dumps({"type": "keepalive"}))
             await asyncio.sleep(0.2)
-            assert time.monotonic() - killed < 40, "the drone did not land"
+            assert time.monotonic() - killed < outage_s + 34, "the drone did not land"
 
 
 async def _all_uploaded(
@@ -420,7 +430,7 @@ async def test_the_replay_page_moves_the_marker_and_gauges_with_its_slider(fligh
             sample["lon"],
         ]
         await expect(page.locator('[data-gauge="alt"]')).to_have_text(f"{sample['alt']:.1f} m")
-        speed = "–" if sample["speed"] is None else f"{sample['speed']:.1f} m/s"
+        speed = "\N{EN DASH}" if sample["speed"] is None else f"{sample['speed']:.1f} m/s"
         await expect(page.locator('[data-gauge="speed"]')).to_have_text(speed)
         await expect(page.locator('[data-gauge="mode"]')).to_have_text(sample["mode"])
         # The timeline says who sent each command, what it was and how it was answered.
@@ -437,3 +447,24 @@ async def test_the_replay_page_moves_the_marker_and_gauges_with_its_slider(fligh
         await sign_in(other, platform.base, stranger.username, password="pw-for-tests")
         answer = await other.goto(f"{platform.base}/sessions/{session.pk}/replay/")
         assert answer is not None and answer.status == 404
+
+
+@pytest.mark.realtime
+async def test_an_uplink_cut_of_30_s_mid_flight_loses_no_sample(flight):
+    """The platform is away for 30 s (killed, then started again) while the drone flies:
+    the vehicle keeps the record meanwhile and the platform gets all of it."""
+    platform, agent, quad, service = flight
+    await agent_registered(quad, within=20, positioned=True)
+    session, user_task = await session_deployed(agent, service)
+    await _fly_through_an_outage(
+        platform, agent, user_task.control_url, user_task.grant, outage_s=30
+    )
+    samples = await _all_uploaded(agent, session, ended=True)
+    assert [s.seq for s in samples] == list(range(1, len(samples) + 1))
+    assert not [s for s in samples if s.kind == "dropped"]
+    # The cut is in the record: telemetry at least twice a second across it.
+    track = [s for s in samples if s.kind == "telemetry" and s.data["armed"]]
+    gaps = [b.t - a.t for a, b in itertools.pairwise(track)]
+    assert track[-1].t - track[0].t > 30 and max(gaps) < 1.0
+    check = await db(record_verify, session=session)
+    assert check.ok, check.problems
