@@ -151,7 +151,7 @@
       this.lastSent = 0;
       this.over = false;
       this.reconnects = 0;
-      this.stats = { acks: 0, refused: 0, telemetry: 0, framesDecoded: 0, failsafes: 0 };
+      this.stats = { acks: 0, refused: 0, refusedBy: {}, telemetry: 0, framesDecoded: 0, failsafes: 0 };
       this.lastRefusal = null;
       this.telemetryInfo = {}; // topic -> {label, unit, decimals, yes, no}
       this.pc = null;
@@ -363,6 +363,7 @@
       }
       if (msg.ok) { this.stats.acks += 1; return; }
       this.stats.refused += 1;
+      this.stats.refusedBy[msg.code] = (this.stats.refusedBy[msg.code] || 0) + 1;
       this.lastRefusal = { name: sent ? sent.name : "?", code: msg.code, error: msg.error };
       if (msg.code === "not_armed") {
         // Moving with the motors off: the hint says what to press.

@@ -76,7 +76,10 @@ async def test_client_steers_the_boat_from_the_browser(world: World) -> None:
     here = boat.state().position
     assert here is not None and is_water(*here)
     await expect(page.locator("[data-topic=speed] .value")).not_to_have_text("\u2013")
-    assert await controller(page, "c.stats.refused") == 0
+    # Nothing refused, but what a saturated machine makes the agent drop by design: a
+    # command that arrived after its moment (stale) or that a stop overtook (superseded).
+    refused = await controller(page, "c.stats.refusedBy")
+    assert set(refused) <= {"stale", "superseded"}, refused
 
     asked = await end_session(page)
     assert asked == "End the session? boat-1 will go back to its home point and hold there."
