@@ -26,9 +26,7 @@ async def test_a_flying_drone_sent_home_returns_with_the_session_open(
     assert progress["mission"] == "m-home" and progress["phase"] == "returning"
     # The autopilot flies it home itself (RTL) and lands: waited for as a state, since
     # a drone still climbing over its station is near home before it is told anything.
-    await until(
-        lambda: rig.drone.state().mode in ("RTL", "LAND"), within=30, what="RTL or LAND"
-    )
+    await until(lambda: rig.drone.state().mode in ("RTL", "LAND"), within=30, what="RTL or LAND")
     await until_near(rig.drone, HOME, 3.0, within=60)
     # Its session is still the vehicle's task: the user watches the way back.
     assert rig.hub.task is not None and rig.hub.task.session_id == "s-1"
