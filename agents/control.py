@@ -1059,17 +1059,22 @@ class ControlHub:
     async def _stream(self, client: _Client, topics: list[str], rate_hz: float) -> None:
         period = 1.0 / rate_hz
         next_at = time.monotonic()
-        try:
-            while True:
-                values = self.adapter.telemetry()
+        while True:
+            values = self.adapter.telemetry()
+            try:
                 await client.link.send(
                     Telemetry(t=time.time(), data={t: values.get(t) for t in topics})
                 )
-                # Keep the rate even when a send was slow, without bursting to catch up.
-                next_at = max(next_at + period, time.monotonic())
-                await asyncio.sleep(next_at - time.monotonic())
-        except ConnectionError:
-            return
+            except ConnectionError:
+                # A path broke under a user who is still here (the uplink carrying their
+                # relay reconnected, a data channel closed): the next sample goes on
+                # whatever path they have then. Gone for good, they leave the clients
+                # and their stream is cancelled with them.
+                if self.clients.get(client.link.id) is not client:
+                    return
+            # Keep the rate even when a send was slow, without bursting to catch up.
+            next_at = max(next_at + period, time.monotonic())
+            await asyncio.sleep(next_at - time.monotonic())
 
     def _consequence(self, task: VehicleTask) -> dict[str, str]:
         """What ending ``task`` would make the vehicle do now: its end's action (the

@@ -103,6 +103,14 @@ async def wait_for(page: Page, expression: str, timeout_ms: int = 15000) -> None
     )
 
 
+async def assert_nothing_refused(page: Page) -> None:
+    """No command of the page was refused, but what a saturated machine makes the agent
+    drop by design: one that arrived after its moment (``stale``) or that a stop
+    overtook (``superseded``)."""
+    refused = await controller(page, "c.stats.refusedBy")
+    assert set(refused) <= {"stale", "superseded"}, refused
+
+
 async def request_car(
     world: World, page: Page, *, relay: bool = False, timeout_ms: int = 15000
 ) -> str:

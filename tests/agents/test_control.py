@@ -115,6 +115,30 @@ async def test_telemetry_arrives_at_the_subscribed_rate(rig: Rig):
     await ws.close()
 
 
+async def test_telemetry_goes_on_after_a_path_breaks_under_a_user_still_here(rig: Rig):
+    """A relayed user's path breaks when the uplink carrying it reconnects, and comes
+    back: their telemetry must not end with that one failed send."""
+    ws, _ = await join(rig)
+    await ws.send(json.dumps({"type": "subscribe", "topics": ["battery_level"], "rate_hz": 10}))
+    await recv(ws, "telemetry")
+    (client,) = rig.hub.clients.values()
+    send = client.link.send
+    broken = 0
+
+    async def breaks_twice(message: Any) -> None:
+        nonlocal broken
+        if broken < 2:
+            broken += 1
+            raise ConnectionError("the relay's uplink is reconnecting")
+        await send(message)
+
+    client.link.send = breaks_twice  # type: ignore[method-assign]
+    await until(lambda: broken == 2, what="two sends to fail")
+    for _ in range(5):
+        await recv(ws, "telemetry")  # on again
+    await ws.close()
+
+
 async def test_ping_is_answered_and_agent_measures_rtt(rig: Rig):
     ws, _ = await join(rig)
     await ws.send(json.dumps({"type": "ping", "t": 123.5}))

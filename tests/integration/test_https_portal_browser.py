@@ -33,7 +33,7 @@ from services.demo import demo_seed
 from services.models import Session
 from tests.browser import chromium_browser, needs_chromium
 from tests.demo import PASSWORD, agents_online
-from tests.portal import World, controller, request_car, sign_in, wait_for
+from tests.portal import World, assert_nothing_refused, controller, request_car, sign_in, wait_for
 from tests.servers import db, platform_process, until
 from tests.tls import Certificates, certificates_make
 
@@ -296,7 +296,7 @@ async def test_over_https_the_controller_drives_on_webrtc_with_no_mixed_content(
 
     await until(stopped, within=DRIVE_TIMEOUT_S, what="the car to stop once the key is up")
     await wait_for(page, f"c.stats.acks > {acks_before}", 30_000)
-    assert await controller(page, "c.stats.refused") == 0
+    await assert_nothing_refused(page)
     sent = await page.evaluate("() => window.sentCommands")
     assert any(s["name"] == "forward" for s in sent), sent
     # All of it on the data channels: held motions on "input", the stop on "urgent".

@@ -15,7 +15,13 @@ from agents.geography import is_water
 from fleet.models import Vehicle
 from services.models import Session
 from tests.browser import needs_chromium
-from tests.portal import World, controller, demo_world, end_session, wait_for
+from tests.portal import (
+    World,
+    assert_nothing_refused,
+    demo_world,
+    end_session,
+    wait_for,
+)
 from tests.servers import db, until
 
 pytestmark = [pytest.mark.django_db(transaction=True), needs_chromium]
@@ -76,10 +82,7 @@ async def test_client_steers_the_boat_from_the_browser(world: World) -> None:
     here = boat.state().position
     assert here is not None and is_water(*here)
     await expect(page.locator("[data-topic=speed] .value")).not_to_have_text("\u2013")
-    # Nothing refused, but what a saturated machine makes the agent drop by design: a
-    # command that arrived after its moment (stale) or that a stop overtook (superseded).
-    refused = await controller(page, "c.stats.refusedBy")
-    assert set(refused) <= {"stale", "superseded"}, refused
+    await assert_nothing_refused(page)
 
     asked = await end_session(page)
     assert asked == "End the session? boat-1 will go back to its home point and hold there."
