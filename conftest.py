@@ -20,6 +20,9 @@ from django.conf import settings
 from tests.browser import chromium_missing_reason
 from tests.scheduling import longest_first
 
+#: Stacks of a test that runs long (tests/hangs.py).
+pytest_plugins = ["tests.hangs"]
+
 
 def pytest_report_header(config: pytest.Config) -> list[str]:
     db = settings.DATABASES["default"]

@@ -108,7 +108,7 @@ async def _fly_through_an_outage(
             await ws.send(json.dumps({"type": "keepalive"}))
             await asyncio.sleep(0.2)
         seq = 2
-        platform.kill()
+        await asyncio.to_thread(platform.kill)
         killed = time.monotonic()
         while time.monotonic() - killed < outage_s:  # flying while the platform is away
             if time.monotonic() - killed < 6:

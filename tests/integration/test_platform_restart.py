@@ -118,7 +118,9 @@ async def test_a_driven_session_outlives_the_platform_going_away(how: str) -> No
                 assert await _serving(car)
 
                 if how == "kill":
-                    platform.kill()  # a crash: no goodbye on any socket
+                    # Off the event loop: the agent and the driver share it, and a
+                    # test that blocks it makes a link loss of its own.
+                    await asyncio.to_thread(platform.kill)  # a crash: no goodbye at all
                     # Driving goes on point-to-point while the supervisor's timers
                     # run on the car's silence, for twice as long as any of them.
                     gone_at = time.monotonic()
@@ -126,8 +128,10 @@ async def test_a_driven_session_outlives_the_platform_going_away(how: str) -> No
                     while time.monotonic() - gone_at < OUTAGE_S:
                         await driver.until_acked(1)
                 else:
-                    platform.terminate()  # a deploy: SIGTERM, then at once...
-                platform.start()  # ...the platform is back on the same address
+                    # a deploy: SIGTERM, then at once...
+                    await asyncio.to_thread(platform.terminate)
+                # ...the platform is back on the same address
+                await asyncio.to_thread(platform.start)
 
                 await until(lambda: _serving(car), within=45, what="the car back in service")
                 # Past every timer again, with the platform up.

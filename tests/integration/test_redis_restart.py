@@ -155,9 +155,11 @@ async def test_the_relay_answers_every_vehicle_again_within_5_s_of_a_redis_resta
             connections = [uplink.connections for uplink in uplinks if uplink is not None]
             assert len(connections) == len(agents)
 
-            redis.kill()  # it keeps nothing on disk: every group is gone with it
+            await asyncio.to_thread(
+                redis.kill
+            )  # it keeps nothing on disk: every group is gone with it
             await asyncio.sleep(OUTAGE_S)
-            redis.start()
+            await asyncio.to_thread(redis.start)
             back = time.monotonic()
 
             tries: list[list[str]] = [[] for _ in tasks]

@@ -312,7 +312,7 @@ async def test_a_monitor_stop_during_a_redis_outage_reaches_the_vehicle(record_p
             driving = asyncio.create_task(keep_driving())
             await until(lambda: _true(len(acked_at) >= 3), what="the user to drive")
 
-            redis.kill()
+            await asyncio.to_thread(redis.kill)
             status, body = await asyncio.to_thread(
                 api, base, "POST", f"/sessions/{session_id}/stop", mona
             )
@@ -337,7 +337,7 @@ async def test_a_monitor_stop_during_a_redis_outage_reaches_the_vehicle(record_p
 
             await until(stop_confirmed, within=10, what="the stop to be confirmed")
 
-            redis.start()
+            await asyncio.to_thread(redis.start)
             await until(lambda: _idle(car), within=10, what="the car to be free")
             body = await request_car(base, alice)
             ws = await drive(body["task"], 100)
