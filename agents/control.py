@@ -297,6 +297,8 @@ class _Client:
     telemetry: asyncio.Task[None] | None = None
     commands: asyncio.Queue[Command] = field(default_factory=lambda: asyncio.Queue(COMMAND_QUEUE))
     worker: asyncio.Task[None] | None = None
+    #: The user's WebRTC offer being answered (ICE gathering), if any.
+    offering: asyncio.Task[None] | None = None
     #: The words last sent of what ending the session would make the vehicle do.
     consequence: str | None = None
 
@@ -977,18 +979,29 @@ class ControlHub:
                 client, error_message("no_webrtc", "this vehicle does not accept WebRTC")
             )
             return
+        # Answered in a task of its own: the answer waits for every ICE candidate (no
+        # trickle), up to aioice's 5 s for a STUN or TURN server that does not answer,
+        # and the reader that called us carries the user's commands and pings (on the
+        # relay, every user's and the platform's messages): none of them may wait.
+        if client.offering is not None:
+            client.offering.cancel()  # superseded by this one
+        client.offering = asyncio.create_task(self._answer_offer(client, rtc, msg.sdp))
+
+    async def _answer_offer(self, client: _Client, rtc: Any, sdp: str) -> None:
         servers = getattr(client.link.signal, "ice_servers", ())
         try:
-            sdp = await rtc.accept(
+            answer = await rtc.accept(
                 client.link.id,
-                msg.sdp,
+                sdp,
                 ice_servers=servers,
                 controller=client.grant is not None and client.grant.role == "controller",
             )
+        except asyncio.CancelledError:
+            raise
         except Exception as exc:  # any WebRTC failure is reported to the user, not fatal
             await self._send(client, error_message("webrtc", str(exc)))
             return
-        await self._send(client, WebrtcAnswer(sdp=sdp))
+        await self._send(client, WebrtcAnswer(sdp=answer))
 
     # --- WebRTC paths (agents.rtc.PeerEvents) ---------------------------------------------
     def _rtc(self) -> Any | None:
@@ -1204,7 +1217,7 @@ class ControlHub:
             await client.link.send(message)
 
     def _stop_client_tasks(self, client: _Client) -> None:
-        for task in (client.telemetry, client.worker):
+        for task in (client.telemetry, client.worker, client.offering):
             if task:
                 task.cancel()
 

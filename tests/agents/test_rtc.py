@@ -7,13 +7,16 @@ from __future__ import annotations
 
 import asyncio
 import json
+import socket
 from collections.abc import AsyncIterator
 from types import SimpleNamespace
 from typing import Any
 
 import pytest
+from aiortc import RTCPeerConnection
 
 from agents import control
+from agents.video import restrict_ice_host_addresses
 from benchmarks.rtc_client import RtcClientError, RtcControlClient
 from tests.agents.car_rig import Rig, make_grant
 from tests.agents.waiting import until
@@ -245,3 +248,51 @@ def test_the_agent_follows_the_browser_to_a_pair_it_nominates_after_ice_complete
     rtc._resume_nominated_checks(pc)
     assert started == [nominated_later]
     assert nominated_later.task is None  # check_start_task starts one only then
+
+
+async def test_an_offer_waiting_for_a_silent_stun_server_holds_up_no_command(
+    rig: Rig, user: RtcControlClient
+):
+    """The agent's answer waits for its ICE candidates, up to aioice's 5 s for a STUN
+    server that never answers (blocked, down); meanwhile the user's commands on the
+    same socket are answered, before the offer is."""
+    silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    silent.bind(("127.0.0.1", 0))  # reads nothing, answers nothing
+    try:
+        rig.hub.webrtc_options = {
+            "ice_host_addresses": LOOPBACK,
+            "ice_servers": [f"stun:127.0.0.1:{silent.getsockname()[1]}"],
+        }
+        pc = RTCPeerConnection()
+        try:
+            pc.createDataChannel("control")
+            with restrict_ice_host_addresses(LOOPBACK):
+                await pc.setLocalDescription(await pc.createOffer())
+            user.send({"type": "webrtc_offer", "sdp": pc.localDescription.sdp}, channel=None)
+            user.send({"type": "command", "seq": 30, "name": "camera_up", "args": {}}, channel=None)
+            keepalives = asyncio.create_task(_keepalives(user))  # as the page sends them
+            try:
+                order = [m["type"] for m in await _until_types(user, {"ack", "webrtc_answer"})]
+            finally:
+                keepalives.cancel()
+        finally:
+            await pc.close()
+    finally:
+        silent.close()
+    assert order.index("ack") < order.index("webrtc_answer"), order
+    assert rig.hub.stats["failsafes"] == 0
+
+
+async def _until_types(user: RtcControlClient, wanted: set[str]) -> list[dict[str, Any]]:
+    """Messages in the order they came, until one of each type in ``wanted`` came."""
+    seen: list[dict[str, Any]] = []
+    while not wanted <= {m["type"] for m in seen}:
+        seen.append(await user.recv(*wanted, "error"))
+        assert seen[-1]["type"] != "error", seen[-1]
+    return seen
+
+
+async def _keepalives(user: RtcControlClient) -> None:
+    while True:
+        user.send({"type": "keepalive"}, channel=None)
+        await asyncio.sleep(0.1)
