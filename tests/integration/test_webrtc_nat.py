@@ -397,7 +397,8 @@ def test_a_cut_user_link_trips_the_failsafe_and_the_user_drives_again(world: Wor
     world.open_session_page(browser)
     browser.wait("c.channels && c.path === 'webrtc_direct'", CONNECT_S)
     drive_forward(browser, "datachannel")
-    assert world.events("unintentional_end") == []
+    early = world.events("unintentional_end")
+    assert not early, ([e.data for e in early], world.agent_log())
 
     # The user's site goes dark (a dead radio link): the page's keepalives stop reaching
     # the vehicle, whose watchdog makes it safe after the link-loss timeout. The vehicle

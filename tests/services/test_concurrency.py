@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import threading
 from collections import Counter
+from collections.abc import Iterator
 
 import pytest
 from django.conf import settings
@@ -35,6 +37,24 @@ def _pool_slots() -> threading.BoundedSemaphore:
     pool = settings.DATABASES["default"].get("OPTIONS", {}).get("pool")
     size = pool.get("max_size", REQUESTS) if isinstance(pool, dict) else REQUESTS
     return threading.BoundedSemaphore(max(1, int(size)))
+
+
+@contextlib.contextmanager
+def _pool_filled() -> Iterator[None]:
+    """Every connection the pool may lend is open before the threads start: the pool
+    otherwise opens them as they are asked for, and a saturated machine takes longer
+    than the pool's 1 s timeout to start a PostgreSQL backend."""
+    pool = connection.pool  # Django's psycopg_pool for this database (None without one)
+    if pool is None:
+        yield
+        return
+    min_size = pool.min_size
+    pool.resize(min_size=pool.max_size, max_size=pool.max_size)
+    try:
+        pool.wait(timeout=60)
+        yield
+    finally:
+        pool.resize(min_size=min_size, max_size=pool.max_size)
 
 
 @pytest.mark.postgres
@@ -71,10 +91,11 @@ def test_forty_concurrent_requests_for_five_vehicles():
             connection.close()  # each thread had its own connection
 
     threads = [threading.Thread(target=request, args=(u,)) for u in users]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(timeout=120)
+    with _pool_filled():
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=120)
 
     assert not crashes, crashes
     assert len(results) == VEHICLES, set(refusals)
@@ -122,10 +143,11 @@ def test_one_client_racing_twenty_requests_holds_only_the_services_cap():
             connection.close()
 
     threads = [threading.Thread(target=request) for _ in range(20)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(timeout=120)
+    with _pool_filled():
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=120)
 
     assert not crashes, crashes
     assert len(granted) == 2 and len(capped) == 18
@@ -185,10 +207,11 @@ def test_writers_racing_on_one_log_keep_one_chain():
 
     workers = [report] * 8 + [locked_writer] * 2 + [answering_writer] * 2
     threads = [threading.Thread(target=run, args=(w, n)) for n, w in enumerate(workers)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(timeout=120)
+    with _pool_filled():
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=120)
 
     assert not crashes, crashes
     events = list(SessionEvent.objects.filter(session=session).order_by("seq"))
