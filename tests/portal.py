@@ -169,7 +169,13 @@ async def drive_forward(world: World, page: Page, *, at_least_m: float = 0.15) -
     async def far_enough() -> bool:
         return moved() >= at_least_m
 
-    await hold_until(page, "ArrowUp", far_enough, what=f"the car to move {at_least_m} m")
+    try:
+        await hold_until(page, "ArrowUp", far_enough, what=f"the car to move {at_least_m} m")
+    except AssertionError as exc:
+        # What the page saw of its commands (sent, answered, refused and why) says
+        # whether they were lost, refused or executed without effect.
+        stats = await page.evaluate("JSON.stringify(window.c && c.stats)")
+        raise AssertionError(f"{exc}; moved {moved():.3f} m; the page's stats: {stats}") from None
     return moved()
 
 

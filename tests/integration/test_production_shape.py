@@ -254,7 +254,14 @@ async def test_every_platform_process_restarted_or_killed_in_turn_ends_no_sessio
                     assert all(code != "view_only" for _, code, _ in driver.refusals), (
                         driver.refusals
                     )
-                assert reader.answered > 0 and reader.failures == [], reader.failures[:5]
+                assert reader.answered > 0, reader.failures[:5]
+                if how == "restart":
+                    assert reader.failures == [], reader.failures[:5]
+                else:
+                    # The answer a killed process was sending is cut short (nothing can
+                    # finish it); nginx sends every later request to a process alive.
+                    assert len(reader.failures) <= len(shape.web), reader.failures
+                    assert all(status in (0, 502) for status, _ in reader.failures)
 
                 # The rescue, its steps run by workers that came and went, ends once.
                 async def completed() -> bool:
