@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any, Final
 
 from django.conf import settings
+from django.db import transaction
 
 from agents.protocol import SfuPublish
 
@@ -217,6 +218,32 @@ def sfu_room_close(*, session_id: Any) -> bool:
     if "error_code" in data:
         raise SfuError(f"the SFU refused to close the room: {data.get('error')}")
     return True
+
+
+def sfu_room_schedule(*, session_id: Any) -> None:
+    """Make the session's room from a Celery task once the current transaction commits
+    (retried while Janus is away)."""
+    from services.tasks import services_sfu_room_open  # the task module imports this one
+
+    transaction.on_commit(lambda: services_sfu_room_open.delay(str(session_id)), robust=True)
+
+
+def sfu_session_end_schedule(*, session_id: Any) -> None:
+    """Once the current transaction commits, close the ended session's room and convert
+    its recording, from a Celery task (nothing without an SFU)."""
+    if not sfu_configured():
+        return
+    from services.tasks import services_sfu_session_ended
+
+    transaction.on_commit(lambda: services_sfu_session_ended.delay(str(session_id)), robust=True)
+
+
+def sfu_session_ended(*, session_id: Any) -> list[Recording]:
+    """Close the session's room (its recording ends) and convert what was recorded.
+    Idempotent. Returns the session's recordings. Raises SfuError (Janus away,
+    janus-pp-rec failing): the caller tries again later."""
+    sfu_room_close(session_id=session_id)
+    return sfu_recording_convert(session_id=session_id)
 
 
 @dataclasses.dataclass(frozen=True)

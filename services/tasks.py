@@ -15,6 +15,7 @@ from django.conf import settings
 from iouv.celery import app
 from services.notices import NoticeNotSent, notices_pending, notices_send, notices_send_or_retry
 from services.records import records_expire
+from services.sfu import SfuError, sfu_room_open, sfu_session_ended
 from services.supervision import (
     sessions_end_vehicle_lost,
     sessions_expire_grace,
@@ -75,6 +76,41 @@ def services_notices_send(session_id: str) -> int:
     """Send a session's pending notices; retried with growing delays while any is
     still unsent (a webhook down, a mail server away)."""
     return notices_send_or_retry(session_id)
+
+
+@shared_task(
+    name="services.sfu_room_open",
+    acks_late=True,
+    autoretry_for=(SfuError,),
+    max_retries=10,
+    retry_backoff=2,
+    retry_backoff_max=60,
+    retry_jitter=True,
+)
+def services_sfu_room_open(session_id: str) -> bool:
+    """Make a live session's SFU room (idempotent); retried while Janus is away.
+    Nothing for a session that has ended meanwhile."""
+    from services.models import Session
+    from services.sessions import FINAL
+
+    if not Session.objects.filter(pk=session_id).exclude(state__in=FINAL).exists():
+        return False
+    return sfu_room_open(session_id=session_id)
+
+
+@shared_task(
+    name="services.sfu_session_ended",
+    acks_late=True,
+    autoretry_for=(SfuError,),
+    max_retries=10,
+    retry_backoff=5,
+    retry_backoff_max=300,
+    retry_jitter=True,
+)
+def services_sfu_session_ended(session_id: str) -> int:
+    """Close an ended session's SFU room and convert its recording to WebM; retried
+    while Janus or janus-pp-rec fails. Returns how many recordings it has."""
+    return len(sfu_session_ended(session_id=session_id))
 
 
 @shared_task(name="services.notices_retry")

@@ -417,6 +417,14 @@ class VehicleTask(_Document, frozen=True, kw_only=True, forbid_unknown_fields=Tr
     #: vehicle without a camera; only sent to agents whose profile says ``sfu``).
     sfu: SfuPublish | None = None
 
+    def to_payload(self) -> dict[str, Any]:
+        payload = super().to_payload()
+        if payload.get("sfu") is None:
+            # Absent rather than null: agents from before the SFU refuse any claim they
+            # do not know (signed documents fail closed).
+            del payload["sfu"]
+        return payload
+
     def __post_init__(self) -> None:
         # Converting would turn a dict into Limits (or a mission spec); code must hand
         # over checked ones.
