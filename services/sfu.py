@@ -262,10 +262,29 @@ def sfu_recordings(*, session_id: Any) -> list[Recording]:
         return []
     found = []
     for webm in directory.glob("*.webm"):
-        match = _RECORDING.search(webm.with_suffix(".mjr").name)
+        if webm.name.endswith(".part.webm"):
+            continue
+        mjr = webm.with_suffix(".mjr")
+        match = _RECORDING.search(mjr.name)
         if match:
-            found.append(Recording(webm, int(match["start_us"]) / 1e6))
+            started = _first_packet_at(mjr) or int(match["start_us"]) / 1e6
+            found.append(Recording(webm, started))
     return sorted(found, key=lambda r: r.started_at)
+
+
+def _first_packet_at(mjr: Path) -> float | None:
+    """When Janus wrote the recording's first packet (Unix seconds), from the ``.mjr``
+    header (``MJR00002``, a 2-byte length, JSON with ``u`` in µs); the WebM's time 0."""
+    try:
+        with mjr.open("rb") as f:
+            head = f.read(8 + 2)
+            if len(head) < 10 or not head.startswith(b"MJR00002"):
+                return None
+            info = json.loads(f.read(int.from_bytes(head[8:10], "big")))
+    except (OSError, ValueError):
+        return None
+    first = info.get("u") if isinstance(info, dict) else None
+    return first / 1e6 if isinstance(first, int) and first > 0 else None
 
 
 def sfu_recording_convert(*, session_id: Any) -> list[Recording]:

@@ -101,13 +101,46 @@ async def test_a_spectator_watches_through_the_sfu_and_hears_when_it_dies(
 
         await db(_session_end, session_id)
 
-    # The worker closed the room and converted what the SFU recorded.
-    recordings: list[sfu.Recording] = []
-    for _ in range(600):
-        recordings = sfu.sfu_recordings(session_id=session_id)
-        if recordings:
-            break
-        await asyncio.sleep(0.1)
-    assert recordings, "no recording was converted"
-    with av.open(str(recordings[-1].path)) as container:
-        assert container.streams.video[0].frames or list(container.decode(video=0))
+        # The worker closed the room and converted what the SFU recorded: the replay
+        # page plays it in step with the track.
+        recordings: list[sfu.Recording] = []
+        await until(
+            lambda: bool(
+                recordings.extend(sfu.sfu_recordings(session_id=session_id)) or recordings
+            ),
+            within=120,
+            what="the recording to be converted",
+        )
+        last = recordings[-1]
+        with av.open(str(last.path)) as container:
+            frames = list(container.decode(video=0))
+            base = container.streams.video[0].time_base
+            recorded_s = float((frames[-1].pts - frames[0].pts) * base)
+        assert len(frames) > 10 and recorded_s > 1.0
+
+        await driver.goto(f"{world.base}/sessions/{session_id}/replay/")
+        await expect(driver.locator("#replay")).to_have_attribute("data-loaded", "true")
+        video = driver.locator("[data-replay-video-file]")
+        await expect(video).to_have_count(1)
+        # A position recorded while the last stretch was being recorded.
+        times = await driver.evaluate("() => window.IoUVReplay.times()")
+        inside = [
+            (i, t)
+            for i, t in enumerate(times)
+            if last.started_at + 0.5 < t < last.started_at + recorded_s - 0.5
+        ]
+        assert inside, (times[:3], times[-3:], last.started_at, recorded_s)
+        index, at = inside[len(inside) // 2]
+        await driver.evaluate(
+            """(i) => { const s = document.querySelector('[data-replay-slider]');
+                        s.value = String(i); s.dispatchEvent(new Event('input')); }""",
+            index,
+        )
+        await driver.wait_for_function(
+            """(want) => { const v = document.querySelector('[data-replay-video-file]');
+                           return v.readyState >= 1 && Math.abs(v.currentTime - want) < 0.25; }""",
+            arg=at - last.started_at,
+            timeout=30000,
+        )
+        duration = await video.evaluate("(v) => v.duration")
+        assert abs(duration - recorded_s) < 1.5, (duration, recorded_s)
