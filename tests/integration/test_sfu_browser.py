@@ -103,15 +103,16 @@ async def test_a_spectator_watches_through_the_sfu_and_hears_when_it_dies(
 
         # The worker closed the room and converted what the SFU recorded: the replay
         # page plays it in step with the track.
-        recordings: list[sfu.Recording] = []
-        await until(
-            lambda: bool(
-                recordings.extend(sfu.sfu_recordings(session_id=session_id)) or recordings
-            ),
-            within=120,
-            what="the recording to be converted",
-        )
-        last = recordings[-1]
+        folder = sfu.sfu_recording_dir(session_id)
+        assert folder is not None
+
+        def converted() -> bool:
+            # Two stretches: before Janus was killed, and after it came back.
+            recorded = [m for m in folder.glob("*.mjr") if m.stat().st_size > 8]
+            return len(recorded) >= 2 and all(m.with_suffix(".webm").exists() for m in recorded)
+
+        await until(converted, within=120, what="the recordings to be converted")
+        last = sfu.sfu_recordings(session_id=session_id)[-1]
         with av.open(str(last.path)) as container:
             frames = list(container.decode(video=0))
             base = container.streams.video[0].time_base
