@@ -495,6 +495,8 @@ IOUV_JANUS_REC_DIR = env_str("IOUV_JANUS_REC_DIR", str(VAR_DIR / "janus-recordin
 # How long a Janus token (a spectator's, the vehicle's) stays valid: Janus checks it on
 # every request of the session, keepalives included, so it must outlast the watching.
 IOUV_JANUS_TOKEN_TTL_S = env_int("IOUV_JANUS_TOKEN_TTL_S", 12 * 3600)
+# How often the worker makes again the rooms a restarted Janus lost (live sessions only).
+IOUV_JANUS_ROOMS_CHECK_S = env_float("IOUV_JANUS_ROOMS_CHECK_S", 15.0)
 
 # --- Content-Security-Policy (django-csp, on every response) ------------------------------
 # Scripts and styles come only from the platform's static files (Leaflet is vendored

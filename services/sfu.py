@@ -246,6 +246,28 @@ def sfu_session_ended(*, session_id: Any) -> list[Recording]:
     return sfu_recording_convert(session_id=session_id)
 
 
+def sfu_rooms_ensure() -> int:
+    """Make the room of every live session whose vehicle publishes, where Janus lost it
+    (a restart): the vehicle, which keeps trying, then publishes and is recorded again
+    even if no spectator comes to make the room. Returns how many rooms were made.
+    Raises SfuError when Janus is away (the next run tries again)."""
+    from services.models import Session  # models import nothing of this module's users
+
+    if not sfu_configured():
+        return 0
+    sessions = (
+        Session.objects.filter(
+            state__in=[Session.State.ASSIGNED, Session.State.ACTIVE],
+            assignments__active=True,
+            assignments__vehicle__profile__video=True,
+            assignments__vehicle__profile__sfu=True,
+        )
+        .values_list("pk", flat=True)
+        .distinct()
+    )
+    return sum(sfu_room_open(session_id=pk) for pk in sessions)
+
+
 @dataclasses.dataclass(frozen=True)
 class Recording:
     """One stretch of a session's video (a new one each time the vehicle published
