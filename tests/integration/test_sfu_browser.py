@@ -28,7 +28,7 @@ pytestmark = [
     pytest.mark.postgres,
     pytest.mark.redis,
     pytest.mark.django_db(transaction=True),
-    pytest.mark.cost(120),
+    pytest.mark.cost(40),  # a platform, its worker, an agent, Janus and Chromium
     needs_chromium,
 ]
 

@@ -29,7 +29,7 @@ from agents.video import SyntheticCamera, VideoService, restrict_ice_host_addres
 from services import sfu
 from tests.janus import JanusServer, janus_server
 
-pytestmark = [pytest.mark.realtime, pytest.mark.cost(90)]
+pytestmark = pytest.mark.realtime
 
 LOOPBACK = ["127.0.0.1"]
 #: Spectators of the big test; IOUV_SFU_SPECTATORS changes it (docs/video.md has what
