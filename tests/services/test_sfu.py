@@ -56,8 +56,9 @@ class _Events:
 class Pilot:
     """The controller's video, straight from the vehicle (agents.rtc), counting frames."""
 
-    def __init__(self, rtc: RtcPeers) -> None:
+    def __init__(self, rtc: RtcPeers, peer_id: str = "pilot") -> None:
         self.rtc = rtc
+        self.peer_id = peer_id
         self.pc = RTCPeerConnection(RTCConfiguration(iceServers=[]))
         self.frames = 0
         self._pulling: set[asyncio.Task[None]] = set()
@@ -78,7 +79,7 @@ class Pilot:
         self.pc.addTransceiver("video", direction="recvonly")
         with restrict_ice_host_addresses(LOOPBACK):
             await self.pc.setLocalDescription(await self.pc.createOffer())
-        answer = await self.rtc.accept("pilot", self.pc.localDescription.sdp, controller=True)
+        answer = await self.rtc.accept(self.peer_id, self.pc.localDescription.sdp, controller=True)
         await self.pc.setRemoteDescription(RTCSessionDescription(answer, "answer"))
 
 
@@ -238,8 +239,15 @@ async def test_spectators_watch_through_the_sfu_and_the_vehicle_sends_one_copy(
             await until(all_watching, within=240, what=f"{SPECTATORS} spectators' packets")
             joined_s = time.monotonic() - started
             crowd_pilot, crowd_sfu, crowd_s = await window(30)
-            # The pilot never lost its place, and no spectator took one on the vehicle.
+            # The pilot never lost its place, and no spectator took one on the vehicle:
+            # the pilot's page reloading with the crowd watching is taken at once.
             assert rtc.peer_count == 1 and pilot.pc.connectionState == "connected"
+            reloaded = Pilot(rtc, peer_id="pilot-reloaded")
+            try:
+                await reloaded.connect()
+                await until(lambda: reloaded.frames >= 5, within=60, what="the reloaded pilot")
+            finally:
+                await reloaded.pc.close()
         finally:
             await asyncio.gather(*(s.close() for s in spectators))
 
