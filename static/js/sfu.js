@@ -123,7 +123,12 @@
         return;
       }
       const data = msg.plugindata && msg.plugindata.data;
-      const gone = msg.janus === "hangup" || msg.janus === "detached"
+      // The vehicle stopped publishing (its link to Janus dropped): Janus tells its
+      // subscribers "updated" with no stream active, and the feed that comes back is a
+      // new one, which this subscription would never show.
+      const inactive = data && data.videoroom === "updated" && Array.isArray(data.streams)
+        && !data.streams.some((s) => s.active !== false);
+      const gone = msg.janus === "hangup" || msg.janus === "detached" || inactive
         || (data && (data.videoroom === "destroyed" || data.unpublished !== undefined || data.leaving !== undefined));
       if (gone && this.ws) {
         // The vehicle left the room (or the room went): subscribe again from scratch.

@@ -81,6 +81,24 @@ async def test_a_spectator_watches_through_the_sfu_and_hears_when_it_dies(
         assert agent.hub is not None and agent.hub.rtc is not None
         assert agent.hub.rtc.peer_count == 1
 
+        # The car's link to the SFU drops (its network, say): the page waits for the
+        # car's video and watches again once the car has published again by itself.
+        publisher = agent.sfu
+        assert publisher is not None and publisher.pc is not None
+        attempts = publisher.attempts
+        await publisher.pc.close()
+        await until(
+            lambda: publisher.attempts > attempts and publisher.publishing.is_set(),
+            within=60,
+            what="the car to publish again",
+        )
+        frames = await controller(spectator, "c.stats.framesDecoded")
+        await wait_for(
+            spectator,
+            f"c.sfuState === 'watching' && c.stats.framesDecoded > {frames + 10}",
+            45000,
+        )
+
         janus.kill()
         await expect(spectator.locator("[data-video-note]")).to_contain_text(
             "Video unavailable", timeout=30000
