@@ -386,6 +386,9 @@ class Agent:
             and self._sfu_session == task.session_id
             and (current.url, current.room, current.feed) == (sfu.url, sfu.room, sfu.feed)
         ):
+            # The same room: publishing goes on, with the fresher token from now on
+            # (Janus checks it on every request; an old one runs out).
+            current.token = sfu.token
             return
         self._sfu_stop()
         # Imported here: aiortc is only loaded by agents with a camera.
