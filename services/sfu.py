@@ -268,6 +268,28 @@ def sfu_rooms_ensure() -> int:
     return sum(sfu_room_open(session_id=pk) for pk in sessions)
 
 
+def sfu_recording_delete(*, session_id: Any) -> bool:
+    """Delete the session's recorded video (its folder); False when there was none."""
+    directory = sfu_recording_dir(session_id)
+    if directory is None or not directory.is_dir():
+        return False
+    shutil.rmtree(directory)
+    return True
+
+
+def sfu_recorded_sessions() -> list[uuid.UUID]:
+    """The sessions that have a recording folder (for the record's retention)."""
+    if not settings.IOUV_JANUS_REC_DIR or not Path(settings.IOUV_JANUS_REC_DIR).is_dir():
+        return []
+    found = []
+    for entry in Path(settings.IOUV_JANUS_REC_DIR).iterdir():
+        try:
+            found.append(uuid.UUID(hex=entry.name))
+        except ValueError:
+            continue  # not a session's folder
+    return found
+
+
 @dataclasses.dataclass(frozen=True)
 class Recording:
     """One stretch of a session's video (a new one each time the vehicle published

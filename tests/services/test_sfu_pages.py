@@ -5,17 +5,20 @@ say about it, what a vehicle task carries, and the recorded video on the replay 
 from __future__ import annotations
 
 import time
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
 import pytest
 from django.test import Client
 from django.urls import reverse
+from django.utils import timezone
 
 from agents.protocol import VehicleTask
 from services import sfu
 from services.deployment import _user_task, _vehicle_task_sign
 from services.models import Session
+from services.records import records_expire
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db
@@ -110,3 +113,26 @@ def test_the_recorded_video_is_served_in_ranges_to_whoever_may_see_the_record(
     stranger = Client()
     stranger.force_login(f.user("mallory"))
     assert stranger.get(url).status_code == 404
+
+
+def test_the_recorded_video_goes_with_the_record(
+    live_session: tuple[Session, str],
+    janus_settings: Any,
+    settings: Any,
+    django_capture_on_commit_callbacks: Any,
+) -> None:
+    session, _ = live_session
+    folder = sfu.sfu_recording_dir(session.pk)
+    assert folder is not None
+    folder.mkdir(parents=True)
+    name = f"videoroom-{sfu.sfu_room(session.pk)}-user-1-1795856399887241-video-0"
+    (folder / f"{name}.mjr").write_bytes(b"MJR00002")
+    (folder / f"{name}.webm").write_bytes(b"webm")
+    settings.IOUV_RECORD_RETENTION_DAYS = 30
+    with django_capture_on_commit_callbacks(execute=True):
+        assert records_expire(now=timezone.now() + timedelta(days=29)) == 0
+    assert folder.exists()
+    with django_capture_on_commit_callbacks(execute=True):
+        assert records_expire(now=timezone.now() + timedelta(days=31)) == 1
+    assert not folder.exists()
+    assert session.events.get(kind="record_deleted").data["video"] is True
