@@ -104,6 +104,10 @@ class JanusSession:
         self.closed = asyncio.Event()
         self._ws: ClientConnection | None = None
         self._waiting: dict[str, asyncio.Future[dict[str, Any]]] = {}
+        #: Transactions of keepalives in flight: Janus answers those with an ``ack``.
+        self._keepalives: set[str] = set()
+        #: Keepalives Janus acknowledged.
+        self.keepalives = 0
         self._handles: dict[int, JanusHandle] = {}
         self._tasks: list[asyncio.Task[None]] = []
         self._ids = itertools.count(1)
@@ -186,14 +190,10 @@ class JanusSession:
                 except ValueError:
                     continue
                 kind = message.get("janus")
-                if kind == "ack" and "plugindata" not in message:
-                    # An asynchronous request was taken; its event follows. (A keepalive
-                    # is answered by its ack alone.)
-                    future = self._waiting.get(message.get("transaction", ""))
-                    if future is not None and not future.done() and self._keepalive_ack(future):
-                        future.set_result(message)
-                    continue
-                future = self._waiting.get(message.get("transaction", ""))
+                transaction = message.get("transaction", "")
+                if kind == "ack" and transaction not in self._keepalives:
+                    continue  # an asynchronous request was taken; its event follows
+                future = self._waiting.get(transaction)
                 if future is not None and not future.done():
                     future.set_result(message)
                     continue
@@ -210,18 +210,14 @@ class JanusSession:
             for handle in self._handles.values():
                 handle.events.put_nowait({"janus": "closed"})
 
-    @staticmethod
-    def _keepalive_ack(future: asyncio.Future[dict[str, Any]]) -> bool:
-        return getattr(future, "_iouv_keepalive", False)
-
     async def _keepalive(self) -> None:
         assert self._ws is not None
         while not self.closed.is_set():
             await asyncio.sleep(KEEPALIVE_S)
             transaction = secrets.token_hex(8)
             future: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
-            future._iouv_keepalive = True  # type: ignore[attr-defined]  # answered by its ack
             self._waiting[transaction] = future
+            self._keepalives.add(transaction)  # answered by its ack alone
             message: dict[str, Any] = {
                 "janus": "keepalive",
                 "session_id": self.id,
@@ -231,13 +227,17 @@ class JanusSession:
                 message["token"] = self.token
             try:
                 await self._ws.send(json.dumps(message))
-                await asyncio.wait_for(future, REQUEST_TIMEOUT_S)
-            except (ConnectionClosed, TimeoutError, JanusError):
-                log.info("the SFU stopped answering keepalives; closing the link")
+                reply = await asyncio.wait_for(future, REQUEST_TIMEOUT_S)
+                if reply.get("janus") == "error":  # the token ran out, the session went
+                    raise JanusError(int(reply.get("error", {}).get("code", 0)), "keepalive")
+                self.keepalives += 1
+            except (ConnectionClosed, TimeoutError, JanusError) as exc:
+                log.info("the SFU refused or missed a keepalive (%s); closing the link", exc)
                 await self._ws.close()
                 return
             finally:
                 self._waiting.pop(transaction, None)
+                self._keepalives.discard(transaction)
 
 
 class SfuPublisher:

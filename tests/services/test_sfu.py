@@ -23,6 +23,7 @@ import av
 import pytest
 from aiortc import RTCConfiguration, RTCPeerConnection, RTCSessionDescription
 
+from agents import sfu as agents_sfu
 from agents.rtc import RtcPeers
 from agents.sfu import JanusError, JanusSession, SfuPublisher
 from agents.video import SyntheticCamera, VideoService, restrict_ice_host_addresses
@@ -385,3 +386,22 @@ async def test_a_sessions_recording_plays_back_as_long_as_it_was_published(
     assert len(frames) >= 80
     # The recording spans what was published (from joining to leaving: a little more).
     assert published_s - 1.0 <= duration <= published_s + 10.0
+
+
+async def test_a_session_lives_on_keepalives_until_its_token_runs_out(
+    janus: JanusServer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Janus checks the token on every request, keepalives included: a link whose token
+    ran out is closed (the publisher then connects again with its fresher token)."""
+    monkeypatch.setattr(agents_sfu, "KEEPALIVE_S", 0.2)
+    lasting = sfu.janus_token(expires_at=time.time() + 600)
+    # Janus compares whole seconds: valid for the next 2 to 3 s.
+    brief = sfu.janus_token(expires_at=time.time() + 3)
+    async with (
+        JanusSession(janus.ws_url, token=lasting) as kept,
+        JanusSession(janus.ws_url, token=brief) as expiring,
+    ):
+        await until(lambda: kept.keepalives >= 3, within=30, what="keepalives")
+        await until(expiring.closed.is_set, within=30, what="the expired link to close")
+        assert expiring.keepalives >= 1  # it lived while its token did
+        assert not kept.closed.is_set()
