@@ -894,8 +894,11 @@
         iceServers: this.task.ice_servers || [],
         onTrack: (event) => {
           this.ui.video.srcObject = event.streams[0] || new MediaStream([event.track]);
+          // One counting loop per picture: a subscription made again replaces it.
+          const track = event.track;
+          this.sfuTrack = track;
           const count = () => {
-            if (this.sfuWatch !== watch) return;
+            if (this.sfuWatch !== watch || this.sfuTrack !== track) return;
             this.stats.framesDecoded += 1;
             this.lastFrameAt = performance.now();
             if (this.ui.videoNote && this.sfuState === "watching") this.ui.videoNote.textContent = "";
