@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import itertools
 import json
 import logging
 import random
@@ -44,8 +43,9 @@ RETRY_MIN_S: Final = 1.0
 RETRY_MAX_S: Final = 15.0
 #: A publish whose connection does not come up within this is started again.
 CONNECT_TIMEOUT_S: Final = 30.0
-#: VideoRoom's error codes the publisher acts on.
-NO_SUCH_ROOM: Final = 426
+#: Refusals, logged louder since trying again will not mend them: Janus's for a bad or
+#: expired token, VideoRoom's for a wrong publish token or pin.
+FORBIDDEN: Final = 403
 UNAUTHORIZED: Final = 433
 
 
@@ -110,7 +110,6 @@ class JanusSession:
         self.keepalives = 0
         self._handles: dict[int, JanusHandle] = {}
         self._tasks: list[asyncio.Task[None]] = []
-        self._ids = itertools.count(1)
 
     async def __aenter__(self) -> JanusSession:
         try:
@@ -300,7 +299,7 @@ class SfuPublisher:
                 delay = RETRY_MIN_S  # it worked for a while: come back quickly
             except JanusError as exc:
                 self.last_error = str(exc)
-                level = logging.WARNING if exc.code == UNAUTHORIZED else logging.INFO
+                level = logging.WARNING if exc.code in (FORBIDDEN, UNAUTHORIZED) else logging.INFO
                 log.log(level, "publishing to the SFU: %s; again in %.0f s", exc, delay)
             except Exception as exc:  # aiortc and the network raise many kinds
                 self.last_error = f"{type(exc).__name__}: {exc}"
