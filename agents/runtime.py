@@ -83,6 +83,11 @@ class Agent:
         self.sensors: dict[str, Any] = {}
         self.missions: MissionControl | None = None
         self.relay_links: dict[str, _RelayLink] = {}
+        #: The publisher of the camera to the platform's SFU for the current task's
+        #: spectators (agents.sfu), with the session it publishes for.
+        self.sfu: Any | None = None
+        self._sfu_job: asyncio.Task[None] | None = None
+        self._sfu_session: str | None = None
         self._checks: set[asyncio.Task[None]] = set()
         self.adapter.on_event = self._adapter_event
         #: The flight record of each session (agents.recording).
@@ -149,6 +154,7 @@ class Agent:
                 ping_timeout_s=self.config.uplink_ping_timeout_s,
             )
             self.recorder.uplink = self.uplink
+            stack.callback(self._sfu_stop)
             self.ready.set()
             log.info(
                 "%s: control on %s", self.config.name or self.config.vehicle_id, self.control_url
@@ -200,6 +206,7 @@ class Agent:
             telemetry=self.adapter.telemetry_topics(),
             control_url=self.control_url,
             video=self.video is not None,
+            sfu=self.video is not None,
             safe_actions=dict(self.adapter.safe_action_words),
             position=self._position(),
             battery=state.battery,
@@ -353,15 +360,59 @@ class Agent:
             )
             return
         self.uplink.send(TaskAccepted(session_id=task.session_id))
+        self._sfu_start(task)
         if self.missions is not None:
             # After task_accepted: the platform hears the task before its mission events.
             self.missions.task_accepted(task)
         self._spawn_check(self._check_failsafe(task))
 
     def _task_ended(self, task: VehicleTask) -> None:
+        if self._sfu_session == task.session_id:
+            self._sfu_stop()
         if self.missions is not None:
             self.missions.task_ended(task)
         self._spawn_check(self._fence_clear(task))
+
+    def _sfu_start(self, task: VehicleTask) -> None:
+        """Publish the camera to the SFU room the task names, for its spectators (the
+        same room again for a task sent again: the publisher goes on)."""
+        sfu = task.sfu
+        if sfu is None or self.video is None:
+            self._sfu_stop()
+            return
+        current = self.sfu
+        if (
+            current is not None
+            and self._sfu_session == task.session_id
+            and (current.url, current.room, current.feed) == (sfu.url, sfu.room, sfu.feed)
+        ):
+            # The same room: publishing goes on, with the fresher token from now on
+            # (Janus checks it on every request; an old one runs out).
+            current.token = sfu.token
+            return
+        self._sfu_stop()
+        # Imported here: aiortc is only loaded by agents with a camera.
+        from agents.sfu import SfuPublisher
+
+        self.sfu = SfuPublisher(
+            self.video,
+            url=sfu.url,
+            room=sfu.room,
+            feed=sfu.feed,
+            token=sfu.token,
+            publish_token=sfu.publish_token,
+            pin=sfu.pin,
+            display=self.config.name or self.config.vehicle_id,
+            ice_servers=self.config.webrtc.get("ice_servers", ()),
+        )
+        self._sfu_session = task.session_id
+        self._sfu_job = asyncio.create_task(self.sfu.run(), name="sfu publisher")
+
+    def _sfu_stop(self) -> None:
+        """Stop publishing (the task ended, or another room is named)."""
+        if self._sfu_job is not None:
+            self._sfu_job.cancel()
+        self.sfu = self._sfu_job = self._sfu_session = None
 
     def _spawn_check(self, coro: Coroutine[Any, Any, None]) -> None:
         job = asyncio.create_task(coro)

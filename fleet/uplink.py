@@ -332,6 +332,9 @@ def vehicle_record_profile(*, vehicle_id: Any, profile: Profile, now: datetime) 
         # Optional: an agent of an earlier release sends no words for its safe actions.
         if profile.safe_actions is not UNSET:
             vehicle.profile["safe_actions"] = profile.safe_actions
+        # Only an agent that says so is sent a task with an SFU section to publish to.
+        if profile.sfu:
+            vehicle.profile["sfu"] = True
         _set_position(vehicle, profile.position)
         vehicle.battery = profile.battery
         vehicle.last_seen = now

@@ -479,6 +479,25 @@ IOUV_TURN_URLS = env_list("IOUV_TURN_URLS", [])
 IOUV_TURN_SECRET = env_secret("IOUV_TURN_SECRET")
 IOUV_TURN_TTL_S = env_int("IOUV_TURN_TTL_S", 3600)
 
+# --- The SFU (Janus VideoRoom) that serves spectators and records (services.sfu) -------
+# Unset (the embedded demo): spectators connect to the vehicle itself, within its cap.
+# IOUV_JANUS_URL: Janus's HTTP API as the platform reaches it (http://127.0.0.1:8088/janus);
+# IOUV_JANUS_PUBLIC_URL: its WebSocket API as browsers and vehicles reach it
+# (wss://example.org/janus-ws/). The two secrets are Janus's token_auth_secret and the
+# VideoRoom plugin's admin_key (docs/video.md, "The SFU"): from the environment or a file.
+IOUV_JANUS_URL = env_str("IOUV_JANUS_URL", "")
+IOUV_JANUS_PUBLIC_URL = env_str("IOUV_JANUS_PUBLIC_URL", "")
+IOUV_JANUS_TOKEN_SECRET = env_secret("IOUV_JANUS_TOKEN_SECRET")
+IOUV_JANUS_ADMIN_KEY = env_secret("IOUV_JANUS_ADMIN_KEY")
+# Where Janus writes each session's recording (a folder per session); the Celery worker
+# converts them there. Empty: nothing is recorded.
+IOUV_JANUS_REC_DIR = env_str("IOUV_JANUS_REC_DIR", str(VAR_DIR / "janus-recordings"))
+# How long a Janus token (a spectator's, the vehicle's) stays valid: Janus checks it on
+# every request of the session, keepalives included, so it must outlast the watching.
+IOUV_JANUS_TOKEN_TTL_S = env_int("IOUV_JANUS_TOKEN_TTL_S", 12 * 3600)
+# How often the worker makes again the rooms a restarted Janus lost (live sessions only).
+IOUV_JANUS_ROOMS_CHECK_S = env_float("IOUV_JANUS_ROOMS_CHECK_S", 15.0)
+
 # --- Content-Security-Policy (django-csp, on every response) ------------------------------
 # Scripts and styles come only from the platform's static files (Leaflet is vendored
 # there); pages hold no inline code, so neither needs 'unsafe-inline'. The controller

@@ -433,6 +433,16 @@ class IceServerOut(Schema):
     credential: str | None = None
 
 
+class SfuViewer(Schema):
+    """Where a viewer subscribes to the vehicle's video (docs/video.md, "The SFU")."""
+
+    url: str = Field(description="Janus's WebSocket API (subprotocol `janus-protocol`).")
+    token: str = Field(description="Janus token for every request. Secret.")
+    room: int
+    feed: int = Field(description="The vehicle's publisher id in the room.")
+    pin: str = Field(description="The room's pin, for `join`. Secret.")
+
+
 class UserTask(Schema):
     """What a client needs to control the session's vehicle."""
 
@@ -456,6 +466,11 @@ class UserTask(Schema):
     ice_servers: list[IceServerOut] = Field(
         description="STUN/TURN servers for that WebRTC connection, as `RTCIceServer`; "
         "TURN credentials are short-lived and for this session only."
+    )
+    sfu: SfuViewer | None = Field(
+        default=None,
+        description="A viewer's: watch the vehicle's video at the platform's SFU (Janus "
+        "VideoRoom) instead of the vehicle; null for the controller or without an SFU.",
     )
 
 

@@ -43,6 +43,7 @@ from services.kinds import UnknownKind, kind_of
 from services.models import Assignment, Service, Session
 from services.selectors import delivery_entry
 from services.sessions import FINAL, session_transition, session_transition_locked
+from services.sfu import sfu_publish_for, sfu_room_schedule, sfu_viewer_for
 from services.signing import platform_private_key
 
 #: Session states in which grants can be issued and agents serve the session.
@@ -85,6 +86,9 @@ class UserTask:
     commands: tuple[dict[str, Any], ...]
     telemetry: tuple[str, ...]
     relay: bool
+    #: A viewer's: where to watch the video at the platform's SFU (services.sfu), when
+    #: one is configured and the vehicle publishes there; None otherwise.
+    sfu: dict[str, Any] | None = None
 
 
 def service_limits(*, service: Service, center: tuple[float, float] | None) -> Limits:
@@ -146,6 +150,13 @@ def _mission_for(*, session: Session, assignment: Assignment) -> MissionSpec | N
     return mission
 
 
+def _publishes(vehicle: Vehicle) -> bool:
+    """Whether the vehicle sends its camera to the SFU: it has one, and its agent
+    understands a task's ``sfu`` section (older agents would refuse the task)."""
+    profile = vehicle.profile or {}
+    return bool(profile.get("video") and profile.get("sfu"))
+
+
 def _vehicle_task_sign(*, session: Session, assignment: Assignment) -> tuple[VehicleTask, str]:
     """A fresh signed task for ``assignment``'s vehicle (a new nonce every call), and its
     token; nothing is written. Raises InvalidTaskError as :func:`vehicle_task_deploy`."""
@@ -163,6 +174,7 @@ def _vehicle_task_sign(*, session: Session, assignment: Assignment) -> tuple[Veh
             issued_at=now,
             expires_at=now + settings.IOUV_TASK_TTL_S,
             mission=_mission_for(session=session, assignment=assignment),
+            sfu=sfu_publish_for(session_id=session.pk) if _publishes(vehicle) else None,
         )
     except ProtocolError as exc:
         raise InvalidTaskError(f"cannot make a vehicle task: {exc.message}") from None
@@ -202,6 +214,8 @@ def _vehicle_task_send(
         locked=locked,
     )
     vehicle_send(vehicle_id=vehicle.pk, message=Task(token=token), session_id=session.pk)
+    if task.sfu is not None:
+        sfu_room_schedule(session_id=session.pk)  # where the vehicle will publish
 
 
 def vehicle_task_deploy(*, session: Session, assignment: Assignment) -> VehicleTask:
@@ -247,6 +261,12 @@ def _user_task(
         },
         locked=locked,
     )
+    sfu = None
+    if role == "viewer" and _publishes(vehicle):
+        sfu = sfu_viewer_for(session_id=session.pk)
+        if sfu is not None:
+            # Made again if a restarted SFU lost it (idempotent).
+            sfu_room_schedule(session_id=session.pk)
     declared = vehicle.profile.get("commands") or vehicle.vehicle_type.commands or []
     return UserTask(
         session_id=str(session.pk),
@@ -262,6 +282,7 @@ def _user_task(
         telemetry=tuple(vehicle.profile.get("telemetry") or ()),
         # Without a control URL the vehicle is reachable only through the platform.
         relay=session.relay or not vehicle.control_url,
+        sfu=sfu,
     )
 
 

@@ -5,12 +5,21 @@ such session (404)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import re
+from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Final
 
 from django.conf import settings
 from django.contrib.auth.decorators import login_required
-from django.http import Http404, HttpResponse, JsonResponse
+from django.http import (
+    FileResponse,
+    Http404,
+    HttpResponse,
+    JsonResponse,
+    StreamingHttpResponse,
+)
+from django.http.response import HttpResponseBase
 from django.shortcuts import get_object_or_404, render
 from django.urls import reverse
 from django.views.decorators.cache import never_cache
@@ -20,6 +29,7 @@ from accounts.users import AuthenticatedHttpRequest
 from services import record_exports as exports
 from services.models import RecordSample, Session
 from services.records import record_tlog, record_verify, record_visible
+from services.sfu import sfu_recordings
 
 #: Export name -> (builder, content type, file name suffix).
 EXPORTS: Final[dict[str, tuple[Callable[[Session], bytes], str, str]]] = {
@@ -150,6 +160,16 @@ def session_replay(request: AuthenticatedHttpRequest, session_id: str) -> HttpRe
                 "samples_url": reverse("session_replay_samples", args=[session.pk]),
                 "tiles": settings.IOUV_MAP_TILES_URL,
                 "poll_ms": 2000,
+                # What the SFU recorded, converted once the session ended: each stretch
+                # (a new one after the vehicle published again) with when it started,
+                # so the page plays it in step with the track.
+                "videos": [
+                    {
+                        "url": reverse("session_replay_video", args=[session.pk, index]),
+                        "started_at": recording.started_at,
+                    }
+                    for index, recording in enumerate(sfu_recordings(session_id=session.pk))
+                ],
             },
         },
     )
@@ -165,3 +185,61 @@ def session_replay_samples(request: AuthenticatedHttpRequest, session_id: str) -
     if not raw.isdigit():
         return JsonResponse({"error": "after must be a whole number (a sample id)"}, status=400)
     return JsonResponse(replay_samples(session, after=int(raw)))
+
+
+@never_cache
+@login_required
+@require_GET
+def session_replay_video(
+    request: AuthenticatedHttpRequest, session_id: str, index: int
+) -> HttpResponseBase:
+    """The ``index``-th stretch of the session's recorded video (WebM); 404 when there is
+    none (no SFU, nothing recorded, not converted yet)."""
+    session = record_session(user=request.user, session_id=session_id)
+    recordings = sfu_recordings(session_id=session.pk)
+    if not 0 <= index < len(recordings):
+        raise Http404("no such recording")
+    path = recordings[index].path
+    size = path.stat().st_size
+    wanted = _byte_range(request.headers.get("Range", ""), size)
+    if wanted is None:
+        response: HttpResponseBase = FileResponse(path.open("rb"), content_type="video/webm")
+    else:
+        # A player seeks by asking for bytes from where it wants to be: without ranges a
+        # browser cannot seek at all (the replay's slider moves the video).
+        start, end = wanted
+        response = StreamingHttpResponse(
+            _file_slice(path, start, end - start + 1), status=206, content_type="video/webm"
+        )
+        response["Content-Range"] = f"bytes {start}-{end}/{size}"
+        response["Content-Length"] = str(end - start + 1)
+    response["Accept-Ranges"] = "bytes"
+    return response
+
+
+_RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
+
+
+def _byte_range(header: str, size: int) -> tuple[int, int] | None:
+    """The one byte range ``header`` asks for, inclusive and within ``size``; None for
+    no range, several, or one that makes no sense (the whole file is sent then)."""
+    match = _RANGE.match(header.strip())
+    if not match or size == 0 or not (match[1] or match[2]):
+        return None
+    if match[1]:
+        start = int(match[1])
+        end = min(int(match[2]), size - 1) if match[2] else size - 1
+    else:  # the last N bytes
+        start, end = max(0, size - int(match[2])), size - 1
+    return (start, end) if start <= end < size else None
+
+
+def _file_slice(path: Path, start: int, length: int) -> Iterator[bytes]:
+    with path.open("rb") as f:
+        f.seek(start)
+        while length > 0:
+            chunk = f.read(min(length, 1 << 16))
+            if not chunk:
+                return
+            length -= len(chunk)
+            yield chunk

@@ -24,12 +24,14 @@ from typing import Any
 
 from django.conf import settings
 from django.db import IntegrityError, transaction
+from django.db.models import Q
 from django.utils import timezone
 
 from agents.protocol.messages import Record
 from fleet.records import RecordOutcome
 from services.eventlog import event_append, session_log, session_log_verify
 from services.models import Assignment, RecordBatch, RecordSample, Session
+from services.sfu import sfu_recorded_sessions, sfu_recording_delete, sfu_recordings
 
 log = logging.getLogger(__name__)
 
@@ -202,17 +204,23 @@ def record_visible(*, session: Session, user: Any) -> bool:
 
 
 def record_delete(*, session: Session, by: str) -> int:
-    """Delete ``session``'s record (its batches and samples); the log keeps the batches'
-    digests and says who deleted it and when. Returns the samples deleted."""
+    """Delete ``session``'s record (its batches and samples, and the SFU's video of it);
+    the log keeps the batches' digests and says who deleted it and when. Returns the
+    samples deleted."""
     with transaction.atomic():
         session = Session.objects.select_for_update(no_key=True).get(pk=session.pk)
         count = RecordSample.objects.filter(session=session).count()
-        if not RecordBatch.objects.filter(session=session).exists():
+        video = bool(sfu_recordings(session_id=session.pk))
+        if not RecordBatch.objects.filter(session=session).exists() and not video:
             return 0
         RecordBatch.objects.filter(session=session).delete()
-        event_append(
-            session=session, kind="record_deleted", data={"by": by, "samples": count}, locked=True
-        )
+        data: dict[str, Any] = {"by": by, "samples": count}
+        if video:
+            data["video"] = True
+            # The files go once the deletion is committed (a rollback keeps them).
+            session_id = session.pk
+            transaction.on_commit(lambda: sfu_recording_delete(session_id=session_id))
+        event_append(session=session, kind="record_deleted", data=data, locked=True)
     return count
 
 
@@ -223,8 +231,8 @@ def records_expire(*, now: Any = None) -> int:
     if days <= 0:
         return 0
     cutoff = (now or timezone.now()) - timedelta(days=days)
-    expired = Session.objects.filter(
-        created_at__lt=cutoff, pk__in=RecordBatch.objects.values("session_id")
+    expired = Session.objects.filter(created_at__lt=cutoff).filter(
+        Q(pk__in=RecordBatch.objects.values("session_id")) | Q(pk__in=sfu_recorded_sessions())
     )
     done = 0
     for session in expired:

@@ -22,6 +22,7 @@ from fleet.feed import fleet_notify
 from fleet.models import Vehicle
 from services.eventlog import event_append
 from services.models import Assignment, Session, SessionEvent
+from services.sfu import sfu_session_end_schedule
 
 S = Session.State
 TRANSITIONS: dict[str, set[str]] = {
@@ -97,6 +98,8 @@ def session_transition_locked(
         session.ended_at = now
         fields.append("ended_at")
         released = assignments_release(session=session, free_vehicles=free_vehicles)
+        # The SFU's room closes and its recording is converted (nothing without one).
+        sfu_session_end_schedule(session_id=session.pk)
     # A session not written yet (services.assignment.session_record's ``write``) is
     # written with its changes.
     if not session._state.adding:

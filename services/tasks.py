@@ -15,6 +15,13 @@ from django.conf import settings
 from iouv.celery import app
 from services.notices import NoticeNotSent, notices_pending, notices_send, notices_send_or_retry
 from services.records import records_expire
+from services.sfu import (
+    SfuError,
+    sfu_configured,
+    sfu_room_open,
+    sfu_rooms_ensure,
+    sfu_session_ended,
+)
 from services.supervision import (
     sessions_end_vehicle_lost,
     sessions_expire_grace,
@@ -77,6 +84,51 @@ def services_notices_send(session_id: str) -> int:
     return notices_send_or_retry(session_id)
 
 
+@shared_task(
+    name="services.sfu_room_open",
+    acks_late=True,
+    autoretry_for=(SfuError,),
+    max_retries=10,
+    retry_backoff=2,
+    retry_backoff_max=60,
+    retry_jitter=True,
+)
+def services_sfu_room_open(session_id: str) -> bool:
+    """Make a live session's SFU room (idempotent); retried while Janus is away.
+    Nothing for a session that has ended meanwhile."""
+    from services.models import Session
+    from services.sessions import FINAL
+
+    if not Session.objects.filter(pk=session_id).exclude(state__in=FINAL).exists():
+        return False
+    return sfu_room_open(session_id=session_id)
+
+
+@shared_task(
+    name="services.sfu_session_ended",
+    acks_late=True,
+    autoretry_for=(SfuError,),
+    max_retries=10,
+    retry_backoff=5,
+    retry_backoff_max=300,
+    retry_jitter=True,
+)
+def services_sfu_session_ended(session_id: str) -> int:
+    """Close an ended session's SFU room and convert its recording to WebM; retried
+    while Janus or janus-pp-rec fails. Returns how many recordings it has."""
+    return len(sfu_session_ended(session_id=session_id))
+
+
+@shared_task(name="services.sfu_rooms_ensure")
+def services_sfu_rooms_ensure() -> int:
+    """Make again the SFU rooms a restarted Janus lost (nothing without an SFU)."""
+    try:
+        return sfu_rooms_ensure()
+    except SfuError as exc:  # Janus away: the next run tries again
+        log.info("SFU rooms not checked: %s", exc)
+        return 0
+
+
 @shared_task(name="services.notices_retry")
 def services_notices_retry() -> int:
     """Try again every notice still unsent (its task's retries ran out, or its message
@@ -102,3 +154,9 @@ def _schedule(sender, **kwargs) -> None:  # type: ignore[no-untyped-def]
     sender.add_periodic_task(15.0, services_expire_undelivered.s(), name="fail undelivered tasks")
     sender.add_periodic_task(10.0, services_notices_retry.s(), name="retry unsent notices")
     sender.add_periodic_task(3600.0, services_records_expire.s(), name="expire flight records")
+    if sfu_configured():
+        sender.add_periodic_task(
+            settings.IOUV_JANUS_ROOMS_CHECK_S,
+            services_sfu_rooms_ensure.s(),
+            name="make again the SFU rooms Janus lost",
+        )

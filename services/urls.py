@@ -20,6 +20,11 @@ urlpatterns = [
     path("sessions/<uuid:session_id>/record/", record_views.session_record, name="session_record"),
     path("sessions/<uuid:session_id>/replay/", record_views.session_replay, name="session_replay"),
     path(
+        "sessions/<uuid:session_id>/replay/video/<int:index>.webm",
+        record_views.session_replay_video,
+        name="session_replay_video",
+    ),
+    path(
         "sessions/<uuid:session_id>/replay/samples",
         record_views.session_replay_samples,
         name="session_replay_samples",

@@ -391,3 +391,36 @@ class ProductionShape:
                     self.nginx.kill()
             for process in [*self.ws, *self.web]:
                 process.stop()
+
+
+JANUS = DEPLOY / "janus"
+
+
+def janus_rendered(
+    *,
+    configs: Path,
+    libdir: Path,
+    http_port: int,
+    ws_port: int,
+    token_secret: str,
+    admin_key: str,
+    rtp_ports: str | None,
+) -> dict[str, str]:
+    """``deploy/janus``'s configuration files as ``deploy/janus/render`` writes them,
+    with the test's folders, ports and secrets: file name -> text."""
+    values = {
+        "@CONFIGS@": str(configs),
+        "@LIBDIR@": str(libdir),
+        "@HTTP_PORT@": str(http_port),
+        "@WS_PORT@": str(ws_port),
+        "@RTP_PORT_RANGE@": f'rtp_port_range = "{rtp_ports}"' if rtp_ports else "",
+        "@IOUV_JANUS_TOKEN_SECRET@": token_secret,
+        "@IOUV_JANUS_ADMIN_KEY@": admin_key,
+    }
+    rendered = {}
+    for template in sorted(JANUS.glob("*.jcfg")):
+        text = template.read_text()
+        for placeholder, value in values.items():
+            text = text.replace(placeholder, value)
+        rendered[template.name] = text
+    return rendered

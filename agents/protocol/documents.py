@@ -236,6 +236,33 @@ class Limits(_Checked, frozen=True, kw_only=True, forbid_unknown_fields=True):
         return _convert({"limits": payload}, _InTask).limits
 
 
+# --------------------------------------------------------------------------------------
+# Publishing to the SFU
+# --------------------------------------------------------------------------------------
+
+#: Janus ids travel as JSON numbers: they stay below 2**53 so a browser reads them exactly.
+JanusId = Annotated[int, Meta(ge=1, lt=2**53)]
+JanusToken = Annotated[str, Meta(min_length=1, max_length=500)]
+
+
+class SfuPublish(_Checked, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Where the vehicle sends its one copy of the video for spectators: a room of the
+    platform's SFU (Janus VideoRoom, docs/video.md "The SFU").
+
+    ``url``: Janus's WebSocket API; ``token``: a Janus core token (``token_auth``) valid
+    for the VideoRoom plugin; ``room``, ``feed``: the session's room and the publisher id
+    spectators subscribe to; ``publish_token``: the room's ``allowed`` token that lets
+    this vehicle, and no spectator, publish; ``pin``: the room's pin.
+    """
+
+    url: Annotated[str, Meta(pattern=r"^wss?://", max_length=500)]
+    token: JanusToken
+    room: JanusId
+    feed: JanusId
+    publish_token: JanusToken
+    pin: JanusToken
+
+
 class _InTask(msgspec.Struct):
     """Limits where they travel, so that a refusal names ``limits.<field>``."""
 
@@ -386,6 +413,17 @@ class VehicleTask(_Document, frozen=True, kw_only=True, forbid_unknown_fields=Tr
     #: The autonomous mission the vehicle flies for this session, one of the installed
     #: missions' specs (agents/missions/<name>/spec.py), tagged by its ``kind``.
     mission: MissionSpec | None = None
+    #: Publish the camera to the platform's SFU for spectators (absent: no SFU, or a
+    #: vehicle without a camera; only sent to agents whose profile says ``sfu``).
+    sfu: SfuPublish | None = None
+
+    def to_payload(self) -> dict[str, Any]:
+        payload = super().to_payload()
+        if payload.get("sfu") is None:
+            # Absent rather than null: agents from before the SFU refuse any claim they
+            # do not know (signed documents fail closed).
+            del payload["sfu"]
+        return payload
 
     def __post_init__(self) -> None:
         # Converting would turn a dict into Limits (or a mission spec); code must hand

@@ -211,6 +211,9 @@ class Profile(Message, frozen=True, tag="profile"):
     session_id: Id | UnsetType | None = UNSET
     controller: bool | UnsetType = UNSET
     status: str | UnsetType = UNSET
+    #: The agent can publish its camera to the platform's SFU (a vehicle task's ``sfu``
+    #: section); older agents, which would refuse a task with that section, leave it out.
+    sfu: bool | UnsetType = UNSET
 
     def __post_init__(self) -> None:
         _check_commands(self.commands)

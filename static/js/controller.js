@@ -207,7 +207,14 @@
     // WebRTC is tried for a point-to-point session: signalled on the platform's relay
     // socket, which carries control meanwhile and if WebRTC fails.
     wantsRtc() {
+      // A viewer watches through the SFU when the platform has one: no connection to
+      // the vehicle of its own (its places are kept for the pilot).
+      if (this.watchesSfu()) return false;
       return !this.task.relay && !!this.task.relay_url && !!window.RTCPeerConnection && !this.direct;
+    }
+
+    watchesSfu() {
+      return !!(this.task.sfu && this.task.role !== "controller" && window.IouvSfu && window.RTCPeerConnection);
     }
 
     // The vehicle's own socket, when the page may open it (not ws:// from https://).
@@ -348,7 +355,8 @@
       if (msg.telemetry.length) {
         this.send({ type: "subscribe", topics: msg.telemetry, rate_hz: TELEMETRY_HZ });
       }
-      if (this.wantsRtc()) this.startRtc();
+      if (this.watchesSfu()) { if (msg.vehicle.video) this.startSfu(); }
+      else if (this.wantsRtc()) this.startRtc();
       else if (msg.vehicle.video) this.startVideo();
       if (!msg.vehicle.video && this.ui.videoNote) this.ui.videoNote.textContent = "This vehicle has no camera.";
     }
@@ -874,6 +882,48 @@
       this.sendSignal({ type: "webrtc_offer", sdp: pc.localDescription.sdp });
     }
 
+    // The vehicle's video through the platform's SFU (static/js/sfu.js), for a viewer.
+    // It outlives reconnections of the control socket: the SFU's token lasts hours.
+    startSfu() {
+      if (this.sfuWatch || !this.ui.video) return;
+      const notes = {
+        connecting: "Starting video…",
+        waiting: "Waiting for the vehicle's video…",
+      };
+      const watch = new window.IouvSfu.Watcher(this.task.sfu, {
+        iceServers: this.task.ice_servers || [],
+        onTrack: (event) => {
+          this.ui.video.srcObject = event.streams[0] || new MediaStream([event.track]);
+          // One counting loop per picture: a subscription made again replaces it.
+          const track = event.track;
+          this.sfuTrack = track;
+          const count = () => {
+            if (this.sfuWatch !== watch || this.sfuTrack !== track) return;
+            this.stats.framesDecoded += 1;
+            this.lastFrameAt = performance.now();
+            if (this.ui.videoNote && this.sfuState === "watching") this.ui.videoNote.textContent = "";
+            this.ui.video.requestVideoFrameCallback(count);
+          };
+          if (this.ui.video.requestVideoFrameCallback) this.ui.video.requestVideoFrameCallback(count);
+        },
+        onState: (state, why) => {
+          this.sfuState = state;
+          this.root.dataset.sfu = state;
+          if (!this.ui.videoNote || this.over) return;
+          if (state === "unavailable") {
+            this.ui.video.srcObject = null;
+            this.ui.videoNote.textContent = `Video unavailable: ${why}. Trying again…`;
+          } else if (state === "waiting") {
+            this.ui.videoNote.textContent = notes.waiting;
+          } else if (state === "connecting") {
+            this.ui.videoNote.textContent = notes.connecting;
+          }
+        },
+      });
+      this.sfuWatch = watch;
+      watch.start();
+    }
+
     showTrack(pc, event) {
       this.ui.video.srcObject = event.streams[0] || new MediaStream([event.track]);
       const count = () => {
@@ -1054,6 +1104,7 @@
       this.root.classList.add("over");
       if (this.ws) this.ws.close(1000, "session over");
       this.closeVideo();
+      if (this.sfuWatch) { this.sfuWatch.close(); this.sfuWatch = null; }
       // Take away what no longer applies: nothing to end, steer or take over, no live
       // picture; the telemetry stays, marked as the last values received.
       for (const form of document.querySelectorAll("form[data-confirm]")) form.remove();

@@ -4,7 +4,7 @@
  * commands and events on a timeline. The record comes from the page's samples URL
  * (services.record_views.session_replay_samples) in pages after a cursor; while the
  * session is live it asks again every poll_ms, and a slider left at the end follows it.
- * Exposes window.IoUVReplay for tests: markerLatLng(), current().
+ * Exposes window.IoUVReplay for tests: markerLatLng(), current(), times().
  */
 (function () {
   "use strict";
@@ -55,8 +55,33 @@
     for (const item of timeline.children) {
       item.classList.toggle("past", Number(item.dataset.t) <= sample.t);
     }
-    // A recorded video plays along: its start is the first sample's time.
-    if (video && telemetry.length) video.currentTime = Math.max(0, sample.t - telemetry[0].t);
+    if (video) showVideo(sample.t);
+  }
+
+  // The recorded video at instant t (Unix seconds): the stretch that started last before
+  // t, at t minus its start (the SFU stamps each stretch's start on the wall clock, as
+  // the vehicle stamps its samples).
+  function showVideo(t) {
+    const stretches = config.videos || [];
+    let current = null;
+    for (const s of stretches) if (s.started_at <= t) current = s;
+    const note = root.querySelector("[data-replay-video-note]");
+    if (!current) {
+      video.hidden = true;
+      if (note) note.textContent = "No video at this instant.";
+      return;
+    }
+    video.hidden = false;
+    if (note) note.textContent = "";
+    const at = t - current.started_at;
+    const seek = () => { video.currentTime = Math.min(at, video.duration || at); };
+    if (video.dataset.src !== current.url) {
+      video.dataset.src = current.url;
+      video.src = current.url;
+      video.addEventListener("loadedmetadata", seek, { once: true });
+    } else if (video.readyState >= 1) {
+      seek();
+    }
   }
 
   function describe(sample) {
@@ -149,6 +174,7 @@
   window.IoUVReplay = {
     markerLatLng: () => (marker ? [marker.getLatLng().lat, marker.getLatLng().lng] : null),
     current: () => telemetry[Number(slider.value)] || null,
+    times: () => telemetry.map((sample) => sample.t),
   };
   run();
 })();

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from benchmarks.nginx_proxy import NginxUnavailable
+from tests.janus import janus_ensure
 from tests.production import (
     DEPLOY,
     nginx_command,
@@ -24,12 +25,14 @@ def test_systemd_accepts_every_unit(tmp_path: Path) -> None:
     analyze = shutil.which("systemd-analyze")
     if analyze is None:
         pytest.skip("needs systemd-analyze (Debian's systemd package)")
+    janus_ensure()  # verify checks that every unit's command exists
     units = units_rendered(tmp_path)
     assert {u.name for u in units} >= {
         "iouv-web@8001.service",
         "iouv-ws@8101.service",
         "iouv-worker.service",
         "iouv-beat.service",
+        "iouv-janus.service",
         "iouv.target",
     }
     done = subprocess.run(

@@ -1,0 +1,358 @@
+"""The platform's SFU (Janus's VideoRoom plugin): a room per session, who may publish
+and subscribe in it, and its recording (docs/video.md, "The SFU").
+
+The pilot's picture comes straight from the vehicle; everyone else watches the one copy
+the vehicle publishes to Janus. The platform is the only one that can make rooms (the
+plugin's ``admin_key``); Janus checks, by itself, every request of a vehicle or a
+spectator:
+
+* **core token** (``token_auth`` with ``token_auth_secret``): every request must carry a
+  token ``<expiry>,janus,janus.plugin.videoroom:<base64 HMAC-SHA1>`` that only the
+  platform can sign. Minted for a vehicle with its task, and for a user with a viewer
+  grant; it expires by itself, nothing is stored on either side (as TURN credentials,
+  services.ice). A forged or missing one is refused before any room is reached.
+* **room pin**: each session's room has its own pin, so a token holder of one session
+  cannot watch another.
+* **publish token** (the room's ``allowed`` list): only the vehicle publishes.
+
+Room id, pin, room secret and publish token are derived from the session id with the
+admin key (HMAC), so nothing is stored and a room lost with a Janus restart is made again
+the same (:func:`sfu_room_open` is idempotent). Each room records what the vehicle
+publishes into ``IOUV_JANUS_REC_DIR/<session hex>/`` (Janus's ``.mjr`` files);
+:func:`sfu_recording_convert` turns them into WebM with ``janus-pp-rec`` once the
+session has ended.
+"""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import hashlib
+import hmac
+import json
+import logging
+import re
+import secrets
+import shutil
+import subprocess
+import time
+import urllib.error
+import urllib.request
+import uuid
+from pathlib import Path
+from typing import Any, Final
+
+from django.conf import settings
+from django.db import transaction
+
+from agents.protocol import SfuPublish
+
+log = logging.getLogger(__name__)
+
+PLUGIN: Final = "janus.plugin.videoroom"
+#: The vehicle's publisher id in its session's room (one publisher per room).
+FEED: Final = 1
+#: How long the platform waits for Janus's HTTP API.
+TIMEOUT_S: Final = 5.0
+#: VideoRoom's codes: the room exists already; there is no such room.
+ROOM_EXISTS: Final = 427
+NO_SUCH_ROOM: Final = 426
+#: Janus names a publisher's recording ``videoroom-<room>-user-<id>-<start µs>-video-<n>.mjr``.
+_RECORDING = re.compile(r"-user-\d+-(?P<start_us>\d+)-video-\d+\.mjr$")
+
+
+class SfuError(Exception):
+    """Janus could not be reached, or refused what the platform asked."""
+
+
+def sfu_configured() -> bool:
+    """Whether spectators watch through an SFU (its URLs and both secrets are set)."""
+    return bool(
+        settings.IOUV_JANUS_URL
+        and settings.IOUV_JANUS_PUBLIC_URL
+        and settings.IOUV_JANUS_TOKEN_SECRET
+        and settings.IOUV_JANUS_ADMIN_KEY
+    )
+
+
+def janus_token(*, expires_at: float) -> str:
+    """A Janus core token for the VideoRoom plugin, valid until ``expires_at`` (Unix
+    seconds), signed with ``IOUV_JANUS_TOKEN_SECRET`` as Janus's signed-token mode
+    checks it."""
+    data = f"{int(expires_at)},janus,{PLUGIN}"
+    key = settings.IOUV_JANUS_TOKEN_SECRET.encode()
+    signature = hmac.new(key, data.encode(), hashlib.sha1).digest()
+    return f"{data}:{base64.b64encode(signature).decode()}"
+
+
+def _derived(purpose: str, session_id: Any) -> str:
+    key = settings.IOUV_JANUS_ADMIN_KEY.encode()
+    text = f"iouv-sfu:{purpose}:{uuid.UUID(str(session_id)).hex}"
+    return hmac.new(key, text.encode(), hashlib.sha256).hexdigest()[:32]
+
+
+def sfu_room(session_id: Any) -> int:
+    """The session's room id: 52 bits of its UUID (a browser reads it exactly)."""
+    return int(uuid.UUID(str(session_id)).hex[:13], 16) or 1
+
+
+def sfu_recording_dir(session_id: Any) -> Path | None:
+    """Where Janus records the session's room; None when nothing is recorded."""
+    if not settings.IOUV_JANUS_REC_DIR:
+        return None
+    return Path(settings.IOUV_JANUS_REC_DIR) / uuid.UUID(str(session_id)).hex
+
+
+def sfu_publish_for(*, session_id: Any) -> SfuPublish | None:
+    """What the vehicle's task says about publishing (None without an SFU)."""
+    if not sfu_configured():
+        return None
+    return SfuPublish(
+        url=settings.IOUV_JANUS_PUBLIC_URL,
+        token=janus_token(expires_at=time.time() + settings.IOUV_JANUS_TOKEN_TTL_S),
+        room=sfu_room(session_id),
+        feed=FEED,
+        publish_token=_derived("publish", session_id),
+        pin=_derived("pin", session_id),
+    )
+
+
+def sfu_viewer_for(*, session_id: Any) -> dict[str, Any] | None:
+    """What a spectator's page needs to subscribe (None without an SFU): call it only
+    for a user who was just given a viewer grant on the session."""
+    if not sfu_configured():
+        return None
+    return {
+        "url": settings.IOUV_JANUS_PUBLIC_URL,
+        "token": janus_token(expires_at=time.time() + settings.IOUV_JANUS_TOKEN_TTL_S),
+        "room": sfu_room(session_id),
+        "feed": FEED,
+        "pin": _derived("pin", session_id),
+    }
+
+
+def _post(url: str, body: dict[str, Any]) -> dict[str, Any]:
+    request = urllib.request.Request(
+        url,
+        data=json.dumps({**body, "transaction": secrets.token_hex(6)}).encode(),
+        headers={"Content-Type": "application/json"},
+    )
+    try:
+        with urllib.request.urlopen(request, timeout=TIMEOUT_S) as response:
+            answer: dict[str, Any] = json.loads(response.read())
+    except (OSError, ValueError) as exc:
+        raise SfuError(f"the SFU at {url} did not answer: {exc}") from exc
+    if answer.get("janus") == "error":
+        error = answer.get("error", {})
+        raise SfuError(f"the SFU refused: {error.get('code')} {error.get('reason')}")
+    return answer
+
+
+def _videoroom(body: dict[str, Any]) -> dict[str, Any]:
+    """One synchronous VideoRoom request over Janus's HTTP API, in a session of its
+    own (create, attach, message, destroy). Returns the plugin's data, errors included."""
+    base = settings.IOUV_JANUS_URL.rstrip("/")
+    token = janus_token(expires_at=time.time() + 60)
+    session = _post(base, {"janus": "create", "token": token})["data"]["id"]
+    try:
+        handle = _post(f"{base}/{session}", {"janus": "attach", "plugin": PLUGIN, "token": token})
+        answer = _post(
+            f"{base}/{session}/{handle['data']['id']}",
+            {"janus": "message", "body": body, "token": token},
+        )
+        data: dict[str, Any] = answer.get("plugindata", {}).get("data", {})
+        return data
+    finally:
+        try:
+            _post(f"{base}/{session}", {"janus": "destroy", "token": token})
+        except SfuError:
+            log.info("could not destroy a Janus session of the platform's", exc_info=True)
+
+
+def sfu_room_open(*, session_id: Any) -> bool:
+    """Make the session's room (idempotent): one publisher (the vehicle, by its publish
+    token), the session's pin, VP8, recording into :func:`sfu_recording_dir`. Returns
+    True when it was made now, False when it was there already. Raises SfuError when
+    Janus is away or refuses."""
+    if not sfu_configured():
+        raise SfuError("no SFU is configured")
+    body: dict[str, Any] = {
+        "request": "create",
+        "room": sfu_room(session_id),
+        "admin_key": settings.IOUV_JANUS_ADMIN_KEY,
+        "description": f"session {uuid.UUID(str(session_id)).hex[:8]}",
+        "secret": _derived("secret", session_id),
+        "pin": _derived("pin", session_id),
+        "allowed": [_derived("publish", session_id)],
+        "publishers": 1,
+        "videocodec": "vp8",
+        "audiocodec": "opus",
+        "bitrate": 0,
+        "notify_joining": False,
+        # Only the platform (the room's secret) may turn recording on or off.
+        "lock_record": True,
+    }
+    directory = sfu_recording_dir(session_id)
+    if directory is not None:
+        body |= {"record": True, "rec_dir": str(directory)}
+    data = _videoroom(body)
+    if data.get("error_code") == ROOM_EXISTS:
+        return False
+    if "error_code" in data:
+        raise SfuError(f"the SFU refused the room: {data.get('error')}")
+    return True
+
+
+def sfu_room_close(*, session_id: Any) -> bool:
+    """Destroy the session's room: its spectators and publisher are dropped and its
+    recording is closed. Returns False when there was no such room. Raises SfuError."""
+    data = _videoroom(
+        {
+            "request": "destroy",
+            "room": sfu_room(session_id),
+            "secret": _derived("secret", session_id),
+        }
+    )
+    if data.get("error_code") == NO_SUCH_ROOM:
+        return False
+    if "error_code" in data:
+        raise SfuError(f"the SFU refused to close the room: {data.get('error')}")
+    return True
+
+
+def sfu_room_schedule(*, session_id: Any) -> None:
+    """Make the session's room from a Celery task once the current transaction commits
+    (retried while Janus is away)."""
+    from services.tasks import services_sfu_room_open  # the task module imports this one
+
+    transaction.on_commit(lambda: services_sfu_room_open.delay(str(session_id)), robust=True)
+
+
+def sfu_session_end_schedule(*, session_id: Any) -> None:
+    """Once the current transaction commits, close the ended session's room and convert
+    its recording, from a Celery task (nothing without an SFU)."""
+    if not sfu_configured():
+        return
+    from services.tasks import services_sfu_session_ended
+
+    transaction.on_commit(lambda: services_sfu_session_ended.delay(str(session_id)), robust=True)
+
+
+def sfu_session_ended(*, session_id: Any) -> list[Recording]:
+    """Close the session's room (its recording ends) and convert what was recorded.
+    Idempotent. Returns the session's recordings. Raises SfuError (Janus away,
+    janus-pp-rec failing): the caller tries again later."""
+    sfu_room_close(session_id=session_id)
+    return sfu_recording_convert(session_id=session_id)
+
+
+def sfu_rooms_ensure() -> int:
+    """Make the room of every live session whose vehicle publishes, where Janus lost it
+    (a restart): the vehicle, which keeps trying, then publishes and is recorded again
+    even if no spectator comes to make the room. Returns how many rooms were made.
+    Raises SfuError when Janus is away (the next run tries again)."""
+    from services.models import Session  # models import nothing of this module's users
+
+    if not sfu_configured():
+        return 0
+    sessions = (
+        Session.objects.filter(
+            state__in=[Session.State.ASSIGNED, Session.State.ACTIVE],
+            assignments__active=True,
+            assignments__vehicle__profile__video=True,
+            assignments__vehicle__profile__sfu=True,
+        )
+        .values_list("pk", flat=True)
+        .distinct()
+    )
+    return sum(sfu_room_open(session_id=pk) for pk in sessions)
+
+
+def sfu_recording_delete(*, session_id: Any) -> bool:
+    """Delete the session's recorded video (its folder); False when there was none."""
+    directory = sfu_recording_dir(session_id)
+    if directory is None or not directory.is_dir():
+        return False
+    shutil.rmtree(directory)
+    return True
+
+
+def sfu_recorded_sessions() -> list[uuid.UUID]:
+    """The sessions that have a recording folder (for the record's retention)."""
+    if not settings.IOUV_JANUS_REC_DIR or not Path(settings.IOUV_JANUS_REC_DIR).is_dir():
+        return []
+    found = []
+    for entry in Path(settings.IOUV_JANUS_REC_DIR).iterdir():
+        try:
+            found.append(uuid.UUID(hex=entry.name))
+        except ValueError:
+            continue  # not a session's folder
+    return found
+
+
+@dataclasses.dataclass(frozen=True)
+class Recording:
+    """One stretch of a session's video (a new one each time the vehicle published
+    again): the WebM file, and when its first frame was received (Unix seconds)."""
+
+    path: Path
+    started_at: float
+
+
+def sfu_recordings(*, session_id: Any) -> list[Recording]:
+    """The session's converted recordings, oldest first."""
+    directory = sfu_recording_dir(session_id)
+    if directory is None or not directory.is_dir():
+        return []
+    found = []
+    for webm in directory.glob("*.webm"):
+        if webm.name.endswith(".part.webm"):
+            continue
+        mjr = webm.with_suffix(".mjr")
+        match = _RECORDING.search(mjr.name)
+        if match:
+            started = _first_packet_at(mjr) or int(match["start_us"]) / 1e6
+            found.append(Recording(webm, started))
+    return sorted(found, key=lambda r: r.started_at)
+
+
+def _first_packet_at(mjr: Path) -> float | None:
+    """When Janus wrote the recording's first packet (Unix seconds), from the ``.mjr``
+    header (``MJR00002``, a 2-byte length, JSON with ``u`` in µs); the WebM's time 0."""
+    try:
+        with mjr.open("rb") as f:
+            head = f.read(8 + 2)
+            if len(head) < 10 or not head.startswith(b"MJR00002"):
+                return None
+            info = json.loads(f.read(int.from_bytes(head[8:10], "big")))
+    except (OSError, ValueError):
+        return None
+    first = info.get("u") if isinstance(info, dict) else None
+    return first / 1e6 if isinstance(first, int) and first > 0 else None
+
+
+def sfu_recording_convert(*, session_id: Any) -> list[Recording]:
+    """Convert the session's ``.mjr`` recordings that have no WebM yet (``janus-pp-rec``,
+    package janus-tools); idempotent. Returns all its recordings. Raises SfuError when
+    janus-pp-rec is missing or fails on a file."""
+    directory = sfu_recording_dir(session_id)
+    if directory is None or not directory.is_dir():
+        return []
+    tool = shutil.which("janus-pp-rec")
+    if tool is None:
+        raise SfuError("janus-pp-rec is not installed (Debian package janus-tools)")
+    for mjr in sorted(directory.glob("*-video-*.mjr")):
+        webm = mjr.with_suffix(".webm")
+        if webm.exists():
+            continue
+        partial = mjr.with_suffix(".part.webm")
+        done = subprocess.run(
+            [tool, str(mjr), str(partial)], capture_output=True, text=True, timeout=600
+        )
+        if done.returncode != 0 or not partial.exists():
+            partial.unlink(missing_ok=True)
+            if mjr.stat().st_size <= 8:  # a header only: the publisher never sent a frame
+                continue
+            raise SfuError(f"janus-pp-rec failed on {mjr.name}: {done.stderr[-300:]}")
+        partial.rename(webm)  # whole or not at all, for a reader of the folder
+    return sfu_recordings(session_id=session_id)
