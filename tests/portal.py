@@ -152,6 +152,11 @@ async def hold_until(
     await page.keyboard.down(key)
     try:
         await until(reached, within=within, what=what)
+    except AssertionError as exc:
+        # What the page saw of its commands (sent, answered, refused and why) says
+        # whether they were lost, refused or carried out without effect.
+        stats = await page.evaluate("JSON.stringify(window.c && c.stats)")
+        raise AssertionError(f"{exc}; the page's stats: {stats}") from None
     finally:
         await page.keyboard.up(key)
 
@@ -172,10 +177,7 @@ async def drive_forward(world: World, page: Page, *, at_least_m: float = 0.15) -
     try:
         await hold_until(page, "ArrowUp", far_enough, what=f"the car to move {at_least_m} m")
     except AssertionError as exc:
-        # What the page saw of its commands (sent, answered, refused and why) says
-        # whether they were lost, refused or executed without effect.
-        stats = await page.evaluate("JSON.stringify(window.c && c.stats)")
-        raise AssertionError(f"{exc}; moved {moved():.3f} m; the page's stats: {stats}") from None
+        raise AssertionError(f"{exc}; it moved {moved():.3f} m") from None
     return moved()
 
 

@@ -122,7 +122,14 @@ async def _fly_through_an_outage(
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(ws.recv(), 0.2)
         assert agent.recorder.pending, "batches wait on the vehicle meanwhile"
-        await asyncio.to_thread(platform.start)
+        # The user keeps the link alive while the platform starts (tens of seconds on a
+        # saturated machine): keepalives out, and reading, as the page does.
+        starting = asyncio.create_task(asyncio.to_thread(platform.start))
+        while not starting.done():
+            await ws.send(json.dumps({"type": "keepalive"}))
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(ws.recv(), 0.2)
+        await starting
         # A refused command is recorded with its acknowledgement too.
         refused = await command(ws, seq, "take_off", altitude_m=500)
         assert not refused["ok"]

@@ -20,7 +20,7 @@ from playwright.async_api import expect
 from services.models import Service, Session
 from services.supervision import sessions_expire_grace
 from tests.browser import needs_chromium
-from tests.portal import World, controller, request_car, request_drone, wait_for
+from tests.portal import World, controller, hold_until, request_car, request_drone, wait_for
 from tests.servers import db, until
 
 pytestmark = [
@@ -64,11 +64,7 @@ async def test_a_reload_within_the_link_loss_timeout_keeps_flying_without_the_fa
     async def climbed() -> bool:
         return bool(drone.telemetry()["altitude"] > before + 0.5)
 
-    await page.keyboard.down("w")
-    try:
-        await until(climbed, within=20, what="the drone to climb after the reload")
-    finally:
-        await page.keyboard.up("w")
+    await hold_until(page, "w", climbed, what="the drone to climb after the reload")
     assert hub.stats["failsafes"] == 0
 
 
