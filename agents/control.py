@@ -836,9 +836,8 @@ class ControlHub:
             try:
                 checked = self.gate.check(name, args, rtt_ms=client.rtt_ms)
                 async with self._exec:
-                    await asyncio.wait_for(
-                        self.adapter.execute(checked.name, checked.args), COMMAND_TIMEOUT_S
-                    )
+                    async with asyncio.timeout(COMMAND_TIMEOUT_S):
+                        await self.adapter.execute(checked.name, checked.args)
                     # Counted before the lock is free: a mission step waiting for it
                     # sees that the user took over.
                     self._override(f"the user sent {name}")

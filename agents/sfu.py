@@ -113,10 +113,12 @@ class JanusSession:
 
     async def __aenter__(self) -> JanusSession:
         try:
-            self._ws = await asyncio.wait_for(
-                connect(self.url, subprotocols=["janus-protocol"], max_size=1 << 20),  # type: ignore[list-item]
-                REQUEST_TIMEOUT_S,
-            )
+            async with asyncio.timeout(REQUEST_TIMEOUT_S):
+                self._ws = await connect(
+                    self.url,
+                    subprotocols=["janus-protocol"],  # type: ignore[list-item]
+                    max_size=1 << 20,
+                )
         except (OSError, InvalidHandshake, InvalidURI, TimeoutError) as exc:
             raise JanusError(0, f"cannot reach the SFU at {self.url}: {exc}") from exc
         self._tasks.append(asyncio.create_task(self._read(), name="janus reader"))
@@ -156,7 +158,8 @@ class JanusSession:
         self._waiting[transaction] = future
         try:
             await self._ws.send(json.dumps(message))
-            reply = await asyncio.wait_for(future, REQUEST_TIMEOUT_S)
+            async with asyncio.timeout(REQUEST_TIMEOUT_S):
+                reply = await future
         except (ConnectionClosed, TimeoutError) as exc:
             raise JanusError(0, f"no answer from the SFU ({type(exc).__name__})") from exc
         finally:
@@ -170,7 +173,8 @@ class JanusSession:
         """Destroy the session and close the link. Idempotent."""
         if self._ws is not None and not self.closed.is_set() and self.id is not None:
             with contextlib.suppress(Exception):
-                await asyncio.wait_for(self.send({"janus": "destroy"}), 2.0)
+                async with asyncio.timeout(2.0):
+                    await self.send({"janus": "destroy"})
         self.closed.set()
         for task in self._tasks:
             task.cancel()
@@ -226,7 +230,8 @@ class JanusSession:
                 message["token"] = self.token
             try:
                 await self._ws.send(json.dumps(message))
-                reply = await asyncio.wait_for(future, REQUEST_TIMEOUT_S)
+                async with asyncio.timeout(REQUEST_TIMEOUT_S):
+                    reply = await future
                 if reply.get("janus") == "error":  # the token ran out, the session went
                     raise JanusError(int(reply.get("error", {}).get("code", 0)), "keepalive")
                 self.keepalives += 1

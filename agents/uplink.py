@@ -171,7 +171,8 @@ class Uplink:
                 Hello(v=PROTOCOL_VERSION, vehicle_id=self.vehicle_id, credential=self.credential)
             )
         )
-        raw = await asyncio.wait_for(ws.recv(), WELCOME_TIMEOUT_S)
+        async with asyncio.timeout(WELCOME_TIMEOUT_S):
+            raw = await ws.recv()
         msg = parse_message(raw, channel="uplink_to_agent")
         if isinstance(msg, Error) and msg.code == "busy":
             # Thousands of agents connecting at once: come back after the backoff, which

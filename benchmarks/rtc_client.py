@@ -148,7 +148,8 @@ class RtcControlClient:
             raise RtcClientError(f"the vehicle refused the offer: {answer['message']}")
         await pc.setRemoteDescription(RTCSessionDescription(sdp=answer["sdp"], type="answer"))
         try:
-            await asyncio.wait_for(opened.wait(), self.timeout_s)
+            async with asyncio.timeout(self.timeout_s):
+                await opened.wait()
         except TimeoutError:
             raise RtcClientError(f"no data channel within {self.timeout_s} s") from None
         self.steps["channels_open"] = time.perf_counter()
@@ -176,7 +177,8 @@ class RtcControlClient:
             if left <= 0:
                 raise RtcClientError(f"path is {self.path}, not one of {paths}")
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._path_seen.wait(), left)
+                async with asyncio.timeout(left):
+                    await self._path_seen.wait()
         assert self.path is not None
         return self.path
 
@@ -210,7 +212,9 @@ class RtcControlClient:
         while True:
             left = deadline - time.monotonic()
             try:
-                msg = await asyncio.wait_for(self.inbox.get(), max(0.0, left))
+                # asyncio.timeout: 3.11's wait_for can swallow a cancel (see tests.control).
+                async with asyncio.timeout(max(0.0, left)):
+                    msg = await self.inbox.get()
             except TimeoutError:
                 raise RtcClientError(f"no {'/'.join(types)} within {self.timeout_s} s") from None
             if msg.get("type") in types and (where is None or where(msg)):

@@ -401,7 +401,8 @@ class Outbox:
     async def _run(self) -> None:
         while self._links:
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), POLL_S)
+                async with asyncio.timeout(POLL_S):
+                    await self._wake.wait()
             self._wake.clear()
             try:
                 await self.deliver_due()

@@ -16,7 +16,11 @@ async def recv(ws: ClientConnection, kind: str, within: float = 3.0) -> dict[str
     events); raises TimeoutError after ``within`` seconds."""
     deadline = time.monotonic() + within
     while True:
-        msg = json.loads(await asyncio.wait_for(ws.recv(), deadline - time.monotonic()))
+        # asyncio.timeout, not wait_for: 3.11's wait_for can swallow the cancel of a
+        # client stopping its driver, which then drives on forever.
+        async with asyncio.timeout(max(0.0, deadline - time.monotonic())):
+            raw = await ws.recv()
+        msg = json.loads(raw)
         if msg["type"] == kind:
             return msg
         if msg["type"] == "ping":

@@ -22,7 +22,14 @@ from agents.config import AgentConfig
 from agents.runtime import Agent
 from fleet.models import Vehicle
 from services.demo import agent_configs_write, demo_seed
-from tests.servers import agent_started, celery_worker_process, db, platform_process, until
+from tests.servers import (
+    agent_started,
+    cancelled,
+    celery_worker_process,
+    db,
+    platform_process,
+    until,
+)
 
 #: Every demo user's password in the tests (``demo_seed(password=...)``).
 PASSWORD = "demo-pass-for-tests"
@@ -82,10 +89,7 @@ class Agents:
 
     async def switch_off(self, name: str) -> None:
         """Vehicle ``name`` and its agent stop at once, wherever they are."""
-        task = self.tasks.pop(name)
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
+        await cancelled(self.tasks.pop(name))
 
     async def stop(self) -> None:
         for name in list(self.tasks):

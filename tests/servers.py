@@ -359,6 +359,20 @@ def db(fn: Any, *args: Any, **kwargs: Any) -> Any:
         connections.close_all()
 
 
+async def cancelled(task: asyncio.Task[Any] | None) -> None:
+    """Cancel ``task`` and wait until it has ended, whatever it raised. Cancelled again
+    each second: a cancel can be lost (Python 3.11's ``asyncio.wait_for`` swallows one
+    that arrives as what it waits for finishes, in code we do not own), and a task
+    looping around such a wait would otherwise run on, holding its test for good."""
+    if task is None:
+        return
+    while not task.done():
+        task.cancel()
+        await asyncio.wait({task}, timeout=1)
+    if not task.cancelled():
+        task.exception()  # retrieved: what stopped it is the caller's to check
+
+
 async def until(predicate: Any, *, within: float = 10.0, what: str = "") -> Any:
     """Poll ``predicate`` (a coroutine function) until it returns something truthy."""
     for _ in range(int(within / 0.1)):

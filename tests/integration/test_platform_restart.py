@@ -11,7 +11,6 @@ production, so its timers see every vehicle go silent at once.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import time
 from typing import Any
@@ -23,7 +22,7 @@ from fleet.models import Vehicle
 from services.models import Session
 from tests import factories as f
 from tests.control import recv
-from tests.servers import celery_worker_process, db, platform_server, until
+from tests.servers import cancelled, celery_worker_process, db, platform_server, until
 from tests.vehicles import car_agent, car_served, drive, request_car
 
 pytestmark = [
@@ -83,9 +82,7 @@ class Driver:
         await until(done, within=30, what=f"{more} more commands acknowledged")
 
     async def stop(self) -> None:
-        self._task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await self._task
+        await cancelled(self._task)
         await self.ws.close()
 
 

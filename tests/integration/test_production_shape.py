@@ -14,7 +14,6 @@ once.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import dataclasses
 import itertools
 import time
@@ -25,7 +24,7 @@ import pytest
 
 from accounts.tokens import token_issue
 from agents.config import AgentConfig
-from benchmarks.rtc_client import RtcClientError, RtcControlClient
+from benchmarks.rtc_client import RtcControlClient
 from fleet.models import Vehicle
 from kinds.rescue_at_sea.models import Mission
 from kinds.rescue_at_sea.tests.sea import client_requests_rescue, search_area
@@ -35,7 +34,7 @@ from tests import factories as f
 from tests.demo import PASSWORD, agents_online, mission_agent_config
 from tests.production import ProductionShape
 from tests.production_clients import Driver, Reader, api, task_accepted
-from tests.servers import db, until
+from tests.servers import cancelled, db, until
 
 pytestmark = [
     pytest.mark.postgres,
@@ -124,10 +123,7 @@ class RtcDriver:
     async def stop(self) -> None:
         """Stop driving (what stopped it earlier is :meth:`check`'s to say)."""
         for task in (self._runner, self._keepalive):
-            if task is not None:
-                task.cancel()
-                with contextlib.suppress(asyncio.CancelledError, RtcClientError):
-                    await task
+            await cancelled(task)
         await self.user.close()
 
 

@@ -226,7 +226,8 @@ class MavlinkAdapter(Adapter, abc.ABC):
 
     async def _wait_first_heartbeat(self, wait_s: float) -> None:
         try:
-            await asyncio.wait_for(self._first_heartbeat.wait(), wait_s)
+            async with asyncio.timeout(wait_s):
+                await self._first_heartbeat.wait()
         except TimeoutError:
             logger.warning(
                 "mavlink: no autopilot heartbeat on %s after %.0f s; waiting on",

@@ -337,9 +337,8 @@ class AutopilotLink:
                 while True:
                     wait = min(self.config.resend_s, deadline - time.monotonic())
                     try:
-                        ack = await asyncio.wait_for(
-                            asyncio.shield(pending.future), max(0.01, wait)
-                        )
+                        async with asyncio.timeout(max(0.01, wait)):
+                            ack = await asyncio.shield(pending.future)
                     except TimeoutError:
                         if time.monotonic() >= deadline:
                             self.stats["timeouts"] += 1
@@ -397,7 +396,8 @@ class AutopilotLink:
                 )
                 wait = min(self.config.resend_s, deadline - time.monotonic())
                 try:
-                    return await asyncio.wait_for(asyncio.shield(future), max(0.01, wait))
+                    async with asyncio.timeout(max(0.01, wait)):
+                        return await asyncio.shield(future)
                 except TimeoutError:
                     if time.monotonic() >= deadline:
                         raise AdapterError(
@@ -454,7 +454,8 @@ class AutopilotLink:
                 self.send(build())
                 wait = min(self.config.resend_s, deadline - time.monotonic())
                 try:
-                    return await asyncio.wait_for(asyncio.shield(future), max(0.01, wait))
+                    async with asyncio.timeout(max(0.01, wait)):
+                        return await asyncio.shield(future)
                 except TimeoutError:
                     if time.monotonic() >= deadline:
                         raise AdapterError(

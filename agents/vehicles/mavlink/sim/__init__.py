@@ -198,7 +198,8 @@ async def _ready_port(process: subprocess.Popen[bytes]) -> int:
     """The UDP port of ``READY udpin:127.0.0.1:PORT``, the simulator's first line."""
     assert process.stdout is not None
     try:
-        line = await asyncio.wait_for(asyncio.to_thread(process.stdout.readline), READY_WITHIN_S)
+        async with asyncio.timeout(READY_WITHIN_S):
+            line = await asyncio.to_thread(process.stdout.readline)
     except TimeoutError:
         process.kill()  # ends the blocked read too
         raise RuntimeError(f"the MAVLink simulator did not start in {READY_WITHIN_S:g} s") from None
