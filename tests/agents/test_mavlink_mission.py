@@ -1,5 +1,6 @@
 """The simulated autopilot's mission, driven by a plain ground station (pymavlink, over
-UDP): the upload protocol as ArduPilot answers it, its refusals, and AUTO flying it.
+UDP): the upload protocol as ArduPilot answers it, its refusals, and AUTO flying it;
+then the agent's adapter uploading one (agents/vehicles/mavlink/mission.py).
 
 Each test runs its own simulator process (agents/vehicles/mavlink/sim/); the ground
 station is system 200, which ArduPilot does not take for its GCS (no fail-safe here).
@@ -12,9 +13,16 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import pytest
+
 from agents.geo import distance_m, offset
+from agents.simulation import simulator_running
+from agents.vehicles.base import AdapterError
+from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.mavlink.dialect import MAV
-from tests.agents.mavlink_rig import HOME, ground_station, simulator_listening
+from agents.vehicles.plan import ReturnHome, TakeOff, Waypoint
+from agents.vehicles.registry import adapter_create
+from tests.agents.mavlink_rig import HOME, ground_station, poll, simulator_listening
 
 AUTO, GUIDED, RTL = 3, 4, 6
 RELATIVE = MAV.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
@@ -223,3 +231,44 @@ async def test_a_fence_breach_in_auto_brings_the_copter_home():
         text = await wait_for(gcs, "STATUSTEXT", 30, lambda m: "fence" in m.text)
         assert text.text == "Circle fence breached"
         await wait_for(gcs, "HEARTBEAT", 5, lambda m: m.custom_mode == RTL)
+
+
+# --- the agent's side: agents/vehicles/mavlink/mission.py -------------------------------
+
+
+async def test_a_refused_upload_is_named_cleared_and_changes_nothing_the_copter_does():
+    options = {"origin": list(HOME), "simulator": {"speedup": 6}}
+    async with simulator_running("mavlink", options) as sim:
+        drone = adapter_create("mavlink", sim.options)
+        assert isinstance(drone, MavlinkAdapter)
+        async with drone:
+            await poll(lambda: drone.t.home is not None, 10, "home")
+            short = [TakeOff(10), Waypoint(TARGET, 10), ReturnHome()]
+            with pytest.raises(AdapterError, match="take off before starting a mission"):
+                await drone.mission_upload(short)
+                await drone.mission_start()  # on the ground: ArduCopter arms in no AUTO
+            await drone.execute("take_off", {"altitude_m": 5})
+            await poll(lambda: (drone.t.alt or 0) > 4.5, 20, "5 m")
+            # More than the autopilot stores: refused whole, named, and what it had
+            # before (the short plan) cleared too, so that nothing half-meant can fly.
+            too_long = [Waypoint(offset(HOME, i / 10, 0), 10) for i in range(700)]
+            refusal = r"refused the mission: MAV_MISSION_NO_SPACE \(more items than the autopilot"
+            with pytest.raises(AdapterError, match=refusal):
+                await drone.mission_upload(too_long)
+            with pytest.raises(AdapterError, match="no mission has been uploaded"):
+                await drone.mission_start()
+            assert await stored_items(drone) == 0
+            assert drone.state().mode == "GUIDED"
+            here = drone.state().position
+            assert here is not None and distance_m(here, HOME) < 2  # holding where it was
+
+
+async def stored_items(drone: MavlinkAdapter) -> int:
+    """How many mission items the autopilot holds (MISSION_REQUEST_LIST)."""
+    answer = await drone.link.request(
+        lambda: MAV.MAVLink_mission_request_list_message(1, 1, MISSION),
+        "MISSION_COUNT",
+        lambda m: m.mission_type == MISSION,
+        what="the mission's count",
+    )
+    return int(answer.count)
