@@ -16,6 +16,7 @@ from agents.missions.parcel.spec import ParcelSpec
 from agents.missions.registry import mission_decode
 from agents.missions.spec import MissionError
 from agents.vehicles.mavlink.dialect import MAV, mavutil
+from agents.vehicles.plan import MissionProgress
 from tests.agents.mission_rig import HOME, SIM, Rig, RigFactory, make_task, releases
 
 AUTO, RTL = 3, 6
@@ -252,3 +253,29 @@ async def test_a_boat_sails_the_parcel_mission_on_the_water(
     st = rig.drone.state()
     assert st.mode == "RTL" and st.armed is True  # a boat holds at home, it does not land
     assert not rig.events("mission_failed")
+
+
+async def test_a_mission_the_autopilot_refuses_is_flown_step_by_step(
+    make_mission_rig: RigFactory,
+) -> None:
+    """Another ground station is uploading a mission (and stalls): ArduPilot refuses the
+    agent's upload (MAV_MISSION_DENIED). Nothing switches to AUTO; the agent flies the
+    parcel itself, step by step, to the same end."""
+    rig = await make_mission_rig()
+    other = mavutil.mavlink_connection(str(rig.drone.options["connection"]), source_system=200)
+    try:
+        other.mav.mission_count_send(1, 1, 3, MAV.MAV_MISSION_TYPE_MISSION)
+        request = await asyncio.to_thread(
+            other.recv_match, type=["MISSION_REQUEST", "MISSION_REQUEST_INT"], blocking=True,
+            timeout=5,
+        )  # fmt: skip
+        assert request is not None and request.seq == 0  # its upload is under way
+        rig.accept(make_task(parcel("m-denied")))
+        released = await rig.event("payload_released", within=120)
+        assert distance_m((released["lat"], released["lon"]), DROPOFF) < 5
+        await until(lambda: "returning" in [p for p, _ in rig.progress()], within=30)
+        await until(lambda: rig.drone.state().mode == "RTL", within=30)  # its own command
+        assert rig.drone.mission_progress() == MissionProgress()  # no plan was taken
+        assert releases(rig.drone) == 1 and not rig.events("mission_failed")
+    finally:
+        other.close()
