@@ -825,8 +825,6 @@ class MavlinkAdapter(Adapter, NativeMissions, abc.ABC):
             with contextlib.suppress(AdapterError):
                 await items_upload(self.link, MAV.MAV_MISSION_TYPE_MISSION, [], what="mission")
             raise
-        self.t.mission_seq = self.t.mission_reached = None
-        self.t.mission_state = 0
         self._plan_size = len(items)
 
     async def mission_start(self) -> None:
@@ -844,6 +842,11 @@ class MavlinkAdapter(Adapter, NativeMissions, abc.ABC):
         await self.link.command_long(MAV.MAV_CMD_DO_SET_MISSION_CURRENT, (1, 0))
         self._stop_moving()
         await self._set_mode(self._mode("AUTO"), owner="mission")
+        # What the autopilot said before its ACK was about the mission before (a
+        # MISSION_CURRENT of a finished one still on its way would read as this one
+        # done): only what comes after it counts. The link keeps the order.
+        self.t.mission_seq = self.t.mission_reached = None
+        self.t.mission_state = 0
 
     def mission_progress(self) -> MissionProgress:
         """Where the autopilot is in the uploaded plan (mission item ``i + 1`` is plan

@@ -94,6 +94,18 @@ async def test_the_drone_collects_brings_releases_once_and_goes_home(
     await until(lambda: rig.drone.state().armed is False, within=60)
     assert distance_m(rig.drone.state().position or (0, 0), HOME) < 3
     assert rig.drone.mission_progress().finished
+    # A second parcel: a new plan replaces the finished one, whose last word (complete,
+    # at its last item) must not pass for the new one's.
+    accepted_at = time.monotonic()
+    rig.accept(make_task(parcel("m-parcel-2")))
+    await until(lambda: rig.drone.state().mode == "AUTO", within=60)
+    assert [e for e, _ in rig.events()].count("payload_released") == 2  # not yet
+    second = await rig.event("parcel_loaded", within=90, count=2)
+    assert distance_m((second["lat"], second["lon"]), PICKUP) < 5 and second["alt"] < 4
+    await rig.event("payload_released", within=90, count=3)
+    assert any(
+        at > accepted_at and text == "Gripper load released" for at, _, text in rig.drone.texts
+    )  # the autopilot released the second parcel
     assert not rig.events("mission_failed")
 
 
