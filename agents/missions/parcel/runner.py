@@ -3,7 +3,7 @@
 (``parcel_loaded``), fly it to ``dropoff``, descend to ``drop_altitude_m``, release it
 once (``payload_released``) and return home.
 
-A vehicle whose autopilot flies missions itself (a MAVLink copter) is handed the whole
+A vehicle whose autopilot flies missions itself (a MAVLink copter or boat) is handed the whole
 of it as one plan (:func:`parcel_plan`): the autopilot then delivers and comes home
 even if the agent dies. Otherwise the agent flies it step by step. A vehicle on the
 surface (a boat: no ``take_off``, no altitude) sails it, armed first instead of

@@ -148,8 +148,10 @@ class MavlinkAdapter(Adapter, NativeMissions, abc.ABC):
         #: The autopilot's fence the agent set for the task, and what it replaced.
         self._fence = FenceState()
         self._fence_lock = asyncio.Lock()
-        #: How many items the plan uploaded by :meth:`mission_upload` has (None: none).
+        #: The plan uploaded by :meth:`mission_upload`: its size, and the plan index of
+        #: each mission item after home (None: nothing uploaded).
         self._plan_size: int | None = None
+        self._plan_index: list[int] = []
         #: A safe action was performed and no command came since (see :meth:`close`).
         self.safe_action_done = False
         #: How the vehicle brakes: the firmware's defaults until the autopilot's own
@@ -797,13 +799,9 @@ class MavlinkAdapter(Adapter, NativeMissions, abc.ABC):
 
     # --- the autopilot's own missions (AUTO) -------------------------------------------
     def native_missions(self) -> NativeMissions | None:
-        """The autopilot's AUTO (see :mod:`.mission`) for a copter, unless the options
-        say ``native_missions: false``. Not for a rover or a boat yet: ArduRover's
-        AUTO behaves otherwise (it holds where a copter would land) and is not flown
-        by the simulator the tests run."""
-        if not self.vehicle_class.flies or not self.config.native_missions:
-            return None
-        return self
+        """The autopilot's AUTO (see :mod:`.mission`), unless the options say
+        ``native_missions: false``."""
+        return self if self.config.native_missions else None
 
     async def mission_upload(self, items: Sequence[PlanItem]) -> None:
         """Upload ``items`` as the autopilot's mission (home first, see
@@ -813,7 +811,9 @@ class MavlinkAdapter(Adapter, NativeMissions, abc.ABC):
         ArduPilot keeps what it got of it, which nobody must fly) and raises
         AdapterError naming the refusal."""
         self._require_link("uploading a mission")
-        mission_items = plan_items(items, home=self.t.home, payload=self.config.payload)
+        mission_items, plan_index = plan_items(
+            items, home=self.t.home, payload=self.config.payload, flies=self.vehicle_class.flies
+        )
         if self.mode_name(self.t.mode) == "AUTO":
             await self._set_mode(self._mode("GUIDED"), owner="user")
         self._plan_size = None
@@ -825,20 +825,22 @@ class MavlinkAdapter(Adapter, NativeMissions, abc.ABC):
             with contextlib.suppress(AdapterError):
                 await items_upload(self.link, MAV.MAV_MISSION_TYPE_MISSION, [], what="mission")
             raise
-        self._plan_size = len(items)
+        self._plan_size, self._plan_index = len(items), plan_index
 
     async def mission_start(self) -> None:
         """Fly the uploaded mission from its first item: DO_SET_MISSION_CURRENT 1
         (ArduPilot would otherwise resume an interrupted mission where it stopped,
         MIS_RESTART 0), then mode AUTO. ArduCopter arms in neither AUTO nor with a
-        mission that does not start with a take-off, so it must be flying already.
+        mission that does not start with a take-off, so it must be flying already; a
+        rover or a boat must be armed.
         Raises AdapterError ``not_ready`` (nothing uploaded, not flying) or the
         autopilot's refusal."""
         self._require_link("starting the mission")
         if self._plan_size is None:
             raise AdapterError("no mission has been uploaded", code="not_ready")
         if not self._busy():
-            raise AdapterError("take off before starting a mission", code="not_ready")
+            what = "take off" if self.vehicle_class.flies else "arm"
+            raise AdapterError(f"{what} before starting a mission", code="not_ready")
         await self.link.command_long(MAV.MAV_CMD_DO_SET_MISSION_CURRENT, (1, 0))
         self._stop_moving()
         await self._set_mode(self._mode("AUTO"), owner="mission")
@@ -849,15 +851,17 @@ class MavlinkAdapter(Adapter, NativeMissions, abc.ABC):
         self.t.mission_state = 0
 
     def mission_progress(self) -> MissionProgress:
-        """Where the autopilot is in the uploaded plan (mission item ``i + 1`` is plan
-        item ``i``); ``finished``: it says so (MISSION_STATE_COMPLETE), or it has
-        landed and disarmed at the last item."""
+        """Where the autopilot is in the uploaded plan (mission item ``s`` is the plan
+        item it was made from); ``finished``: it says so (MISSION_STATE_COMPLETE), or
+        it has landed and disarmed at the last item."""
         size, t = self._plan_size, self.t
         if size is None:
             return MissionProgress()
 
         def index(seq: int | None) -> int | None:
-            return None if seq is None or not 1 <= seq <= size else seq - 1
+            if seq is None or not 1 <= seq <= len(self._plan_index):
+                return None
+            return self._plan_index[seq - 1]
 
         current = index(t.mission_seq)
         finished = t.mission_state == MAV.MISSION_STATE_COMPLETE or (

@@ -12,8 +12,9 @@ autopilot had already taken (its request for the next one was lost), and it asks
 the next one again by itself.
 
 :func:`plan_items` turns a plan (:mod:`agents.vehicles.plan`) into ArduPilot's items:
-item 0 is home (ArduPilot keeps home there and never flies it), the plan from item 1,
-so plan item ``i`` is mission item ``i + 1``. Altitudes are relative to home
+item 0 is home (ArduPilot keeps home there and never flies it), the plan from item 1
+(a vehicle that does not fly has no take-off, so the indices of the two differ: the
+items come with the plan index of each). Altitudes are relative to home
 (MAV_FRAME_GLOBAL_RELATIVE_ALT_INT); a waypoint's hold time is its param 1; a speed is
 DO_CHANGE_SPEED (ground speed); the release is the payload's own (DO_GRIPPER release,
 or DO_SET_SERVO to its PWM); the return is NAV_RETURN_TO_LAUNCH.
@@ -34,7 +35,7 @@ from agents.vehicles.plan import PlanItem, Release, ReturnHome, Speed, TakeOff, 
 
 REQUESTS = ("MISSION_REQUEST_INT", "MISSION_REQUEST")
 #: What a refusal means, for the words of the AdapterError (ArduPilot explains some in
-#: a STATUSTEXT, but after its MISSION_ACK: too late to wait for).
+#: a STATUSTEXT, but after its MISSION_ACK: it may or may not have come yet).
 RESULT_HINTS = {
     int(MAV.MAV_MISSION_NO_SPACE): "more items than the autopilot stores",
     int(MAV.MAV_MISSION_DENIED): "another ground station is uploading",
@@ -137,8 +138,9 @@ def _check_ack(link: AutopilotLink, answer: Any, what: str, since: float) -> Non
         for at, severity, text in link.texts
         if at >= since and severity <= MAV.MAV_SEVERITY_WARNING
     ]
-    words = list(dict.fromkeys(said[-2:])) or [RESULT_HINTS.get(int(result or -1), "")]
-    reason = f" ({'; '.join(words)})" if any(words) else ""
+    # What the result means, then what the autopilot said if it came in time.
+    words = [w for w in [RESULT_HINTS.get(int(result or -1), ""), *said[-2:]] if w]
+    reason = f" ({'; '.join(dict.fromkeys(words))})" if words else ""
     raise AdapterError(
         f"the autopilot refused the {what}: {result_name(result)}{reason}",
         code="autopilot_refused",
@@ -150,20 +152,26 @@ def plan_items(
     *,
     home: tuple[float, float] | None,
     payload: Mapping[str, Any] | None,
-) -> list[MissionItem]:
-    """``plan`` as ArduPilot's mission items, home first (see the module docstring).
-    Raises AdapterError ``bad_args`` for a release on a vehicle without a payload."""
+    flies: bool = True,
+) -> tuple[list[MissionItem], list[int]]:
+    """``plan`` as ArduPilot's mission items, home first (see the module docstring), and
+    for each item after home the index of the plan item it is. A vehicle that does not
+    fly gets no take-off (ArduRover would skip it, with a warning). Raises AdapterError
+    ``bad_args`` for a release on a vehicle without a payload."""
     relative = MAV.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
     lat, lon = home or (0.0, 0.0)
     items = [MissionItem(MAV.MAV_CMD_NAV_WAYPOINT, MAV.MAV_FRAME_GLOBAL, lat=lat, lon=lon)]
-    for step in plan:
+    indices: list[int] = []
+    for index, step in enumerate(plan):
         if isinstance(step, TakeOff):
+            if not flies:
+                continue
             items.append(MissionItem(MAV.MAV_CMD_NAV_TAKEOFF, relative, z=step.altitude_m))
         elif isinstance(step, Waypoint):
             items.append(
                 MissionItem(
                     MAV.MAV_CMD_NAV_WAYPOINT, relative, (step.hold_s, 0.0, 0.0, 0.0),
-                    step.point[0], step.point[1], step.altitude_m,
+                    step.point[0], step.point[1], step.altitude_m if flies else 0.0,
                 )
             )  # fmt: skip
         elif isinstance(step, Speed):
@@ -173,7 +181,8 @@ def plan_items(
             items.append(_release(payload))
         elif isinstance(step, ReturnHome):
             items.append(MissionItem(MAV.MAV_CMD_NAV_RETURN_TO_LAUNCH, relative))
-    return items
+        indices.append(index)
+    return items, indices
 
 
 def _release(payload: Mapping[str, Any] | None) -> MissionItem:

@@ -29,9 +29,9 @@ IoUV agent uses (``docs/vehicles/quadcopter.md``, ``docs/vehicles/boat.md``):
   breach action, a FENCE_STATUS when its state changes;
 * the mission (:mod:`.mission`): its upload, download and clearing with the mission
   protocol for ``MAV_MISSION_TYPE_MISSION`` (with ArduPilot's refusals and its 8 s
-  upload timeout), MAV_CMD_DO_SET_MISSION_CURRENT, and while AUTO flies it (the
-  copter, :mod:`.copter`) MISSION_CURRENT on every change (and in the EXTENDED_STATUS
-  stream) and MISSION_ITEM_REACHED;
+  upload timeout), MAV_CMD_DO_SET_MISSION_CURRENT, and while AUTO flies it (each
+  vehicle's own: :mod:`.copter`, :mod:`.boat`) MISSION_CURRENT on every change (and
+  in the EXTENDED_STATUS stream) and MISSION_ITEM_REACHED;
 * TIMESYNC.
 
 Time: ``speedup`` runs the vehicle's physics (and the delays measured in its time: RTL
@@ -40,7 +40,7 @@ Everything about the link stays on the wall clock: heartbeats, stream rates, set
 timeouts and the GCS fail-safe, because the peer sends at wall-clock rates; so does the
 time to the first GPS fix, which is not flight.
 
-Not modelled: rally points, a boat's AUTO, RC input, wind, terrain, EKF variances,
+Not modelled: rally points, RC input, wind, terrain, EKF variances,
 signing.
 """
 

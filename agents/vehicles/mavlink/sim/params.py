@@ -76,6 +76,7 @@ BOAT_PARAMS: Mapping[str, tuple[float, bool]] = {
     "ATC_STR_ACC_MAX": (120.0, False),
     "ARMING_CHECK": (1, True),
     "BATT_CAPACITY": (5200, True),
+    "MIS_RESTART": (0, True),
     "FENCE_ENABLE": (0, True),
     "FENCE_TYPE": (6, True),
     "FENCE_ACTION": (1, True),

@@ -169,13 +169,9 @@ class SimVehicle(abc.ABC):
         self._entered(name)
         return None
 
+    @abc.abstractmethod
     def _auto_refusal(self) -> str | None:
-        """Why AUTO is refused now (None: it is not). Default: without a mission beyond
-        home, as ArduPilot refuses it; with one, because this simulated vehicle does not
-        fly AUTO (a class that does overrides this)."""
-        if not self.mission.flyable():
-            return "Mode change failed: AUTO: no mission"
-        return f"Mode change failed: AUTO is not simulated on a {self.VEHICLE_CLASS.name}"
+        """Why AUTO is refused now (None: it is not), in the firmware's words."""
 
     def mission_set_current(self, seq: int) -> bool:
         """MAV_CMD_DO_SET_MISSION_CURRENT: the item AUTO flies next (now, in AUTO; the

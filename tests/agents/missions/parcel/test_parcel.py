@@ -236,8 +236,9 @@ BOAT_DROPOFF = offset(BOAT_HOME, 60, 80)
 async def test_a_boat_sails_the_parcel_mission_on_the_water(
     make_mission_rig: RigFactory,
 ) -> None:
-    """No take-off, no descents: the boat is armed, sails to the pickup, waits to be
-    loaded there, sails to the drop-off, releases once, and goes home, where it holds."""
+    """No take-off, no descents: the boat is armed, and ArduRover's AUTO sails the plan
+    to the pickup, waits there to be loaded, sails to the drop-off, releases once, and
+    goes home, where it holds."""
     rig = await make_mission_rig(
         vehicle_class="boat", origin=list(BOAT_HOME), simulator={"speedup": 6}
     )
@@ -263,7 +264,8 @@ async def test_a_boat_sails_the_parcel_mission_on_the_water(
 
     await until(home_and_holding, within=60)
     st = rig.drone.state()
-    assert st.mode == "RTL" and st.armed is True  # a boat holds at home, it does not land
+    assert st.mode == "AUTO" and st.armed is True  # a boat holds at home, it does not land
+    await until(lambda: rig.drone.mission_progress().finished, within=10)
     assert not rig.events("mission_failed")
 
 
@@ -291,3 +293,31 @@ async def test_a_mission_the_autopilot_refuses_is_flown_step_by_step(
         assert releases(rig.drone) == 1 and not rig.events("mission_failed")
     finally:
         other.close()
+
+
+async def test_when_a_boats_agent_dies_its_autopilot_delivers_and_holds_at_home(
+    make_mission_rig: RigFactory,
+) -> None:
+    """ArduRover's FS_GCS_ENABLE 2 ("continue with mission in Auto"): the agent gone, the
+    boat sails on, releases the parcel, goes home and holds there."""
+    params = {"FS_GCS_ENABLE": 2}
+    rig = await make_mission_rig(
+        vehicle_class="boat", origin=list(BOAT_HOME), simulator={"speedup": 6, "params": params}
+    )
+    rig.accept(
+        make_task(parcel("m-boat-dies", pickup=list(BOAT_PICKUP), dropoff=list(BOAT_DROPOFF)))
+    )
+    await until(lambda: "to_pickup" in [p for p, _ in rig.progress()], within=60)
+    address = await agent_dies(rig)
+
+    def complete(msg: Any) -> bool:
+        return msg.get_type() == "STATUSTEXT" and msg.text == "Mission Complete"
+
+    heard = await listen(address, complete, within=120)
+    said = texts(heard)
+    assert "Failsafe - Continuing Auto Mode" in said
+    assert "Gripper load released" in said  # delivered with nobody watching
+    heard += await listen(address, lambda m: m.get_type() == "GLOBAL_POSITION_INT", within=10)
+    assert distance_m(last_position(heard), BOAT_HOME) < 5
+    beats = [m for m in heard if m.get_type() == "HEARTBEAT"]
+    assert beats[-1].custom_mode == 10 and beats[-1].base_mode & MAV.MAV_MODE_FLAG_SAFETY_ARMED
