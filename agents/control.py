@@ -44,7 +44,7 @@ import logging
 import re
 import time
 from collections import Counter
-from collections.abc import Awaitable, Callable, Coroutine, Mapping
+from collections.abc import Awaitable, Callable, Coroutine, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, Final, Protocol, Self
@@ -89,8 +89,9 @@ from agents.protocol.messages import (
     message_type,
 )
 from agents.recording import NullRecorder, RecordSink, Source
-from agents.safety import LIMIT_CODES, CommandGate, Refusal
+from agents.safety import LIMIT_CODES, CommandGate, Refusal, plan_within
 from agents.vehicles.base import SAFE_COMMANDS, Adapter, AdapterError, Breach
+from agents.vehicles.plan import PlanItem
 
 log = logging.getLogger(__name__)
 
@@ -545,6 +546,71 @@ class ControlHub:
                 )
                 raise
             self.recorder.command(source="mission", name=name, args=args, ok=True)
+
+    async def mission_native_upload(
+        self, session_id: str, items: Sequence[PlanItem], *, epoch: int
+    ) -> None:
+        """Hand the current task's mission to the vehicle's own engine (see
+        :mod:`agents.vehicles.plan`), as :meth:`mission_execute` runs a command: under
+        the same lock, only while ``session_id`` is the task and ``epoch`` still holds.
+        The autopilot will fly it without asking again, so the whole plan is checked
+        now: every waypoint inside the task's ceiling and geofence, every speed at most
+        the task's maximum (a faster one is lowered to it).
+
+        Raises Refusal (``no_task``, ``overridden``, ``altitude_limit``, ``geofence``,
+        ``unknown_command`` when the vehicle has no engine) or AdapterError (the
+        autopilot's refusal, ``timeout``)."""
+        async with self._exec:
+            task = self._mission_task(session_id, epoch)
+            engine = self.adapter.native_missions()
+            if engine is None:
+                raise Refusal("unknown_command", "this vehicle flies no mission of its own")
+            checked = plan_within(items, task.limits)
+            # An upload is one round trip per item: its own time, beyond a command's.
+            try:
+                async with asyncio.timeout(COMMAND_TIMEOUT_S + len(items)):
+                    await engine.mission_upload(checked)
+            except TimeoutError:
+                raise AdapterError("the mission upload got no answer", code="timeout") from None
+            except (Refusal, AdapterError) as exc:
+                self.recorder.command(
+                    source="mission", name="mission_upload", args={"items": len(items)},
+                    ok=False, code=exc.code, error=str(exc),
+                )  # fmt: skip
+                raise
+            self.recorder.command(
+                source="mission", name="mission_upload", args={"items": len(items)}, ok=True
+            )
+
+    async def mission_native_start(self, session_id: str, *, epoch: int) -> None:
+        """Start the mission :meth:`mission_native_upload` handed over (same checks and
+        lock). Raises Refusal or AdapterError as it does."""
+        async with self._exec:
+            self._mission_task(session_id, epoch)
+            engine = self.adapter.native_missions()
+            if engine is None:
+                raise Refusal("unknown_command", "this vehicle flies no mission of its own")
+            try:
+                async with asyncio.timeout(COMMAND_TIMEOUT_S):
+                    await engine.mission_start()
+            except TimeoutError:
+                raise AdapterError("mission_start got no answer", code="timeout") from None
+            except AdapterError as exc:
+                self.recorder.command(
+                    source="mission", name="mission_start", args={}, ok=False,
+                    code=exc.code, error=str(exc),
+                )  # fmt: skip
+                raise
+            self.recorder.command(source="mission", name="mission_start", args={}, ok=True)
+
+    def _mission_task(self, session_id: str, epoch: int) -> VehicleTask:
+        """The current task, if it is the mission's and nobody took over since."""
+        task = self.task
+        if task is None or task.session_id != session_id:
+            raise Refusal("no_task", "the mission's session is not the vehicle's task now")
+        if self.overrides != epoch:
+            raise Refusal("overridden", self.override_reason or "someone else took over")
+        return task
 
     def _override(self, reason: str) -> None:
         """A user command, a fail-safe or the envelope acted on the vehicle: a mission

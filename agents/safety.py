@@ -35,7 +35,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Collection, Mapping
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -51,6 +51,7 @@ from agents.vehicles.base import (
     Stopping,
     VehicleState,
 )
+from agents.vehicles.plan import PlanItem, Speed, TakeOff, Waypoint
 
 #: At the hard latency limit, speeds are cut to this fraction of what the user asked.
 MIN_SPEED_FACTOR = 0.3
@@ -394,3 +395,33 @@ class CommandGate:
             f"{name} would take the vehicle {rest:.0f} m from the geofence's centre before "
             f"it could stop: it must stay {margin:.0f} m inside its {radius:g} m limit",
         )
+
+
+def plan_within(items: Sequence[PlanItem], limits: Limits) -> list[PlanItem]:
+    """A plan the vehicle's own engine will fly without the gate (see
+    :mod:`agents.vehicles.plan`), checked whole against the task's ``limits``: every
+    waypoint and take-off at most the ceiling, every waypoint inside the geofence
+    (Refusal ``altitude_limit``, ``geofence``, naming the item); every speed lowered to
+    the task's maximum. Returns the plan to fly."""
+    ceiling = limits.max_altitude_m
+    centre, radius = limits.geofence_center, limits.geofence_radius_m
+    checked: list[PlanItem] = []
+    for index, item in enumerate(items):
+        high = isinstance(item, TakeOff | Waypoint) and item.altitude_m > (ceiling or math.inf)
+        if high:
+            raise Refusal(
+                "altitude_limit",
+                f"mission item {index} goes above the {ceiling:g} m altitude limit",
+            )
+        if isinstance(item, Waypoint) and centre is not None and radius is not None:
+            out = distance_m(centre, item.point)
+            if out > radius:
+                raise Refusal(
+                    "geofence",
+                    f"mission item {index} is {out:.0f} m from the geofence's centre "
+                    f"(limit {radius:g} m)",
+                )
+        if isinstance(item, Speed) and limits.max_speed_mps is not None:
+            item = Speed(min(item.speed_mps, limits.max_speed_mps))
+        checked.append(item)
+    return checked

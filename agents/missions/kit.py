@@ -15,7 +15,12 @@ only :meth:`MissionRunner.fly` from the steps here:
   distance and speed, and can ``sample`` a sensor on every turn (the search's thermal
   camera);
 * :meth:`~MissionRunner.progress` and :meth:`~MissionRunner.report` tell the platform
-  (``mission_progress`` on every phase change and waypoint, then the mission's events).
+  (``mission_progress`` on every phase change and waypoint, then the mission's events);
+* :meth:`~MissionRunner.fly_natively` hands a mission of plain waypoints and actions
+  (a :class:`~agents.missions.plan.FlightPlan`) to the vehicle's own mission engine when
+  it has one (ArduPilot's AUTO): the autopilot flies it, and finishes it or returns
+  home if the agent dies; the runner follows it and reports the same progress and
+  events. A runner calls it first and flies its steps itself when it returns False.
 
 Whatever ends the mission is handled here once for all: a user command or a fail-safe
 during the mission (``mission_failed``, "interrupted", the vehicle left to whoever
@@ -29,13 +34,15 @@ import abc
 import asyncio
 import logging
 import time
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from typing import Any, ClassVar, Final, Generic, Protocol, TypeAlias, TypeVar
 
 from agents.geo import distance_m
+from agents.missions.plan import FlightPlan, PlanStep
 from agents.missions.spec import LatLon, MissionSpec
 from agents.safety import Refusal
 from agents.vehicles.base import Adapter, AdapterError, VehicleState
+from agents.vehicles.plan import NativeMissions, PlanItem, Release, TakeOff
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +77,12 @@ class MissionHub(Protocol):
     async def mission_execute(
         self, session_id: str, name: str, args: Mapping[str, Any], *, epoch: int
     ) -> None: ...
+
+    async def mission_native_upload(
+        self, session_id: str, items: Sequence[PlanItem], *, epoch: int
+    ) -> None: ...
+
+    async def mission_native_start(self, session_id: str, *, epoch: int) -> None: ...
 
 
 class Interrupted(Exception):
@@ -404,3 +417,82 @@ class MissionRunner(abc.ABC, Generic[_S]):
         a copter lands there). The session stays open: its users watch the way back."""
         self.progress("returning")
         await self.command("return_to_home", {})
+
+    # --- the vehicle's own mission engine ------------------------------------------------
+    async def fly_natively(self, plan: FlightPlan) -> bool:
+        """Fly ``plan`` with the vehicle's own mission engine, if it has one: upload it
+        (on the ground or in the air), take off if needed (in GUIDED, as a ground
+        station does: ArduCopter arms in no AUTO), start it, and follow it until the
+        return home has begun (as :meth:`return_home` ends a mission flown step by
+        step), reporting each step's ``phase`` and ``event``.
+
+        Returns False, having flown nothing, when the vehicle has no engine or refuses
+        the upload (the reason is logged: the runner then flies its steps itself).
+        Raises as the steps do: Interrupted when someone else acts on the vehicle
+        (the autopilot's own fence or fail-safe included), StepFailed when the plan
+        takes too long or its payload release was attempted already."""
+        engine = self.adapter.native_missions()
+        if engine is None:
+            return False
+        if plan.releases and self.mission.id in self.release_attempted:
+            raise StepFailed("this mission's payload release was already attempted")
+        self._check_interference()
+        try:
+            await self.hub.mission_native_upload(self.session_id, plan.items, epoch=self._epoch)
+        except AdapterError as exc:
+            log.warning("mission %s: flown step by step: %s", self.mission.id, exc)
+            return False
+        first = next((s.item for s in plan.steps if isinstance(s.item, TakeOff)), None)
+        if first is not None:
+            await self.take_off_if_needed(first.altitude_m)
+        st = self.adapter.state()
+        deadline = time.monotonic() + plan.time_limit_s(st.position, st.alt or 0.0)
+        if plan.releases:
+            # Recorded before the autopilot may release it: never sent twice.
+            self.release_attempted.add(self.mission.id)
+        self._check_interference()
+        await self.hub.mission_native_start(self.session_id, epoch=self._epoch)
+        self._mode = self.adapter.state().mode
+        await self._follow(plan, engine, deadline)
+        return True
+
+    async def _follow(self, plan: FlightPlan, engine: NativeMissions, deadline: float) -> None:
+        """Report the plan's steps as the engine starts and passes them; return once its
+        last step (the return home) has started."""
+        steps = plan.steps
+        started = finished = -1
+        last = len(steps) - 1
+        while True:
+            self._check_interference()
+            where = engine.mission_progress()
+            current = len(steps) if where.finished else where.current
+            if current is not None:
+                # Steps the engine moved past (a "do" step is never current) in order.
+                for index in range(started + 1, min(current, last) + 1):
+                    started = index
+                    if steps[index].phase is not None:
+                        self.progress(steps[index].phase or "")
+                for index in range(finished + 1, min(current, len(steps))):
+                    finished = index
+                    self._step_done(steps[index])
+                if started >= last:
+                    return
+            if time.monotonic() > deadline:
+                raise StepFailed(f"the autopilot's mission did not finish at step {current}")
+            await asyncio.sleep(POLL_S)
+
+    def _step_done(self, step: PlanStep) -> None:
+        """A step of a plan the engine finished: its event, and a release's record."""
+        if step.event is None:
+            return
+        where = self.where()
+        if isinstance(step.item, Release):
+            mission_id = self.mission.id
+            self.released[mission_id] = {
+                "mission": mission_id,
+                "lat": where["lat"],
+                "lon": where["lon"],
+            }
+            self.report(step.event, lat=where["lat"], lon=where["lon"])
+            return
+        self.report(step.event, **where)

@@ -15,7 +15,8 @@ What every adapter shares is here and in :mod:`agents.vehicles.kit` (the option 
   defaults (:meth:`Adapter.neutral`, :meth:`Adapter.envelope_recover`,
   :meth:`Adapter.project`, :meth:`Adapter.braking`, :meth:`Adapter.stop_motion`,
   :meth:`Adapter.check_failsafe_params`, :meth:`Adapter.fence_set` and
-  :meth:`Adapter.fence_clear`, the event sink
+  :meth:`Adapter.fence_clear`, :meth:`Adapter.native_missions` (an autopilot's own
+  mission engine, :mod:`agents.vehicles.plan`), the event sink
   :attr:`Adapter.on_event` with :meth:`Adapter.emit`, :meth:`Adapter.video_source`);
 * the simulator hook's contract (:class:`Simulation`): an integration's simulator
   module offers ``simulation(options)``, an async context manager that starts the
@@ -39,6 +40,7 @@ from types import TracebackType
 from typing import Any, ClassVar, Self
 
 from agents.telemetry import TopicInfo, topics_info
+from agents.vehicles.plan import NativeMissions
 
 logger = logging.getLogger(__name__)
 
@@ -361,6 +363,13 @@ class Adapter(abc.ABC):
         fence is then what holds the vehicle). Returns the problems in words. Never
         raises. Default: []."""
         return []
+
+    def native_missions(self) -> NativeMissions | None:
+        """The vehicle's own mission engine (an autopilot's AUTO, see
+        :mod:`agents.vehicles.plan`), which flies a plan of plain waypoints and actions
+        by itself and holds it if the agent dies; None: the agent flies every step.
+        Default: None."""
+        return None
 
     def emit(self, name: str, data: dict[str, Any]) -> None:
         """Report an event of the vehicle's own to :attr:`on_event`, if set. Never

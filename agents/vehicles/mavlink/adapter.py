@@ -38,7 +38,7 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -59,7 +59,9 @@ from agents.vehicles.mavlink.dialect import (
 from agents.vehicles.mavlink.failsafe import failsafe_problems
 from agents.vehicles.mavlink.fence import FenceState, fence_clear, fence_set, fence_words
 from agents.vehicles.mavlink.link import AutopilotLink
+from agents.vehicles.mavlink.mission import items_upload, plan_items
 from agents.vehicles.mavlink.vocabulary import mavlink_vocabulary, telemetry_topics
+from agents.vehicles.plan import MissionProgress, NativeMissions, PlanItem
 
 logger = logging.getLogger(__name__)
 
@@ -95,9 +97,14 @@ class Telemetry:
     mav_type: int | None = None
     position_at: float = 0.0
     boot_ms: int = 0
+    #: The mission: the item the autopilot flies (MISSION_CURRENT), the state it says
+    #: (MISSION_STATE_*, 0 when it does not say), the highest item it reached.
+    mission_seq: int | None = None
+    mission_state: int = 0
+    mission_reached: int | None = None
 
 
-class MavlinkAdapter(Adapter, abc.ABC):
+class MavlinkAdapter(Adapter, NativeMissions, abc.ABC):
     """What every MAVLink vehicle class shares; see the module docstring. Subclasses
     implement the commands (:meth:`execute`), the safe actions, the envelope's answer,
     projections, :meth:`_busy` and :meth:`_stop_moving`."""
@@ -141,6 +148,10 @@ class MavlinkAdapter(Adapter, abc.ABC):
         #: The autopilot's fence the agent set for the task, and what it replaced.
         self._fence = FenceState()
         self._fence_lock = asyncio.Lock()
+        #: The plan uploaded by :meth:`mission_upload`: its size, and the plan index of
+        #: each mission item after home (None: nothing uploaded).
+        self._plan_size: int | None = None
+        self._plan_index: list[int] = []
         #: A safe action was performed and no command came since (see :meth:`close`).
         self.safe_action_done = False
         #: How the vehicle brakes: the firmware's defaults until the autopilot's own
@@ -324,6 +335,11 @@ class MavlinkAdapter(Adapter, abc.ABC):
             t.home = (msg.latitude / 1e7, msg.longitude / 1e7)
         elif kind == "STATUSTEXT":
             self._on_text(msg)
+        elif kind == "MISSION_CURRENT":
+            t.mission_seq = int(msg.seq)
+            t.mission_state = int(getattr(msg, "mission_state", 0) or 0)
+        elif kind == "MISSION_ITEM_REACHED":
+            t.mission_reached = max(int(msg.seq), t.mission_reached or 0)
 
     def _has_fix(self) -> bool:
         """Whether the autopilot knows where it is: a 3D GPS fix (GPS_RAW_INT), or an
@@ -781,6 +797,78 @@ class MavlinkAdapter(Adapter, abc.ABC):
         except Exception as exc:
             logger.exception("mavlink: clearing the autopilot's fence failed")
             return [f"clearing the autopilot's fence failed: {exc}"]
+
+    # --- the autopilot's own missions (AUTO) -------------------------------------------
+    def native_missions(self) -> NativeMissions | None:
+        """The autopilot's AUTO (see :mod:`.mission`), unless the options say
+        ``native_missions: false``."""
+        return self if self.config.native_missions else None
+
+    async def mission_upload(self, items: Sequence[PlanItem]) -> None:
+        """Upload ``items`` as the autopilot's mission (home first, see
+        :func:`.mission.plan_items`). A vehicle flying a mission in AUTO is switched to
+        GUIDED first, where it holds: ArduPilot writes an upload straight over the
+        mission it flies. A refused or broken upload is cleared (MISSION_CLEAR_ALL:
+        ArduPilot keeps what it got of it, which nobody must fly) and raises
+        AdapterError naming the refusal."""
+        self._require_link("uploading a mission")
+        mission_items, plan_index = plan_items(
+            items, home=self.t.home, payload=self.config.payload, flies=self.vehicle_class.flies
+        )
+        if self.mode_name(self.t.mode) == "AUTO":
+            await self._set_mode(self._mode("GUIDED"), owner="user")
+        self._plan_size = None
+        try:
+            await items_upload(
+                self.link, MAV.MAV_MISSION_TYPE_MISSION, mission_items, what="mission"
+            )
+        except AdapterError:
+            with contextlib.suppress(AdapterError):
+                await items_upload(self.link, MAV.MAV_MISSION_TYPE_MISSION, [], what="mission")
+            raise
+        self._plan_size, self._plan_index = len(items), plan_index
+
+    async def mission_start(self) -> None:
+        """Fly the uploaded mission from its first item: DO_SET_MISSION_CURRENT 1
+        (ArduPilot would otherwise resume an interrupted mission where it stopped,
+        MIS_RESTART 0), then mode AUTO. ArduCopter arms in neither AUTO nor with a
+        mission that does not start with a take-off, so it must be flying already; a
+        rover or a boat must be armed.
+        Raises AdapterError ``not_ready`` (nothing uploaded, not flying) or the
+        autopilot's refusal."""
+        self._require_link("starting the mission")
+        if self._plan_size is None:
+            raise AdapterError("no mission has been uploaded", code="not_ready")
+        if not self._busy():
+            what = "take off" if self.vehicle_class.flies else "arm"
+            raise AdapterError(f"{what} before starting a mission", code="not_ready")
+        await self.link.command_long(MAV.MAV_CMD_DO_SET_MISSION_CURRENT, (1, 0))
+        self._stop_moving()
+        await self._set_mode(self._mode("AUTO"), owner="mission")
+        # What the autopilot said before its ACK was about the mission before (a
+        # MISSION_CURRENT of a finished one still on its way would read as this one
+        # done): only what comes after it counts. The link keeps the order.
+        self.t.mission_seq = self.t.mission_reached = None
+        self.t.mission_state = 0
+
+    def mission_progress(self) -> MissionProgress:
+        """Where the autopilot is in the uploaded plan (mission item ``s`` is the plan
+        item it was made from); ``finished``: it says so (MISSION_STATE_COMPLETE), or
+        it has landed and disarmed at the last item."""
+        size, t = self._plan_size, self.t
+        if size is None:
+            return MissionProgress()
+
+        def index(seq: int | None) -> int | None:
+            if seq is None or not 1 <= seq <= len(self._plan_index):
+                return None
+            return self._plan_index[seq - 1]
+
+        current = index(t.mission_seq)
+        finished = t.mission_state == MAV.MISSION_STATE_COMPLETE or (
+            current == size - 1 and t.armed is False
+        )
+        return MissionProgress(current, index(t.mission_reached), finished)
 
     async def read_param(self, name: str) -> float:
         """One autopilot parameter. Raises AdapterError ``timeout`` or ``autopilot_lost``."""

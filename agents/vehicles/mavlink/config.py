@@ -34,6 +34,8 @@ DEFAULT_STREAM_RATES_HZ: dict[str, float] = {
     "BATTERY_STATUS": 1.0,
     "EKF_STATUS_REPORT": 1.0,
     "HOME_POSITION": 0.5,
+    # Where the autopilot is in a native mission (ArduPilot also sends it on a change).
+    "MISSION_CURRENT": 2.0,
 }
 
 #: What ``close_action`` may be.
@@ -74,6 +76,9 @@ class MavlinkConfig:
     #: How a payload is dropped, if the vehicle carries one: {"method": "gripper"} or
     #: {"method": "servo", "servo": 9, "pwm": 1900}; None: no ``release_payload``.
     payload: Mapping[str, Any] | None = None
+    #: Hand a mission of plain waypoints and actions to the autopilot's AUTO (see
+    #: :meth:`~.adapter.MavlinkAdapter.native_missions`); False: fly it step by step.
+    native_missions: bool = True
     # copter
     takeoff_default_m: float = 5.0
     max_takeoff_m: float = 120.0
@@ -129,6 +134,7 @@ class MavlinkConfig:
             "stream_rates_hz": rates,
             "close_action": o.choice("close_action", "return_to_home", CLOSE_ACTIONS),
             "payload": None if payload is None else dict(payload),
+            "native_missions": o.flag("native_missions", True),
         }
         if vehicle_class.flies:
             specific: dict[str, Any] = {

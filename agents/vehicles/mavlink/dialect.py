@@ -55,7 +55,7 @@ FRAME_BODY_NED = 8
 #: The REQUEST_DATA_STREAM fallback for autopilots without SET_MESSAGE_INTERVAL:
 #: (stream id, the messages in it), rate = the fastest of those messages.
 DATA_STREAMS = (
-    (2, ("SYS_STATUS", "GPS_RAW_INT", "EXTENDED_SYS_STATE")),  # EXTENDED_STATUS
+    (2, ("SYS_STATUS", "GPS_RAW_INT", "EXTENDED_SYS_STATE", "MISSION_CURRENT")),  # EXT_STATUS
     (6, ("GLOBAL_POSITION_INT",)),  # POSITION
     (10, ("ATTITUDE",)),  # EXTRA1
     (11, ("VFR_HUD",)),  # EXTRA2

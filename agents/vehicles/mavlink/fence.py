@@ -28,11 +28,9 @@ then the fence is what is left to hold the vehicle.
 
 from __future__ import annotations
 
-import functools
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
 
 from agents.envelope import ALTITUDE, GEOFENCE, band_for
 from agents.geo import distance_m
@@ -40,6 +38,7 @@ from agents.vehicles.base import AdapterError
 from agents.vehicles.mavlink.classes import VehicleClass
 from agents.vehicles.mavlink.dialect import MAV
 from agents.vehicles.mavlink.link import AutopilotLink
+from agents.vehicles.mavlink.mission import MissionItem, items_upload
 
 logger = logging.getLogger(__name__)
 
@@ -148,65 +147,17 @@ async def fence_upload(
     link: AutopilotLink, circles: list[tuple[tuple[float, float], float]]
 ) -> None:
     """Upload inclusion circles ((lat, lon), radius m) as the autopilot's fence (the
-    mission protocol for MAV_MISSION_TYPE_FENCE); none clears it (MISSION_CLEAR_ALL).
-    Raises AdapterError when the autopilot refuses (MISSION_ACK other than ACCEPTED),
-    does not answer, or is lost."""
-    target = link.target_or_default()
-    me = link.config.source_system
-    fence = MAV.MAV_MISSION_TYPE_FENCE
-
-    def ack(m: Any) -> bool:
-        return bool(m.mission_type == fence and m.target_system in (0, me))
-
-    if not circles:
-        answer = await link.request(
-            lambda: MAV.MAVLink_mission_clear_all_message(target[0], target[1], fence),
-            "MISSION_ACK",
-            ack,
-            what="clearing the fence",
+    mission protocol for MAV_MISSION_TYPE_FENCE, :func:`.mission.items_upload`); none
+    clears it (MISSION_CLEAR_ALL). Raises AdapterError when the autopilot refuses
+    (MISSION_ACK other than ACCEPTED), does not answer, or is lost."""
+    items = [
+        MissionItem(
+            MAV.MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION, MAV.MAV_FRAME_GLOBAL,
+            (radius, 0.0, 0.0, 0.0), lat, lon,
         )
-        _check_ack(answer)
-        return
-
-    def requested(seq: int) -> Callable[[Any], bool]:
-        def match(m: Any) -> bool:
-            return ack(m) and int(m.seq) == seq
-
-        return match
-
-    def item(seq: int) -> Any:
-        (lat, lon), radius = circles[seq]
-        return MAV.MAVLink_mission_item_int_message(
-            target[0], target[1], seq, MAV.MAV_FRAME_GLOBAL,
-            MAV.MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION, 0, 1, radius, 0, 0, 0,
-            round(lat * 1e7), round(lon * 1e7), 0, fence,
-        )  # fmt: skip
-
-    count = len(circles)
-    await link.request(
-        lambda: MAV.MAVLink_mission_count_message(target[0], target[1], count, fence),
-        "MISSION_REQUEST_INT",
-        requested(0),
-        what="uploading the fence",
-    )
-    for seq in range(count):
-        last = seq == count - 1
-        answer = await link.request(
-            functools.partial(item, seq),
-            "MISSION_ACK" if last else "MISSION_REQUEST_INT",
-            ack if last else requested(seq + 1),
-            what=f"uploading fence item {seq}",
-        )
-        if last:
-            _check_ack(answer)
-
-
-def _check_ack(answer: Any) -> None:
-    result = getattr(answer, "type", None)
-    if result != MAV.MAV_MISSION_ACCEPTED:
-        raise AdapterError(
-            f"the autopilot refused the fence (MISSION_ACK {result})", code="autopilot_refused"
-        )
+        for (lat, lon), radius in circles
+    ]  # fmt: skip
+    await items_upload(link, MAV.MAV_MISSION_TYPE_FENCE, items, what="fence")
 
 
 def fence_words(values: Mapping[str, float]) -> dict[str, float]:

@@ -89,7 +89,9 @@ class AutopilotLink:
         self._stop = threading.Event()
         self._pending: dict[int, _Pending] = {}
         self._param_waiters: dict[str, list[asyncio.Future[float]]] = {}
-        self._answer_waiters: list[tuple[str, Callable[[Any], bool], asyncio.Future[Any]]] = []
+        self._answer_waiters: list[
+            tuple[tuple[str, ...], Callable[[Any], bool], asyncio.Future[Any]]
+        ] = []
         self._command_lock = asyncio.Lock()
 
     # --- lifecycle ---------------------------------------------------------------------
@@ -234,7 +236,7 @@ class AutopilotLink:
                         if not future.done():
                             future.set_result(float(msg.param_value))
                 for wanted, match, future in list(self._answer_waiters):
-                    if wanted == kind and not future.done() and match(msg):
+                    if kind in wanted and not future.done() and match(msg):
                         future.set_result(msg)
             self.on_message(msg)
         except Exception:
@@ -433,19 +435,20 @@ class AutopilotLink:
     async def request(
         self,
         build: Callable[[], Any],
-        answer: str,
+        answer: str | tuple[str, ...],
         match: Callable[[Any], bool],
         *,
         what: str,
         timeout_s: float | None = None,
     ) -> Any:
         """Send ``build()`` and resend it every ``resend_s`` until the autopilot's
-        ``answer`` message for which ``match`` holds; returns it. Raises AdapterError
-        ``timeout`` after ``timeout_s`` (``command_timeout_s``) or ``autopilot_lost``."""
+        ``answer`` message (or one of several) for which ``match`` holds; returns it.
+        Raises AdapterError ``timeout`` after ``timeout_s`` (``command_timeout_s``) or
+        ``autopilot_lost``."""
         self.require(what)
         loop = asyncio.get_running_loop()
         future: asyncio.Future[Any] = loop.create_future()
-        waiter = (answer, match, future)
+        waiter = ((answer,) if isinstance(answer, str) else answer, match, future)
         self._answer_waiters.append(waiter)
         timeout = self.config.command_timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + timeout

@@ -27,7 +27,12 @@ IoUV agent uses (``docs/vehicles/quadcopter.md``, ``docs/vehicles/boat.md``):
 * the fence (:mod:`.fence`): its parameters, its upload, download and clearing with the
   mission protocol for ``MAV_MISSION_TYPE_FENCE``, its check at 25 Hz and ArduPilot's
   breach action, a FENCE_STATUS when its state changes;
-* MISSION_REQUEST_LIST answered with an empty mission, TIMESYNC.
+* the mission (:mod:`.mission`): its upload, download and clearing with the mission
+  protocol for ``MAV_MISSION_TYPE_MISSION`` (with ArduPilot's refusals and its 8 s
+  upload timeout), MAV_CMD_DO_SET_MISSION_CURRENT, and while AUTO flies it (each
+  vehicle's own: :mod:`.copter`, :mod:`.boat`) MISSION_CURRENT on every change (and
+  in the EXTENDED_STATUS stream) and MISSION_ITEM_REACHED;
+* TIMESYNC.
 
 Time: ``speedup`` runs the vehicle's physics (and the delays measured in its time: RTL
 loiter, disarm delay, battery drain) that many times faster than the wall clock.
@@ -35,8 +40,8 @@ Everything about the link stays on the wall clock: heartbeats, stream rates, set
 timeouts and the GCS fail-safe, because the peer sends at wall-clock rates; so does the
 time to the first GPS fix, which is not flight.
 
-Not modelled: missions (a mission's MISSION_COUNT is always 0), RC input, wind, terrain, EKF
-variances, signing.
+Not modelled: rally points, RC input, wind, terrain, EKF variances,
+signing.
 """
 
 from __future__ import annotations
@@ -55,6 +60,7 @@ from agents.vehicles.mavlink.sim.boat import Boat
 from agents.vehicles.mavlink.sim.copter import Copter
 from agents.vehicles.mavlink.sim.fence import FenceTransfer, fence_breach_type
 from agents.vehicles.mavlink.sim.messages import STREAMABLE, Clocks, heartbeat, message
+from agents.vehicles.mavlink.sim.mission import MissionTransfer
 from agents.vehicles.mavlink.sim.params import DEFAULT_FIRMWARE, FIRMWARES, firmware_params
 from agents.vehicles.mavlink.sim.vehicle import CommandResult, PositionTarget, SimVehicle, wrap360
 
@@ -66,7 +72,7 @@ VEHICLES: Mapping[str, type[Copter] | type[Boat]] = {"copter": Copter, "boat": B
 #: REQUEST_DATA_STREAM stream ids -> the messages ArduPilot sends in them (those of
 #: them this simulator has), as GCS_MAVLink_Parameters.cpp groups them.
 DATA_STREAMS: dict[int, tuple[str, ...]] = {
-    2: ("SYS_STATUS", "GPS_RAW_INT", "EXTENDED_SYS_STATE"),  # EXTENDED_STATUS
+    2: ("SYS_STATUS", "GPS_RAW_INT", "EXTENDED_SYS_STATE", "MISSION_CURRENT"),  # EXT_STATUS
     6: ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED"),  # POSITION
     10: ("ATTITUDE",),  # EXTRA1
     11: ("VFR_HUD",),  # EXTRA2
@@ -185,6 +191,7 @@ class Autopilot:
         self.gcs_failsafe = False
         self.peers: dict[tuple[int, int], float] = {}
         self.fence_transfer = FenceTransfer(self.vehicle.fence, options.home)
+        self.mission_transfer = MissionTransfer(self.vehicle.mission, options.home)
         self.next_fence_check = 0.0
         if options.stream_rate_hz > 0:
             for name in DATA_STREAMS[0]:
@@ -243,6 +250,7 @@ class Autopilot:
             self.vehicle.step(dt, now)
             self._fence_check(now)
             self._gcs_failsafe(now)
+            self._mission_news(now)
             if now >= next_heartbeat:
                 self._send(heartbeat(self.vehicle, critical=self.gcs_failsafe))
                 next_heartbeat = max(next_heartbeat + 1.0, now)
@@ -392,6 +400,10 @@ class Autopilot:
             return self._send_now("AUTOPILOT_VERSION")
         if command == MAV.MAV_CMD_GET_HOME_POSITION:
             return self._send_now("HOME_POSITION")
+        if command == MAV.MAV_CMD_DO_SET_MISSION_CURRENT:
+            if not v.mission_set_current(int(p[0])):
+                return failed, f"Mission: no item {int(p[0])}"
+            return ok, None
         return v.command(command, p, z, frame)
 
     def _send_now(self, name: str) -> CommandResult:
@@ -476,34 +488,54 @@ class Autopilot:
             else:
                 self._stream(name, None)
 
-    def _on_mission_request_list(self, msg: Any) -> None:
+    def _mission_message(self, msg: Any, fence: Any, mission: Any) -> None:
+        """A message of the mission protocol: to the fence's transfer or the mission's
+        by its mission_type (rally points are not modelled: ignored)."""
         if not self._for_me(msg):
             return
-        if msg.mission_type == MAV.MAV_MISSION_TYPE_FENCE:
-            self._send_all(self.fence_transfer.request_list(msg))
-            return
-        self._send(
-            MAV.MAVLink_mission_count_message(
-                msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type
-            )
-        )
+        kind = getattr(msg, "mission_type", MAV.MAV_MISSION_TYPE_MISSION)
+        if kind == MAV.MAV_MISSION_TYPE_FENCE:
+            self._send_all(fence(msg))
+        elif kind == MAV.MAV_MISSION_TYPE_MISSION:
+            self._send_all(mission(msg))
+            self._send_texts_of(self.mission_transfer.texts)
 
-    def _fence_message(self, msg: Any, answer: Callable[[Any], list[Any]]) -> None:
-        """A message of the fence's mission protocol (others are not modelled)."""
-        if self._for_me(msg) and msg.mission_type == MAV.MAV_MISSION_TYPE_FENCE:
-            self._send_all(answer(msg))
+    def _on_mission_request_list(self, msg: Any) -> None:
+        t = self.mission_transfer
+        self._mission_message(msg, self.fence_transfer.request_list, t.request_list)
 
     def _on_mission_count(self, msg: Any) -> None:
-        self._fence_message(msg, self.fence_transfer.count)
+        t = self.mission_transfer
+        self._mission_message(msg, self.fence_transfer.count, lambda m: t.count(m, self.clock()))
 
     def _on_mission_item_int(self, msg: Any) -> None:
-        self._fence_message(msg, self.fence_transfer.item)
+        t = self.mission_transfer
+        self._mission_message(msg, self.fence_transfer.item, lambda m: t.item(m, self.clock()))
 
     def _on_mission_request_int(self, msg: Any) -> None:
-        self._fence_message(msg, self.fence_transfer.request)
+        self._mission_message(msg, self.fence_transfer.request, self.mission_transfer.request)
 
     def _on_mission_clear_all(self, msg: Any) -> None:
-        self._fence_message(msg, self.fence_transfer.clear)
+        self._mission_message(msg, self.fence_transfer.clear, self.mission_transfer.clear)
+
+    def _mission_news(self, now: float) -> None:
+        """A stalled upload's request again or its cancellation; MISSION_CURRENT when
+        AUTO moved on, MISSION_ITEM_REACHED for each item it reached."""
+        self._send_all(self.mission_transfer.update(now))
+        self._send_texts_of(self.mission_transfer.texts)
+        mission = self.vehicle.mission
+        if mission.reached or mission.current_changed:
+            self._send_texts()  # "Mission: <n> ..." before the news, as ArduPilot says it
+        while mission.reached:
+            self._send(MAV.MAVLink_mission_item_reached_message(mission.reached.popleft()))
+        if mission.current_changed:
+            mission.current_changed = False
+            self._send(self._message("MISSION_CURRENT"))
+
+    def _send_texts_of(self, texts: Any) -> None:
+        while texts:
+            self.vehicle.say(*texts.popleft())
+        self._send_texts()
 
     def _on_timesync(self, msg: Any) -> None:
         if msg.tc1 == 0:

@@ -14,6 +14,14 @@ What it does, as ArduRover does it for a boat (``docs/vehicles/boat.md``):
   current;
 * RTL, SMART_RTL: straight home at ``RTL_SPEED`` (else ``WP_SPEED``), then it holds
   there as in LOITER (SmartRTL's retracing of the way out is not modelled);
+* AUTO (``Rover/mode_auto.cpp``): refused without a mission ("No Mission. Can't set
+  AUTO."); entered, it starts the mission at item 1 or (``MIS_RESTART`` 0) resumes it
+  at its current navigation item. NAV_WAYPOINT is reached within ``WP_RADIUS`` ("Reached
+  waypoint #n", MISSION_ITEM_REACHED), then held param 1 seconds; NAV_LOITER_TIME the
+  same; NAV_RETURN_TO_LAUNCH drives home; the "do" items after a navigation item
+  (DO_CHANGE_SPEED, DO_SET_SERVO, DO_GRIPPER) run when it is done. Take-offs and
+  landings are skipped ("Skipping invalid cmd"). After the last item it holds where it
+  is, as LOITER, still in AUTO ("Mission Complete");
 * DO_CHANGE_SPEED as ArduRover's ``set_desired_speed`` takes it: accepted while
   GUIDED drives to a position (its WP sub-mode) and in RTL, SMART_RTL and AUTO, where
   it is the speed of positions and returns until the next mode change; FAILED
@@ -45,6 +53,14 @@ from agents.geography import land_at
 from agents.vehicles.mavlink.classes import BOAT, MAV_TYPE_SURFACE_BOAT, ROVER_MODES
 from agents.vehicles.mavlink.dialect import MAV
 from agents.vehicles.mavlink.sim.fence import GIVE_UP_DISTANCE_M
+from agents.vehicles.mavlink.sim.mission import (
+    DO_CHANGE_SPEED,
+    DO_GRIPPER,
+    DO_SET_SERVO,
+    NAV_LOITER_TIME,
+    NAV_RETURN_TO_LAUNCH,
+    NAV_WAYPOINT,
+)
 from agents.vehicles.mavlink.sim.vehicle import (
     BODY_FRAMES,
     OFFSET_FRAMES,
@@ -68,7 +84,14 @@ SPEED_MODES = frozenset({RTL, SMART_RTL, AUTO})
 #: Modes whose motors the autopilot drives; in the others (HOLD, MANUAL without a
 #: pilot...) the motors are off.
 POWERED = frozenset(
-    {GUIDED, LOITER, RTL, SMART_RTL, *(_NUMBER[m] for m in ("FOLLOW", "SIMPLE", "DOCK", "CIRCLE"))}
+    {
+        GUIDED,
+        LOITER,
+        RTL,
+        SMART_RTL,
+        AUTO,
+        *(_NUMBER[m] for m in ("FOLLOW", "SIMPLE", "DOCK", "CIRCLE")),
+    }
 )
 
 #: ArduRover drops a velocity or heading setpoint not renewed within this (wall clock).
@@ -133,6 +156,11 @@ class Boat(SimVehicle):
     #: DO_CHANGE_SPEED's (or DO_REPOSITION's) speed for this mode; None: the default.
     nav_speed: float | None = None
     aground: bool = False
+    #: AUTO: the navigation item's index (None: the mission is over, holding), whether
+    #: it got there, and until when it holds there (simulated time).
+    auto_index: int | None = None
+    auto_reached: bool = False
+    auto_hold_until: float = 0.0
     #: Land (True), water (False) or unknown (None) at a point: the land mask.
     land_at: Callable[[float, float], bool | None] = field(
         default_factory=lambda: land_at, repr=False
@@ -165,6 +193,92 @@ class Boat(SimVehicle):
         self.home_reached = False
         self.guided = "hold"
         self.target = (0.0, 0.0) if mode in ("RTL", "SMART_RTL") else self._stopping_point()
+        if mode == "AUTO":
+            self._auto_enter()
+        elif self.mission.state == "running":
+            self.mission.state = "stopped"  # left: resumed from here next time
+            self.auto_index = None
+
+    # --- AUTO -------------------------------------------------------------------------
+    def _auto_refusal(self) -> str | None:
+        return None if self.mission.flyable() else "No Mission. Can't set AUTO."
+
+    def _auto_enter(self) -> None:
+        m = self.mission
+        resume = (
+            not self.p("MIS_RESTART")
+            and m.state != "complete"
+            and m.current is not None
+            and m.current < m.count
+        )
+        m.state = "running"
+        if resume and m.current is not None:
+            self._auto_start_nav(m.current)
+        else:
+            self._auto_advance(1)
+
+    def mission_set_current(self, seq: int) -> bool:
+        if not super().mission_set_current(seq):
+            return False
+        if self.mode == AUTO and self.mission.state == "running":
+            self._auto_advance(seq)
+        return True
+
+    def _auto_advance(self, index: int) -> None:
+        """The "do" items from ``index`` on, then the next navigation item it drives
+        (others skipped); none left: the mission is complete and it holds there."""
+        items = self.mission.items
+        while index < len(items):
+            item = items[index]
+            if item.command in (NAV_WAYPOINT, NAV_LOITER_TIME, NAV_RETURN_TO_LAUNCH):
+                self._auto_start_nav(index)
+                return
+            if item.is_nav:
+                self.say(MAV.MAV_SEVERITY_WARNING, f"Skipping invalid cmd #{index}")
+            elif item.command == DO_CHANGE_SPEED and item.params[1] > 0:
+                self.nav_speed = item.params[1]
+            elif item.command == DO_SET_SERVO or (
+                item.command == DO_GRIPPER and int(item.params[1]) == MAV.GRIPPER_ACTION_RELEASE
+            ):
+                self.payload_released = True
+                self.say(MAV.MAV_SEVERITY_INFO, "Gripper load released")
+            index += 1
+        self.mission.state = "complete"
+        self.mission.current_changed = True
+        self.auto_index = None
+        self.target = self._stopping_point()
+        self.say(MAV.MAV_SEVERITY_INFO, "Mission Complete")
+
+    def _auto_start_nav(self, index: int) -> None:
+        item = self.mission.items[index]
+        self.mission.set_current(index)
+        self.auto_index, self.auto_reached = index, False
+        if item.command == NAV_RETURN_TO_LAUNCH:
+            self.target = (0.0, 0.0)
+        elif item.has_position:
+            self.target = local_offset_m(self.home, (item.lat, item.lon))
+        else:
+            self.target = (self.north, self.east)
+
+    def _auto(self) -> tuple[float, float]:
+        index = self.auto_index
+        if index is None:
+            return self._loiter()
+        item = self.mission.items[index]
+        if not self.auto_reached and self._arrived():
+            self.auto_reached = True
+            hold = item.params[0] if item.command != NAV_RETURN_TO_LAUNCH else 0.0
+            self.auto_hold_until = self.sim_time + max(0.0, hold)
+            if item.command != NAV_RETURN_TO_LAUNCH:
+                self.say(MAV.MAV_SEVERITY_INFO, f"Reached waypoint #{index}")
+                self.mission.reached.append(index)
+            else:
+                self.say(MAV.MAV_SEVERITY_INFO, "Reached destination")
+        if self.auto_reached:
+            if self.sim_time >= self.auto_hold_until:
+                self._auto_advance(index + 1)
+            return self._loiter()
+        return self._navigate(self.nav_speed or self.default_speed())
 
     def _arming_refusal(self) -> str | None:
         lat, lon = self.latlon
@@ -398,6 +512,8 @@ class Boat(SimVehicle):
                 return self._loiter()
             default = self.p("RTL_SPEED") or self.default_speed()
             return self._navigate(self.nav_speed or default)
+        if self.mode == AUTO:
+            return self._auto()
         if self.mode != GUIDED:
             return self._loiter()  # LOITER, and the position modes not modelled
         if self.guided in ("drive", "heading") and wall - self.drive_wall > SETPOINT_TIMEOUT_S:

@@ -1,15 +1,32 @@
 """The simulated multicopter: ArduCopter's flight modes and kinematics, no I/O.
 
-GUIDED (take-off, velocity and position setpoints, CONDITION_YAW, DO_REPOSITION, whose
-speed ArduCopter ignores, and DO_CHANGE_SPEED, taken in GUIDED and AUTO only and
-forgotten when GUIDED starts flying to a position from another sub-mode), LAND (fast
+AUTO (:meth:`Copter._auto`, after ArduCopter's ``mode_auto.cpp`` and AP_Mission: the
+uploaded mission, :mod:`.mission`), GUIDED (take-off, velocity and position
+setpoints, CONDITION_YAW, DO_REPOSITION, whose speed ArduCopter ignores, and
+DO_CHANGE_SPEED, taken in GUIDED and AUTO only and forgotten when GUIDED starts
+flying to a position from another sub-mode), LAND (fast
 then slow descent, disarm on touchdown), RTL (climb to ``RTL_ALT``, fly home, loiter
 ``RTL_LOIT_TIME``, land, disarm), BRAKE/LOITER (hold at the stopping point); speed
 limits (``WPNAV_SPEED*``), ground contact, auto-disarm after ``DISARM_DELAY`` s armed
 on the ground, battery drain (faster when flying). As in ArduCopter a velocity
 setpoint lapses after ``GUID_TIMEOUT`` s, and one that ignores both yaw and yaw rate
 hands yaw to ``WP_YAW_BEHAVIOR`` (by default the nose turns into the direction of
-travel). The GCS fail-safe acts after ``FS_GCS_TIMEOUT`` s as ``FS_GCS_ENABLE`` says.
+travel). The GCS fail-safe acts after ``FS_GCS_TIMEOUT`` s as ``FS_GCS_ENABLE`` says, in AUTO
+too unless ``FS_OPTIONS`` bit 1 (2, "continue if in auto") is set
+(``ArduCopter/events.cpp``, failsafe_gcs_on_event).
+
+AUTO: refused without a mission beyond home, and armed on the ground unless the
+mission starts with a take-off ("Auto: Missing Takeoff Cmd"); it is not armable.
+Entering it starts the mission at item 1, or, with ``MIS_RESTART`` 0 (the default),
+resumes an interrupted one at its current navigation item. A navigation item runs
+until verified (NAV_TAKEOFF: the altitude; NAV_WAYPOINT and NAV_LOITER_TIME: within
+``WPNAV_RADIUS`` of the point, then their hold time, param 1; NAV_LAND: landed;
+NAV_RETURN_TO_LAUNCH: RTL's climb, return, loiter and landing, the mode staying AUTO);
+the "do" items after it (DO_CHANGE_SPEED, DO_SET_SERVO, DO_GRIPPER, the camera's) run
+when it is verified, before the next navigation item starts, as AP_Mission runs them.
+Each start says "Mission: <n> <name>"; a waypoint or a loiter verified sends
+MISSION_ITEM_REACHED. After the last item: landed, it disarms; flying, it holds there
+in AUTO.
 
 Kinematics: every mode's velocity goes through the position controller's jerk-limited
 shaping (:mod:`.shaping`) within ``WPNAV_ACCEL`` and ``WPNAV_ACCEL_Z`` (BRAKE: three
@@ -27,6 +44,18 @@ from agents.geo import local_offset_m
 from agents.vehicles.mavlink.classes import COPTER
 from agents.vehicles.mavlink.dialect import MAV
 from agents.vehicles.mavlink.sim.fence import ALT_MAX, GIVE_UP_DISTANCE_M
+from agents.vehicles.mavlink.sim.mission import (
+    DO_CHANGE_SPEED,
+    DO_GRIPPER,
+    DO_SET_SERVO,
+    NAV_LAND,
+    NAV_LOITER_TIME,
+    NAV_RETURN_TO_LAUNCH,
+    NAV_TAKEOFF,
+    NAV_WAYPOINT,
+    RELATIVE_FRAMES,
+    Item,
+)
 from agents.vehicles.mavlink.sim.shaping import (
     position_speed,
     position_velocity_xy,
@@ -58,6 +87,18 @@ DEFAULT_YAW_RATE_DEG_S = 60.0
 STEP_S = 0.005
 #: BRAKE mode stops harder than WPNAV_ACCEL (ArduCopter's BRAKE_MODE_DECEL_RATE).
 BRAKE_ACCEL_FACTOR = 3.0
+#: FS_OPTIONS bit: the GCS fail-safe lets a mission in AUTO go on (FailsafeOption).
+FS_OPTION_GCS_CONTINUE_IF_AUTO = 2
+#: An AUTO take-off is done this close (m) under its altitude.
+TAKEOFF_DONE_M = 0.2
+#: A waypoint's altitude counts as reached within this much (m).
+WP_ALT_TOLERANCE_M = 1.0
+#: What AP_Mission calls each command in its "Mission: <n> <name>" text.
+COMMAND_NAMES = {
+    NAV_WAYPOINT: "WP", NAV_LOITER_TIME: "LoitTime", NAV_RETURN_TO_LAUNCH: "RTL",
+    NAV_LAND: "Land", NAV_TAKEOFF: "Takeoff", DO_CHANGE_SPEED: "ChangeSpeed",
+    DO_SET_SERVO: "SetServo", DO_GRIPPER: "Gripper",
+}  # fmt: skip
 
 
 @dataclass
@@ -94,6 +135,14 @@ class Copter(SimVehicle):
     an: float = 0.0
     ae: float = 0.0
     au: float = 0.0
+    #: AUTO: the navigation item flown (None: the mission is over, holding), where it
+    #: goes, whether it got there and until when it holds there (simulated time).
+    auto_item: Item | None = None
+    auto_target: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    auto_reached: bool = False
+    auto_hold_until: float = 0.0
+    #: NAV_LAND: "approach" (to the point at its altitude), then "descend".
+    auto_land_stage: str = ""
 
     # --- state ------------------------------------------------------------------------
     @property
@@ -123,6 +172,155 @@ class Copter(SimVehicle):
         self.look_ahead = False
         if mode in ("RTL", "SMART_RTL"):
             self.rtl_stage = "climb"
+        if mode == "AUTO":
+            self._auto_enter()
+        elif self.mission.state == "running":
+            self.mission.state = "stopped"  # left: resumed from here next time
+            self.auto_item = None
+
+    # --- AUTO -------------------------------------------------------------------------
+    def _auto_refusal(self) -> str | None:
+        if not self.mission.flyable():
+            return "Mode change failed: AUTO: no mission"
+        if self.armed and self.landed and not self._starts_with_takeoff():
+            return "Auto: Missing Takeoff Cmd"
+        return None
+
+    def _starts_with_takeoff(self) -> bool:
+        """AP_Mission::starts_with_takeoff_cmd: the first navigation item flown (from 1,
+        or the current one when resuming) is a take-off."""
+        m = self.mission
+        start = 1 if self.p("MIS_RESTART") or m.current is None else m.current
+        nav = next((i for i in m.items[start:] if i.is_nav), None)
+        return nav is not None and nav.command == NAV_TAKEOFF
+
+    def _auto_enter(self) -> None:
+        """Start the mission (MIS_RESTART 1, a finished or never started one) or resume
+        it at its current navigation item (AP_Mission::start_or_resume)."""
+        m = self.mission
+        resume = (
+            not self.p("MIS_RESTART")
+            and m.state != "complete"
+            and m.current is not None
+            and m.current < m.count
+        )
+        m.state = "running"
+        self.target_speed = None  # WPNAV_SPEED until a DO_CHANGE_SPEED
+        if resume and m.current is not None:
+            self._auto_start_nav(m.current)
+        else:
+            self._auto_advance(1)
+
+    def mission_set_current(self, seq: int) -> bool:
+        if not super().mission_set_current(seq):
+            return False
+        if self.mode == AUTO and self.mission.state == "running":
+            self._auto_advance(seq)  # ArduPilot starts it at once
+        return True
+
+    def _auto_advance(self, index: int) -> None:
+        """From item ``index`` on: perform the "do" items, start the next navigation item
+        (AP_Mission::advance_current_nav_cmd); none left: the mission is complete."""
+        items = self.mission.items
+        while index < len(items):
+            item = items[index]
+            if item.is_nav:
+                self._auto_start_nav(index)
+                return
+            self._auto_do(index, item)
+            index += 1
+        self._auto_complete()
+
+    def _auto_do(self, index: int, item: Item) -> None:
+        self.say(MAV.MAV_SEVERITY_INFO, f"Mission: {index} {COMMAND_NAMES.get(item.command, 'Do')}")
+        if item.command == DO_CHANGE_SPEED and item.params[1] > 0:
+            self.target_speed = item.params[1]
+        elif item.command == DO_SET_SERVO or (
+            item.command == DO_GRIPPER and int(item.params[1]) == MAV.GRIPPER_ACTION_RELEASE
+        ):
+            self.payload_released = True
+            self.say(MAV.MAV_SEVERITY_INFO, "Gripper load released")
+        # The camera's items are taken and do nothing here: this copter has no camera.
+
+    def _auto_start_nav(self, index: int) -> None:
+        item = self.mission.items[index]
+        self.mission.set_current(index)
+        self.say(MAV.MAV_SEVERITY_INFO, f"Mission: {index} {COMMAND_NAMES[item.command]}")
+        self.auto_item, self.auto_reached = item, False
+        if item.has_position:
+            north, east = local_offset_m(self.home, (item.lat, item.lon))
+        else:
+            north, east = self.hold[0], self.hold[1]
+        alt = item.alt if item.frame in RELATIVE_FRAMES else item.alt - self.home_alt_amsl
+        if item.command == NAV_TAKEOFF:
+            # Straight up from where it is; already higher: done at once.
+            self.auto_target = (self.north, self.east, max(alt, 0.0))
+            if self.landed and alt > 0:
+                self.landed = False
+        elif item.command == NAV_LAND:
+            self.auto_land_stage = "approach" if item.has_position else "descend"
+            self.auto_target = (north, east, self.up)
+            self.hold = self.auto_target
+        elif item.command == NAV_RETURN_TO_LAUNCH:
+            self.rtl_stage = "climb"
+        else:
+            self.auto_target = (north, east, max(alt, 0.0))
+
+    def _auto_complete(self) -> None:
+        """The mission is over (ModeAuto::exit_mission): landed, disarm; else hold."""
+        self.mission.state = "complete"
+        self.mission.current_changed = True  # MISSION_CURRENT says so at once
+        self.auto_item = None
+        if self.armed and self.landed:
+            self._disarm("Mission complete, disarming")
+        else:
+            self._hold_here()
+
+    def _auto_landing(self) -> bool:
+        item = self.auto_item
+        if self.mode != AUTO or item is None:
+            return False
+        if item.command == NAV_LAND:
+            return self.auto_land_stage == "descend"
+        return item.command == NAV_RETURN_TO_LAUNCH and self.rtl_stage == "land"
+
+    def _auto(self) -> tuple[float, float, float]:
+        """AUTO's velocity now, the current navigation item verified on the way."""
+        item = self.auto_item
+        if item is None:
+            return self._towards(self.hold)
+        if item.command == NAV_RETURN_TO_LAUNCH:
+            return self._rtl()  # lands; touchdown (_ground) ends the mission
+        if item.command == NAV_LAND:
+            if self.auto_land_stage == "approach":
+                radius = self.p("WPNAV_RADIUS") / 100.0
+                north, east, _ = self.auto_target
+                if math.hypot(north - self.north, east - self.east) <= radius:
+                    self.auto_land_stage = "descend"
+                    self.hold = (north, east, self.up)
+                return self._towards(self.auto_target, self.target_speed)
+            return self._land()
+        target = self.auto_target
+        if not self.auto_reached and self._auto_arrived(item, target):
+            self.auto_reached = True
+            hold = item.params[0] if item.command in (NAV_WAYPOINT, NAV_LOITER_TIME) else 0.0
+            self.auto_hold_until = self.sim_time + max(0.0, hold)
+            if item.command != NAV_TAKEOFF and self.mission.current is not None:
+                self.mission.reached.append(self.mission.current)
+        if self.auto_reached and self.sim_time >= self.auto_hold_until:
+            current = self.mission.current
+            self._auto_advance((current or 0) + 1)
+        velocity = self._towards(target, self.target_speed)
+        if item.command == NAV_TAKEOFF and self.landed:
+            return velocity[0], velocity[1], max(0.3, velocity[2])
+        return velocity
+
+    def _auto_arrived(self, item: Item, target: tuple[float, float, float]) -> bool:
+        if item.command == NAV_TAKEOFF:
+            return self.up >= target[2] - TAKEOFF_DONE_M
+        radius = self.p("WPNAV_RADIUS") / 100.0
+        horizontal = math.hypot(target[0] - self.north, target[1] - self.east)
+        return horizontal <= radius and abs(target[2] - self.up) <= WP_ALT_TOLERANCE_M
 
     def _on_armed(self) -> None:
         self.landed = True
@@ -320,10 +518,14 @@ class Copter(SimVehicle):
 
     def gcs_failsafe(self) -> bool:
         """On the ground: disarm; flying: the mode FS_GCS_ENABLE names, else LAND."""
-        self.say(MAV.MAV_SEVERITY_CRITICAL, "GCS Failsafe")
         if self.landed:
+            self.say(MAV.MAV_SEVERITY_CRITICAL, "GCS Failsafe - Disarming")
             self.disarm(force=True)
             return True
+        if self.mode == AUTO and int(self.p("FS_OPTIONS")) & FS_OPTION_GCS_CONTINUE_IF_AUTO:
+            self.say(MAV.MAV_SEVERITY_WARNING, "GCS Failsafe - Continuing Auto Mode")
+            return True
+        self.say(MAV.MAV_SEVERITY_CRITICAL, "GCS Failsafe")
         mode = FS_GCS_MODES.get(int(self.p("FS_GCS_ENABLE")), LAND)
         if self.set_mode(mode) is not None:
             self.set_mode(LAND)
@@ -422,8 +624,10 @@ class Copter(SimVehicle):
                 self.landed_since = self.sim_time
                 self.vn = self.ve = self.vu = 0.0
                 self.an = self.ae = self.au = 0.0
-                if self.mode in (LAND, RTL, SMART_RTL):
+                if self.mode in (LAND, RTL, SMART_RTL) or self._auto_landing():
                     self._disarm("Land complete, disarming")
+                    if self.mode == AUTO:
+                        self._auto_advance((self.mission.current or 0) + 1)
         elif self.up > 0.2:
             self.landed = False
 
@@ -459,11 +663,22 @@ class Copter(SimVehicle):
         return vn, ve, max(-down_max, min(up_max, vu))
 
     def _desired_velocity(self, wall: float) -> tuple[float, float, float]:
-        if self.landed and not (self.mode == GUIDED and self.guided == "takeoff"):
+        auto_takeoff = (
+            self.mode == AUTO
+            and self.auto_item is not None
+            and self.auto_item.command == NAV_TAKEOFF
+        )
+        if (
+            self.landed
+            and not (self.mode == GUIDED and self.guided == "takeoff")
+            and not auto_takeoff
+        ):
             return (0.0, 0.0, 0.0)
         mode = self.mode
         if mode == GUIDED:
             return self._guided(wall)
+        if mode == AUTO:
+            return self._auto()
         if mode == LAND:
             return self._land()
         if mode in (RTL, SMART_RTL):
@@ -560,6 +775,10 @@ class Copter(SimVehicle):
             return int(MAV.MAV_LANDED_STATE_ON_GROUND)
         if self.mode == GUIDED and self.guided == "takeoff":
             return int(MAV.MAV_LANDED_STATE_TAKEOFF)
-        if self.mode == LAND or (self.mode == RTL and self.rtl_stage == "land"):
+        if (
+            self.mode == LAND
+            or (self.mode == RTL and self.rtl_stage == "land")
+            or self._auto_landing()
+        ):
             return int(MAV.MAV_LANDED_STATE_LANDING)
         return int(MAV.MAV_LANDED_STATE_IN_AIR)

@@ -31,6 +31,7 @@ STREAMABLE = frozenset(
         "EKF_STATUS_REPORT",
         "AUTOPILOT_VERSION",
         "SYSTEM_TIME",
+        "MISSION_CURRENT",
     }
 )
 
@@ -172,7 +173,29 @@ def message(name: str, v: SimVehicle, clocks: Clocks, *, sysid: int, firmware: s
         return MAV.MAVLink_system_time_message(int(time.time() * 1e6), clocks.boot_ms)
     if name == "AUTOPILOT_VERSION":
         return autopilot_version(v, sysid=sysid, firmware=firmware)
+    if name == "MISSION_CURRENT":
+        return mission_current(v)
     return None
+
+
+def mission_current(v: SimVehicle) -> Any:
+    """MISSION_CURRENT: the navigation item AUTO flies (or will resume at), how many
+    items follow home, and the mission's state, as ArduPilot fills them in."""
+    m = v.mission
+    if not m.flyable():
+        state = MAV.MISSION_STATE_NO_MISSION
+    elif m.state == "complete":
+        state = MAV.MISSION_STATE_COMPLETE
+    elif m.state == "running":
+        state = MAV.MISSION_STATE_ACTIVE
+    elif m.current is None:
+        state = MAV.MISSION_STATE_NOT_STARTED
+    else:
+        state = MAV.MISSION_STATE_PAUSED
+    in_auto = v.modes.get(v.mode) == "AUTO"
+    return MAV.MAVLink_mission_current_message(
+        m.current or 0, max(0, m.count - 1), state, 1 if in_auto else 2
+    )
 
 
 def autopilot_version(v: SimVehicle, *, sysid: int, firmware: str) -> Any:
@@ -180,6 +203,8 @@ def autopilot_version(v: SimVehicle, *, sysid: int, firmware: str) -> Any:
     capabilities = (
         MAV.MAV_PROTOCOL_CAPABILITY_MAVLINK2
         | MAV.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+        | MAV.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+        | MAV.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
         | MAV.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
         | MAV.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
         | MAV.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT

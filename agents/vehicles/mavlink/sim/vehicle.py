@@ -23,6 +23,7 @@ from agents.geo import offset
 from agents.vehicles.mavlink.classes import VehicleClass
 from agents.vehicles.mavlink.dialect import MAV
 from agents.vehicles.mavlink.sim.fence import SimFence, fence_names
+from agents.vehicles.mavlink.sim.mission import SimMission
 
 #: SET_POSITION_TARGET_* type_mask bits; a bit set means "ignore this field".
 TYPE_MASK_POS = 0b111
@@ -116,6 +117,7 @@ class SimVehicle(abc.ABC):
     payload_released: bool = False
     texts: deque[tuple[int, str]] = field(default_factory=lambda: deque(maxlen=32))
     fence: SimFence = field(default_factory=SimFence)
+    mission: SimMission = field(default_factory=SimMission)
 
     # --- helpers ----------------------------------------------------------------------
     @property
@@ -157,13 +159,29 @@ class SimVehicle(abc.ABC):
             return f"Mode change failed: unknown mode {mode}"
         if self.armed and mode in self.POSITION_MODES and not self.position_ok:
             return f"Mode change failed: {name} requires position"
-        if name == "AUTO":
-            return "Mode change failed: AUTO: no mission"
         if mode == self.mode:
             return None
+        if name == "AUTO":
+            refusal = self._auto_refusal()
+            if refusal is not None:
+                return refusal
         self.mode = mode
         self._entered(name)
         return None
+
+    @abc.abstractmethod
+    def _auto_refusal(self) -> str | None:
+        """Why AUTO is refused now (None: it is not), in the firmware's words."""
+
+    def mission_set_current(self, seq: int) -> bool:
+        """MAV_CMD_DO_SET_MISSION_CURRENT: the item AUTO flies next (now, in AUTO; the
+        next time it starts or resumes, else). False for an item that does not exist."""
+        if not 1 <= seq < self.mission.count:
+            return False
+        self.mission.set_current(seq)
+        if self.mission.state != "running":
+            self.mission.state = "stopped"  # resumed from there, not restarted
+        return True
 
     @abc.abstractmethod
     def _entered(self, mode: str) -> None:

@@ -15,8 +15,11 @@ from agents.geography import land_at
 from agents.missions.parcel.spec import ParcelSpec
 from agents.missions.registry import mission_decode
 from agents.missions.spec import MissionError
-from tests.agents.mission_rig import HOME, RigFactory, make_task, releases
+from agents.vehicles.mavlink.dialect import MAV, mavutil
+from agents.vehicles.plan import MissionProgress
+from tests.agents.mission_rig import HOME, SIM, Rig, RigFactory, make_task, releases
 
+AUTO, RTL = 3, 6
 PICKUP = offset(HOME, 30, 0)
 DROPOFF = offset(HOME, 30, 60)
 
@@ -68,12 +71,52 @@ def test_a_parcel_mission_is_validated() -> None:
 async def test_the_drone_collects_brings_releases_once_and_goes_home(
     make_mission_rig: RigFactory,
 ) -> None:
+    """A copter's autopilot flies the whole mission itself (AUTO): the agent follows it
+    and reports the same phases and events as when it flies each step."""
     rig = await make_mission_rig()
     rig.accept(make_task(parcel()))
     loaded = await rig.event("parcel_loaded", within=90)
     assert distance_m((loaded["lat"], loaded["lon"]), PICKUP) < 5
     assert loaded["alt"] < 4  # it came down to have it put on board
     released = await rig.event("payload_released", within=90)
+    assert distance_m((released["lat"], released["lon"]), DROPOFF) < 5
+    await until(lambda: "returning" in [p for p, _ in rig.progress()], within=30)
+    assert releases(rig.drone) == 1
+    assert [phase for phase, _ in rig.progress()] == [
+        "takeoff", "to_pickup", "loading", "to_dropoff", "delivery", "returning",
+    ]  # fmt: skip
+    assert rig.drone.state().mode == "AUTO"  # the autopilot's own mission, not a command
+    # The same task again (a resend): nothing is flown or released again.
+    rig.accept(make_task(parcel()))
+    assert releases(rig.drone) == 1
+    assert [e for e, _ in rig.events()].count("payload_released") == 2  # told, not redone
+    # The mission's last item: home, where the autopilot lands and disarms by itself.
+    await until(lambda: rig.drone.state().armed is False, within=60)
+    assert distance_m(rig.drone.state().position or (0, 0), HOME) < 3
+    assert rig.drone.mission_progress().finished
+    # A second parcel: a new plan replaces the finished one, whose last word (complete,
+    # at its last item) must not pass for the new one's.
+    accepted_at = time.monotonic()
+    rig.accept(make_task(parcel("m-parcel-2")))
+    await until(lambda: rig.drone.state().mode == "AUTO", within=60)
+    assert [e for e, _ in rig.events()].count("payload_released") == 2  # not yet
+    second = await rig.event("parcel_loaded", within=90, count=2)
+    assert distance_m((second["lat"], second["lon"]), PICKUP) < 5 and second["alt"] < 4
+    await rig.event("payload_released", within=90, count=3)
+    assert any(
+        at > accepted_at and text == "Gripper load released" for at, _, text in rig.drone.texts
+    )  # the autopilot released the second parcel
+    assert not rig.events("mission_failed")
+
+
+async def test_without_native_missions_the_agent_flies_each_step(
+    make_mission_rig: RigFactory,
+) -> None:
+    """``native_missions: false``: the agent flies every leg itself (GUIDED), and sends
+    the copter home with its own return_to_home at the end."""
+    rig = await make_mission_rig(native_missions=False)
+    rig.accept(make_task(parcel()))
+    released = await rig.event("payload_released", within=120)
     assert distance_m((released["lat"], released["lon"]), DROPOFF) < 5
     assert releases(rig.drone) == 1
     phases = [phase for phase, _ in rig.progress()]
@@ -86,10 +129,101 @@ async def test_the_drone_collects_brings_releases_once_and_goes_home(
     ]
     await until(lambda: "returning" in [p for p, _ in rig.progress()], within=30)
     await until(lambda: rig.drone.state().mode == "RTL", within=30)  # on its way home
-    # The same task again (a resend): nothing is flown or released again.
-    rig.accept(make_task(parcel()))
-    assert releases(rig.drone) == 1
-    assert [e for e, _ in rig.events()].count("payload_released") == 2  # told, not redone
+
+
+async def agent_dies(rig: Rig) -> str:
+    """The agent is killed mid-mission: its runner stops where it is and its link to
+    the autopilot goes silent, without a goodbye (a simulated vehicle's close_action is
+    none: nothing more is sent). Returns the autopilot's address."""
+    runner = rig.missions.runner
+    assert runner is not None
+    runner.cancel()
+    await runner.wait()
+    await rig.drone.close()
+    return str(rig.drone.options["connection"])
+
+
+async def listen(address: str, done: Callable[[Any], bool], *, within: float) -> list[Any]:
+    """Another ground station (system 200, which the autopilot does not take for its
+    GCS) listens to the autopilot until ``done(message)``; returns what it heard."""
+    gcs = mavutil.mavlink_connection(address, source_system=200)
+    heard: list[Any] = []
+    deadline = time.monotonic() + within
+    try:
+        while time.monotonic() < deadline:
+            gcs.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            msg = await asyncio.to_thread(gcs.recv_match, blocking=True, timeout=0.3)
+            if msg is None or msg.get_srcSystem() != 1:
+                continue
+            heard.append(msg)
+            if done(msg):
+                return heard
+    finally:
+        gcs.close()
+    raise AssertionError(f"not done within {within} s; heard {heard[-20:]}")
+
+
+def landed_at_home(msg: Any) -> bool:
+    return msg.get_type() == "HEARTBEAT" and not msg.base_mode & MAV.MAV_MODE_FLAG_SAFETY_ARMED
+
+
+def texts(heard: list[Any]) -> list[str]:
+    return [m.text for m in heard if m.get_type() == "STATUSTEXT"]
+
+
+def last_position(heard: list[Any]) -> tuple[float, float]:
+    where = [m for m in heard if m.get_type() == "GLOBAL_POSITION_INT"][-1]
+    return where.lat / 1e7, where.lon / 1e7
+
+
+@pytest.mark.parametrize(
+    ("fs_options", "expected"),
+    [
+        (0, "returns home"),  # ArduCopter's default: the GCS fail-safe's RTL, in AUTO too
+        (2, "finishes"),  # FS_OPTIONS bit 1: "continue if in auto"
+    ],
+)
+async def test_when_the_agent_dies_mid_mission_the_autopilot_lands_at_home_by_itself(
+    make_mission_rig: RigFactory, fs_options: int, expected: str
+) -> None:
+    params = {**SIM["params"], "FS_GCS_TIMEOUT": 2, "FS_OPTIONS": fs_options}
+    rig = await make_mission_rig(simulator={**SIM, "params": params})
+    rig.accept(make_task(parcel("m-dies")))
+    await until(lambda: "to_pickup" in [p for p, _ in rig.progress()], within=60)
+    address = await agent_dies(rig)
+    heard = await listen(address, landed_at_home, within=120)
+    assert distance_m(last_position(heard), HOME) < 3
+    said = texts(heard)
+    if expected == "returns home":
+        assert "GCS Failsafe" in said
+        assert heard[-1].custom_mode == RTL
+        assert "Gripper load released" not in said  # the parcel came back
+    else:
+        assert "GCS Failsafe - Continuing Auto Mode" in said
+        assert "Gripper load released" in said  # delivered with nobody watching
+        assert heard[-1].custom_mode == AUTO
+
+
+async def test_the_autopilots_fence_ends_a_native_mission_and_brings_the_copter_home(
+    make_mission_rig: RigFactory,
+) -> None:
+    """The autopilot's fence (a circle of 45 m round home) holds in AUTO: on the way to
+    the drop-off (67 m out) FENCE_ACTION returns the copter home, and the agent reports
+    the mission ended by it."""
+    rig = await make_mission_rig()
+    assert (
+        await rig.drone.fence_set("return_to_home", geofence_center=HOME, geofence_radius_m=40)
+        == []
+    )
+    rig.accept(make_task(parcel("m-fenced")))
+    failed = await rig.event("mission_failed", within=120)
+    assert "RTL" in failed["reason"]
+    # (A circle round home, or the same uploaded as an inclusion circle before the
+    # agent heard where home is: either way the autopilot's own.)
+    assert any(text.endswith("fence breached") for _, _, text in rig.drone.texts)
+    await until(lambda: rig.drone.state().armed is False, within=60)
+    assert distance_m(rig.drone.state().position or (0, 0), HOME) < 3
+    assert releases(rig.drone) == 0 and not rig.events("payload_released")
 
 
 #: A boat at sea off Barra beach (the demo's Costa Nova station is 720 m east); the
@@ -102,8 +236,9 @@ BOAT_DROPOFF = offset(BOAT_HOME, 60, 80)
 async def test_a_boat_sails_the_parcel_mission_on_the_water(
     make_mission_rig: RigFactory,
 ) -> None:
-    """No take-off, no descents: the boat is armed, sails to the pickup, waits to be
-    loaded there, sails to the drop-off, releases once, and goes home, where it holds."""
+    """No take-off, no descents: the boat is armed, and ArduRover's AUTO sails the plan
+    to the pickup, waits there to be loaded, sails to the drop-off, releases once, and
+    goes home, where it holds."""
     rig = await make_mission_rig(
         vehicle_class="boat", origin=list(BOAT_HOME), simulator={"speedup": 6}
     )
@@ -129,5 +264,60 @@ async def test_a_boat_sails_the_parcel_mission_on_the_water(
 
     await until(home_and_holding, within=60)
     st = rig.drone.state()
-    assert st.mode == "RTL" and st.armed is True  # a boat holds at home, it does not land
+    assert st.mode == "AUTO" and st.armed is True  # a boat holds at home, it does not land
+    await until(lambda: rig.drone.mission_progress().finished, within=10)
     assert not rig.events("mission_failed")
+
+
+async def test_a_mission_the_autopilot_refuses_is_flown_step_by_step(
+    make_mission_rig: RigFactory,
+) -> None:
+    """Another ground station is uploading a mission (and stalls): ArduPilot refuses the
+    agent's upload (MAV_MISSION_DENIED). Nothing switches to AUTO; the agent flies the
+    parcel itself, step by step, to the same end."""
+    rig = await make_mission_rig()
+    other = mavutil.mavlink_connection(str(rig.drone.options["connection"]), source_system=200)
+    try:
+        other.mav.mission_count_send(1, 1, 3, MAV.MAV_MISSION_TYPE_MISSION)
+        request = await asyncio.to_thread(
+            other.recv_match, type=["MISSION_REQUEST", "MISSION_REQUEST_INT"], blocking=True,
+            timeout=5,
+        )  # fmt: skip
+        assert request is not None and request.seq == 0  # its upload is under way
+        rig.accept(make_task(parcel("m-denied")))
+        released = await rig.event("payload_released", within=120)
+        assert distance_m((released["lat"], released["lon"]), DROPOFF) < 5
+        await until(lambda: "returning" in [p for p, _ in rig.progress()], within=30)
+        await until(lambda: rig.drone.state().mode == "RTL", within=30)  # its own command
+        assert rig.drone.mission_progress() == MissionProgress()  # no plan was taken
+        assert releases(rig.drone) == 1 and not rig.events("mission_failed")
+    finally:
+        other.close()
+
+
+async def test_when_a_boats_agent_dies_its_autopilot_delivers_and_holds_at_home(
+    make_mission_rig: RigFactory,
+) -> None:
+    """ArduRover's FS_GCS_ENABLE 2 ("continue with mission in Auto"): the agent gone, the
+    boat sails on, releases the parcel, goes home and holds there."""
+    params = {"FS_GCS_ENABLE": 2}
+    rig = await make_mission_rig(
+        vehicle_class="boat", origin=list(BOAT_HOME), simulator={"speedup": 6, "params": params}
+    )
+    rig.accept(
+        make_task(parcel("m-boat-dies", pickup=list(BOAT_PICKUP), dropoff=list(BOAT_DROPOFF)))
+    )
+    await until(lambda: "to_pickup" in [p for p, _ in rig.progress()], within=60)
+    address = await agent_dies(rig)
+
+    def complete(msg: Any) -> bool:
+        return msg.get_type() == "STATUSTEXT" and msg.text == "Mission Complete"
+
+    heard = await listen(address, complete, within=120)
+    said = texts(heard)
+    assert "Failsafe - Continuing Auto Mode" in said
+    assert "Gripper load released" in said  # delivered with nobody watching
+    heard += await listen(address, lambda m: m.get_type() == "GLOBAL_POSITION_INT", within=10)
+    assert distance_m(last_position(heard), BOAT_HOME) < 5
+    beats = [m for m in heard if m.get_type() == "HEARTBEAT"]
+    assert beats[-1].custom_mode == 10 and beats[-1].base_mode & MAV.MAV_MODE_FLAG_SAFETY_ARMED
