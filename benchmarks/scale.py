@@ -906,9 +906,10 @@ _CSRF_INPUT = re.compile(rb'name="csrfmiddlewaretoken" value="([^"]+)"')
 
 def flood_worker(spec_path: str) -> None:
     """Login flood: each of the spec's ``sources`` (one thread each, from that address)
-    reads the portal's login page once (its CSRF cookie and token, as a script would),
-    then posts a wrong password for ``flood-<client>`` again and again, each as soon as
-    the last is answered, from ``start_wall`` for ``duration_s``. Writes one CSV row per
+    reads the portal's login page once beforehand (its CSRF cookie and token, as a
+    script would), then posts a wrong password for ``flood-<client>`` again and again,
+    each as soon as the last is answered, from ``start_wall`` for ``duration_s`` (at
+    least once). Writes one CSV row per
     attempt to the spec's ``out``: status, and who answered a 429 (``nginx``'s
     limit_req page, else the platform's lockout)."""
     with open(spec_path) as f:
@@ -919,33 +920,42 @@ def flood_worker(spec_path: str) -> None:
     path = "/accounts/login/"
     origin = spec["base"]
 
+    def login_form(api: ApiClient) -> tuple[str, str]:
+        """The CSRF cookie and the form's token, read from the login page; empty when
+        the page could not be read."""
+        try:
+            conn = api.conn = api.conn or api.connect()
+            conn.request("GET", path, headers={"Connection": "keep-alive"})
+            response = conn.getresponse()
+            found = _CSRF_INPUT.search(response.read())
+        except (OSError, http.client.HTTPException):
+            if api.conn is not None:
+                api.conn.close()
+            api.conn = None
+            return "", ""
+        cookie = ""
+        for header in response.msg.get_all("Set-Cookie") or []:
+            if header.startswith("csrftoken="):
+                cookie = header.split(";", 1)[0]
+        return cookie, found.group(1).decode() if found else ""
+
     def client(index: int, source: str) -> None:
         api = ApiClient(spec["base"], "", source=source)
         mine: list[tuple[Any, ...]] = []
+        # The form first, before the flood starts (as a script prepares its attack);
+        # then attempts until the deadline, at least one each.
+        cookie, token = login_form(api)
+        while not token and time.time() < deadline:
+            time.sleep(0.5)
+            cookie, token = login_form(api)
         time.sleep(max(0.0, spec["start_wall"] - time.time()))
-        cookie, token = "", ""
-        while time.time() < deadline:
-            if api.conn is None:
-                api.conn = api.connect()
-            conn = api.conn
+        while token:
+            conn = api.conn = api.conn or api.connect()
             started = time.time()
             t0 = time.perf_counter()
+            form = f"username=flood-{index}&password=wrong-{random.random()}"
+            form += f"&csrfmiddlewaretoken={token}"
             try:
-                if not token:
-                    conn.request("GET", path, headers={"Connection": "keep-alive"})
-                    response = conn.getresponse()
-                    body = response.read()
-                    found = _CSRF_INPUT.search(body)
-                    for header in response.msg.get_all("Set-Cookie") or []:
-                        if header.startswith("csrftoken="):
-                            cookie = header.split(";", 1)[0]
-                    token = found.group(1).decode() if found else ""
-                    if not token:
-                        mine.append((index, started, 0.0, response.status, "no form"))
-                        time.sleep(0.5)
-                    continue
-                form = f"username=flood-{index}&password=wrong-{random.random()}"
-                form += f"&csrfmiddlewaretoken={token}"
                 conn.request(
                     "POST",
                     path,
@@ -974,6 +984,8 @@ def flood_worker(spec_path: str) -> None:
                 conn.close()
                 api.conn = None
                 time.sleep(0.05)
+            if time.time() >= deadline:
+                break
         with lock:
             rows.extend(mine)
 
@@ -2426,6 +2438,11 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     fleet_one = results.fleet[f"one/{loaded}"]
     hb = float(m["heartbeat_s"])
     server = p.server
+    serving = (
+        f"one {server} process"
+        if p.topology == "single"
+        else "the production shape's processes (gunicorn, uvicorn)"
+    )
 
     def cpu(topology: str, phase: str, process: str) -> float:
         for u in results.usage:
@@ -2464,7 +2481,7 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
         f"of {m['offline_after_s']:g} s"
     )
     add(
-        f"* **{p.agents} agents** on uplinks to one {server} process, heartbeating every "
+        f"* **{p.agents} agents** on uplinks to {serving}, heartbeating every "
         f"{hb:g} s: the process used **{agents['cpu_pct']:.0f} % of one core and "
         f"{agents['rss_mb']:.0f} MB** resident (idle: {agents['idle_cpu_pct']:.1f} %, "
         f"{agents['idle_rss_mb']:.0f} MB), that is **{agents['cpu_pct_per_agent']:.3f} % of a "
@@ -2515,12 +2532,13 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
         )
         add(
             f"* **Assignment + deployment** ({_api_load(p)}, each "
-            "session requested, deployed to a live agent and ended): one process sustained "
+            f"session requested, deployed to a live agent and ended): {serving} sustained "
             f"**{one['sessions_per_s']:.1f} sessions/s** ({one['requests_per_s']:.1f} "
             f"requests/s; request p50 / p95 {_q(one['request_ms'], 'p50', 'p95')} ms){both}. "
             "Relayed command round trip p50 / p95 under that load: "
             + "; ".join(
-                f"{_q(relay[t], 'p50', 'p95')} ms with {t} process{'es' if t == 'two' else ''}"
+                f"{_q(relay[t], 'p50', 'p95')} ms "
+                + ("with two processes" if t == "two" else f"on {serving}")
                 for t in relay
             )
             + "."
@@ -2531,6 +2549,7 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     add("| | |")
     add("|---|---|")
     for key, label in (
+        ("topology", "platform topology (benchmarks.scale_topology)"),
         ("server", "ASGI server of the platform processes"),
         ("platform_code", "platform code"),
         ("cpu_model", "CPU"),

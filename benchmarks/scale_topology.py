@@ -28,6 +28,7 @@ import contextlib
 import os
 import re
 import shlex
+import shutil
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -173,11 +174,13 @@ def unit_command(
             env[name] = setting
     if not command:
         raise ValueError(f"{unit} has no ExecStart")
-    # What systemd would provide: the state directory, the runtime directories.
+    # What systemd would provide: the state directory, the runtime directories (empty
+    # at each start, as RuntimeDirectory= makes them).
     (state / "lib").mkdir(parents=True, exist_ok=True)
     for value in env.values():
         if value.startswith(f"{state}/run/"):
-            Path(value).mkdir(parents=True, exist_ok=True)
+            shutil.rmtree(value, ignore_errors=True)
+            Path(value).mkdir(parents=True)
     return command, env
 
 
