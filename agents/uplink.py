@@ -32,7 +32,7 @@ import contextlib
 import logging
 import random
 from collections import OrderedDict, deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from typing import Any
 
 import msgspec
@@ -90,7 +90,10 @@ class Uplink:
     to ``on_welcome`` (if given) before the profile is sent; ``profile()`` and
     ``heartbeat()`` build the messages sent on connect and at the interval the platform
     asks for. ``ping_interval_s`` and ``ping_timeout_s`` bound how long a silent
-    uplink is kept (see the module docstring).
+    uplink is kept (see the module docstring). ``connect_options`` are passed on to
+    websockets' ``connect`` and from there to the event loop's ``create_connection``:
+    e.g. ``local_addr`` to leave from one interface's address (a vehicle with two
+    links), ``ssl`` for a platform whose certificate a private CA signs.
     """
 
     def __init__(
@@ -107,8 +110,10 @@ class Uplink:
         on_welcome: Callable[[Any], None] | None = None,
         ping_interval_s: float = PING_INTERVAL_S,
         ping_timeout_s: float = PING_TIMEOUT_S,
+        connect_options: Mapping[str, Any] | None = None,
     ) -> None:
         self.url = url
+        self.connect_options = dict(connect_options or {})
         self.ping_interval_s = ping_interval_s
         self.ping_timeout_s = ping_timeout_s
         self.on_welcome = on_welcome
@@ -147,6 +152,7 @@ class Uplink:
                     ping_interval=self.ping_interval_s,
                     ping_timeout=self.ping_timeout_s,
                     close_timeout=CLOSE_TIMEOUT_S,
+                    **self.connect_options,
                 ) as ws:
                     await self._register(ws)
                     attempt = 0

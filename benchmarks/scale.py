@@ -1,62 +1,92 @@
 """Scale of the platform: thousands of agents, assignment and deployment throughput,
-link loss to safe action, and one platform process against two.
+link loss to safe action, a login flood, and one platform process against the
+production shape.
 
     python -m benchmarks.scale [--quick] [--agents 1000] [--out docs/benchmarks/scale]
+        [--topology single|production] [--topologies single,production]
         [--server uvicorn|daphne] [--servers uvicorn,daphne] [--baseline REF]
-        [--phases all|one|heartbeats] [--heartbeat-s 1]
+        [--phases all|one|heartbeats] [--heartbeat-s 1] [--api-rate 30]
+        [--flood-clients 4] [--flood-duration 20] [--fleet-agents 5000]
+        [--web 1] [--web-workers 2] [--web-threads 4] [--ws 2]
 
-Everything on the platform side is real: an ASGI server (uvicorn as production runs it,
-``python -m iouv.serve``, the default; or daphne: ``--server``) serving ``iouv.asgi`` on PostgreSQL
-and Redis (its own database, ``iouv_bench_scale`` unless ``--database-url`` says
-otherwise, created, migrated and emptied at the start; Redis from ``REDIS_URL``, else
-database 4, with its own ``CHANNELS_PREFIX``), the platform's own signing key, vehicles
-registered in the database with real credentials, API tokens, sessions assigned and
-deployed by the platform's code. What is light is the load:
+The paired run of the production shape against one process (issue 39; the command,
+its duration and what it reports: docs/benchmarks/scale/README.md)::
+
+    python -m benchmarks.scale --topologies single,production --phases one \
+        --agents 1000 --api-rate 30 --api-duration 60 --flood-duration 30 \
+        --fleet-agents 5000 --heartbeat-s 1 --out docs/benchmarks/scale/production-shape
+
+Everything on the platform side is real, started by :mod:`benchmarks.scale_topology`
+behind nginx with the shipped site (``deploy/nginx/iouv.conf``: TLS, routing by path,
+per-address limits): in the ``single`` topology one ASGI process (uvicorn as
+``python -m iouv.serve`` runs it, the default; or daphne: ``--server``) serves
+everything; in ``production`` gunicorn (``deploy/gunicorn.conf.py``) serves HTTP and
+uvicorn processes the WebSockets, each started from its ``deploy/systemd`` unit's
+command line; both run the Celery worker and beat of those units. They share
+PostgreSQL (the benchmark's own database, ``iouv_bench_scale`` unless
+``--database-url`` says otherwise, created, migrated and emptied at the start) and
+Redis (``REDIS_URL``, else database 4, with its own ``CHANNELS_PREFIX``); the
+platform's own signing key, vehicles registered in the database with real
+credentials, API tokens, sessions assigned and deployed by the platform's code. What
+is light is the load:
 
 * **Light agents**: each is the real :class:`agents.uplink.Uplink` client (hello,
   profile, heartbeats at the interval the platform's ``welcome`` asks for, websockets'
-  keepalive pings, reconnection with backoff). Tasks are verified with the platform's
-  public key and answered ``task_accepted``; ``end_task`` is answered ``task_ended``.
-  There is no adapter and no video behind them. Many run per process, in a few
-  ``--agent-worker`` processes, so the load generator is not the bottleneck (its CPU
-  is measured and reported). They count the heartbeats they send: the platform's CPU
-  per heartbeat is its CPU over a window divided by the heartbeats sent in it.
+  keepalive pings, reconnection with backoff), from a loopback address of its own
+  (nginx limits connections per address, as it would for a fleet). Tasks are verified
+  with the platform's public key and answered ``task_accepted``; ``end_task`` is
+  answered ``task_ended``. There is no adapter and no video behind them. Many run per
+  process, in a few ``--agent-worker`` processes, so the load generator is not the
+  bottleneck (its CPU is measured and reported). They count the heartbeats they send:
+  the platform's CPU per heartbeat is its CPU over a window divided by the heartbeats
+  sent in it.
 * **Cars**: two full agents (:class:`agents.runtime.Agent`, the car adapter on
   gpiozero mock pins and its simulated world) in this process, for the link-loss
   trials and the relayed control session.
-* **API clients**: threads in an ``--api-worker`` process, each with its own user and
-  bearer token, requesting a session (assignment, signed task deployed to a live
-  light agent) and ending it, in a closed loop, or paced (``--api-rate``: the clients
-  together start that many sessions a second, evenly spaced).
+* **API clients**: threads in an ``--api-worker`` process, each with its own user,
+  bearer token and address, requesting a session (assignment, signed task deployed to
+  a live light agent) and ending it, in a closed loop, or paced (``--api-rate``: the
+  clients together start that many sessions a second, evenly spaced).
+* **Login flood**: threads in a ``--flood-worker`` process, each from its own
+  address, posting wrong passwords to the portal's login as fast as they are answered
+  (nginx's ``limit_req`` and django-axes' lockout answer them; what each attempt got
+  is counted).
 
-Phases (the report names them; ``--phases heartbeats`` runs the first only, ``one`` the
-first three):
+Phases (the report names them; ``--phases heartbeats`` runs the first only, ``one``
+all but the fourth, ``all`` the fourth too in the single topology):
 
-1. one platform process behind nginx (:mod:`benchmarks.nginx_proxy`); CPU and memory
-   idle, then with N agents connected and heartbeating (and whether all N are online as
-   the platform counts them);
+1. CPU and memory idle, then with N agents connected and heartbeating (and whether
+   all N are online as the platform counts them), CPU summed per role (the platform's
+   processes, nginx, Celery);
 2. assignment + deployment throughput under that load, with a relayed control session
    running beside it (command round trips through the platform);
 3. link loss to safe action, with the N agents still connected: a controller goes
    silent (the agent's watchdog fires after the task's ``link_loss_timeout_ms``) or its
    socket dies (closed abruptly, no WebSocket close handshake), directly and through
    the relay;
-4. two platform processes behind the same proxy (agents on one, users on the other,
-   sharing PostgreSQL and Redis): the agents reconnect through the restarted proxy,
-   then phases 2 and the relayed part of 3 run again.
+4. (single topology, ``--phases all``) two platform processes behind the same nginx,
+   the WebSockets on one and HTTP on the other: the agents reconnect through the
+   restarted nginx, then phases 2 and the relayed part of 3 run again;
+5. the login flood (``--flood-clients``, 0 for none): the API clients, each turn also
+   reading the catalogue, for ``--flood-duration`` alone, then as long again during
+   the flood;
+6. (``--fleet-agents``) the fleet grown to that many agents, heartbeats only: all
+   online? CPU per heartbeat.
 
 The platform's database is written and read by the platform's own code
 (:mod:`benchmarks.scale_probe`, in a child process), so ``--baseline REF`` can run the
 same benchmark against REF's platform, from a ``git worktree`` (same virtualenv, the
-database dropped and migrated by REF), then against the current code, and
-``--servers daphne,uvicorn`` under each server in turn: each run's outputs go to a
+database dropped and migrated by REF), then against the current code;
+``--servers daphne,uvicorn`` runs it under each server in turn and
+``--topologies single,production`` in each topology: each run's outputs go to a
 folder of its own under ``--out`` and ``report.md`` there puts the runs side by side
 (:mod:`benchmarks.scale_compare`).
 
 Outputs of one run in ``--out``: ``resources.csv``, ``api_requests.csv``,
-``task_delivery.csv``, ``relay_rtt.csv``, ``reaction_trials.csv``, ``summary.json``
-and ``report.md``. No timing is asserted anywhere; ``--quick`` is the smoke test the
-suite runs.
+``task_delivery.csv``, ``relay_rtt.csv``, ``reaction_trials.csv``,
+``login_flood.csv``, ``flood_api_requests.csv``, ``summary.json`` and ``report.md``.
+No timing is asserted anywhere; ``--quick`` is the smoke test the suite runs
+(tests/benchmarks/test_scale_quick.py, in both topologies).
 """
 
 from __future__ import annotations
@@ -75,12 +105,13 @@ import platform
 import random
 import re
 import signal
+import ssl
 import statistics
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -103,7 +134,7 @@ from agents.protocol.messages import (
     TaskRefused,
 )
 from agents.uplink import Uplink
-from benchmarks.nginx_proxy import Backend, NginxProxy, Routes, Rule, raise_open_files_limit
+from benchmarks.nginx_proxy import raise_open_files_limit
 from benchmarks.scale_compare import compare_md
 from benchmarks.scale_platform import (
     ROOT,
@@ -114,10 +145,20 @@ from benchmarks.scale_platform import (
     database_create,
     free_port,
     open_log,
-    platform_start,
     worktree,
 )
 from benchmarks.scale_probe import CAR_SERVICE, HOME, LIGHT_SERVICE
+from benchmarks.scale_topology import (
+    AGENTS_NET,
+    API_NET,
+    FLOOD_NET,
+    TOPOLOGIES,
+    Shape,
+    ca_file,
+    loopback_address,
+    proxy_reroute,
+    topology_start,
+)
 
 __all__ = ["MODES", "Params", "free_port", "main", "run"]
 
@@ -160,6 +201,21 @@ class Params:
     start_delay_s: float = 2.0  # for the API worker and the relayed session to be ready
     server: str = SERVERS[0]  # the ASGI server the platform runs under
     phases: str = "all"  # one of PHASES
+    # The platform's processes (benchmarks.scale_topology): "single" or "production",
+    # and the production shape's sizes (2 cores: 2 gunicorn workers, 2 uvicorn).
+    topology: str = "single"
+    web: int = 1  # gunicorn instances (iouv-web@)
+    web_workers: int = 2  # worker processes each (IOUV_WEB_WORKERS)
+    web_threads: int = 4  # threads each (IOUV_WEB_THREADS)
+    ws: int = 2  # uvicorn processes (iouv-ws@)
+    # The login flood (0 clients: no flood phase): clients posting wrong passwords to
+    # the portal's login as fast as they are answered, each from its own address, while
+    # the API clients measure; flood_duration_s for the window without and the one with.
+    flood_clients: int = 4
+    flood_duration_s: float = 20.0
+    # After the API phases, the fleet grown to this many light agents and measured
+    # (the heartbeat phase at scale); 0 or not above ``agents``: no such phase.
+    fleet_agents: int = 0
     quick: bool = False
 
     def __post_init__(self) -> None:
@@ -167,6 +223,28 @@ class Params:
             raise ValueError(f"server must be one of {SERVERS}, not {self.server!r}")
         if self.phases not in PHASES:
             raise ValueError(f"phases must be one of {PHASES}, not {self.phases!r}")
+        self.shape()  # raises ValueError for a topology it cannot run
+
+    def shape(self) -> Shape:
+        """The platform's processes, as :mod:`benchmarks.scale_topology` starts them."""
+        return Shape(
+            topology=self.topology,
+            server=self.server,
+            web=self.web,
+            web_workers=self.web_workers,
+            web_threads=self.web_threads,
+            ws=self.ws,
+        )
+
+    @property
+    def light_agents(self) -> int:
+        """Light vehicles registered: the fleet phase's, if it grows the fleet."""
+        return max(self.agents, self.fleet_agents)
+
+    @property
+    def two_processes(self) -> bool:
+        """Whether phase 4 (one process against two, single topology) runs."""
+        return self.phases == "all" and self.topology == "single"
 
     @property
     def cars_needed(self) -> int:
@@ -195,6 +273,9 @@ class Params:
             drain_s=0.5,
             start_delay_s=1.0,
             trial_budget_s=60.0,
+            flood_clients=2,
+            flood_duration_s=2.0,
+            fleet_agents=agents + 10,
             quick=True,
         )
 
@@ -255,6 +336,11 @@ def pids_named(name: str) -> list[int]:
     return out
 
 
+#: What a window measures under one label: pids, a command name (``"postgres"``: every
+#: process of that name), or a function giving the pids now (a gunicorn's workers).
+Pids = list[int] | str | Callable[[], list[int]]
+
+
 @dataclass
 class Usage:
     """One process (or group of processes) over one window."""
@@ -271,17 +357,19 @@ class Usage:
 class Window:
     """CPU use of named processes between :meth:`start` and :meth:`stop`; RSS at stop.
 
-    A name may stand for several pids (the agent workers), or for a command name
-    (``"postgres"``): those are looked up at :meth:`start` and again at :meth:`stop`,
+    A name may stand for several pids (the agent workers), for a command name
+    (``"postgres"``) or for a function giving pids: those are looked up at :meth:`start`
+    and again at :meth:`stop`,
     because the server starts a backend for each new connection while the window runs,
     and a backend born meanwhile is counted from its birth. A process that exits during
     the window is not counted.
     """
 
-    def __init__(self, pids: dict[str, list[int] | str]) -> None:
+    def __init__(self, pids: dict[str, Pids]) -> None:
         self._named = {k: v for k, v in pids.items() if isinstance(v, str)}
+        self._found = {k: v for k, v in pids.items() if callable(v)}
         self.pids: dict[str, list[int]] = {
-            k: ([] if isinstance(v, str) else v) for k, v in pids.items()
+            k: (v if isinstance(v, list) else []) for k, v in pids.items()
         }
         self._cpu0: dict[int, float] = {}
         self._threads0: dict[int, dict[str, float]] = {}
@@ -291,6 +379,8 @@ class Window:
     def _lookup(self) -> None:
         for label, comm in self._named.items():
             self.pids[label] = sorted(set(self.pids[label]) | set(pids_named(comm)))
+        for label, find in self._found.items():
+            self.pids[label] = sorted(set(self.pids[label]) | set(find()))
 
     def start(self) -> None:
         self._lookup()
@@ -419,29 +509,8 @@ class World:
 
 
 # ======================================================================================
-# Child processes: the proxy, the workers (the platform's: benchmarks.scale_platform)
+# Child processes: the workers (the platform's and nginx: benchmarks.scale_topology)
 # ======================================================================================
-
-
-async def proxy_start(
-    *, port: int, routes: dict[str, int], default: int, env: dict[str, str], logs: Path, tag: str
-) -> Child:
-    """Start nginx (:mod:`benchmarks.nginx_proxy`) on ``port``; ``routes`` maps path
-    prefixes to backend ports. Its configuration, pid and access log stay in
-    ``logs/nginx-{tag}/``, its error log is ``logs/proxy-{tag}.log``; ``env`` is unused
-    (nginx needs none of the platform's settings)."""
-    proxy = NginxProxy(
-        Routes(
-            default=Backend("127.0.0.1", default),
-            rules=[Rule(prefix, Backend("127.0.0.1", p)) for prefix, p in routes.items()],
-        ),
-        port=port,
-        prefix=logs / f"nginx-{tag}",
-        log=logs / f"proxy-{tag}.log",
-    )
-    await proxy.start()
-    assert proxy.process is not None
-    return Child("nginx (front proxy)", proxy.process, port)
 
 
 @dataclass
@@ -477,6 +546,9 @@ class AgentWorkers:
         """Start ``workers`` more processes sharing ``specs``, opening their uplinks at
         ``ramp_per_s`` per second together."""
         n = max(1, workers)
+        # Each agent leaves from an address of its own, as a fleet does: nginx limits
+        # connections per address (deploy/nginx/iouv.conf).
+        where = {s.vehicle_id: i for i, s in enumerate(world.light)}
         for offset in range(n):
             mine = specs[offset::n]
             index = len(self.children)
@@ -486,7 +558,13 @@ class AgentWorkers:
                     {
                         "url": url,
                         "public_key": world.public_key,
-                        "agents": [asdict(s) for s in mine],
+                        "agents": [
+                            {
+                                **asdict(s),
+                                "address": loopback_address(AGENTS_NET, where[s.vehicle_id]),
+                            }
+                            for s in mine
+                        ],
                         "ramp_per_s": ramp_per_s / n,
                     }
                 )
@@ -588,6 +666,7 @@ class LightAgent:
             heartbeat=self.heartbeat,
             reconnect_min_s=0.5,
             reconnect_max_s=5.0,
+            connect_options={"local_addr": (spec["address"], 0)} if spec.get("address") else None,
         )
 
     def profile(self) -> Profile:
@@ -685,12 +764,29 @@ async def agent_worker(spec: dict[str, Any]) -> None:
 
 
 class ApiClient:
-    """A keep-alive HTTP/1.1 client for the JSON API, one per thread."""
+    """A keep-alive HTTP/1.1 client for the JSON API, one per thread: ``base`` is
+    ``http://`` or ``https://`` (the CA trusted through ``SSL_CERT_FILE``), ``source``
+    the local address it connects from (empty: the system's choice)."""
 
-    def __init__(self, base: str, token: str) -> None:
-        host, _, port = base.removeprefix("http://").partition(":")
-        self.host, self.port, self.token = host, int(port or 80), token
+    def __init__(self, base: str, token: str, *, source: str = "") -> None:
+        self.https = base.startswith("https://")
+        host, _, port = base.partition("://")[2].partition(":")
+        self.host, self.port, self.token = host, int(port or (443 if self.https else 80)), token
+        self.source = source
         self.conn: http.client.HTTPConnection | None = None
+
+    def connect(self) -> http.client.HTTPConnection:
+        """A new connection to ``base`` (not opened until its first request)."""
+        source = (self.source, 0) if self.source else None
+        if self.https:
+            return http.client.HTTPSConnection(
+                self.host,
+                self.port,
+                timeout=60,
+                source_address=source,
+                context=ssl.create_default_context(),
+            )
+        return http.client.HTTPConnection(self.host, self.port, timeout=60, source_address=source)
 
     def call(self, method: str, path: str, body: dict[str, Any] | None = None) -> tuple[int, Any]:
         """(status, parsed JSON body); status 0 when the connection failed."""
@@ -702,9 +798,11 @@ class ApiClient:
         }
         for attempt in (0, 1):
             if self.conn is None:
-                self.conn = http.client.HTTPConnection(self.host, self.port, timeout=60)
+                self.conn = self.connect()
             try:
-                self.conn.request(method, path, body=payload, headers=headers)
+                self.conn.request(
+                    method, path, body=None if method == "GET" else payload, headers=headers
+                )
                 response = self.conn.getresponse()
                 raw = response.read()
                 if response.getheader("Connection", "").lower() == "close":
@@ -724,7 +822,9 @@ def api_worker(spec_path: str) -> None:
     """API clients: each thread requests a session of the light service for a random
     target, then ends it, until the duration is over; at once again (closed loop), or,
     with the spec's ``rate``, at its next turn of an even pace shared by the clients.
-    Writes one CSV row per request to the spec's ``out``."""
+    With the spec's ``services``, each turn first reads the catalogue (``GET
+    /api/v1/services``); ``sources``: each client's own address. Writes one CSV row per
+    request to the spec's ``out``."""
     with open(spec_path) as f:
         spec = json.load(f)
     from agents.geo import offset
@@ -736,7 +836,8 @@ def api_worker(spec_path: str) -> None:
 
     def client(index: int, token: str) -> None:
         rng = random.Random(index)
-        api = ApiClient(spec["base"], token)
+        sources = spec.get("sources") or []
+        api = ApiClient(spec["base"], token, source=sources[index] if sources else "")
         mine: list[tuple[Any, ...]] = []
         # Every client starts at the same instant, when the parent's window opens.
         time.sleep(max(0.0, spec["start_wall"] - time.time()))
@@ -752,6 +853,12 @@ def api_worker(spec_path: str) -> None:
                 time.sleep(max(0.0, due - time.time()))
             elif time.time() >= deadline_wall:
                 break
+            if spec.get("services"):
+                started = time.time()
+                t0 = time.perf_counter()
+                status, _ = api.call("GET", "/api/v1/services")
+                ms = (time.perf_counter() - t0) * 1000
+                mine.append((index, "services", started, ms, status, ""))
             distance, bearing = 1000 * math.sqrt(rng.random()), rng.uniform(0, 2 * math.pi)
             lat, lon = offset(HOME, distance * math.cos(bearing), distance * math.sin(bearing))
             started = time.time()
@@ -791,6 +898,110 @@ def api_worker(spec_path: str) -> None:
         writer.writerow(["client", "endpoint", "start_wall", "latency_ms", "status", "session_id"])
         writer.writerows(rows)
     print(json.dumps({"requests": len(rows)}), flush=True)
+
+
+#: The form's fields Django's CSRF check needs, from the login page.
+_CSRF_INPUT = re.compile(rb'name="csrfmiddlewaretoken" value="([^"]+)"')
+
+
+def flood_worker(spec_path: str) -> None:
+    """Login flood: each of the spec's ``sources`` (one thread each, from that address)
+    reads the portal's login page once beforehand (its CSRF cookie and token, as a
+    script would), then posts a wrong password for ``flood-<client>`` again and again,
+    each as soon as the last is answered, from ``start_wall`` for ``duration_s`` (at
+    least once). Writes one CSV row per
+    attempt to the spec's ``out``: status, and who answered a 429 (``nginx``'s
+    limit_req page, else the platform's lockout)."""
+    with open(spec_path) as f:
+        spec = json.load(f)
+    deadline = spec["start_wall"] + spec["duration_s"]
+    rows: list[tuple[Any, ...]] = []
+    lock = threading.Lock()
+    path = "/accounts/login/"
+    origin = spec["base"]
+
+    def login_form(api: ApiClient) -> tuple[str, str]:
+        """The CSRF cookie and the form's token, read from the login page; empty when
+        the page could not be read."""
+        try:
+            conn = api.conn = api.conn or api.connect()
+            conn.request("GET", path, headers={"Connection": "keep-alive"})
+            response = conn.getresponse()
+            found = _CSRF_INPUT.search(response.read())
+        except (OSError, http.client.HTTPException):
+            if api.conn is not None:
+                api.conn.close()
+            api.conn = None
+            return "", ""
+        cookie = ""
+        for header in response.msg.get_all("Set-Cookie") or []:
+            if header.startswith("csrftoken="):
+                cookie = header.split(";", 1)[0]
+        return cookie, found.group(1).decode() if found else ""
+
+    def client(index: int, source: str) -> None:
+        api = ApiClient(spec["base"], "", source=source)
+        mine: list[tuple[Any, ...]] = []
+        # The form first, before the flood starts (as a script prepares its attack);
+        # then attempts until the deadline, at least one each.
+        cookie, token = login_form(api)
+        while not token and time.time() < deadline:
+            time.sleep(0.5)
+            cookie, token = login_form(api)
+        time.sleep(max(0.0, spec["start_wall"] - time.time()))
+        while token:
+            conn = api.conn = api.conn or api.connect()
+            started = time.time()
+            t0 = time.perf_counter()
+            form = f"username=flood-{index}&password=wrong-{random.random()}"
+            form += f"&csrfmiddlewaretoken={token}"
+            try:
+                conn.request(
+                    "POST",
+                    path,
+                    body=form.encode(),
+                    headers={
+                        "Content-Type": "application/x-www-form-urlencoded",
+                        "Cookie": cookie,
+                        "Origin": origin,
+                        "Referer": origin + path,
+                        "Connection": "keep-alive",
+                    },
+                )
+                response = conn.getresponse()
+                body = response.read()
+                ms = (time.perf_counter() - t0) * 1000
+                who = ""
+                if response.status == 429:
+                    who = "nginx" if b"<center>nginx" in body else "platform"
+                mine.append((index, started, ms, response.status, who))
+                if response.getheader("Connection", "").lower() == "close":
+                    conn.close()
+                    api.conn = None
+            except (OSError, http.client.HTTPException):
+                ms = (time.perf_counter() - t0) * 1000
+                mine.append((index, started, ms, 0, "connection failed"))
+                conn.close()
+                api.conn = None
+                time.sleep(0.05)
+            if time.time() >= deadline:
+                break
+        with lock:
+            rows.extend(mine)
+
+    threads = [
+        threading.Thread(target=client, args=(i, source), daemon=True)
+        for i, source in enumerate(spec["sources"])
+    ]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    with open(spec["out"], "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["client", "start_wall", "latency_ms", "status", "answered_by"])
+        writer.writerows(rows)
+    print(json.dumps({"attempts": len(rows)}), flush=True)
 
 
 def _api_load(p: Params) -> str:
@@ -1206,6 +1417,10 @@ class Results:
     sessions: dict[str, dict[str, int]] = field(default_factory=dict)
     relay: dict[str, tuple[list[float], int]] = field(default_factory=dict)
     trials: list[Trial] = field(default_factory=list)
+    # The login flood: the API clients' requests ("topology" is the window: FLOOD_WINDOWS)
+    # and the flood's attempts.
+    flood_api_rows: list[dict[str, Any]] = field(default_factory=list)
+    flood_attempts: list[dict[str, Any]] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)  # phase -> seconds
     log_counts: dict[str, dict[str, int]] = field(default_factory=dict)  # process -> counts
@@ -1252,7 +1467,7 @@ async def measure(
     results: Results,
     topology: str,
     phase: str,
-    pids: dict[str, list[int] | str],
+    pids: dict[str, Pids],
     seconds: float,
     names: Sequence[str],
     db: PlatformQueries,
@@ -1313,7 +1528,7 @@ async def load_phase(
     env: dict[str, str],
     logs: Path,
     workers: AgentWorkers,
-    pids: dict[str, list[int] | str],
+    pids: dict[str, Pids],
     names: Sequence[str],
     sessions: dict[bool, CarSession],
     db: PlatformQueries,
@@ -1349,18 +1564,12 @@ async def load_phase(
                 "start_wall": start_wall,
                 "duration_s": params.api_duration_s,
                 "rate": params.api_rate,
+                "sources": _api_sources(world),
                 "out": str(out),
             }
         )
     )
-    with open_log(logs / f"api-worker-{topology}.log") as log_file:
-        proc = await asyncio.create_subprocess_exec(
-            *(sys.executable, "-m", "benchmarks.scale", "--api-worker", str(spec)),
-            cwd=ROOT,
-            env=env,
-            stdout=asyncio.subprocess.PIPE,
-            stderr=log_file,
-        )
+    proc = await _load_start("--api-worker", spec, env=env, log=logs / f"api-worker-{topology}.log")
     await asyncio.sleep(max(0.0, start_wall - time.time()))
     counting.set()
     await measure(
@@ -1374,7 +1583,7 @@ async def load_phase(
         workers=workers,
     )
     done.set()
-    await proc.wait()
+    await proc.communicate()
     try:
         results.relay[topology] = await relay
     except (*_TRIAL_ERRORS, ValueError) as exc:
@@ -1408,6 +1617,127 @@ async def load_phase(
         )
 
 
+def _api_sources(world: World) -> list[str]:
+    """Each API client's own address (nginx limits API requests per address)."""
+    return [loopback_address(API_NET, i) for i in range(len(world.client_tokens))]
+
+
+async def _load_start(
+    flag: str, spec: Path, *, env: dict[str, str], log: Path
+) -> asyncio.subprocess.Process:
+    """A load process of this module (``--api-worker`` or ``--flood-worker`` on
+    ``spec``), its errors to ``log``; the caller reads its output to its end."""
+    with open_log(log) as log_file:
+        return await asyncio.create_subprocess_exec(
+            *(sys.executable, "-m", "benchmarks.scale", flag, str(spec)),
+            cwd=ROOT,
+            env=env,
+            stdout=asyncio.subprocess.PIPE,
+            stderr=log_file,
+        )
+
+
+def _read_flood_rows(path: Path, window: str, start_wall: float) -> list[dict[str, Any]]:
+    with open(path, newline="") as f:
+        return [
+            {
+                "window": window,
+                "client": int(r["client"]),
+                "start_s": float(r["start_wall"]) - start_wall,
+                "latency_ms": float(r["latency_ms"]),
+                "status": int(r["status"]),
+                "answered_by": r["answered_by"],
+            }
+            for r in csv.DictReader(f)
+        ]
+
+
+#: The login flood's two windows: the API clients alone, then with the flood.
+FLOOD_WINDOWS = ("without", "during")
+
+
+async def flood_phase(
+    *,
+    results: Results,
+    params: Params,
+    world: World,
+    base: str,
+    env: dict[str, str],
+    logs: Path,
+    workers: AgentWorkers,
+    pids: dict[str, Pids],
+    names: Sequence[str],
+    db: PlatformQueries,
+) -> None:
+    """The API clients as in phase 2, each turn also reading the catalogue (``GET
+    /api/v1/services``), for ``flood_duration_s`` alone, then as long again while
+    ``flood_clients`` clients, each from its own address, post wrong passwords to the
+    portal's login as fast as they are answered (:func:`flood_worker`); CPU of every
+    process in each window."""
+    for window in FLOOD_WINDOWS:
+        out = logs / f"flood-api-{window}.csv"
+        start_wall = time.time() + params.start_delay_s
+        spec = logs / f"flood-api-{window}.json"
+        spec.write_text(
+            json.dumps(
+                {
+                    "base": base,
+                    "tokens": world.client_tokens,
+                    "service": LIGHT_SERVICE,
+                    "start_wall": start_wall,
+                    "duration_s": params.flood_duration_s,
+                    "rate": params.api_rate,
+                    "sources": _api_sources(world),
+                    "services": True,
+                    "out": str(out),
+                }
+            )
+        )
+        procs = {
+            "API clients": await _load_start(
+                "--api-worker", spec, env=env, log=logs / f"flood-api-{window}.log"
+            )
+        }
+        attempts = logs / "login-flood.csv"
+        if window == "during":
+            flood_spec = logs / "login-flood.json"
+            flood_spec.write_text(
+                json.dumps(
+                    {
+                        "base": base,
+                        "start_wall": start_wall,
+                        "duration_s": params.flood_duration_s,
+                        "sources": [
+                            loopback_address(FLOOD_NET, i) for i in range(params.flood_clients)
+                        ],
+                        "out": str(attempts),
+                    }
+                )
+            )
+            procs["login flood clients"] = await _load_start(
+                "--flood-worker", flood_spec, env=env, log=logs / "login-flood.log"
+            )
+        await asyncio.sleep(max(0.0, start_wall - time.time()))
+        await measure(
+            results=results,
+            topology="one",
+            phase=f"login flood: {window}",
+            pids={**pids, **{label: [proc.pid] for label, proc in procs.items()}},
+            seconds=params.flood_duration_s,
+            names=names,
+            db=db,
+            workers=workers,
+        )
+        for proc in procs.values():
+            await proc.communicate()
+        rows = await asyncio.to_thread(_read_api_rows, out, window, start_wall)
+        results.flood_api_rows += rows
+        if window == "during":
+            results.flood_attempts = await asyncio.to_thread(
+                _read_flood_rows, attempts, window, start_wall
+            )
+
+
 async def run_async(
     params: Params,
     *,
@@ -1419,14 +1749,10 @@ async def run_async(
     db: PlatformQueries,
 ) -> None:
     """The phases ``params.phases`` asks for, in order (see the module docstring), the
-    platform processes being ``tree`` under ``params.server``; children stopped on the
-    way out."""
-    names = [s.name for s in world.light + world.cars]
-    light = [s.name for s in world.light]
-    # Long enough for a platform that keeps up; one that cannot is reported as such.
-    within = 30 + params.agents / 20
+    platform being ``tree`` in ``params.topology``; children stopped on the way out."""
+    first = world.light[: params.agents]
+    light = [s.name for s in first]
     loaded = f"{params.agents} agents"
-    server = params.server
     workers = AgentWorkers()
     # SIGTERM cancels the run, which unwinds the stack below: every platform process,
     # worker and proxy this run started is stopped.
@@ -1437,24 +1763,18 @@ async def run_async(
         loop.add_signal_handler(signal.SIGTERM, main.cancel)
     async with contextlib.AsyncExitStack() as stack:
         stack.push_async_callback(workers.stop)
-        two = params.phases == "all"
-        with results.timed(f"start {'two' if two else 'one'} {server} process(es) and the proxy"):
-            # Process 2 waits, idle, until phase 4: starting both now saves a start-up.
-            started_processes = await asyncio.gather(
-                *(
-                    platform_start(name, server=server, tree=tree, env=env, logs=logs)
-                    for name in ("platform-1", "platform-2")[: 2 if two else 1]
-                )
+        two = params.two_processes
+        shape = params.shape()
+        with results.timed(f"start the platform ({params.topology}) and nginx"):
+            # Process 2 of phase 4 waits, idle, until then: starting both now saves a
+            # start-up.
+            platform = await topology_start(
+                shape, tree=tree, env=env, logs=logs, extra_single=1 if two else 0
             )
-            for child in started_processes:
-                stack.push_async_callback(child.stop)
-            p1 = started_processes[0]
-            front = free_port()
-            proxy = await proxy_start(
-                port=front, routes={}, default=p1.port, env=env, logs=logs, tag="one"
-            )
-            stack.push_async_callback(proxy.stop)
-        base, ws_url = f"http://127.0.0.1:{front}", f"ws://127.0.0.1:{front}"
+            stack.push_async_callback(platform.stop)
+        base, ws_url = platform.base, platform.ws_url
+        serving = {k: v for k, v in platform.roles.items() if k.startswith("platform")}
+        others = {k: v for k, v in platform.roles.items() if not k.startswith("platform")}
 
         # --- 1. idle, then N agents ----------------------------------------------------
         with results.timed("1. idle window"):
@@ -1463,7 +1783,7 @@ async def run_async(
                 results=results,
                 topology="one",
                 phase="0 agents",
-                pids={"platform-1": [p1.pid]},
+                pids=dict(platform.roles),
                 seconds=params.window_s,
                 names=light,
                 db=db,
@@ -1486,34 +1806,10 @@ async def run_async(
 
         stack.push_async_callback(sessions_end)
         started = 0
-        for count in params.stages():
-            # More agents join at each stage, in their own worker processes.
-            stage = [s.name for s in world.light[:count]]
-            with results.timed(f"1. up to {count} agents connect"):
-                share = max(1, round(params.agent_workers * (count - started) / params.agents))
-                await workers.start(
-                    specs=world.light[started:count],
-                    world=world,
-                    url=ws_url,
-                    workers=share,
-                    ramp_per_s=params.ramp_per_s,
-                    env=env,
-                    logs=logs,
-                )
-                started = count
-                wait = 30 + count / 20
-                key = f"one, {count} agents"
-                results.online_after_s[key] = await wait_online(
-                    names=stage + cars, workers=workers, expect_uplinks=count, within=wait, db=db
-                )
-            if results.online_after_s[key] is None:
-                results.notes.append(
-                    f"one process, {count} agents: not every vehicle was online together "
-                    f"within {wait:.0f} s of the agents starting; the run went on (see the "
-                    "online counts)."
-                )
-            helpers: dict[str, list[int] | str] = {
-                "nginx (front proxy)": [proxy.pid],
+
+        def helpers() -> dict[str, Pids]:
+            return {
+                **others,
                 "agent workers": [c.pid for c in workers.children],
                 f"this process ({len(cars)} cars, orchestration, queries)": [
                     os.getpid(),
@@ -1522,82 +1818,135 @@ async def run_async(
                 "postgres (all databases)": "postgres",
                 "redis-server": "redis-server",
             }
-            pids = {"platform-1": [p1.pid], **helpers}
+
+        async def grow(count: int, *, key: str) -> None:
+            """More agents join, in worker processes of their own, up to ``count``."""
+            nonlocal started
+            stage = [s.name for s in world.light[:count]]
+            # agent_workers processes for the whole fleet, shared out by stage.
+            share = max(1, round(params.agent_workers * (count - started) / params.light_agents))
+            await workers.start(
+                specs=world.light[started:count],
+                world=world,
+                url=ws_url,
+                workers=share,
+                ramp_per_s=params.ramp_per_s,
+                env=env,
+                logs=logs,
+            )
+            started = count
+            wait = 30 + count / 20
+            results.online_after_s[key] = await wait_online(
+                names=stage + cars, workers=workers, expect_uplinks=count, within=wait, db=db
+            )
+            if results.online_after_s[key] is None:
+                results.notes.append(
+                    f"{key}: not every vehicle was online together within {wait:.0f} s of "
+                    "the agents starting; the run went on (see the online counts)."
+                )
+
+        for count in params.stages():
+            with results.timed(f"1. up to {count} agents connect"):
+                await grow(count, key=f"one, {count} agents")
             with results.timed(f"1. {count} agents window"):
                 await asyncio.sleep(params.settle_s)
                 await measure(
                     results=results,
                     topology="one",
                     phase=f"{count} agents",
-                    pids=pids,
+                    pids={**serving, **helpers()},
                     seconds=params.window_s,
-                    names=stage,
+                    names=[s.name for s in world.light[:count]],
                     db=db,
                     workers=workers,
                 )
-        if params.phases == "heartbeats":
+        if params.phases != "heartbeats":
+            # --- 2 and 3 on the topology ---------------------------------------------
+            pids = {**serving, **helpers()}
+            with results.timed("2. API load"):
+                await load_phase(
+                    topology="one",
+                    results=results,
+                    params=params,
+                    world=world,
+                    base=base,
+                    env=env,
+                    logs=logs,
+                    workers=workers,
+                    pids=pids,
+                    names=light,
+                    sessions=sessions,
+                    db=db,
+                )
+            with results.timed("3. link-loss trials"):
+                results.trials += await reaction_trials(
+                    topology="one",
+                    modes=MODES,
+                    n=params.trials,
+                    base=base,
+                    token=world.driver_token,
+                    sessions=sessions,
+                    results=results,
+                    budget_s=params.trial_budget_s,
+                    db=db,
+                )
+            if params.flood_clients:
+                with results.timed("5. login flood (API alone, then with the flood)"):
+                    await flood_phase(
+                        results=results,
+                        params=params,
+                        world=world,
+                        base=base,
+                        env=env,
+                        logs=logs,
+                        workers=workers,
+                        pids=pids,
+                        names=light,
+                        db=db,
+                    )
+        if params.fleet_agents > params.agents:
+            # --- 6. the fleet grown, heartbeats only -----------------------------------
+            count = params.fleet_agents
+            with results.timed(f"6. up to {count} agents connect"):
+                await grow(count, key=f"one, {count} agents (fleet phase)")
+            with results.timed(f"6. {count} agents window"):
+                await asyncio.sleep(params.settle_s)
+                await measure(
+                    results=results,
+                    topology="one",
+                    phase=f"{count} agents",
+                    pids={**serving, **helpers()},
+                    seconds=params.window_s,
+                    names=[s.name for s in world.light[:count]],
+                    db=db,
+                    workers=workers,
+                )
+        if not two or params.phases == "heartbeats":
             return
 
-        # --- 2 and 3 with one process --------------------------------------------------
-        with results.timed("2. API load, one process"):
-            await load_phase(
-                topology="one",
-                results=results,
-                params=params,
-                world=world,
-                base=base,
-                env=env,
-                logs=logs,
-                workers=workers,
-                pids=pids,
-                names=light,
-                sessions=sessions,
-                db=db,
-            )
-        with results.timed("3. link-loss trials, one process"):
-            results.trials += await reaction_trials(
-                topology="one",
-                modes=MODES,
-                n=params.trials,
-                base=base,
-                token=world.driver_token,
-                sessions=sessions,
-                results=results,
-                budget_s=params.trial_budget_s,
-                db=db,
-            )
-        if not two:
-            return
-
-        # --- 4. two processes behind the proxy ----------------------------------------
-        p2 = started_processes[1]
-        with results.timed("4. proxy restart, agents reconnect"):
+        # --- 4. two processes behind nginx ----------------------------------------------
+        p1, p2 = platform.children[0], platform.children[1]
+        with results.timed("4. nginx restarted, agents reconnect"):
             registered = workers.registrations
-            await proxy.stop()
-            proxy = await proxy_start(
-                port=front,
-                routes={"/ws/agent/": p1.port},
-                default=p2.port,
-                env=env,
-                logs=logs,
-                tag="two",
-            )
-            stack.push_async_callback(proxy.stop)
-            helpers["nginx (front proxy)"] = [proxy.pid]
-            results.online_after_s["two, all reconnect"] = await wait_online(
-                names=names,
+            # WebSockets (the agents' uplinks, the relay) to process 1, HTTP to process 2.
+            await proxy_reroute(platform, web=[p2.port], ws=[p1.port], logs=logs)
+            key = "two, all reconnect"
+            results.online_after_s[key] = await wait_online(
+                names=[s.name for s in world.light[:started]] + cars,
                 workers=workers,
-                expect_uplinks=params.agents,
-                within=within,
+                expect_uplinks=started,
+                within=30 + started / 20,
                 db=db,
-                registrations_at_least=registered + params.agents,
+                registrations_at_least=registered + started,
             )
-        if results.online_after_s["two, all reconnect"] is None:
+        if results.online_after_s[key] is None:
             results.notes.append(
-                f"two processes: not every vehicle was online together within {within:.0f} s "
-                "of the proxy's restart; the run went on (see the online counts)."
+                "two processes: not every vehicle was online together within "
+                f"{30 + started / 20:.0f} s of nginx's restart; the run went on (see the "
+                "online counts)."
             )
-        pids = {"platform-1 (agents)": [p1.pid], "platform-2 (users)": [p2.pid], **helpers}
+        pids = {"platform-1 (agents)": [p1.pid], "platform-2 (users)": [p2.pid], **helpers()}
+        pids.update({k: v for k, v in platform.roles.items() if not k.startswith("platform")})
         with results.timed("4. agents window, two processes"):
             await asyncio.sleep(params.settle_s)
             await measure(
@@ -1652,6 +2001,10 @@ LOG_PATTERNS = {
         "consumers slow to shut down": r"took too long to shut down",
     }.items()
 }
+
+
+#: The platform's processes' logs (``<name>.log`` in the run's folder), by name.
+PLATFORM_LOGS = ("platform-", "gunicorn-", "uvicorn-", "iouv-worker", "iouv-beat")
 
 
 def log_counts(path: Path) -> dict[str, int]:
@@ -1711,9 +2064,15 @@ def run(
     logs = (
         Path(env["IOUV_VAR_DIR"])
         / "bench-scale"
-        / f"{tree.label}-{params.server}".replace("/", "_")
+        / f"{tree.label}-{params.server}-{params.topology}".replace("/", "_")
     )
     logs.mkdir(parents=True, exist_ok=True)
+    for old in logs.glob("*.log"):
+        old.unlink()  # an earlier run's: its processes' logs would be counted
+    # nginx speaks TLS with the run's own CA (made when it first starts): every client,
+    # in this process (for the run only) and its children, trusts it.
+    env["SSL_CERT_FILE"] = str(ca_file(logs))
+    trusted = os.environ.get("SSL_CERT_FILE")
     results = Results(
         params=params,
         machine=machine_info(),
@@ -1721,7 +2080,9 @@ def run(
         database=database_url.rsplit("@", 1)[-1],
     )
     results.machine["server"] = params.server
+    results.machine["topology"] = params.shape().describe()
     results.machine["platform_code"] = _code_label(tree)
+    os.environ["SSL_CERT_FILE"] = env["SSL_CERT_FILE"]
     try:
         asyncio.run(
             _run_with_queries(
@@ -1729,9 +2090,13 @@ def run(
             )
         )
     finally:
-        for name in ("platform-1", "platform-2"):
-            if (logs / f"{name}.log").exists():
-                results.log_counts[name] = log_counts(logs / f"{name}.log")
+        if trusted is None:
+            os.environ.pop("SSL_CERT_FILE", None)
+        else:
+            os.environ["SSL_CERT_FILE"] = trusted
+        for path in sorted(logs.glob("*.log")):
+            if path.stem.startswith(PLATFORM_LOGS):
+                results.log_counts[path.stem] = log_counts(path)
     write_outputs(results, out)
     return results
 
@@ -1754,7 +2119,7 @@ async def _run_with_queries(
             world = World.from_json(
                 await db.call(
                     "world_build",
-                    light=params.agents,
+                    light=params.light_agents,
                     cars=params.cars_needed,
                     clients=params.api_clients,
                     link_loss_timeout_ms=params.link_loss_timeout_ms,
@@ -1789,7 +2154,79 @@ def _per_heartbeat_ms(cpu_pct: float, heartbeats_per_s: float) -> float | None:
 
 def topologies(params: Params) -> list[str]:
     """The topologies the API phases ran in."""
-    return {"heartbeats": [], "one": ["one"], "all": ["one", "two"]}[params.phases]
+    if params.phases == "heartbeats":
+        return []
+    return ["one", "two"] if params.two_processes else ["one"]
+
+
+def platform_usage(results: Results, topology: str, phase: str) -> Usage:
+    """The processes serving requests (labels starting with ``platform``: the single
+    process, or gunicorn's and uvicorn's) over one window, summed; their threads are
+    shown when there is one process."""
+    rows = [
+        u
+        for u in results.usage
+        if (u.topology, u.phase) == (topology, phase) and u.process.startswith("platform")
+    ]
+    if not rows:
+        raise KeyError(f"no platform usage for {topology}/{phase}")
+    return Usage(
+        phase,
+        topology,
+        " + ".join(u.process for u in rows),
+        rows[0].window_s,
+        sum(u.cpu_pct for u in rows),
+        sum(u.rss_mb for u in rows),
+        rows[0].threads if len(rows) == 1 else "",
+    )
+
+
+def roles_cpu(results: Results) -> dict[str, dict[str, float]]:
+    """CPU (% of one core) per process role and window of the topology under test:
+    ``"<phase>" -> {role: cpu}``, the roles being the platform's processes (gunicorn,
+    uvicorn, or the single one), nginx, Celery, and the whole machine."""
+    out: dict[str, dict[str, float]] = {}
+    for u in results.usage:
+        if u.topology != "one":
+            continue
+        if u.process.startswith(("platform", "nginx", "celery", "whole machine")):
+            out.setdefault(u.phase, {})[u.process] = u.cpu_pct
+    return out
+
+
+def flood_figures(results: Results) -> dict[str, Any]:
+    """The login flood's figures: the API's latency per endpoint without and during
+    the flood, and what the flood's attempts were answered."""
+    p = results.params
+    api_: dict[str, Any] = {}
+    for window in FLOOD_WINDOWS:
+        rows = [r for r in results.flood_api_rows if r["topology"] == window]
+        ok = [r for r in rows if 200 <= r["status"] < 300]
+        statuses: dict[str, int] = {}
+        for r in rows:
+            key = f"{r['endpoint']} {r['status']}"
+            statuses[key] = statuses.get(key, 0) + 1
+        api_[window] = {
+            "services_ms": summary(r["latency_ms"] for r in ok if r["endpoint"] == "services"),
+            "request_ms": summary(r["latency_ms"] for r in ok if r["endpoint"] == "request"),
+            "end_ms": summary(r["latency_ms"] for r in ok if r["endpoint"] == "end"),
+            "all_ms": summary(r["latency_ms"] for r in ok),
+            "sessions_per_s": sum(r["endpoint"] == "request" for r in ok) / p.flood_duration_s,
+            "statuses": statuses,
+        }
+    answers: dict[str, int] = {}
+    for a in results.flood_attempts:
+        key = str(a["status"]) + (f" ({a['answered_by']})" if a["answered_by"] else "")
+        answers[key] = answers.get(key, 0) + 1
+    return {
+        "clients": p.flood_clients,
+        "duration_s": p.flood_duration_s,
+        "attempts": len(results.flood_attempts),
+        "attempts_per_s": len(results.flood_attempts) / p.flood_duration_s,
+        "attempt_ms": summary(a["latency_ms"] for a in results.flood_attempts),
+        "answers": answers,
+        "api": api_,
+    }
 
 
 def figures(results: Results) -> dict[str, Any]:
@@ -1801,10 +2238,9 @@ def figures(results: Results) -> dict[str, Any]:
     ``cpu_ms_per_heartbeat_over_idle`` subtracts the idle process's CPU first.
     """
     p = results.params
-    usage = {(u.topology, u.phase, u.process): u for u in results.usage}
     loaded_phase = f"{p.agents} agents"
-    idle = usage[("one", "0 agents", "platform-1")]
-    loaded = usage[("one", loaded_phase, "platform-1")]
+    idle = platform_usage(results, "one", "0 agents")
+    loaded = platform_usage(results, "one", loaded_phase)
     fleet = results.fleet[f"one/{loaded_phase}"]
     updates = fleet["vehicle_updates_per_s"]
     heartbeats = fleet["heartbeats_per_s"]
@@ -1832,13 +2268,15 @@ def figures(results: Results) -> dict[str, Any]:
             "online_after_s": results.online_after_s,
         },
         "stages": [],
+        "roles": roles_cpu(results),
         "fleet": results.fleet,
         "api": {},
         "relay": {},
         "reaction": {},
     }
-    for count in p.stages():
-        u = usage[("one", f"{count} agents", "platform-1")]
+    counts = p.stages() + ([p.fleet_agents] if p.fleet_agents > p.agents else [])
+    for count in counts:
+        u = platform_usage(results, "one", f"{count} agents")
         f = results.fleet[f"one/{count} agents"]
         out["stages"].append(
             {
@@ -1856,6 +2294,10 @@ def figures(results: Results) -> dict[str, Any]:
                 "vehicle_updates_per_s": f["vehicle_updates_per_s"],
             }
         )
+    if p.fleet_agents > p.agents:
+        out["fleet_phase"] = out["stages"][-1]
+    if results.flood_api_rows or results.flood_attempts:
+        out["flood"] = flood_figures(results)
     for topology in topologies(p):
         rows = [r for r in results.api_rows if r["topology"] == topology]
         ok = [r for r in rows if 200 <= r["status"] < 300]
@@ -1940,6 +2382,23 @@ def write_outputs(results: Results, out: Path) -> None:
             for t in results.trials
         ),
     )
+    _write_csv(
+        out / "login_flood.csv",
+        ["window", "client", "start_s", "latency_ms", "status", "answered_by"],
+        (
+            [a[k] for k in ("window", "client", "start_s", "latency_ms", "status", "answered_by")]
+            for a in results.flood_attempts
+        ),
+    )
+    _write_csv(
+        out / "flood_api_requests.csv",
+        ["window", "client", "endpoint", "start_s", "latency_ms", "status", "session_id"],
+        (
+            [r[k] for k in ("topology", "client", "endpoint", "start_s", "latency_ms", "status")]
+            + [r["session_id"]]
+            for r in results.flood_api_rows
+        ),
+    )
     data = figures(results)
     document = {
         "command": results.command,
@@ -1979,6 +2438,11 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     fleet_one = results.fleet[f"one/{loaded}"]
     hb = float(m["heartbeat_s"])
     server = p.server
+    serving = (
+        f"one {server} process"
+        if p.topology == "single"
+        else "the production shape's processes (gunicorn, uvicorn)"
+    )
 
     def cpu(topology: str, phase: str, process: str) -> float:
         for u in results.usage:
@@ -1994,8 +2458,11 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     add("in the CSV files beside this report, every figure in `summary.json`.")
     add("")
     add(
-        f"**Every platform figure below was served by {server}** (`iouv.asgi`, "
-        f"{m.get('platform_code', 'this checkout')}), behind nginx."
+        f"**Every platform figure below was served by {m.get('topology', server)}** "
+        f"(`iouv.asgi`/`iouv.wsgi`, {m.get('platform_code', 'this checkout')}): nginx with "
+        "the shipped site (`deploy/nginx/iouv.conf`: TLS, routing by path, per-address "
+        "limits) in front. Where a figure says *process*, read the topology's platform "
+        "processes together (gunicorn's and uvicorn's in production)."
     )
     if p.quick:
         add("")
@@ -2014,7 +2481,7 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
         f"of {m['offline_after_s']:g} s"
     )
     add(
-        f"* **{p.agents} agents** on uplinks to one {server} process, heartbeating every "
+        f"* **{p.agents} agents** on uplinks to {serving}, heartbeating every "
         f"{hb:g} s: the process used **{agents['cpu_pct']:.0f} % of one core and "
         f"{agents['rss_mb']:.0f} MB** resident (idle: {agents['idle_cpu_pct']:.1f} %, "
         f"{agents['idle_rss_mb']:.0f} MB), that is **{agents['cpu_pct_per_agent']:.3f} % of a "
@@ -2065,12 +2532,13 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
         )
         add(
             f"* **Assignment + deployment** ({_api_load(p)}, each "
-            "session requested, deployed to a live agent and ended): one process sustained "
+            f"session requested, deployed to a live agent and ended): {serving} sustained "
             f"**{one['sessions_per_s']:.1f} sessions/s** ({one['requests_per_s']:.1f} "
             f"requests/s; request p50 / p95 {_q(one['request_ms'], 'p50', 'p95')} ms){both}. "
             "Relayed command round trip p50 / p95 under that load: "
             + "; ".join(
-                f"{_q(relay[t], 'p50', 'p95')} ms with {t} process{'es' if t == 'two' else ''}"
+                f"{_q(relay[t], 'p50', 'p95')} ms "
+                + ("with two processes" if t == "two" else f"on {serving}")
                 for t in relay
             )
             + "."
@@ -2081,6 +2549,7 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     add("| | |")
     add("|---|---|")
     for key, label in (
+        ("topology", "platform topology (benchmarks.scale_topology)"),
         ("server", "ASGI server of the platform processes"),
         ("platform_code", "platform code"),
         ("cpu_model", "CPU"),
@@ -2118,16 +2587,17 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     for key, value in asdict(p).items():
         add(f"| `{key}` | {value} |")
     add("")
-    add(f"**Real**: {server} serving `iouv.asgi` (one or two processes), PostgreSQL, the Redis")
+    add(f"**Real**: {m.get('topology', server)}, PostgreSQL, the Redis")
     add("channel layer, the platform's signing key, vehicles and API tokens in the database,")
     add("assignment, signed task deployment, supervision, the relay; every agent runs the real")
     add("`agents.uplink.Uplink` client; the two cars are full agents (`agents.runtime.Agent`,")
     add("car adapter on gpiozero mock pins with its simulated world). **Light**: the light")
     add("agents have no adapter and no video; they verify and accept tasks, and heartbeat.")
-    add("**Not running**: the Celery worker and beat (periodic sweeps and supervision timers),")
-    add("which take no part in what is measured. All traffic went through nginx (Debian's")
-    add("package in one process, configured by `benchmarks.nginx_proxy`) in both topologies,")
-    add("so both have the same path.")
+    add("The Celery worker and beat run as `deploy/systemd`'s units start them (periodic")
+    add("sweeps and supervision timers). All traffic went through nginx (Debian's package in")
+    add("one process) with the shipped site, over TLS, every light agent, API client and")
+    add("flood client from an address of its own in 127.0.0.0/8, as nginx's per-address")
+    add("limits would see a fleet and its users (`benchmarks.scale_topology`).")
     add("")
 
     add(f"## 1. {p.agents} agents on uplinks")
@@ -2208,7 +2678,7 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     )
     add("")
     if not one:
-        return _report_end(results, lines)
+        return _report_end(results, data, lines)
 
     add("## 2. Assignment and task deployment")
     add("")
@@ -2305,7 +2775,7 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
     add("")
 
     if not two:
-        return _report_end(results, lines)
+        return _report_end(results, data, lines)
     add("## 4. One platform process against two")
     add("")
     add(
@@ -2366,12 +2836,106 @@ def report_md(results: Results, data: dict[str, Any]) -> str:
         "two-process load, load generators included."
     )
     add("")
-    return _report_end(results, lines)
+    return _report_end(results, data, lines)
 
 
-def _report_end(results: Results, lines: list[str]) -> str:
-    """The report's closing sections (the platform's logs, the run's notes), joined."""
+def _report_topology(results: Results, data: dict[str, Any], lines: list[str]) -> None:
+    """The sections every topology has: CPU per role, the login flood, the fleet."""
     p = results.params
+    add = lines.append
+    roles = data.get("roles") or {}
+    if roles:
+        add("## CPU per role")
+        add("")
+        add(
+            "Percent of one core over each window, each role's processes summed (gunicorn: "
+            "its masters and workers; Celery: the worker with its threads and the beat)."
+        )
+        add("")
+        names = sorted({r for by in roles.values() for r in by}, key=_role_order)
+        add("| window | " + " | ".join(names) + " |")
+        add("|---|" + "---:|" * len(names))
+        for phase, by in roles.items():
+            add(
+                f"| {phase} | "
+                + " | ".join(f"{by[n]:.1f}" if n in by else "" for n in names)
+                + " |"
+            )
+        add("")
+    flood = data.get("flood")
+    if flood:
+        add("## 5. Login flood")
+        add("")
+        add(
+            f"{_api_load(p)}, each turn reading the catalogue (`GET /api/v1/services`) "
+            "before requesting and ending a session: "
+            f"{p.flood_duration_s:g} s alone, then {p.flood_duration_s:g} s while "
+            f"{flood['clients']} clients, each from its own address, posted wrong passwords "
+            "to `/accounts/login/` as fast as they were answered (the CSRF token read "
+            f"once): {flood['attempts']} attempts ({flood['attempts_per_s']:.1f}/s, "
+            f"answered in p50 / p95 {_q(flood['attempt_ms'], 'p50', 'p95')} ms)."
+        )
+        add("")
+        add("| API (ms) | without the flood | during the flood |")
+        add("|---|---:|---:|")
+        for label, key in (
+            ("`GET /api/v1/services` p50 / p95", "services_ms"),
+            ("session request p50 / p95", "request_ms"),
+            ("session end p50 / p95", "end_ms"),
+            ("every API call p50 / p95 / max", "all_ms"),
+        ):
+            keys = ("p50", "p95", "max") if key == "all_ms" else ("p50", "p95")
+            add(
+                f"| {label} | {_q(flood['api']['without'][key], *keys)} | "
+                f"{_q(flood['api']['during'][key], *keys)} |"
+            )
+        add(
+            "| sessions per s | "
+            + " | ".join(f"{flood['api'][w]['sessions_per_s']:.1f}" for w in FLOOD_WINDOWS)
+            + " |"
+        )
+        add(
+            "| answers | "
+            + " | ".join(
+                ", ".join(f"{k}: {v}" for k, v in sorted(flood["api"][w]["statuses"].items()))
+                for w in FLOOD_WINDOWS
+            )
+            + " |"
+        )
+        add("")
+        add(
+            "What the flood's attempts were answered (status, and who answered a 429: "
+            "nginx's `limit_req` on the login, or the platform's lockout, django-axes): "
+            + ", ".join(f"{k}: {v}" for k, v in sorted(flood["answers"].items()))
+            + "."
+        )
+        add("")
+    fleet = data.get("fleet_phase")
+    if fleet:
+        add(f"## 6. The fleet at {fleet['agents']} agents")
+        add("")
+        add(
+            f"After the phases above, the fleet grew to {fleet['agents']} light agents "
+            f"(heartbeat every {results.machine.get('heartbeat_s')} s): online at least "
+            f"**{fleet['online_min']} of {fleet['agents']}** over the window (mean "
+            f"{fleet['online_mean']:.0f}), the platform's processes at "
+            f"{fleet['cpu_pct']:.0f} % of one core, {fleet['heartbeats_per_s']:.0f} "
+            f"heartbeats/s sent, **{_ms(fleet['cpu_ms_per_heartbeat'])} ms of CPU per "
+            "heartbeat** (all of the serving processes' CPU, an upper bound)."
+        )
+        add("")
+
+
+def _role_order(name: str) -> tuple[int, str]:
+    order = ("platform", "nginx", "celery", "whole machine")
+    return next((i for i, o in enumerate(order) if name.startswith(o)), len(order)), name
+
+
+def _report_end(results: Results, data: dict[str, Any], lines: list[str]) -> str:
+    """The report's closing sections (per role, the flood, the fleet, the platform's
+    logs, the run's notes), joined."""
+    p = results.params
+    _report_topology(results, data, lines)
     add = lines.append
     if results.log_counts:
         add("## What the platform processes logged")
@@ -2388,11 +2952,12 @@ def _report_end(results: Results, lines: list[str]) -> str:
         add("")
         add(
             f"Process 1 holds the uplinks in both topologies; each of the "
-            f"{p.agents + p.cars_needed} agents opens one uplink per phase (two phases), so "
+            f"{p.light_agents + p.cars_needed} agents opens one uplink per phase (two phases), so "
             "more accepted uplinks than that are reconnections."
-            if p.phases == "all"
-            else f"Each of the {p.agents + p.cars_needed} agents opened one uplink; more "
-            "accepted uplinks than that are reconnections."
+            if p.two_processes
+            else f"Each of the {p.light_agents + p.cars_needed} agents opened one uplink; "
+            "more accepted uplinks than that are reconnections (production: spread over "
+            "the uvicorn processes)."
         )
         add("")
     if results.notes:
@@ -2414,13 +2979,15 @@ def _report_end(results: Results, lines: list[str]) -> str:
 
 @dataclass(frozen=True)
 class Variant:
-    """One run of a comparison: a platform tree under one server, written to ``folder``
-    (relative to ``--out``; empty for a single run, written to ``--out`` itself)."""
+    """One run of a comparison: a platform tree under one server in one topology,
+    written to ``folder`` (relative to ``--out``; empty for a single run, written to
+    ``--out`` itself)."""
 
     label: str
     tree: PlatformTree
     server: str
     folder: str
+    topology: str = "single"
 
 
 #: A single run's outputs: removed from ``--out`` when a comparison writes its own
@@ -2431,23 +2998,41 @@ SINGLE_RUN_FILES = (
     "task_delivery.csv",
     "relay_rtt.csv",
     "reaction_trials.csv",
+    "login_flood.csv",
+    "flood_api_requests.csv",
 )
 
 
-def variants(trees: Sequence[PlatformTree], servers: Sequence[str]) -> list[Variant]:
-    """Every tree under every server, the baseline's runs first; labels "before" and
-    "after" when there are two trees, the server's name when there are two servers."""
+def variants(
+    trees: Sequence[PlatformTree],
+    servers: Sequence[str],
+    topologies: Sequence[str] = ("single",),
+) -> list[Variant]:
+    """Every tree under every server in every topology (the production shape under
+    uvicorn only), the baseline's runs first; labels "before" and "after" when there
+    are two trees, the server's name when there are two servers, the topology's when
+    there are two topologies."""
+    combos = [
+        (tree, server, topology)
+        for tree in trees
+        for server in servers
+        for topology in topologies
+        if topology == "single" or server == "uvicorn"
+    ]
     out = []
-    for tree in trees:
-        for server in servers:
-            words = []
-            if len(trees) > 1:
-                words.append("before" if tree.commit else "after")
-            if len(servers) > 1 or not words:
-                words.append(server)
-            label = " ".join(words)
-            folder = "" if len(trees) * len(servers) == 1 else label.replace(" ", "-")
-            out.append(Variant(label, tree, server, folder))
+    for tree, server, topology in combos:
+        words = []
+        if len(trees) > 1:
+            words.append("before" if tree.commit else "after")
+        if len(servers) > 1:
+            words.append(server)
+        if len(topologies) > 1:
+            words.append(topology)
+        if not words:
+            words.append(server)
+        label = " ".join(words)
+        folder = "" if len(combos) == 1 else label.replace(" ", "-")
+        out.append(Variant(label, tree, server, folder, topology))
     return out
 
 
@@ -2463,6 +3048,7 @@ def run_variants(
     out: Path,
     command: str,
     database_url: str,
+    topologies: Sequence[str] = ("single",),
 ) -> None:
     """Run ``params`` against each variant in turn (see :func:`variants`), each on a
     database prepared by its own tree (dropped first when a baseline is compared: a
@@ -2473,17 +3059,21 @@ def run_variants(
         trees = [PlatformTree()]
         if baseline:
             trees.insert(0, stack.enter_context(worktree(baseline)))
-        runs = variants(trees, servers)
+        runs = variants(trees, servers, topologies)
         done: list[tuple[str, str, dict[str, Any]]] = []
         for v in runs:
             # Between runs (asyncio's handler is gone once a run's loop is closed), SIGTERM
             # unwinds this stack too, so the baseline's worktree is removed.
             signal.signal(signal.SIGTERM, _stopped)
-            print(f"benchmarks.scale: {v.label or 'run'}: {v.tree.label} under {v.server}")
+            print(
+                f"benchmarks.scale: {v.label or 'run'}: {v.tree.label} under {v.server}, "
+                f"topology {v.topology}",
+                flush=True,
+            )
             database_create(database_url, fresh=bool(baseline))
             where = out / v.folder if v.folder else out
             run(
-                replace(params, server=v.server),
+                replace(params, server=v.server, topology=v.topology),
                 out=where,
                 command=command,
                 database_url=database_url,
@@ -2541,6 +3131,42 @@ def main(argv: Sequence[str] | None = None) -> None:
         help="heartbeats: phase 1 only (agents connected, no cars, no API load); one: "
         "phases 1-3 (one platform process); all (default): 1-4",
     )
+    shapes = parser.add_mutually_exclusive_group()
+    shapes.add_argument(
+        "--topology",
+        choices=TOPOLOGIES,
+        default="single",
+        help="single (default): one platform process serving everything behind nginx; "
+        "production: deploy/'s shape, gunicorn for HTTP and uvicorn for WebSockets behind "
+        "nginx (benchmarks.scale_topology)",
+    )
+    shapes.add_argument(
+        "--topologies",
+        help="comma list, e.g. single,production: the whole run in each, one after the "
+        "other, reported side by side (the paired run)",
+    )
+    parser.add_argument("--web", type=int, help="production: gunicorn instances (default 1)")
+    parser.add_argument(
+        "--web-workers", type=int, help="production: workers per gunicorn instance (default 2)"
+    )
+    parser.add_argument(
+        "--web-threads", type=int, help="production: threads per gunicorn worker (default 4)"
+    )
+    parser.add_argument("--ws", type=int, help="production: uvicorn processes (default 2)")
+    parser.add_argument(
+        "--flood-clients",
+        type=int,
+        help="login flood clients, each from its own address (default 4; 0: no flood phase)",
+    )
+    parser.add_argument(
+        "--flood-duration", type=float, help="seconds of each login-flood window (default 20)"
+    )
+    parser.add_argument(
+        "--fleet-agents",
+        type=int,
+        help="after the API phases, grow the fleet to this many light agents and measure "
+        "their heartbeats (default: no such phase)",
+    )
     servers = parser.add_mutually_exclusive_group()
     servers.add_argument(
         "--server",
@@ -2568,6 +3194,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     )
     parser.add_argument("--agent-worker", help=argparse.SUPPRESS)
     parser.add_argument("--api-worker", help=argparse.SUPPRESS)
+    parser.add_argument("--flood-worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.agent_worker:
         # Warnings too: every lost uplink says why, which is what a reconnection storm
@@ -2578,11 +3205,18 @@ def main(argv: Sequence[str] | None = None) -> None:
     if args.api_worker:
         api_worker(args.api_worker)
         return
+    if args.flood_worker:
+        flood_worker(args.flood_worker)
+        return
 
     server_list = args.servers.split(",") if args.servers else [args.server]
     for name in server_list:
         if name not in SERVERS:
             parser.error(f"--servers: {name!r} is not one of {', '.join(SERVERS)}")
+    topology_list = args.topologies.split(",") if args.topologies else [args.topology]
+    for name in topology_list:
+        if name not in TOPOLOGIES:
+            parser.error(f"--topologies: {name!r} is not one of {', '.join(TOPOLOGIES)}")
     params = Params.quick_mode() if args.quick else Params()
     overrides = {
         "agents": args.agents,
@@ -2594,6 +3228,13 @@ def main(argv: Sequence[str] | None = None) -> None:
         "api_duration_s": args.api_duration,
         "trials": args.trials,
         "phases": args.phases,
+        "web": args.web,
+        "web_workers": args.web_workers,
+        "web_threads": args.web_threads,
+        "ws": args.ws,
+        "flood_clients": args.flood_clients,
+        "flood_duration_s": args.flood_duration,
+        "fleet_agents": args.fleet_agents,
     }
     params = replace(params, **{k: v for k, v in overrides.items() if v is not None})
     # The platform under test and this process share these; the database is ours alone.
@@ -2621,6 +3262,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             params,
             baseline=args.baseline,
             servers=server_list,
+            topologies=topology_list,
             out=args.out,
             command=command.strip(),
             database_url=args.database_url,

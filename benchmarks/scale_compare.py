@@ -26,6 +26,8 @@ TARGET_CPU_PCT_5000_AT_1HZ = 80.0
 TARGET_SESSIONS_PER_S = 30.0
 TARGET_REQUEST_P95_MS = 100.0
 TARGET_RELAY_P95_MS = 20.0
+#: The production shape's issue: the API while a login flood runs.
+TARGET_FLOOD_API_P95_MS = 200.0
 
 
 def _get(data: dict[str, Any], *path: str | int) -> Any:
@@ -77,6 +79,7 @@ def _rows(runs: Sequence[dict[str, Any]]) -> list[Row]:
         return f"{_num(a.get('online_min'))} of {_num(a.get('n'))}"
 
     rows: list[Row] = [
+        ("topology", lambda r: str(_get(r, "machine", "topology") or "single"), ""),
         ("ASGI server", lambda r: str(_get(r, "machine", "server") or "daphne"), ""),
         ("platform code", lambda r: str(_get(r, "machine", "platform_code") or "?"), ""),
         ("heartbeat interval (s)", lambda r: _num(_get(r, "machine", "heartbeat_s"), 1), ""),
@@ -116,7 +119,7 @@ def _rows(runs: Sequence[dict[str, Any]]) -> list[Row]:
     ]
     for count in counts:
         rows.append((f"{count} agents: CPU % / ms per heartbeat", _stage_pair(count), ""))
-    for topology, name in (("one", "one process"), ("two", "two processes")):
+    for topology, name in (("one", "API load"), ("two", "phase 4, two processes")):
         if not any(_get(r, "figures", "api", topology) for r in runs):
             continue
         api = ("figures", "api", topology)
@@ -141,6 +144,36 @@ def _rows(runs: Sequence[dict[str, Any]]) -> list[Row]:
             ),
             (f"{name}: relayed commands lost", _num_at("figures", "relay", topology, "lost"), "0"),
         ]
+    phases = ["API load", "login flood: during"]
+    if any(_get(r, "figures", "roles", p) for r in runs for p in phases):
+        for phase in phases:
+            rows.append((f"{phase}: CPU % by role", _roles(phase), ""))
+    if any(_get(r, "figures", "flood") for r in runs):
+        flood = ("figures", "flood")
+        rows += [
+            ("login flood: clients / attempts per s", _flood_load, ""),
+            ("login flood: attempts answered", _flood_answers, ""),
+        ]
+        for window in ("without", "during"):
+            rows += [
+                (
+                    f"{window} the flood: `GET /api/v1/services` p50 / p95 (ms)",
+                    _pair_at(*flood, "api", window, "services_ms"),
+                    f"p95 ≤ {TARGET_FLOOD_API_P95_MS:g}" if window == "during" else "",
+                ),
+                (
+                    f"{window} the flood: session request p50 / p95 (ms)",
+                    _pair_at(*flood, "api", window, "request_ms"),
+                    "",
+                ),
+                (
+                    f"{window} the flood: every API call p50 / p95 (ms)",
+                    _pair_at(*flood, "api", window, "all_ms"),
+                    f"p95 ≤ {TARGET_FLOOD_API_P95_MS:g}" if window == "during" else "",
+                ),
+            ]
+    if any(_get(r, "figures", "fleet_phase") for r in runs):
+        rows.append(("fleet phase: online at least", _fleet_online, "all"))
     modes = sorted({k for r in runs for k in (_get(r, "figures", "reaction") or {})})
     for key in modes:
         rows.append(
@@ -153,6 +186,38 @@ def _rows(runs: Sequence[dict[str, Any]]) -> list[Row]:
     for label in ("tracebacks", "errors logged (ERROR)"):
         rows.append((f"platform logs: {label}", _log_total(label), "0"))
     return rows
+
+
+def _roles(phase: str) -> Callable[[dict[str, Any]], str]:
+    """A window's CPU (% of one core) per role: "gunicorn 40 / uvicorn 20 / ..."."""
+
+    def cell(r: dict[str, Any]) -> str:
+        by = _get(r, "figures", "roles", phase) or {}
+        short = {k: k.removeprefix("platform: ").split(" (")[0] for k in by}
+        return " / ".join(f"{short[k]} {by[k]:.0f}" for k in by) or "n/a"
+
+    return cell
+
+
+def _flood_load(r: dict[str, Any]) -> str:
+    flood = _get(r, "figures", "flood")
+    if not flood:
+        return "n/a"
+    return f"{flood['clients']} / {flood['attempts_per_s']:.1f}"
+
+
+def _flood_answers(r: dict[str, Any]) -> str:
+    answers = _get(r, "figures", "flood", "answers")
+    if answers is None:
+        return "n/a"
+    return ", ".join(f"{k}: {v}" for k, v in sorted(answers.items())) or "none"
+
+
+def _fleet_online(r: dict[str, Any]) -> str:
+    fleet = _get(r, "figures", "fleet_phase")
+    if not fleet:
+        return "n/a"
+    return f"{_num(fleet.get('online_min'))} of {_num(fleet.get('agents'))}"
 
 
 def _num_at(*path: str | int, digits: int = 1) -> Callable[[dict[str, Any]], str]:
@@ -190,8 +255,9 @@ def compare_md(runs: Sequence[tuple[str, str, dict[str, Any]]], *, command: str 
         "One run per column, one after the other on the same machine, with the same "
         "parameters and the same load generators (this checkout's light agents, API clients "
         "and cars); what changes is the platform's code (a `git worktree` of the baseline, "
-        "migrated from nothing) or its ASGI server. Every platform process ran behind nginx. "
-        "Each run's full report, its CSVs and its notes are in its folder.",
+        "migrated from nothing), its ASGI server or its topology (one process, or the "
+        "production shape: gunicorn and uvicorn processes). Every platform process ran "
+        "behind nginx. Each run's full report, its CSVs and its notes are in its folder.",
         "",
     ]
     labels = [f"[{label}]({folder}/report.md)" for label, folder, _ in runs]

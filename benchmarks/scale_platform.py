@@ -209,10 +209,20 @@ async def platform_start(
     returns once ``/healthz`` answers. Raises RuntimeError (with the log's tail) if it
     does not within START_TIMEOUT_S."""
     port = free_port()
+    command = server_command(server, port=port, tree=tree)
+    return await process_start(name, command, env=env, tree=tree, logs=logs, port=port)
+
+
+async def process_start(
+    name: str, command: list[str], *, env: dict[str, str], tree: PlatformTree, logs: Path, port: int
+) -> Child:
+    """Run ``command`` in ``tree`` (its output to ``logs/<name>.log``); with a ``port``,
+    return once ``/healthz`` answers there. Raises RuntimeError (with the log's tail)
+    if it does not within START_TIMEOUT_S, or if the process exits first."""
     log_path = logs / f"{name}.log"
     with open_log(log_path) as log_file:
         proc = await asyncio.create_subprocess_exec(
-            *server_command(server, port=port, tree=tree),
+            *command,
             cwd=tree.root,
             env=tree.env(env),
             stdout=log_file,
@@ -221,7 +231,7 @@ async def platform_start(
     child = Child(name, proc, port)
     deadline = time.monotonic() + START_TIMEOUT_S
     try:
-        while not await asyncio.to_thread(_http_ok, f"http://127.0.0.1:{port}/healthz"):
+        while port and not await asyncio.to_thread(_http_ok, f"http://127.0.0.1:{port}/healthz"):
             if proc.returncode is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"{name} did not start: {log_path.read_text()[-2000:]}")
             await asyncio.sleep(0.2)

@@ -20,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
-import re
 import signal
 import ssl
 import subprocess
@@ -32,6 +31,7 @@ from pathlib import Path
 
 from django.conf import settings
 
+from benchmarks import scale_topology
 from benchmarks.nginx_proxy import nginx_binary
 from tests.servers import ROOT, _test_database_url, celery_worker_process, free_port
 from tests.tls import Certificates, certificates_make
@@ -69,44 +69,21 @@ def nginx_site(
     server_options: str = "max_fails=0",
     upstream_keepalive: bool = True,
 ) -> str:
-    """``deploy/nginx/iouv.conf`` listening on loopback ports ``https`` and ``http``,
-    proxying to the HTTP processes ``web`` and the WebSocket ones ``ws`` (each a port on
-    127.0.0.1, or ``"host:port"`` for a process on another machine), with
-    ``certificates`` and ``static_root``; ``server_options`` end each upstream server's
-    line (the shipped file's are for processes on nginx's own machine). Raises
-    AssertionError if the shipped file no longer has a line this replaces (the test
-    would not run what production runs). ``upstream_keepalive`` False drops the HTTP
-    upstream's idle connections to the processes (``keepalive``)."""
-    text = SITE.read_text()
-
-    def upstream(name: str, servers_at: Sequence[int | str]) -> None:
-        nonlocal text
-        block = re.compile(rf"(upstream {name} \{{\n)((?:    server [^\n]+\n)+)")
-        assert block.search(text), f"no upstream {name} in {SITE}"
-        addresses = [f"127.0.0.1:{at}" if isinstance(at, int) else at for at in servers_at]
-        servers = "".join(f"    server {address} {server_options};\n" for address in addresses)
-        text = block.sub(lambda m: m.group(1) + servers, text, count=1)
-
-    def replace(old: str, new: str) -> None:
-        nonlocal text
-        assert old in text, f"{old!r} is not in {SITE}"
-        text = text.replace(old, new)
-
-    upstream("iouv_web", web)
-    if not upstream_keepalive:
-        replace("    keepalive 32;\n", "")
-    upstream("iouv_ws", ws)
-    replace("    listen [::]:80;\n", "")
-    replace("    listen [::]:443 ssl;\n", "")
-    replace("    listen 80;", f"    listen 127.0.0.1:{http};")
-    replace("    listen 443 ssl;", f"    listen 127.0.0.1:{https} ssl;")
-    replace(
-        "return 301 https://$host$request_uri;", f"return 301 https://$host:{https}$request_uri;"
+    """``deploy/nginx/iouv.conf`` as :func:`benchmarks.scale_topology.nginx_site`
+    renders it (the scale benchmark runs the same), with ``certificates``' chain and
+    key."""
+    return scale_topology.nginx_site(
+        web=web,
+        ws=ws,
+        https=https,
+        http=http,
+        certificate=certificates.chain,
+        key=certificates.key,
+        static_root=static_root,
+        server_options=server_options,
+        upstream_keepalive=upstream_keepalive,
+        site=SITE,
     )
-    replace("/etc/ssl/iouv/fullchain.pem", str(certificates.chain))
-    replace("/etc/ssl/iouv/privkey.pem", str(certificates.key))
-    replace("alias /srv/iouv/static/;", f"alias {static_root}/;")
-    return text
 
 
 def nginx_main(prefix: Path, site: str) -> str:

@@ -305,3 +305,27 @@ def test_the_keepalive_is_the_agent_configs() -> None:
         for bad in (0, -1, "2", True, None):
             with pytest.raises(ConfigError, match=name):
                 AgentConfig.from_mapping({**config, name: bad})
+
+
+async def test_an_uplink_leaves_from_the_address_its_connect_options_name(
+    platform: Platform,
+) -> None:
+    # A vehicle with two links binds its uplink to one (the scale benchmark gives each
+    # light agent an address of its own, as a fleet has: nginx limits per address).
+    uplink = _uplink(
+        platform.port,
+        lambda msg: asyncio.sleep(0),
+        reconnect_max_s=0.1,
+        connect_options={"local_addr": ("127.0.0.7", 0)},
+    )
+    run = asyncio.create_task(uplink.run())
+    try:
+        ws = await asyncio.wait_for(platform.connections.get(), 10)
+        assert ws.remote_address[0] == "127.0.0.7"
+        # Registered (its profile sent) before it is stopped, as the fixtures' uplinks
+        # are: a cancel landing in websockets' send of the profile is not seen at once.
+        await asyncio.wait_for(uplink.connected.wait(), 10)
+    finally:
+        run.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await run
