@@ -33,7 +33,7 @@ from agents.protocol.messages import (
     WebrtcOffer,
 )
 from fleet.memberships import group_hold, group_release
-from fleet.uplink import avehicle_send, relay_group
+from fleet.sending import avehicle_send, relay_group
 from iouv.consumers import DirectDispatch
 from iouv.layer import relay_ensure
 from iouv.outages import DATABASE_UNAVAILABLE
@@ -185,7 +185,7 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self.vehicle_id: str | None = None
         self.conn = secrets.token_hex(8)
         # The vehicle's uplink channel, once it has answered: commands go straight
-        # there, not through the vehicle's group (see fleet.uplink.avehicle_send).
+        # there, not through the vehicle's group (see fleet.sending.avehicle_send).
         self.uplink: str | None = None
         self.tokens, self.refill_at = RELAY_BURST, time.monotonic()
         #: Set once the relay closed the socket: later frames are dropped, not answered.

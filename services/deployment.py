@@ -28,7 +28,7 @@ from agents.protocol.messages import EndTask, Revoke, Task, message_to_dict, mes
 from fleet.feed import fleet_notify
 from fleet.models import AgentMessage, Vehicle
 from fleet.outbox import agent_messages_cancel
-from fleet.uplink import vehicle_send
+from fleet.sending import vehicle_send
 from services.assignment import (
     AssignmentError,
     service_grant_require,

@@ -1,8 +1,8 @@
 """The platform task: supervising sessions from what their vehicles' agents report.
 
-The uplink (``fleet.uplink``) publishes agent messages as ``fleet.signals``; the
-receivers here (connected in ``services.apps``) log them in the session log and apply
-the rules:
+The uplink (``fleet.uplink``) tells what agents say to one listener
+(``fleet.vehicle_events``); :class:`Supervisor` here (registered in ``services.apps``)
+logs it in the session log and applies the rules:
 
 * ``task_refused``: the session fails with the agent's reason.
 * ``user_connected`` (a controller): an assigned session becomes active.
@@ -28,7 +28,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import uuid
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
@@ -50,8 +50,9 @@ from fleet.outbox import (
     stored_message,
     vehicle_release_if_settled,
 )
+from fleet.sending import vehicle_send
 from fleet.servers import vehicles_silence
-from fleet.uplink import vehicle_send
+from fleet.vehicle_events import AgentState, SessionMessage
 from services.deployment import (
     LIVE,
     session_end,
@@ -816,31 +817,31 @@ def sessions_expire_time_limit(*, now: datetime | None = None) -> list[str]:
 
 
 # --------------------------------------------------------------------------------------
-# Signal receivers (connected in services.apps)
+# What fleet's uplink tells the platform (registered in services.apps)
 # --------------------------------------------------------------------------------------
 
 
-def receive_agent_message(sender: Any, *, vehicle_id: Any, message: Any, **kwargs: Any) -> None:
-    agent_message_handle(vehicle_id=vehicle_id, message=message)
+class Supervisor:
+    """The services app's answer to what vehicles say: fleet's
+    :class:`fleet.vehicle_events.VehicleEvents`, registered once in services.apps."""
 
+    def agent_connected(self, *, vehicle_id: str, state: AgentState) -> None:
+        agent_connected_handle(vehicle_id=vehicle_id, state=dict(state))
 
-def receive_agent_connected(sender: Any, *, vehicle_id: Any, **kwargs: Any) -> None:
-    agent_connected_handle(vehicle_id=vehicle_id, state=kwargs.get("state"))
+    def agent_disconnected(self, *, vehicle_id: str, code: int | None) -> None:
+        agent_disconnected_handle(vehicle_id=vehicle_id, code=code)
 
+    def agent_welcome(self, *, vehicle_id: str) -> dict[str, Any]:
+        # The JWKS is how a key rotation reaches enrolled agents: they adopt it from the
+        # welcome of an uplink whose server they authenticated (wss, or loopback in
+        # development).
+        return {"platform_public_key": platform_public_key_pem(), "platform_jwks": platform_jwks()}
 
-def receive_vehicle_back(sender: Any, *, vehicle_ids: Any, **kwargs: Any) -> None:
-    vehicles_back_handle(vehicle_ids=vehicle_ids)
+    def agent_acked(self, *, vehicle_id: str, acked: Acked) -> None:
+        agent_acked_handle(vehicle_id=vehicle_id, acked=acked)
 
+    def agent_message(self, *, vehicle_id: str, message: SessionMessage) -> None:
+        agent_message_handle(vehicle_id=vehicle_id, message=message)
 
-def receive_agent_acked(sender: Any, *, vehicle_id: Any, acked: Acked, **kwargs: Any) -> None:
-    agent_acked_handle(vehicle_id=vehicle_id, acked=acked)
-
-
-def receive_agent_disconnected(sender: Any, *, vehicle_id: Any, **kwargs: Any) -> None:
-    agent_disconnected_handle(vehicle_id=vehicle_id, code=kwargs.get("code"))
-
-
-def receive_agent_welcome(sender: Any, **kwargs: Any) -> dict[str, Any]:
-    # The JWKS is how a key rotation reaches enrolled agents: they adopt it from the welcome
-    # of an uplink whose server they authenticated (wss, or loopback in development).
-    return {"platform_public_key": platform_public_key_pem(), "platform_jwks": platform_jwks()}
+    def vehicles_back(self, *, vehicle_ids: Sequence[str]) -> None:
+        vehicles_back_handle(vehicle_ids=vehicle_ids)

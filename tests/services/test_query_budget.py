@@ -32,8 +32,8 @@ from agents.protocol import VehicleTask
 from agents.protocol.messages import Ack, CommandSpec, Event, Position, Profile, TaskAccepted
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
-from fleet.signals import agent_message
-from fleet.uplink import _acked, _admit, _signal_send, vehicle_record_profile
+from fleet.uplink import _acked, _admit, vehicle_record_profile
+from fleet.vehicle_events import agent_message
 from services import assignment
 from services.models import Session, SessionEvent
 from services.selectors import session_delivery
@@ -186,7 +186,7 @@ def test_requesting_and_ending_a_session_stay_within_their_query_budget(
     with metered(monkeypatch) as ack:
         _acked(vehicle_id=str(vehicle.pk), ack=Ack(id=task_id, ok=True))
     with metered(monkeypatch) as accepted:
-        _signal_send(agent_message, vehicle_id=str(vehicle.pk), message=TaskAccepted(session_id))
+        agent_message(vehicle_id=str(vehicle.pk), message=TaskAccepted(session_id))
 
     with metered(monkeypatch) as end:
         ended = _post(f"/sessions/{session_id}/end", token, {"reason": "done"})
@@ -202,8 +202,7 @@ def test_requesting_and_ending_a_session_stay_within_their_query_budget(
     with metered(monkeypatch) as end_ack:
         _acked(vehicle_id=str(vehicle.pk), ack=Ack(id=end_id, ok=True))
     with metered(monkeypatch) as ended_report:
-        _signal_send(
-            agent_message,
+        agent_message(
             vehicle_id=str(vehicle.pk),
             message=Event(session_id=session_id, event="task_ended", data={"reason": "done"}),
         )

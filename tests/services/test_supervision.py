@@ -1,8 +1,8 @@
 """Supervision: what agents report on the uplink, and the rules applied to it.
 
-Most tests publish agent messages exactly as the uplink does (``fleet.signals`` with a
-message from ``parse_message``); the last one drives the whole flow through a real
-uplink socket.
+Most tests tell the supervisor agent messages exactly as the uplink does
+(``fleet.vehicle_events`` with a message from ``parse_message``); the last one drives
+the whole flow through a real uplink socket.
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ from django.utils import timezone
 from agents.protocol import VehicleTask, parse_message
 from agents.protocol.messages import Heartbeat
 from fleet.models import Vehicle
-from fleet.signals import agent_connected, agent_disconnected, agent_message
 from fleet.status import vehicles_mark_stale_offline
 from fleet.uplink import vehicle_record_heartbeat
+from fleet.vehicle_events import vehicle_events
 from services.assignment import session_request
 from services.deployment import session_deploy, session_end
 from services.eventlog import session_log_verify
@@ -58,10 +58,15 @@ def live(inbox, committing):
     return session, vehicle, take
 
 
-def say(vehicle, msg, *, signal=agent_message):
-    """Publish ``msg`` from ``vehicle``'s agent as the uplink does."""
+def say(vehicle, msg):
+    """Tell the supervisor ``msg`` from ``vehicle``'s agent as the uplink does (but with
+    its exceptions raised)."""
     message = parse_message(json.dumps(msg), channel="uplink_to_platform")
-    signal.send(sender=None, vehicle_id=str(vehicle.pk), message=message)
+    vehicle_events().agent_message(vehicle_id=str(vehicle.pk), message=message)
+
+
+#: What an agent that runs nothing and says no status reports as it registers.
+NOTHING_SAID = {"session_id": None, "controller": False, "status": None}
 
 
 def event(session, which, /, **data):
@@ -368,14 +373,14 @@ def test_uplink_loss_and_return_during_a_session(live, committing):
     session, vehicle, take = live
     say(vehicle, event(session, "user_connected", role="controller"))
     Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.OFFLINE)
-    agent_disconnected.send(sender=None, vehicle_id=str(vehicle.pk), code=1006)
+    vehicle_events().agent_disconnected(vehicle_id=str(vehicle.pk), code=1006)
     assert session.events.last().kind == "vehicle_offline"
 
     # Back: the uplink's profile made it idle; supervision puts it back in service and
     # sends a fresh task (new nonce), since a restarted agent lost the old one.
     Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.IDLE)
     with committing():
-        agent_connected.send(sender=None, vehicle_id=str(vehicle.pk))
+        vehicle_events().agent_connected(vehicle_id=str(vehicle.pk), state=NOTHING_SAID)
     assert "vehicle_online" in kinds(session)
     assert status(vehicle) == Vehicle.Status.IN_SERVICE
     (message,) = take()
@@ -392,8 +397,7 @@ def test_an_agent_back_in_fail_safe_with_its_session_gets_the_sessions_status(li
     say(vehicle, event(session, "user_connected", role="controller"))
     # What the uplink's profile made of the report "failsafe" (fleet.uplink).
     Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.FAILSAFE)
-    agent_connected.send(
-        sender=None,
+    vehicle_events().agent_connected(
         vehicle_id=str(vehicle.pk),
         state={"session_id": str(session.pk), "controller": False, "status": "failsafe"},
     )
@@ -403,8 +407,8 @@ def test_an_agent_back_in_fail_safe_with_its_session_gets_the_sessions_status(li
 
 def test_an_idle_vehicle_coming_online_is_left_alone():
     vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type())
-    agent_connected.send(sender=None, vehicle_id=str(vehicle.pk))
-    agent_disconnected.send(sender=None, vehicle_id=str(vehicle.pk), code=1000)
+    vehicle_events().agent_connected(vehicle_id=str(vehicle.pk), state=NOTHING_SAID)
+    vehicle_events().agent_disconnected(vehicle_id=str(vehicle.pk), code=1000)
     assert status(vehicle) == Vehicle.Status.IDLE
 
 
@@ -488,8 +492,7 @@ def test_a_vehicle_back_online_with_its_controller_keeps_the_session(live):
     session, vehicle, _ = live
     say(vehicle, event(session, "user_connected", role="controller"))
     say(vehicle, event(session, "failsafe", cause="link_lost", action="land"))
-    agent_connected.send(
-        sender=None,
+    vehicle_events().agent_connected(
         vehicle_id=str(vehicle.pk),
         state={"session_id": str(session.pk), "controller": True, "status": "in_service"},
     )
@@ -544,8 +547,7 @@ def test_an_agent_back_with_a_session_that_ended_is_told_to_end_it(live, committ
     # Its uplink comes back; the profile says it still runs the session.
     Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.RELEASING)
     with committing():
-        agent_connected.send(
-            sender=None,
+        vehicle_events().agent_connected(
             vehicle_id=str(vehicle.pk),
             state={"session_id": str(session.pk), "controller": True, "status": "in_service"},
         )
@@ -560,8 +562,7 @@ def test_a_restarted_agent_gets_its_live_session_back_and_nothing_stale(live, co
     session, vehicle, take = live
     Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.IDLE)
     with committing():
-        agent_connected.send(
-            sender=None,
+        vehicle_events().agent_connected(
             vehicle_id=str(vehicle.pk),
             state={"session_id": None, "controller": False, "status": "idle"},
         )
@@ -578,8 +579,7 @@ def test_a_restarted_agent_owes_nothing_for_sessions_it_no_longer_runs(live, com
     assert status(vehicle) == Vehicle.Status.RELEASING
     # It restarted before the end reached it: there is nothing left to end.
     Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.IDLE)
-    agent_connected.send(
-        sender=None,
+    vehicle_events().agent_connected(
         vehicle_id=str(vehicle.pk),
         state={"session_id": None, "controller": False, "status": "idle"},
     )

@@ -22,7 +22,7 @@ from agents.geo import offset
 from agents.missions.spec import MissionSpec
 from agents.protocol import parse_message
 from fleet.models import Vehicle
-from fleet.signals import agent_message
+from fleet.vehicle_events import vehicle_events
 from kinds.rescue_at_sea.conf import search_timeout_s
 from kinds.rescue_at_sea.missions import vehicle_mission
 from kinds.rescue_at_sea.models import Mission, RescueTeam
@@ -47,7 +47,7 @@ def wire(spec: MissionSpec | None) -> dict[str, Any]:
 
 def say(vehicle: Vehicle, msg: dict) -> None:
     message = parse_message(json.dumps(msg), channel="uplink_to_platform")
-    agent_message.send(sender=None, vehicle_id=str(vehicle.pk), message=message)
+    vehicle_events().agent_message(vehicle_id=str(vehicle.pk), message=message)
 
 
 def report(session: Session, vehicle: Vehicle, name: str, **data) -> None:
