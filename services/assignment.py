@@ -27,7 +27,6 @@ import contextlib
 import copy
 import math
 import operator
-import uuid
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -55,7 +54,7 @@ from fleet.feed import fleet_notify
 from fleet.liveness import vehicles_fresh
 from fleet.models import Vehicle
 from fleet.status import vehicles_online
-from services.eventlog import event_append, events_staged
+from services.eventlog import event_append
 from services.grants import user_can_use
 from services.models import Assignment, Service, ServiceRole, Session
 from services.sessions import FINAL, session_transition_locked
@@ -522,10 +521,10 @@ def session_record(
     pk: Any = None,
     write: bool = True,
 ) -> Session:
-    """:func:`session_open` in the caller's transaction, without the grant check (the
-    caller made it): the cap is counted under the user's row lock, the session (``pk``
-    if given) is recorded and its ``requested`` event logged. Raises AssignmentError
-    (``over_cap``) before writing anything.
+    """A new session recorded in the caller's transaction, without the grant check (the
+    caller made it: services.deployment.session_open): the cap is counted under the
+    user's row lock, the session (``pk`` if given) is recorded and its ``requested``
+    event logged. Raises AssignmentError (``over_cap``) before writing anything.
 
     ``write=False``: the session is not written yet. Its state changes stay on the
     instance (services.sessions) and the caller writes it once, as they leave it, with
@@ -585,34 +584,6 @@ def service_grant_require(*, user: User, service: Service) -> None:
         raise AssignmentError(f"you may not use the service {service.name!r}")
 
 
-def session_open(
-    *,
-    user: User,
-    service: Service,
-    target: tuple[float, float] | None = None,
-    params: dict[str, Any] | None = None,
-    relay: bool = False,
-    preferences: dict[str, Any] | None = None,
-) -> Session:
-    """Record a new session of ``service`` for ``user`` (state ``requested``, logged),
-    if the user may use the service and holds fewer than ``max_sessions_per_user``
-    live sessions of it. Call it in a transaction with the work that follows.
-
-    Raises AssignmentError (nothing recorded) when the user may not use the service,
-    or when over the cap (``over_cap``).
-    """
-    service_grant_require(user=user, service=service)
-    with transaction.atomic():
-        return session_record(
-            user=user,
-            service=service,
-            target=target,
-            params=params,
-            relay=relay,
-            preferences=preferences,
-        )
-
-
 def session_roles_assign(
     *,
     session: Session,
@@ -654,49 +625,3 @@ def session_roles_assign(
         session=session, to=Session.State.ASSIGNED, reason="vehicles reserved"
     )
     return [assignment for assignment, _ in reserved]
-
-
-def session_request(
-    *,
-    user: User,
-    service: Service,
-    target: tuple[float, float] | None = None,
-    params: dict[str, Any] | None = None,
-    relay: bool = False,
-    preferences: dict[str, Any] | None = None,
-) -> Session:
-    """Open a session of ``service`` for ``user`` and reserve its required roles.
-
-    ``preferences`` (cameras, min_battery) tighten the requirements of every role.
-
-    Returns the session in state ``assigned``. Raises AssignmentError when the user
-    has no grant or already holds ``service.max_sessions_per_user`` live sessions of
-    it (no session is recorded; ``over_cap`` says which), or a role cannot be filled
-    (the session is recorded as failed with the reason, and no vehicle stays reserved).
-    """
-    service_grant_require(user=user, service=service)
-    refused: AssignmentError | None = None
-    pk = uuid.uuid4()
-    # One transaction, and the log written in one go at its end (services.eventlog).
-    # The session written once, assigned or failed (session_record's write).
-    with transaction.atomic(), events_staged(session_id=pk):
-        session = session_record(
-            user=user,
-            service=service,
-            target=target,
-            params=params,
-            relay=relay,
-            preferences=preferences,
-            pk=pk,
-            write=False,
-        )
-        try:
-            session_roles_assign(
-                session=session, service=service, target=target, preferences=preferences
-            )
-        except AssignmentError as exc:
-            refused = exc  # the failed session is committed, then the refusal raised
-        session_write(session)
-    if refused is not None:
-        raise refused
-    return session

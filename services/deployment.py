@@ -1,9 +1,10 @@
 """Task deployment: signed vehicle tasks out on the uplink, user tasks to the browser.
 
-For a session whose vehicles are reserved, :func:`session_deploy` signs one vehicle task
-per assigned vehicle (session, user, allowed commands, the service's limits, a delivery
-deadline and a nonce) and pushes it to the agent, then returns the *user task*: what the
-controller page needs, with a short-lived signed grant the agent verifies offline.
+:func:`session_open` opens every session; for a kind the user drives it reserves the
+vehicles and signs one vehicle task per assigned vehicle (session, user, allowed
+commands, the service's limits, a delivery deadline and a nonce), owes it to the agent,
+then returns the *user task*: what the controller page needs, with a short-lived signed
+grant the agent verifies offline.
 :func:`session_end` and :func:`session_revoke` close a session and tell the agents.
 
 Tokens are never logged: the session log keeps their nonces, which identify them.
@@ -39,10 +40,10 @@ from services.assignment import (
 from services.eventlog import event_append, events_staged, session_log
 from services.grants import user_can_use
 from services.ice import ice_servers_for
-from services.kinds import UnknownKind, kind_of
+from services.kinds import Opened, UnknownKind, kind_of
 from services.models import Assignment, Service, Session
 from services.selectors import delivery_entry
-from services.sessions import FINAL, session_transition, session_transition_locked
+from services.sessions import FINAL, session_transition_locked
 from services.signing import platform_private_key
 
 #: Session states in which grants can be issued and agents serve the session.
@@ -265,35 +266,6 @@ def _user_task(
     )
 
 
-def session_deploy(*, session: Session) -> UserTask:
-    """Deploy an ``assigned`` session: a signed task to every assigned vehicle, then the
-    user task (a controller grant) for the primary vehicle.
-
-    The session stays ``assigned``; it becomes ``active`` when the agent reports the
-    user connected (services.supervision). Raises DeploymentError when the session is
-    not ``assigned`` or has no vehicle; InvalidTaskError when the service's settings
-    cannot make a valid task, after failing the session with that reason (so its
-    vehicles are released) and sending nothing.
-    """
-    try:
-        with transaction.atomic():
-            locked = Session.objects.select_for_update(no_key=True).select_related(
-                "service", "user"
-            )
-            session = locked.get(pk=session.pk)
-            if session.state != Session.State.ASSIGNED:
-                raise DeploymentError(f"session {session.pk} is {session.state}, not assigned")
-            assignments = _active_assignments(session)
-            if not assignments:
-                raise DeploymentError(f"session {session.pk} has no assigned vehicle")
-            return _tasks_deploy(session=session, assignments=assignments, supersede=True)
-    except InvalidTaskError as exc:
-        # The block above rolled back (no task went out); record why and free the vehicles.
-        session_transition(session=session, to=Session.State.FAILED, reason=str(exc))
-        exc.session = session
-        raise
-
-
 def _tasks_deploy(*, session: Session, assignments: list[Assignment], supersede: bool) -> UserTask:
     """Sign every vehicle's task, then owe and log them, then the controller's grant
     (in the caller's transaction, which holds the session's row). Every task is signed
@@ -320,7 +292,7 @@ def _tasks_deploy(*, session: Session, assignments: list[Assignment], supersede:
     )
 
 
-def session_request_deploy(
+def session_open(
     *,
     user: User,
     service: Service,
@@ -328,21 +300,45 @@ def session_request_deploy(
     params: dict[str, Any] | None = None,
     relay: bool = False,
     preferences: dict[str, Any] | None = None,
+    deploy: bool = False,
     grant_checked: bool = False,
-) -> tuple[Session, UserTask]:
-    """:func:`services.assignment.session_request` then :func:`session_deploy`, in one
-    transaction, with the session's log written in one go at its end: the session, its
-    vehicles reserved and their signed tasks owed to their agents, and the controller's
-    user task. ``grant_checked``: the caller has just checked that ``user`` may use
-    ``service`` (services.request does), so it is not asked again.
+) -> Opened:
+    """Open a session of ``service`` for ``user``: the one way every kind opens one
+    (from :meth:`ServiceKind.open <services.kinds.ServiceKind.open>`, which
+    services.request.service_request calls for the portal and the API alike).
 
-    Raises AssignmentError as session_request (a session that could not be assigned
-    is recorded as failed); InvalidTaskError (with ``session``) when the service's
-    settings cannot make a valid task: the session is recorded as assigned, then
-    failed with that reason, its vehicles released and nothing sent.
+    The grant is checked (unless ``grant_checked``: the caller has just checked it), and
+    the user's live sessions of the service counted against ``max_sessions_per_user``
+    under the user's row lock; the session is recorded with its ``requested`` event.
+
+    ``deploy=False`` (a kind whose workflow finds its vehicles as it goes): that is all,
+    in the caller's transaction; ``Opened.task`` is None.
+
+    ``deploy=True`` (a kind the user drives): in one transaction, with the session's log
+    written in one go at its end, the service's required roles are reserved
+    (``preferences`` narrowing them), every vehicle's signed task is owed to its agent,
+    and the controller's user task is returned in ``Opened.task``.
+
+    Raises AssignmentError when the user may not use the service or holds as many live
+    sessions of it as it allows (``over_cap``): nothing is recorded. With ``deploy``:
+    AssignmentError when a role cannot be filled (the session is recorded as failed,
+    no vehicle stays reserved); InvalidTaskError (with ``session``) when the service's
+    settings cannot make a valid task: the session is recorded as assigned, then failed
+    with that reason, its vehicles released and nothing sent.
     """
     if not grant_checked:
         service_grant_require(user=user, service=service)
+    if not deploy:
+        with transaction.atomic():
+            session = session_record(
+                user=user,
+                service=service,
+                target=target,
+                params=params,
+                relay=relay,
+                preferences=preferences,
+            )
+        return Opened(session=session)
     refused: AssignmentError | InvalidTaskError | None = None
     pk = uuid.uuid4()
     # The session written once, as the block leaves it (session_record's write).
@@ -376,7 +372,7 @@ def session_request_deploy(
         raise refused
     # A new session: these are all its assignments, and its whole log.
     session.known_assignments, session.known_events = assignments, log
-    return session, task
+    return Opened(session=session, task=task)
 
 
 def grant_issue(

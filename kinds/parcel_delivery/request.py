@@ -30,7 +30,7 @@ from kinds.parcel_delivery.planning import (
     trip_work_m,
 )
 from kinds.parcel_delivery.tasks import delivery_schedule
-from services.assignment import session_open
+from services.deployment import session_open
 from services.eventlog import event_append
 from services.feasibility import Reach, km, role_capable, trip_m
 from services.kinds import RequestError
@@ -205,7 +205,9 @@ def parcel_request(*, user: User, service: Service, params: Mapping[str, Any]) -
         water=water,
     )
     with transaction.atomic():
-        session = session_open(user=user, service=service, target=pickup, params=dict(params))
+        session = session_open(
+            user=user, service=service, target=pickup, params=dict(params)
+        ).session
         delivery = Delivery.objects.create(
             session=session,
             pickup_lat=pickup[0],

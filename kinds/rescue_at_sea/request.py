@@ -29,7 +29,7 @@ from kinds.rescue_at_sea.coverage import (
 from kinds.rescue_at_sea.missions import SEARCH_SPEED_MPS
 from kinds.rescue_at_sea.models import KIND, SEARCH, Mission
 from kinds.rescue_at_sea.tasks import mission_schedule
-from services.assignment import session_open
+from services.deployment import session_open
 from services.eventlog import event_append
 from services.feasibility import km, role_capable, trip_m
 from services.kinds import RequestError
@@ -140,7 +140,7 @@ def rescue_request(
             service=service,
             target=center,
             params={"area": [list(p) for p in polygon], "altitude_m": altitude},
-        )
+        ).session
         mission = Mission.objects.create(
             session=session,
             area=[list(p) for p in polygon],

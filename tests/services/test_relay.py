@@ -24,9 +24,9 @@ from prometheus_client import REGISTRY
 from agents.protocol import PROTOCOL_VERSION
 from fleet.credentials import vehicle_issue_credential
 from iouv.asgi import application
-from services.assignment import session_request
-from services.deployment import grant_issue, session_deploy
+from services.deployment import grant_issue
 from tests import factories as f
+from tests.deployment import session_requested
 
 pytestmark = [pytest.mark.redis, pytest.mark.django_db(transaction=True)]
 
@@ -64,8 +64,7 @@ def _relayed_session() -> tuple[str, str, str, str]:
     credential = vehicle_issue_credential(vehicle=vehicle)
     alice = f.user(username="alice")
     service = f.service(allowed_commands=["front"])
-    session = session_request(user=alice, service=service)
-    session_deploy(session=session)
+    session = session_requested(user=alice, service=service).session
     task = grant_issue(session=session, user=alice)
     return str(vehicle.pk), credential, str(session.pk), task.grant
 

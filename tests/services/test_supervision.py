@@ -25,8 +25,7 @@ from fleet.models import Vehicle
 from fleet.status import vehicles_mark_stale_offline
 from fleet.uplink import vehicle_record_heartbeat
 from fleet.vehicle_events import vehicle_events
-from services.assignment import session_request
-from services.deployment import session_deploy, session_end
+from services.deployment import session_end, session_open
 from services.eventlog import session_log_verify
 from services.models import Session, SessionEvent
 from services.signing import platform_public_key
@@ -39,6 +38,7 @@ from services.supervision import (
     sessions_expire_undelivered,
 )
 from tests import factories as f
+from tests.deployment import session_requested
 from tests.uplink import uplink_welcomed, vehicle_enrolled
 
 pytestmark = pytest.mark.django_db
@@ -51,9 +51,8 @@ def live(inbox, committing):
     vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type())
     take = inbox(vehicle)
     service = f.service(allowed_commands=["up"], failsafe_action="land")
-    session = session_request(user=f.user(username="alice"), service=service)
     with committing():
-        session_deploy(session=session)
+        session = session_requested(user=f.user(username="alice"), service=service).session
     assert take()[0]["type"] == "task"
     return session, vehicle, take
 
@@ -270,9 +269,8 @@ def test_time_limit_revokes(inbox, committing):
     vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type())
     take = inbox(vehicle)
     service = f.service(session_time_limit_s=60, failsafe_action="return_to_home")
-    session = session_request(user=f.user(), service=service)
     with committing():
-        session_deploy(session=session)
+        session = session_requested(user=f.user(), service=service).session
     take()
     say(vehicle, event(session, "user_connected", role="controller"))
     started = Session.objects.get(pk=session.pk).started_at
@@ -514,7 +512,8 @@ def test_a_session_nobody_connects_to_ends_after_the_connect_timeout(live, commi
 def test_an_autonomous_session_waits_for_no_user(inbox, committing):
     vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type())
     service = f.service(kind="rescue_at_sea")
-    session_request(user=f.user(), service=service)
+    # Its vehicle reserved and its task sent at once, as a workflow's step would.
+    session_open(user=f.user(), service=service, deploy=True)
     later = timezone.now() + timedelta(seconds=settings.IOUV_CONNECT_TIMEOUT_S + 60)
     assert sessions_expire_unconnected(now=later) == []
     assert status(vehicle) == Vehicle.Status.RESERVED
@@ -672,8 +671,8 @@ async def test_agent_flow_over_the_uplink(_close_worker_connections):
     @database_sync_to_async
     def request():
         service = f.service(allowed_commands=["up"])
-        session = session_request(user=f.user(username="carol"), service=service)
-        return session, session_deploy(session=session)
+        opened = session_requested(user=f.user(username="carol"), service=service)
+        return opened.session, opened.task
 
     session, user_task = await request()
     assert user_task.control_url == "ws://127.0.0.1:9000/"
