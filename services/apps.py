@@ -9,17 +9,17 @@ class ServicesConfig(AppConfig):
         # fleet never imports services: its uplink tells the one listener registered
         # here what vehicles say, and the supervisor answers.
         from fleet.vehicle_events import vehicle_events_set
-        from services.supervision import Supervisor
+        from services.supervision.reports import Supervisor
 
         vehicle_events_set(Supervisor())
         # The flight records vehicles upload are kept with their sessions.
         from fleet.records import record_keeper_set
-        from services.records import record_batch_store
+        from services.records.keeping import record_batch_store
 
         record_keeper_set(record_batch_store)
         # Celery's workers count their failed tasks where /metrics reads them.
         from celery.signals import task_failure
 
-        from services.metrics import celery_task_failed
+        from services.supervision.metrics import celery_task_failed
 
         task_failure.connect(celery_task_failed, dispatch_uid="services.metrics.task_failure")

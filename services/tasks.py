@@ -13,9 +13,12 @@ from celery import shared_task
 from django.conf import settings
 
 from iouv.celery import app
-from services.notices import NoticeNotSent, notices_pending, notices_send, notices_send_or_retry
-from services.records import records_expire
-from services.supervision import (
+from services.records.keeping import records_expire
+
+# The notices' own sending task lives with them (services.sessions.notices), which
+# schedules it; it is named here too so that this module lists every task of the app.
+from services.sessions.notices import notices_pending, notices_send, services_notices_send
+from services.supervision.reports import (
     sessions_end_vehicle_lost,
     sessions_expire_grace,
     sessions_expire_time_limit,
@@ -62,21 +65,6 @@ def services_expire_undelivered() -> int:
     return len(sessions_expire_undelivered())
 
 
-@shared_task(
-    name="services.notices_send",
-    acks_late=True,
-    autoretry_for=(NoticeNotSent,),
-    max_retries=8,
-    retry_backoff=2,
-    retry_backoff_max=120,
-    retry_jitter=True,
-)
-def services_notices_send(session_id: str) -> int:
-    """Send a session's pending notices; retried with growing delays while any is
-    still unsent (a webhook down, a mail server away)."""
-    return notices_send_or_retry(session_id)
-
-
 @shared_task(name="services.notices_retry")
 def services_notices_retry() -> int:
     """Try again every notice still unsent (its task's retries ran out, or its message
@@ -102,3 +90,15 @@ def _schedule(sender, **kwargs) -> None:  # type: ignore[no-untyped-def]
     sender.add_periodic_task(15.0, services_expire_undelivered.s(), name="fail undelivered tasks")
     sender.add_periodic_task(10.0, services_notices_retry.s(), name="retry unsent notices")
     sender.add_periodic_task(3600.0, services_records_expire.s(), name="expire flight records")
+
+
+__all__ = [
+    "services_end_vehicle_lost",
+    "services_expire_grace",
+    "services_expire_time_limit",
+    "services_expire_unconnected",
+    "services_expire_undelivered",
+    "services_notices_retry",
+    "services_notices_send",
+    "services_records_expire",
+]

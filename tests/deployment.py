@@ -15,8 +15,8 @@ from agents.protocol import UserGrant
 from fleet.models import Vehicle
 from services.kinds import Opened, Request
 from services.models import Service, Session
-from services.request import service_request
-from services.signing import platform_public_key
+from services.sessions.request import service_request
+from services.sessions.signing import platform_public_key
 from tests import factories as f
 
 #: The commands the registered vehicle declares.
@@ -66,7 +66,7 @@ def session_requested(
     preferences: dict[str, Any] | None = None,
 ) -> Opened:
     """A session of ``service`` (a kind the user drives) requested by ``user`` the way
-    the portal and the API request one (services.request.service_request): its
+    the portal and the API request one (services.sessions.request.service_request): its
     vehicles reserved, their tasks owed to their agents, and the controller's user task
     in ``task``. Raises what a request raises (AssignmentError, DeploymentError)."""
     opened = service_request(

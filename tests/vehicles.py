@@ -22,8 +22,8 @@ from websockets.asyncio.client import connect
 from agents.runtime import Agent
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
-from services.deployment import UserTask
 from services.models import Service, Session
+from services.sessions.deployment import UserTask
 from tests import factories as f
 from tests.control import command, recv
 from tests.deployment import session_requested

@@ -9,9 +9,9 @@ from django import forms
 
 from accounts.users import User
 from kinds.manual_control.forms import SessionRequestForm
-from services.deployment import session_open
 from services.kinds import DemoService, Opened, Request, ServiceKind
 from services.models import Service
+from services.sessions.deployment import session_open
 
 
 class ManualControl(ServiceKind):
@@ -35,7 +35,7 @@ class ManualControl(ServiceKind):
         )
 
     def open(self, *, service: Service, user: User, request: Request) -> Opened:
-        # Reserved and deployed in one transaction. Only services.request calls open(),
+        # Reserved and deployed in one transaction. Only services.sessions.request calls open(),
         # after checking the user's grant.
         return session_open(
             user=user,

@@ -30,11 +30,11 @@ from kinds.parcel_delivery.planning import (
     trip_work_m,
 )
 from kinds.parcel_delivery.tasks import delivery_schedule
-from services.deployment import session_open
-from services.eventlog import event_append
-from services.feasibility import Reach, km, role_capable, trip_m
 from services.kinds import RequestError
 from services.models import Service, Session
+from services.sessions.deployment import session_open
+from services.sessions.feasibility import Reach, km, role_capable, trip_m
+from services.sessions.log import event_append
 
 #: The closest pickup and drop-off may be: nearer, it is not a delivery.
 MIN_TRIP_M = 20.0
@@ -188,7 +188,7 @@ def delivery_feasible(
 
 def parcel_request(*, user: User, service: Service, params: Mapping[str, Any]) -> Session:
     """Open a delivery of ``params`` (cleaned by :func:`params_clean`) and start its
-    workflow. Raises services.assignment.AssignmentError when the user may not use the
+    workflow. Raises services.sessions.matching.AssignmentError when the user may not use the
     service or is at its session limit; RequestError for another kind of service, or
     a parcel no carrier of the fleet could ever take (:func:`delivery_feasible`)."""
     if service.kind != KIND:

@@ -25,12 +25,12 @@ from kinds.parcel_delivery.conf import parcel_wait_s
 from kinds.parcel_delivery.models import CARRIER, FINAL_DELIVERY, Delivery
 from kinds.parcel_delivery.notifications import parcel_notices
 from kinds.parcel_delivery.planning import carrier_assign, carrier_role, trip_extra_m
-from services.assignment import AssignmentError
-from services.deployment import vehicle_task_deploy
-from services.feasibility import role_capable, trip_m, waiting_words
 from services.models import Assignment, Session
-from services.sessions import FINAL, session_transition
-from services.workflow import (
+from services.sessions.deployment import vehicle_task_deploy
+from services.sessions.feasibility import role_capable, trip_m, waiting_words
+from services.sessions.matching import AssignmentError
+from services.sessions.states import FINAL, session_transition
+from services.sessions.workflow import (
     assignment_release,
     session_close,
     steps_run,

@@ -32,13 +32,13 @@ from kinds.rescue_at_sea.conf import search_timeout_s
 from kinds.rescue_at_sea.models import DELIVERY, FINAL_MISSION, SEARCH, Mission
 from kinds.rescue_at_sea.notifications import mission_alert, notices_create
 from kinds.rescue_at_sea.presentation import timeline
-from services.assignment import AssignmentError, role_assign
-from services.deployment import vehicle_task_deploy
-from services.eventlog import event_append
-from services.feasibility import role_capable, trip_m, waiting_words
 from services.models import Assignment, ServiceRole, Session
-from services.sessions import FINAL, session_transition
-from services.workflow import (
+from services.sessions.deployment import vehicle_task_deploy
+from services.sessions.feasibility import role_capable, trip_m, waiting_words
+from services.sessions.log import event_append
+from services.sessions.matching import AssignmentError, role_assign
+from services.sessions.states import FINAL, session_transition
+from services.sessions.workflow import (
     assignment_release,
     session_close,
     steps_run,

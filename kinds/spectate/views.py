@@ -11,14 +11,14 @@ from django.views.decorators.cache import never_cache
 
 from accounts.users import AuthenticatedHttpRequest
 from kinds.spectate.kind import Spectate
-from services.deployment import DeploymentError, grant_issue, user_task_json
-from services.grants import user_can_use
 from services.models import Service, Session
-from services.selectors import session_summary
-from services.sessions import FINAL
-from services.supervision import session_situation
-from services.throttle import throttled
-from services.views import log_lines, session_vehicle_names
+from services.sessions.deployment import DeploymentError, grant_issue, user_task_json
+from services.sessions.grants import user_can_use
+from services.sessions.selectors import session_summary
+from services.sessions.states import FINAL
+from services.supervision.reports import session_situation
+from services.web.throttle import throttled
+from services.web.views import log_lines, session_vehicle_names
 
 
 def sessions_spectatable() -> QuerySet[Session]:

@@ -38,7 +38,7 @@ from fleet.models import AgentMessage, Vehicle
 from fleet.outbox import outbox
 from fleet.sending import avehicle_send, vehicle_send
 from fleet.uplink import vehicle_record_disconnect
-from services.signing import platform_jwks, platform_public_key_pem
+from services.sessions.signing import platform_jwks, platform_public_key_pem
 from tests.uplink import (
     agent_idle,
     eventually,

@@ -48,7 +48,7 @@ from django.utils import timezone
 
 from fleet.models import Vehicle
 from services.models import Session, SessionEvent
-from services.signing import platform_public_key_pem
+from services.sessions.signing import platform_public_key_pem
 from tests import factories as f
 from tests.browser import chromium_missing_reason
 from tests.deployment import session_requested

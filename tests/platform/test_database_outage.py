@@ -4,7 +4,7 @@ back: every request meanwhile is answered 503 with Retry-After within 2 s (the p
 down (iouv.health), and once PostgreSQL is back everything answers again without
 restarting anything. An agent's report sent during the outage is not lost: it is logged
 once PostgreSQL is back, with the time it happened on the vehicle (fleet.uplink,
-services.eventlog).
+services.sessions.log).
 
 The machine's PostgreSQL is shared, so the test runs a private one (Debian's binaries,
 a throw-away cluster on a free port, trust authentication) and stops that. The platform

@@ -1,4 +1,4 @@
-"""What operators watch (services.metrics): ``/metrics`` in Prometheus' text format says
+"""What operators watch (services.supervision.metrics): ``/metrics`` in Prometheus' text format says
 how many agents are online, the live sessions by state, the outbox's backlog and its
 oldest message's age, the Celery queue and the tasks that failed; only to the machine
 itself or to a scraper holding the token."""

@@ -37,9 +37,9 @@ from accounts.roles import CLIENT, MONITOR
 from accounts.tokens import token_for_raw, token_issue, token_revoke
 from agents.protocol import UserGrant
 from fleet.models import Vehicle
-from services import api
 from services.models import Service, Session
-from services.signing import platform_public_key
+from services.sessions.signing import platform_public_key
+from services.web import api
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db

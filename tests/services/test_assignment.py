@@ -11,8 +11,8 @@ from django.utils import timezone
 from agents.geo import offset
 from fleet.models import Vehicle
 from fleet.status import vehicle_set_maintenance
-from services.assignment import AssignmentError
 from services.models import Assignment, Session
+from services.sessions.matching import AssignmentError
 from tests import factories as f
 from tests.deployment import session_requested
 
@@ -217,7 +217,7 @@ def test_nearest_first_reads_the_fleet_a_page_at_a_time(base, monkeypatch):
     """Matching reads the vehicles nearest the target first, a page at a time: an
     eligible vehicle beyond the first pages is still found, the nearest eligible one
     wins, and when none is eligible the refusal still names the requirement."""
-    from services import assignment
+    from services.sessions import matching as assignment
 
     monkeypatch.setattr(assignment, "POOL_PAGE", 2)
     st, drone = base

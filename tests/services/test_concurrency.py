@@ -10,9 +10,9 @@ from django.conf import settings
 from django.db import connection, transaction
 
 from fleet.models import Vehicle
-from services.assignment import AssignmentError
-from services.eventlog import event_append, session_log, session_log_verify
 from services.models import Assignment, Session, SessionEvent
+from services.sessions.log import event_append, session_log, session_log_verify
+from services.sessions.matching import AssignmentError
 from tests import factories as f
 from tests.deployment import session_requested
 

@@ -16,17 +16,21 @@ from accounts.roles import MONITOR
 from agents.missions.return_home.spec import ReturnSpec
 from agents.protocol import Limits, UserGrant, VehicleTask, generate_keypair
 from fleet.models import Vehicle
-from services.deployment import (
+from services.kinds import ServiceKind, UnknownKind, kind_named, kind_of, kind_register
+from services.models import Session
+from services.sessions.deployment import (
     DeploymentError,
     InvalidTaskError,
     grant_issue,
     session_end,
     session_revoke,
 )
-from services.kinds import ServiceKind, UnknownKind, kind_named, kind_of, kind_register
-from services.models import Session
-from services.sessions import SessionStateError
-from services.signing import platform_private_key, platform_public_key, platform_public_key_pem
+from services.sessions.signing import (
+    platform_private_key,
+    platform_public_key,
+    platform_public_key_pem,
+)
+from services.sessions.states import SessionStateError
 from tests import factories as f
 from tests.deployment import (
     LIMITS,

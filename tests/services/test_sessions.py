@@ -6,9 +6,9 @@ import pytest
 from django.core.exceptions import ValidationError
 
 from fleet.models import Vehicle
-from services.eventlog import event_append, session_log_verify
 from services.models import Session, SessionEvent
-from services.sessions import SessionStateError, session_transition
+from services.sessions.log import event_append, session_log_verify
+from services.sessions.states import SessionStateError, session_transition
 from tests import factories as f
 from tests.deployment import session_requested
 

@@ -25,11 +25,11 @@ from fleet.models import Vehicle
 from fleet.status import vehicles_mark_stale_offline
 from fleet.uplink import vehicle_record_heartbeat
 from fleet.vehicle_events import vehicle_events
-from services.deployment import session_end, session_open
-from services.eventlog import session_log_verify
 from services.models import Session, SessionEvent
-from services.signing import platform_public_key
-from services.supervision import (
+from services.sessions.deployment import session_end, session_open
+from services.sessions.log import session_log_verify
+from services.sessions.signing import platform_public_key
+from services.supervision.reports import (
     LINK_QUALITY_EVERY_S,
     sessions_end_vehicle_lost,
     sessions_expire_grace,

@@ -25,12 +25,12 @@ from fleet.vehicle_events import vehicle_events
 from kinds.parcel_delivery.missions import vehicle_mission
 from kinds.parcel_delivery.models import Delivery
 from kinds.parcel_delivery.workflow import delivery_advance
-from services.assignment import AssignmentError
-from services.deployment import session_end
 from services.kinds import Request, RequestError
 from services.models import Assignment, Service, Session
-from services.notices import notices_send
-from services.request import service_request
+from services.sessions.deployment import session_end
+from services.sessions.matching import AssignmentError
+from services.sessions.notices import notices_send
+from services.sessions.request import service_request
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db

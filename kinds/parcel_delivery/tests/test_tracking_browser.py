@@ -27,7 +27,7 @@ from kinds.parcel_delivery.models import Delivery
 from kinds.parcel_delivery.workflow import delivery_advance
 from services.kinds import Request
 from services.models import Assignment, Service
-from services.request import service_request
+from services.sessions.request import service_request
 from tests.browser import needs_chromium
 from tests.portal import World, demo_world, sign_in
 from tests.servers import db

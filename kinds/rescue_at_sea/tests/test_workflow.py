@@ -31,9 +31,9 @@ from kinds.rescue_at_sea.presentation import mission_json
 from kinds.rescue_at_sea.request import RescueError, rescue_request
 from kinds.rescue_at_sea.tests.sea import SEA, area, online
 from kinds.rescue_at_sea.workflow import mission_advance, missions_tick
-from services.assignment import AssignmentError
 from services.models import Assignment, Notice, Service, Session
-from services.notices import notices_send as notifications_send
+from services.sessions.matching import AssignmentError
+from services.sessions.notices import notices_send as notifications_send
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db
@@ -345,7 +345,7 @@ def test_whole_area_searched_without_finding(world, client_user) -> None:
 
 
 def test_monitor_stop_aborts_the_mission(world, client_user) -> None:
-    from services.deployment import session_revoke
+    from services.sessions.deployment import session_revoke
 
     session = rescue_request(user=client_user, service=world, area=area())
     step(session)

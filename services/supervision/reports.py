@@ -53,19 +53,19 @@ from fleet.outbox import (
 from fleet.sending import vehicle_send
 from fleet.servers import vehicles_silence
 from fleet.vehicle_events import AgentState, SessionMessage
-from services.deployment import (
+from services.kinds import ServiceKind, UnknownKind, kind_of, kinds_user_driven
+from services.models import Assignment, Service, Session, SessionEvent
+from services.sessions.deployment import (
     LIVE,
     session_end,
     session_fail,
     session_revoke,
     vehicle_task_deploy,
 )
-from services.eventlog import event_append, events_occurred_at
-from services.kinds import ServiceKind, UnknownKind, kind_of, kinds_user_driven
-from services.models import Assignment, Service, Session, SessionEvent
-from services.selectors import failsafe_sentence
-from services.sessions import SessionStateError, session_transition
-from services.signing import platform_jwks, platform_public_key_pem
+from services.sessions.log import event_append, events_occurred_at
+from services.sessions.selectors import failsafe_sentence
+from services.sessions.signing import platform_jwks, platform_public_key_pem
+from services.sessions.states import SessionStateError, session_transition
 
 log = logging.getLogger(__name__)
 
@@ -595,7 +595,7 @@ def _controller_gone(session: Session) -> SessionEvent | None:
 
 
 def _failsafe_words(data: dict[str, Any]) -> str:
-    """An ``unintentional_end``'s fail-safe in words (services.selectors)."""
+    """An ``unintentional_end``'s fail-safe in words (services.sessions.selectors)."""
     pk = data.get("vehicle")
     vehicle = Vehicle.objects.filter(pk=pk).first() if pk else None
     return failsafe_sentence(
@@ -655,7 +655,7 @@ def sessions_expire_grace(
     ``IOUV_RECONNECT_GRACE_S``: after a fail-safe or the controller leaving, no
     controller connected again and no link recovered on the open socket since.
 
-    The reason says what happened, in words (services.selectors.failsafe_sentence:
+    The reason says what happened, in words (services.sessions.selectors.failsafe_sentence:
     "the driver's link to the vehicle was lost, so quad-1 will ...; nobody took control
     again within 30 s"), or that the user left. ``session_ids`` limits the check. Returns the
     ids of the sessions ended.

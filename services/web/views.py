@@ -17,8 +17,9 @@ from accounts.roles import user_roles
 from accounts.users import AuthenticatedHttpRequest
 from agents.geography import MASK_PATH
 from fleet.models import Station
-from services.assignment import AssignmentError
-from services.deployment import (
+from services.kinds import RequestError, ServiceKind, UnknownKind, kind_of
+from services.models import Service, Session
+from services.sessions.deployment import (
     DeploymentError,
     NotAssignedYet,
     grant_issue,
@@ -27,14 +28,14 @@ from services.deployment import (
     session_revoke,
     user_task_json,
 )
-from services.eventwords import event_text
-from services.grants import services_for_user, services_usable
-from services.kinds import RequestError, ServiceKind, UnknownKind, kind_of
-from services.models import Service, Session
-from services.request import service_request
-from services.selectors import service_vehicles_matching, session_summary
-from services.sessions import FINAL, SessionStateError
-from services.throttle import throttled
+from services.sessions.feasibility import request_map_default
+from services.sessions.grants import services_for_user, services_usable
+from services.sessions.matching import AssignmentError
+from services.sessions.request import service_request
+from services.sessions.selectors import service_vehicles_matching, session_summary
+from services.sessions.states import FINAL, SessionStateError
+from services.sessions.words import event_text
+from services.web.throttle import throttled
 
 
 def _kind(service: Service) -> ServiceKind:
@@ -68,7 +69,7 @@ def catalog(request: AuthenticatedHttpRequest) -> HttpResponse:
 @throttled("session_request", methods=("POST",))
 def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpResponse:
     """The request page of one service (its kind's form); a valid POST opens the
-    session (services.request: the same path as the API) and shows its page."""
+    session (services.sessions.request: the same path as the API) and shows its page."""
     service = services_usable(request.user).filter(slug=slug).first()
     if service is None:
         raise Http404("no such service")
@@ -95,7 +96,7 @@ def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpRe
         else:
             return redirect("session", session_id=opened.session.pk)
     # The map opens where the service can be given, and shows how far its vehicles
-    # reach (services.feasibility): a request beyond that is refused at once.
+    # reach (services.sessions.feasibility): a request beyond that is refused at once.
     return render(
         request,
         kind.request_template,
@@ -104,7 +105,10 @@ def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpRe
             "kind": kind,
             "form": form,
             "available": service_vehicles_matching(service, kind.request_role(service)),
-            "map": {**kind.request_map(service), "tiles": settings.IOUV_MAP_TILES_URL},
+            "map": {
+                **(kind.request_map(service) or request_map_default(kind, service)),
+                "tiles": settings.IOUV_MAP_TILES_URL,
+            },
         },
     )
 

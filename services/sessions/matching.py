@@ -54,10 +54,10 @@ from fleet.feed import fleet_notify
 from fleet.liveness import vehicles_fresh
 from fleet.models import Vehicle
 from fleet.status import vehicles_online
-from services.eventlog import event_append
-from services.grants import user_can_use
 from services.models import Assignment, Service, ServiceRole, Session
-from services.sessions import FINAL, session_transition_locked
+from services.sessions.grants import user_can_use
+from services.sessions.log import event_append
+from services.sessions.states import FINAL, session_transition_locked
 
 #: States of a session that holds (or is about to hold) vehicles.
 LIVE_STATES = [state for state in Session.State.values if state not in FINAL]
@@ -522,12 +522,12 @@ def session_record(
     write: bool = True,
 ) -> Session:
     """A new session recorded in the caller's transaction, without the grant check (the
-    caller made it: services.deployment.session_open): the cap is counted under the
+    caller made it: services.sessions.deployment.session_open): the cap is counted under the
     user's row lock, the session (``pk`` if given) is recorded and its ``requested``
     event logged. Raises AssignmentError (``over_cap``) before writing anything.
 
     ``write=False``: the session is not written yet. Its state changes stay on the
-    instance (services.sessions) and the caller writes it once, as they leave it, with
+    instance (services.sessions.states) and the caller writes it once, as they leave it, with
     :func:`session_write` before its transaction ends (what refers to it, its
     assignments and its log, is checked against it at the commit)."""
     # The user's row is the lock: two requests of one user are counted one after the

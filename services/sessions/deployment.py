@@ -30,21 +30,21 @@ from fleet.feed import fleet_notify
 from fleet.models import AgentMessage, Vehicle
 from fleet.outbox import agent_messages_cancel
 from fleet.sending import vehicle_send
-from services.assignment import (
+from services.kinds import Opened, UnknownKind, kind_of
+from services.models import Assignment, Service, Session
+from services.sessions.grants import user_can_use
+from services.sessions.ice import ice_servers_for
+from services.sessions.log import event_append, events_staged, session_log
+from services.sessions.matching import (
     AssignmentError,
     service_grant_require,
     session_record,
     session_roles_assign,
     session_write,
 )
-from services.eventlog import event_append, events_staged, session_log
-from services.grants import user_can_use
-from services.ice import ice_servers_for
-from services.kinds import Opened, UnknownKind, kind_of
-from services.models import Assignment, Service, Session
-from services.selectors import delivery_entry
-from services.sessions import FINAL, session_transition_locked
-from services.signing import platform_private_key
+from services.sessions.selectors import delivery_entry
+from services.sessions.signing import platform_private_key
+from services.sessions.states import FINAL, session_transition_locked
 
 #: Session states in which grants can be issued and agents serve the session.
 LIVE = (Session.State.ASSIGNED, Session.State.ACTIVE)
@@ -305,7 +305,7 @@ def session_open(
 ) -> Opened:
     """Open a session of ``service`` for ``user``: the one way every kind opens one
     (from :meth:`ServiceKind.open <services.kinds.ServiceKind.open>`, which
-    services.request.service_request calls for the portal and the API alike).
+    services.sessions.request.service_request calls for the portal and the API alike).
 
     The grant is checked (unless ``grant_checked``: the caller has just checked it), and
     the user's live sessions of the service counted against ``max_sessions_per_user``
@@ -522,7 +522,7 @@ def session_end(*, session: Session, reason: str, by_user: bool, locked: bool = 
     (else the platform did). ``locked``: the caller read ``session`` locked, in the
     transaction this joins (see :func:`_close`).
 
-    Raises services.sessions.SessionStateError when the session cannot end (already
+    Raises services.sessions.states.SessionStateError when the session cannot end (already
     final) or ``reason`` is empty.
     """
     return _close(
@@ -548,7 +548,7 @@ def session_end_by_user(*, session: Session, reason: str = "", locked: bool = Fa
     given) and its vehicles perform the end as :func:`session_end` says. ``locked``: as
     :func:`session_end`.
 
-    Raises services.sessions.SessionStateError when the session is already over.
+    Raises services.sessions.states.SessionStateError when the session is already over.
     """
     if not reason:
         waiting = session.state == Session.State.REQUESTED
@@ -570,7 +570,7 @@ def session_revoke(*, session: Session, reason: str, action: str) -> Session:
     """Stop ``session`` now (a supervisor rule or a monitor's kill switch): its agents
     get ``revoke`` and perform ``action`` (stop, land or return_to_home); the session is
     aborted with ``reason`` and its vehicles are released once their agents confirm
-    (see :func:`vehicle_release`; :func:`services.selectors.session_delivery` says
+    (see :func:`vehicle_release`; :func:`services.sessions.selectors.session_delivery` says
     whether the revoke has reached each vehicle).
 
     Raises SessionStateError as :func:`session_end`; ValueError for an unknown action.
@@ -606,7 +606,7 @@ def user_task_json(task: UserTask, *, request: HttpRequest) -> dict[str, Any]:
     path that always works, and where a WebRTC connection is signalled. A relayed
     session's ``control_url`` is that socket too. ``ice_servers`` are the STUN/TURN
     servers for the user's side of that WebRTC connection (TURN credentials of its
-    own, expiring with the grant: services.ice)."""
+    own, expiring with the grant: services.sessions.ice)."""
     data = dataclasses.asdict(task)
     scheme = "wss" if request.is_secure() else "ws"
     data["relay_url"] = f"{scheme}://{request.get_host()}/ws/relay/{task.session_id}/"
