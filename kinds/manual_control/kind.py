@@ -9,9 +9,8 @@ from django import forms
 
 from accounts.users import User
 from kinds.manual_control.forms import SessionRequestForm
-from services.kinds import DemoService, Opened, Request, ServiceKind
+from services.kit import DemoService, Opened, Request, ServiceKind, session_open
 from services.models import Service
-from services.sessions.deployment import session_open
 
 
 class ManualControl(ServiceKind):

@@ -19,9 +19,18 @@ from kinds.parcel_delivery.models import CARRIER, KIND, Delivery
 from kinds.parcel_delivery.notifications import tracking_url
 from kinds.parcel_delivery.presentation import delivery_json
 from kinds.parcel_delivery.request import MIN_TRIP_M, params_clean, parcel_request
-from services.kinds import DemoService, EventHandler, Opened, Request, ServiceKind
+from services.kit import (
+    DemoService,
+    EventHandler,
+    Opened,
+    Reach,
+    Request,
+    ServiceKind,
+    km,
+    reach_map,
+    role_capable,
+)
 from services.models import Assignment, Service, ServiceRole, Session
-from services.sessions.feasibility import Reach, km, reach_map, role_capable
 
 
 def _on(name: str) -> EventHandler:

@@ -7,8 +7,8 @@ from django.conf import settings
 from django.urls import reverse
 
 from kinds.parcel_delivery.models import Delivery
+from services.kit import notice_create
 from services.models import Notice
-from services.sessions.notices import notice_create
 
 #: The notices' topics, by moment.
 TOPICS = {"dispatched": "parcel_dispatched", "delivered": "parcel_delivered"}

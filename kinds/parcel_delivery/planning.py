@@ -16,8 +16,8 @@ from agents.geo import distance_m
 from agents.geography import is_water
 from fleet.models import VehicleType
 from kinds.parcel_delivery.models import CARRIER, Delivery
+from services.kit import role_assign
 from services.models import Assignment, Service, ServiceRole
-from services.sessions.matching import role_assign
 
 #: The heaviest parcel and the longest trip a request may ask for.
 MAX_WEIGHT_KG = 25.0

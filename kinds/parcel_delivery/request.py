@@ -30,11 +30,8 @@ from kinds.parcel_delivery.planning import (
     trip_work_m,
 )
 from kinds.parcel_delivery.tasks import delivery_schedule
-from services.kinds import RequestError
+from services.kit import Reach, RequestError, event_append, km, role_capable, session_open, trip_m
 from services.models import Service, Session
-from services.sessions.deployment import session_open
-from services.sessions.feasibility import Reach, km, role_capable, trip_m
-from services.sessions.log import event_append
 
 #: The closest pickup and drop-off may be: nearer, it is not a delivery.
 MIN_TRIP_M = 20.0

@@ -10,8 +10,8 @@ from __future__ import annotations
 from typing import Any
 
 from kinds.rescue_at_sea.models import SEARCH, Mission, RescueTeam
+from services.kit import notice_create
 from services.models import Assignment, Notice
-from services.sessions.notices import notice_create
 
 #: The notice's topic: one per mission and channel.
 PERSON_IN_WATER = "person_in_water"

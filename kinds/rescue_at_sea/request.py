@@ -29,11 +29,8 @@ from kinds.rescue_at_sea.coverage import (
 from kinds.rescue_at_sea.missions import SEARCH_SPEED_MPS
 from kinds.rescue_at_sea.models import KIND, SEARCH, Mission
 from kinds.rescue_at_sea.tasks import mission_schedule
-from services.kinds import RequestError
+from services.kit import RequestError, event_append, km, role_capable, session_open, trip_m
 from services.models import Service, Session
-from services.sessions.deployment import session_open
-from services.sessions.feasibility import km, role_capable, trip_m
-from services.sessions.log import event_append
 
 #: Search altitude: high enough for a wide thermal footprint, low enough that a head
 #: in the water still covers a few pixels (0.3 m per pixel at 40 m with 160 pixels).

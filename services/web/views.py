@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-from typing import Any
 
 from django.conf import settings
 from django.contrib import messages
@@ -34,8 +33,8 @@ from services.sessions.matching import AssignmentError
 from services.sessions.request import service_request
 from services.sessions.selectors import service_vehicles_matching, session_summary
 from services.sessions.states import FINAL, SessionStateError
-from services.sessions.words import event_text
 from services.web.throttle import throttled
+from services.web.watching import log_lines, session_vehicle_names
 
 
 def _kind(service: Service) -> ServiceKind:
@@ -111,31 +110,6 @@ def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpRe
             },
         },
     )
-
-
-def log_lines(session: Session) -> list[dict[str, Any]]:
-    """The latest log events, oldest first (the session's story, in order), as the
-    session pages list them; the page adds newer ones at the end."""
-    return [
-        {"at": event.created_at, "label": event_text(event.kind, event.data), "detail": ""}
-        for event in list(session.events.order_by("-seq")[:30])[::-1]
-    ]
-
-
-def session_vehicle_names(session: Session) -> list[str]:
-    """Every vehicle the session had, in the order it had them: a session page names
-    them after the end too."""
-    names = session.assignments.order_by("created_at").values_list("vehicle__name", flat=True)
-    return list(dict.fromkeys(names))
-
-
-def session_watched(request: AuthenticatedHttpRequest, session_id: str) -> Session:
-    """The session if the request's user may watch it (its own user, or a monitor);
-    404 otherwise, so others' sessions are not even confirmed to exist."""
-    session = get_object_or_404(Session.objects.select_related("service"), pk=session_id)
-    if session.user_id != request.user.pk and not request.user.has_perm("fleet.view_fleet"):
-        raise Http404("no such session")
-    return session
 
 
 def _own_session(request: AuthenticatedHttpRequest, session_id: str) -> Session:
