@@ -903,7 +903,7 @@ def world_seed(*, vehicles: int) -> World:
         vehicles_seed,
     )
     from services.models import Service, ServiceGrant, ServiceRole, Session
-    from services.sessions.deployment import session_fail
+    from services.sessions.ending import session_fail
     from services.sessions.states import FINAL, SessionStateError
 
     user_model = get_user_model()

@@ -52,7 +52,6 @@ from services.kinds import (
 from services.sessions.deployment import (
     DeploymentError,
     grant_issue,
-    session_open,
     user_task_json,
     vehicle_task_deploy,
 )
@@ -61,6 +60,7 @@ from services.sessions.grants import user_can_use
 from services.sessions.log import event_append
 from services.sessions.matching import AssignmentError, role_assign
 from services.sessions.notices import notice_create
+from services.sessions.opening import session_open
 from services.sessions.selectors import session_consequence, session_summary
 from services.sessions.states import FINAL, session_transition
 from services.sessions.workflow import (
@@ -73,7 +73,7 @@ from services.sessions.workflow import (
     vehicles_unfit,
     workflow_state_set,
 )
-from services.supervision.reports import session_situation
+from services.supervision.situation import session_situation
 from services.web.throttle import throttled
 from services.web.watching import log_lines, session_vehicle_names, session_watched
 

@@ -18,7 +18,7 @@ from services.records.keeping import records_expire
 # The notices' own sending task lives with them (services.sessions.notices), which
 # schedules it; it is named here too so that this module lists every task of the app.
 from services.sessions.notices import notices_pending, notices_send, services_notices_send
-from services.supervision.reports import (
+from services.supervision.timers import (
     sessions_end_vehicle_lost,
     sessions_expire_grace,
     sessions_expire_time_limit,

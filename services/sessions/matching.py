@@ -33,7 +33,6 @@ from datetime import datetime
 from functools import reduce
 from typing import Any
 
-from django.contrib.auth import get_user_model
 from django.db import connection, transaction
 from django.db.models import (
     Exists,
@@ -47,7 +46,6 @@ from django.db.models import (
 )
 from django.utils import timezone
 
-from accounts.users import User
 from agents.geo import distance_m
 from fleet.attributes import DeclaredAttributes
 from fleet.feed import fleet_notify
@@ -55,12 +53,8 @@ from fleet.liveness import vehicles_fresh
 from fleet.models import Vehicle
 from fleet.status import vehicles_online
 from services.models import Assignment, Service, ServiceRole, Session
-from services.sessions.grants import user_can_use
 from services.sessions.log import event_append
-from services.sessions.states import FINAL, session_transition_locked
-
-#: States of a session that holds (or is about to hold) vehicles.
-LIVE_STATES = [state for state in Session.State.values if state not in FINAL]
+from services.sessions.states import session_transition_locked
 
 
 class AssignmentError(Exception):
@@ -508,80 +502,6 @@ def role_tightened(role: ServiceRole, preferences: dict[str, Any]) -> ServiceRol
     tight.features = sorted(set(role.features) | set(preferences.get("features", [])))
     tight.min_battery = max(role.min_battery, float(preferences.get("min_battery") or 0))
     return tight
-
-
-def session_record(
-    *,
-    user: User,
-    service: Service,
-    target: tuple[float, float] | None = None,
-    params: dict[str, Any] | None = None,
-    relay: bool = False,
-    preferences: dict[str, Any] | None = None,
-    pk: Any = None,
-    write: bool = True,
-) -> Session:
-    """A new session recorded in the caller's transaction, without the grant check (the
-    caller made it: services.sessions.deployment.session_open): the cap is counted under the
-    user's row lock, the session (``pk`` if given) is recorded and its ``requested``
-    event logged. Raises AssignmentError (``over_cap``) before writing anything.
-
-    ``write=False``: the session is not written yet. Its state changes stay on the
-    instance (services.sessions.states) and the caller writes it once, as they leave it, with
-    :func:`session_write` before its transaction ends (what refers to it, its
-    assignments and its log, is checked against it at the commit)."""
-    # The user's row is the lock: two requests of one user are counted one after the
-    # other, so together they cannot pass the cap. The count is a statement of its own:
-    # under READ COMMITTED a statement sees what was committed when it began, and the
-    # lock may be waited for; counted in the locking statement, a racing request's
-    # session, committed while this one waited, would not be seen.
-    list(
-        get_user_model().objects.select_for_update().filter(pk=user.pk).values_list("pk", flat=True)
-    )
-    live = Session.objects.filter(user=user, service=service, state__in=LIVE_STATES).count()
-    cap = service.max_sessions_per_user
-    if live >= cap:
-        raise AssignmentError(
-            f"you already have {live} live session{'s' if live != 1 else ''} of "
-            f"{service.name!r} (at most {cap}); end one first",
-            over_cap=True,
-        )
-    session = Session(
-        service=service,
-        user=user,
-        target_lat=target[0] if target else None,
-        target_lon=target[1] if target else None,
-        params=params or {},
-        relay=relay,
-    )
-    if pk is not None:
-        session.pk = pk
-    if write:
-        session.save(force_insert=True)
-    event_append(
-        session=session,
-        kind="requested",
-        data={
-            "user": user.get_username(),
-            "target": list(target) if target else None,
-            "relay": relay,
-            "preferences": preferences or {},
-        },
-        locked=True,  # nobody else sees it before this transaction commits
-    )
-    return session
-
-
-def session_write(session: Session) -> Session:
-    """Write a session :func:`session_record` left unwritten, as it is now."""
-    session.save(force_insert=True)
-    return session
-
-
-def service_grant_require(*, user: User, service: Service) -> None:
-    """Raises AssignmentError when ``user`` may not use ``service`` (or it is off)."""
-    if not service.is_active or not user_can_use(user, service):
-        raise AssignmentError(f"you may not use the service {service.name!r}")
 
 
 def session_roles_assign(

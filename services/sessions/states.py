@@ -74,7 +74,7 @@ def session_transition_locked(
     savepoint is made. ``session`` is updated in place. On a final state its active
     assignments end (see :func:`assignments_release`); with ``free_vehicles`` their
     vehicles become idle again, else the caller settles them (see
-    services.sessions.deployment.vehicle_release). ``log``: the session's whole log, read under
+    services.sessions.ending.vehicle_release). ``log``: the session's whole log, read under
     the lock (services.sessions.log.event_append).
 
     Returns the ids of the vehicles released. Raises SessionStateError, before any

@@ -20,7 +20,8 @@ from django.utils import timezone
 from agents.protocol.messages import EndTask
 from fleet.models import Vehicle
 from services.models import Assignment, Session
-from services.sessions.deployment import session_end, vehicle_release, vehicle_task_deploy
+from services.sessions.deployment import vehicle_task_deploy
+from services.sessions.ending import session_end, vehicle_release
 from services.sessions.log import event_append
 from services.sessions.states import FINAL, SessionStateError, session_transition
 

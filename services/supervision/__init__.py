@@ -1,2 +1,4 @@
 """Supervision: what vehicles report about their sessions and the rules applied to it
-(``reports``), the periodic rules (``timers``), and what operators watch (``metrics``)."""
+(``reports``, fleet's vehicle-events listener), what a live session's situation is
+(``situation``), the periodic rules (``timers``), and what operators watch
+(``metrics``)."""

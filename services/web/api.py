@@ -30,10 +30,9 @@ from services.sessions.deployment import (
     DeploymentError,
     InvalidTaskError,
     grant_issue,
-    session_end_by_user,
-    session_revoke,
     user_task_json,
 )
+from services.sessions.ending import session_end_by_user, session_revoke
 from services.sessions.grants import service_usable_get, services_for_user
 from services.sessions.matching import AssignmentError
 from services.sessions.request import service_request

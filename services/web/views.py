@@ -22,11 +22,9 @@ from services.sessions.deployment import (
     DeploymentError,
     NotAssignedYet,
     grant_issue,
-    session_end_by_user,
-    session_ended_words,
-    session_revoke,
     user_task_json,
 )
+from services.sessions.ending import session_end_by_user, session_ended_words, session_revoke
 from services.sessions.feasibility import request_map_default
 from services.sessions.grants import services_for_user, services_usable
 from services.sessions.matching import AssignmentError

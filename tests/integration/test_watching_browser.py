@@ -17,7 +17,7 @@ from kinds.rescue_at_sea.request import rescue_request
 from kinds.rescue_at_sea.workflow import mission_advance
 from services.demo import CASTAWAY
 from services.models import Service, Session
-from services.sessions.deployment import session_revoke
+from services.sessions.ending import session_revoke
 from tests.browser import needs_chromium
 from tests.portal import World, request_car, wait_for
 from tests.servers import db

@@ -18,13 +18,8 @@ from agents.protocol import Limits, UserGrant, VehicleTask, generate_keypair
 from fleet.models import Vehicle
 from services.kinds import ServiceKind, UnknownKind, kind_named, kind_of, kind_register
 from services.models import Session
-from services.sessions.deployment import (
-    DeploymentError,
-    InvalidTaskError,
-    grant_issue,
-    session_end,
-    session_revoke,
-)
+from services.sessions.deployment import DeploymentError, InvalidTaskError, grant_issue
+from services.sessions.ending import session_end, session_revoke
 from services.sessions.signing import (
     platform_private_key,
     platform_public_key,

@@ -26,11 +26,12 @@ from fleet.status import vehicles_mark_stale_offline
 from fleet.uplink import vehicle_record_heartbeat
 from fleet.vehicle_events import vehicle_events
 from services.models import Session, SessionEvent
-from services.sessions.deployment import session_end, session_open
+from services.sessions.ending import session_end
 from services.sessions.log import session_log_verify
+from services.sessions.opening import session_open
 from services.sessions.signing import platform_public_key
-from services.supervision.reports import (
-    LINK_QUALITY_EVERY_S,
+from services.supervision.reports import LINK_QUALITY_EVERY_S
+from services.supervision.timers import (
     sessions_end_vehicle_lost,
     sessions_expire_grace,
     sessions_expire_time_limit,

@@ -27,7 +27,7 @@ from kinds.parcel_delivery.models import Delivery
 from kinds.parcel_delivery.workflow import delivery_advance
 from services.kinds import Request, RequestError
 from services.models import Assignment, Service, Session
-from services.sessions.deployment import session_end
+from services.sessions.ending import session_end
 from services.sessions.matching import AssignmentError
 from services.sessions.notices import notices_send
 from services.sessions.request import service_request

@@ -345,7 +345,7 @@ def test_whole_area_searched_without_finding(world, client_user) -> None:
 
 
 def test_monitor_stop_aborts_the_mission(world, client_user) -> None:
-    from services.sessions.deployment import session_revoke
+    from services.sessions.ending import session_revoke
 
     session = rescue_request(user=client_user, service=world, area=area())
     step(session)
