@@ -24,7 +24,7 @@ def client_address(request: HttpRequest) -> str | None:
     made in process, a proxy on a Unix socket without ``BEHIND_PROXY``).
 
     Used by django-axes (``AXES_CLIENT_IP_CALLABLE``) and by the rate limits
-    (services.throttle), so both count the same client."""
+    (services.web.throttle), so both count the same client."""
     if settings.BEHIND_PROXY:
         forwarded = request.META.get("HTTP_X_FORWARDED_FOR", "")
         last = forwarded.rsplit(",", 1)[-1].strip()

@@ -10,7 +10,7 @@ a hash each (PBKDF2's several hundred milliseconds of CPU) once it is locked out
 
 The API has no password endpoint: it takes only bearer tokens (accounts.tokens), 256-bit
 random secrets that cannot be guessed, and its requests are limited per address
-(services.throttle).
+(services.web.throttle).
 """
 
 from __future__ import annotations

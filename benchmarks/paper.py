@@ -902,9 +902,9 @@ def world_seed(*, vehicles: int) -> World:
         vehicle_types_seed,
         vehicles_seed,
     )
-    from services.deployment import session_fail
     from services.models import Service, ServiceGrant, ServiceRole, Session
-    from services.sessions import FINAL, SessionStateError
+    from services.sessions.ending import session_fail
+    from services.sessions.states import FINAL, SessionStateError
 
     user_model = get_user_model()
     with transaction.atomic():
@@ -2439,7 +2439,7 @@ def datachannel_report(
         "candidates only (`iceTransportPolicy: relay`) from "
         + (turn["server"] if turn else "a coturn on loopback")
         + " (`benchmarks/turn_server.py`) with TURN REST credentials minted per session by "
-        "`services.ice.turn_credentials`, as the platform mints them from "
+        "`services.sessions.ice.turn_credentials`, as the platform mints them from "
         "`IOUV_TURN_SECRET` (the platform itself is not configured with TURN here, so the "
         "agent gathers host candidates only); ICE can then only pair through the TURN "
         "server. Every data-channel connection checks the path both ends report "
@@ -2603,7 +2603,7 @@ def bench_env(args: argparse.Namespace) -> dict[str, str]:
         "LOG_LEVEL": "WARNING",
         "PYTHONUNBUFFERED": "1",
         # Trials request sessions and grants back to back, faster than a user may
-        # (services.throttle): the benchmark measures the platform, not its limits.
+        # (services.web.throttle): the benchmark measures the platform, not its limits.
         "IOUV_RATE_LIMITS": "0",
     }
     database = args.database_url

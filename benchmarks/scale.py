@@ -2055,7 +2055,7 @@ def run(
         # Per-connection INFO lines would put a thousand log writes in the measurement.
         "LOG_LEVEL": os.environ.get("BENCH_LOG_LEVEL", "WARNING"),
         # A few API clients request sessions and grants far faster than any user may
-        # (services.throttle): the benchmark measures the platform, not its limits.
+        # (services.web.throttle): the benchmark measures the platform, not its limits.
         "IOUV_RATE_LIMITS": "0",
         # The settings' default is inside the tree: every tree must share the signing
         # key and the logs.

@@ -82,7 +82,7 @@ def world_build(
     from fleet.credentials import vehicle_issue_credential
     from fleet.models import Station, Vehicle, VehicleType
     from services.models import Service, ServiceGrant, ServiceRole
-    from services.signing import platform_public_key_pem
+    from services.sessions.signing import platform_public_key_pem
 
     rng = random.Random(7)
     groups = roles_ensure()
@@ -245,7 +245,7 @@ def sessions_check(*, session_ids: Sequence[str]) -> dict[str, int]:
     """Of ``session_ids``: how many had a task deployed, accepted by the agent (in the
     session log), and are over."""
     from services.models import Session, SessionEvent
-    from services.sessions import FINAL
+    from services.sessions.states import FINAL
 
     events = SessionEvent.objects.filter(session_id__in=session_ids)
     return {

@@ -7,7 +7,7 @@
 One ``turnserver`` (coturn, Debian package ``coturn``) listens for STUN and TURN on one
 UDP/TCP port of ``127.0.0.1`` (no TLS/DTLS), allocates relays on ``127.0.0.1`` and may
 relay to loopback peers only: everything stays on this machine. Credentials follow the
-TURN REST scheme (``use-auth-secret``) that the platform's :mod:`services.ice` mints with
+TURN REST scheme (``use-auth-secret``) that the platform's :mod:`services.sessions.ice` mints with
 ``IOUV_TURN_SECRET``; :meth:`TurnServer.ice_servers` mints them with the same function.
 
 :func:`turn_server` returns once the server answers a STUN binding request, and stops the
@@ -75,8 +75,8 @@ class TurnServer:
 
     def credentials(self, name: str, *, ttl_s: int = 3600) -> tuple[str, str]:
         """(username, password) for ``name`` (no ``:``), valid ``ttl_s`` seconds: the
-        TURN REST scheme of :func:`services.ice.turn_credentials`."""
-        from services.ice import turn_credentials
+        TURN REST scheme of :func:`services.sessions.ice.turn_credentials`."""
+        from services.sessions.ice import turn_credentials
 
         return turn_credentials(self.secret, name, ttl_s=ttl_s)
 

@@ -45,7 +45,8 @@ proc_name = "iouv-web"
 
 def child_exit(server: object, worker: object) -> None:
     """A worker process ended: with prometheus-client's multiprocess mode (the unit
-    sets ``PROMETHEUS_MULTIPROC_DIR``), its live gauges stop counting (services.metrics)."""
+    sets ``PROMETHEUS_MULTIPROC_DIR``), its live gauges stop counting
+    (services.supervision.metrics)."""
     if os.environ.get("PROMETHEUS_MULTIPROC_DIR"):
         from prometheus_client import multiprocess
 

@@ -134,7 +134,7 @@ def features_clean(value: Any) -> list[str]:
 
 class DeclaredAttributes:
     """The list-valued declared attributes, read from ``self.attributes``: shared by the
-    vehicle model and the plain rows matching works on (services.assignment.Facts)."""
+    vehicle model and the plain rows matching works on (services.sessions.matching.Facts)."""
 
     attributes: dict[str, Any]
 

@@ -184,7 +184,7 @@ def vehicle_disconnect_older_uplinks(*, vehicle_id: Any, generation: int) -> Age
 
 @dataclass(frozen=True)
 class Acked:
-    """An acknowledged message, as handed to other apps (fleet.signals.agent_acked)."""
+    """An acknowledged message, as handed to the session owner (fleet.vehicle_events)."""
 
     vehicle_id: str
     session_id: str | None

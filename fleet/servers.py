@@ -19,7 +19,7 @@ read as a vehicle's:
   from when some process was there again: the platform may have been away entirely.
 
 :func:`vehicles_silence` applies both to a set of vehicles; the offline sweep
-(fleet.status) and the lost-vehicle rule (services.supervision) judge by it.
+(fleet.status) and the lost-vehicle rule (services.supervision.reports) judge by it.
 """
 
 from __future__ import annotations

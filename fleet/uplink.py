@@ -3,7 +3,7 @@
 Wire protocol: docs/protocol.md ("Uplink"). The consumer trusts nothing the agent sends:
 every frame goes through ``agents.protocol.parse_message`` first. It records what the
 fleet needs itself (profile, heartbeats, online/offline) and hands everything about
-sessions to other apps through the signals in ``fleet.signals``, because ``fleet``
+sessions to the app that owns them through ``fleet.vehicle_events``, because ``fleet``
 never imports ``services``.
 
 Close codes the platform uses on this socket:
@@ -24,9 +24,10 @@ the platform's other server, closes with nothing but 1000 or 3000-4999, so the
 standard 1011 and 1013 cannot be sent; 4500 and 4503 say the same as HTTP's 500 and 503.
 
 What the platform tells an agent (tasks, revokes, ends) is owed in the database until
-the agent acknowledges it (:func:`vehicle_send`, fleet.outbox); relayed control traffic
-travels on the channel layer to the group of the vehicle (:func:`avehicle_send`), so any
-platform process can reach an agent connected to another.
+the agent acknowledges it (fleet.sending.vehicle_send, fleet.outbox); relayed control
+traffic travels on the channel layer to the group of the vehicle
+(fleet.sending.avehicle_send), so any platform process can reach an agent connected to
+another.
 """
 
 from __future__ import annotations
@@ -47,10 +48,8 @@ from typing import Any, Literal, TypeVar
 import msgspec
 from channels.db import database_sync_to_async
 from channels.generic.websocket import AsyncWebsocketConsumer
-from channels.layers import get_channel_layer
 from django.conf import settings
 from django.db import connection, transaction
-from django.dispatch import Signal
 from django.utils import timezone
 from msgspec import UNSET, UnsetType
 
@@ -65,19 +64,20 @@ from agents.protocol import (
 from agents.protocol.messages import (
     Ack,
     EndTask,
+    Event,
     Hello,
     Message,
     Position,
     Profile,
     Record,
     RelayClose,
-    RelayToAgent,
     RelayToPlatform,
     Revoke,
     Task,
+    TaskAccepted,
+    TaskRefused,
     UplinkToPlatform,
     Welcome,
-    message_type,
 )
 from agents.protocol.messages import Heartbeat as HeartbeatMessage
 from fleet.credentials import vehicle_authenticate
@@ -87,19 +87,19 @@ from fleet.memberships import group_hold, group_release
 from fleet.models import Vehicle
 from fleet.outbox import (
     agent_message_ack,
-    agent_message_enqueue,
     outbox,
     vehicle_group,
 )
 from fleet.records import record_keep
+from fleet.sending import relay_group
 from fleet.servers import uplink_server_ensure, uplink_server_stopping
-from fleet.signals import (
+from fleet.vehicle_events import (
     agent_acked,
     agent_connected,
     agent_disconnected,
     agent_message,
     agent_welcome,
-    vehicle_back,
+    vehicles_back,
 )
 from iouv.consumers import DirectDispatch
 from iouv.layer import relay_ensure
@@ -135,9 +135,6 @@ BAD_FRAMES_WINDOW_S = 10.0
 # Error texts echo parts of the agent's input; keep the replies small.
 _ERROR_TEXT_MAX = 300
 
-# Message types forwarded to other apps as fleet.signals.agent_message.
-_PUBLISHED = frozenset({"task_accepted", "task_refused", "event"})
-
 #: Relayed browsers one uplink remembers the channel of (beyond this, the oldest are
 #: answered through their group again).
 RELAYS_MAX = 256
@@ -170,66 +167,6 @@ def _db(func: Callable[..., Any]) -> Callable[..., Awaitable[Any]]:
     time, so there the work stays on that one thread.
     """
     return database_sync_to_async(func, thread_sensitive=connection.vendor == "sqlite")
-
-
-# --------------------------------------------------------------------------------------
-# Sending to an agent
-# --------------------------------------------------------------------------------------
-
-
-def relay_group(conn: str) -> str:
-    """The channel-layer group of one relayed browser connection (``conn`` is the
-    random id the relay picked)."""
-    return f"relay-{conn}"
-
-
-def vehicle_send(
-    *, vehicle_id: Any, message: Task | Revoke | EndTask, session_id: Any = None
-) -> None:
-    """Tell the vehicle's agent ``message`` (a ``task``, ``revoke`` or ``end_task``),
-    reliably: it is owed in the database from the current transaction on and delivered
-    until the agent acknowledges it, whenever the agent is connected (fleet.outbox).
-    ``session_id``: the session it is about (default: the message's own field; a
-    ``task`` carries it only inside its token).
-
-    Raises ProtocolError if ``message`` breaks the protocol's limits, ValueError for
-    another type or if ``vehicle_id`` is not a UUID.
-    """
-    agent_message_enqueue(vehicle_id=vehicle_id, message=message, session_id=session_id)
-
-
-async def avehicle_send(
-    *,
-    vehicle_id: Any,
-    message: RelayToAgent | RelayClose,
-    via: str | None = None,
-    reply_to: str | None = None,
-) -> None:
-    """Send ``message`` to the vehicle's agent now, best effort, through the channel
-    layer: for relayed control traffic, which is worthless late. It travels as the
-    frame's text, encoded once here and not parsed again on the way: a relayed payload
-    is a struct the relay parsed (and so checked), the rest is the platform's own.
-
-    ``via``: the uplink's own channel, when the sender knows it (it comes with every
-    answer, see :class:`AgentUplinkConsumer`): one direct send instead of a group
-    lookup per command. ``reply_to``: the channel of the relayed browser, which the
-    uplink then answers directly. Raises ProtocolError for a message that cannot be
-    encoded or is too large, ValueError for a bad id.
-    """
-    group = vehicle_group(vehicle_id)
-    event: dict[str, Any] = {
-        "type": "agent.send",
-        "text": encode_message(message),
-        "conn": message.conn or None,
-        "reply": reply_to if isinstance(message, RelayToAgent) else None,
-    }
-    layer = get_channel_layer()
-    if layer is None:
-        return
-    if via is not None:
-        await layer.send(via, event)
-    else:
-        await layer.group_send(group, event)
 
 
 # --------------------------------------------------------------------------------------
@@ -312,9 +249,9 @@ def vehicle_record_profile(*, vehicle_id: Any, profile: Profile, now: datetime) 
     reserved, in-service and releasing are kept; a vehicle whose agent says it runs a
     task the platform does not hold it for is ``releasing``.
 
-    Then, in the same transaction, ``agent_connected`` is sent with the state the agent
-    reported, so that other apps converge the agent to what the platform wants before
-    anything else is decided about the vehicle.
+    Then, in the same transaction, the session owner is told the state the agent
+    reported (fleet.vehicle_events.agent_connected), so that it converges the agent to
+    what the platform wants before anything else is decided about the vehicle.
     """
     with transaction.atomic():
         vehicle = Vehicle.objects.select_for_update().filter(pk=vehicle_id).first()
@@ -358,8 +295,7 @@ def vehicle_record_profile(*, vehicle_id: Any, profile: Profile, now: datetime) 
             ]
         )
         fleet_notify([vehicle.pk])
-        _signal_send(
-            agent_connected,
+        agent_connected(
             vehicle_id=str(vehicle.pk),
             state={
                 "session_id": _given(profile.session_id),
@@ -424,7 +360,7 @@ def vehicle_record_heartbeats(beats: Sequence[HeartbeatReport]) -> list[str]:
             # Heard from again on an uplink that never closed (the sweep had found it
             # silent): a vehicle still serving a session gets its session status back
             # from the receivers, in this transaction, before anyone could take it.
-            _signal_send(vehicle_back, vehicle_ids=back)
+            vehicles_back(vehicle_ids=back)
         written = sorted(current)
         fleet_notify(written)  # one push for the batch, not one per vehicle
     return written
@@ -640,33 +576,11 @@ def vehicle_record_disconnect(
     return True
 
 
-def _signal_send(signal: Signal, **kwargs: Any) -> list[tuple[Any, Any]]:
-    """Send ``signal`` robustly: a failing receiver is logged, never raised here, but
-    for the database being unavailable, which is raised (after every receiver ran) for
-    the uplink to try again (AgentUplinkConsumer._until_stored)."""
-    responses = signal.send_robust(sender=AgentUplinkConsumer, **kwargs)
-    for _receiver, result in responses:
-        if isinstance(result, DATABASE_UNAVAILABLE):
-            raise result
-    for receiver, result in responses:
-        if isinstance(result, Exception):
-            message = kwargs.get("message")
-            log.error(
-                "uplink: receiver %r of %s failed",
-                receiver,
-                message_type(message) if isinstance(message, Message) else "signal",
-                exc_info=(type(result), result, result.__traceback__),
-            )
-    return responses
-
-
 def _welcome(vehicle_id: str) -> Welcome:
-    """The ``welcome`` message, with the optional fields other apps contribute."""
+    """The ``welcome`` message, with the optional fields the session owner contributes."""
     welcome = Welcome(v=PROTOCOL_VERSION, heartbeat_interval_s=settings.IOUV_HEARTBEAT_INTERVAL_S)
     extras: dict[str, Any] = {}
-    for _receiver, result in _signal_send(agent_welcome, vehicle_id=vehicle_id):
-        if isinstance(result, dict):
-            extras.update(result)
+    extras.update(agent_welcome(vehicle_id=vehicle_id))
     # Extras may add optional fields, never replace the required ones; an unknown one
     # is a receiver's bug, refused like a bad value.
     optional = set(Welcome.__struct_fields__) - {"v", "heartbeat_interval_s"}
@@ -706,21 +620,21 @@ def _admit(
 
 
 def _acked(*, vehicle_id: str, ack: Ack) -> None:
-    """An ``ack`` from the agent: the message is delivered; other apps hear of it."""
+    """An ``ack`` from the agent: the message is delivered; the session owner hears of it."""
     acked = agent_message_ack(
         vehicle_id=vehicle_id, key=ack.id, ok=ack.ok, detail=_given(ack.detail) or ""
     )
     if acked is not None:
-        _signal_send(agent_acked, vehicle_id=vehicle_id, acked=acked)
+        agent_acked(vehicle_id=vehicle_id, acked=acked)
 
 
 def _disconnected(
     *, vehicle_id: str, last_seen: datetime | None, heard: datetime | None, code: int
 ) -> None:
     """A closed uplink's database work in one call: the vehicle is marked offline and
-    the other apps told, if this uplink still was the vehicle's."""
+    the session owner told, if this uplink still was the vehicle's."""
     if vehicle_record_disconnect(vehicle_id=vehicle_id, last_seen=last_seen, heard=heard):
-        _signal_send(agent_disconnected, vehicle_id=vehicle_id, code=code)
+        agent_disconnected(vehicle_id=vehicle_id, code=code)
 
 
 # --------------------------------------------------------------------------------------
@@ -750,7 +664,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self._closed = False  # we closed (or were replaced): ignore what follows
         self._replaced = False
         #: Relayed browsers this uplink has heard from: conn -> the relay's channel, so
-        #: the agent's answers go straight there (see :func:`avehicle_send`).
+        #: the agent's answers go straight there (see fleet.sending.avehicle_send).
         self._relays: dict[str, str] = {}
         self._last_seen: datetime | None = None  # the last last_seen this uplink wrote
         self._heard: datetime | None = None  # when the agent was last heard from
@@ -913,11 +827,9 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             await self._until_stored(functools.partial(self._record, msg))
         elif isinstance(msg, RelayToPlatform | RelayClose):
             await self._bad_frame("bad_field", "a relayed message needs its conn")
-        elif message_type(msg) in _PUBLISHED:
+        elif isinstance(msg, TaskAccepted | TaskRefused | Event):
             await self._until_stored(
-                functools.partial(
-                    _db(_signal_send), agent_message, vehicle_id=self.vehicle_id, message=msg
-                )
+                functools.partial(_db(agent_message), vehicle_id=self.vehicle_id, message=msg)
             )
         else:  # hello again
             await self._bad_frame("already_authenticated", "this uplink already said hello")
@@ -1157,7 +1069,7 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
 
     async def agent_send(self, event: dict[str, Any]) -> None:
         """Forward ``event["text"]`` (an uplink_to_agent frame that
-        :func:`avehicle_send` checked and encoded) to the agent."""
+        fleet.sending.avehicle_send checked and encoded) to the agent."""
         if self._closed or self.vehicle_id is None:
             return
         conn, reply = event.get("conn"), event.get("reply")

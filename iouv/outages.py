@@ -65,7 +65,7 @@ class DatabaseUnavailableLogFilter(logging.Filter):
 class DatabaseUnavailableMiddleware:
     """Answers a view that raised one of :data:`DATABASE_UNAVAILABLE` with
     :func:`database_unavailable_response` (the API answers its own views the same way,
-    services.api_kit)."""
+    services.web.api_kit)."""
 
     def __init__(self, get_response: Callable[[HttpRequest], HttpResponse]) -> None:
         self.get_response = get_response

@@ -8,7 +8,7 @@ from django.urls import path, re_path
 
 from fleet.consumers import FleetFeedConsumer
 from fleet.uplink import AgentUplinkConsumer
-from services.consumers import RelayConsumer, SessionFeedConsumer, SessionsMonitorConsumer
+from services.web.consumers import RelayConsumer, SessionFeedConsumer, SessionsMonitorConsumer
 
 if TYPE_CHECKING:
     from channels.routing import URLRouter, _ExtendedURLPattern

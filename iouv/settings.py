@@ -242,7 +242,7 @@ if REDIS_URL:
 else:
     CHANNEL_LAYERS = {"default": {"BACKEND": "channels.layers.InMemoryChannelLayer"}}
 
-# Django's cache: the login lockout's and the rate limits' counters (services.throttle),
+# Django's cache: the login lockout's and the rate limits' counters (services.web.throttle),
 # in Redis when there is one, so that every platform process counts together; in the
 # process's memory otherwise (embedded mode has one platform process).
 CACHES: dict[str, dict[str, Any]]
@@ -253,7 +253,7 @@ if REDIS_URL:
             "LOCATION": REDIS_URL,
             "KEY_PREFIX": env_str("CHANNELS_PREFIX", "iouv") + ":cache",
             # A Redis that does not answer fails a limit's check in a second, not in
-            # the system's TCP timeouts (services.throttle then lets the call through).
+            # the system's TCP timeouts (services.web.throttle then lets the call through).
             "OPTIONS": {"socket_connect_timeout": 1, "socket_timeout": 1},
         }
     }
@@ -411,7 +411,7 @@ IOUV_SUPERVISION_TICK_S = env_float("IOUV_SUPERVISION_TICK_S", 2.0)
 # the session.
 IOUV_UNSAFE_REFUSALS_MAX = env_int("IOUV_UNSAFE_REFUSALS_MAX", 5)
 IOUV_UNSAFE_REFUSALS_WINDOW_S = env_float("IOUV_UNSAFE_REFUSALS_WINDOW_S", 10.0)
-# Flight records (services.records) older than this many days are deleted by the
+# Flight records (services.records.keeping) older than this many days are deleted by the
 # daily sweep; 0 keeps them until an admin deletes them.
 IOUV_RECORD_RETENTION_DAYS = env_int("IOUV_RECORD_RETENTION_DAYS", 90)
 
@@ -424,7 +424,7 @@ IOUV_GC_YOUNG_THRESHOLD = env_int("IOUV_GC_YOUNG_THRESHOLD", 10_000)
 # Embedded mode: a worker process pushes through the database to the ASGI process.
 IOUV_LAYER_RELAY = env_bool("IOUV_LAYER_RELAY", True)
 
-# Autonomous workflows (services.workflow): how long a vehicle of a mission may be
+# Autonomous workflows (services.sessions.workflow): how long a vehicle of a mission may be
 # silent before another takes over, the battery level at which it is replaced, and how
 # often the workflows' timers run. A kind's own settings are read by the kind.
 IOUV_MISSION_OFFLINE_GRACE_S = env_float("IOUV_MISSION_OFFLINE_GRACE_S", 10.0)
@@ -435,7 +435,7 @@ IOUV_MISSION_TICK_S = env_float("IOUV_MISSION_TICK_S", 2.0)
 IOUV_MAP_TILES_URL = env_str("IOUV_MAP_TILES_URL", "")
 # Where people reach the portal from outside (links in e-mails and notices).
 IOUV_PUBLIC_URL = env_str("IOUV_PUBLIC_URL", "http://127.0.0.1:8000")
-# Notices' webhooks (services.notices): how long one delivery attempt may take.
+# Notices' webhooks (services.sessions.notices): how long one delivery attempt may take.
 IOUV_WEBHOOK_TIMEOUT_S = env_float("IOUV_WEBHOOK_TIMEOUT_S", 5.0)
 
 # --- Abuse: login lockout and rate limits -----------------------------------------------
@@ -450,7 +450,7 @@ AXES_CLIENT_IP_CALLABLE = "accounts.addresses.client_address"
 AXES_LOCKOUT_CALLABLE = "accounts.lockout.login_locked_out"
 # One line per failed or locked-out attempt, none per success.
 AXES_VERBOSE = False
-# Budgets of the actions services.throttle limits, "N/<window>" per user and per client
+# Budgets of the actions services.web.throttle limits, "N/<window>" per user and per client
 # address ("" or "off": none). IOUV_RATE_<ACTION>="<per user>,<per address>".
 IOUV_RATE_LIMITS: dict[str, dict[str, str]] = {}
 for _action, _default in {
@@ -462,14 +462,14 @@ for _action, _default in {
     IOUV_RATE_LIMITS[_action] = {"user": _per_user, "address": _per_address}
 # django-ratelimit's switch: IOUV_RATE_LIMITS=0 turns every budget off (benchmarks).
 RATELIMIT_ENABLE = env_bool("IOUV_RATE_LIMITS", True)
-# /metrics for Prometheus (services.metrics): with a token, scrapes must send it as a
+# /metrics for Prometheus (services.supervision.metrics): with a token, scrapes must send it as a
 # bearer token; without one, only clients on the platform's own machine are answered.
 IOUV_METRICS_TOKEN = env_secret("IOUV_METRICS_TOKEN")
 # --- Faults: what clients are told while a server the platform needs is away -----------
 # The Retry-After of a 503 answered while PostgreSQL cannot be reached (iouv.outages).
 IOUV_RETRY_AFTER_S = env_int("IOUV_RETRY_AFTER_S", 5)
 
-# --- WebRTC: ICE servers handed to users and vehicles (services.ice) ----------------------
+# --- WebRTC: ICE servers handed to users and vehicles (services.sessions.ice) ---------------
 # STUN finds a peer's public address behind NAT; TURN (coturn) relays when no direct
 # path exists. TURN credentials are minted per session from the secret coturn shares
 # (``static-auth-secret``), valid IOUV_TURN_TTL_S. None configured: WebRTC only finds

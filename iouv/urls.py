@@ -6,8 +6,8 @@ from django.urls import include, path
 from django.views.generic.base import RedirectView
 
 from iouv.health import healthz, readyz
-from services.keys_views import jwks
-from services.metrics import metrics
+from services.supervision.metrics import metrics
+from services.web.keys_views import jwks
 
 admin.site.site_header = "IoUV administration"
 admin.site.site_title = "IoUV"
@@ -16,7 +16,7 @@ urlpatterns = [
     # Liveness and readiness (iouv.health), first: nothing below is consulted for them.
     path("healthz", healthz, name="healthz"),
     path("readyz", readyz, name="readyz"),
-    # Prometheus (services.metrics): loopback or a bearer token only.
+    # Prometheus (services.supervision.metrics): loopback or a bearer token only.
     path("metrics", metrics, name="metrics"),
     # Pages that do not name an icon (the admin's) make browsers ask for this one.
     path("favicon.ico", RedirectView.as_view(url=static("img/favicon.svg"), permanent=True)),

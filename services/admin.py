@@ -1,7 +1,7 @@
 """Django admin for services, and a read-only view of sessions and their logs.
 
-Sessions, assignments and session events are made by the platform (services.sessions,
-services.assignment, services.eventlog); the admin only shows them.
+Sessions, assignments and session events are made by the platform (services.sessions.states,
+services.sessions.matching, services.sessions.log); the admin only shows them.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from django.utils.html import format_html
 
 from fleet.admin import UUIDSearchMixin
 from fleet.forms import json_pretty
-from services.eventlog import session_log_verify
 from services.models import Assignment, Service, ServiceGrant, ServiceRole, Session, SessionEvent
-from services.records import record_delete
+from services.records.keeping import record_delete
+from services.sessions.log import session_log_verify
 
 
 class ReadOnlyAdminMixin:
@@ -113,7 +113,7 @@ class SessionAdmin(UUIDSearchMixin, ReadOnlyAdminMixin, admin.ModelAdmin[Session
         "relay",
         ("created_at", "assigned_at", "started_at", "ended_at"),
     )
-    # All of it: sessions change only through services.sessions.
+    # All of it: sessions change only through services.sessions.states.
     readonly_fields = tuple(
         name for entry in fields for name in (entry if isinstance(entry, tuple) else (entry,))
     )
@@ -123,7 +123,7 @@ class SessionAdmin(UUIDSearchMixin, ReadOnlyAdminMixin, admin.ModelAdmin[Session
     @admin.action(description="Delete the flight records of the selected sessions")
     def delete_flight_records(self, request: HttpRequest, queryset: QuerySet[Session]) -> None:
         # Only the record goes: the session and its log stay, and the log says who
-        # deleted the record (services.records.record_delete).
+        # deleted the record (services.records.keeping.record_delete).
         if not request.user.is_superuser:
             self.message_user(request, "Only an administrator may delete records.", messages.ERROR)
             return

@@ -1,8 +1,8 @@
-"""URLs of the JSON API, mounted at /api/ (see services.api and docs/api.md)."""
+"""URLs of the JSON API, mounted at /api/ (see services.web.api and docs/api.md)."""
 
 from django.urls import include, path, re_path
 
-from services.api import api, not_found
+from services.web.api import api, not_found
 
 urlpatterns = [
     path("v1/", include(api.urlpatterns(), namespace=api.urls_namespace)),

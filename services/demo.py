@@ -32,7 +32,7 @@ from fleet.credentials import vehicle_issue_credential
 from fleet.models import Station, Vehicle, VehicleType
 from services.kinds import DemoService, kinds
 from services.models import Service, ServiceGrant, ServiceRole
-from services.signing import platform_public_key_pem
+from services.sessions.signing import platform_public_key_pem
 
 DEFAULT_PLATFORM_URL = "ws://127.0.0.1:8000"
 

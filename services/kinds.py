@@ -44,8 +44,8 @@ if TYPE_CHECKING:
 
     from accounts.users import User
     from agents.missions.spec import MissionSpec
-    from services.deployment import UserTask
     from services.models import Assignment, Service, ServiceRole, Session
+    from services.sessions.deployment import UserTask
 
 #: The request fields, besides ``params``, a kind may read.
 REQUEST_FIELDS = frozenset({"target", "relay", "preferences"})
@@ -150,8 +150,8 @@ class ServiceKind:
         """Set a request going: reserve, deploy, start the workflow. ``request`` has
         been checked against :attr:`accepts` and its params cleaned.
 
-        Raises services.assignment.AssignmentError (no vehicle, over the user's cap),
-        services.deployment.DeploymentError, or RequestError.
+        Raises services.sessions.matching.AssignmentError (no vehicle, over the user's cap),
+        services.sessions.deployment.DeploymentError, or RequestError.
         """
         raise NotImplementedError
 
@@ -162,17 +162,15 @@ class ServiceKind:
         candidates = [role for role in roles if role.required] or roles
         return candidates[0] if candidates else None
 
-    def request_map(self, service: Service) -> dict[str, Any]:
+    def request_map(self, service: Service) -> dict[str, Any] | None:
         """What the request page's map shows (``stations``, the first one where it
         opens, and ``reach``, circles of where the vehicles can go: see
-        services.feasibility.reach_map): the vehicles of the whole fleet that could
-        ever serve :meth:`request_role`, each from its station on a full battery."""
-        from services.feasibility import reach_map, role_capable, stations_all
-
-        role = self.request_role(service)
-        if role is None:
-            return {"stations": stations_all(), "reach": []}
-        return reach_map(role_capable(role).vehicles)
+        services.sessions.feasibility.reach_map), or None (this default) for the core's
+        map: the vehicles of the whole fleet that could ever serve :meth:`request_role`,
+        each from its station on a full battery (services.sessions.feasibility.
+        request_map_default; the registry imports nothing of the sessions it is asked
+        about)."""
+        return None
 
     def entry_url(self, service: Service) -> str:
         """Where the catalog sends a user who picks ``service``: its request page."""

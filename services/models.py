@@ -208,7 +208,7 @@ class ServiceGrant(models.Model):
 
 
 class Session(models.Model):
-    """One use of a service by one user; see services.sessions for the state machine."""
+    """One use of a service by one user; see services.sessions.states for the state machine."""
 
     class State(models.TextChoices):
         REQUESTED = "requested"
@@ -255,8 +255,8 @@ class Session(models.Model):
 
     # Not columns. Left on the instance by the function that just wrote them, under the
     # session's lock, so that an answer about the session does not read them back
-    # (services.api_schemas): all its assignments with their vehicles, its whole log
-    # in order, and what its end sent the vehicles (services.selectors.session_delivery),
+    # (services.web.api_schemas): all its assignments with their vehicles, its whole log
+    # in order, and what its end sent the vehicles (services.sessions.selectors.session_delivery),
     # as that transaction left them. None: not known, read them.
     known_assignments: list[Assignment] | None = None
     known_events: list[SessionEvent] | None = None
@@ -305,7 +305,7 @@ class Assignment(models.Model):
 
 
 class SessionEvent(models.Model):
-    """Append-only, hash-chained session log (see services.eventlog)."""
+    """Append-only, hash-chained session log (see services.sessions.log)."""
 
     session = models.ForeignKey(Session, on_delete=models.PROTECT, related_name="events")
     seq = models.PositiveIntegerField()
@@ -340,7 +340,7 @@ class SessionEvent(models.Model):
 class Notice(models.Model):
     """One message to people outside the session (a team to alert, a recipient, the
     monitors' dashboard) about one moment of a session, on one channel:
-    sent until it succeeds, once (services.notices)."""
+    sent until it succeeds, once (services.sessions.notices)."""
 
     class Channel(models.TextChoices):
         EMAIL = "email"
@@ -385,7 +385,7 @@ class Notice(models.Model):
 
 class RecordBatch(models.Model):
     """One batch of a session's flight record as a vehicle's agent uploaded it
-    (services.records): samples ``first`` .. ``last``, their SHA-256 (``digest``, which
+    (services.records.keeping): samples ``first`` .. ``last``, their SHA-256 (``digest``, which
     the session's hash-chained log holds too). Stored once per (session, vehicle,
     first): a batch the agent sends again is acknowledged, not stored twice."""
 

@@ -42,6 +42,7 @@ import uuid
 from pathlib import Path
 from typing import Any, Final
 
+from celery import shared_task
 from django.conf import settings
 from django.db import transaction
 
@@ -223,8 +224,6 @@ def sfu_room_close(*, session_id: Any) -> bool:
 def sfu_room_schedule(*, session_id: Any) -> None:
     """Make the session's room from a Celery task once the current transaction commits
     (retried while Janus is away)."""
-    from services.tasks import services_sfu_room_open  # the task module imports this one
-
     transaction.on_commit(lambda: services_sfu_room_open.delay(str(session_id)), robust=True)
 
 
@@ -233,8 +232,6 @@ def sfu_session_end_schedule(*, session_id: Any) -> None:
     its recording, from a Celery task (nothing without an SFU)."""
     if not sfu_configured():
         return
-    from services.tasks import services_sfu_session_ended
-
     transaction.on_commit(lambda: services_sfu_session_ended.delay(str(session_id)), robust=True)
 
 
@@ -356,3 +353,53 @@ def sfu_recording_convert(*, session_id: Any) -> list[Recording]:
             raise SfuError(f"janus-pp-rec failed on {mjr.name}: {done.stderr[-300:]}")
         partial.rename(webm)  # whole or not at all, for a reader of the folder
     return sfu_recordings(session_id=session_id)
+
+
+# --- Celery tasks (services.tasks lists and schedules them) ---------------------------
+# Here, not in services.tasks: the sessions deploying and ending a task schedule them,
+# and services.tasks imports the sessions' code, so importing it from here would close
+# a cycle.
+
+
+@shared_task(
+    name="services.sfu_room_open",
+    acks_late=True,
+    autoretry_for=(SfuError,),
+    max_retries=10,
+    retry_backoff=2,
+    retry_backoff_max=60,
+    retry_jitter=True,
+)
+def services_sfu_room_open(session_id: str) -> bool:
+    """Make a live session's SFU room (idempotent); retried while Janus is away.
+    Nothing for a session that has ended meanwhile (its end time is set)."""
+    from services.models import Session  # models import nothing of this module's users
+
+    if not Session.objects.filter(pk=session_id, ended_at__isnull=True).exists():
+        return False
+    return sfu_room_open(session_id=session_id)
+
+
+@shared_task(
+    name="services.sfu_session_ended",
+    acks_late=True,
+    autoretry_for=(SfuError,),
+    max_retries=10,
+    retry_backoff=5,
+    retry_backoff_max=300,
+    retry_jitter=True,
+)
+def services_sfu_session_ended(session_id: str) -> int:
+    """Close an ended session's SFU room and convert its recording to WebM; retried
+    while Janus or janus-pp-rec fails. Returns how many recordings it has."""
+    return len(sfu_session_ended(session_id=session_id))
+
+
+@shared_task(name="services.sfu_rooms_ensure")
+def services_sfu_rooms_ensure() -> int:
+    """Make again the SFU rooms a restarted Janus lost (nothing without an SFU)."""
+    try:
+        return sfu_rooms_ensure()
+    except SfuError as exc:  # Janus away: the next run tries again
+        log.info("SFU rooms not checked: %s", exc)
+        return 0

@@ -13,16 +13,18 @@ from celery import shared_task
 from django.conf import settings
 
 from iouv.celery import app
-from services.notices import NoticeNotSent, notices_pending, notices_send, notices_send_or_retry
-from services.records import records_expire
+from services.records.keeping import records_expire
+
+# The notices' own sending task lives with them (services.sessions.notices), which
+# schedules it; it is named here too so that this module lists every task of the app.
+from services.sessions.notices import notices_pending, notices_send, services_notices_send
 from services.sfu import (
-    SfuError,
+    services_sfu_room_open,
+    services_sfu_rooms_ensure,
+    services_sfu_session_ended,
     sfu_configured,
-    sfu_room_open,
-    sfu_rooms_ensure,
-    sfu_session_ended,
 )
-from services.supervision import (
+from services.supervision.timers import (
     sessions_end_vehicle_lost,
     sessions_expire_grace,
     sessions_expire_time_limit,
@@ -69,66 +71,6 @@ def services_expire_undelivered() -> int:
     return len(sessions_expire_undelivered())
 
 
-@shared_task(
-    name="services.notices_send",
-    acks_late=True,
-    autoretry_for=(NoticeNotSent,),
-    max_retries=8,
-    retry_backoff=2,
-    retry_backoff_max=120,
-    retry_jitter=True,
-)
-def services_notices_send(session_id: str) -> int:
-    """Send a session's pending notices; retried with growing delays while any is
-    still unsent (a webhook down, a mail server away)."""
-    return notices_send_or_retry(session_id)
-
-
-@shared_task(
-    name="services.sfu_room_open",
-    acks_late=True,
-    autoretry_for=(SfuError,),
-    max_retries=10,
-    retry_backoff=2,
-    retry_backoff_max=60,
-    retry_jitter=True,
-)
-def services_sfu_room_open(session_id: str) -> bool:
-    """Make a live session's SFU room (idempotent); retried while Janus is away.
-    Nothing for a session that has ended meanwhile."""
-    from services.models import Session
-    from services.sessions import FINAL
-
-    if not Session.objects.filter(pk=session_id).exclude(state__in=FINAL).exists():
-        return False
-    return sfu_room_open(session_id=session_id)
-
-
-@shared_task(
-    name="services.sfu_session_ended",
-    acks_late=True,
-    autoretry_for=(SfuError,),
-    max_retries=10,
-    retry_backoff=5,
-    retry_backoff_max=300,
-    retry_jitter=True,
-)
-def services_sfu_session_ended(session_id: str) -> int:
-    """Close an ended session's SFU room and convert its recording to WebM; retried
-    while Janus or janus-pp-rec fails. Returns how many recordings it has."""
-    return len(sfu_session_ended(session_id=session_id))
-
-
-@shared_task(name="services.sfu_rooms_ensure")
-def services_sfu_rooms_ensure() -> int:
-    """Make again the SFU rooms a restarted Janus lost (nothing without an SFU)."""
-    try:
-        return sfu_rooms_ensure()
-    except SfuError as exc:  # Janus away: the next run tries again
-        log.info("SFU rooms not checked: %s", exc)
-        return 0
-
-
 @shared_task(name="services.notices_retry")
 def services_notices_retry() -> int:
     """Try again every notice still unsent (its task's retries ran out, or its message
@@ -160,3 +102,18 @@ def _schedule(sender, **kwargs) -> None:  # type: ignore[no-untyped-def]
             services_sfu_rooms_ensure.s(),
             name="make again the SFU rooms Janus lost",
         )
+
+
+__all__ = [
+    "services_end_vehicle_lost",
+    "services_expire_grace",
+    "services_expire_time_limit",
+    "services_expire_unconnected",
+    "services_expire_undelivered",
+    "services_notices_retry",
+    "services_notices_send",
+    "services_records_expire",
+    "services_sfu_room_open",
+    "services_sfu_rooms_ensure",
+    "services_sfu_session_ended",
+]

@@ -2,8 +2,8 @@
 
 from django.urls import include, path
 
-from services import record_views, views
 from services.kinds import kinds
+from services.web import record_views, views
 
 
 def _kind_urls() -> list:  # type: ignore[type-arg]

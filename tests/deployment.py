@@ -10,11 +10,13 @@ from __future__ import annotations
 import json
 from typing import Any
 
+from accounts.users import User
 from agents.protocol import UserGrant
 from fleet.models import Vehicle
-from services.assignment import session_request
+from services.kinds import Opened, Request
 from services.models import Service, Session
-from services.signing import platform_public_key
+from services.sessions.request import service_request
+from services.sessions.signing import platform_public_key
 from tests import factories as f
 
 #: The commands the registered vehicle declares.
@@ -55,14 +57,36 @@ def limited_service(**fields: Any) -> Service:
     return f.service(allowed_commands=["up", "stop"], **{**LIMITS, **fields})
 
 
+def session_requested(
+    *,
+    user: User,
+    service: Service,
+    target: tuple[float, float] | None = None,
+    relay: bool = False,
+    preferences: dict[str, Any] | None = None,
+) -> Opened:
+    """A session of ``service`` (a kind the user drives) requested by ``user`` the way
+    the portal and the API request one (services.sessions.request.service_request): its
+    vehicles reserved, their tasks owed to their agents, and the controller's user task
+    in ``task``. Raises what a request raises (AssignmentError, DeploymentError)."""
+    opened = service_request(
+        user=user,
+        service=service,
+        request=Request(target=target, relay=relay, preferences=preferences or {}),
+    )
+    assert opened.task is not None, "a session the user drives comes with its user task"
+    return opened
+
+
 def alices_session() -> tuple[Session, Vehicle]:
     """alice's session of a :func:`limited_service` towards :data:`TARGET`, assigned to
-    a :func:`registered_vehicle` (not deployed); and that vehicle."""
+    a :func:`registered_vehicle` and deployed (its task owed to the agent); and that
+    vehicle."""
     vehicle = registered_vehicle()
-    session = session_request(
+    opened = session_requested(
         user=f.user(username="alice"), service=limited_service(), target=TARGET
     )
-    return session, vehicle
+    return opened.session, vehicle
 
 
 def uncacheable(response: Any) -> None:

@@ -875,7 +875,7 @@ COMMIT
     ) -> Iterator[Turn]:
         """Run coturn (benchmarks.turn_server) in the root namespace on ``public_ip``
         (STUN + TURN over UDP/TCP on one port, no TLS), with TURN REST credentials
-        (``use-auth-secret``, see services.ice.turn_credentials); yields it once it
+        (``use-auth-secret``, see services.sessions.ice.turn_credentials); yields it once it
         answers a STUN binding request. Relays are allocated on ``public_ip`` and may
         only reach the lab's public subnet. Stopped on exit (and when the lab closes)."""
         if shutil.which("turnserver") is None:

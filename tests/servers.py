@@ -35,7 +35,7 @@ from agents.simulation import simulator_running
 from agents.vehicles.base import Simulation
 from iouv.serve import APPLICATION
 from iouv.serve import command as iouv_serve_command
-from services.signing import platform_public_key_pem
+from services.sessions.signing import platform_public_key_pem
 
 ROOT = Path(__file__).resolve().parents[1]
 

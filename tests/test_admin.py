@@ -15,8 +15,8 @@ from django.urls import reverse
 from fleet.credentials import vehicle_authenticate
 from fleet.models import Station, Vehicle, VehicleType
 from services.demo import demo_seed
-from services.eventlog import event_append
 from services.models import Service, Session, SessionEvent
+from services.sessions.log import event_append
 
 pytestmark = pytest.mark.django_db
 

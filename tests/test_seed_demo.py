@@ -21,9 +21,9 @@ from fleet.credentials import vehicle_authenticate
 from fleet.forms import commands_validate
 from fleet.models import Station, Vehicle, VehicleType
 from services.demo import VEHICLE_TYPES, VEHICLES, demo_seed, demo_services
-from services.grants import services_for_user
 from services.models import Service, ServiceGrant, ServiceRole
-from services.signing import platform_public_key_pem
+from services.sessions.grants import services_for_user
+from services.sessions.signing import platform_public_key_pem
 
 pytestmark = pytest.mark.django_db
 

@@ -22,11 +22,11 @@ from websockets.asyncio.client import connect
 from agents.runtime import Agent
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
-from services.assignment import session_request
-from services.deployment import UserTask, session_deploy
 from services.models import Service, Session
+from services.sessions.deployment import UserTask
 from tests import factories as f
 from tests.control import command, recv
+from tests.deployment import session_requested
 from tests.servers import agent_running, db, until
 
 #: The vehicle types, as (kind, adapter, name).
@@ -124,8 +124,9 @@ async def session_deployed(
     requested and deployed; returned, with its user task, once the task has reached
     ``agent``."""
     user = await db(f.user, username)
-    session = await db(session_request, user=user, service=service, target=f.HOME)
-    user_task = await db(session_deploy, session=session)
+    opened = await db(session_requested, user=user, service=service, target=f.HOME)
+    session, user_task = opened.session, opened.task
+    assert user_task is not None
 
     async def task_arrived() -> bool:
         return agent.hub is not None and agent.hub.task is not None

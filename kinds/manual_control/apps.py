@@ -8,6 +8,6 @@ class ManualControlConfig(AppConfig):
 
     def ready(self) -> None:
         from kinds.manual_control.kind import ManualControl
-        from services.kinds import kind_register
+        from services.kit import kind_register
 
         kind_register(ManualControl())

@@ -6,14 +6,14 @@ from __future__ import annotations
 from typing import Any
 
 from fleet.models import VehicleType
-from services.demo import (
+from services.kit import (
     BOAT_COMMANDS,
     CAR_COMMANDS,
     QUADCOPTER_COMMANDS,
     VTOL_COMMANDS,
+    DemoService,
     command_names,
 )
-from services.kinds import DemoService
 from services.models import Service
 
 K = VehicleType.Kind

@@ -6,8 +6,8 @@ from typing import Any
 
 from django import forms
 
-from fleet.attributes import CAMERAS, FEATURES
 from fleet.models import Station
+from services.kit import CAMERAS, FEATURES
 
 #: The features a person may ask for, in words.
 FEATURE_WORDS = {

@@ -9,8 +9,7 @@ from django import forms
 
 from accounts.users import User
 from kinds.manual_control.forms import SessionRequestForm
-from services.deployment import session_request_deploy
-from services.kinds import DemoService, Opened, Request, ServiceKind
+from services.kit import DemoService, Opened, Request, ServiceKind, session_open
 from services.models import Service
 
 
@@ -35,18 +34,18 @@ class ManualControl(ServiceKind):
         )
 
     def open(self, *, service: Service, user: User, request: Request) -> Opened:
-        # Reserved and deployed in one transaction. Only services.request calls open(),
+        # Reserved and deployed in one transaction. Only services.sessions.request calls open(),
         # after checking the user's grant.
-        session, task = session_request_deploy(
+        return session_open(
             user=user,
             service=service,
             target=request.target,
             params=dict(request.params),
             relay=request.relay,
             preferences=dict(request.preferences),
+            deploy=True,
             grant_checked=True,
         )
-        return Opened(session=session, task=task)
 
     def params_clean(self, params: Any) -> dict[str, Any]:
         # Free-form, kept with the session (the API limits their depth and size).

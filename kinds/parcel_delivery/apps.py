@@ -8,6 +8,6 @@ class ParcelDeliveryConfig(AppConfig):
 
     def ready(self) -> None:
         from kinds.parcel_delivery.kind import ParcelDelivery
-        from services.kinds import kind_register
+        from services.kit import kind_register
 
         kind_register(ParcelDelivery())

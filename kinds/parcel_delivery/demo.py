@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from fleet.models import VehicleType
-from services.kinds import DemoService
+from services.kit import DemoService
 from services.models import Service, ServiceRole
 
 K = VehicleType.Kind

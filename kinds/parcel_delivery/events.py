@@ -10,9 +10,8 @@ from django.utils import timezone
 from kinds.parcel_delivery.models import CARRIER, FINAL_DELIVERY, Delivery
 from kinds.parcel_delivery.notifications import parcel_notices
 from kinds.parcel_delivery.tasks import delivery_schedule
-from services.eventlog import event_append
+from services.kit import event_append, session_task_accepted
 from services.models import Assignment
-from services.workflow import session_task_accepted
 
 #: The carrier's mission events (agents/missions/parcel/, kind ``parcel``).
 PARCEL_EVENTS = frozenset(

@@ -19,8 +19,17 @@ from kinds.parcel_delivery.models import CARRIER, KIND, Delivery
 from kinds.parcel_delivery.notifications import tracking_url
 from kinds.parcel_delivery.presentation import delivery_json
 from kinds.parcel_delivery.request import MIN_TRIP_M, params_clean, parcel_request
-from services.feasibility import Reach, km, reach_map, role_capable
-from services.kinds import DemoService, EventHandler, Opened, Request, ServiceKind
+from services.kit import (
+    DemoService,
+    EventHandler,
+    Opened,
+    Reach,
+    Request,
+    ServiceKind,
+    km,
+    reach_map,
+    role_capable,
+)
 from services.models import Assignment, Service, ServiceRole, Session
 
 
@@ -54,7 +63,7 @@ class ParcelDelivery(ServiceKind):
     def request_role(self, service: Service) -> ServiceRole | None:
         return service.roles.filter(name=CARRIER).first()
 
-    def request_map(self, service: Service) -> dict[str, Any]:
+    def request_map(self, service: Service) -> dict[str, Any] | None:
         # Where a parcel can be picked up for the shortest trip: by air (land to land)
         # or, for a boat, on the water.
         def words(carrier: Reach, radius_m: float) -> str:

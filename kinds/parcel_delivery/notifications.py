@@ -1,5 +1,5 @@
 """Telling the parcel's recipient: on its way (with the tracking link), delivered.
-The core's notices deliver it once per channel (services.notices)."""
+The core's notices deliver it once per channel (services.sessions.notices)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from django.conf import settings
 from django.urls import reverse
 
 from kinds.parcel_delivery.models import Delivery
+from services.kit import notice_create
 from services.models import Notice
-from services.notices import notice_create
 
 #: The notices' topics, by moment.
 TOPICS = {"dispatched": "parcel_dispatched", "delivered": "parcel_delivered"}

@@ -16,7 +16,7 @@ from agents.geo import distance_m
 from agents.geography import is_water
 from fleet.models import VehicleType
 from kinds.parcel_delivery.models import CARRIER, Delivery
-from services.assignment import role_assign
+from services.kit import role_assign
 from services.models import Assignment, Service, ServiceRole
 
 #: The heaviest parcel and the longest trip a request may ask for.
@@ -72,7 +72,7 @@ def trip_extra_m(delivery: Delivery) -> float:
 
 def carrier_assign(delivery: Delivery, *, exclude: Iterable[Any] = ()) -> Assignment:
     """Reserve the best carrier for the parcel where it waits now; raises
-    services.assignment.AssignmentError naming the unmet requirement."""
+    services.sessions.matching.AssignmentError naming the unmet requirement."""
     return role_assign(
         session=delivery.session,
         role=carrier_role(delivery),

@@ -11,8 +11,8 @@ from agents.geo import distance_m
 from kinds.parcel_delivery.conf import load_s
 from kinds.parcel_delivery.missions import DEFAULT_SPEED_MPS
 from kinds.parcel_delivery.models import CARRIER, FINAL_DELIVERY, Delivery
+from services.kit import session_consequence
 from services.models import Assignment
-from services.selectors import session_consequence
 
 #: The log entries the timeline shows.
 SHOWN = (

@@ -30,10 +30,7 @@ from kinds.parcel_delivery.planning import (
     trip_work_m,
 )
 from kinds.parcel_delivery.tasks import delivery_schedule
-from services.assignment import session_open
-from services.eventlog import event_append
-from services.feasibility import Reach, km, role_capable, trip_m
-from services.kinds import RequestError
+from services.kit import Reach, RequestError, event_append, km, role_capable, session_open, trip_m
 from services.models import Service, Session
 
 #: The closest pickup and drop-off may be: nearer, it is not a delivery.
@@ -188,7 +185,7 @@ def delivery_feasible(
 
 def parcel_request(*, user: User, service: Service, params: Mapping[str, Any]) -> Session:
     """Open a delivery of ``params`` (cleaned by :func:`params_clean`) and start its
-    workflow. Raises services.assignment.AssignmentError when the user may not use the
+    workflow. Raises services.sessions.matching.AssignmentError when the user may not use the
     service or is at its session limit; RequestError for another kind of service, or
     a parcel no carrier of the fleet could ever take (:func:`delivery_feasible`)."""
     if service.kind != KIND:
@@ -205,7 +202,9 @@ def parcel_request(*, user: User, service: Service, params: Mapping[str, Any]) -
         water=water,
     )
     with transaction.atomic():
-        session = session_open(user=user, service=service, target=pickup, params=dict(params))
+        session = session_open(
+            user=user, service=service, target=pickup, params=dict(params)
+        ).session
         delivery = Delivery.objects.create(
             session=session,
             pickup_lat=pickup[0],

@@ -11,7 +11,7 @@ from django.views.decorators.cache import never_cache
 from accounts.users import AuthenticatedHttpRequest
 from kinds.parcel_delivery.models import Delivery
 from kinds.parcel_delivery.presentation import delivery_json
-from services.views import session_watched
+from services.kit import session_watched
 
 
 @login_required

@@ -25,20 +25,23 @@ from kinds.parcel_delivery.conf import parcel_wait_s
 from kinds.parcel_delivery.models import CARRIER, FINAL_DELIVERY, Delivery
 from kinds.parcel_delivery.notifications import parcel_notices
 from kinds.parcel_delivery.planning import carrier_assign, carrier_role, trip_extra_m
-from services.assignment import AssignmentError
-from services.deployment import vehicle_task_deploy
-from services.feasibility import role_capable, trip_m, waiting_words
-from services.models import Assignment, Session
-from services.sessions import FINAL, session_transition
-from services.workflow import (
+from services.kit import (
+    FINAL,
+    AssignmentError,
     assignment_release,
+    role_capable,
     session_close,
+    session_transition,
     steps_run,
     task_redeploy_if_unaccepted,
+    trip_m,
+    vehicle_task_deploy,
     vehicle_trouble,
     vehicles_unfit,
+    waiting_words,
     workflow_state_set,
 )
+from services.models import Assignment, Session
 
 log = logging.getLogger(__name__)
 

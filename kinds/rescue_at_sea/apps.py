@@ -8,6 +8,6 @@ class RescueAtSeaConfig(AppConfig):
 
     def ready(self) -> None:
         from kinds.rescue_at_sea.kind import RescueAtSea
-        from services.kinds import kind_register
+        from services.kit import kind_register
 
         kind_register(RescueAtSea())

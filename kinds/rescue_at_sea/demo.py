@@ -5,8 +5,7 @@ from __future__ import annotations
 
 from fleet.models import Station, VehicleType
 from kinds.rescue_at_sea.models import RescueTeam
-from services.demo import COSTA_NOVA
-from services.kinds import DemoService
+from services.kit import COSTA_NOVA, DemoService
 from services.models import Service, ServiceRole
 
 K = VehicleType.Kind

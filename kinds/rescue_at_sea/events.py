@@ -15,9 +15,8 @@ from django.utils import timezone
 from kinds.rescue_at_sea.coverage import point_in_area
 from kinds.rescue_at_sea.models import DELIVERY, FINAL_MISSION, SEARCH, Mission
 from kinds.rescue_at_sea.tasks import mission_schedule
-from services.eventlog import event_append
+from services.kit import event_append, session_task_accepted
 from services.models import Assignment
-from services.workflow import session_task_accepted
 
 MISSION_EVENTS = frozenset(
     {"mission_progress", "person_detected", "search_complete", "payload_released", "mission_failed"}

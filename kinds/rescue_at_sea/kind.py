@@ -17,7 +17,7 @@ from kinds.rescue_at_sea.missions import MISSIONS, vehicle_mission
 from kinds.rescue_at_sea.models import KIND, Mission
 from kinds.rescue_at_sea.presentation import mission_json
 from kinds.rescue_at_sea.request import MAX_ALTITUDE_M, MIN_ALTITUDE_M, rescue_request
-from services.kinds import DemoService, EventHandler, Opened, Request, RequestError, ServiceKind
+from services.kit import DemoService, EventHandler, Opened, Request, RequestError, ServiceKind
 from services.models import Assignment, Service, Session
 
 

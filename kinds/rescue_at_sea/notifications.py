@@ -1,7 +1,7 @@
 """Telling the rescue team, and the monitors, what the mission found.
 
 What to say and to whom is decided here, with the state that calls for it; the core's
-notices (services.notices) deliver it: once per channel, retried until it goes through,
+notices (services.sessions.notices) deliver it: once per channel, retried until it goes through,
 with a stable idempotency key.
 """
 
@@ -10,8 +10,8 @@ from __future__ import annotations
 from typing import Any
 
 from kinds.rescue_at_sea.models import SEARCH, Mission, RescueTeam
+from services.kit import notice_create
 from services.models import Assignment, Notice
-from services.notices import notice_create
 
 #: The notice's topic: one per mission and channel.
 PERSON_IN_WATER = "person_in_water"

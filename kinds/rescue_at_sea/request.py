@@ -29,10 +29,7 @@ from kinds.rescue_at_sea.coverage import (
 from kinds.rescue_at_sea.missions import SEARCH_SPEED_MPS
 from kinds.rescue_at_sea.models import KIND, SEARCH, Mission
 from kinds.rescue_at_sea.tasks import mission_schedule
-from services.assignment import session_open
-from services.eventlog import event_append
-from services.feasibility import km, role_capable, trip_m
-from services.kinds import RequestError
+from services.kit import RequestError, event_append, km, role_capable, session_open, trip_m
 from services.models import Service, Session
 
 #: Search altitude: high enough for a wide thermal footprint, low enough that a head
@@ -140,7 +137,7 @@ def rescue_request(
             service=service,
             target=center,
             params={"area": [list(p) for p in polygon], "altitude_m": altitude},
-        )
+        ).session
         mission = Mission.objects.create(
             session=session,
             area=[list(p) for p in polygon],

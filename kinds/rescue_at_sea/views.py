@@ -9,7 +9,7 @@ from django.shortcuts import get_object_or_404
 from accounts.users import AuthenticatedHttpRequest
 from kinds.rescue_at_sea.models import Mission
 from kinds.rescue_at_sea.presentation import mission_json
-from services.views import session_watched
+from services.kit import session_watched
 
 
 @login_required

@@ -32,21 +32,25 @@ from kinds.rescue_at_sea.conf import search_timeout_s
 from kinds.rescue_at_sea.models import DELIVERY, FINAL_MISSION, SEARCH, Mission
 from kinds.rescue_at_sea.notifications import mission_alert, notices_create
 from kinds.rescue_at_sea.presentation import timeline
-from services.assignment import AssignmentError, role_assign
-from services.deployment import vehicle_task_deploy
-from services.eventlog import event_append
-from services.feasibility import role_capable, trip_m, waiting_words
-from services.models import Assignment, ServiceRole, Session
-from services.sessions import FINAL, session_transition
-from services.workflow import (
+from services.kit import (
+    FINAL,
+    AssignmentError,
     assignment_release,
+    event_append,
+    role_assign,
+    role_capable,
     session_close,
+    session_transition,
     steps_run,
     task_redeploy_if_unaccepted,
+    trip_m,
+    vehicle_task_deploy,
     vehicle_trouble,
     vehicles_unfit,
+    waiting_words,
     workflow_state_set,
 )
+from services.models import Assignment, ServiceRole, Session
 
 log = logging.getLogger(__name__)
 

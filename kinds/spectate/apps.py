@@ -8,6 +8,6 @@ class SpectateConfig(AppConfig):
 
     def ready(self) -> None:
         from kinds.spectate.kind import Spectate
-        from services.kinds import kind_register
+        from services.kit import kind_register
 
         kind_register(Spectate())

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from services.kinds import DemoService
+from services.kit import DemoService
 from services.models import Service
 
 

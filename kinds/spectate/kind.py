@@ -6,7 +6,7 @@ from collections.abc import Mapping
 
 from django.urls import reverse
 
-from services.kinds import DemoService, ServiceKind
+from services.kit import DemoService, ServiceKind
 from services.models import Service
 
 

@@ -11,14 +11,19 @@ from django.views.decorators.cache import never_cache
 
 from accounts.users import AuthenticatedHttpRequest
 from kinds.spectate.kind import Spectate
-from services.deployment import DeploymentError, grant_issue, user_task_json
-from services.grants import user_can_use
+from services.kit import (
+    FINAL,
+    DeploymentError,
+    grant_issue,
+    log_lines,
+    session_situation,
+    session_summary,
+    session_vehicle_names,
+    throttled,
+    user_can_use,
+    user_task_json,
+)
 from services.models import Service, Session
-from services.selectors import session_summary
-from services.sessions import FINAL
-from services.supervision import session_situation
-from services.throttle import throttled
-from services.views import log_lines, session_vehicle_names
 
 
 def sessions_spectatable() -> QuerySet[Session]:

@@ -14,7 +14,7 @@ from accounts.roles import (
     user_roles,
     user_set_roles,
 )
-from services.grants import services_for_user, services_usable
+from services.sessions.grants import services_for_user, services_usable
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db

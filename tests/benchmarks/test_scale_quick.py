@@ -54,7 +54,7 @@ from benchmarks.nginx_proxy import (
 )
 from benchmarks.scale_compare import compare_md
 from benchmarks.scale_platform import SITECUSTOMIZE, PlatformTree
-from services.api_schemas import MAX_BODY_BYTES
+from services.web.api_schemas import MAX_BODY_BYTES
 from tests.agents.waiting import until
 from tests.tls import certificates_make
 

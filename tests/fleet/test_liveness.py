@@ -21,11 +21,11 @@ from django.utils import timezone
 from accounts.roles import MONITOR
 from fleet.liveness import Live, LivenessWriter, vehicles_fresh, vehicles_live, vehicles_seen
 from fleet.models import UplinkServer, Vehicle
-from fleet.signals import agent_disconnected
 from fleet.status import vehicles_mark_stale_offline
 from iouv.asgi import application
 from tests import factories as f
 from tests.uplink import agent_idle, eventually
+from tests.vehicle_events import hearing
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.redis]
 
@@ -149,13 +149,7 @@ def test_the_sweep_reads_liveness_and_keeps_when_each_was_last_heard(settings):
 
 async def test_a_vehicle_the_sweep_marked_offline_is_back_with_its_next_heartbeat():
     vehicle, comm = await agent_idle(PROFILE, within=10.0)
-    disconnected: list[str] = []
-
-    def heard_of(sender: Any, vehicle_id: str, **kwargs: Any) -> None:
-        disconnected.append(vehicle_id)
-
-    agent_disconnected.connect(heard_of, weak=False)
-    try:
+    with hearing("agent_disconnected") as gone:
         # As if the agent had gone silent: the sweep looks from a minute later, when
         # its uplink's process still beats (fleet.servers: a process gone would
         # excuse the silence).
@@ -180,9 +174,7 @@ async def test_a_vehicle_the_sweep_marked_offline_is_back_with_its_next_heartbea
         # The uplink still owns the row: its disconnect marks the vehicle offline.
         await comm.disconnect()
         await eventually(lambda: _row(vehicle).status == "offline", within=10.0)
-        assert disconnected == [str(vehicle.pk)]
-    finally:
-        agent_disconnected.disconnect(heard_of)
+        assert [heard["vehicle_id"] for heard in gone] == [str(vehicle.pk)]
 
 
 async def test_the_monitor_sees_heartbeats_that_do_not_reach_the_row(monkeypatch, settings):

@@ -36,9 +36,9 @@ from fleet import uplink
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import AgentMessage, Vehicle
 from fleet.outbox import outbox
-from fleet.signals import agent_connected, agent_disconnected, agent_message
-from fleet.uplink import avehicle_send, vehicle_record_disconnect, vehicle_send
-from services.signing import platform_jwks, platform_public_key_pem
+from fleet.sending import avehicle_send, vehicle_send
+from fleet.uplink import vehicle_record_disconnect
+from services.sessions.signing import platform_jwks, platform_public_key_pem
 from tests.uplink import (
     agent_idle,
     eventually,
@@ -47,6 +47,7 @@ from tests.uplink import (
     uplink_welcomed,
     vehicle_enrolled,
 )
+from tests.vehicle_events import hearing
 
 pytestmark = pytest.mark.django_db(transaction=True)
 
@@ -102,18 +103,6 @@ async def _hello_closed(vehicle: Vehicle, credential: str) -> tuple[list[dict], 
     """Say hello on a new uplink that the platform is expected to close: what it sent,
     and the close code."""
     return await _closed(await uplink_hello(vehicle, credential))
-
-
-def _collect(signal):
-    """Record a signal's kwargs; returns (list, disconnect)."""
-    seen: list[dict] = []
-
-    def receiver(sender, **kwargs):
-        kwargs.pop("signal", None)
-        seen.append(kwargs)
-
-    signal.connect(receiver, weak=False)
-    return seen, lambda: signal.disconnect(receiver)
 
 
 # --- authentication ---------------------------------------------------------------------
@@ -193,8 +182,7 @@ async def test_silent_connection_is_closed(settings):
 
 async def test_profile_makes_the_vehicle_idle_with_its_control_url():
     vehicle, credential = await vehicle_enrolled()
-    connected, stop = _collect(agent_connected)
-    try:
+    with hearing("agent_connected") as connected:
         comm, _ = await uplink_welcomed(vehicle, credential)
         assert (await _get(vehicle)).status == Vehicle.Status.OFFLINE  # hello alone is not enough
         await comm.send_json_to(PROFILE)
@@ -213,8 +201,6 @@ async def test_profile_makes_the_vehicle_idle_with_its_control_url():
             }
         ]
         await comm.disconnect()
-    finally:
-        stop()
 
 
 @pytest.mark.parametrize(
@@ -426,8 +412,7 @@ async def test_a_lost_push_does_not_lose_the_disconnect(monkeypatch):
     from redis.exceptions import MaxConnectionsError
 
     vehicle, credential = await vehicle_enrolled()
-    gone, stop = _collect(agent_disconnected)
-    try:
+    with hearing("agent_disconnected") as gone:
         comm, _ = await uplink_welcomed(vehicle, credential)
         await comm.send_json_to(PROFILE)
         await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
@@ -444,22 +429,17 @@ async def test_a_lost_push_does_not_lose_the_disconnect(monkeypatch):
         await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
         await eventually(lambda: len(gone) == 1)
         assert gone == [{"vehicle_id": str(vehicle.pk), "code": 1006}]
-    finally:
-        stop()
 
 
-async def test_disconnect_marks_offline_and_signals():
+async def test_disconnect_marks_offline_and_tells_the_session_owner():
     vehicle, credential = await vehicle_enrolled()
-    gone, stop = _collect(agent_disconnected)
-    try:
+    with hearing("agent_disconnected") as gone:
         comm, _ = await uplink_welcomed(vehicle, credential)
         await comm.send_json_to(PROFILE)
         await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "idle")
         await comm.disconnect(code=1001)
         await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).status == "offline")
         assert gone == [{"vehicle_id": str(vehicle.pk), "code": 1001}]
-    finally:
-        stop()
 
 
 async def test_a_stale_uplink_does_not_mark_a_reconnected_vehicle_offline():
@@ -641,10 +621,9 @@ def test_vehicle_send_refuses_a_bad_message():
         vehicle_send(vehicle_id=SESSION, message=RelayClose(session_id="s", conn="c"))  # type: ignore[arg-type]
 
 
-async def test_session_messages_are_published_as_signals():
+async def test_session_messages_are_handed_to_the_session_owner():
     vehicle, credential = await vehicle_enrolled()
-    said, stop = _collect(agent_message)
-    try:
+    with hearing("agent_message") as said:
         comm, _ = await uplink_welcomed(vehicle, credential)
         sent = [
             {"type": "task_accepted", "session_id": "s-1"},
@@ -661,26 +640,26 @@ async def test_session_messages_are_published_as_signals():
         ]
         assert [type(s["message"]) for s in said] == [TaskAccepted, TaskRefused, Event]
         await comm.disconnect()
-    finally:
-        stop()
 
 
-async def test_a_failing_receiver_does_not_break_the_uplink():
+async def test_a_failing_listener_is_logged_and_does_not_break_the_uplink(caplog):
     vehicle, credential = await vehicle_enrolled()
 
-    def broken(sender, **kwargs):
-        raise RuntimeError("bug in a receiver")
+    def broken(**kwargs):
+        raise RuntimeError("bug in a listener")
 
-    agent_message.connect(broken, weak=False)
-    try:
+    with hearing("agent_message", instead=broken) as said:
         comm, _ = await uplink_welcomed(vehicle, credential)
         await comm.send_json_to({"type": "task_accepted", "session_id": "s-1"})
         await comm.send_json_to({"type": "heartbeat", "seq": 1, "battery": 33})
         await eventually(lambda: Vehicle.objects.get(pk=vehicle.pk).battery == 33)
         assert await comm.receive_nothing(timeout=0.1)
+        assert len(said) == 1
+        # Logged where an operator looks, with where it failed.
+        (failed,) = [r for r in caplog.records if r.name == "fleet.vehicle_events"]
+        assert "task_accepted" in failed.getMessage()
+        assert failed.exc_info is not None and "bug in a listener" in str(failed.exc_info[1])
         await comm.disconnect()
-    finally:
-        agent_message.disconnect(broken)
 
 
 async def test_a_platform_failure_is_answered_and_the_uplink_stays(monkeypatch):

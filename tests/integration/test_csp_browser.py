@@ -24,10 +24,9 @@ from django.contrib.auth import get_user_model
 from playwright.async_api import Browser, Page, Response, expect
 
 from fleet.models import Station
-from services.assignment import session_request
-from services.deployment import session_deploy
 from services.models import Service, Session
 from tests.browser import needs_chromium
+from tests.deployment import session_requested
 from tests.portal import LISTEN_FOR_VIOLATIONS, World, demo_world, sign_in, wait_for
 from tests.servers import db
 
@@ -142,12 +141,11 @@ def portal(csp_world: tuple[World, TileServer]) -> Portal:
 def _drive_car_for(username: str) -> Session:
     """A deployed drive-car session of ``username`` near the campus station."""
     station = Station.objects.get(name="Campus station")
-    session = session_request(
+    session = session_requested(
         user=get_user_model().objects.get(username=username),
         service=Service.objects.get(slug="drive-car"),
         target=(station.lat, station.lon),
-    )
-    session_deploy(session=session)
+    ).session
     return session
 
 

@@ -37,8 +37,8 @@ from agents.vehicles.mavlink.dialect import mavutil
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
 from services.models import RecordBatch, RecordSample, Service, Session
-from services.records import record_verify
-from services.signing import platform_public_key_pem
+from services.records.keeping import record_verify
+from services.sessions.signing import platform_public_key_pem
 from tests import factories as f
 from tests.browser import chromium_browser, needs_chromium
 from tests.control import command, recv

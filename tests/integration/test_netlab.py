@@ -28,7 +28,7 @@ from typing import Any
 
 import pytest
 
-from services.ice import turn_credentials
+from services.sessions.ice import turn_credentials
 from tests.netlab import NetLab, Turn, ensure_packages, leftovers, nat, netlab_available
 from tests.netlab_peer import PeerProcess, connect_peers
 

@@ -18,7 +18,7 @@ from django.conf import settings
 from playwright.async_api import expect
 
 from services.models import Service, Session
-from services.supervision import sessions_expire_grace
+from services.supervision.timers import sessions_expire_grace
 from tests.browser import needs_chromium
 from tests.portal import World, controller, hold_until, request_car, request_drone, wait_for
 from tests.servers import db, until

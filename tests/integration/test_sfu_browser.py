@@ -17,8 +17,8 @@ import pytest
 from playwright.async_api import expect
 
 from services import sfu
-from services.deployment import session_end
 from services.models import Session
+from services.sessions.ending import session_end
 from tests.browser import needs_chromium
 from tests.janus import JanusServer, janus_server
 from tests.portal import assert_nothing_refused, controller, demo_world, request_car, wait_for

@@ -28,7 +28,7 @@ from accounts.tokens import token_issue
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import AgentMessage, Vehicle
 from services.models import Session
-from services.signing import platform_public_key_pem
+from services.sessions.signing import platform_public_key_pem
 from tests import factories as f
 from tests.control import command
 from tests.servers import (

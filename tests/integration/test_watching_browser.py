@@ -16,8 +16,8 @@ from fleet.models import Vehicle
 from kinds.rescue_at_sea.request import rescue_request
 from kinds.rescue_at_sea.workflow import mission_advance
 from services.demo import CASTAWAY
-from services.deployment import session_revoke
 from services.models import Service, Session
+from services.sessions.ending import session_revoke
 from tests.browser import needs_chromium
 from tests.portal import World, request_car, wait_for
 from tests.servers import db

@@ -47,12 +47,11 @@ import pytest
 from django.utils import timezone
 
 from fleet.models import Vehicle
-from services.assignment import session_request
-from services.deployment import session_deploy
 from services.models import Session, SessionEvent
-from services.signing import platform_public_key_pem
+from services.sessions.signing import platform_public_key_pem
 from tests import factories as f
 from tests.browser import chromium_missing_reason
+from tests.deployment import session_requested
 from tests.netlab import NetLab, Turn, ensure_packages, leftovers, nat, netlab_available
 from tests.netlab_browser import BrowserProcess
 from tests.servers import platform_process
@@ -223,8 +222,7 @@ def world(lab: NetLab, tmp_path: Path) -> Iterator[World]:
             return Vehicle.objects.get(pk=car.pk).status == Vehicle.Status.IDLE
 
         wait_until(registered, within=START_S, what="the car's agent to register")
-        session = session_request(user=user, service=service, target=f.HOME)
-        session_deploy(session=session)
+        session = session_requested(user=user, service=service, target=f.HOME).session
         wait_until(
             lambda: SessionEvent.objects.filter(session=session, kind="task_accepted").exists(),
             within=START_S,

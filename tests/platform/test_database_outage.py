@@ -4,7 +4,7 @@ back: every request meanwhile is answered 503 with Retry-After within 2 s (the p
 down (iouv.health), and once PostgreSQL is back everything answers again without
 restarting anything. An agent's report sent during the outage is not lost: it is logged
 once PostgreSQL is back, with the time it happened on the vehicle (fleet.uplink,
-services.eventlog).
+services.sessions.log).
 
 The machine's PostgreSQL is shared, so the test runs a private one (Debian's binaries,
 a throw-away cluster on a free port, trust authentication) and stops that. The platform
@@ -126,14 +126,12 @@ django.setup()
 from accounts.roles import CLIENT
 from accounts.tokens import token_issue
 from fleet.credentials import vehicle_issue_credential
-from services.assignment import session_request
-from services.deployment import session_deploy
 from tests import factories as f
+from tests.deployment import session_requested
 
 vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type(kind="ground"))
 user = f.user(username="alice", roles=(CLIENT,))
-session = session_request(user=user, service=f.service(allowed_commands=["front"]))
-session_deploy(session=session)
+session = session_requested(user=user, service=f.service(allowed_commands=["front"])).session
 print(json.dumps({
     "vehicle": str(vehicle.pk),
     "credential": vehicle_issue_credential(vehicle=vehicle),

@@ -1,4 +1,4 @@
-"""What operators watch (services.metrics): ``/metrics`` in Prometheus' text format says
+"""What operators watch (services.supervision.metrics): ``/metrics`` in Prometheus' text format says
 how many agents are online, the live sessions by state, the outbox's backlog and its
 oldest message's age, the Celery queue and the tasks that failed; only to the machine
 itself or to a scraper holding the token."""
@@ -41,12 +41,11 @@ def test_the_fleet_the_sessions_and_the_outbox_as_the_database_has_them() -> Non
     for _ in range(2):
         f.vehicle(station=station, vtype=vtype)
     f.vehicle(station=station, vtype=vtype, online=False)
-    session, vehicle = alices_session()  # assigned, on a vehicle of its own (reserved)
+    # Assigned, on a vehicle of its own (reserved), its task owed to the agent (the one
+    # message owed: it waited 42 s).
+    session, vehicle = alices_session()
     Session.objects.create(service=session.service, user=session.user, state="requested")
-    AgentMessage.objects.create(vehicle=vehicle, kind="task", message={"type": "task"})
-    AgentMessage.objects.filter(vehicle=vehicle).update(
-        created_at=timezone.now() - timedelta(seconds=42)
-    )
+    AgentMessage.objects.update(created_at=timezone.now() - timedelta(seconds=42))
     AgentMessage.objects.create(
         vehicle=vehicle, kind="revoke", message={}, state=AgentMessage.State.ACKED
     )

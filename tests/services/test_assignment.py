@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from datetime import timedelta
+from typing import Any
 
 import pytest
 from django.utils import timezone
@@ -10,11 +11,17 @@ from django.utils import timezone
 from agents.geo import offset
 from fleet.models import Vehicle
 from fleet.status import vehicle_set_maintenance
-from services.assignment import AssignmentError, session_request
 from services.models import Assignment, Session
+from services.sessions.matching import AssignmentError
 from tests import factories as f
+from tests.deployment import session_requested
 
 pytestmark = pytest.mark.django_db
+
+
+def requested(**request: Any) -> Session:
+    """The session a request opens the way the portal does (tests.deployment)."""
+    return session_requested(**request).session
 
 
 @pytest.fixture
@@ -40,7 +47,7 @@ def test_picks_the_nearest_eligible_vehicle(base):
     f.vehicle(station=st, vtype=drone, name="middle", at=near(0.8))
     svc = f.service(roles=[{"name": "vehicle", "kinds": ["aerial"]}])
 
-    session = session_request(user=f.user(), service=svc, target=near(0.1))
+    session = requested(user=f.user(), service=svc, target=near(0.1))
 
     assert session.state == Session.State.ASSIGNED
     assert assigned(session) == ["close"]
@@ -53,7 +60,7 @@ def test_equal_distance_prefers_the_fuller_battery(base):
     f.vehicle(station=st, vtype=drone, name="half", battery=50, at=f.HOME)
     f.vehicle(station=st, vtype=drone, name="full", battery=99, at=f.HOME)
     svc = f.service()
-    assert assigned(session_request(user=f.user(), service=svc, target=near(0.5))) == ["full"]
+    assert assigned(requested(user=f.user(), service=svc, target=near(0.5))) == ["full"]
 
 
 def test_fastest_selection_prefers_the_first_to_arrive(base):
@@ -63,7 +70,7 @@ def test_fastest_selection_prefers_the_first_to_arrive(base):
     f.vehicle(station=st, vtype=drone, name="fast-far", at=near(-0.5), max_speed_mps=20, **roomy)
     svc = f.service(roles=[{"name": "search", "selection": "fastest"}])
     # slow-near: 1.5 km at 2 m/s = 750 s; fast-far: 2.5 km at 20 m/s = 125 s.
-    assert assigned(session_request(user=f.user(), service=svc, target=near(2))) == ["fast-far"]
+    assert assigned(requested(user=f.user(), service=svc, target=near(2))) == ["fast-far"]
 
 
 @pytest.mark.parametrize(
@@ -116,7 +123,7 @@ def test_ineligible_vehicle_is_skipped_and_named_when_alone(base, defect, role, 
 
     # Alone, the flawed vehicle is refused with the requirement it missed.
     with pytest.raises(AssignmentError) as refused:
-        session_request(user=f.user(), service=svc, target=target)
+        requested(user=f.user(), service=svc, target=target)
     assert reason in str(refused.value)
     failed = refused.value.session
     assert failed.state == Session.State.FAILED and reason in failed.reason
@@ -125,7 +132,7 @@ def test_ineligible_vehicle_is_skipped_and_named_when_alone(base, defect, role, 
     # With an eligible vehicle farther away, that one is picked instead.
     good_type = f.vehicle_type("aquatic", "mavlink") if defect == "wrong_kind" else drone
     f.vehicle(station=st, vtype=good_type, name="eligible", at=near(1.8), **fine)
-    assert assigned(session_request(user=f.user(), service=svc, target=target)) == ["eligible"]
+    assert assigned(requested(user=f.user(), service=svc, target=target)) == ["eligible"]
 
 
 def test_a_vehicle_reporting_no_position_is_matched_only_without_a_target(base):
@@ -139,10 +146,10 @@ def test_a_vehicle_reporting_no_position_is_matched_only_without_a_target(base):
     Vehicle.objects.filter(pk=blind.pk).update(lat=None, lon=None, alt=None)
     svc = f.service()
     with pytest.raises(AssignmentError, match="no idle vehicle reports its position"):
-        session_request(user=f.user(), service=svc, target=near(0.1))
+        requested(user=f.user(), service=svc, target=near(0.1))
     f.vehicle(station=st, vtype=drone, name="fixed", at=near(1.0))
-    assert assigned(session_request(user=f.user(), service=svc, target=near(0.1))) == ["fixed"]
-    assert assigned(session_request(user=f.user(), service=svc)) == ["no-fix"]
+    assert assigned(requested(user=f.user(), service=svc, target=near(0.1))) == ["fixed"]
+    assert assigned(requested(user=f.user(), service=svc)) == ["no-fix"]
 
 
 def test_all_roles_or_none(base):
@@ -156,7 +163,7 @@ def test_all_roles_or_none(base):
         ]
     )
     with pytest.raises(AssignmentError, match="delivery: no idle vehicle has max_payload_kg ≥ 5"):
-        session_request(user=f.user(), service=svc, target=near(0.5))
+        requested(user=f.user(), service=svc, target=near(0.5))
     # The search vehicle reserved for the first role was given back.
     assert Vehicle.objects.get(name="searcher").status == Vehicle.Status.IDLE
     assert not Assignment.objects.exists()
@@ -168,7 +175,7 @@ def test_one_vehicle_fills_only_one_role(base):
     f.vehicle(station=st, vtype=drone, name="only")
     svc = f.service(roles=[{"name": "a"}, {"name": "b"}])
     with pytest.raises(AssignmentError, match="b: no vehicle is online and idle"):
-        session_request(user=f.user(), service=svc)
+        requested(user=f.user(), service=svc)
 
 
 def test_user_without_grant_is_refused_and_nothing_recorded(base):
@@ -176,7 +183,7 @@ def test_user_without_grant_is_refused_and_nothing_recorded(base):
     f.vehicle(station=st, vtype=drone)
     svc = f.service(grant_clients=False)
     with pytest.raises(AssignmentError, match="may not use"):
-        session_request(user=f.user(), service=svc)
+        requested(user=f.user(), service=svc)
     assert not Session.objects.exists()
     assert Vehicle.objects.get().status == Vehicle.Status.IDLE
 
@@ -186,11 +193,11 @@ def test_a_reserved_vehicle_is_not_offered_again(base):
     f.vehicle(station=st, vtype=drone, name="a", at=near(0.1))
     f.vehicle(station=st, vtype=drone, name="b", at=near(0.3))
     svc = f.service()
-    first = session_request(user=f.user(), service=svc, target=near(0))
-    second = session_request(user=f.user(), service=svc, target=near(0))
+    first = requested(user=f.user(), service=svc, target=near(0))
+    second = requested(user=f.user(), service=svc, target=near(0))
     assert assigned(first) == ["a"] and assigned(second) == ["b"]
     with pytest.raises(AssignmentError, match="no vehicle is online and idle"):
-        session_request(user=f.user(), service=svc, target=near(0))
+        requested(user=f.user(), service=svc, target=near(0))
 
 
 def test_user_preferences_only_narrow_the_choice(base):
@@ -198,19 +205,19 @@ def test_user_preferences_only_narrow_the_choice(base):
     f.vehicle(station=st, vtype=drone, name="rgb-near", at=near(0.1))
     f.vehicle(station=st, vtype=drone, name="thermal-far", at=near(1.0), cameras=["rgb", "thermal"])
     svc = f.service()
-    chosen = session_request(
+    chosen = requested(
         user=f.user(), service=svc, target=near(0), preferences={"cameras": ["thermal"]}
     )
     assert assigned(chosen) == ["thermal-far"]
     with pytest.raises(AssignmentError, match="battery ≥ 95%"):
-        session_request(user=f.user(), service=svc, preferences={"min_battery": 95})
+        requested(user=f.user(), service=svc, preferences={"min_battery": 95})
 
 
 def test_nearest_first_reads_the_fleet_a_page_at_a_time(base, monkeypatch):
     """Matching reads the vehicles nearest the target first, a page at a time: an
     eligible vehicle beyond the first pages is still found, the nearest eligible one
     wins, and when none is eligible the refusal still names the requirement."""
-    from services import assignment
+    from services.sessions import matching as assignment
 
     monkeypatch.setattr(assignment, "POOL_PAGE", 2)
     st, drone = base
@@ -220,7 +227,7 @@ def test_nearest_first_reads_the_fleet_a_page_at_a_time(base, monkeypatch):
     f.vehicle(station=st, vtype=drone, name="ok", battery=90, at=near(0.5))
     svc = f.service(roles=[{"name": "vehicle", "kinds": ["aerial"], "min_battery": 20}])
 
-    assert assigned(session_request(user=f.user(), service=svc, target=near(0.0))) == ["ok"]
-    assert assigned(session_request(user=f.user(), service=svc, target=near(0.0))) == ["far-ok"]
+    assert assigned(requested(user=f.user(), service=svc, target=near(0.0))) == ["ok"]
+    assert assigned(requested(user=f.user(), service=svc, target=near(0.0))) == ["far-ok"]
     with pytest.raises(AssignmentError, match="battery"):
-        session_request(user=f.user(), service=svc, target=near(0.0))
+        requested(user=f.user(), service=svc, target=near(0.0))

@@ -12,10 +12,11 @@ from django.conf import settings
 from django.db import connection, transaction
 
 from fleet.models import Vehicle
-from services.assignment import AssignmentError, session_request
-from services.eventlog import event_append, session_log, session_log_verify
 from services.models import Assignment, Session, SessionEvent
+from services.sessions.log import event_append, session_log, session_log_verify
+from services.sessions.matching import AssignmentError
 from tests import factories as f
+from tests.deployment import session_requested
 
 REQUESTS = 40
 VEHICLES = 5
@@ -78,7 +79,7 @@ def test_forty_concurrent_requests_for_five_vehicles():
         try:
             start.wait()  # release every thread at once to maximise contention
             with connections_lent:
-                session = session_request(user=user, service=svc, target=f.HOME)
+                session = session_requested(user=user, service=svc, target=f.HOME).session
             with lock:
                 results.append(str(session.pk))
         except AssignmentError as exc:
@@ -130,7 +131,7 @@ def test_one_client_racing_twenty_requests_holds_only_the_services_cap():
         try:
             start.wait()
             with connections_lent:
-                session = session_request(user=greedy, service=svc, target=f.HOME)
+                session = session_requested(user=greedy, service=svc, target=f.HOME).session
             with lock:
                 granted.append(str(session.pk))
         except AssignmentError as exc:
@@ -163,7 +164,7 @@ def test_writers_racing_on_one_log_keep_one_chain():
     every event gets its own place in one unbroken chain, and nobody waits forever on
     anybody (the lock and the reports' inserts cannot deadlock)."""
     f.vehicle(station=f.station(), vtype=f.vehicle_type(), name="v")
-    session = session_request(user=f.user(), service=f.service(), target=f.HOME)
+    session = session_requested(user=f.user(), service=f.service(), target=f.HOME).session
     before = SessionEvent.objects.filter(session=session).count()
     start = threading.Barrier(12)
     crashes: list[BaseException] = []

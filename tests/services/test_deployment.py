@@ -16,21 +16,24 @@ from accounts.roles import MONITOR
 from agents.missions.return_home.spec import ReturnSpec
 from agents.protocol import Limits, UserGrant, VehicleTask, generate_keypair
 from fleet.models import Vehicle
-from services.assignment import session_request
-from services.deployment import (
-    DeploymentError,
-    InvalidTaskError,
-    grant_issue,
-    session_deploy,
-    session_end,
-    session_revoke,
-)
 from services.kinds import ServiceKind, UnknownKind, kind_named, kind_of, kind_register
 from services.models import Session
-from services.sessions import SessionStateError
-from services.signing import platform_private_key, platform_public_key, platform_public_key_pem
+from services.sessions.deployment import DeploymentError, InvalidTaskError, grant_issue
+from services.sessions.ending import session_end, session_revoke
+from services.sessions.signing import (
+    platform_private_key,
+    platform_public_key,
+    platform_public_key_pem,
+)
+from services.sessions.states import SessionStateError
 from tests import factories as f
-from tests.deployment import LIMITS, TARGET, alices_session, limited_service, registered_vehicle
+from tests.deployment import (
+    LIMITS,
+    TARGET,
+    limited_service,
+    registered_vehicle,
+    session_requested,
+)
 
 pytestmark = pytest.mark.django_db
 
@@ -38,10 +41,13 @@ pytestmark = pytest.mark.django_db
 @pytest.fixture
 def deployed(inbox, committing):
     """(session, vehicle, user task, vehicle task) of a freshly deployed session."""
-    session, vehicle = alices_session()
+    vehicle = registered_vehicle()
     take = inbox(vehicle)
     with committing():
-        user_task = session_deploy(session=session)
+        opened = session_requested(
+            user=f.user(username="alice"), service=limited_service(), target=TARGET
+        )
+    session, user_task = opened.session, opened.task
     (message,) = take()
     assert message["type"] == "task"
     task = VehicleTask.verify(message["token"], platform_public_key(), vehicle_id=str(vehicle.pk))
@@ -88,9 +94,8 @@ def test_tokens_never_reach_the_log(deployed):
 def test_geofence_is_centred_on_the_vehicle_without_a_target(inbox, committing):
     vehicle = registered_vehicle(at=(40.6320, -8.6570))
     take = inbox(vehicle)
-    session = session_request(user=f.user(), service=limited_service())
     with committing():
-        session_deploy(session=session)
+        session_requested(user=f.user(), service=limited_service())
     (message,) = take()
     task = VehicleTask.verify(message["token"], platform_public_key(), vehicle_id=str(vehicle.pk))
     assert task.limits.geofence_center == (40.6320, -8.6570)
@@ -101,7 +106,7 @@ def test_no_radius_means_no_geofence(inbox, committing):
     take = inbox(vehicle)
     service = limited_service(geofence_radius_m=None, max_altitude_m=None)
     with committing():
-        session_deploy(session=session_request(user=f.user(), service=service, target=TARGET))
+        session_requested(user=f.user(), service=service, target=TARGET)
     (message,) = take()
     task = VehicleTask.verify(message["token"], platform_public_key(), vehicle_id=str(vehicle.pk))
     assert task.limits.geofence_center is None and task.limits.geofence_radius_m is None
@@ -111,8 +116,8 @@ def test_no_radius_means_no_geofence(inbox, committing):
 def test_relay_only_vehicle_gives_a_relay_user_task():
     vehicle = registered_vehicle()
     Vehicle.objects.filter(pk=vehicle.pk).update(control_url="")
-    user_task = session_deploy(session=session_request(user=f.user(), service=limited_service()))
-    assert user_task.relay is True
+    user_task = session_requested(user=f.user(), service=limited_service()).task
+    assert user_task is not None and user_task.relay is True
 
 
 def test_every_role_gets_a_task_and_the_user_controls_the_vehicle_role(inbox, committing):
@@ -120,9 +125,9 @@ def test_every_role_gets_a_task_and_the_user_controls_the_vehicle_role(inbox, co
     main = registered_vehicle(name="main")
     takes = {v.name: inbox(v) for v in (searcher, main)}
     service = limited_service(roles=[{"name": "search"}, {"name": "vehicle"}])
-    session = session_request(user=f.user(), service=service, target=TARGET)
     with committing():
-        user_task = session_deploy(session=session)
+        opened = session_requested(user=f.user(), service=service, target=TARGET)
+    session, user_task = opened.session, opened.task
     for vehicle in (searcher, main):
         (message,) = takes[vehicle.name]()
         VehicleTask.verify(message["token"], platform_public_key(), vehicle_id=str(vehicle.pk))
@@ -130,18 +135,12 @@ def test_every_role_gets_a_task_and_the_user_controls_the_vehicle_role(inbox, co
     assert user_task.vehicle_id == str(held["vehicle"].pk)
 
 
-def test_deploy_needs_an_assigned_session(deployed):
-    session, *_ = deployed
-    session_end(session=session, reason="user left", by_user=True)
-    with pytest.raises(DeploymentError, match="not assigned"):
-        session_deploy(session=session)
-
-
 def test_invalid_limits_fail_the_session_and_send_nothing():
     vehicle = registered_vehicle()
-    session = session_request(user=f.user(), service=limited_service(max_speed_mps=0))
-    with pytest.raises(InvalidTaskError, match="max_speed_mps"):
-        session_deploy(session=session)
+    with pytest.raises(InvalidTaskError, match="max_speed_mps") as refused:
+        session_requested(user=f.user(), service=limited_service(max_speed_mps=0))
+    session = refused.value.session
+    assert session is not None
     session.refresh_from_db()
     assert session.state == Session.State.FAILED and "max_speed_mps" in session.reason
     assert not session.events.filter(kind="task_deployed").exists()
@@ -149,12 +148,15 @@ def test_invalid_limits_fail_the_session_and_send_nothing():
 
 
 def test_a_mission_its_kind_does_not_declare_is_never_signed(monkeypatch):
-    session, vehicle = alices_session()
-    kind = kind_of(session.service)
+    vehicle = registered_vehicle()
+    service = limited_service()
+    kind = kind_of(service)
     assert ReturnSpec not in kind.missions
     monkeypatch.setattr(kind, "vehicle_mission", lambda *, assignment: ReturnSpec(id="m-1"))
-    with pytest.raises(InvalidTaskError, match="does not deploy 'return' missions"):
-        session_deploy(session=session)
+    with pytest.raises(InvalidTaskError, match="does not deploy 'return' missions") as refused:
+        session_requested(user=f.user(username="alice"), service=service, target=TARGET)
+    session = refused.value.session
+    assert session is not None
     session.refresh_from_db()
     assert session.state == Session.State.FAILED
     assert not session.events.filter(kind="task_deployed").exists()
@@ -262,10 +264,12 @@ def test_session_revoke_sends_revoke_and_aborts(deployed, committing):
 
 def test_a_task_that_never_left_is_withdrawn_and_the_vehicle_freed_at_once(inbox, committing):
     """The agent never heard of the session: there is nothing to take back."""
-    session, vehicle = alices_session()
+    vehicle = registered_vehicle()
     take = inbox(vehicle)
     with committing():
-        session_deploy(session=session)
+        session = session_requested(
+            user=f.user(username="alice"), service=limited_service(), target=TARGET
+        ).session
         session_revoke(session=session, reason="kill switch", action="land")
     assert take.owed() == []
     assert status(vehicle) == Vehicle.Status.IDLE

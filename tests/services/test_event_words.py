@@ -1,5 +1,5 @@
 """The session log in words: the session page lists every event as a line a person can
-read (services.eventwords), never a bare code such as "agent event", and the feeds
+read (services.sessions.words), never a bare code such as "agent event", and the feeds
 carry the same line with each event."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import re
 import pytest
 from django.urls import reverse
 
-from services.eventlog import event_append
-from services.eventwords import event_text
+from services.sessions.log import event_append
+from services.sessions.words import event_text
 
 pytestmark = pytest.mark.django_db
 

@@ -15,8 +15,8 @@ from django.utils import timezone
 from agents.protocol import UserGrant
 from fleet.models import Vehicle
 from services.models import Session
-from services.selectors import service_vehicles_matching
-from services.signing import platform_public_key
+from services.sessions.selectors import service_vehicles_matching
+from services.sessions.signing import platform_public_key
 from tests import factories as f
 from tests.deployment import page_grant, uncacheable
 

@@ -1,4 +1,4 @@
-"""ICE servers for a session (services.ice): STUN as configured, TURN with credentials
+"""ICE servers for a session (services.sessions.ice): STUN as configured, TURN with credentials
 of the TURN REST scheme minted per session. coturn itself accepts them in
 tests/integration/test_netlab.py and tests/integration/test_webrtc_nat.py."""
 
@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 from django.urls import reverse
 
-from services.ice import ice_servers_for, turn_credentials
+from services.sessions.ice import ice_servers_for, turn_credentials
 
 
 def test_a_credential_is_the_hmac_of_its_username_and_expires_on_its_own() -> None:

@@ -29,8 +29,8 @@ from agents.protocol import (
     load_private_key,
     load_public_key,
 )
-from services.deployment import grant_issue
-from services.signing import platform_jwks, platform_keys, platform_private_key
+from services.sessions.deployment import grant_issue
+from services.sessions.signing import platform_jwks, platform_keys, platform_private_key
 
 pytestmark = [pytest.mark.filterwarnings("ignore:EdDSA is deprecated")]
 

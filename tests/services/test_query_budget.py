@@ -32,12 +32,12 @@ from agents.protocol import VehicleTask
 from agents.protocol.messages import Ack, CommandSpec, Event, Position, Profile, TaskAccepted
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
-from fleet.signals import agent_message
-from fleet.uplink import _acked, _admit, _signal_send, vehicle_record_profile
-from services import assignment
+from fleet.uplink import _acked, _admit, vehicle_record_profile
+from fleet.vehicle_events import agent_message
 from services.models import Session, SessionEvent
-from services.selectors import session_delivery
-from services.signing import platform_public_key
+from services.sessions import matching as assignment
+from services.sessions.selectors import session_delivery
+from services.sessions.signing import platform_public_key
 from tests import factories as f
 
 # Request: 15 statements.
@@ -48,7 +48,7 @@ from tests import factories as f
 #   live sessions counted (1), its roles (1), the matching vehicles (1), the chosen
 #   one reserved if still idle (1) and its row as reserved (1); then what it writes:
 #   its assignment (1), the task owed to the agent (1), the session as assigned (1),
-#   its whole log (1, services.eventlog.events_staged);
+#   its whole log (1, services.sessions.log.events_staged);
 #   the answer: nothing read back (the assignments and the log just written).
 REQUEST_QUERIES = 15
 #   Monitors' session feed (1 message for the whole log), fleet feed (1), the nudge
@@ -61,7 +61,7 @@ REQUEST_ON_COMMIT = 3
 #   and user (1), its whole log (1, the event's place and the answer's), its
 #   assignments locked and read with their vehicles (1), the assignments released
 #   (1), the session ended (1), its event in a savepoint (SAVEPOINT, RELEASE: 2; the
-#   event 1: services.eventlog, so that a place an agent's report took meanwhile
+#   event 1: services.sessions.log, so that a place an agent's report took meanwhile
 #   leaves the transaction usable), the vehicle's task rows locked (1), the end owed
 #   to the agent (1), the vehicle releasing (1);
 #   the answer: nothing read back (the assignments, the log and the end's delivery as
@@ -81,9 +81,9 @@ _TRANSACTION_CONTROL = ("BEGIN", "COMMIT", "SAVEPOINT", "RELEASE", "ROLLBACK")
 # What the vehicle's agent says about the session, as its uplink handles it.
 #   The ack of a message (fleet.outbox.agent_message_ack): the pending row marked
 #   acked (1), then what it was read (1). Of a session's end, also the vehicle released
-#   if it owes nothing more (1), and the end's delivery logged (services.supervision):
+#   if it owes nothing more (1), and the end's delivery logged (services.supervision.reports):
 #   the session with the vehicle's name (1), the event appended (the log's tail, the
-#   event in its place: 2; services.eventlog, no transaction and no lock).
+#   event in its place: 2; services.sessions.log, no transaction and no lock).
 ACK_QUERIES = 2
 END_ACK_QUERIES = 3 + 3
 #   task_accepted, and an event (task_ended): the vehicle's assignment with its session
@@ -186,7 +186,7 @@ def test_requesting_and_ending_a_session_stay_within_their_query_budget(
     with metered(monkeypatch) as ack:
         _acked(vehicle_id=str(vehicle.pk), ack=Ack(id=task_id, ok=True))
     with metered(monkeypatch) as accepted:
-        _signal_send(agent_message, vehicle_id=str(vehicle.pk), message=TaskAccepted(session_id))
+        agent_message(vehicle_id=str(vehicle.pk), message=TaskAccepted(session_id))
 
     with metered(monkeypatch) as end:
         ended = _post(f"/sessions/{session_id}/end", token, {"reason": "done"})
@@ -202,8 +202,7 @@ def test_requesting_and_ending_a_session_stay_within_their_query_budget(
     with metered(monkeypatch) as end_ack:
         _acked(vehicle_id=str(vehicle.pk), ack=Ack(id=end_id, ok=True))
     with metered(monkeypatch) as ended_report:
-        _signal_send(
-            agent_message,
+        agent_message(
             vehicle_id=str(vehicle.pk),
             message=Event(session_id=session_id, event="task_ended", data={"reason": "done"}),
         )
@@ -217,7 +216,7 @@ def test_requesting_and_ending_a_session_stay_within_their_query_budget(
     assert not any("SAVEPOINT" in sql for sql in request.statements), str(request)
     assert len(end) <= END_QUERIES, f"end: {len(end)} statements\n{end}"
     assert end.on_commit <= END_ON_COMMIT
-    # One savepoint: the end's event (services.eventlog).
+    # One savepoint: the end's event (services.sessions.log).
     savepoints = [sql for sql in end.statements if sql.lstrip().upper().startswith("SAVEPOINT")]
     assert len(savepoints) <= 1, str(end)
     queries = [
@@ -235,7 +234,7 @@ def test_requesting_and_ending_a_session_stay_within_their_query_budget(
 
 # An agent connecting (fleet.uplink): hello, the vehicle with its credential (1) and
 # its last_seen (1); profile, one transaction (BEGIN, COMMIT: 2): the vehicle locked
-# (1) and stored (1), then the platform's convergence (services.supervision, in a
+# (1) and stored (1), then the platform's convergence (services.supervision.reports, in a
 # savepoint so that a failing receiver leaves the profile stored: 2): what it serves
 # (1), the messages that no longer apply withdrawn (1), a releasing vehicle freed (1).
 CONNECT_QUERIES = 2 + 9

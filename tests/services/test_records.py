@@ -1,5 +1,5 @@
 """Flight records on the platform without servers: a batch kept once and chained, the
-check, deletion by an admin and by the retention sweep (services.records)."""
+check, deletion by an admin and by the retention sweep (services.records.keeping)."""
 
 from __future__ import annotations
 
@@ -15,10 +15,10 @@ from django.utils import timezone
 from accounts.roles import ADMIN
 from accounts.tokens import token_issue
 from agents.protocol.messages import Record, RecordSample
-from services import record_views
 from services.admin import SessionAdmin
 from services.models import RecordBatch, Session
-from services.records import record_batch_store, record_verify, records_expire
+from services.records.keeping import record_batch_store, record_verify, records_expire
+from services.web import record_views
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db

@@ -24,9 +24,9 @@ from prometheus_client import REGISTRY
 from agents.protocol import PROTOCOL_VERSION
 from fleet.credentials import vehicle_issue_credential
 from iouv.asgi import application
-from services.assignment import session_request
-from services.deployment import grant_issue, session_deploy
+from services.sessions.deployment import grant_issue
 from tests import factories as f
+from tests.deployment import session_requested
 
 pytestmark = [pytest.mark.redis, pytest.mark.django_db(transaction=True)]
 
@@ -64,8 +64,7 @@ def _relayed_session() -> tuple[str, str, str, str]:
     credential = vehicle_issue_credential(vehicle=vehicle)
     alice = f.user(username="alice")
     service = f.service(allowed_commands=["front"])
-    session = session_request(user=alice, service=service)
-    session_deploy(session=session)
+    session = session_requested(user=alice, service=service).session
     task = grant_issue(session=session, user=alice)
     return str(vehicle.pk), credential, str(session.pk), task.grant
 
@@ -265,7 +264,7 @@ async def test_webrtc_offers_over_the_users_budget_are_refused_and_not_forwarded
     settings: Any, rate_counters: str
 ) -> None:
     """Each offer reaches the vehicle (aiortc work, TURN credentials minted): past the
-    user's budget (services.throttle) the relay answers ``rate_limited`` itself."""
+    user's budget (services.web.throttle) the relay answers ``rate_limited`` itself."""
     settings.IOUV_RATE_LIMITS = {"webrtc_offer": {"user": "2/h", "address": "off"}}
     vehicle_id, credential, session_id, grant = await _relayed_session()
     agent = await _uplink(vehicle_id, credential)
@@ -289,7 +288,7 @@ async def test_webrtc_offers_over_the_users_budget_are_refused_and_not_forwarded
 
 
 async def test_a_relayed_commands_acknowledgement_and_round_trip_are_counted() -> None:
-    """What operators watch (services.metrics): each relayed command the vehicle
+    """What operators watch (services.supervision.metrics): each relayed command the vehicle
     acknowledged, accepted or refused, and the time it took through the platform."""
     counts = _relay_counts()
     vehicle_id, credential, session_id, grant = await _relayed_session()

@@ -6,11 +6,11 @@ import pytest
 from django.core.exceptions import ValidationError
 
 from fleet.models import Vehicle
-from services.assignment import session_request
-from services.eventlog import event_append, session_log_verify
 from services.models import Session, SessionEvent
-from services.sessions import SessionStateError, session_transition
+from services.sessions.log import event_append, session_log_verify
+from services.sessions.states import SessionStateError, session_transition
 from tests import factories as f
+from tests.deployment import session_requested
 
 pytestmark = pytest.mark.django_db
 
@@ -18,7 +18,7 @@ pytestmark = pytest.mark.django_db
 @pytest.fixture
 def session():
     f.vehicle(station=f.station(), vtype=f.vehicle_type(), name="v")
-    return session_request(user=f.user(), service=f.service())
+    return session_requested(user=f.user(), service=f.service()).session
 
 
 def test_lifecycle_releases_the_vehicle_with_a_reason(session):

@@ -16,9 +16,9 @@ from django.utils import timezone
 
 from agents.protocol import VehicleTask
 from services import sfu
-from services.deployment import _user_task, _vehicle_task_sign
 from services.models import Session
-from services.records import records_expire
+from services.records.keeping import records_expire
+from services.sessions.deployment import _user_task, _vehicle_task_sign
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db

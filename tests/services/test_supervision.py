@@ -1,8 +1,8 @@
 """Supervision: what agents report on the uplink, and the rules applied to it.
 
-Most tests publish agent messages exactly as the uplink does (``fleet.signals`` with a
-message from ``parse_message``); the last one drives the whole flow through a real
-uplink socket.
+Most tests tell the supervisor agent messages exactly as the uplink does
+(``fleet.vehicle_events`` with a message from ``parse_message``); the last one drives
+the whole flow through a real uplink socket.
 """
 
 from __future__ import annotations
@@ -22,16 +22,16 @@ from django.utils import timezone
 from agents.protocol import VehicleTask, parse_message
 from agents.protocol.messages import Heartbeat
 from fleet.models import Vehicle
-from fleet.signals import agent_connected, agent_disconnected, agent_message
 from fleet.status import vehicles_mark_stale_offline
 from fleet.uplink import vehicle_record_heartbeat
-from services.assignment import session_request
-from services.deployment import session_deploy, session_end
-from services.eventlog import session_log_verify
+from fleet.vehicle_events import vehicle_events
 from services.models import Session, SessionEvent
-from services.signing import platform_public_key
-from services.supervision import (
-    LINK_QUALITY_EVERY_S,
+from services.sessions.ending import session_end
+from services.sessions.log import session_log_verify
+from services.sessions.opening import session_open
+from services.sessions.signing import platform_public_key
+from services.supervision.reports import LINK_QUALITY_EVERY_S
+from services.supervision.timers import (
     sessions_end_vehicle_lost,
     sessions_expire_grace,
     sessions_expire_time_limit,
@@ -39,6 +39,7 @@ from services.supervision import (
     sessions_expire_undelivered,
 )
 from tests import factories as f
+from tests.deployment import session_requested
 from tests.uplink import uplink_welcomed, vehicle_enrolled
 
 pytestmark = pytest.mark.django_db
@@ -51,17 +52,21 @@ def live(inbox, committing):
     vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type())
     take = inbox(vehicle)
     service = f.service(allowed_commands=["up"], failsafe_action="land")
-    session = session_request(user=f.user(username="alice"), service=service)
     with committing():
-        session_deploy(session=session)
+        session = session_requested(user=f.user(username="alice"), service=service).session
     assert take()[0]["type"] == "task"
     return session, vehicle, take
 
 
-def say(vehicle, msg, *, signal=agent_message):
-    """Publish ``msg`` from ``vehicle``'s agent as the uplink does."""
+def say(vehicle, msg):
+    """Tell the supervisor ``msg`` from ``vehicle``'s agent as the uplink does (but with
+    its exceptions raised)."""
     message = parse_message(json.dumps(msg), channel="uplink_to_platform")
-    signal.send(sender=None, vehicle_id=str(vehicle.pk), message=message)
+    vehicle_events().agent_message(vehicle_id=str(vehicle.pk), message=message)
+
+
+#: What an agent that runs nothing and says no status reports as it registers.
+NOTHING_SAID = {"session_id": None, "controller": False, "status": None}
 
 
 def event(session, which, /, **data):
@@ -265,9 +270,8 @@ def test_time_limit_revokes(inbox, committing):
     vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type())
     take = inbox(vehicle)
     service = f.service(session_time_limit_s=60, failsafe_action="return_to_home")
-    session = session_request(user=f.user(), service=service)
     with committing():
-        session_deploy(session=session)
+        session = session_requested(user=f.user(), service=service).session
     take()
     say(vehicle, event(session, "user_connected", role="controller"))
     started = Session.objects.get(pk=session.pk).started_at
@@ -368,14 +372,14 @@ def test_uplink_loss_and_return_during_a_session(live, committing):
     session, vehicle, take = live
     say(vehicle, event(session, "user_connected", role="controller"))
     Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.OFFLINE)
-    agent_disconnected.send(sender=None, vehicle_id=str(vehicle.pk), code=1006)
+    vehicle_events().agent_disconnected(vehicle_id=str(vehicle.pk), code=1006)
     assert session.events.last().kind == "vehicle_offline"
 
     # Back: the uplink's profile made it idle; supervision puts it back in service and
     # sends a fresh task (new nonce), since a restarted agent lost the old one.
     Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.IDLE)
     with committing():
-        agent_connected.send(sender=None, vehicle_id=str(vehicle.pk))
+        vehicle_events().agent_connected(vehicle_id=str(vehicle.pk), state=NOTHING_SAID)
     assert "vehicle_online" in kinds(session)
     assert status(vehicle) == Vehicle.Status.IN_SERVICE
     (message,) = take()
@@ -392,8 +396,7 @@ def test_an_agent_back_in_fail_safe_with_its_session_gets_the_sessions_status(li
     say(vehicle, event(session, "user_connected", role="controller"))
     # What the uplink's profile made of the report "failsafe" (fleet.uplink).
     Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.FAILSAFE)
-    agent_connected.send(
-        sender=None,
+    vehicle_events().agent_connected(
         vehicle_id=str(vehicle.pk),
         state={"session_id": str(session.pk), "controller": False, "status": "failsafe"},
     )
@@ -403,8 +406,8 @@ def test_an_agent_back_in_fail_safe_with_its_session_gets_the_sessions_status(li
 
 def test_an_idle_vehicle_coming_online_is_left_alone():
     vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type())
-    agent_connected.send(sender=None, vehicle_id=str(vehicle.pk))
-    agent_disconnected.send(sender=None, vehicle_id=str(vehicle.pk), code=1000)
+    vehicle_events().agent_connected(vehicle_id=str(vehicle.pk), state=NOTHING_SAID)
+    vehicle_events().agent_disconnected(vehicle_id=str(vehicle.pk), code=1000)
     assert status(vehicle) == Vehicle.Status.IDLE
 
 
@@ -488,8 +491,7 @@ def test_a_vehicle_back_online_with_its_controller_keeps_the_session(live):
     session, vehicle, _ = live
     say(vehicle, event(session, "user_connected", role="controller"))
     say(vehicle, event(session, "failsafe", cause="link_lost", action="land"))
-    agent_connected.send(
-        sender=None,
+    vehicle_events().agent_connected(
         vehicle_id=str(vehicle.pk),
         state={"session_id": str(session.pk), "controller": True, "status": "in_service"},
     )
@@ -511,7 +513,8 @@ def test_a_session_nobody_connects_to_ends_after_the_connect_timeout(live, commi
 def test_an_autonomous_session_waits_for_no_user(inbox, committing):
     vehicle = f.vehicle(station=f.station(), vtype=f.vehicle_type())
     service = f.service(kind="rescue_at_sea")
-    session_request(user=f.user(), service=service)
+    # Its vehicle reserved and its task sent at once, as a workflow's step would.
+    session_open(user=f.user(), service=service, deploy=True)
     later = timezone.now() + timedelta(seconds=settings.IOUV_CONNECT_TIMEOUT_S + 60)
     assert sessions_expire_unconnected(now=later) == []
     assert status(vehicle) == Vehicle.Status.RESERVED
@@ -544,8 +547,7 @@ def test_an_agent_back_with_a_session_that_ended_is_told_to_end_it(live, committ
     # Its uplink comes back; the profile says it still runs the session.
     Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.RELEASING)
     with committing():
-        agent_connected.send(
-            sender=None,
+        vehicle_events().agent_connected(
             vehicle_id=str(vehicle.pk),
             state={"session_id": str(session.pk), "controller": True, "status": "in_service"},
         )
@@ -560,8 +562,7 @@ def test_a_restarted_agent_gets_its_live_session_back_and_nothing_stale(live, co
     session, vehicle, take = live
     Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.IDLE)
     with committing():
-        agent_connected.send(
-            sender=None,
+        vehicle_events().agent_connected(
             vehicle_id=str(vehicle.pk),
             state={"session_id": None, "controller": False, "status": "idle"},
         )
@@ -578,8 +579,7 @@ def test_a_restarted_agent_owes_nothing_for_sessions_it_no_longer_runs(live, com
     assert status(vehicle) == Vehicle.Status.RELEASING
     # It restarted before the end reached it: there is nothing left to end.
     Vehicle.objects.filter(pk=vehicle.pk).update(status=Vehicle.Status.IDLE)
-    agent_connected.send(
-        sender=None,
+    vehicle_events().agent_connected(
         vehicle_id=str(vehicle.pk),
         state={"session_id": None, "controller": False, "status": "idle"},
     )
@@ -672,8 +672,8 @@ async def test_agent_flow_over_the_uplink(_close_worker_connections):
     @database_sync_to_async
     def request():
         service = f.service(allowed_commands=["up"])
-        session = session_request(user=f.user(username="carol"), service=service)
-        return session, session_deploy(session=session)
+        opened = session_requested(user=f.user(username="carol"), service=service)
+        return opened.session, opened.task
 
     session, user_task = await request()
     assert user_task.control_url == "ws://127.0.0.1:9000/"

@@ -1,4 +1,4 @@
-"""Rate limits (services.throttle): session requests and grants have a budget per user and
+"""Rate limits (services.web.throttle): session requests and grants have a budget per user and
 one per client address, on the API and on the portal; one over a budget is answered 429
 with Retry-After and does nothing (no session row, no grant in the log).
 
@@ -20,7 +20,7 @@ from django.urls import reverse
 from accounts.roles import CLIENT
 from accounts.tokens import token_issue
 from services.models import Session, SessionEvent
-from services.throttle import Throttled, throttle_check
+from services.web.throttle import Throttled, throttle_check
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db

@@ -21,16 +21,16 @@ from agents.geo import distance_m, offset
 from agents.missions.spec import MissionSpec
 from agents.protocol import parse_message
 from fleet.models import Vehicle
-from fleet.signals import agent_message
+from fleet.vehicle_events import vehicle_events
 from kinds.parcel_delivery.missions import vehicle_mission
 from kinds.parcel_delivery.models import Delivery
 from kinds.parcel_delivery.workflow import delivery_advance
-from services.assignment import AssignmentError
-from services.deployment import session_end
 from services.kinds import Request, RequestError
 from services.models import Assignment, Service, Session
-from services.notices import notices_send
-from services.request import service_request
+from services.sessions.ending import session_end
+from services.sessions.matching import AssignmentError
+from services.sessions.notices import notices_send
+from services.sessions.request import service_request
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db
@@ -119,7 +119,7 @@ def say(vehicle: Vehicle, session: Session, msg: dict[str, Any]) -> None:
     message = parse_message(
         json.dumps({"session_id": str(session.pk), **msg}), channel="uplink_to_platform"
     )
-    agent_message.send(sender=None, vehicle_id=str(vehicle.pk), message=message)
+    vehicle_events().agent_message(vehicle_id=str(vehicle.pk), message=message)
 
 
 def report(vehicle: Vehicle, session: Session, name: str, **data: Any) -> None:

@@ -24,7 +24,7 @@ from fleet.models import Vehicle
 from kinds.parcel_delivery.models import Delivery
 from services.kinds import Opened, Request
 from services.models import Assignment, Service, Session
-from services.request import service_request
+from services.sessions.request import service_request
 from tests.browser import chromium_browser, needs_chromium
 from tests.demo import Demo, mission_agent_config, missions_running
 from tests.portal import sign_in

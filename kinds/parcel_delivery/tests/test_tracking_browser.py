@@ -22,12 +22,12 @@ from playwright.async_api import expect
 
 from agents.protocol import parse_message
 from fleet.models import Vehicle
-from fleet.signals import agent_message
+from fleet.vehicle_events import vehicle_events
 from kinds.parcel_delivery.models import Delivery
 from kinds.parcel_delivery.workflow import delivery_advance
 from services.kinds import Request
 from services.models import Assignment, Service
-from services.request import service_request
+from services.sessions.request import service_request
 from tests.browser import needs_chromium
 from tests.portal import World, demo_world, sign_in
 from tests.servers import db
@@ -84,7 +84,7 @@ def _carrier_reports(delivery: Delivery, *events: str) -> str:
             ),
             channel="uplink_to_platform",
         )
-        agent_message.send(sender=None, vehicle_id=str(carrier.vehicle_id), message=message)
+        vehicle_events().agent_message(vehicle_id=str(carrier.vehicle_id), message=message)
         delivery_advance(delivery.pk)
     return str(Delivery.objects.get(pk=delivery.pk).state)
 

@@ -21,7 +21,7 @@ from kinds.parcel_delivery.models import Delivery
 from kinds.parcel_delivery.notifications import parcel_notices
 from kinds.parcel_delivery.workflow import delivery_advance
 from services.models import Service, Session
-from services.notices import notices_send
+from services.sessions.notices import notices_send
 
 pytestmark = pytest.mark.django_db
 

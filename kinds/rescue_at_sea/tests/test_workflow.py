@@ -22,7 +22,7 @@ from agents.geo import offset
 from agents.missions.spec import MissionSpec
 from agents.protocol import parse_message
 from fleet.models import Vehicle
-from fleet.signals import agent_message
+from fleet.vehicle_events import vehicle_events
 from kinds.rescue_at_sea.conf import search_timeout_s
 from kinds.rescue_at_sea.missions import vehicle_mission
 from kinds.rescue_at_sea.models import Mission, RescueTeam
@@ -31,9 +31,9 @@ from kinds.rescue_at_sea.presentation import mission_json
 from kinds.rescue_at_sea.request import RescueError, rescue_request
 from kinds.rescue_at_sea.tests.sea import SEA, area, online
 from kinds.rescue_at_sea.workflow import mission_advance, missions_tick
-from services.assignment import AssignmentError
 from services.models import Assignment, Notice, Service, Session
-from services.notices import notices_send as notifications_send
+from services.sessions.matching import AssignmentError
+from services.sessions.notices import notices_send as notifications_send
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db
@@ -47,7 +47,7 @@ def wire(spec: MissionSpec | None) -> dict[str, Any]:
 
 def say(vehicle: Vehicle, msg: dict) -> None:
     message = parse_message(json.dumps(msg), channel="uplink_to_platform")
-    agent_message.send(sender=None, vehicle_id=str(vehicle.pk), message=message)
+    vehicle_events().agent_message(vehicle_id=str(vehicle.pk), message=message)
 
 
 def report(session: Session, vehicle: Vehicle, name: str, **data) -> None:
@@ -345,7 +345,7 @@ def test_whole_area_searched_without_finding(world, client_user) -> None:
 
 
 def test_monitor_stop_aborts_the_mission(world, client_user) -> None:
-    from services.deployment import session_revoke
+    from services.sessions.ending import session_revoke
 
     session = rescue_request(user=client_user, service=world, area=area())
     step(session)

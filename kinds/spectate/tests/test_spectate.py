@@ -10,8 +10,8 @@ from django.conf import settings
 from django.test import Client
 from django.urls import reverse
 
-from services.eventlog import event_append
 from services.models import Session
+from services.sessions.log import event_append
 from tests import factories as f
 from tests.deployment import alices_session, page_grant, uncacheable
 

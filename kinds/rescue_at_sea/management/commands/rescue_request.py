@@ -17,9 +17,7 @@ from django.core.management.base import BaseCommand, CommandError, CommandParser
 from agents.geo import offset
 from kinds.rescue_at_sea.kind import RescueAtSea
 from kinds.rescue_at_sea.request import rescue_request
-from services.assignment import AssignmentError
-from services.demo import CASTAWAY
-from services.kinds import RequestError
+from services.kit import CASTAWAY, AssignmentError, RequestError
 from services.models import Service
 
 

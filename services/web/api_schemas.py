@@ -1,4 +1,4 @@
-"""The JSON API's request and response bodies as types (services.api serves them).
+"""The JSON API's request and response bodies as types (services.web.api serves them).
 
 django-ninja derives the OpenAPI document from these classes, so what the document
 says and what the API accepts and answers cannot drift apart. Request bodies are
@@ -30,9 +30,9 @@ from pydantic_core import PydanticCustomError
 from fleet.attributes import CAMERAS, FEATURES
 from fleet.models import Vehicle
 from services import models
-from services.eventlog import session_log, session_log_verify
-from services.selectors import session_delivery
-from services.sessions import FINAL
+from services.sessions.log import session_log, session_log_verify
+from services.sessions.selectors import session_delivery
+from services.sessions.states import FINAL
 
 BASE_PATH = "/api/v1"
 MAX_BODY_BYTES = 64 * 1024
@@ -47,7 +47,7 @@ PARAMS_MAX_DEPTH = 16
 
 def _invalid(field: str, message: str) -> PydanticCustomError:
     """A validation error that names ``field`` (a dotted path deeper than pydantic's
-    location, e.g. ``params.a[0]``); services.api puts it in the error envelope."""
+    location, e.g. ``params.a[0]``); services.web.api puts it in the error envelope."""
     return PydanticCustomError("invalid_field", message, {"field": field})
 
 

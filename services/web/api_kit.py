@@ -1,4 +1,4 @@
-"""The HTTP plumbing of the JSON API (services.api) on django-ninja.
+"""The HTTP plumbing of the JSON API (services.web.api) on django-ninja.
 
 Every failure, ninja's own included, is answered with the error envelope
 ``{"error": {"code", "message", ...}}`` (:class:`ApiError`); :class:`BearerToken`
@@ -27,11 +27,11 @@ from ninja.security import HttpBearer
 from accounts.tokens import token_authenticate
 from accounts.users import User
 from iouv.outages import DATABASE_UNAVAILABLE, database_unavailable_response
-from services.api_schemas import MAX_BODY_BYTES
-from services.throttle import Throttled
+from services.web.api_schemas import MAX_BODY_BYTES
+from services.web.throttle import Throttled
 
 # Under the API's name: the one operators know from the log lines of requests.
-logger = logging.getLogger("services.api")
+logger = logging.getLogger("services.web.api")
 
 _REALM = 'Bearer realm="iouv"'
 

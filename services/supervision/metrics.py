@@ -59,7 +59,7 @@ from accounts.addresses import client_address
 from fleet.models import AgentMessage, Vehicle
 from fleet.status import vehicles_online
 from services.models import Session
-from services.sessions import FINAL
+from services.sessions.states import FINAL
 
 log = logging.getLogger(__name__)
 

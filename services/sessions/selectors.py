@@ -8,7 +8,7 @@ from fleet.liveness import vehicles_fresh
 from fleet.models import AgentMessage, Vehicle
 from fleet.outbox import ENDING, agent_messages_owed
 from services.models import Service, ServiceRole, Session
-from services.sessions import FINAL
+from services.sessions.states import FINAL
 
 
 def vehicle_consequence(vehicle: Vehicle, action: str) -> str:
@@ -135,7 +135,7 @@ def service_vehicles_matching(service: Service, role: ServiceRole | None = None)
     required role), for the request page: heard from within the offline delay, as
     assignment will check (a vehicle that went quiet since the last sweep is not
     offered)."""
-    from services.assignment import role_match
+    from services.sessions.matching import role_match
 
     if role is None:
         role = service.roles.filter(required=True).first()

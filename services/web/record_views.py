@@ -1,6 +1,6 @@
 """The portal's flight-record answers: a session's record summarised with its check,
-and its exports (services.record_exports). Who may open them: the session's user,
-monitors, admins (services.records.record_visible); anyone else is told there is no
+and its exports (services.records.exports). Who may open them: the session's user,
+monitors, admins (services.records.keeping.record_visible); anyone else is told there is no
 such session (404)."""
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ from django.views.decorators.cache import never_cache
 from django.views.decorators.http import require_GET
 
 from accounts.users import AuthenticatedHttpRequest
-from services import record_exports as exports
 from services.models import RecordSample, Session
-from services.records import record_tlog, record_verify, record_visible
+from services.records import exports
+from services.records.keeping import record_tlog, record_verify, record_visible
 from services.sfu import sfu_recordings
 
 #: Export name -> (builder, content type, file name suffix).

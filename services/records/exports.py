@@ -20,9 +20,9 @@ from xml.etree import ElementTree as ET
 
 from django.core.serializers.json import DjangoJSONEncoder
 
-from services.eventlog import session_log
 from services.models import RecordSample, Session
-from services.records import record_samples, record_tlog, record_verify
+from services.records.keeping import record_samples, record_tlog, record_verify
+from services.sessions.log import session_log
 
 GPX_NS = "http://www.topografix.com/GPX/1/1"
 KML_NS = "http://www.opengis.net/kml/2.2"

@@ -1,5 +1,5 @@
 """A session log's events in words: one line a person can read for each, never a bare
-code ("agent event"). The session pages list them (services.views.log_lines) and the
+code ("agent event"). The session pages list them (services.web.views.log_lines) and the
 feeds carry them with each event (``text``), so a page adds new lines in the same
 words.
 """

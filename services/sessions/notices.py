@@ -28,14 +28,15 @@ import urllib.request
 from datetime import timedelta
 from typing import Any
 
+from celery import shared_task
 from django.conf import settings
 from django.core.mail import EmailMessage
 from django.db import transaction
 from django.db.models import F, Q
 from django.utils import timezone
 
-from services.eventlog import event_append
 from services.models import Notice, Session
+from services.sessions.log import event_append
 
 log = logging.getLogger(__name__)
 
@@ -84,8 +85,6 @@ def notices_pending(session_id: Any = None) -> list[Any]:
 def notices_schedule(session_id: Any) -> None:
     """Send the session's pending notices from their own task once the current
     transaction commits."""
-    from services.tasks import services_notices_send  # the task module imports this one
-
     transaction.on_commit(lambda: services_notices_send.delay(str(session_id)), robust=True)
 
 
@@ -181,3 +180,18 @@ def _deliver(notice: Notice) -> None:
                 raise RuntimeError(f"webhook answered {response.status}")
     except urllib.error.HTTPError as exc:
         raise RuntimeError(f"webhook answered {exc.code}") from None
+
+
+@shared_task(
+    name="services.notices_send",
+    acks_late=True,
+    autoretry_for=(NoticeNotSent,),
+    max_retries=8,
+    retry_backoff=2,
+    retry_backoff_max=120,
+    retry_jitter=True,
+)
+def services_notices_send(session_id: str) -> int:
+    """Send a session's pending notices; retried with growing delays while any is
+    still unsent (a webhook down, a mail server away)."""
+    return notices_send_or_retry(session_id)

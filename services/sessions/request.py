@@ -9,10 +9,10 @@ meets the same refusals, in the same words, on the page and through the API.
 from __future__ import annotations
 
 from accounts.users import User
-from services.assignment import AssignmentError
-from services.grants import user_can_use
 from services.kinds import Opened, Request, RequestError, UnknownKind, kind_of
 from services.models import Service
+from services.sessions.grants import user_can_use
+from services.sessions.matching import AssignmentError
 
 
 def service_request(
@@ -20,13 +20,13 @@ def service_request(
 ) -> Opened:
     """Open a session of ``service`` for ``user`` as ``request`` asks. ``usable``:
     whether the user may use the service, when the caller read it with the service
-    (services.grants.services_usable); None: asked here.
+    (services.sessions.grants.services_usable); None: asked here.
 
     Raises AssignmentError when the user may not use the service (``session`` None),
     holds as many live sessions of it as it allows (``over_cap``) or no vehicle fits
     (the failed session recorded); RequestError naming the field at fault (a field the
     kind does not read, invalid params, a kind that is not requested this way or not
-    installed); services.deployment.DeploymentError when deploying failed.
+    installed); services.sessions.deployment.DeploymentError when deploying failed.
     """
     if usable is None:
         usable = service.is_active and user_can_use(user, service)

@@ -29,8 +29,8 @@ from django.utils import timezone
 
 from agents.protocol.messages import Record
 from fleet.records import RecordOutcome
-from services.eventlog import event_append, session_log, session_log_verify
 from services.models import Assignment, RecordBatch, RecordSample, Session
+from services.sessions.log import event_append, session_log, session_log_verify
 from services.sfu import sfu_recorded_sessions, sfu_recording_delete, sfu_recordings
 
 log = logging.getLogger(__name__)

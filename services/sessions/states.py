@@ -20,8 +20,8 @@ from django.utils import timezone
 
 from fleet.feed import fleet_notify
 from fleet.models import Vehicle
-from services.eventlog import event_append
 from services.models import Assignment, Session, SessionEvent
+from services.sessions.log import event_append
 from services.sfu import sfu_session_end_schedule
 
 S = Session.State
@@ -75,8 +75,8 @@ def session_transition_locked(
     savepoint is made. ``session`` is updated in place. On a final state its active
     assignments end (see :func:`assignments_release`); with ``free_vehicles`` their
     vehicles become idle again, else the caller settles them (see
-    services.deployment.vehicle_release). ``log``: the session's whole log, read under
-    the lock (services.eventlog.event_append).
+    services.sessions.ending.vehicle_release). ``log``: the session's whole log, read under
+    the lock (services.sessions.log.event_append).
 
     Returns the ids of the vehicles released. Raises SessionStateError, before any
     write, as :func:`session_transition`.
@@ -100,7 +100,7 @@ def session_transition_locked(
         released = assignments_release(session=session, free_vehicles=free_vehicles)
         # The SFU's room closes and its recording is converted (nothing without one).
         sfu_session_end_schedule(session_id=session.pk)
-    # A session not written yet (services.assignment.session_record's ``write``) is
+    # A session not written yet (services.sessions.matching.session_record's ``write``) is
     # written with its changes.
     if not session._state.adding:
         session.save(update_fields=fields)

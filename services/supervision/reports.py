@@ -1,8 +1,8 @@
 """The platform task: supervising sessions from what their vehicles' agents report.
 
-The uplink (``fleet.uplink``) publishes agent messages as ``fleet.signals``; the
-receivers here (connected in ``services.apps``) log them in the session log and apply
-the rules:
+The uplink (``fleet.uplink``) tells what agents say to one listener
+(``fleet.vehicle_events``); :class:`Supervisor` here (registered in ``services.apps``)
+logs it in the session log and applies the rules:
 
 * ``task_refused``: the session fails with the agent's reason.
 * ``user_connected`` (a controller): an assigned session becomes active.
@@ -10,14 +10,10 @@ the rules:
   (:data:`UNSAFE_REFUSALS`) within ``IOUV_UNSAFE_REFUSALS_WINDOW_S``: revoked.
 * ``failsafe``: the user's link dropped and the vehicle acted on its own. Logged at once
   as ``unintentional_end``; unless the controller reconnects within
-  ``IOUV_RECONNECT_GRACE_S``, :func:`sessions_expire_grace` ends the session.
-* ``session_time_limit_s`` of the service: :func:`sessions_expire_time_limit` revokes.
+  ``IOUV_RECONNECT_GRACE_S``, services.supervision.timers ends the session.
 
-* a vehicle that does not accept its task before the task's delivery deadline:
-  :func:`sessions_expire_undelivered` fails the session.
-
-The ``sessions_expire_*`` functions are meant to run periodically (Celery beat):
-their state is the session log, so a restarted worker loses nothing.
+The rules that need no report (the grace, the time limit, a task never delivered, a
+vehicle lost) run periodically: services.supervision.timers.
 
 Agents are authenticated, not trusted: an agent may only report on sessions its
 vehicle is (or was) assigned to; anything else is ignored with a warning.
@@ -28,7 +24,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import uuid
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
@@ -37,7 +33,6 @@ from django.db import transaction
 from django.db.models import Subquery
 from django.utils import timezone
 
-from agents.protocol import CLOCK_SKEW_S
 from agents.protocol.messages import EndTask, Event, Revoke, TaskAccepted, TaskRefused
 from fleet.feed import fleet_notify
 from fleet.models import AgentMessage, Vehicle
@@ -50,21 +45,15 @@ from fleet.outbox import (
     stored_message,
     vehicle_release_if_settled,
 )
-from fleet.servers import vehicles_silence
-from fleet.uplink import vehicle_send
-from services.deployment import (
-    LIVE,
-    session_end,
-    session_fail,
-    session_revoke,
-    vehicle_task_deploy,
-)
-from services.eventlog import event_append, events_occurred_at
-from services.kinds import ServiceKind, UnknownKind, kind_of, kinds_user_driven
-from services.models import Assignment, Service, Session, SessionEvent
-from services.selectors import failsafe_sentence
-from services.sessions import SessionStateError, session_transition
-from services.signing import platform_jwks, platform_public_key_pem
+from fleet.sending import vehicle_send
+from fleet.vehicle_events import AgentState, SessionMessage
+from services.models import Assignment, Session, SessionEvent
+from services.sessions.deployment import LIVE, vehicle_task_deploy
+from services.sessions.ending import session_fail, session_revoke
+from services.sessions.log import event_append, events_occurred_at
+from services.sessions.signing import platform_jwks, platform_public_key_pem
+from services.sessions.states import SessionStateError, session_transition
+from services.supervision.situation import REASON_MAX, service_kind
 
 log = logging.getLogger(__name__)
 
@@ -73,8 +62,6 @@ UNSAFE_REFUSALS = frozenset({"altitude_limit", "geofence", "latency", "obstacle"
 
 #: At most one link_quality event per session in this many seconds reaches the log.
 LINK_QUALITY_EVERY_S = 10.0
-
-_REASON_MAX = 300
 
 
 def _assignment_for(*, vehicle_id: Any, session_id: Any) -> Assignment | None:
@@ -132,7 +119,7 @@ def _task_accepted(*, vehicle_id: Any, message: TaskAccepted) -> None:
         return
     session = assignment.session
     event_append(session=session, kind="task_accepted", data={"vehicle": str(vehicle_id)})
-    kind = _kind(session.service)
+    kind = service_kind(session.service)
     if kind is not None:
         kind.task_accepted(assignment=assignment)
     if not _serving(assignment):
@@ -158,7 +145,7 @@ def _ending_message(*, vehicle_id: Any, session_id: Any) -> EndTask | Revoke:
         reason = "the platform knows no such session"
     else:
         reason = session.reason or "this vehicle no longer serves the session"
-    return EndTask(session_id=str(session_id), reason=reason[:_REASON_MAX])
+    return EndTask(session_id=str(session_id), reason=reason[:REASON_MAX])
 
 
 def _owe_end(*, vehicle_id: Any, session_id: Any) -> None:
@@ -180,7 +167,7 @@ def _task_refused(*, vehicle_id: Any, message: TaskRefused) -> None:
         log.warning(
             "vehicle %s refused an unreadable task: %s (%s)",
             vehicle_id,
-            message.reason[:_REASON_MAX],
+            message.reason[:REASON_MAX],
             message.code,
         )
         return
@@ -200,7 +187,7 @@ def _task_refused(*, vehicle_id: Any, message: TaskRefused) -> None:
         )
         # Suppressed: someone else may have ended the session meanwhile.
         with contextlib.suppress(SessionStateError):
-            session_fail(session=session, reason=reason[:_REASON_MAX])
+            session_fail(session=session, reason=reason[:REASON_MAX])
 
 
 def _agent_event(*, vehicle_id: Any, message: Event) -> None:
@@ -213,7 +200,7 @@ def _agent_event(*, vehicle_id: Any, message: Event) -> None:
         return
     if name in _LIVE_ONLY and not _serving(assignment):
         return  # a late report of a session that is over: nothing to act on or show
-    kind = _kind(assignment.session.service)
+    kind = service_kind(assignment.session.service)
     handler = _EVENT_HANDLERS.get(name) or (kind.event_handlers.get(name) if kind else None)
     # What the report is logged as, and what is logged because of it, carry the time it
     # happened on the vehicle beside the time it is written (a report that waited for
@@ -407,15 +394,6 @@ _EVENT_HANDLERS = {
 }
 
 
-def _kind(service: Service) -> ServiceKind | None:
-    """The service's kind; None (logged) when it is not installed here."""
-    try:
-        return kind_of(service)
-    except UnknownKind:
-        log.warning("service %s: its kind %r is not installed", service.slug, service.kind)
-        return None
-
-
 # --------------------------------------------------------------------------------------
 # Agents coming and going
 # --------------------------------------------------------------------------------------
@@ -568,279 +546,32 @@ def agent_disconnected_handle(*, vehicle_id: Any, code: int | None = None) -> No
 # --------------------------------------------------------------------------------------
 
 
-#: Log events that show the session's controller back (or still there) and gone.
-_BACK = frozenset({"user_connected", "link_recovered", "vehicle_online", "control_handover"})
-_GONE = frozenset({"unintentional_end", "user_disconnected", "control_released"})
-
-
-def _controller_gone(session: Session) -> SessionEvent | None:
-    """The event since which nobody controls the session's vehicle, or None while
-    someone does (or nobody ever did: see :func:`sessions_expire_unconnected`).
-
-    Facts the agent reported count, newest first: a controller connecting, its link
-    recovering on the socket it kept open, the vehicle coming back online with a
-    controller still connected to it; against a fail-safe or the controller leaving.
-    Viewers come and go without changing anything.
-    """
-    events = session.events.filter(kind__in=sorted(_BACK | _GONE)).order_by("-seq")
-    for event in events.iterator():
-        data = event.data if isinstance(event.data, dict) else {}
-        if event.kind in ("user_connected", "user_disconnected") and data.get("role") == "viewer":
-            continue
-        if event.kind == "vehicle_online" and not data.get("controller"):
-            continue  # the agent is back; whether its user is, it says separately
-        return event if event.kind in _GONE else None
-    return None
-
-
-def _failsafe_words(data: dict[str, Any]) -> str:
-    """An ``unintentional_end``'s fail-safe in words (services.selectors)."""
-    pk = data.get("vehicle")
-    vehicle = Vehicle.objects.filter(pk=pk).first() if pk else None
-    return failsafe_sentence(
-        cause=str(data.get("cause", "unknown")),
-        action=str(data.get("action", "stop")),
-        vehicle=vehicle,
-    )
-
-
-def _gone_reason(event: SessionEvent) -> str:
-    data = event.data if isinstance(event.data, dict) else {}
-    grace = settings.IOUV_RECONNECT_GRACE_S
-    if event.kind == "unintentional_end":
-        return f"{_failsafe_words(data)}; nobody took control again within {grace:g} s"
-    if event.kind == "control_released":
-        return f"the user released control and did not take it back within {grace:g} s"
-    return f"the user left and did not come back within {grace:g} s"
-
-
-def session_situation(session: Session) -> dict[str, Any]:
-    """What is happening in a live session now, in a person's words, from its log.
-
-    ``live`` is False while nobody controls its vehicle (a fail-safe, the user gone)
-    and ``ends_at`` then says when the session ends unless the controller comes back;
-    ``text`` says which, e.g. "The driver's link was lost: the vehicle performed stop
-    on its own. The session ends unless the driver reconnects." A session's state
-    alone ("active") would hide that.
-    """
-    kind = _kind(session.service)
-    if kind is not None and not kind.user_drives:
-        # Nobody drives an autonomous session: the platform runs it.
-        words = kind.situation(session) or "It runs by itself: nobody drives it."
-        return {"live": True, "text": words, "ends_at": None}
-    gone = _controller_gone(session)
-    if gone is None:
-        if session.state == Session.State.ASSIGNED:
-            return {"live": True, "text": "Waiting for the driver to connect.", "ends_at": None}
-        driver = session.user.get_username()
-        return {"live": True, "text": f"{driver} is in control.", "ends_at": None}
-    data = gone.data if isinstance(gone.data, dict) else {}
-    ends_at = gone.created_at + timedelta(seconds=settings.IOUV_RECONNECT_GRACE_S)
-    if gone.kind == "unintentional_end":
-        words = _failsafe_words(data)
-        text = f"Nobody is in control: {words}. The session ends unless the driver reconnects."
-        text = text[0].upper() + text[1:]
-    elif gone.kind == "control_released":
-        text = "The driver released control. The session ends unless they take it back."
-    else:
-        text = "The driver left. The session ends unless they come back."
-    return {"live": False, "text": text, "ends_at": ends_at}
-
-
-def sessions_expire_grace(
-    *, now: datetime | None = None, session_ids: Iterable[Any] | None = None
-) -> list[str]:
-    """End the live sessions whose controller has been gone for more than
-    ``IOUV_RECONNECT_GRACE_S``: after a fail-safe or the controller leaving, no
-    controller connected again and no link recovered on the open socket since.
-
-    The reason says what happened, in words (services.selectors.failsafe_sentence:
-    "the driver's link to the vehicle was lost, so quad-1 will ...; nobody took control
-    again within 30 s"), or that the user left. ``session_ids`` limits the check. Returns the
-    ids of the sessions ended.
-    """
-    now = now or timezone.now()
-    cutoff = now - timedelta(seconds=settings.IOUV_RECONNECT_GRACE_S)
-    candidates = Session.objects.filter(
-        state__in=LIVE,
-        events__kind__in=sorted(_GONE),
-        events__created_at__lte=cutoff,
-    ).distinct()
-    if session_ids is not None:
-        candidates = candidates.filter(pk__in=list(session_ids))
-    ended: list[str] = []
-    for session in candidates:
-        gone = _controller_gone(session)
-        if gone is None or gone.created_at > cutoff:
-            continue  # someone controls it, or the grace is still running
-        try:
-            session_end(session=session, reason=_gone_reason(gone)[:_REASON_MAX], by_user=False)
-        except SessionStateError:
-            continue  # ended meanwhile
-        ended.append(str(session.pk))
-    return ended
-
-
-def sessions_expire_unconnected(*, now: datetime | None = None) -> list[str]:
-    """End the sessions of services driven by a user (synchronous) that were assigned
-    more than ``IOUV_CONNECT_TIMEOUT_S`` ago and that no controller ever connected to:
-    a user who asked and went away must not hold a vehicle. Returns their ids."""
-    now = now or timezone.now()
-    limit = settings.IOUV_CONNECT_TIMEOUT_S
-    cutoff = now - timedelta(seconds=limit)
-    ended: list[str] = []
-    stale = Session.objects.filter(
-        state=Session.State.ASSIGNED,
-        service__kind__in=kinds_user_driven(),
-        assigned_at__lte=cutoff,
-    )
-    for session in stale:
-        try:
-            session_end(
-                session=session,
-                reason=f"nobody connected to the vehicle within {limit:g} s",
-                by_user=False,
-            )
-        except SessionStateError:
-            continue
-        ended.append(str(session.pk))
-    return ended
-
-
-def sessions_end_vehicle_lost(*, now: datetime | None = None) -> list[str]:
-    """End the live sessions of services driven by a user whose vehicle has been
-    offline for more than ``IOUV_VEHICLE_LOST_S`` (its agent stopped, or its uplink
-    is down): the platform can no longer supervise them.
-
-    The vehicle is not freed: it stays offline until its agent reconnects and says
-    what it is doing, and is then told the session is over (fleet.outbox). Asynchronous
-    workflows replace their lost vehicles themselves. Returns the ids ended.
-    """
-    now = now or timezone.now()
-    lost_s = settings.IOUV_VEHICLE_LOST_S
-    offline = list(
-        Assignment.objects.filter(
-            active=True,
-            session__state__in=LIVE,
-            session__service__kind__in=kinds_user_driven(),
-            vehicle__status=Vehicle.Status.OFFLINE,
-        ).select_related("session", "vehicle")
-    )
-    # Silence the platform caused (its process holding the uplink gone) does not count.
-    silence = vehicles_silence(
-        ((a.vehicle_id, a.vehicle.last_seen, a.vehicle.uplink_server) for a in offline), now
-    )
-    ended: list[str] = []
-    for assignment in offline:
-        silent_s = silence[assignment.vehicle_id]
-        if str(assignment.session_id) in ended or (silent_s is not None and silent_s <= lost_s):
-            continue
-        reason = (
-            f"vehicle {assignment.vehicle.name} went offline (no word from it for {lost_s:g} s)"
-        )
-        try:
-            session_end(session=assignment.session, reason=reason, by_user=False)
-        except SessionStateError:
-            continue
-        ended.append(str(assignment.session_id))
-    return ended
-
-
-def sessions_expire_undelivered(*, now: datetime | None = None) -> list[str]:
-    """Fail the ``assigned`` sessions with a vehicle that neither accepted its latest
-    task before that task's deadline (``exp`` plus the protocol's clock skew) nor
-    refused it in a way the platform could attribute (an agent that cannot read a task
-    refuses with a null session id). Their vehicles would otherwise stay reserved.
-
-    Returns the ids of the sessions failed.
-    """
-    now = now or timezone.now()
-    late = now.timestamp() - CLOCK_SKEW_S
-    failed: list[str] = []
-    assigned = Session.objects.filter(
-        state=Session.State.ASSIGNED, events__kind="task_deployed"
-    ).distinct()
-    for session in assigned:
-        for assignment in session.assignments.filter(active=True).select_related("vehicle"):
-            vehicle = str(assignment.vehicle_id)
-            deployed = (
-                session.events.filter(kind="task_deployed", data__vehicle=vehicle)
-                .order_by("-seq")
-                .first()
-            )
-            if deployed is None or deployed.data.get("exp", late) >= late:
-                continue
-            if session.events.filter(
-                kind="task_accepted", data__vehicle=vehicle, seq__gt=deployed.seq
-            ).exists():
-                continue
-            reason = f"vehicle {assignment.vehicle.name} did not accept its task in time"
-            try:
-                session_fail(session=session, reason=reason)
-            except SessionStateError:
-                break
-            failed.append(str(session.pk))
-            break
-    return failed
-
-
-def sessions_expire_time_limit(*, now: datetime | None = None) -> list[str]:
-    """Revoke the active sessions that ran past their service's ``session_time_limit_s``
-    (counted from activation), with reason ``time limit reached`` and the service's
-    fail-safe action. Returns the ids of the sessions revoked.
-    """
-    now = now or timezone.now()
-    revoked: list[str] = []
-    active = Session.objects.filter(
-        state=Session.State.ACTIVE,
-        service__session_time_limit_s__isnull=False,
-        started_at__isnull=False,
-    ).select_related("service")
-    for session in active:
-        started, limit_s = session.started_at, session.service.session_time_limit_s
-        if started is None or limit_s is None:  # the query leaves these out
-            continue
-        deadline = started + timedelta(seconds=limit_s)
-        if deadline > now:
-            continue
-        try:
-            session_revoke(
-                session=session,
-                reason="time limit reached",
-                action=session.service.failsafe_action,
-            )
-        except SessionStateError:
-            continue
-        revoked.append(str(session.pk))
-    return revoked
-
-
 # --------------------------------------------------------------------------------------
-# Signal receivers (connected in services.apps)
+# What fleet's uplink tells the platform (registered in services.apps)
 # --------------------------------------------------------------------------------------
 
 
-def receive_agent_message(sender: Any, *, vehicle_id: Any, message: Any, **kwargs: Any) -> None:
-    agent_message_handle(vehicle_id=vehicle_id, message=message)
+class Supervisor:
+    """The services app's answer to what vehicles say: fleet's
+    :class:`fleet.vehicle_events.VehicleEvents`, registered once in services.apps."""
 
+    def agent_connected(self, *, vehicle_id: str, state: AgentState) -> None:
+        agent_connected_handle(vehicle_id=vehicle_id, state=dict(state))
 
-def receive_agent_connected(sender: Any, *, vehicle_id: Any, **kwargs: Any) -> None:
-    agent_connected_handle(vehicle_id=vehicle_id, state=kwargs.get("state"))
+    def agent_disconnected(self, *, vehicle_id: str, code: int | None) -> None:
+        agent_disconnected_handle(vehicle_id=vehicle_id, code=code)
 
+    def agent_welcome(self, *, vehicle_id: str) -> dict[str, Any]:
+        # The JWKS is how a key rotation reaches enrolled agents: they adopt it from the
+        # welcome of an uplink whose server they authenticated (wss, or loopback in
+        # development).
+        return {"platform_public_key": platform_public_key_pem(), "platform_jwks": platform_jwks()}
 
-def receive_vehicle_back(sender: Any, *, vehicle_ids: Any, **kwargs: Any) -> None:
-    vehicles_back_handle(vehicle_ids=vehicle_ids)
+    def agent_acked(self, *, vehicle_id: str, acked: Acked) -> None:
+        agent_acked_handle(vehicle_id=vehicle_id, acked=acked)
 
+    def agent_message(self, *, vehicle_id: str, message: SessionMessage) -> None:
+        agent_message_handle(vehicle_id=vehicle_id, message=message)
 
-def receive_agent_acked(sender: Any, *, vehicle_id: Any, acked: Acked, **kwargs: Any) -> None:
-    agent_acked_handle(vehicle_id=vehicle_id, acked=acked)
-
-
-def receive_agent_disconnected(sender: Any, *, vehicle_id: Any, **kwargs: Any) -> None:
-    agent_disconnected_handle(vehicle_id=vehicle_id, code=kwargs.get("code"))
-
-
-def receive_agent_welcome(sender: Any, **kwargs: Any) -> dict[str, Any]:
-    # The JWKS is how a key rotation reaches enrolled agents: they adopt it from the welcome
-    # of an uplink whose server they authenticated (wss, or loopback in development).
-    return {"platform_public_key": platform_public_key_pem(), "platform_jwks": platform_jwks()}
+    def vehicles_back(self, *, vehicle_ids: Sequence[str]) -> None:
+        vehicles_back_handle(vehicle_ids=vehicle_ids)

@@ -1,9 +1,9 @@
 """The JSON API for third-party programs, on django-ninja (see docs/api.md).
 
-The bodies are types (services.api_schemas); ninja validates requests against them,
+The bodies are types (services.web.api_schemas); ninja validates requests against them,
 renders responses through them and generates the OpenAPI document
 (``/api/v1/openapi.json``) and its Swagger UI (``/api/v1/docs``) from them. The HTTP
-plumbing (error envelope, bearer token, body limits) is services.api_kit. Views stay
+plumbing (error envelope, bearer token, body limits) is services.web.api_kit. Views stay
 thin: parse (ninja), call a service function, render (ninja).
 
 Authentication is by ``Authorization: Bearer <token>`` only. The session cookie is
@@ -24,8 +24,21 @@ from ninja import Status, Swagger
 from accounts.users import AuthenticatedHttpRequest
 from fleet.models import Vehicle
 from fleet.status import fleet_snapshot
-from services import api_schemas as schema
-from services.api_kit import (
+from services.kinds import Request, RequestError
+from services.models import Session
+from services.sessions.deployment import (
+    DeploymentError,
+    InvalidTaskError,
+    grant_issue,
+    user_task_json,
+)
+from services.sessions.ending import session_end_by_user, session_revoke
+from services.sessions.grants import service_usable_get, services_for_user
+from services.sessions.matching import AssignmentError
+from services.sessions.request import service_request
+from services.sessions.states import SessionStateError
+from services.web import api_schemas as schema
+from services.web.api_kit import (
     ApiError,
     BearerToken,
     IouvApi,
@@ -35,23 +48,9 @@ from services.api_kit import (
     not_found,
     query,
 )
-from services.api_schemas import BASE_PATH, MAX_BODY_BYTES, PARAMS_MAX_DEPTH, REASON_MAX
-from services.assignment import AssignmentError
-from services.deployment import (
-    DeploymentError,
-    InvalidTaskError,
-    grant_issue,
-    session_end_by_user,
-    session_revoke,
-    user_task_json,
-)
-from services.grants import service_usable_get, services_for_user
-from services.kinds import Request, RequestError
-from services.models import Session
-from services.record_views import EXPORTS, record_file, record_summary
-from services.request import service_request
-from services.sessions import SessionStateError
-from services.throttle import request_keys, throttle_check, throttle_count, throttle_peek
+from services.web.api_schemas import BASE_PATH, MAX_BODY_BYTES, PARAMS_MAX_DEPTH, REASON_MAX
+from services.web.record_views import EXPORTS, record_file, record_summary
+from services.web.throttle import request_keys, throttle_check, throttle_count, throttle_peek
 
 __all__ = ["MAX_BODY_BYTES", "PARAMS_MAX_DEPTH", "REASON_MAX", "ApiError", "api", "not_found"]
 
@@ -181,7 +180,7 @@ def services_list(request: AuthenticatedHttpRequest) -> dict[str, Any]:
 def session_create(
     request: AuthenticatedHttpRequest, payload: schema.SessionRequest, response: HttpResponse
 ) -> Status[dict[str, Any]]:
-    """Request a session, as the portal does (services.request). A synchronous service
+    """Request a session, as the portal does (services.sessions.request). A synchronous service
     is deployed at once: 201 with the user task (control URL and grant). An
     asynchronous one is left to its kind's workflow (task null), which reads its own
     `params` (docs/api.md lists them). 422 names the requirement no vehicle met; 409

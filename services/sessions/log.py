@@ -41,9 +41,9 @@ from django.db import IntegrityError, transaction
 from django.db.transaction import get_connection
 from django.utils import timezone
 
-from services.eventwords import event_text
-from services.feed import session_notify, session_notify_many
 from services.models import Session, SessionEvent
+from services.sessions.feed import session_notify, session_notify_many
+from services.sessions.words import event_text
 
 GENESIS_HASH = "0" * 64
 

@@ -1,6 +1,6 @@
 """Whether a request can ever be served, and why one that can is waiting.
 
-Matching (services.assignment) asks who can serve a role *now*: online, idle, charged
+Matching (services.sessions.matching) asks who can serve a role *now*: online, idle, charged
 enough, in range from where it is. A request none of them can take now may still be
 one the fleet serves once a vehicle is back, free or recharged, or one it never can:
 no vehicle of its kind, or a trip longer than any capable vehicle flies on a full
@@ -28,9 +28,10 @@ from typing import Any
 
 from agents.geo import distance_m
 from fleet.models import Station, Vehicle
-from services.assignment import Facts, role_requirements
-from services.models import Assignment, ServiceRole, Session
-from services.sessions import FINAL
+from services.kinds import ServiceKind
+from services.models import Assignment, Service, ServiceRole, Session
+from services.sessions.matching import Facts, role_requirements
+from services.sessions.states import FINAL
 
 #: A full battery: what feasibility assumes of every vehicle.
 FULL = 100.0
@@ -132,7 +133,7 @@ def role_capable(role: ServiceRole, *, exclude: Iterable[Any] = ()) -> Capable:
 
 def trip_m(reach: Reach, target: tuple[float, float], work_m: float = 0.0) -> float:
     """The trip matching measures for ``reach`` setting out from its station: there,
-    the work, and back (services.assignment)."""
+    the work, and back (services.sessions.matching)."""
     return 2 * distance_m(reach.home, target) + work_m
 
 
@@ -173,6 +174,16 @@ def reach_map(
             }
         )
     return {"stations": list(stations.values()) or stations_all(), "reach": reach}
+
+
+def request_map_default(kind: ServiceKind, service: Service) -> dict[str, Any]:
+    """The request page's map of a kind that draws none of its own
+    (:meth:`ServiceKind.request_map` None): the vehicles of the whole fleet that could
+    ever serve the kind's request role, each from its station on a full battery."""
+    role = kind.request_role(service)
+    if role is None:
+        return {"stations": stations_all(), "reach": []}
+    return reach_map(role_capable(role).vehicles)
 
 
 def stations_all() -> list[dict[str, Any]]:

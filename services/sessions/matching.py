@@ -27,14 +27,12 @@ import contextlib
 import copy
 import math
 import operator
-import uuid
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from datetime import datetime
 from functools import reduce
 from typing import Any
 
-from django.contrib.auth import get_user_model
 from django.db import connection, transaction
 from django.db.models import (
     Exists,
@@ -48,20 +46,15 @@ from django.db.models import (
 )
 from django.utils import timezone
 
-from accounts.users import User
 from agents.geo import distance_m
 from fleet.attributes import DeclaredAttributes
 from fleet.feed import fleet_notify
 from fleet.liveness import vehicles_fresh
 from fleet.models import Vehicle
 from fleet.status import vehicles_online
-from services.eventlog import event_append, events_staged
-from services.grants import user_can_use
 from services.models import Assignment, Service, ServiceRole, Session
-from services.sessions import FINAL, session_transition_locked
-
-#: States of a session that holds (or is about to hold) vehicles.
-LIVE_STATES = [state for state in Session.State.values if state not in FINAL]
+from services.sessions.log import event_append
+from services.sessions.states import session_transition_locked
 
 
 class AssignmentError(Exception):
@@ -511,108 +504,6 @@ def role_tightened(role: ServiceRole, preferences: dict[str, Any]) -> ServiceRol
     return tight
 
 
-def session_record(
-    *,
-    user: User,
-    service: Service,
-    target: tuple[float, float] | None = None,
-    params: dict[str, Any] | None = None,
-    relay: bool = False,
-    preferences: dict[str, Any] | None = None,
-    pk: Any = None,
-    write: bool = True,
-) -> Session:
-    """:func:`session_open` in the caller's transaction, without the grant check (the
-    caller made it): the cap is counted under the user's row lock, the session (``pk``
-    if given) is recorded and its ``requested`` event logged. Raises AssignmentError
-    (``over_cap``) before writing anything.
-
-    ``write=False``: the session is not written yet. Its state changes stay on the
-    instance (services.sessions) and the caller writes it once, as they leave it, with
-    :func:`session_write` before its transaction ends (what refers to it, its
-    assignments and its log, is checked against it at the commit)."""
-    # The user's row is the lock: two requests of one user are counted one after the
-    # other, so together they cannot pass the cap. The count is a statement of its own:
-    # under READ COMMITTED a statement sees what was committed when it began, and the
-    # lock may be waited for; counted in the locking statement, a racing request's
-    # session, committed while this one waited, would not be seen.
-    list(
-        get_user_model().objects.select_for_update().filter(pk=user.pk).values_list("pk", flat=True)
-    )
-    live = Session.objects.filter(user=user, service=service, state__in=LIVE_STATES).count()
-    cap = service.max_sessions_per_user
-    if live >= cap:
-        raise AssignmentError(
-            f"you already have {live} live session{'s' if live != 1 else ''} of "
-            f"{service.name!r} (at most {cap}); end one first",
-            over_cap=True,
-        )
-    session = Session(
-        service=service,
-        user=user,
-        target_lat=target[0] if target else None,
-        target_lon=target[1] if target else None,
-        params=params or {},
-        relay=relay,
-    )
-    if pk is not None:
-        session.pk = pk
-    if write:
-        session.save(force_insert=True)
-    event_append(
-        session=session,
-        kind="requested",
-        data={
-            "user": user.get_username(),
-            "target": list(target) if target else None,
-            "relay": relay,
-            "preferences": preferences or {},
-        },
-        locked=True,  # nobody else sees it before this transaction commits
-    )
-    return session
-
-
-def session_write(session: Session) -> Session:
-    """Write a session :func:`session_record` left unwritten, as it is now."""
-    session.save(force_insert=True)
-    return session
-
-
-def service_grant_require(*, user: User, service: Service) -> None:
-    """Raises AssignmentError when ``user`` may not use ``service`` (or it is off)."""
-    if not service.is_active or not user_can_use(user, service):
-        raise AssignmentError(f"you may not use the service {service.name!r}")
-
-
-def session_open(
-    *,
-    user: User,
-    service: Service,
-    target: tuple[float, float] | None = None,
-    params: dict[str, Any] | None = None,
-    relay: bool = False,
-    preferences: dict[str, Any] | None = None,
-) -> Session:
-    """Record a new session of ``service`` for ``user`` (state ``requested``, logged),
-    if the user may use the service and holds fewer than ``max_sessions_per_user``
-    live sessions of it. Call it in a transaction with the work that follows.
-
-    Raises AssignmentError (nothing recorded) when the user may not use the service,
-    or when over the cap (``over_cap``).
-    """
-    service_grant_require(user=user, service=service)
-    with transaction.atomic():
-        return session_record(
-            user=user,
-            service=service,
-            target=target,
-            params=params,
-            relay=relay,
-            preferences=preferences,
-        )
-
-
 def session_roles_assign(
     *,
     session: Session,
@@ -654,49 +545,3 @@ def session_roles_assign(
         session=session, to=Session.State.ASSIGNED, reason="vehicles reserved"
     )
     return [assignment for assignment, _ in reserved]
-
-
-def session_request(
-    *,
-    user: User,
-    service: Service,
-    target: tuple[float, float] | None = None,
-    params: dict[str, Any] | None = None,
-    relay: bool = False,
-    preferences: dict[str, Any] | None = None,
-) -> Session:
-    """Open a session of ``service`` for ``user`` and reserve its required roles.
-
-    ``preferences`` (cameras, min_battery) tighten the requirements of every role.
-
-    Returns the session in state ``assigned``. Raises AssignmentError when the user
-    has no grant or already holds ``service.max_sessions_per_user`` live sessions of
-    it (no session is recorded; ``over_cap`` says which), or a role cannot be filled
-    (the session is recorded as failed with the reason, and no vehicle stays reserved).
-    """
-    service_grant_require(user=user, service=service)
-    refused: AssignmentError | None = None
-    pk = uuid.uuid4()
-    # One transaction, and the log written in one go at its end (services.eventlog).
-    # The session written once, assigned or failed (session_record's write).
-    with transaction.atomic(), events_staged(session_id=pk):
-        session = session_record(
-            user=user,
-            service=service,
-            target=target,
-            params=params,
-            relay=relay,
-            preferences=preferences,
-            pk=pk,
-            write=False,
-        )
-        try:
-            session_roles_assign(
-                session=session, service=service, target=target, preferences=preferences
-            )
-        except AssignmentError as exc:
-            refused = exc  # the failed session is committed, then the refusal raised
-        session_write(session)
-    if refused is not None:
-        raise refused
-    return session

@@ -33,14 +33,14 @@ from agents.protocol.messages import (
     WebrtcOffer,
 )
 from fleet.memberships import group_hold, group_release
-from fleet.uplink import avehicle_send, relay_group
+from fleet.sending import avehicle_send, relay_group
 from iouv.consumers import DirectDispatch
 from iouv.layer import relay_ensure
 from iouv.outages import DATABASE_UNAVAILABLE
-from services.feed import SESSIONS_GROUP, session_group
-from services.ice import ice_servers_for
-from services.metrics import RELAY_ACKS, RELAY_ROUND_TRIP
-from services.throttle import Throttled, counted_address, throttle_check
+from services.sessions.feed import SESSIONS_GROUP, session_group
+from services.sessions.ice import ice_servers_for
+from services.supervision.metrics import RELAY_ACKS, RELAY_ROUND_TRIP
+from services.web.throttle import Throttled, counted_address, throttle_check
 
 #: The relay's own budget per browser, on top of the agent's: it protects the platform.
 RELAY_RATE_PER_S = 200.0
@@ -128,7 +128,7 @@ class SessionsMonitorConsumer(DirectDispatch, AsyncJsonWebsocketConsumer):
 @database_sync_to_async
 def _session_for(user: Any, session_id: str, *, monitor: bool = False) -> dict[str, Any] | None:
     from services.models import Session
-    from services.selectors import session_summary
+    from services.sessions.selectors import session_summary
 
     try:
         pk = uuid.UUID(str(session_id))
@@ -149,8 +149,8 @@ def _session_for(user: Any, session_id: str, *, monitor: bool = False) -> dict[s
 @database_sync_to_async
 def _live_sessions() -> list[dict[str, Any]]:
     from services.models import Session
-    from services.selectors import session_summary
-    from services.sessions import FINAL
+    from services.sessions.selectors import session_summary
+    from services.sessions.states import FINAL
 
     live = Session.objects.exclude(state__in=FINAL).select_related("service", "user")
     return [session_summary(s) for s in live.order_by("-created_at")[:200]]
@@ -172,7 +172,7 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
     platform's STUN/TURN servers for the agent (``ice_servers``, TURN credentials minted
     for this session, expiring with the grant the connection authenticated with), and
     the agent's ``webrtc_answer`` comes back like any answer. Offers count against the
-    user's and the address's budgets (services.throttle); one over them is answered
+    user's and the address's budgets (services.web.throttle); one over them is answered
     ``rate_limited`` and not forwarded.
 
     A refused first frame closes the socket (4401, or 4503 when the grant could not be
@@ -185,7 +185,7 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self.vehicle_id: str | None = None
         self.conn = secrets.token_hex(8)
         # The vehicle's uplink channel, once it has answered: commands go straight
-        # there, not through the vehicle's group (see fleet.uplink.avehicle_send).
+        # there, not through the vehicle's group (see fleet.sending.avehicle_send).
         self.uplink: str | None = None
         self.tokens, self.refill_at = RELAY_BURST, time.monotonic()
         #: Set once the relay closed the socket: later frames are dropped, not answered.
@@ -195,7 +195,7 @@ class RelayConsumer(DirectDispatch, AsyncWebsocketConsumer):
         self.grant_expires_at: float | None = None
         self.address = counted_address(client_address_of_scope(self.scope))
         #: Relayed commands awaiting the vehicle's ack: seq -> when they came (monotonic),
-        #: for the relay's round trip (services.metrics).
+        #: for the relay's round trip (services.supervision.metrics).
         self.commands_out: dict[int, float] = {}
         #: Closes the socket when the vehicle never answers its authentication.
         self.answer_watch: asyncio.Task[None] | None = None
@@ -377,7 +377,7 @@ _offer_count = sync_to_async(
 def _session_vehicle(session_id: str) -> str | None:
     """The primary vehicle of a live session, else None."""
     from services.models import Session
-    from services.sessions import FINAL
+    from services.sessions.states import FINAL
 
     try:
         session = Session.objects.get(pk=uuid.UUID(session_id))
@@ -393,6 +393,6 @@ def _session_vehicle(session_id: str) -> str | None:
 def _platform_keys() -> Any:
     # The current key and, during a rotation, the previous ones: a grant issued just before
     # the switch still opens its relayed connection.
-    from services.signing import platform_keys
+    from services.sessions.signing import platform_keys
 
     return platform_keys()

@@ -6,7 +6,7 @@ from django.http import HttpRequest, JsonResponse
 from django.views.decorators.cache import cache_control
 from django.views.decorators.http import require_GET
 
-from services.signing import platform_jwks
+from services.sessions.signing import platform_jwks
 
 #: Short, so a rotation (a new key added) reaches fetchers within minutes, while the
 #: previous key stays listed far longer than this (docs/protocol.md, "Key rotation").

@@ -19,10 +19,11 @@ from django.utils import timezone
 
 from agents.protocol.messages import EndTask
 from fleet.models import Vehicle
-from services.deployment import session_end, vehicle_release, vehicle_task_deploy
-from services.eventlog import event_append
 from services.models import Assignment, Session
-from services.sessions import FINAL, SessionStateError, session_transition
+from services.sessions.deployment import vehicle_task_deploy
+from services.sessions.ending import session_end, vehicle_release
+from services.sessions.log import event_append
+from services.sessions.states import FINAL, SessionStateError, session_transition
 
 log = logging.getLogger(__name__)
 

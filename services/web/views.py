@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-from typing import Any
 
 from django.conf import settings
 from django.contrib import messages
@@ -17,24 +16,23 @@ from accounts.roles import user_roles
 from accounts.users import AuthenticatedHttpRequest
 from agents.geography import MASK_PATH
 from fleet.models import Station
-from services.assignment import AssignmentError
-from services.deployment import (
+from services.kinds import RequestError, ServiceKind, UnknownKind, kind_of
+from services.models import Service, Session
+from services.sessions.deployment import (
     DeploymentError,
     NotAssignedYet,
     grant_issue,
-    session_end_by_user,
-    session_ended_words,
-    session_revoke,
     user_task_json,
 )
-from services.eventwords import event_text
-from services.grants import services_for_user, services_usable
-from services.kinds import RequestError, ServiceKind, UnknownKind, kind_of
-from services.models import Service, Session
-from services.request import service_request
-from services.selectors import service_vehicles_matching, session_summary
-from services.sessions import FINAL, SessionStateError
-from services.throttle import throttled
+from services.sessions.ending import session_end_by_user, session_ended_words, session_revoke
+from services.sessions.feasibility import request_map_default
+from services.sessions.grants import services_for_user, services_usable
+from services.sessions.matching import AssignmentError
+from services.sessions.request import service_request
+from services.sessions.selectors import service_vehicles_matching, session_summary
+from services.sessions.states import FINAL, SessionStateError
+from services.web.throttle import throttled
+from services.web.watching import log_lines, session_vehicle_names
 
 
 def _kind(service: Service) -> ServiceKind:
@@ -68,7 +66,7 @@ def catalog(request: AuthenticatedHttpRequest) -> HttpResponse:
 @throttled("session_request", methods=("POST",))
 def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpResponse:
     """The request page of one service (its kind's form); a valid POST opens the
-    session (services.request: the same path as the API) and shows its page."""
+    session (services.sessions.request: the same path as the API) and shows its page."""
     service = services_usable(request.user).filter(slug=slug).first()
     if service is None:
         raise Http404("no such service")
@@ -95,7 +93,7 @@ def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpRe
         else:
             return redirect("session", session_id=opened.session.pk)
     # The map opens where the service can be given, and shows how far its vehicles
-    # reach (services.feasibility): a request beyond that is refused at once.
+    # reach (services.sessions.feasibility): a request beyond that is refused at once.
     return render(
         request,
         kind.request_template,
@@ -104,34 +102,12 @@ def service_request_page(request: AuthenticatedHttpRequest, slug: str) -> HttpRe
             "kind": kind,
             "form": form,
             "available": service_vehicles_matching(service, kind.request_role(service)),
-            "map": {**kind.request_map(service), "tiles": settings.IOUV_MAP_TILES_URL},
+            "map": {
+                **(kind.request_map(service) or request_map_default(kind, service)),
+                "tiles": settings.IOUV_MAP_TILES_URL,
+            },
         },
     )
-
-
-def log_lines(session: Session) -> list[dict[str, Any]]:
-    """The latest log events, oldest first (the session's story, in order), as the
-    session pages list them; the page adds newer ones at the end."""
-    return [
-        {"at": event.created_at, "label": event_text(event.kind, event.data), "detail": ""}
-        for event in list(session.events.order_by("-seq")[:30])[::-1]
-    ]
-
-
-def session_vehicle_names(session: Session) -> list[str]:
-    """Every vehicle the session had, in the order it had them: a session page names
-    them after the end too."""
-    names = session.assignments.order_by("created_at").values_list("vehicle__name", flat=True)
-    return list(dict.fromkeys(names))
-
-
-def session_watched(request: AuthenticatedHttpRequest, session_id: str) -> Session:
-    """The session if the request's user may watch it (its own user, or a monitor);
-    404 otherwise, so others' sessions are not even confirmed to exist."""
-    session = get_object_or_404(Session.objects.select_related("service"), pk=session_id)
-    if session.user_id != request.user.pk and not request.user.has_perm("fleet.view_fleet"):
-        raise Http404("no such session")
-    return session
 
 
 def _own_session(request: AuthenticatedHttpRequest, session_id: str) -> Session:
