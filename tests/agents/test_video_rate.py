@@ -1,0 +1,293 @@
+"""Bitrate adaptation of the shared encoder (agents.video_rate, agents.video): the
+ladder's rules on a clock of the test's own, then the agent's real VideoService sending
+to Chromium behind an emulated link (tests/netlab.py, a ``tc tbf`` rate limit on the
+pilot's veth) that is cut and restored.
+
+Chromium rather than an aiortc receiver: aiortc's jitter buffer holds every later
+packet behind a lost one until 128 have queued (seconds at a low bitrate), so on a
+lossy link it freezes whatever the sender does; the pilot's browser drops the frame and
+asks for a keyframe.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import subprocess
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from agents.rtc import RtcPeers
+from agents.video import SyntheticCamera, VideoService
+from agents.video_rate import LADDER, MIN_BITRATE, RateController, Rung, fit_size
+from tests.agents.video_page import largest_gap_ms, signalling_server
+from tests.browser import chromium_missing_reason
+from tests.netlab import NetLab, netlab_available
+from tests.netlab_browser import BrowserProcess
+
+# --------------------------------------------------------------------------------------
+# the rules
+# --------------------------------------------------------------------------------------
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def controller(max_bitrate: int = 1_500_000) -> tuple[RateController, Clock]:
+    clock = Clock()
+    return RateController(max_bitrate=max_bitrate, clock=clock), clock
+
+
+def test_without_estimates_the_configured_bitrate_and_the_best_step_apply() -> None:
+    rate, _ = controller()
+    assert rate.target_bitrate == 1_500_000 and rate.rung == LADDER[0]
+    low, _ = controller(max_bitrate=400_000)
+    assert low.rung == LADDER[1]  # 400 kbit/s configured: 480x360 at most
+
+
+def test_a_low_but_rising_estimate_does_not_lower_the_picture() -> None:
+    # Chromium's first REMBs are about 100 kbit/s and only grow (its estimate starts
+    # from what it first received): that is no congestion.
+    rate, _ = controller()
+    rate.attach("pilot", "pilot")
+    for bitrate in (100_000, 104_000, 110_000, 150_000):
+        rate.estimate("pilot", bitrate)
+    assert rate.target_bitrate == 1_500_000 and rate.step == 0
+
+
+def test_a_falling_estimate_steps_down_at_once_and_recovers_one_step_at_a_time() -> None:
+    rate, clock = controller()
+    rate.attach("pilot", "pilot")
+    rate.estimate("pilot", 1_200_000)
+    rate.estimate("pilot", 250_000)  # over-use: the receiver's queue grew
+    assert rate.target_bitrate == 250_000
+    assert rate.rung == Rung(320, 240, 15, 160_000)
+    # The estimate recovers; the step follows only after the hold, one at a time.
+    clock.now += 1
+    rate.estimate("pilot", 800_000)
+    assert rate.target_bitrate == 800_000 and rate.rung == Rung(320, 240, 15, 160_000)
+    clock.now += 2.5
+    rate.tick()
+    assert rate.rung == Rung(480, 360, 20, 350_000)
+    clock.now += 1
+    rate.tick()
+    assert rate.rung == Rung(480, 360, 20, 350_000)  # held
+    clock.now += 3
+    rate.tick()
+    assert rate.rung == Rung(480, 360, 20, 350_000)  # 800k < 700k x 1.2: no margin
+    rate.estimate("pilot", 1_600_000)  # back above the ceiling: no longer capped
+    clock.now += 3
+    rate.tick()
+    assert rate.target_bitrate == 1_500_000 and rate.step == 0
+
+
+def test_the_step_does_not_oscillate_around_a_threshold() -> None:
+    rate, clock = controller()
+    rate.attach("pilot", "pilot")
+    rate.estimate("pilot", 1_000_000)
+    rate.estimate("pilot", 690_000)  # just under the top step's minimum
+    assert rate.step == 1
+    steps = []
+    for i in range(20):  # an estimate wandering around 700k, every half second
+        clock.now += 0.5
+        rate.estimate("pilot", 690_000 if i % 2 else 760_000)
+        rate.tick()
+        steps.append(rate.step)
+    assert steps == [1] * 20
+
+
+def test_small_changes_of_the_estimate_are_not_applied() -> None:
+    # Chromium sends a REMB every few tens of milliseconds; each change of target is a
+    # new VP8 stream and a keyframe.
+    rate, _ = controller()
+    rate.attach("pilot", "pilot")
+    rate.estimate("pilot", 1_000_000)
+    rate.estimate("pilot", 500_000)
+    assert rate.target_bitrate == 500_000
+    rate.estimate("pilot", 530_000)  # +6%
+    rate.estimate("pilot", 470_000)  # -6%
+    assert rate.target_bitrate == 500_000
+    rate.estimate("pilot", 560_000)  # +12%
+    assert rate.target_bitrate == 560_000
+    rate.estimate("pilot", 480_000)  # -14%
+    assert rate.target_bitrate == 480_000
+    rate.estimate("pilot", 20_000)
+    assert rate.target_bitrate == MIN_BITRATE
+
+
+def test_the_pilot_governs_else_the_sfu_and_spectators_never() -> None:
+    rate, _ = controller()
+    for key, role in (("pilot", "pilot"), ("sfu", "sfu"), ("spectator", "viewer")):
+        rate.attach(key, role)  # type: ignore[arg-type]
+        rate.estimate(key, 1_000_000)
+    rate.estimate("spectator", 120_000)  # a spectator on a poor link costs nobody
+    assert rate.target_bitrate == 1_500_000
+    rate.estimate("sfu", 300_000)
+    assert rate.governing_role() == "pilot" and rate.target_bitrate == 1_500_000
+    rate.estimate("pilot", 600_000)
+    assert rate.target_bitrate == 600_000
+    rate.forget("pilot")  # the pilot left: the SFU's estimate applies
+    assert rate.governing_role() == "sfu" and rate.target_bitrate == 300_000
+    rate.forget("sfu")  # nobody governs: the configured bitrate
+    assert rate.governing_role() is None and rate.target_bitrate == 1_500_000
+
+
+def test_fit_size_keeps_the_aspect_and_never_enlarges() -> None:
+    assert fit_size(640, 480, Rung(320, 240, 15, 0)) == (320, 240)
+    assert fit_size(1280, 720, Rung(480, 360, 20, 0)) == (480, 270)
+    assert fit_size(320, 240, Rung(480, 360, 20, 0)) == (320, 240)
+    assert fit_size(640, 480, LADDER[0]) == (640, 480)
+
+
+# --------------------------------------------------------------------------------------
+# a real link, cut and restored
+# --------------------------------------------------------------------------------------
+
+
+class _Events:
+    """RtcPeers' owner: a connection for video alone opens no data channel."""
+
+    async def channel_opened(self, peer_id: str, link: Any) -> None:
+        return None
+
+    async def received(self, link: Any, raw: Any) -> None:
+        return None
+
+    async def path_changed(self, peer_id: str, path: str) -> None:
+        return None
+
+    async def channel_closed(self, peer_id: str) -> None:
+        return None
+
+
+def moving_pose() -> dict[str, float]:
+    """A vehicle turning and driving: a picture that needs its bitrate (a still one
+    compresses to little and would never fill a link)."""
+    t = time.monotonic()
+    return {"lat": 43.7 + (t % 60) * 2e-5, "lon": 7.25, "heading": (t * 40) % 360}
+
+
+async def until(cond: Callable[[], bool], within: float, what: str) -> None:
+    deadline = time.monotonic() + within
+    while not cond():
+        assert time.monotonic() < deadline, f"not within {within} s: {what}"
+        await asyncio.sleep(0.1)
+
+
+async def tc(*argv: str) -> None:
+    """Run ``tc`` (the link's rate limit) without blocking the agent's event loop."""
+    proc = await asyncio.create_subprocess_exec("tc", *argv)
+    assert await proc.wait() == 0, f"tc {' '.join(argv)} failed"
+
+
+@contextlib.contextmanager
+def pilot_behind_a_link(tmp_path: Path) -> Iterator[tuple[NetLab, BrowserProcess]]:
+    """A network lab with one machine, ``pilot``, whose Chromium is up (no page yet);
+    skips without root, namespaces or Chromium."""
+    available, why = netlab_available()
+    if not available:
+        pytest.skip(why)
+    if (missing := chromium_missing_reason()) is not None:
+        pytest.skip(missing)
+    root = Path(__file__).resolve().parents[2]
+    log_path = tmp_path / "browser.log"
+    with NetLab(machines=["pilot"], workdir=tmp_path / "lab") as lab:
+        with open(log_path, "w") as log:
+            proc = lab.popen(
+                "pilot",
+                BrowserProcess.argv(),
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=log,
+                text=True,
+                cwd=root,
+                env={**os.environ, "PYTHONPATH": str(root), "PYTHONUNBUFFERED": "1"},
+            )
+        browser = BrowserProcess(proc, log_path)
+        try:
+            browser.started()
+            yield lab, browser
+        finally:
+            browser.close()
+
+
+@pytest.mark.realtime
+@pytest.mark.browser
+@pytest.mark.cost(90)
+async def test_the_pilots_picture_steps_down_on_a_cut_link_and_back_up(tmp_path: Path) -> None:
+    """Chromium as the pilot, in a network namespace behind a veth whose rate the test
+    limits (``tc tbf``, 1.5 Mbit/s of video into 600 kbit/s): its loss reports and REMB
+    fall, the encoder steps down with the picture moving on, and back up once the link
+    is restored."""
+    with pilot_behind_a_link(tmp_path) as (lab, browser):
+        camera = SyntheticCamera(640, 480, fps=30, pose=moving_pose)
+        hosts = [lab.public_ip]
+        async with VideoService(camera, ice_host_addresses=hosts, bitrate=1_500_000) as video:
+            rtc = RtcPeers(_Events(), video=video)
+            try:
+                async with signalling_server(rtc, host=lab.public_ip, controller=True) as url:
+                    veth = lab.machine("pilot").root_veth
+                    await pilot_through_a_cut(browser, video, veth, f"{url}/?source_width=640")
+            finally:
+                await rtc.close()
+
+
+async def pilot_through_a_cut(
+    browser: BrowserProcess, video: VideoService, veth: str, url: str
+) -> None:
+    """Open ``url`` (the pilot's page), cut the link at ``veth`` and restore it."""
+    rate = video.encoder.rate
+
+    def page(expr: str, timeout: float | None = None) -> Any:
+        if timeout is None:
+            return asyncio.to_thread(browser.eval, expr)
+        return asyncio.to_thread(browser.wait, expr, timeout)
+
+    await asyncio.to_thread(browser.call, "goto", url=url)
+    await page("window.result.width === 640 && window.result.codes.length >= 5", 30)
+    assert rate.step == 0 and rate.governing_role() == "pilot"
+
+    # 600 kbit/s towards the pilot, 40 % of what the encoder sends.
+    await tc("qdisc", "add", "dev", veth, "root", "tbf", "rate", "600kbit", "burst", "15kb",
+             "latency", "150ms")  # fmt: skip
+    cut_ms = time.time() * 1000
+    await until(lambda: rate.step >= 1, 30, "the encoder to step down")
+    assert rate.target_bitrate <= 750_000  # at most half of what it was
+    stepped_ms = time.time() * 1000
+    await page("window.result.width < 640", 30)
+    codes_before = await page("window.result.codes.length")
+    # Moving pictures: their codes (when legible at this size and bitrate) count up.
+    await page(f"window.result.codes.length >= {codes_before + 10}", 30)
+    result = await page("window.result")
+    low_width = result["width"]
+    now_ms = time.time() * 1000
+    freeze = largest_gap_ms(result["times"], cut_ms, now_ms)
+    print(
+        f"\n[abr] stepped down {(stepped_ms - cut_ms) / 1000:.1f} s after the cut to "
+        f"{video.encoder.status}; largest gap between frames {freeze:.0f} ms"
+    )
+    timeline = [(round(t - cut_ms), w) for t, w in result["times"] if t > cut_ms - 3000]
+    # The goal is under a second; measured on the 2-core test machine under load:
+    # 0.8-1.2 s for this cut (the first REMB or loss report that says so comes about
+    # 1 s after it), 0.8-3.5 s for a cut to a fifth (docs/video.md).
+    assert freeze < 2000, f"the picture froze {freeze:.0f} ms: {timeline}"
+
+    await tc("qdisc", "del", "dev", veth, "root")
+    restored_ms, low_step = time.time() * 1000, rate.step
+    await until(lambda: rate.step < low_step, 120, "the encoder to step back up")
+    up_ms = time.time() * 1000
+    await page(f"window.result.width > {low_width}", 30)
+    print(
+        f"[abr] stepped up {(up_ms - restored_ms) / 1000:.1f} s after the link came back, "
+        f"to {video.encoder.status}"
+    )
