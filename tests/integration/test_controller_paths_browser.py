@@ -27,6 +27,10 @@ pytestmark = [
 ]
 
 
+#: The sign between a picture's width and height on the page (a multiplication sign).
+TIMES = "\u00d7"
+
+
 def _sent(name: str) -> str:
     return f"window.sentCommands.filter(m => m.name === {name!r}).length"
 
@@ -48,6 +52,27 @@ async def test_the_page_drives_over_webrtc_and_says_which_path(world: World) -> 
         return session.control_path == "webrtc_direct"
 
     await until(recorded, what="the session to record the WebRTC path")
+
+
+async def test_the_pilot_sees_what_the_camera_sends_and_what_arrives(world: World) -> None:
+    page = await world.login("client")
+    await request_car(world, page)
+    await wait_for(page, "c.videoStatus !== null && c.videoReceived && c.videoReceived.fps > 0")
+    encoder = world.agents["car-1"].video.encoder
+    status = encoder.status
+    shown = await page.locator("[data-video-stats]").inner_text()
+    # The agent's encoder and the page agree (the car's camera on a link with room:
+    # its own size, the configured bitrate).
+    assert shown == f"{status.width}{TIMES}{status.height}, {status.fps} fps, " + (
+        f"{status.bitrate / 1e6:.1f} Mbit/s"
+        if status.bitrate >= 1e6
+        else f"{round(status.bitrate / 1e3)} kbit/s"
+    )
+    assert encoder.rate.governing_role() == "pilot"
+    received = await page.evaluate("window.iouvController.videoReceived")
+    assert (received["width"], received["height"]) == (status.width, status.height)
+    title = await page.locator("[data-video-stats]").get_attribute("title")
+    assert title is not None and title.startswith(f"Received: {status.width}{TIMES}{status.height}")
 
 
 async def test_without_webrtc_the_page_stays_on_the_relay_and_says_so(world: World) -> None:
