@@ -24,7 +24,14 @@ import pytest
 
 from agents.rtc import RtcPeers
 from agents.video import SyntheticCamera, VideoService
-from agents.video_rate import LADDER, MIN_BITRATE, RateController, Rung, fit_size
+from agents.video_rate import (
+    LADDER,
+    MIN_BITRATE,
+    RateController,
+    RetransmitBudget,
+    Rung,
+    fit_size,
+)
 from tests.agents.video_page import largest_gap_ms, signalling_server
 from tests.browser import chromium_missing_reason
 from tests.netlab import NetLab, netlab_available
@@ -140,6 +147,37 @@ def test_the_pilot_governs_else_the_sfu_and_spectators_never() -> None:
     assert rate.governing_role() == "sfu" and rate.target_bitrate == 300_000
     rate.forget("sfu")  # nobody governs: the configured bitrate
     assert rate.governing_role() is None and rate.target_bitrate == 1_500_000
+
+
+def test_heavy_loss_cuts_to_what_got_through_and_light_loss_lets_it_grow() -> None:
+    rate, clock = controller()
+    rate.attach("pilot", "pilot")
+    rate.loss("pilot", 0.05)  # some loss: no action
+    assert rate.target_bitrate == 1_500_000
+    rate.loss("pilot", 0.6)  # 40 % got through
+    assert rate.target_bitrate == 600_000 and rate.step == 1
+    clock.now += 0.3
+    rate.loss("pilot", 0.9)  # about packets sent before the cut: held
+    assert rate.target_bitrate == 600_000
+    for _ in range(10):  # no loss for five seconds: 8 % a second
+        clock.now += 0.5
+        rate.loss("pilot", 0.0)
+    assert 850_000 < rate.target_bitrate < 900_000
+    rate.loss("sfu", 0.9)  # not a sender it knows: nothing
+    assert 850_000 < rate.target_bitrate < 900_000
+
+
+def test_retransmissions_stay_within_a_quarter_of_the_target() -> None:
+    clock = Clock()
+    budget = RetransmitBudget(clock=clock)
+    # 240 kbit/s: a quarter is 60 kbit/s, about 6.8 packets of 1,100 bytes a second.
+    assert budget.allow(50, 240_000) == 6
+    assert budget.allow(50, 240_000) == 0
+    clock.now += 0.5  # 3.4 more, and the 0.8 left over
+    assert budget.allow(50, 240_000) == 4
+    assert budget.refused == 50 - 6 + 50 + 50 - 4
+    clock.now += 10  # the bucket holds one second's worth, no more
+    assert budget.allow(50, 240_000) == 6
 
 
 def test_fit_size_keeps_the_aspect_and_never_enlarges() -> None:
