@@ -1104,8 +1104,11 @@ class SharedVp8Encoder:
                     self.frames_captured += 1
                     now = time.monotonic()
                     interval, last_capture = now - last_capture, now
-                    if interval < 5.0:
-                        self._source_fps += (1 / max(interval, 1e-3) - self._source_fps) * 0.1
+                    if interval < 5.0:  # not the first frame (nor one after a stall)
+                        fps = 1 / max(interval, 1e-3)
+                        self._source_fps += (fps - self._source_fps) * (
+                            0.1 if self._source_fps else 1.0
+                        )
                     self.rate.tick()
                     rung = self.rate.rung
                     # The ladder's frame rate: each captured frame earns fps x interval
@@ -1156,21 +1159,20 @@ class SharedVp8Encoder:
 
     def _report(self, size: tuple[int, int], rung_fps: float | None, bitrate: int) -> None:
         """Update :attr:`status` and tell the listeners when it changed."""
+        if not self._source_fps:
+            return  # the first frame: no frame rate measured yet
         fps = round(self._source_fps)
         if rung_fps is not None:
             fps = min(fps, round(rung_fps))
         status = VideoStatus(width=size[0], height=size[1], fps=fps, bitrate=bitrate)
         previous = self.status
-        # The measured frame rate wanders by a frame or so: not news on its own.
+        # A camera's measured rate wanders (more so on a busy machine): news only when
+        # it moved by a fifth, each message going to every watching user.
         if (
             previous is not None
-            and (
-                previous.width,
-                previous.height,
-                previous.bitrate,
-            )
+            and (previous.width, previous.height, previous.bitrate)
             == (status.width, status.height, status.bitrate)
-            and abs(previous.fps - fps) < 2
+            and abs(previous.fps - fps) < max(2, previous.fps / 5)
         ):
             return
         self.status = status

@@ -100,6 +100,8 @@ class _Estimate:
     loss_cap: int | None = None  # since heavy loss, until back at the ceiling
     loss_cut_at: float = -1e9  # when loss last lowered loss_cap
     loss_grown_at: float = -1e9  # when it last grew
+    probe: float = 1.0  # how far above its REMB the cap reaches, see RateController
+    quiet_since: float = -1e9  # the last fall, loss cut or probe step
 
 
 class RateController:
@@ -127,6 +129,15 @@ class RateController:
     #: ... and loss below this lets it grow by LOSS_GROWTH a second.
     LOSS_LOW: Final = 0.02
     LOSS_GROWTH: Final = 1.08
+    #: After a fall a receiver's estimate grows slowly near the rate it last saw (AIMD's
+    #: additive increase), and never above 1.5 times what it receives: a restored link
+    #: could take a minute to be believed. So after this long without a fall or loss
+    #: the cap reaches PROBE_STEP above the estimate, and again after as long: sending
+    #: more is what lets the receiver see the room (its estimate leaves the slow mode
+    #: when what arrives passes what it saw), and a link without room says so with loss
+    #: or a fall within a second, which ends the probe.
+    PROBE_AFTER_S: Final = 5.0
+    PROBE_STEP: Final = 1.15
 
     #: Changes of target smaller than this fraction are not applied: each starts a
     #: new VP8 stream (a keyframe), worth it only for a real change.
@@ -178,8 +189,10 @@ class RateController:
             return
         fell = entry.bitrate is not None and bitrate < entry.bitrate * (1 - self.FALL_FRACTION)
         entry.bitrate = bitrate
+        if fell:
+            entry.probe, entry.quiet_since = 1.0, self.clock()
         if fell or entry.cap is not None:
-            entry.cap = bitrate if bitrate < self.max_bitrate else None
+            entry.cap = bitrate if bitrate * entry.probe < self.max_bitrate else None
         self._update(self._governing())
 
     def loss(self, key: Hashable, fraction: float) -> None:
@@ -195,6 +208,7 @@ class RateController:
             through = round(self.target_bitrate * (1 - fraction))
             entry.loss_cap = through if entry.loss_cap is None else min(entry.loss_cap, through)
             entry.loss_cut_at = entry.loss_grown_at = now
+            entry.probe, entry.quiet_since = 1.0, now
         elif fraction < self.LOSS_LOW and entry.loss_cap is not None:
             grown = entry.loss_cap * self.LOSS_GROWTH ** min(now - entry.loss_grown_at, 1.0)
             entry.loss_cap = round(grown) if grown < self.max_bitrate else None
@@ -212,8 +226,20 @@ class RateController:
         return None
 
     def tick(self) -> None:
-        """Take a held step up if it is due (the encoder calls this every frame)."""
-        if self.step > 0:
+        """Take a probe or a held step up when due (the encoder calls this every
+        frame)."""
+        now = self.clock()
+        probed = False
+        for entry in self._estimates.values():
+            if entry.cap is not None and now - entry.quiet_since >= self.PROBE_AFTER_S:
+                entry.probe *= self.PROBE_STEP
+                entry.quiet_since = now
+                if entry.cap * entry.probe >= self.max_bitrate:
+                    entry.cap, entry.probe = None, 1.0
+                probed = True
+        if probed:
+            self._update(self._governing())
+        elif self.step > 0:
             self._choose_step()
 
     # --- internals -----------------------------------------------------------------------
@@ -226,7 +252,7 @@ class RateController:
             c
             for e in self._estimates.values()
             if e.role == role
-            for c in (e.cap, e.loss_cap)
+            for c in (None if e.cap is None else round(e.cap * e.probe), e.loss_cap)
             if c is not None
         ]
         return min(caps) if caps else None

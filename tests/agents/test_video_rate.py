@@ -12,11 +12,8 @@ asks for a keyframe.
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import os
-import subprocess
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -32,9 +29,13 @@ from agents.video_rate import (
     Rung,
     fit_size,
 )
-from tests.agents.video_page import largest_gap_ms, signalling_server
-from tests.browser import chromium_missing_reason
-from tests.netlab import NetLab, netlab_available
+from tests.agents.video_page import (
+    VideoOnly,
+    largest_gap_ms,
+    moving_pose,
+    pilot_behind_a_link,
+    signalling_server,
+)
 from tests.netlab_browser import BrowserProcess
 
 # --------------------------------------------------------------------------------------
@@ -89,12 +90,37 @@ def test_a_falling_estimate_steps_down_at_once_and_recovers_one_step_at_a_time()
     clock.now += 1
     rate.tick()
     assert rate.rung == Rung(480, 360, 20, 350_000)  # held
+    rate.estimate("pilot", 780_000)  # a small fall (no probing above it for now)
     clock.now += 3
     rate.tick()
-    assert rate.rung == Rung(480, 360, 20, 350_000)  # 800k < 700k x 1.2: no margin
+    assert rate.rung == Rung(480, 360, 20, 350_000)  # 780k < 700k x 1.2: no margin
     rate.estimate("pilot", 1_600_000)  # back above the ceiling: no longer capped
     clock.now += 3
     rate.tick()
+    assert rate.target_bitrate == 1_500_000 and rate.step == 0
+
+
+def test_a_quiet_link_is_probed_above_the_estimate_until_it_is_believed() -> None:
+    rate, clock = controller()
+    rate.attach("pilot", "pilot")
+    rate.estimate("pilot", 1_000_000)
+    rate.estimate("pilot", 400_000)  # a fall
+    assert rate.target_bitrate == 400_000
+    clock.now += 4.9
+    rate.tick()
+    assert rate.target_bitrate == 400_000
+    clock.now += 0.2  # five quiet seconds: 15 % above the estimate
+    rate.tick()
+    assert rate.target_bitrate == 460_000
+    clock.now += 5
+    rate.tick()
+    assert rate.target_bitrate == 529_000
+    rate.estimate("pilot", 380_000)  # the link had no room: the probe ends
+    assert rate.target_bitrate == 380_000
+    for _ in range(30):  # a link that has: about 1.15 ** n, until the ceiling
+        clock.now += 5
+        rate.tick()
+        rate.estimate("pilot", 380_000)  # a receiver slow to believe it
     assert rate.target_bitrate == 1_500_000 and rate.step == 0
 
 
@@ -159,12 +185,13 @@ def test_heavy_loss_cuts_to_what_got_through_and_light_loss_lets_it_grow() -> No
     clock.now += 0.3
     rate.loss("pilot", 0.9)  # about packets sent before the cut: held
     assert rate.target_bitrate == 600_000
-    for _ in range(10):  # no loss for five seconds: 8 % a second
-        clock.now += 0.5
+    for _ in range(10):  # no loss for five seconds: 8 % a second (902k), applied in
+        clock.now += 0.5  # steps of 10 % or more
         rate.loss("pilot", 0.0)
-    assert 850_000 < rate.target_bitrate < 900_000
+    assert 800_000 < rate.target_bitrate <= 902_000
+    before = rate.target_bitrate
     rate.loss("sfu", 0.9)  # not a sender it knows: nothing
-    assert 850_000 < rate.target_bitrate < 900_000
+    assert rate.target_bitrate == before
 
 
 def test_retransmissions_stay_within_a_quarter_of_the_target() -> None:
@@ -192,29 +219,6 @@ def test_fit_size_keeps_the_aspect_and_never_enlarges() -> None:
 # --------------------------------------------------------------------------------------
 
 
-class _Events:
-    """RtcPeers' owner: a connection for video alone opens no data channel."""
-
-    async def channel_opened(self, peer_id: str, link: Any) -> None:
-        return None
-
-    async def received(self, link: Any, raw: Any) -> None:
-        return None
-
-    async def path_changed(self, peer_id: str, path: str) -> None:
-        return None
-
-    async def channel_closed(self, peer_id: str) -> None:
-        return None
-
-
-def moving_pose() -> dict[str, float]:
-    """A vehicle turning and driving: a picture that needs its bitrate (a still one
-    compresses to little and would never fill a link)."""
-    t = time.monotonic()
-    return {"lat": 43.7 + (t % 60) * 2e-5, "lon": 7.25, "heading": (t * 40) % 360}
-
-
 async def until(cond: Callable[[], bool], within: float, what: str) -> None:
     deadline = time.monotonic() + within
     while not cond():
@@ -226,37 +230,6 @@ async def tc(*argv: str) -> None:
     """Run ``tc`` (the link's rate limit) without blocking the agent's event loop."""
     proc = await asyncio.create_subprocess_exec("tc", *argv)
     assert await proc.wait() == 0, f"tc {' '.join(argv)} failed"
-
-
-@contextlib.contextmanager
-def pilot_behind_a_link(tmp_path: Path) -> Iterator[tuple[NetLab, BrowserProcess]]:
-    """A network lab with one machine, ``pilot``, whose Chromium is up (no page yet);
-    skips without root, namespaces or Chromium."""
-    available, why = netlab_available()
-    if not available:
-        pytest.skip(why)
-    if (missing := chromium_missing_reason()) is not None:
-        pytest.skip(missing)
-    root = Path(__file__).resolve().parents[2]
-    log_path = tmp_path / "browser.log"
-    with NetLab(machines=["pilot"], workdir=tmp_path / "lab") as lab:
-        with open(log_path, "w") as log:
-            proc = lab.popen(
-                "pilot",
-                BrowserProcess.argv(),
-                stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE,
-                stderr=log,
-                text=True,
-                cwd=root,
-                env={**os.environ, "PYTHONPATH": str(root), "PYTHONUNBUFFERED": "1"},
-            )
-        browser = BrowserProcess(proc, log_path)
-        try:
-            browser.started()
-            yield lab, browser
-        finally:
-            browser.close()
 
 
 @pytest.mark.realtime
@@ -271,7 +244,7 @@ async def test_the_pilots_picture_steps_down_on_a_cut_link_and_back_up(tmp_path:
         camera = SyntheticCamera(640, 480, fps=30, pose=moving_pose)
         hosts = [lab.public_ip]
         async with VideoService(camera, ice_host_addresses=hosts, bitrate=1_500_000) as video:
-            rtc = RtcPeers(_Events(), video=video)
+            rtc = RtcPeers(VideoOnly(), video=video)
             try:
                 async with signalling_server(rtc, host=lab.public_ip, controller=True) as url:
                     veth = lab.machine("pilot").root_veth
@@ -296,7 +269,7 @@ async def pilot_through_a_cut(
     assert rate.step == 0 and rate.governing_role() == "pilot"
 
     # 600 kbit/s towards the pilot, 40 % of what the encoder sends.
-    await tc("qdisc", "add", "dev", veth, "root", "tbf", "rate", "600kbit", "burst", "15kb",
+    await tc("qdisc", "add", "dev", veth, "root", "tbf", "rate", "600kbit", "burst", "30kb",
              "latency", "150ms")  # fmt: skip
     cut_ms = time.time() * 1000
     await until(lambda: rate.step >= 1, 30, "the encoder to step down")
@@ -316,13 +289,13 @@ async def pilot_through_a_cut(
     )
     timeline = [(round(t - cut_ms), w) for t, w in result["times"] if t > cut_ms - 3000]
     # The goal is under a second; measured on the 2-core test machine under load:
-    # 0.8-1.2 s for this cut (the first REMB or loss report that says so comes about
-    # 1 s after it), 0.8-3.5 s for a cut to a fifth (docs/video.md).
+    # 0.6-1.3 s (the first loss report or REMB that tells of the cut comes one to three
+    # seconds after it; docs/video.md).
     assert freeze < 2000, f"the picture froze {freeze:.0f} ms: {timeline}"
 
     await tc("qdisc", "del", "dev", veth, "root")
     restored_ms, low_step = time.time() * 1000, rate.step
-    await until(lambda: rate.step < low_step, 120, "the encoder to step back up")
+    await until(lambda: rate.step < low_step, 120, "the encoder to step back up")  # 6-42 s seen
     up_ms = time.time() * 1000
     await page(f"window.result.width > {low_width}", 30)
     print(

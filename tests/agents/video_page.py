@@ -1,12 +1,14 @@
-"""A test page that watches the agent's video in a browser, and the server that signals
-for it: what tests/agents/test_video.py and test_video_rate.py load in Chromium.
+"""A test page that watches the agent's video in a browser, the server that signals for
+it, and a pilot's Chromium behind an emulated link: what tests/agents/test_video.py,
+test_video_rate.py and benchmarks/video.py use.
 
 ``PAGE`` offers to receive video over a WebSocket (``webrtc_offer`` ->
 ``webrtc_answer``, as the control socket carries them), plays it, draws every frame on
 a canvas and decodes the synthetic camera's frame code in JavaScript. ``window.result``
 holds ``frames`` (count), ``firstFrameMs``, ``codes`` (counters read), ``latencies``
 (capture to display, ms, on a machine with one clock), ``width`` (the last frame's),
-``times`` (``[Date.now(), width]`` of every frame) and ``error``.
+``times`` (``[Date.now(), width]`` of every frame), ``latencyAt`` (``[Date.now(),
+latency ms]`` of every frame whose code was legible) and ``error``.
 """
 
 from __future__ import annotations
@@ -14,11 +16,21 @@ from __future__ import annotations
 import contextlib
 import itertools
 import json
-from collections.abc import AsyncIterator, Sequence
+import os
+import subprocess
+import time
+from collections.abc import AsyncIterator, Iterator, Sequence
 from http import HTTPStatus
+from pathlib import Path
+from typing import Any
+
+import pytest
 
 from agents.rtc import RtcPeers
 from agents.video import VideoError
+from tests.browser import chromium_missing_reason
+from tests.netlab import NetLab, netlab_available
+from tests.netlab_browser import BrowserProcess
 
 PAGE = """<!doctype html>
 <html><head><meta charset="utf-8"><title>IoUV video test</title></head>
@@ -27,7 +39,7 @@ PAGE = """<!doctype html>
 <script>
 "use strict";
 const result = window.result = {frames: 0, firstFrameMs: null, codes: [], latencies: [],
-                                width: 0, error: null, times: []};
+                                width: 0, error: null, times: [], latencyAt: []};
 // The width the camera drew the frame code at (?source_width=640): pictures the
 // encoder's ladder scaled down carry it scaled too.
 const sourceWidth = Number(new URLSearchParams(location.search).get("source_width")) || 0;
@@ -115,7 +127,12 @@ function onFrame() {
   const source = sourceWidth || w;
   const rows = Math.min(h, Math.ceil((2 * Math.floor(source / 48) * w) / source) + 1);
   const code = readCode(ctx.getImageData(0, 0, w, rows).data, w);
-  if (code) { result.codes.push(code.counter); result.latencies.push(Date.now() - code.ts); }
+  if (code) {
+    const now = Date.now();
+    result.codes.push(code.counter);
+    result.latencies.push(now - code.ts);
+    result.latencyAt.push([now, now - code.ts]);
+  }
   video.requestVideoFrameCallback(onFrame);
 }
 video.requestVideoFrameCallback(onFrame);
@@ -167,3 +184,57 @@ def largest_gap_ms(times: Sequence[Sequence[float]], start_ms: float, end_ms: fl
     the first frame and from the last one to ``end_ms``."""
     stamps = [start_ms, *(t[0] for t in times if start_ms <= t[0] <= end_ms), end_ms]
     return max(b - a for a, b in itertools.pairwise(stamps))
+
+
+class VideoOnly:
+    """RtcPeers' owner: a connection for video alone opens no data channel."""
+
+    async def channel_opened(self, peer_id: str, link: Any) -> None:
+        return None
+
+    async def received(self, link: Any, raw: Any) -> None:
+        return None
+
+    async def path_changed(self, peer_id: str, path: str) -> None:
+        return None
+
+    async def channel_closed(self, peer_id: str) -> None:
+        return None
+
+
+def moving_pose() -> dict[str, float]:
+    """A vehicle turning and driving: a picture that needs its bitrate (a still one
+    compresses to little and would never fill a link)."""
+    t = time.monotonic()
+    return {"lat": 43.7 + (t % 60) * 2e-5, "lon": 7.25, "heading": (t * 40) % 360}
+
+
+@contextlib.contextmanager
+def pilot_behind_a_link(tmp_path: Path) -> Iterator[tuple[NetLab, BrowserProcess]]:
+    """A network lab with one machine, ``pilot``, whose Chromium is up (no page yet);
+    skips without root, namespaces or Chromium."""
+    available, why = netlab_available()
+    if not available:
+        pytest.skip(why)
+    if (missing := chromium_missing_reason()) is not None:
+        pytest.skip(missing)
+    root = Path(__file__).resolve().parents[2]
+    log_path = tmp_path / "browser.log"
+    with NetLab(machines=["pilot"], workdir=tmp_path / "lab") as lab:
+        with open(log_path, "w") as log:
+            proc = lab.popen(
+                "pilot",
+                BrowserProcess.argv(),
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=log,
+                text=True,
+                cwd=root,
+                env={**os.environ, "PYTHONPATH": str(root), "PYTHONUNBUFFERED": "1"},
+            )
+        browser = BrowserProcess(proc, log_path)
+        try:
+            browser.started()
+            yield lab, browser
+        finally:
+            browser.close()
