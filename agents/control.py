@@ -84,6 +84,7 @@ from agents.protocol.messages import (
     TakeControl,
     Telemetry,
     Unsubscribe,
+    VideoStatus,
     WebrtcAnswer,
     WebrtcOffer,
     message_type,
@@ -302,6 +303,8 @@ class _Client:
     offering: asyncio.Task[None] | None = None
     #: The words last sent of what ending the session would make the vehicle do.
     consequence: str | None = None
+    #: The camera is on this user's WebRTC connection: told what it sends now.
+    video: bool = False
 
     def allow(self) -> bool:
         """Token bucket: True when this frame is within the client's budget."""
@@ -388,6 +391,9 @@ class ControlHub:
     async def start(self) -> None:
         self._watchdog = asyncio.create_task(self._watch(), name="control-watchdog")
         self._pinger = asyncio.create_task(self._ping_controller(), name="control-pinger")
+        encoder = getattr(self.video, "encoder", None)
+        if encoder is not None:  # the camera's size, rate and bitrate follow the link
+            encoder.add_listener(self._video_status_changed)
 
     async def close(self) -> None:
         """Shut down: with a task current, the vehicle performs the task's fail-safe
@@ -410,6 +416,9 @@ class ControlHub:
                 self._record_safe_action("failsafe", action, None, cause="shutdown")
         for client in list(self.clients.values()):
             await self._drop(client, 1001, "agent shutting down")
+        encoder = getattr(self.video, "encoder", None)
+        if encoder is not None:
+            encoder.remove_listener(self._video_status_changed)
         if self.rtc is not None:
             await self.rtc.close()
         self._refusals.flush()
@@ -1067,6 +1076,19 @@ class ControlHub:
             await self._send(client, error_message("webrtc", str(exc)))
             return
         await self._send(client, WebrtcAnswer(sdp=answer))
+        if "\nm=video " in sdp:
+            client.video = True
+            status = getattr(getattr(self.video, "encoder", None), "status", None)
+            if status is not None:  # the stream already runs for someone else
+                await self._send(client, _video_status_message(status))
+
+    def _video_status_changed(self, status: Any) -> None:
+        """The camera's encoder changed size, frame rate or bitrate (a
+        :class:`agents.video.VideoStatus`): tell every user who watches it directly."""
+        message = _video_status_message(status)
+        for client in list(self.clients.values()):
+            if client.video:
+                self._spawn(self._send(client, message))
 
     # --- WebRTC paths (agents.rtc.PeerEvents) ---------------------------------------------
     def _rtc(self) -> Any | None:
@@ -1297,6 +1319,12 @@ class ControlHub:
         task = asyncio.ensure_future(coro)
         self._background.add(task)
         task.add_done_callback(self._background.discard)
+
+
+def _video_status_message(status: Any) -> VideoStatus:
+    return VideoStatus(
+        width=status.width, height=status.height, fps=status.fps, bitrate=status.bitrate
+    )
 
 
 class _WebSocketLink:

@@ -218,7 +218,9 @@ class RtcPeers:
         peer = _RtcPeer(pc, controller=controller)
         self._peers[peer_id] = peer
         if wants_video:
-            peer.track = self.video.attach(pc)  # type: ignore[union-attr]  # checked above
+            peer.track = self.video.attach(  # type: ignore[union-attr]  # checked above
+                pc, role="pilot" if controller else "viewer"
+            )
         self._wire(peer_id, peer)
         try:
             await pc.setRemoteDescription(RTCSessionDescription(sdp=sdp, type="offer"))

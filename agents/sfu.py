@@ -330,7 +330,7 @@ class SfuPublisher:
                 }
             )
             pc = RTCPeerConnection(RTCConfiguration(iceServers=self.ice_servers))
-            track = self.video.attach(pc)
+            track = self.video.attach(pc, role="sfu")
             self.pc = pc
             gone = asyncio.Event()
 

@@ -66,8 +66,19 @@ from aiortc import (
     RTCRtpSender,
 )
 from aiortc.mediastreams import MediaStreamError
+from aiortc.rtp import (
+    RTCP_PSFB_APP,
+    RTCP_RTPFB_NACK,
+    AnyRtcpPacket,
+    RtcpPsfbPacket,
+    RtcpRrPacket,
+    RtcpRtpfbPacket,
+    RtcpSrPacket,
+    unpack_remb_fci,
+)
 
 from agents.geo import local_offset_m
+from agents.video_rate import RateController, RetransmitBudget, Role, fit_size
 
 __all__ = [
     "CODE_BITS",
@@ -81,6 +92,7 @@ __all__ = [
     "VideoError",
     "VideoService",
     "VideoSource",
+    "VideoStatus",
     "draw_text",
     "read_frame_code",
     "restrict_ice_host_addresses",
@@ -949,6 +961,17 @@ def video_service_create(
 # --------------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class VideoStatus:
+    """What the shared encoder sends now: the picture's size, its frame rate (the
+    ladder's step, or the camera's own when slower) and the target bitrate (bit/s)."""
+
+    width: int
+    height: int
+    fps: int
+    bitrate: int
+
+
 class _Subscriber:
     """One viewer's queue of encoded packets. A viewer starts on (and after an overflow
     resumes at) a keyframe: delta frames without their reference are useless to it."""
@@ -984,6 +1007,12 @@ class SharedVp8Encoder:
     ``keyframe_interval_s``. Counters: ``frames_captured``, ``frames_encoded`` (libvpx
     calls), ``keyframes``.
 
+    The bitrate follows the receivers' estimates through :attr:`rate` (a
+    :class:`~agents.video_rate.RateController`; ``bitrate`` is its ceiling and what is
+    sent with no estimate), and with it the size and frame rate (its ladder): frames
+    are scaled down and skipped here, after capture. :attr:`status` is what is sent
+    now; the functions given to :meth:`add_listener` are called when it changes.
+
     Why VP8: every WebRTC browser must decode it (RFC 7742), PyAV's wheels ship libvpx,
     and aiortc's ``Vp8Encoder.pack`` turns a whole VP8 frame into RTP payloads with no
     codec state per viewer (its picture id is per sender, which is what RTP wants).
@@ -999,6 +1028,11 @@ class SharedVp8Encoder:
     ) -> None:
         self.source = source
         self.bitrate = bitrate
+        self.rate = RateController(max_bitrate=bitrate)
+        #: What is sent now (None before the first frame).
+        self.status: VideoStatus | None = None
+        self._listeners: list[Callable[[VideoStatus], None]] = []
+        self._source_fps = 0.0  # measured, smoothed
         self.keyframe_interval_s = keyframe_interval_s
         self.min_keyframe_gap_s = min_keyframe_gap_s
         self.frames_captured = 0
@@ -1031,6 +1065,15 @@ class SharedVp8Encoder:
             self._task.cancel()
             self._stopping, self._task = self._task, None
 
+    def add_listener(self, listener: Callable[[VideoStatus], None]) -> None:
+        """Call ``listener`` (on the event loop) whenever :attr:`status` changes."""
+        self._listeners.append(listener)
+
+    def remove_listener(self, listener: Callable[[VideoStatus], None]) -> None:
+        """Stop calling ``listener``."""
+        with contextlib.suppress(ValueError):
+            self._listeners.remove(listener)
+
     def request_keyframe(self) -> None:
         """Make the next frame (or the first allowed by the gap) a keyframe."""
         self._keyframe_wanted = True
@@ -1051,20 +1094,42 @@ class SharedVp8Encoder:
                 await asyncio.wait([previous])
         self._codec = None
         t0 = time.monotonic()
-        last_key = -math.inf
+        last_key = last_capture = -math.inf
+        key_gap = self.min_keyframe_gap_s  # for requested keyframes; see below
+        credit = 1.0  # frames the ladder's frame rate allows now (see below)
         try:
             while self._subscribers:
                 try:
                     frame = await self.source.frame()
                     self.frames_captured += 1
                     now = time.monotonic()
+                    interval, last_capture = now - last_capture, now
+                    if interval < 5.0:  # not the first frame (nor one after a stall)
+                        fps = 1 / max(interval, 1e-3)
+                        self._source_fps += (fps - self._source_fps) * (
+                            0.1 if self._source_fps else 1.0
+                        )
+                    self.rate.tick()
+                    rung = self.rate.rung
+                    # The ladder's frame rate: each captured frame earns fps x interval
+                    # of a frame; one is sent per whole frame earned. A 30 fps camera on
+                    # a 20 fps step sends two frames of three, evenly.
+                    if rung.fps is not None:
+                        credit = min(1.5, credit + rung.fps * min(interval, 1.0))
+                        if credit < 0.95:  # a little slack for a camera's jitter
+                            continue
+                        credit = max(0.0, credit - 1)
                     force = (
-                        self._keyframe_wanted and now - last_key >= self.min_keyframe_gap_s
+                        self._keyframe_wanted and now - last_key >= key_gap
                     ) or now - last_key >= self.keyframe_interval_s
                     if force:
                         self._keyframe_wanted = False
                     pts = int((now - t0) * 90_000)
-                    packets = await asyncio.to_thread(self._encode, frame, pts, force)
+                    size = fit_size(frame.width, frame.height, rung)
+                    bitrate = self.rate.target_bitrate
+                    packets = await asyncio.to_thread(
+                        self._encode, frame, pts, force, size, bitrate
+                    )
                 except Exception as exc:
                     # A camera or codec hiccup must not end the viewers' connections:
                     # release the source, wait, and try again with a fresh encoder.
@@ -1074,10 +1139,17 @@ class SharedVp8Encoder:
                     self._codec = None
                     await asyncio.sleep(1.0)
                     continue
+                self._report(size, rung.fps, bitrate)
                 for packet in packets:
                     if packet.is_keyframe:
                         last_key = now
                         self.keyframes += 1
+                        # A keyframe is several frames' worth of bits: on a link that
+                        # is barely enough, one every quarter second (a lossy viewer's
+                        # picture-loss requests) would fill it, lose more packets and
+                        # bring more requests: a picture frozen for good. Requested
+                        # ones leave the link at least half its time for the rest.
+                        key_gap = max(self.min_keyframe_gap_s, 2 * 8 * packet.size / bitrate)
                     for sub in list(self._subscribers):
                         if not sub.offer(packet):
                             self.request_keyframe()
@@ -1085,25 +1157,66 @@ class SharedVp8Encoder:
             with contextlib.suppress(Exception):
                 await self.source.close()
 
-    def _encode(self, frame: av.VideoFrame, pts: int, force_keyframe: bool) -> list[_Packet]:
-        """Encode one frame (worker thread; the codec is only touched from here, one
-        call at a time). Settings follow aiortc's Vp8Encoder: real-time, no lag, CBR."""
-        if frame.format.name != "yuv420p":
-            frame = frame.reformat(format="yuv420p")
+    def _report(self, size: tuple[int, int], rung_fps: float | None, bitrate: int) -> None:
+        """Update :attr:`status` and tell the listeners when it changed."""
+        if not self._source_fps:
+            return  # the first frame: no frame rate measured yet
+        fps = round(self._source_fps)
+        if rung_fps is not None:
+            fps = min(fps, round(rung_fps))
+        status = VideoStatus(width=size[0], height=size[1], fps=fps, bitrate=bitrate)
+        previous = self.status
+        # A camera's measured rate wanders (more so on a busy machine): news only when
+        # it moved by a fifth, each message going to every watching user.
+        if (
+            previous is not None
+            and (previous.width, previous.height, previous.bitrate)
+            == (status.width, status.height, status.bitrate)
+            and abs(previous.fps - fps) < max(2, previous.fps / 5)
+        ):
+            return
+        self.status = status
+        for listener in list(self._listeners):
+            try:
+                listener(status)
+            except Exception:  # one listener's bug must not stop the video
+                logger.exception("video status listener failed")
+
+    def _encode(
+        self,
+        frame: av.VideoFrame,
+        pts: int,
+        force_keyframe: bool,
+        size: tuple[int, int],
+        bitrate: int,
+    ) -> list[_Packet]:
+        """Encode one frame at ``size`` and ``bitrate`` (worker thread; the codec is only
+        touched from here, one call at a time). Settings follow aiortc's Vp8Encoder:
+        real-time, no lag, CBR."""
+        if (frame.width, frame.height) != size or frame.format.name != "yuv420p":
+            frame = frame.reformat(width=size[0], height=size[1], format="yuv420p")
         codec = self._codec
-        if codec is not None and (frame.width != codec.width or frame.height != codec.height):
-            codec = None  # resolution change: a new stream, starting with a keyframe
+        # A new size or bitrate starts a new stream with a keyframe, as aiortc's own
+        # Vp8Encoder does: FFmpeg's libvpx wrapper takes neither once it is open.
+        if codec is not None and (
+            (frame.width, frame.height) != (codec.width, codec.height) or codec.bit_rate != bitrate
+        ):
+            codec = None
         if codec is None:
             codec = av.CodecContext.create("libvpx", "w")
             codec.width, codec.height = frame.width, frame.height
             codec.pix_fmt = "yuv420p"
             codec.time_base = VIDEO_TIME_BASE
-            codec.bit_rate = self.bitrate
+            codec.bit_rate = bitrate
             codec.gop_size = 100_000  # keyframes are placed by us (request/interval)
             codec.qmin, codec.qmax = 2, 56
-            rate = str(self.bitrate)
+            rate = str(bitrate)
             codec.options = {
                 "bufsize": rate,
+                # A keyframe at most three average frames (libwebrtc's floor for this
+                # libvpx setting): one that overflows a slow link's queue is lost, and
+                # asked for again.
+                "max-intra-rate": "300",
                 "cpu-used": "-6",
                 "deadline": "realtime",
                 "lag-in-frames": "0",  # one packet out per frame in, no reordering
@@ -1140,6 +1253,8 @@ class _EncodedTrack(MediaStreamTrack):
         super().__init__()
         self._encoder = encoder
         self._sub: _Subscriber | None = None
+        #: Called once on stop (the service forgets this viewer's estimate).
+        self.on_stop: Callable[[], None] | None = None
 
     async def recv(self) -> _Packet:
         if self.readyState != "live":
@@ -1153,6 +1268,9 @@ class _EncodedTrack(MediaStreamTrack):
         if self._sub is not None:
             self._encoder.unsubscribe(self._sub)
             self._sub = None
+        if self.on_stop is not None:
+            self.on_stop()
+            self.on_stop = None
 
 
 # --------------------------------------------------------------------------------------
@@ -1232,18 +1350,61 @@ class VideoService:
         number of viewers)."""
         return self.encoder.frames_encoded
 
-    def attach(self, pc: RTCPeerConnection) -> MediaStreamTrack:
+    def attach(self, pc: RTCPeerConnection, *, role: Role = "viewer") -> MediaStreamTrack:
         """Add the camera to ``pc`` (a connection another part of the agent negotiates,
         see :mod:`agents.rtc`): a sendonly VP8 transceiver fed by the shared encoder.
-        Returns its track; stop it when the connection ends (the last viewer's stop
-        ends capture)."""
+        ``role``: whom it serves (``pilot``, ``sfu`` or ``viewer``), which says whether
+        its receiver's bandwidth estimate sets the shared bitrate (the pilot's does;
+        without a pilot, the SFU's). Returns its track; stop it when the connection ends
+        (the last viewer's stop ends capture)."""
         track = _EncodedTrack(self.encoder)
         transceiver = pc.addTransceiver(track, direction="sendonly")
         transceiver.setCodecPreferences(_vp8_preferences())
+        sender = transceiver.sender
         # PLI/FIR from this viewer: aiortc would force a keyframe in the sender's own
         # encoder, which this sender does not use; ask the shared encoder instead.
-        transceiver.sender._send_keyframe = self.encoder.request_keyframe  # type: ignore[method-assign]
+        sender._send_keyframe = self.encoder.request_keyframe  # type: ignore[method-assign]
+        self._handle_feedback(sender, role)
+        rate = self.encoder.rate
+        track.on_stop = lambda: rate.forget(sender)
         return track
+
+    def _handle_feedback(self, sender: RTCRtpSender, role: Role) -> None:
+        """Hand the shared encoder's rate controller every REMB and loss report this
+        sender receives, and keep its retransmissions within a
+        :class:`RetransmitBudget`.
+
+        aiortc reads REMB only to set the ``target_bitrate`` of the sender's own
+        encoder, which this sender never uses (it packetises the shared encoder's
+        packets), and it has no public event or statistic for it; and it resends every
+        packet a NACK names, however full the link. So this one sender's RTCP handler
+        is wrapped: a NACK reaches aiortc with the packets the budget allows (the
+        first ones, oldest first as the receiver lists them), everything else exactly
+        as before, then a REMB naming the sender's SSRC is read with aiortc's own
+        parser, as is the fraction lost of a receiver report about it. No aiortc class is
+        changed, and only this instance."""
+        rate = self.encoder.rate
+        rate.attach(sender, role)
+        budget = RetransmitBudget()
+        handle = sender._handle_rtcp_packet
+
+        async def handle_rtcp(packet: AnyRtcpPacket) -> None:
+            if isinstance(packet, RtcpRtpfbPacket) and packet.fmt == RTCP_RTPFB_NACK:
+                packet.lost = packet.lost[: budget.allow(len(packet.lost), rate.target_bitrate)]
+            await handle(packet)
+            if isinstance(packet, RtcpRrPacket | RtcpSrPacket):
+                for report in packet.reports:
+                    if report.ssrc == sender._ssrc:
+                        rate.loss(sender, report.fraction_lost / 256)
+            elif isinstance(packet, RtcpPsfbPacket) and packet.fmt == RTCP_PSFB_APP:
+                try:
+                    bitrate, ssrcs = unpack_remb_fci(packet.fci)
+                except ValueError:  # another application-layer feedback than REMB
+                    return
+                if sender._ssrc in ssrcs:
+                    rate.estimate(sender, bitrate)
+
+        sender._handle_rtcp_packet = handle_rtcp  # type: ignore[method-assign]
 
     @property
     def ice_host_addresses(self) -> list[str] | None:

@@ -3,6 +3,7 @@
     python -m benchmarks            # the full runs (see each module's --help for times)
     python -m benchmarks --quick    # the smoke-test sizes, in a few minutes
     python -m benchmarks --paper-args "--interval-s 0.2" --scale-args "--agents 1000"
+    python -m benchmarks video      # one report alone: the pilot's video through a cut link
 
 Runs, one after the other so neither disturbs the other's timings:
 
@@ -69,10 +70,19 @@ def run(module: str, quick: bool, extra: str) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "only",
+        nargs="?",
+        choices=["video"],
+        help="run this benchmark alone (needs root and Chromium: benchmarks/video.py)",
+    )
     parser.add_argument("--quick", action="store_true", help="smoke-test sizes")
     parser.add_argument("--paper-args", default="", help="more options for benchmarks.paper")
     parser.add_argument("--scale-args", default="", help="more options for benchmarks.scale")
     args = parser.parse_args()
+    if args.only:
+        run(f"benchmarks.{args.only}", args.quick, "")
+        return
     extra = {"paper": args.paper_args, "scale": args.scale_args}
     took = {name: run(f"benchmarks.{name}", args.quick, extra[name]) for name in extra}
     mode = "quick" if args.quick else "full"
@@ -89,6 +99,8 @@ def main() -> None:
         f" ({took['paper'] / 60:.1f} min)",
         f"- [Platform scale: 1,000 agents, throughput, fail-safe reaction, two processes]"
         f"(scale/report.md) ({took['scale'] / 60:.1f} min)",
+        "- [The pilot's video through a link cut from 4 to 0.5 Mbit/s and back](video/report.md)"
+        " (run alone: `python -m benchmarks video`, needs root and Chromium)",
         "",
         "Timings come from one run on a shared machine: compare the columns of one report",
         "(they were measured together) rather than figures across reports or machines.",

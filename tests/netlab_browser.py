@@ -14,6 +14,8 @@ evaluated in the page with ``c`` bound to ``window.iouvController``.
 ``{"cmd": "open", "base", "username", "password", "path"}``
     sign in through the login form at ``base``, then open ``base + path`` (a session's
     page); the value is the page's URL.
+``{"cmd": "goto", "url"}``
+    open ``url`` (a page of the test's own); the value is the page's URL.
 ``{"cmd": "wait", "expr", "timeout"}``
     wait (``timeout`` seconds) until ``expr`` is truthy; the value is what it was.
 ``{"cmd": "eval", "expr"}``
@@ -126,6 +128,9 @@ async def browser_main(args: argparse.Namespace) -> int:
                 await page.click("button[type=submit]")
                 await page.wait_for_url(f"{base}/")
                 await page.goto(f"{base}{request['path']}")
+                return page.url
+            if cmd == "goto":
+                await page.goto(request["url"])
                 return page.url
             if cmd == "wait":
                 handle = await page.wait_for_function(

@@ -450,6 +450,16 @@ class RoleChange(Message, frozen=True, tag="role"):
     role: Role
 
 
+class VideoStatus(Message, frozen=True, tag="video_status"):
+    """What the vehicle's camera sends now (one stream for everyone; its bitrate
+    follows the pilot's link): picture size, frame rate, target bitrate in bit/s."""
+
+    width: Uint
+    height: Uint
+    fps: Uint
+    bitrate: Uint
+
+
 ControlToAgent: TypeAlias = (
     Auth
     | Command
@@ -472,6 +482,7 @@ ControlToClient: TypeAlias = (
     | WebrtcAnswer
     | Error
     | RoleChange
+    | VideoStatus
 )
 
 

@@ -160,6 +160,11 @@
       this.path = null;
       this.lastFrameAt = 0; // when the picture last moved (0: no picture yet)
       this.videoFrozen = false;
+      // What the vehicle's camera sends now (its video_status: width, height, fps,
+      // bitrate, which follow this user's link when piloting) and what this browser
+      // receives (getStats: width, height, fps, kbps).
+      this.videoStatus = null;
+      this.videoReceived = null;
       this.timers = [];
       this.commandList = [];
       this.stickAxes = [0, 0, 0, 0]; // the on-screen sticks, as gamepad axes
@@ -174,6 +179,7 @@
         role: root.querySelector("[data-role]"),
         rtt: root.querySelector("[data-rtt]"),
         path: root.querySelector("[data-path]"),
+        videoStats: root.querySelector("[data-video-stats]"),
         interval: root.querySelector("[data-interval]"),
         telemetry: root.querySelector("[data-telemetry]"),
         controls: root.querySelector("[data-controls]"),
@@ -196,6 +202,7 @@
       this.watchSession();
       this.timers.push(setInterval(() => this.tick(), 20));
       this.timers.push(setInterval(() => this.ping(), 1000));
+      this.timers.push(setInterval(() => this.readVideoStats(), 1000));
       this.timers.push(setInterval(() => this.keepalive(), this.keepaliveMs()));
     }
 
@@ -324,6 +331,7 @@
         case "role": return this.setRole(msg.role);
         case "event": return this.onEvent(msg);
         case "webrtc_answer": return this.onAnswer(msg);
+        case "video_status": return this.onVideoStatus(msg);
         case "error":
           if (msg.code === "webrtc" || msg.code === "no_webrtc") return this.rtcFailed(msg.message);
           return this.toast(`${msg.code}: ${msg.message}`, "bad");
@@ -1041,8 +1049,50 @@
       }
     }
 
+    // The vehicle's camera changed what it sends (its bitrate follows the pilot's link,
+    // and with it the picture's size and frame rate).
+    onVideoStatus(msg) {
+      this.videoStatus = { width: msg.width, height: msg.height, fps: msg.fps, bitrate: msg.bitrate };
+      this.showVideoStats();
+    }
+
+    // What this browser receives, from its own statistics (once a second).
+    async readVideoStats() {
+      const pc = this.pc;
+      if (!pc || !pc.getStats) return;
+      let report;
+      try { report = await pc.getStats(); } catch (e) { return; }
+      report.forEach((s) => {
+        if (s.type !== "inbound-rtp" || s.kind !== "video") return;
+        const last = this.lastInbound;
+        const kbps = last && s.timestamp > last.timestamp
+          ? Math.round((8 * (s.bytesReceived - last.bytesReceived)) / (s.timestamp - last.timestamp))
+          : null;
+        this.lastInbound = { timestamp: s.timestamp, bytesReceived: s.bytesReceived };
+        this.videoReceived = {
+          width: s.frameWidth || 0, height: s.frameHeight || 0,
+          fps: Math.round(s.framesPerSecond || 0), kbps,
+        };
+      });
+      this.showVideoStats();
+    }
+
+    showVideoStats() {
+      if (!this.ui.videoStats) return;
+      const sent = this.videoStatus, got = this.videoReceived;
+      const rate = (bps) => (bps >= 1e6 ? `${(bps / 1e6).toFixed(1)} Mbit/s` : `${Math.round(bps / 1e3)} kbit/s`);
+      this.ui.videoStats.textContent = sent
+        ? `${sent.width}×${sent.height}, ${sent.fps} fps, ${rate(sent.bitrate)}`
+        : "–";
+      this.ui.videoStats.title = got
+        ? `Received: ${got.width}×${got.height}, ${got.fps} fps${got.kbps === null ? "" : `, ${rate(got.kbps * 1000)}`}`
+        : "What the vehicle's camera sends now: it follows your link";
+    }
+
     closeVideo() {
       if (this.pc) { this.pc.close(); this.pc = null; }
+      this.lastInbound = null;
+      this.videoReceived = null;
       this.channels = null;
       this.lastFrameAt = 0;
       this.videoFrozen = false;

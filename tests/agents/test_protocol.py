@@ -248,6 +248,7 @@ MINIMAL: dict[str, dict[str, dict[str, Any]]] = {
         "webrtc_answer": {"sdp": "v=0..."},
         "error": {"code": "bad_json", "message": "nope"},
         "role": {"role": "controller"},
+        "video_status": {"width": 480, "height": 360, "fps": 20, "bitrate": 420_000},
     },
 }
 

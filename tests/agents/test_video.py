@@ -10,12 +10,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
-import json
 import statistics
 import time
 from collections.abc import AsyncIterator, Callable
 from fractions import Fraction
-from http import HTTPStatus
 from typing import Any
 
 import av
@@ -40,6 +38,7 @@ from agents.video import (
     video_service_create,
     video_source_create,
 )
+from tests.agents.video_page import signalling_server
 from tests.browser import chromium_browser, needs_chromium
 
 LOOPBACK = ["127.0.0.1"]
@@ -425,132 +424,6 @@ async def test_answer_sdp_is_complete_vp8_and_loopback_only() -> None:
 # --------------------------------------------------------------------------------------
 # headless Chromium
 # --------------------------------------------------------------------------------------
-
-PAGE = """<!doctype html>
-<html><head><meta charset="utf-8"><title>IoUV video test</title></head>
-<body>
-<video id="v" autoplay muted playsinline></video>
-<script>
-"use strict";
-const result = window.result = {frames: 0, firstFrameMs: null, codes: [], latencies: [],
-                                width: 0, error: null};
-const video = document.getElementById("v");
-const pc = new RTCPeerConnection({iceServers: []});
-pc.ontrack = (ev) => { video.srcObject = new MediaStream([ev.track]); };
-const ws = new WebSocket(`ws://${location.host}/ws`);
-
-// Complete SDP (no trickle ICE), but never wait forever for gathering to finish.
-function gathered(ms) {
-  return new Promise((resolve) => {
-    if (pc.iceGatheringState === "complete") return resolve();
-    const timer = setTimeout(resolve, ms);
-    pc.addEventListener("icegatheringstatechange", () => {
-      if (pc.iceGatheringState === "complete") { clearTimeout(timer); resolve(); }
-    });
-  });
-}
-const send = (msg) => ws.send(JSON.stringify(msg));
-ws.onopen = async () => {
-  pc.addTransceiver("video", {direction: "recvonly"});
-  await pc.setLocalDescription(await pc.createOffer());
-  await gathered(2000);
-  send({type: "webrtc_offer", sdp: pc.localDescription.sdp});
-};
-ws.onmessage = async (ev) => {
-  const msg = JSON.parse(ev.data);
-  try {
-    if (msg.type === "webrtc_answer") {
-      await pc.setRemoteDescription({type: "answer", sdp: msg.sdp});
-    } else if (msg.type === "error") {
-      result.error = msg.message;
-    }
-  } catch (e) { result.error = String(e); }
-};
-
-// The frame code (agents.video.stamp_frame_code): two rows of 48 blocks at the top.
-const CRC = new Uint32Array(256).map((_, n) => {
-  let c = n;
-  for (let k = 0; k < 8; k++) c = c & 1 ? 0xEDB88320 ^ (c >>> 1) : c >>> 1;
-  return c >>> 0;
-});
-function crc32(bytes) {
-  let c = 0xFFFFFFFF;
-  for (const b of bytes) c = CRC[(c ^ b) & 0xFF] ^ (c >>> 8);
-  return (c ^ 0xFFFFFFFF) >>> 0;
-}
-function readCode(data, width) {
-  const block = Math.floor(width / 48), x0 = Math.floor((width - block * 48) / 2);
-  const lo = Math.floor(block / 4), hi = block - Math.floor(block / 4);
-  const rows = [0, 1].map((r) => {
-    let value = 0;
-    for (let i = 0; i < 48; i++) {
-      let sum = 0, n = 0;
-      for (let y = r * block + lo; y < r * block + hi; y++)
-        for (let x = x0 + i * block + lo; x < x0 + i * block + hi; x++) {
-          const p = (y * width + x) * 4;
-          sum += data[p] + data[p + 1] + data[p + 2]; n += 3;
-        }
-      value = value * 2 + (sum / n > 127 ? 1 : 0);
-    }
-    return value;
-  });
-  const counter = Math.floor(rows[0] / 65536), check = rows[0] % 65536, ts = rows[1];
-  const bytes = [];
-  for (let i = 3; i >= 0; i--) bytes.push(Math.floor(counter / 2 ** (8 * i)) % 256);
-  for (let i = 5; i >= 0; i--) bytes.push(Math.floor(ts / 2 ** (8 * i)) % 256);
-  return (crc32(bytes) & 0xFFFF) === check ? {counter, ts} : null;
-}
-const canvas = document.createElement("canvas");
-const ctx = canvas.getContext("2d", {willReadFrequently: true});
-function onFrame() {
-  result.frames++;
-  if (result.firstFrameMs === null) result.firstFrameMs = performance.now();
-  const w = video.videoWidth, h = video.videoHeight;
-  result.width = w;
-  canvas.width = w; canvas.height = h;
-  ctx.drawImage(video, 0, 0);
-  const code = readCode(ctx.getImageData(0, 0, w, 2 * Math.floor(w / 48)).data, w);
-  if (code) { result.codes.push(code.counter); result.latencies.push(Date.now() - code.ts); }
-  video.requestVideoFrameCallback(onFrame);
-}
-video.requestVideoFrameCallback(onFrame);
-</script></body></html>
-"""
-
-
-@contextlib.asynccontextmanager
-async def signalling_server(rtc: RtcPeers) -> AsyncIterator[str]:
-    """Serve PAGE at / and bridge /ws to ``rtc`` with the control socket's messages;
-    yields the base URL. Stops the server and every connection on exit."""
-    from websockets.asyncio.server import ServerConnection, serve
-    from websockets.http11 import Request, Response
-
-    def process_request(conn: ServerConnection, request: Request) -> Response | None:
-        if request.path.startswith("/ws"):
-            return None  # go on with the WebSocket handshake
-        response = conn.respond(HTTPStatus.OK, PAGE)
-        response.headers["Content-Type"] = "text/html; charset=utf-8"
-        return response
-
-    async def handler(ws: ServerConnection) -> None:
-        peer_id = f"ws-{id(ws)}"
-        try:
-            async for raw in ws:
-                msg = json.loads(raw)
-                if msg["type"] != "webrtc_offer":
-                    continue
-                try:
-                    answer = await rtc.accept(peer_id, msg["sdp"])
-                    reply = {"type": "webrtc_answer", "sdp": answer}
-                except VideoError as exc:
-                    reply = {"type": "error", "code": "webrtc", "message": str(exc)}
-                await ws.send(json.dumps(reply))
-        finally:
-            await rtc.close_peer(peer_id)
-
-    async with serve(handler, "127.0.0.1", 0, process_request=process_request) as server:
-        port = next(iter(server.sockets)).getsockname()[1]
-        yield f"http://127.0.0.1:{port}"
 
 
 @needs_chromium

@@ -27,6 +27,10 @@ pytestmark = [
 ]
 
 
+#: The sign between a picture's width and height on the page (a multiplication sign).
+TIMES = "\u00d7"
+
+
 def _sent(name: str) -> str:
     return f"window.sentCommands.filter(m => m.name === {name!r}).length"
 
@@ -48,6 +52,34 @@ async def test_the_page_drives_over_webrtc_and_says_which_path(world: World) -> 
         return session.control_path == "webrtc_direct"
 
     await until(recorded, what="the session to record the WebRTC path")
+
+
+async def test_the_pilot_sees_what_the_camera_sends_and_what_arrives(world: World) -> None:
+    page = await world.login("client")
+    await request_car(world, page)
+    await wait_for(page, "c.videoStatus !== null && c.videoReceived && c.videoReceived.fps > 0")
+    encoder = world.agents["car-1"].video.encoder
+    assert encoder.rate.governing_role() == "pilot"
+
+    def words(status: Any) -> str:
+        rate = (
+            f"{status.bitrate / 1e6:.1f} Mbit/s"
+            if status.bitrate >= 1e6
+            else f"{round(status.bitrate / 1e3)} kbit/s"
+        )
+        return f"{status.width}{TIMES}{status.height}, {status.fps} fps, {rate}"
+
+    async def agree() -> bool:
+        # The agent's encoder and the page say the same (a new status may be on its way).
+        shown = await page.locator("[data-video-stats]").inner_text()
+        return shown == words(encoder.status)
+
+    await until(agree, within=10, what="the page to show what the encoder sends")
+    status = encoder.status
+    received = await page.evaluate("window.iouvController.videoReceived")
+    assert (received["width"], received["height"]) == (status.width, status.height)
+    title = await page.locator("[data-video-stats]").get_attribute("title")
+    assert title is not None and title.startswith(f"Received: {status.width}{TIMES}{status.height}")
 
 
 async def test_without_webrtc_the_page_stays_on_the_relay_and_says_so(world: World) -> None:
