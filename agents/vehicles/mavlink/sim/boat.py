@@ -194,7 +194,7 @@ class Boat(SimVehicle):
         self.guided = "hold"
         self.target = (0.0, 0.0) if mode in ("RTL", "SMART_RTL") else self._stopping_point()
         if mode == "AUTO":
-            self._auto_enter()
+            self._auto_start_or_resume()
         elif self.mission.state == "running":
             self.mission.state = "stopped"  # left: resumed from here next time
             self.auto_index = None
@@ -202,27 +202,6 @@ class Boat(SimVehicle):
     # --- AUTO -------------------------------------------------------------------------
     def _auto_refusal(self) -> str | None:
         return None if self.mission.flyable() else "No Mission. Can't set AUTO."
-
-    def _auto_enter(self) -> None:
-        m = self.mission
-        resume = (
-            not self.p("MIS_RESTART")
-            and m.state != "complete"
-            and m.current is not None
-            and m.current < m.count
-        )
-        m.state = "running"
-        if resume and m.current is not None:
-            self._auto_start_nav(m.current)
-        else:
-            self._auto_advance(1)
-
-    def mission_set_current(self, seq: int) -> bool:
-        if not super().mission_set_current(seq):
-            return False
-        if self.mode == AUTO and self.mission.state == "running":
-            self._auto_advance(seq)
-        return True
 
     def _auto_advance(self, index: int) -> None:
         """The "do" items from ``index`` on, then the next navigation item it drives

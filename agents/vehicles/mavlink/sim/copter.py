@@ -195,28 +195,8 @@ class Copter(SimVehicle):
         return nav is not None and nav.command == NAV_TAKEOFF
 
     def _auto_enter(self) -> None:
-        """Start the mission (MIS_RESTART 1, a finished or never started one) or resume
-        it at its current navigation item (AP_Mission::start_or_resume)."""
-        m = self.mission
-        resume = (
-            not self.p("MIS_RESTART")
-            and m.state != "complete"
-            and m.current is not None
-            and m.current < m.count
-        )
-        m.state = "running"
         self.target_speed = None  # WPNAV_SPEED until a DO_CHANGE_SPEED
-        if resume and m.current is not None:
-            self._auto_start_nav(m.current)
-        else:
-            self._auto_advance(1)
-
-    def mission_set_current(self, seq: int) -> bool:
-        if not super().mission_set_current(seq):
-            return False
-        if self.mode == AUTO and self.mission.state == "running":
-            self._auto_advance(seq)  # ArduPilot starts it at once
-        return True
+        self._auto_start_or_resume()
 
     def _auto_advance(self, index: int) -> None:
         """From item ``index`` on: perform the "do" items, start the next navigation item

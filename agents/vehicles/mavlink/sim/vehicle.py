@@ -174,14 +174,42 @@ class SimVehicle(abc.ABC):
         """Why AUTO is refused now (None: it is not), in the firmware's words."""
 
     def mission_set_current(self, seq: int) -> bool:
-        """MAV_CMD_DO_SET_MISSION_CURRENT: the item AUTO flies next (now, in AUTO; the
-        next time it starts or resumes, else). False for an item that does not exist."""
+        """MAV_CMD_DO_SET_MISSION_CURRENT: the item AUTO flies next (now, in AUTO, as
+        ArduPilot starts it at once; the next time it starts or resumes, else). False for
+        an item that does not exist."""
         if not 1 <= seq < self.mission.count:
             return False
         self.mission.set_current(seq)
         if self.mission.state != "running":
             self.mission.state = "stopped"  # resumed from there, not restarted
+        elif self.modes.get(self.mode) == "AUTO":
+            self._auto_advance(seq)
         return True
+
+    def _auto_start_or_resume(self) -> None:
+        """Start the mission (MIS_RESTART 1, a finished or never started one) or resume
+        it at its current navigation item (AP_Mission::start_or_resume)."""
+        m = self.mission
+        resume = (
+            not self.p("MIS_RESTART")
+            and m.state != "complete"
+            and m.current is not None
+            and m.current < m.count
+        )
+        m.state = "running"
+        if resume and m.current is not None:
+            self._auto_start_nav(m.current)
+        else:
+            self._auto_advance(1)
+
+    @abc.abstractmethod
+    def _auto_advance(self, index: int) -> None:
+        """From item ``index`` on: perform the "do" items and start the next navigation
+        item the vehicle drives; none left: the mission is complete."""
+
+    @abc.abstractmethod
+    def _auto_start_nav(self, index: int) -> None:
+        """Start navigation item ``index``."""
 
     @abc.abstractmethod
     def _entered(self, mode: str) -> None:
