@@ -180,8 +180,16 @@ async def test_the_spectate_list_follows_a_session_whose_driver_is_gone(world: W
     await watcher.goto(f"{world.base}/spectate/")
     card = watcher.locator(f'[data-spectate="{session_id}"]')
     await card.wait_for()
-    assert "client is in control." in await card.inner_text()
-    assert await card.get_attribute("data-live") == "true"
+    # The list follows the session live: on a saturated machine the driver's page may
+    # connect (or lose and recover its link once) a moment after the list is drawn.
+    await watcher.wait_for_function(
+        f"""() => {{
+          const card = document.querySelector('[data-spectate="{session_id}"]');
+          return card && card.dataset.live === "true"
+            && card.innerText.includes("client is in control.");
+        }}""",
+        timeout=30000,
+    )
     await no_wider_than_the_screen(watcher)
 
     # The driver closes the tab: the car stops on its own, and the open list says so
