@@ -234,10 +234,23 @@ def nginx_install() -> None:
         raise NginxUnavailable(f"nginx installed, but {NGINX} is still missing")
 
 
+def _dpkg_installing(package: str) -> bool:
+    """Whether dpkg knows ``package`` but has not finished installing it: another
+    process is installing it now, and its files (the binary first, the configuration it
+    includes later) are still appearing. :func:`nginx_install` then waits for dpkg's
+    lock and finds it done."""
+    if shutil.which("dpkg-query") is None:
+        return False
+    status = subprocess.run(
+        ["dpkg-query", "-W", "-f=${Status}", package], capture_output=True, text=True
+    ).stdout.strip()
+    return bool(status) and status != "install ok installed" and "not-installed" not in status
+
+
 def nginx_binary(*, install: bool = True) -> Path:
     """The nginx binary, installed first if it is missing and ``install`` is true.
     Idempotent. Raises NginxUnavailable."""
-    if not os.access(NGINX, os.X_OK):
+    if not os.access(NGINX, os.X_OK) or _dpkg_installing("nginx"):
         if not install:
             raise NginxUnavailable(f"no nginx at {NGINX}")
         nginx_install()

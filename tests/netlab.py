@@ -232,13 +232,17 @@ def netlab_available() -> tuple[bool, str]:
 
 
 def _installed(package: str) -> bool:
-    binary = _PACKAGE_BINARIES.get(package)
-    if binary is not None:
-        return shutil.which(binary) is not None
+    """Whether ``package`` is wholly installed. dpkg's word counts: while another test
+    process installs it, its files appear one by one (janus's binary before its
+    plugins) and its status is "unpacked" or "half-installed" until the end. A binary
+    found without dpkg knowing the package (built by hand) counts too."""
     status = subprocess.run(
         ["dpkg-query", "-W", "-f=${Status}", package], capture_output=True, text=True
-    ).stdout
-    return status.endswith("installed") and "not-installed" not in status
+    ).stdout.strip()
+    if status:
+        return status == "install ok installed"
+    binary = _PACKAGE_BINARIES.get(package)
+    return binary is not None and shutil.which(binary) is not None
 
 
 def ensure_packages(*packages: str, log_path: Path | None = None) -> None:
