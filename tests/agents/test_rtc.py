@@ -256,6 +256,9 @@ async def test_an_offer_waiting_for_a_silent_stun_server_holds_up_no_command(
     """The agent's answer waits for its ICE candidates, up to aioice's 5 s for a STUN
     server that never answers (blocked, down); meanwhile the user's commands on the
     same socket are answered, before the offer is."""
+    # The user's keepalives, as the page sends them from the start: on a busy machine
+    # making the offer below may take longer than the link-loss timeout.
+    keepalives = asyncio.create_task(_keepalives(user))
     silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     silent.bind(("127.0.0.1", 0))  # reads nothing, answers nothing
     try:
@@ -270,14 +273,11 @@ async def test_an_offer_waiting_for_a_silent_stun_server_holds_up_no_command(
                 await pc.setLocalDescription(await pc.createOffer())
             user.send({"type": "webrtc_offer", "sdp": pc.localDescription.sdp}, channel=None)
             user.send({"type": "command", "seq": 30, "name": "camera_up", "args": {}}, channel=None)
-            keepalives = asyncio.create_task(_keepalives(user))  # as the page sends them
-            try:
-                order = [m["type"] for m in await _until_types(user, {"ack", "webrtc_answer"})]
-            finally:
-                keepalives.cancel()
+            order = [m["type"] for m in await _until_types(user, {"ack", "webrtc_answer"})]
         finally:
             await pc.close()
     finally:
+        keepalives.cancel()
         silent.close()
     assert order.index("ack") < order.index("webrtc_answer"), order
     assert rig.hub.stats["failsafes"] == 0

@@ -30,10 +30,18 @@ from playwright.async_api import Browser, ConsoleMessage, Request, WebSocket
 from agents.config import AgentConfig
 from benchmarks.nginx_proxy import Backend, NginxProxy, NginxUnavailable, Routes, Tls, nginx_binary
 from services.demo import demo_seed
-from services.models import Session
+from services.models import Service, Session
 from tests.browser import chromium_browser, needs_chromium
 from tests.demo import PASSWORD, agents_online
-from tests.portal import World, assert_nothing_refused, controller, request_car, sign_in, wait_for
+from tests.portal import (
+    WORLD_LINK_LOSS_MS,
+    World,
+    assert_nothing_refused,
+    controller,
+    request_car,
+    sign_in,
+    wait_for,
+)
 from tests.servers import db, platform_process, until
 from tests.tls import Certificates, certificates_make
 
@@ -124,6 +132,9 @@ async def portal(
     tmp_path = tmp_path_factory.mktemp("https")
     certs = certificates_make(tmp_path / "tls")
     await db(demo_seed, password=PASSWORD, credentials_dir=tmp_path / "agents")
+    # As in every browser world (tests.portal.WORLD_LINK_LOSS_MS): no fail-safe from a
+    # saturated machine holding up Chromium's keepalives.
+    await db(lambda: Service.objects.update(link_loss_timeout_ms=WORLD_LINK_LOSS_MS))
     with (
         platform_process(extra_env=PRODUCTION_ENV) as platform,
         pytest.MonkeyPatch.context() as monkeypatch,

@@ -18,7 +18,7 @@ from playwright.async_api import Page, expect
 from accounts.roles import CLIENT
 from agents.geo import distance_m
 from fleet.models import Vehicle
-from services.models import Session
+from services.models import Service, Session
 from tests import factories as f
 from tests.browser import needs_chromium
 from tests.portal import (
@@ -295,6 +295,8 @@ async def test_monitor_stops_a_running_session(world: World):
 
 
 async def test_closing_the_tab_triggers_failsafe_and_is_recorded(world: World):
+    # The fail-safe is under test here: the demo's own timeout, not the world's.
+    await db(lambda: Service.objects.filter(slug="drive-car").update(link_loss_timeout_ms=500))
     page = await world.login("client")
     session_id = await request_car(world, page)
     await page.keyboard.down("ArrowUp")

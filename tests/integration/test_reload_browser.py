@@ -69,6 +69,8 @@ async def test_a_reload_within_the_link_loss_timeout_keeps_flying_without_the_fa
 
 
 async def test_a_page_back_after_the_failsafe_says_what_the_vehicle_did(world: World) -> None:
+    # The fail-safe is under test here: the demo's own timeout, not the world's.
+    await db(lambda: Service.objects.filter(slug="fly-drone").update(link_loss_timeout_ms=500))
     page = await world.login("client")
     drone = await request_drone(world, page)
     session_url = page.url

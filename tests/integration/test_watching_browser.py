@@ -107,6 +107,11 @@ async def test_a_waiting_rescue_asks_for_its_grant_once_its_drone_is_assigned(
 
     await db(_drone_free, session.pk)
     await page.wait_for_event("requestfinished", lambda r: r.url.endswith("/grant"))
-    assert len(grants) == 1
-    answer = await grants[0].response()
+    first = grants[0]
+    answer = await first.response()
     assert answer is not None and answer.status == 200
+    # Asked once. A later ask is the page connecting again with a fresh grant after this
+    # one's vehicle did not answer (no agent runs for search-1 here): on a busy machine it
+    # may come before the test looks, but never before this answer.
+    answered_at = first.timing["startTime"] + first.timing["responseEnd"]
+    assert all(g.timing["startTime"] >= answered_at for g in grants[1:]), [g.timing for g in grants]
