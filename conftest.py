@@ -21,7 +21,7 @@ from tests.browser import chromium_missing_reason
 from tests.scheduling import longest_first
 
 #: Stacks of a test that runs long (tests/hangs.py).
-pytest_plugins = ["tests.hangs"]
+pytest_plugins = ["tests.hangs", "tests.cpu_report"]
 
 
 def pytest_report_header(config: pytest.Config) -> list[str]:
