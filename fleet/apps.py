@@ -7,6 +7,6 @@ class FleetConfig(AppConfig):
 
     def ready(self) -> None:
         from fleet.layer_relay import LayerMessageStore
-        from iouv import layer
+        from operations import layer
 
         layer.relay_store_set(LayerMessageStore())

@@ -14,8 +14,8 @@ from django.conf import settings
 from fleet.feed import FLEET_GROUP
 from fleet.liveness import in_redis
 from fleet.memberships import group_hold, group_release
-from iouv.consumers import DirectDispatch
-from iouv.layer import relay_ensure
+from operations.consumers import DirectDispatch
+from operations.layer import relay_ensure
 
 
 class FleetFeedConsumer(DirectDispatch, AsyncJsonWebsocketConsumer):

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
-from iouv.layer import group_send_after_commit
+from operations.layer import group_send_after_commit
 
 FLEET_GROUP = "fleet"
 

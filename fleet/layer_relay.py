@@ -1,6 +1,6 @@
-"""The table behind the channel-layer relay of embedded mode (see :mod:`iouv.layer`):
+"""The table behind the channel-layer relay of embedded mode (see :mod:`operations.layer`):
 a worker's group messages wait in ``LayerMessage`` rows until the ASGI process takes
-them. Registered with :func:`iouv.layer.relay_store_set` when the fleet app is ready."""
+them. Registered with :func:`operations.layer.relay_store_set` when the fleet app is ready."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from fleet.models import LayerMessage
 
 
 class LayerMessageStore:
-    """:class:`iouv.layer.RelayStore` on ``fleet.LayerMessage``."""
+    """:class:`operations.layer.RelayStore` on ``fleet.LayerMessage``."""
 
     def put(self, group: str, message: dict[str, Any]) -> None:
         LayerMessage.objects.create(group=group, message=message)

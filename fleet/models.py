@@ -143,7 +143,7 @@ class Vehicle(DeclaredAttributes, models.Model):
 
 class LayerMessage(models.Model):
     """A channel-layer group message waiting for the ASGI process (embedded mode only,
-    see iouv.layer): written by a worker in its own transaction, relayed and deleted."""
+    see operations.layer): written by a worker in its own transaction, relayed and deleted."""
 
     group = models.CharField(max_length=100)
     message = models.JSONField()

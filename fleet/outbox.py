@@ -52,7 +52,7 @@ from agents.protocol.messages import (
 )
 from fleet.feed import fleet_notify
 from fleet.models import AgentMessage, Vehicle
-from iouv import layer
+from operations import layer
 
 log = logging.getLogger(__name__)
 

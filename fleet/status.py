@@ -16,7 +16,7 @@ from fleet.liveness import Live, vehicles_fresh, vehicles_live, vehicles_seen
 from fleet.models import Vehicle
 from fleet.outbox import vehicle_group
 from fleet.servers import vehicles_silence
-from iouv.layer import group_send_after_commit
+from operations.layer import group_send_after_commit
 
 BUSY = (Vehicle.Status.RESERVED, Vehicle.Status.IN_SERVICE)
 

@@ -101,9 +101,9 @@ from fleet.vehicle_events import (
     agent_welcome,
     vehicles_back,
 )
-from iouv.consumers import DirectDispatch
-from iouv.layer import relay_ensure
-from iouv.outages import DATABASE_UNAVAILABLE
+from operations.consumers import DirectDispatch
+from operations.layer import relay_ensure
+from operations.outages import DATABASE_UNAVAILABLE
 
 log = logging.getLogger(__name__)
 

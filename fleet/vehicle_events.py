@@ -25,7 +25,7 @@ from typing import Any, Protocol, TypedDict, TypeVar
 
 from agents.protocol.messages import Event, TaskAccepted, TaskRefused, message_type
 from fleet.outbox import Acked
-from iouv.outages import DATABASE_UNAVAILABLE
+from operations.outages import DATABASE_UNAVAILABLE
 
 log = logging.getLogger(__name__)
 

@@ -25,13 +25,13 @@ from channels.routing import ProtocolTypeRouter, URLRouter  # noqa: E402
 from channels.security.websocket import AllowedHostsOriginValidator  # noqa: E402
 from django.conf import settings  # noqa: E402
 
-from iouv.collector import collector_tune  # noqa: E402
-from iouv.layer import ServerLoop  # noqa: E402
 from iouv.routing import (  # noqa: E402
     browser_websocket_urlpatterns,
     self_authenticating_websocket_urlpatterns,
     websocket_path,
 )
+from operations.collector import collector_tune  # noqa: E402
+from operations.layer import ServerLoop  # noqa: E402
 
 http_app: Any = django_asgi_app
 if settings.SERVE_STATIC:
@@ -62,5 +62,5 @@ application = ServerLoop(
 )
 
 # Last: what exists now (the platform's modules, classes and schemas) lives as long as
-# the process, and is kept out of every later full collection (iouv.collector).
+# the process, and is kept out of every later full collection (operations.collector).
 collector_tune(settings.IOUV_GC_YOUNG_THRESHOLD)

@@ -16,6 +16,6 @@ app.autodiscover_tasks()
 @beat_init.connect
 def _cross_process(**kwargs: object) -> None:
     # Not the ASGI server: with the in-memory layer, pushes go through the database.
-    from iouv import layer
+    from operations import layer
 
     layer.CROSS_PROCESS = True

@@ -100,8 +100,8 @@ INSTALLED_APPS = [
 
 MIDDLEWARE = [
     "django.middleware.security.SecurityMiddleware",
-    # A view that cannot reach the database answers 503 with Retry-After (iouv.outages).
-    "iouv.outages.DatabaseUnavailableMiddleware",
+    # A view that cannot reach the database answers 503 with Retry-After (operations.outages).
+    "operations.outages.DatabaseUnavailableMiddleware",
     # Early, so that every page answered below it, error pages included, carries the
     # policy (CONTENT_SECURITY_POLICY).
     "csp.middleware.CSPMiddleware",
@@ -160,7 +160,7 @@ else:
             "min_size": 1,
             "max_size": DB_POOL_SIZE,
             # A request waits this long for a connection before it fails, and is
-            # answered 503 with Retry-After (iouv.outages): while PostgreSQL is away the
+            # answered 503 with Retry-After (operations.outages): while PostgreSQL is away the
             # pool has none to lend, and a client is told so at once, not after a wait.
             "timeout": env_float("DB_POOL_TIMEOUT_S", 1.0),
             # psycopg_pool retries a failed connection with a backoff that doubles for
@@ -289,10 +289,10 @@ USE_TZ = True
 STATIC_URL = "static/"
 STATICFILES_DIRS = [BASE_DIR / "static"]
 # Django's finders, with a path that leaves their folders (/static/../..) not found (404)
-# instead of an error (iouv.static_finders).
+# instead of an error (operations.static_finders).
 STATICFILES_FINDERS = [
-    "iouv.static_finders.FileSystemFinder",
-    "iouv.static_finders.AppDirectoriesFinder",
+    "operations.static_finders.FileSystemFinder",
+    "operations.static_finders.AppDirectoriesFinder",
 ]
 STATIC_ROOT = Path(env_str("STATIC_ROOT", str(VAR_DIR / "static")))
 # daphne serves /static/ itself in embedded mode; in production a proxy may do it.
@@ -417,7 +417,7 @@ IOUV_RECORD_RETENTION_DAYS = env_int("IOUV_RECORD_RETENTION_DAYS", 90)
 
 # Net allocations between two collections of the garbage collector's youngest
 # generation in a platform process (Python's default: 700; 0 keeps it). See
-# iouv.collector: a request's objects then die young instead of filling the oldest
+# operations.collector: a request's objects then die young instead of filling the oldest
 # generation, whose full collections stop the whole process.
 IOUV_GC_YOUNG_THRESHOLD = env_int("IOUV_GC_YOUNG_THRESHOLD", 10_000)
 
@@ -466,7 +466,7 @@ RATELIMIT_ENABLE = env_bool("IOUV_RATE_LIMITS", True)
 # bearer token; without one, only clients on the platform's own machine are answered.
 IOUV_METRICS_TOKEN = env_secret("IOUV_METRICS_TOKEN")
 # --- Faults: what clients are told while a server the platform needs is away -----------
-# The Retry-After of a 503 answered while PostgreSQL cannot be reached (iouv.outages).
+# The Retry-After of a 503 answered while PostgreSQL cannot be reached (operations.outages).
 IOUV_RETRY_AFTER_S = env_int("IOUV_RETRY_AFTER_S", 5)
 
 # --- WebRTC: ICE servers handed to users and vehicles (services.sessions.ice) ---------------
@@ -529,8 +529,8 @@ LOGGING = {
     "disable_existing_loggers": False,
     "formatters": {"plain": {"format": "%(asctime)s %(levelname)s %(name)s: %(message)s"}},
     # An error that is the database being away is one line, not a traceback each time
-    # (iouv.outages).
-    "filters": {"database_away": {"()": "iouv.outages.DatabaseUnavailableLogFilter"}},
+    # (operations.outages).
+    "filters": {"database_away": {"()": "operations.outages.DatabaseUnavailableLogFilter"}},
     "handlers": {
         "console": {
             "class": "logging.StreamHandler",

@@ -5,7 +5,7 @@ from django.templatetags.static import static
 from django.urls import include, path
 from django.views.generic.base import RedirectView
 
-from iouv.health import healthz, readyz
+from operations.health import healthz, readyz
 from services.supervision.metrics import metrics
 from services.web.keys_views import jwks
 
@@ -13,7 +13,7 @@ admin.site.site_header = "IoUV administration"
 admin.site.site_title = "IoUV"
 
 urlpatterns = [
-    # Liveness and readiness (iouv.health), first: nothing below is consulted for them.
+    # Liveness and readiness (operations.health), first: nothing below is consulted for them.
     path("healthz", healthz, name="healthz"),
     path("readyz", readyz, name="readyz"),
     # Prometheus (services.supervision.metrics): loopback or a bearer token only.

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from iouv.layer import group_send_after_commit
+from operations.layer import group_send_after_commit
 
 SESSIONS_GROUP = "sessions"  # monitors: every session
 

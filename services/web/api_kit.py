@@ -26,7 +26,7 @@ from ninja.security import HttpBearer
 
 from accounts.tokens import token_authenticate
 from accounts.users import User
-from iouv.outages import DATABASE_UNAVAILABLE, database_unavailable_response
+from operations.outages import DATABASE_UNAVAILABLE, database_unavailable_response
 from services.web.api_schemas import MAX_BODY_BYTES
 from services.web.throttle import Throttled
 

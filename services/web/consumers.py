@@ -34,9 +34,9 @@ from agents.protocol.messages import (
 )
 from fleet.memberships import group_hold, group_release
 from fleet.sending import avehicle_send, relay_group
-from iouv.consumers import DirectDispatch
-from iouv.layer import relay_ensure
-from iouv.outages import DATABASE_UNAVAILABLE
+from operations.consumers import DirectDispatch
+from operations.layer import relay_ensure
+from operations.outages import DATABASE_UNAVAILABLE
 from services.sessions.feed import SESSIONS_GROUP, session_group
 from services.sessions.ice import ice_servers_for
 from services.supervision.metrics import RELAY_ACKS, RELAY_ROUND_TRIP

@@ -1,4 +1,4 @@
-"""A platform process's garbage collector (iouv.collector): what exists at start-up is
+"""A platform process's garbage collector (operations.collector): what exists at start-up is
 frozen out of full collections, and the youngest generation is collected rarely enough
 that a request's objects die young."""
 

@@ -1,4 +1,4 @@
-"""What every consumer shares (iouv.consumers.DirectDispatch): a send to a socket whose
+"""What every consumer shares (operations.consumers.DirectDispatch): a send to a socket whose
 client has gone does not end the consumer before its disconnect runs."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from channels.generic.websocket import AsyncWebsocketConsumer
 from uvicorn.protocols.utils import ClientDisconnected
 
-from iouv.consumers import DirectDispatch
+from operations.consumers import DirectDispatch
 
 # Channels' disconnect closes the database connections it finds stale on its executor's
 # thread (close_old_connections); a connection an earlier test left there is checked,

@@ -1,7 +1,7 @@
 """PostgreSQL goes away under a running platform, for 10 s and then for 40 s, and comes
 back: every request meanwhile is answered 503 with Retry-After within 2 s (the pool's
-1 s wait, iouv.outages), the health checks answer within 1 s and say the database is
-down (iouv.health), and once PostgreSQL is back everything answers again without
+1 s wait, operations.outages), the health checks answer within 1 s and say the database is
+down (operations.health), and once PostgreSQL is back everything answers again without
 restarting anything. An agent's report sent during the outage is not lost: it is logged
 once PostgreSQL is back, with the time it happened on the vehicle (fleet.uplink,
 services.sessions.log).

@@ -10,7 +10,7 @@ from channels.layers import get_channel_layer
 from django.test import override_settings
 
 from fleet.models import LayerMessage
-from iouv import layer
+from operations import layer
 
 IN_MEMORY = {"default": {"BACKEND": "channels.layers.InMemoryChannelLayer"}}
 
@@ -183,12 +183,12 @@ def test_pushes_past_what_may_wait_for_the_server_are_dropped_with_one_line(
     server = _BusyServer()
     try:
         server.stick()
-        with caplog.at_level("WARNING", logger="iouv.layer"):
+        with caplog.at_level("WARNING", logger="operations.layer"):
             server.push_from_a_thread(6)
             server.release.set()
             assert server.received() == [0, 1, 2]  # the first ones, in order
     finally:
         server.close()
-    (record,) = [r for r in caplog.records if r.name == "iouv.layer"]
+    (record,) = [r for r in caplog.records if r.name == "operations.layer"]
     assert record.levelname == "WARNING" and "feed-x" in record.getMessage()
     assert record.exc_info is None

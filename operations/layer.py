@@ -62,7 +62,7 @@ def relay_store_set(store: RelayStore) -> None:
 
 def _store() -> RelayStore:
     if _relay_store is None:
-        raise RuntimeError("iouv.layer: no relay store registered (is the fleet app installed?)")
+        raise RuntimeError("operations.layer: no relay store (is the fleet app installed?)")
     return _relay_store
 
 
