@@ -13,7 +13,7 @@ import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-CORE = ("accounts", "fleet", "services", "iouv", "templates", "static")
+CORE = ("accounts", "fleet", "services", "operations", "iouv", "templates", "static")
 #: Files left out besides migrations (historical): none; each kind seeds its own demo
 #: services (ServiceKind.demo_services).
 EXCLUDED: set[Path] = set()
