@@ -17,7 +17,7 @@ from websockets.asyncio.server import ServerConnection, serve
 
 from agents.protocol import CHANNELS, PROTOCOL_VERSION, ProtocolError, parse_message
 from agents.protocol.messages import CommandSpec, Heartbeat, Position, Profile
-from agents.protocol.schema import schema_path, stale_files
+from agents.protocol.schema import main, schema_path, stale_files
 from agents.uplink import Uplink
 from tests.agents.car_rig import Rig, make_grant
 
@@ -38,6 +38,17 @@ def assert_valid(channel: str, frames: list[str]) -> None:
 
 def test_committed_schema_files_match_the_code() -> None:
     assert stale_files() == [], "run: python -m agents.protocol.schema --write"
+
+
+def test_a_missions_spec_schema_is_written_and_checked_in_its_own_folder(tmp_path) -> None:
+    docs, missions = tmp_path / "docs", tmp_path / "missions"
+    assert main(["--write", "--dir", str(docs), "--missions-dir", str(missions)]) == 0
+    assert main(["--check", "--dir", str(docs), "--missions-dir", str(missions)]) == 0
+    parcel = missions / "parcel" / "spec.schema.json"
+    assert json.loads(parcel.read_text())["$ref"] == "#/$defs/ParcelSpec"
+    parcel.write_text(parcel.read_text().replace('"parcel"', '"parcels"'))
+    assert stale_files(docs, missions) == [parcel]
+    assert main(["--check", "--dir", str(docs), "--missions-dir", str(missions)]) == 1
 
 
 @pytest.mark.parametrize("channel", CHANNELS)
