@@ -78,6 +78,14 @@ ATTRIBUTES: dict[str, Attribute] = {
         NumberAttribute("max_payload_kg", "kg", "Maximum payload"),
         ChoiceListAttribute("cameras", CAMERAS, "Cameras"),
         NumberAttribute("camera_range_m", "m", "Camera range"),
+        # The RGB camera's optics, for a service that plans pictures (the altitude
+        # and the photos' spacing over an area): the horizontal field of view and the
+        # picture's size (square pixels: the vertical field follows from the aspect).
+        NumberAttribute(
+            "camera_hfov_deg", "°", "Camera horizontal field of view", False, maximum=170
+        ),
+        NumberAttribute("camera_width_px", "px", "Camera picture width", False, maximum=100_000),
+        NumberAttribute("camera_height_px", "px", "Camera picture height", False, maximum=100_000),
         ChoiceListAttribute("environments", ENVIRONMENTS, "Environments", allow_empty=False),
     )
 }
@@ -115,9 +123,55 @@ def attributes_clean(values: Mapping[str, Any]) -> dict[str, Any]:
     for name, spec in ATTRIBUTES.items():
         if spec.required and name not in values:
             errors.append(f"{name}: required")
+    optics = [name for name in CAMERA_OPTICS if name in values]
+    if optics and len(optics) != len(CAMERA_OPTICS):
+        missing = ", ".join(n for n in CAMERA_OPTICS if n not in values)
+        errors.append(f"{optics[0]}: declared without {missing} (the camera's optics go together)")
+    for name in CAMERA_OPTICS:
+        if cleaned.get(name) == 0:
+            errors.append(f"{name}: must be more than 0")
     if errors:
         raise ValidationError(errors)
     return cleaned
+
+
+#: The camera's optics: declared all together, or not at all.
+CAMERA_OPTICS = ("camera_hfov_deg", "camera_width_px", "camera_height_px")
+
+
+@dataclass(frozen=True)
+class CameraOptics:
+    """A vehicle's declared RGB camera: horizontal field of view and picture size."""
+
+    hfov_deg: float
+    width_px: int
+    height_px: int
+
+    @property
+    def vfov_deg(self) -> float:
+        """The vertical field of view (square pixels)."""
+        half = math.radians(self.hfov_deg) / 2
+        return math.degrees(2 * math.atan(math.tan(half) * self.height_px / self.width_px))
+
+    def footprint_m(self, altitude_m: float) -> tuple[float, float]:
+        """Ground width and height a nadir picture covers from ``altitude_m`` (flat)."""
+        width = 2 * altitude_m * math.tan(math.radians(self.hfov_deg) / 2)
+        return width, width * self.height_px / self.width_px
+
+    def altitude_for_m(self, gsd_m: float) -> float:
+        """The altitude at which one pixel covers ``gsd_m`` metres of ground."""
+        return gsd_m * self.width_px / (2 * math.tan(math.radians(self.hfov_deg) / 2))
+
+
+def camera_optics(attributes: Mapping[str, Any]) -> CameraOptics | None:
+    """The camera a vehicle declares (its ``attributes``), None when it declares none."""
+    try:
+        hfov, width, height = (float(attributes[name]) for name in CAMERA_OPTICS)
+    except (KeyError, TypeError, ValueError):
+        return None
+    if not (0 < hfov < 180 and width >= 1 and height >= 1):
+        return None
+    return CameraOptics(hfov, round(width), round(height))
 
 
 def features_clean(value: Any) -> list[str]:

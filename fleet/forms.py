@@ -21,7 +21,8 @@ def attributes_help() -> str:
         if isinstance(spec, ChoiceListAttribute):
             parts.append(f"{spec.name}: list of {', '.join(spec.choices)}")
         else:
-            parts.append(f"{spec.name} ({spec.unit})")
+            optional = "" if spec.required else ", optional"
+            parts.append(f"{spec.name} ({spec.unit}{optional})")
     parts.append(f"features (optional): list of {', '.join(FEATURES)}")
     return "A JSON object with " + "; ".join(parts) + "."
 
@@ -50,6 +51,7 @@ def _attributes_template() -> dict[str, Any]:
     return {
         name: ([] if isinstance(spec, ChoiceListAttribute) else 0)
         for name, spec in ATTRIBUTES.items()
+        if spec.required
     } | {"features": []}
 
 

@@ -174,6 +174,10 @@ VEHICLES: dict[str, dict[str, Any]] = {
             "max_payload_kg": 0.5,
             "cameras": ["rgb"],
             "camera_range_m": 100,
+            # A downward-looking mapping camera: 4:3, 1024 px across a 73.7° field.
+            "camera_hfov_deg": 73.7,
+            "camera_width_px": 1024,
+            "camera_height_px": 768,
             "environments": ["air", "land"],
             "features": ["gps"],
         },

@@ -25,12 +25,15 @@ docs/writing-a-service.md for how each is used.
   :func:`reach_map`, :func:`km`, a viewer's grant (:func:`grant_issue`,
   :func:`user_task_json`, :func:`user_can_use`) and the rate limit on pages that mint
   one (:func:`throttled`).
+* **Vehicles' declarations**: the camera vocabulary (:data:`CAMERAS`), the features
+  (:data:`FEATURES`), a vehicle's declared camera optics (:func:`camera_optics`, a
+  :class:`CameraOptics`: field of view, picture size, footprint at an altitude).
 * **Demo world**: the vocabularies and places the demo's vehicles and services use.
 """
 
 from __future__ import annotations
 
-from fleet.attributes import CAMERAS, FEATURES
+from fleet.attributes import CAMERAS, FEATURES, CameraOptics, camera_optics
 from services.demo import (
     BOAT_COMMANDS,
     CAR_COMMANDS,
@@ -89,6 +92,7 @@ __all__ = [
     "QUADCOPTER_COMMANDS",
     "VTOL_COMMANDS",
     "AssignmentError",
+    "CameraOptics",
     "DemoService",
     "DeploymentError",
     "EventHandler",
@@ -98,6 +102,7 @@ __all__ = [
     "RequestError",
     "ServiceKind",
     "assignment_release",
+    "camera_optics",
     "command_names",
     "event_append",
     "grant_issue",
