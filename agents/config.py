@@ -42,6 +42,8 @@ keepalive: an uplink whose pong is that late is given up, and the agent reconnec
 ``records`` says where the flight record waits for the platform (:mod:`agents.recording`,
 docs/records.md): ``{"dir": "records", "max_bytes": 268435456}``; by default
 ``$IOUV_VAR_DIR/agent/<vehicle id>/records`` (``var/`` without the variable), 256 MiB.
+The files missions make (photos, :mod:`agents.artifacts`) wait beside it, in
+``artifacts``, under the same bound.
 
 Relative paths are taken from the config file's folder.
 """
@@ -108,6 +110,11 @@ class RecordsConfig:
         if self.directory is not None:
             return self.directory
         return Path(os.environ.get("IOUV_VAR_DIR") or "var") / "agent" / vehicle_id / "records"
+
+    def artifacts_path_for(self, vehicle_id: str) -> Path:
+        """Where the files missions make wait (agents.artifacts): ``artifacts`` beside
+        the record's directory, bounded by the same ``max_bytes``."""
+        return self.path_for(vehicle_id).parent / "artifacts"
 
 
 @dataclass(frozen=True)

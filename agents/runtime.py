@@ -14,6 +14,7 @@ from urllib.parse import urlsplit
 
 import msgspec
 
+from agents.artifacts import ArtifactStore
 from agents.config import AgentConfig, is_loopback_host
 from agents.control import ControlHub, ControlServer
 from agents.missions.control import MissionControl
@@ -98,6 +99,11 @@ class Agent:
             max_bytes=config.records.max_bytes,
         )
         self.adapter.on_raw = self.recorder.raw
+        #: The files missions make (their photos), kept until the platform has them.
+        self.artifacts = ArtifactStore(
+            directory=config.records.artifacts_path_for(config.vehicle_id),
+            max_bytes=config.records.max_bytes,
+        )
 
     def _adapter_event(self, name: str, data: dict[str, Any]) -> None:
         """Something the vehicle itself reported (autopilot link, low battery...):
@@ -110,6 +116,7 @@ class Agent:
         async with contextlib.AsyncExitStack() as stack:
             # Entered first, left last: it writes what the hub's shutdown recorded.
             await stack.enter_async_context(self.recorder)
+            await stack.enter_async_context(self.artifacts)
             await stack.enter_async_context(self.adapter)
             for section, options in self.config.sensors.items():
                 sensor = mission_sensors()[section].create(options, self._camera_pose)
@@ -130,7 +137,11 @@ class Agent:
             )
             self.hub = await stack.enter_async_context(hub)
             self.missions = MissionControl(
-                hub=hub, adapter=self.adapter, report=self.report, sensors=self.sensors
+                hub=hub,
+                adapter=self.adapter,
+                report=self.report,
+                sensors=self.sensors,
+                artifacts=self.artifacts,
             )
             # Closed before the hub and the adapter (exit order is reversed).
             stack.push_async_callback(self.missions.close)
@@ -154,6 +165,7 @@ class Agent:
                 ping_timeout_s=self.config.uplink_ping_timeout_s,
             )
             self.recorder.uplink = self.uplink
+            self.artifacts.uplink = self.uplink
             stack.callback(self._sfu_stop)
             self.ready.set()
             log.info(
@@ -311,7 +323,7 @@ class Agent:
                 if link is not None:
                     await hub.disconnected(link)
             case Ack():
-                if not self.recorder.acked(msg):
+                if not self.recorder.acked(msg) and not self.artifacts.acked(msg):
                     log.info("ignored an ack of %s", msg.id)
             case Error():
                 log.warning("platform error %s: %s", msg.code, msg.message)

@@ -63,6 +63,7 @@ from agents.protocol import (
 )
 from agents.protocol.messages import (
     Ack,
+    Artifact,
     EndTask,
     Event,
     Hello,
@@ -80,6 +81,7 @@ from agents.protocol.messages import (
     Welcome,
 )
 from agents.protocol.messages import Heartbeat as HeartbeatMessage
+from fleet.artifacts import artifact_keep
 from fleet.credentials import vehicle_authenticate
 from fleet.feed import fleet_notify
 from fleet.liveness import Live, in_redis, liveness_writer
@@ -825,6 +827,8 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
             )
         elif isinstance(msg, Record):
             await self._until_stored(functools.partial(self._record, msg))
+        elif isinstance(msg, Artifact):
+            await self._until_stored(functools.partial(self._artifact, msg))
         elif isinstance(msg, RelayToPlatform | RelayClose):
             await self._bad_frame("bad_field", "a relayed message needs its conn")
         elif isinstance(msg, TaskAccepted | TaskRefused | Event):
@@ -838,6 +842,12 @@ class AgentUplinkConsumer(DirectDispatch, AsyncWebsocketConsumer):
         """A flight-record batch: kept (fleet.records), then acknowledged by its id, so
         the agent deletes its copy only once the platform has it."""
         outcome = await _db(record_keep)(vehicle_id=self.vehicle_id, message=msg)
+        await self._send_message(Ack(id=msg.id, ok=outcome.ok, detail=outcome.detail))
+
+    async def _artifact(self, msg: Artifact) -> None:
+        """A chunk of a mission's file: kept (fleet.artifacts), then acknowledged by
+        its id, so the agent deletes its copy only once the platform has all of it."""
+        outcome = await _db(artifact_keep)(vehicle_id=self.vehicle_id, message=msg)
         await self._send_message(Ack(id=msg.id, ok=outcome.ok, detail=outcome.detail))
 
     async def _later(self, handle: Callable[[], Awaitable[None]]) -> None:

@@ -17,6 +17,11 @@ class ServicesConfig(AppConfig):
         from services.records.keeping import record_batch_store
 
         record_keeper_set(record_batch_store)
+        # And the files missions upload (their photos).
+        from fleet.artifacts import artifact_keeper_set
+        from services.records.artifacts import artifact_chunk_store
+
+        artifact_keeper_set(artifact_chunk_store)
         # Celery's workers count their failed tasks where /metrics reads them.
         from celery.signals import task_failure
 

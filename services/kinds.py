@@ -44,7 +44,7 @@ if TYPE_CHECKING:
 
     from accounts.users import User
     from agents.missions.spec import MissionSpec
-    from services.models import Assignment, Service, ServiceRole, Session
+    from services.models import Assignment, Service, ServiceRole, Session, SessionArtifact
     from services.sessions.deployment import UserTask
 
 #: The request fields, besides ``params``, a kind may read.
@@ -208,6 +208,12 @@ class ServiceKind:
 
     def task_accepted(self, *, assignment: Assignment) -> None:
         """A vehicle of one of this kind's sessions accepted its task."""
+
+    def artifact_received(self, *, artifact: SessionArtifact) -> None:
+        """A vehicle of one of this kind's sessions uploaded a whole file its mission
+        made (a photo; ``artifact.meta`` says what it is), now stored and logged.
+        Called after the commit that stored it, once per file; what it does should be
+        quick (schedule a step)."""
 
     # --- the demo world ------------------------------------------------------------------
     def demo_services(self) -> Mapping[str, DemoService]:

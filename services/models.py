@@ -430,3 +430,52 @@ class RecordSample(models.Model):
 
     def __str__(self) -> str:
         return f"#{self.seq} {self.kind}"
+
+
+class SessionArtifact(models.Model):
+    """A file a vehicle's mission made in a session and uploaded (``artifact`` chunks,
+    services.records.artifacts): a photo, with ``meta`` saying what it is
+    (where it was taken). One per (session, name); ``data`` is there once every chunk
+    is and their SHA-256 is ``sha256`` (``stored_at`` set), and only its name, size and
+    digest go into the session's hash-chained log."""
+
+    session = models.ForeignKey(Session, on_delete=models.CASCADE, related_name="artifacts")
+    vehicle = models.ForeignKey(Vehicle, on_delete=models.PROTECT, related_name="+")
+    name = models.CharField(max_length=100)
+    media_type = models.CharField(max_length=80)
+    size = models.PositiveIntegerField()
+    sha256 = models.CharField(max_length=64)
+    count = models.PositiveIntegerField()
+    meta = models.JSONField(default=dict)
+    data = models.BinaryField(null=True, blank=True)
+    received_at = models.DateTimeField(auto_now_add=True)
+    stored_at = models.DateTimeField(null=True, blank=True)
+
+    class Meta:
+        constraints = [
+            models.UniqueConstraint(fields=["session", "name"], name="unique_session_artifact")
+        ]
+        ordering = ["session", "received_at", "name"]
+
+    def __str__(self) -> str:
+        return f"{self.name} of {self.session_id}"
+
+    @property
+    def stored(self) -> bool:
+        return self.stored_at is not None
+
+
+class ArtifactChunk(models.Model):
+    """A chunk of a :class:`SessionArtifact` not yet whole (deleted once it is)."""
+
+    artifact = models.ForeignKey(SessionArtifact, on_delete=models.CASCADE, related_name="chunks")
+    index = models.PositiveIntegerField()
+    data = models.BinaryField()
+
+    class Meta:
+        constraints = [
+            models.UniqueConstraint(fields=["artifact", "index"], name="unique_artifact_chunk")
+        ]
+
+    def __str__(self) -> str:
+        return f"chunk {self.index} of {self.artifact_id}"

@@ -12,7 +12,7 @@ from collections import OrderedDict
 from collections.abc import Mapping
 from typing import Any, Final
 
-from agents.missions.kit import MissionHub, MissionRunner, Reporter
+from agents.missions.kit import ArtifactSink, MissionHub, MissionRunner, Reporter
 from agents.missions.registry import mission_of
 from agents.protocol import VehicleTask
 from agents.vehicles.base import Adapter
@@ -27,7 +27,8 @@ class MissionControl:
     and :meth:`task_ended` when the hub ends one (before its safe action).
 
     ``sensors`` are the agent's open sensors by configuration section, handed to every
-    runner (see :class:`agents.missions.registry.Sensor`).
+    runner (see :class:`agents.missions.registry.Sensor`), and ``artifacts`` where they
+    keep the files they make (agents.artifacts).
     """
 
     def __init__(
@@ -37,8 +38,10 @@ class MissionControl:
         adapter: Adapter,
         report: Reporter,
         sensors: Mapping[str, Any] | None = None,
+        artifacts: ArtifactSink | None = None,
     ) -> None:
         self.hub = hub
+        self.artifacts = artifacts
         self.adapter = adapter
         self.report = report
         self.sensors: Mapping[str, Any] = sensors or {}
@@ -95,6 +98,7 @@ class MissionControl:
             adapter=self.adapter,
             report=self.report,
             sensors=self.sensors,
+            artifacts=self.artifacts,
             released=self.released,
             release_attempted=self.release_attempted,
         )

@@ -85,6 +85,15 @@ class MissionHub(Protocol):
     async def mission_native_start(self, session_id: str, *, epoch: int) -> None: ...
 
 
+class ArtifactSink(Protocol):
+    """Where a runner keeps the files its mission makes until the platform has them
+    (the agent's :class:`agents.artifacts.ArtifactStore`)."""
+
+    def put(
+        self, session_id: str, name: str, body: bytes, *, media_type: str, meta: Mapping[str, Any]
+    ) -> bool: ...
+
+
 class Interrupted(Exception):
     """Someone else acts on the vehicle (a user, a fail-safe, the autopilot itself): the
     mission ends without sending anything more."""
@@ -106,7 +115,8 @@ class MissionRunner(abc.ABC, Generic[_S]):
     ``release_attempted`` are shared with the agent's
     :class:`~agents.missions.control.MissionControl` so a payload is never released
     twice whatever happens to the runner. ``sensors`` are the agent's open sensors by
-    configuration section (see :class:`agents.missions.registry.Sensor`).
+    configuration section (see :class:`agents.missions.registry.Sensor`); ``artifacts``
+    keeps the files the mission makes (:meth:`keep`).
     """
 
     #: The events that end this mission well: a re-sent task for it hears them again.
@@ -121,6 +131,7 @@ class MissionRunner(abc.ABC, Generic[_S]):
         adapter: Adapter,
         report: Reporter,
         sensors: Mapping[str, Any] | None = None,
+        artifacts: ArtifactSink | None = None,
         released: dict[str, dict[str, Any]] | None = None,
         release_attempted: set[str] | None = None,
         arrive_m: float = ARRIVE_M,
@@ -130,6 +141,7 @@ class MissionRunner(abc.ABC, Generic[_S]):
         self.hub = hub
         self.adapter = adapter
         self.sensors: Mapping[str, Any] = sensors or {}
+        self.artifacts = artifacts
         self.arrive_m = arrive_m
         self.released = released if released is not None else {}
         self.release_attempted = release_attempted if release_attempted is not None else set()
@@ -173,6 +185,15 @@ class MissionRunner(abc.ABC, Generic[_S]):
         if event in self.RESULT_EVENTS or (event == "mission_failed" and self.result is None):
             self.result = (event, payload)
         self._report_fn(event, self.session_id, payload)
+
+    def keep(self, name: str, body: bytes, *, media_type: str, meta: Mapping[str, Any]) -> bool:
+        """Keep a file the mission made (``name``: a plain file name, unique in the
+        session; ``meta``: what it is, a small JSON object) until the platform has it,
+        which tells the session's kind. False when the agent keeps no files or refused
+        this one (too big, the disk full): the mission goes on without it."""
+        if self.artifacts is None:
+            return False
+        return self.artifacts.put(self.session_id, name, body, media_type=media_type, meta=meta)
 
     def where(self) -> dict[str, Any]:
         """The vehicle's position for an event: ``lat``, ``lon``, ``alt`` (None unknown)."""

@@ -304,6 +304,48 @@ class Record(Message, frozen=True, tag="record"):
                 )
 
 
+#: Raw bytes of a file in one ``artifact`` chunk (base64 makes it 4/3 bigger; the frame
+#: stays well under MAX_MESSAGE_BYTES with its fields), and the largest file.
+ARTIFACT_CHUNK_BYTES: Final = 32 * 1024
+ARTIFACT_MAX_BYTES: Final = 16 * 1024 * 1024
+ARTIFACT_MAX_CHUNKS: Final = ARTIFACT_MAX_BYTES // ARTIFACT_CHUNK_BYTES
+#: What a mission's file may be called: a plain file name, no path.
+ArtifactName = Annotated[str, Meta(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")]
+MediaType = Annotated[str, Meta(pattern=r"^[a-z]+/[a-z0-9.+-]{1,60}$")]
+Sha256 = Annotated[str, Meta(pattern=r"^[0-9a-f]{64}$")]
+
+
+class Artifact(Message, frozen=True, tag="artifact"):
+    """Chunk ``index`` of ``count`` of a file a mission made in a session (a photo), its
+    bytes in ``b64``. Every chunk carries the whole file's ``size``, ``sha256``,
+    ``media_type`` and ``meta`` (what it is: where a photo was taken), so any chunk
+    may arrive first. The platform answers ``ack`` with ``id`` once the chunk is kept (or
+    was already); the agent keeps the file until every chunk is acknowledged."""
+
+    id: Id
+    session_id: Id
+    name: ArtifactName
+    media_type: MediaType
+    size: Annotated[int, Meta(ge=1, le=ARTIFACT_MAX_BYTES)]
+    sha256: Sha256
+    index: Annotated[int, Meta(ge=0)]
+    count: Annotated[int, Meta(ge=1, le=ARTIFACT_MAX_CHUNKS)]
+    meta: Object
+    b64: Annotated[str, Meta(min_length=4, max_length=4 * ((ARTIFACT_CHUNK_BYTES + 2) // 3))]
+
+    def __post_init__(self) -> None:
+        if self.count != -(-self.size // ARTIFACT_CHUNK_BYTES):
+            raise _invalid("count", f"must be the size in chunks of {ARTIFACT_CHUNK_BYTES} bytes")
+        if self.index >= self.count:
+            raise _invalid("index", "must be below count")
+
+    def chunk_bytes(self) -> int:
+        """How many bytes chunk ``index`` holds (the last one may be shorter)."""
+        if self.index < self.count - 1:
+            return ARTIFACT_CHUNK_BYTES
+        return self.size - ARTIFACT_CHUNK_BYTES * (self.count - 1)
+
+
 class RelayClose(Message, frozen=True, tag="relay_close"):
     """A relayed client went away or was dropped (both uplink directions)."""
 
@@ -514,8 +556,10 @@ UplinkToPlatform: TypeAlias = (
     | RelayToPlatform
     | RelayClose
     | Record
+    | Artifact
 )
-# ``ack`` both ways: the platform acknowledges the agent's ``record`` batches by their id.
+# ``ack`` both ways: the platform acknowledges the agent's ``record`` batches and
+# ``artifact`` chunks by their id.
 UplinkToAgent: TypeAlias = (
     Welcome | Task | Revoke | EndTask | RelayToAgent | RelayClose | Error | Ack
 )

@@ -207,6 +207,18 @@ MINIMAL: dict[str, dict[str, dict[str, Any]]] = {
             "first": 1,
             "samples": [{"seq": 1, "t": 1.5, "kind": "telemetry", "data": {"lat": 1.0}}],
         },
+        "artifact": {
+            "id": "artifact:s-1:photo-0001.jpg:0",
+            "session_id": "s-1",
+            "name": "photo-0001.jpg",
+            "media_type": "image/jpeg",
+            "size": 3,
+            "sha256": "0" * 64,
+            "index": 0,
+            "count": 1,
+            "meta": {"lat": 1.0, "lon": 2.0},
+            "b64": "AAAA",
+        },
     },
     "uplink_to_agent": {
         "welcome": {"v": PROTOCOL_VERSION, "heartbeat_interval_s": 5},
