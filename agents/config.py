@@ -22,6 +22,10 @@ A mission's sensor has a section of its own, named by the mission
 :func:`agents.missions.search.thermal.thermal_source_create` and docs/rescue-agent.md),
 and ``"video": {"source": "thermal"}`` shows it to users.
 
+The camera missions photograph with (pictures straight down, to map an area) is the
+``photo`` section, ``{"source": "nadir" | "v4l2", "hfov_deg": ..., "width": ...,
+"height": ...}`` (see :mod:`agents.stills`).
+
 The platform's public keys come from any of ``platform_public_key`` (PEM text),
 ``platform_public_key_file`` (a PEM file), ``platform_jwks_file`` (a JWKS file) and
 ``platform_jwks_url`` (a JWKS fetched once when the config is loaded: https, or http on
@@ -132,6 +136,8 @@ class AgentConfig:
     video: Mapping[str, Any] | None = None
     #: The sections of the missions' sensors this vehicle has, by name (``thermal``).
     sensors: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    #: The camera missions photograph with (agents.stills), or None.
+    photo: Mapping[str, Any] | None = None
     webrtc: Mapping[str, Any] = field(default_factory=dict)
     name: str = ""
     reconnect_min_s: float = 0.5
@@ -222,6 +228,17 @@ class AgentConfig:
         if video is not None and not isinstance(video, Mapping):
             raise ConfigError("video: must be an object or null")
         sensors = _sensors_configured(data)
+        photo = data.get("photo")
+        if photo is not None:
+            if not isinstance(photo, Mapping):
+                raise ConfigError("photo: must be an object or null")
+            # Imported only for an agent with a photo camera (it loads numpy).
+            from agents.stills import photo_options_check
+
+            try:
+                photo_options_check(photo)
+            except ValueError as exc:
+                raise ConfigError(str(exc)) from None
         webrtc = data.get("webrtc", {})
         if not isinstance(webrtc, Mapping):
             raise ConfigError("webrtc: must be an object")
@@ -266,6 +283,7 @@ class AgentConfig:
             ),
             video=dict(video) if video is not None else None,
             sensors=sensors,
+            photo=dict(photo) if photo is not None else None,
             webrtc=dict(webrtc),
             name=str(data.get("vehicle_name") or data.get("name") or ""),
             platform_jwks=jwks,

@@ -121,6 +121,12 @@ class Agent:
             for section, options in self.config.sensors.items():
                 sensor = mission_sensors()[section].create(options, self._camera_pose)
                 self.sensors[section] = await stack.enter_async_context(sensor)
+            if self.config.photo is not None:
+                # Imported here: numpy and Pillow only for an agent with a photo camera.
+                from agents.stills import PHOTO_SECTION, still_camera_create
+
+                camera = still_camera_create(self.config.photo)
+                self.sensors[PHOTO_SECTION] = await stack.enter_async_context(camera)
             if self.config.video is not None:
                 self.video = await stack.enter_async_context(self._video_service())
             hub = ControlHub(

@@ -27,7 +27,7 @@ from django.db import transaction
 from accounts.roles import ADMIN, CLIENT, MONITOR, OPERATOR, roles_ensure, user_set_roles
 from agents.geo import offset
 from agents.vehicles.registry import integration
-from fleet.attributes import attributes_clean
+from fleet.attributes import attributes_clean, camera_optics
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Station, Vehicle, VehicleType
 from services.kinds import DemoService, kinds
@@ -427,6 +427,17 @@ def vehicle_agent_config(
         # A vehicle that works only on the water sees the sea, not grass and hills.
         environments = set(attrs.get("environments") or [])
         video = {"source": "synthetic", "scene": "sea" if environments == {"sea"} else "land"}
+    optics = camera_optics(attrs)
+    photo = None
+    if optics is not None:
+        # The camera missions photograph with: in the demo, a simulated one looking
+        # straight down at a ground that is the same wherever it is seen from.
+        photo = {
+            "source": "nadir",
+            "hfov_deg": optics.hfov_deg,
+            "width": optics.width_px,
+            "height": optics.height_px,
+        }
     if "thermal" in vehicle.cameras:
         # The simulated sea holds the demo's castaway, so a search over it finds them;
         # the user watches the thermal view.
@@ -442,6 +453,7 @@ def vehicle_agent_config(
         "adapter_options": options,
         "video": video,
         "thermal": thermal,
+        "photo": photo,
         "vehicle_type": vehicle.vehicle_type.name,
     }
 

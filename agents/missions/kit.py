@@ -16,6 +16,9 @@ only :meth:`MissionRunner.fly` from the steps here:
   camera);
 * :meth:`~MissionRunner.progress` and :meth:`~MissionRunner.report` tell the platform
   (``mission_progress`` on every phase change and waypoint, then the mission's events);
+* :meth:`~MissionRunner.photograph` takes a geotagged picture with the agent's photo
+  camera and :meth:`~MissionRunner.keep` keeps a file the mission made, both uploaded
+  to the platform until it has them (agents.stills, agents.artifacts);
 * :meth:`~MissionRunner.fly_natively` hands a mission of plain waypoints and actions
   (a :class:`~agents.missions.plan.FlightPlan`) to the vehicle's own mission engine when
   it has one (ArduPilot's AUTO): the autopilot flies it, and finishes it or returns
@@ -48,6 +51,9 @@ log = logging.getLogger(__name__)
 
 Reporter: TypeAlias = Callable[[str, str | None, dict[str, Any]], None]
 
+#: The agent's sensors entry of its photo camera (agents.stills.PHOTO_SECTION; named
+#: here so that the kit loads no camera code).
+PHOTO_SECTION: Final = "photo"
 #: A waypoint counts as reached within this horizontal distance.
 ARRIVE_M: Final = 3.0
 #: Above this the vehicle counts as flying (below it a mission takes off first).
@@ -194,6 +200,25 @@ class MissionRunner(abc.ABC, Generic[_S]):
         if self.artifacts is None:
             return False
         return self.artifacts.put(self.session_id, name, body, media_type=media_type, meta=meta)
+
+    async def photograph(self, name: str) -> dict[str, Any]:
+        """Take a picture now with the agent's photo camera (its configuration's
+        ``photo`` section, agents.stills), tagged with where the vehicle is, and
+        :meth:`keep` it as the JPEG ``name``. Returns the picture's ``meta`` (``lat``,
+        ``lon``, ``alt``, ``heading_deg``, ``t``, its size and field of view), with
+        ``kept`` False when the agent could not keep it. Raises StepFailed when the
+        vehicle has no photo camera or the camera fails."""
+        camera = self.sensors.get(PHOTO_SECTION)
+        if camera is None:
+            raise StepFailed("this vehicle has no photo camera (the agent's photo section)")
+        st = self.adapter.state()
+        pose = {"lat": st.lat, "lon": st.lon, "alt": st.alt, "heading_deg": st.heading_deg}
+        try:
+            photo = await camera.capture(pose)
+        except OSError as exc:
+            raise StepFailed(f"the photo camera failed: {exc}") from exc
+        kept = self.keep(name, photo.jpeg, media_type="image/jpeg", meta=photo.meta)
+        return {**photo.meta, "kept": kept}
 
     def where(self) -> dict[str, Any]:
         """The vehicle's position for an event: ``lat``, ``lon``, ``alt`` (None unknown)."""
