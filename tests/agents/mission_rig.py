@@ -37,6 +37,7 @@ from agents.protocol import (
 from agents.runtime import Agent
 from agents.simulation import simulator_running
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
+from agents.vehicles.mavlink.dialect import MAV, mavutil
 from agents.vehicles.registry import adapter_create
 from tests.agents import mavlink_rig
 from tests.agents.documents import grant_for, task_for
@@ -150,7 +151,7 @@ async def rigs() -> AsyncIterator[RigFactory]:
         drone = adapter_create("mavlink", simulation.options)
         assert isinstance(drone, MavlinkAdapter)
         await drone.start()
-        rate = {} if thermal_fps is None else {"fps": thermal_fps}
+        rate: dict[str, Any] = {} if thermal_fps is None else {"fps": thermal_fps}
         feed = ThermalFeed(SyntheticSeaThermal(drone.state, persons=persons or [], seed=3, **rate))
         reports: list[tuple[str, str | None, dict[str, Any]]] = []
         holder: list[MissionControl] = []
@@ -239,6 +240,54 @@ async def until_near(
         if time.monotonic() > deadline:
             raise AssertionError(f"the drone is at {here}, not within {metres} m of {point}")
         await asyncio.sleep(0.05)
+
+
+# --- an agent killed mid-mission -------------------------------------------------------
+
+
+async def agent_dies(rig: Rig) -> str:
+    """The agent is killed mid-mission: its runner stops where it is and its link to
+    the autopilot goes silent, without a goodbye (a simulated vehicle's close_action is
+    none: nothing more is sent). Returns the autopilot's address."""
+    runner = rig.missions.runner
+    assert runner is not None
+    runner.cancel()
+    await runner.wait()
+    await rig.drone.close()
+    return str(rig.drone.options["connection"])
+
+
+async def listen(address: str, done: Callable[[Any], bool], *, within: float) -> list[Any]:
+    """Another ground station (system 200, which the autopilot does not take for its
+    GCS) listens to the autopilot until ``done(message)``; returns what it heard."""
+    gcs = mavutil.mavlink_connection(address, source_system=200)
+    heard: list[Any] = []
+    deadline = time.monotonic() + within
+    try:
+        while time.monotonic() < deadline:
+            gcs.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            msg = await asyncio.to_thread(gcs.recv_match, blocking=True, timeout=0.3)
+            if msg is None or msg.get_srcSystem() != 1:
+                continue
+            heard.append(msg)
+            if done(msg):
+                return heard
+    finally:
+        gcs.close()
+    raise AssertionError(f"not done within {within} s; heard {heard[-20:]}")
+
+
+def landed_at_home(msg: Any) -> bool:
+    return msg.get_type() == "HEARTBEAT" and not msg.base_mode & MAV.MAV_MODE_FLAG_SAFETY_ARMED
+
+
+def texts(heard: list[Any]) -> list[str]:
+    return [m.text for m in heard if m.get_type() == "STATUSTEXT"]
+
+
+def last_position(heard: list[Any]) -> tuple[float, float]:
+    where = [m for m in heard if m.get_type() == "GLOBAL_POSITION_INT"][-1]
+    return where.lat / 1e7, where.lon / 1e7
 
 
 # --- a fake platform for whole-agent tests ----------------------------------------------

@@ -17,7 +17,18 @@ from agents.missions.registry import mission_decode
 from agents.missions.spec import MissionError
 from agents.vehicles.mavlink.dialect import MAV, mavutil
 from agents.vehicles.plan import MissionProgress
-from tests.agents.mission_rig import HOME, SIM, Rig, RigFactory, make_task, releases
+from tests.agents.mission_rig import (
+    HOME,
+    SIM,
+    RigFactory,
+    agent_dies,
+    landed_at_home,
+    last_position,
+    listen,
+    make_task,
+    releases,
+    texts,
+)
 
 AUTO, RTL = 3, 6
 PICKUP = offset(HOME, 30, 0)
@@ -129,51 +140,6 @@ async def test_without_native_missions_the_agent_flies_each_step(
     ]
     await until(lambda: "returning" in [p for p, _ in rig.progress()], within=30)
     await until(lambda: rig.drone.state().mode == "RTL", within=30)  # on its way home
-
-
-async def agent_dies(rig: Rig) -> str:
-    """The agent is killed mid-mission: its runner stops where it is and its link to
-    the autopilot goes silent, without a goodbye (a simulated vehicle's close_action is
-    none: nothing more is sent). Returns the autopilot's address."""
-    runner = rig.missions.runner
-    assert runner is not None
-    runner.cancel()
-    await runner.wait()
-    await rig.drone.close()
-    return str(rig.drone.options["connection"])
-
-
-async def listen(address: str, done: Callable[[Any], bool], *, within: float) -> list[Any]:
-    """Another ground station (system 200, which the autopilot does not take for its
-    GCS) listens to the autopilot until ``done(message)``; returns what it heard."""
-    gcs = mavutil.mavlink_connection(address, source_system=200)
-    heard: list[Any] = []
-    deadline = time.monotonic() + within
-    try:
-        while time.monotonic() < deadline:
-            gcs.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-            msg = await asyncio.to_thread(gcs.recv_match, blocking=True, timeout=0.3)
-            if msg is None or msg.get_srcSystem() != 1:
-                continue
-            heard.append(msg)
-            if done(msg):
-                return heard
-    finally:
-        gcs.close()
-    raise AssertionError(f"not done within {within} s; heard {heard[-20:]}")
-
-
-def landed_at_home(msg: Any) -> bool:
-    return msg.get_type() == "HEARTBEAT" and not msg.base_mode & MAV.MAV_MODE_FLAG_SAFETY_ARMED
-
-
-def texts(heard: list[Any]) -> list[str]:
-    return [m.text for m in heard if m.get_type() == "STATUSTEXT"]
-
-
-def last_position(heard: list[Any]) -> tuple[float, float]:
-    where = [m for m in heard if m.get_type() == "GLOBAL_POSITION_INT"][-1]
-    return where.lat / 1e7, where.lon / 1e7
 
 
 @pytest.mark.parametrize(
