@@ -161,6 +161,36 @@ async def test_auto_flies_an_uploaded_mission_and_lands_at_home_by_itself() -> N
         assert done.mission_state == MAV.MISSION_STATE_COMPLETE
 
 
+EAST = offset(HOME, 0.0, 60.0)
+TURNS = [
+    item(0, MAV.MAV_CMD_NAV_WAYPOINT, point=HOME),
+    item(1, MAV.MAV_CMD_NAV_TAKEOFF, alt=10),
+    item(2, MAV.MAV_CMD_NAV_WAYPOINT, point=EAST, alt=10),
+    item(3, MAV.MAV_CMD_NAV_WAYPOINT, point=HOME, alt=10),
+    item(4, MAV.MAV_CMD_NAV_RETURN_TO_LAUNCH),
+]
+
+
+async def test_in_auto_the_nose_turns_towards_the_next_waypoint() -> None:
+    """ArduCopter's WP_YAW_BEHAVIOR (the simulator's default, 1): a camera fixed to the
+    frame looks where the copter flies, east then back west."""
+    args = ("--home", f"{HOME[0]},{HOME[1]}", "--speedup", "6", "--stream-rate", "0")
+    with simulator_listening(*args) as (_, address), ground_station(address) as gcs:
+        streaming(gcs)
+        command(gcs, MAV.MAV_CMD_SET_MESSAGE_INTERVAL, MAV.MAVLINK_MSG_ID_VFR_HUD, 2e5)
+        assert (await upload(gcs, TURNS)).type == MAV.MAV_MISSION_ACCEPTED
+        await take_off(gcs, 5)
+        assert await mode(gcs, AUTO) == MAV.MAV_RESULT_ACCEPTED
+        await wait_for(gcs, "MISSION_CURRENT", 20, lambda m: m.seq == 2)
+        east = await wait_for(gcs, "VFR_HUD", 20, lambda m: m.groundspeed > 3)
+        assert abs(east.heading - 90) <= 5, east.heading
+        await wait_for(gcs, "MISSION_CURRENT", 40, lambda m: m.seq == 3)
+        # It turns about (at its yaw rate) and flies home facing west.
+        await wait_for(gcs, "VFR_HUD", 20, lambda m: abs(m.heading - 270) <= 5)
+        where = await wait_for(gcs, "GLOBAL_POSITION_INT", 5)
+        assert distance_m((where.lat / 1e7, where.lon / 1e7), HOME) > 20  # still on the way
+
+
 async def test_an_out_of_sequence_item_is_refused_and_the_upload_waits_for_the_right_one():
     args = (
         "--home",

@@ -11,7 +11,8 @@ limits (``WPNAV_SPEED*``), ground contact, auto-disarm after ``DISARM_DELAY`` s 
 on the ground, battery drain (faster when flying). As in ArduCopter a velocity
 setpoint lapses after ``GUID_TIMEOUT`` s, and one that ignores both yaw and yaw rate
 hands yaw to ``WP_YAW_BEHAVIOR`` (by default the nose turns into the direction of
-travel). The GCS fail-safe acts after ``FS_GCS_TIMEOUT`` s as ``FS_GCS_ENABLE`` says, in AUTO
+travel; in AUTO, towards the next waypoint). The GCS fail-safe acts after
+``FS_GCS_TIMEOUT`` s as ``FS_GCS_ENABLE`` says, in AUTO
 too unless ``FS_OPTIONS`` bit 1 (2, "continue if in auto") is set
 (``ArduCopter/events.cpp``, failsafe_gcs_on_event).
 
@@ -722,6 +723,24 @@ class Copter(SimVehicle):
             return self._towards(self.hold)
         return self._land()
 
+    def _auto_course(self) -> float | None:
+        """Where the nose turns in AUTO, on the way to a waypoint (ArduCopter's
+        WP_YAW_BEHAVIOR, not 0: towards the next waypoint; within 2 m of it, or 0,
+        where it points); None otherwise."""
+        item = self.auto_item
+        if (
+            self.mode != AUTO
+            or item is None
+            or item.command != NAV_WAYPOINT
+            or self.auto_reached
+            or self.p("WP_YAW_BEHAVIOR") == 0
+        ):
+            return None
+        north, east, _ = self.auto_target
+        if math.hypot(north - self.north, east - self.east) < 2.0:
+            return None
+        return math.degrees(math.atan2(east - self.east, north - self.north))
+
     def _yaw(self, dt: float) -> None:
         before = self.yaw
         if self.target_yaw is not None:
@@ -745,6 +764,10 @@ class Copter(SimVehicle):
         ):
             course = math.degrees(math.atan2(self.ve, self.vn))
             error = wrap180(course - self.yaw)
+            step = DEFAULT_YAW_RATE_DEG_S * dt
+            self.yaw = wrap360(self.yaw + max(-step, min(step, error)))
+        elif (towards := self._auto_course()) is not None:
+            error = wrap180(towards - self.yaw)
             step = DEFAULT_YAW_RATE_DEG_S * dt
             self.yaw = wrap360(self.yaw + max(-step, min(step, error)))
         self.yaw_rate = wrap180(self.yaw - before) / dt if dt > 0 else 0.0
