@@ -1,0 +1,64 @@
+"""What the surveyor reports, and the photos that reach the platform: recorded, then
+left to the next step (``workflow``)."""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+from django.db import transaction
+from django.utils import timezone
+
+from kinds.survey.models import FINAL_SURVEY, SURVEYOR, Survey
+from kinds.survey.tasks import survey_schedule
+from services.kit import event_append, session_task_accepted
+from services.models import Assignment, SessionArtifact
+
+#: The surveyor's mission events (agents/missions/survey/, kind ``survey``).
+SURVEY_EVENTS = frozenset({"mission_progress", "photo_taken", "survey_flown", "mission_failed"})
+#: The file name of a survey photo (agents/missions/survey/runner.py, photo_name).
+PHOTO_NAME = re.compile(r"^photo-(\d{4,})\.jpg$")
+
+
+def survey_event(*, assignment: Assignment, name: str, data: dict[str, Any]) -> None:
+    """Record one event the surveyor reported and schedule a step. Reports from a drone
+    that no longer flies the survey are logged and otherwise ignored."""
+    with transaction.atomic():
+        survey = Survey.objects.select_for_update().filter(pk=assignment.session_id).first()
+        entry = {"vehicle": str(assignment.vehicle_id), "role": assignment.role, **data}
+        if survey is None:
+            event_append(session=assignment.session, kind="agent_event", data=entry)
+            return
+        current = (
+            assignment.active
+            and assignment.role == SURVEYOR
+            and survey.state == Survey.State.FLYING
+        )
+        if name == "photo_taken" and current and isinstance(data.get("index"), int):
+            survey.next_photo = max(survey.next_photo, min(data["index"] + 1, survey.photo_count))
+            survey.save(update_fields=["next_photo", "updated_at"])
+        elif name == "survey_flown" and current and survey.flown_at is None:
+            survey.flown_at = timezone.now()
+            survey.save(update_fields=["flown_at", "updated_at"])
+        # Progress and each photo move the map, not the log (the photo's arrival is
+        # logged by the core, with its digest).
+        if name not in ("mission_progress", "photo_taken"):
+            event_append(session=assignment.session, kind=name, data=entry)
+        survey_schedule(survey.pk)
+
+
+def survey_photo_received(*, artifact: SessionArtifact) -> None:
+    """A photo reached the platform (stored by the core): the map and the mosaic's step
+    take it from there."""
+    if PHOTO_NAME.match(artifact.name) and Survey.objects.filter(pk=artifact.session_id).exists():
+        survey = Survey.objects.get(pk=artifact.session_id)
+        if survey.state not in FINAL_SURVEY or survey.mosaic is None:
+            survey_schedule(artifact.session_id)
+
+
+def survey_task_accepted(*, assignment: Assignment) -> None:
+    """The surveyor accepted its task: the session is under way."""
+    session_task_accepted(
+        assignment=assignment, reason=f"{assignment.vehicle.name} accepted the survey"
+    )
+    survey_schedule(assignment.session_id)
