@@ -86,10 +86,11 @@
   function livePage(node) {
     let state = jsonScript("survey-data");
     const map = makeMap(node, jsonScript("map-tiles"));
-    const area = L.polygon(state.polygon, {
+    // The view first: Leaflet cannot draw a path on a map without one.
+    map.fitBounds(L.latLngBounds(state.polygon).pad(0.3));
+    L.polygon(state.polygon, {
       color: COLORS.area, weight: 2, fillOpacity: 0.05, className: "survey-area",
     }).addTo(map);
-    map.fitBounds(area.getBounds().pad(0.3));
     const linesLayer = L.layerGroup().addTo(map);
     const photosLayer = L.layerGroup().addTo(map);
     const shown = new Set();
