@@ -9,7 +9,7 @@ from typing import Any
 from django.db import transaction
 from django.utils import timezone
 
-from kinds.survey.models import FINAL_SURVEY, SURVEYOR, Survey
+from kinds.survey.models import SURVEYOR, Survey
 from kinds.survey.tasks import survey_schedule
 from services.kit import event_append, session_task_accepted
 from services.models import Assignment, SessionArtifact
@@ -50,10 +50,12 @@ def survey_event(*, assignment: Assignment, name: str, data: dict[str, Any]) -> 
 def survey_photo_received(*, artifact: SessionArtifact) -> None:
     """A photo reached the platform (stored by the core): the map and the mosaic's step
     take it from there."""
-    if PHOTO_NAME.match(artifact.name) and Survey.objects.filter(pk=artifact.session_id).exists():
-        survey = Survey.objects.get(pk=artifact.session_id)
-        if survey.state not in FINAL_SURVEY or survey.mosaic is None:
-            survey_schedule(artifact.session_id)
+    if not PHOTO_NAME.match(artifact.name):
+        return
+    state = Survey.objects.filter(pk=artifact.session_id).values_list("state", flat=True).first()
+    # A cancelled survey's mosaic takes the photos that come late; a done one is done.
+    if state is not None and state not in (Survey.State.DONE, Survey.State.FAILED):
+        survey_schedule(artifact.session_id)
 
 
 def survey_task_accepted(*, assignment: Assignment) -> None:

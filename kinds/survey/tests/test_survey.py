@@ -204,6 +204,26 @@ def test_a_drone_lost_mid_way_is_replaced_from_the_first_photo_not_taken(demo, s
     assert survey(session).next_photo == survey(session).photo_count
 
 
+def test_a_drone_low_on_battery_hands_over_and_the_next_resumes(demo, settings) -> None:
+    spare = spare_drone("quad-2")
+    session = ask(demo)
+    survey_advance(session.pk)
+    first = surveyor(session)
+    fly(session, range(0, 9))
+    Vehicle.objects.filter(pk=first.vehicle_id).update(
+        battery=settings.IOUV_MISSION_LOW_BATTERY_PCT - 1
+    )
+    assert survey_advance(session.pk) == Survey.State.FLYING
+    second = surveyor(session)
+    assert second.vehicle_id == spare.pk
+    mission = vehicle_mission(assignment=second)
+    assert isinstance(mission, SurveySpec) and mission.start_photo == 9
+    released = session.events.get(kind="vehicle_released").data
+    assert "low on battery" in released["reason"]
+    # Its photos keep coming after it was released (its agent uploads what it took).
+    assert survey(session).legs == 2
+
+
 def test_the_user_cancels_and_gets_a_mosaic_of_what_came(demo) -> None:
     session = ask(demo)
     survey_advance(session.pk)
