@@ -16,6 +16,7 @@ import contextlib
 import dataclasses
 import io
 import itertools
+import re
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -65,9 +66,19 @@ def survey_agent_config(path: Path, base: str) -> AgentConfig:
     )
 
 
-def fleet(directory: Path) -> contextlib.AbstractAsyncContextManager[Demo]:
+def fleet(
+    directory: Path, names: tuple[str, ...] = ("quad-1",)
+) -> contextlib.AbstractAsyncContextManager[Demo]:
+    """The survey drones ``names`` running for real on the seeded demo, with the
+    platform and a worker; quad-2, if named, a second drone like quad-1 at the campus.
+    The mosaic waits 20 s for photos a drone switched off will never send."""
     return missions_running(
-        directory, ("quad-1",), survey_agent_config, what="the survey drone online"
+        directory,
+        names,
+        survey_agent_config,
+        env={"IOUV_SURVEY_PHOTOS_WAIT_S": "20"},
+        spares={"quad-2": "quad-1"} if "quad-2" in names else None,
+        what="the survey drones online",
     )
 
 
@@ -143,6 +154,8 @@ async def test_the_user_draws_an_area_and_gets_a_mosaic_of_it(tmp_path: Path) ->
             " return n.dataset.surveyState === 'flying' && Number(n.dataset.photos) >= 3; }",
             timeout=180000,
         )
+        # The autopilot flies the lines itself (the agent uploaded them as a mission).
+        assert world.agents["quad-1"].adapter.state().mode == "AUTO"
         # The mosaic, laid over the map, and its KMZ.
         await expect(survey_map).to_have_attribute("data-survey-state", "done", timeout=240000)
         mosaic = page.locator("#survey-map img.survey-mosaic")
@@ -172,3 +185,71 @@ async def test_the_user_draws_an_area_and_gets_a_mosaic_of_it(tmp_path: Path) ->
         assert measured["front"] >= 0.65, measured["front"]
         assert measured["side"] >= 0.65 - 1e-6
         assert measured["session"] == Session.State.ENDED
+
+
+def _request() -> Any:
+    from django.contrib.auth import get_user_model
+
+    from services.kinds import Request
+    from services.models import Service
+    from services.sessions.request import service_request
+
+    params = {"polygon": [list(c) for c in CORNERS], "gsd_cm": 4}
+    return service_request(
+        user=get_user_model().objects.get(username="client"),
+        service=Service.objects.get(slug="aerial-survey"),
+        request=Request(params=params),
+    ).session
+
+
+def _surveyors(session_id: Any) -> list[str]:
+    from services.models import Assignment
+
+    return list(
+        Assignment.objects.filter(session_id=session_id)
+        .order_by("created_at")
+        .values_list("vehicle__name", flat=True)
+    )
+
+
+async def test_a_drone_switched_off_mid_survey_is_replaced_from_the_last_photo(
+    tmp_path: Path,
+) -> None:
+    async with fleet(tmp_path, ("quad-1", "quad-2")) as world:
+        session = await db(_request)
+
+        async def photographed(count: int) -> Survey | None:
+            survey = await db(_survey, session.pk)
+            return survey if survey.next_photo >= count else None
+
+        await until(lambda: photographed(6), within=180, what="six photos taken")
+        first = (await db(_surveyors, session.pk))[0]
+        await world.switch_off(first)
+
+        async def done() -> Survey | None:
+            survey = await db(_survey, session.pk)
+            return survey if survey.state == Survey.State.DONE else None
+
+        survey = await until(done, within=300, what="the survey done by another drone")
+        second = "quad-2" if first == "quad-1" else "quad-1"
+        assert await db(_surveyors, session.pk) == [first, second]
+        log = await db(lambda: list(survey.session.events.values_list("kind", "data")))
+        released = [data for kind, data in log if kind == "vehicle_released"]
+        assert released and released[0]["vehicle_name"] == first
+        # The second drone began at the first photo the first had not taken, and took
+        # every one from there.
+        resumed = [
+            re.search(r"from photo (\d+)", data.get("text", ""))
+            for kind, data in log
+            if kind == "survey_state"
+        ]
+        start = int(next(m for m in resumed if m is not None).group(1)) - 1
+        assert start >= 6
+        taken_by = await db(
+            lambda: {int(a.name[6:10]): a.vehicle.name for a in photos(_survey(session.pk))}
+        )
+        assert {taken_by[i] for i in taken_by if i >= start} == {second}
+        assert set(range(start, survey.photo_count)) <= set(taken_by)
+        assert {taken_by[i] for i in taken_by if i < start} == {first}
+        measured = await db(_measured, session.pk)
+        assert measured["coverage"] >= 0.95, measured
