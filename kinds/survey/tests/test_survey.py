@@ -7,6 +7,7 @@ lost mid-way replaced from the first photo not taken, and a cancelled survey."""
 from __future__ import annotations
 
 import io
+import json
 import zipfile
 from datetime import timedelta
 from typing import Any
@@ -86,6 +87,30 @@ def test_a_survey_no_drone_could_fly_is_refused_naming_the_field_and_nothing_is_
         ask(demo, **params)
     assert refused.value.field == field_name and words in str(refused.value), str(refused.value)
     assert not Session.objects.exists() and not Survey.objects.exists()
+
+
+def test_a_request_through_the_api_is_the_same_request(demo) -> None:
+    from django.contrib.auth import get_user_model
+
+    from accounts.tokens import token_issue
+
+    token = token_issue(user=get_user_model().objects.get(username="client"), name="tests")
+
+    def post(params: dict[str, Any]) -> Any:
+        return Client().post(
+            "/api/v1/sessions",
+            json.dumps({"service": "aerial-survey", "params": params}),
+            content_type="application/json",
+            HTTP_AUTHORIZATION=f"Bearer {token}",
+        )
+
+    answer = post({"polygon": FIELD, "gsd_cm": 2.5, "side_overlap": 70})
+    assert answer.status_code == 201, answer.content
+    made = Survey.objects.get(pk=answer.json()["session"]["id"])
+    assert (made.gsd_cm, made.front_overlap, made.side_overlap) == (2.5, 0.75, 0.7)
+    crossed = post({"polygon": field((0, 0), (50, 50), (0, 50), (50, 0)), "gsd_cm": 3})
+    assert crossed.status_code == 400 and crossed.json()["error"]["field"] == "params.polygon"
+    assert Survey.objects.count() == 1
 
 
 def test_the_grid_is_planned_for_the_drones_camera_and_signed_into_its_task(demo) -> None:
