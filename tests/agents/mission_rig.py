@@ -130,20 +130,15 @@ RigFactory = Callable[..., Awaitable[Rig]]
 
 @contextlib.asynccontextmanager
 async def rigs() -> AsyncIterator[RigFactory]:
-    """Build rigs: ``await build(persons=None, *, control=False, thermal_fps=None,
-    **options)`` starts a simulator (:func:`drone_options`), the drone on it, a hub,
-    missions and a synthetic thermal feed seeing ``persons`` (at ``thermal_fps`` frames a
-    second, default the camera's) (and a control server with ``control``); everything
+    """Build rigs: ``await build(persons=None, *, control=False, **options)`` starts a
+    simulator (:func:`drone_options`), the drone on it, a hub, missions and a synthetic
+    thermal feed seeing ``persons`` (and a control server with ``control``); everything
     is closed at the end, the simulators last."""
     opened: list[Rig] = []
     simulators = contextlib.AsyncExitStack()
 
     async def build(
-        persons: list[Any] | None = None,
-        *,
-        control: bool = False,
-        thermal_fps: float | None = None,
-        **options: Any,
+        persons: list[Any] | None = None, *, control: bool = False, **options: Any
     ) -> Rig:
         simulation = await simulators.enter_async_context(
             simulator_running("mavlink", drone_options(**options))
@@ -151,8 +146,7 @@ async def rigs() -> AsyncIterator[RigFactory]:
         drone = adapter_create("mavlink", simulation.options)
         assert isinstance(drone, MavlinkAdapter)
         await drone.start()
-        rate: dict[str, Any] = {} if thermal_fps is None else {"fps": thermal_fps}
-        feed = ThermalFeed(SyntheticSeaThermal(drone.state, persons=persons or [], seed=3, **rate))
+        feed = ThermalFeed(SyntheticSeaThermal(drone.state, persons=persons or [], seed=3))
         reports: list[tuple[str, str | None, dict[str, Any]]] = []
         holder: list[MissionControl] = []
         hub = ControlHub(

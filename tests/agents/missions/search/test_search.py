@@ -10,15 +10,12 @@ together (adapter, ControlHub, MissionControl, ThermalFeed) so they can look ins
 from __future__ import annotations
 
 import asyncio
-import contextlib
 
-from agents.geo import distance_m, offset
+from agents.geo import distance_m
 from agents.missions.registry import mission_decode
 from agents.missions.search.spec import SearchSpec
-from agents.missions.search.thermal import footprint_m
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from tests.agents.mission_rig import (
-    AREA_WAYPOINTS,
     HOLD_M,
     HOME,
     PERSON,
@@ -133,46 +130,3 @@ async def test_start_index_skips_waypoints_and_a_new_mission_replaces_the_old(
     # It took off and set off, then stopped without a word when replaced.
     assert first == [("mission_progress", "takeoff"), ("mission_progress", "transit")]
     assert rig.events("search_complete")[0][1] == {"mission": "m-second", "waypoint": 5}
-
-
-async def test_a_camera_too_slow_for_the_speed_slows_the_search_and_leaves_no_gap(
-    make_mission_rig: RigFactory,
-) -> None:
-    """One frame a second at 10 m/s (60 m of the simulator's flight a second at 6x)
-    would leave 30 m of every 60 unseen between frames 33 m long: the drone slows until
-    the frames overlap and sweeps again the stretch it missed."""
-    rig = await make_mission_rig(thermal_fps=1.0)
-    seen: list[tuple[float, float]] = []
-
-    async def record() -> None:  # every frame's pose (one a second: polled often)
-        last = 0
-        while True:
-            frame = rig.feed.latest
-            if frame is not None and frame.seq != last and frame.pose.lat is not None:
-                last = frame.seq
-                seen.append((frame.pose.lat, frame.pose.lon))
-            await asyncio.sleep(0.05)
-
-    recorder = asyncio.create_task(record())
-    try:
-        rig.accept(make_task(search(waypoints=WAYPOINTS[:2])))  # one line, 120 m
-        await rig.event("search_complete", 120)
-    finally:
-        recorder.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await recorder
-    # Every metre of the line was under a frame: within half a footprint's length of
-    # where one was taken along the line.
-    _, length = footprint_m(40, rig.feed.hfov_deg, rig.feed.width, rig.feed.height)
-    (north, start), (_, end) = AREA_WAYPOINTS[:2]
-    line_lat = offset(HOME, north, 0)[0]
-    on_line = [p for p in seen if distance_m(p, (line_lat, p[1])) < 5]  # not turning
-    unseen = [
-        east
-        for east in range(start, end + 1)
-        if not any(distance_m(offset(HOME, north, east), p) <= length / 2 for p in on_line)
-    ]
-    assert not unseen, f"unseen on the line at {unseen} m east"
-    # And it said so, with the speed it slowed to.
-    slowed = [d for e, d in rig.events() if e == "search_slowed"]
-    assert slowed and all(d["speed_mps"] < 10 for d in slowed), rig.events()
