@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from playwright.async_api import TimeoutError as PlaywrightTimeout
 from playwright.async_api import expect
 
 from agents.config import AgentConfig
@@ -80,6 +81,13 @@ def fleet(
         spares={"quad-2": "quad-1"} if "quad-2" in names else None,
         what="the survey drones online",
     )
+
+
+def _where(session_id: Any) -> str:
+    """A stuck survey in words: its state and its session's log."""
+    survey = _survey(session_id)
+    log = list(survey.session.events.order_by("seq").values_list("kind", flat=True))
+    return f"survey {survey.state}, session log {log}"
 
 
 def _survey(session_id: Any) -> Survey:
@@ -149,11 +157,16 @@ async def test_the_user_draws_an_area_and_gets_a_mosaic_of_it(tmp_path: Path) ->
         survey_map = page.locator("#survey-map")
         await expect(page.locator("#survey-map path.survey-line")).to_have_count(2, timeout=30000)
         await expect(page.locator("path.vehicle-marker")).to_have_count(1, timeout=30000)
-        await page.wait_for_function(
-            "() => { const n = document.querySelector('#survey-map');"
-            " return n.dataset.surveyState === 'flying' && Number(n.dataset.photos) >= 3; }",
-            timeout=180000,
-        )
+        try:
+            await page.wait_for_function(
+                "() => { const n = document.querySelector('#survey-map');"
+                " return n.dataset.surveyState === 'flying' && Number(n.dataset.photos) >= 3; }",
+                timeout=180000,
+            )
+        except PlaywrightTimeout:
+            # Where it stopped, from the platform's side and the drone's.
+            drone = world.agents["quad-1"].adapter.state()
+            raise AssertionError(f"{await db(_where, session_id)}; quad-1 {drone}") from None
         # The autopilot flies the lines itself (the agent uploaded them as a mission).
         assert world.agents["quad-1"].adapter.state().mode == "AUTO"
         # The mosaic, laid over the map, and its KMZ.
