@@ -15,7 +15,9 @@ from services.kit import event_append, session_task_accepted
 from services.models import Assignment, SessionArtifact
 
 #: The surveyor's mission events (agents/missions/survey/, kind ``survey``).
-SURVEY_EVENTS = frozenset({"mission_progress", "photo_taken", "survey_flown", "mission_failed"})
+SURVEY_EVENTS = frozenset(
+    {"mission_progress", "photo_taken", "photo_missed", "survey_flown", "mission_failed"}
+)
 #: The file name of a survey photo (agents/missions/survey/runner.py, photo_name).
 PHOTO_NAME = re.compile(r"^photo-(\d{4,})\.jpg$")
 

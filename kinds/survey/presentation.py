@@ -21,6 +21,7 @@ SHOWN = (
     "assigned",
     "survey_state",
     "survey_flown",
+    "photo_missed",
     "mission_failed",
     "vehicle_released",
     "state",

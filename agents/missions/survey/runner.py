@@ -7,9 +7,12 @@ as one plan (:func:`survey_plan`: the first photo's place, then each line's ends
 home): the autopilot flies them and comes home even if the agent dies (it takes no
 photo then; the platform resumes from the last one it heard of). Otherwise the agent
 flies each line's photo places step by step. Either way the pictures are taken by the
-agent's photographer, which watches where the vehicle is: a place is photographed when
-the vehicle is within :func:`photo_radius_m` of it at the survey's altitude, or, if
-it went past without coming that close, as soon as it is seen to have passed it.
+agent's photographer, which watches where the vehicle is on the survey's path
+(agents.missions.survey.route): a place is photographed when the vehicle is within
+:func:`photo_radius_m` of it at the survey's altitude, or, if it went past without
+coming that close, as soon as it is seen past it (``late``), unless it is a whole
+photo spacing past by then: that place is reported missed (``photo_missed``) and the
+photographer goes on with the next, so a slow camera never leaves it behind.
 """
 
 from __future__ import annotations
@@ -20,10 +23,10 @@ import logging
 from collections.abc import Awaitable
 from typing import Any, ClassVar, Final, TypeVar
 
-from agents.geo import distance_m
 from agents.missions.kit import ALTITUDE_TOLERANCE_M, MissionRunner
 from agents.missions.plan import FlightPlan
 from agents.missions.spec import LatLon
+from agents.missions.survey.route import TRACK_M, Due, PhotoRoute
 from agents.missions.survey.spec import SurveySpec
 
 log = logging.getLogger(__name__)
@@ -77,11 +80,15 @@ class SurveyRunner(MissionRunner[SurveySpec]):
         points = m.photo_points()
         self.progress_of = len(points)
         self.taken = 0
+        self.missed: list[int] = []
+        self.next_photo = m.start_photo
         speed = self._within_declared("go_to_waypoint", {"speed_mps": m.speed_mps})
         plan = survey_plan(m, speed_mps=float(speed.get("speed_mps", m.speed_mps)))
         if not await self._photographing(self.fly_natively(plan)):
             await self._photographing(self._fly_steps(points))
-        self.report("survey_flown", taken=self.taken, of=len(points), **self.where())
+        self.report(
+            "survey_flown", taken=self.taken, of=len(points), missed=self.missed, **self.where()
+        )
 
     async def _fly_steps(self, points: list[tuple[int, LatLon]]) -> bool:
         """The lines flown by the agent, photo place to photo place."""
@@ -98,8 +105,12 @@ class SurveyRunner(MissionRunner[SurveySpec]):
     async def _photographing(self, flight: Awaitable[_T]) -> _T:
         """``flight``, with the photographer watching; the first of them to fail ends
         both. A flight that returns False (the native plan refused) flew nothing: the
-        photographer is stopped without a word."""
-        photographer = asyncio.create_task(self._photographer(), name="survey photographer")
+        photographer is stopped without a word. Once the return home has begun, the
+        photographer settles the places left (photographed late or missed) and stops;
+        a camera that takes longer than :data:`LAST_PHOTO_S` for that leaves them
+        missed."""
+        over = asyncio.Event()
+        photographer = asyncio.create_task(self._photographer(over), name="survey photographer")
         flying: asyncio.Future[_T] = asyncio.ensure_future(flight)
         try:
             both: set[asyncio.Future[Any]] = {flying, photographer}
@@ -108,10 +119,16 @@ class SurveyRunner(MissionRunner[SurveySpec]):
                 raise photographer.exception()  # type: ignore[misc]
             result = await flying
             if result is not False and not photographer.done():
-                # The return home has begun: the last place is behind the vehicle.
+                over.set()
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(LAST_PHOTO_S):
                         await asyncio.shield(photographer)
+                if not photographer.done():
+                    photographer.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await photographer
+                    for index in range(self.next_photo, len(self.mission.photo_points())):
+                        self._missed(index, "the camera took too long")
             return result
         finally:
             for task in (photographer, flying):
@@ -120,57 +137,55 @@ class SurveyRunner(MissionRunner[SurveySpec]):
                     with contextlib.suppress(asyncio.CancelledError):
                         await task
 
-    async def _photographer(self) -> None:
-        """Photograph each place from ``start_photo`` on, in order (module docstring)."""
+    async def _photographer(self, over: asyncio.Event) -> None:
+        """Photograph each place from ``start_photo`` on, in order, as the vehicle
+        reaches it or, late, passes it; report those it went past too far
+        (agents.missions.survey.route). ``over``: the flight is over."""
         m = self.mission
         points = m.photo_points()
-        radius = photo_radius_m(m.spacing_m)
-        index = m.start_photo
-        #: The line whose first place of this flight was photographed there: on it,
-        #: a place passed by is due (before, the vehicle may be coming from anywhere).
-        on_line: int | None = None
-        while index < len(points):
+        route = PhotoRoute(
+            points,
+            start=m.start_photo,
+            radius_m=photo_radius_m(m.spacing_m),
+            late_m=m.spacing_m,
+            track_m=max(TRACK_M, m.spacing_m / 2),
+        )
+        self.next_photo = m.start_photo
+        joined = False
+        while self.next_photo < len(points):
+            index = self.next_photo
             st = self.adapter.state()
             here = st.position
             high = st.alt is not None and st.alt >= m.altitude_m - 2 * ALTITUDE_TOLERANCE_M
-            if (
-                here is not None
-                and high
-                and self._due(here, points, index, radius, passing=on_line == points[index][0])
-            ):
+            if here is None or not high:
+                due = Due.MISSED if over.is_set() else Due.WAIT
+            else:
+                due = route.due(here, index, joined=joined, over=over.is_set())
+            if due is Due.WAIT:
+                await asyncio.sleep(PHOTO_POLL_S)
+                continue
+            if due is Due.MISSED:
+                self._missed(index, "the vehicle was past it")
+            else:
                 meta = await self.photograph(photo_name(index))
                 self.taken += 1
+                joined = True
                 self.report(
                     "photo_taken",
                     index=index,
                     of=len(points),
                     name=photo_name(index),
                     kept=meta["kept"],
+                    late=due is Due.LATE,
                     lat=meta["lat"],
                     lon=meta["lon"],
                     alt=meta["alt"],
                     heading_deg=meta["heading_deg"],
                 )
-                on_line = points[index][0]
-                index += 1
-                continue
-            await asyncio.sleep(PHOTO_POLL_S)
+            self.next_photo = index + 1
 
-    @staticmethod
-    def _due(
-        here: LatLon,
-        points: list[tuple[int, LatLon]],
-        index: int,
-        radius: float,
-        *,
-        passing: bool,
-    ) -> bool:
-        """Photo ``index`` is due: the vehicle is at its place, or, ``passing`` along
-        its line, went past it (nearer the next place on the line than this one is)."""
-        line, place = points[index]
-        if distance_m(here, place) <= radius:
-            return True
-        if passing and index + 1 < len(points) and points[index + 1][0] == line:
-            following = points[index + 1][1]
-            return distance_m(here, following) < distance_m(place, following) - radius
-        return False
+    def _missed(self, index: int, why: str) -> None:
+        """Photo ``index`` was not taken (``photo_missed``); the next is due."""
+        self.missed.append(index)
+        self.next_photo = index + 1
+        self.report("photo_missed", index=index, of=self.progress_of, why=why, **self.where())

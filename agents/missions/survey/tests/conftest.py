@@ -18,7 +18,7 @@ from agents.control import ControlHub
 from agents.missions.control import MissionControl
 from agents.protocol import load_public_key
 from agents.simulation import simulator_running
-from agents.stills import PHOTO_SECTION, NadirSimCamera
+from agents.stills import PHOTO_SECTION, NadirSimCamera, StillCamera
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.registry import adapter_create
 from tests.agents.mission_rig import PUBLIC_PEM, VEHICLE, Rig, drone_options
@@ -38,13 +38,17 @@ SurveyRigFactory = Callable[..., Awaitable[SurveyRig]]
 
 @pytest.fixture
 async def make_survey_rig(tmp_path: Path) -> AsyncIterator[SurveyRigFactory]:
-    """``await make_survey_rig(**options)``: a drone on its own simulator
-    (tests.agents.mission_rig.drone_options) with a 320 x 240 nadir camera of 60°;
-    everything closed at the end, the simulators last."""
+    """``await make_survey_rig(camera=None, **options)``: a drone on its own simulator
+    (tests.agents.mission_rig.drone_options) with a 320 x 240 nadir camera of 60°
+    (``camera(nadir, drone)``, if given, returns the camera to use instead, built on
+    it); everything closed at the end, the simulators last."""
     opened: list[SurveyRig] = []
     async with contextlib.AsyncExitStack() as stack:
 
-        async def build(**options: Any) -> SurveyRig:
+        async def build(
+            camera: Callable[[NadirSimCamera, MavlinkAdapter], StillCamera] | None = None,
+            **options: Any,
+        ) -> SurveyRig:
             simulation = await stack.enter_async_context(
                 simulator_running("mavlink", drone_options(**options))
             )
@@ -54,7 +58,8 @@ async def make_survey_rig(tmp_path: Path) -> AsyncIterator[SurveyRigFactory]:
             store = await stack.enter_async_context(
                 ArtifactStore(directory=tmp_path / f"artifacts-{len(opened)}")
             )
-            camera = NadirSimCamera(hfov_deg=60, width=320, height=240, quality=85)
+            nadir = NadirSimCamera(hfov_deg=60, width=320, height=240, quality=85)
+            photo = nadir if camera is None else camera(nadir, drone)
             reports: list[tuple[str, str | None, dict[str, Any]]] = []
             holder: list[MissionControl] = []
             hub = ControlHub(
@@ -70,7 +75,7 @@ async def make_survey_rig(tmp_path: Path) -> AsyncIterator[SurveyRigFactory]:
                 hub=hub,
                 adapter=drone,
                 report=lambda e, s, d: reports.append((e, s, d)),
-                sensors={PHOTO_SECTION: camera},
+                sensors={PHOTO_SECTION: photo},
                 artifacts=store,
             )
             holder.append(missions)

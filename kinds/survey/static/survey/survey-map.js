@@ -200,7 +200,11 @@
         case "survey_planned": return `${Math.round(d.area_m2).toLocaleString("en")} m² at ${d.gsd_cm} cm a pixel`;
         case "assigned": return `${d.vehicle_name} reserved`;
         case "survey_state": return d.text || d.to;
-        case "survey_flown": return `the lines flown: ${d.taken} photos taken`;
+        case "survey_flown": {
+          const missed = (d.missed || []).length;
+          return `the lines flown: ${d.taken} photos taken${missed ? `, ${missed} missed` : ""}`;
+        }
+        case "photo_missed": return `photo ${d.index + 1} missed: ${d.why}`;
         case "vehicle_released": return `${d.vehicle_name} released: ${d.reason}`;
         case "state": return `session ${d.to}${d.reason ? ": " + d.reason : ""}`;
         default: return e.kind.replaceAll("_", " ");
