@@ -271,7 +271,9 @@ def ensure_packages(*packages: str, log_path: Path | None = None) -> None:
             policy.write_text("#!/bin/sh\nexit 101\n")
             policy.chmod(0o755)
         env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
-        install = ["apt-get", "install", "-y", "-qq", "--no-install-recommends", *missing]
+        # Another apt at work (a user's, bin/install-chromium) holds dpkg's lock: wait.
+        wait = ["-o", "DPkg::Lock::Timeout=300"]
+        install = ["apt-get", *wait, "install", "-y", "-qq", "--no-install-recommends", *missing]
         try:
             with open(log_path, "w") as log:
 
@@ -284,7 +286,7 @@ def ensure_packages(*packages: str, log_path: Path | None = None) -> None:
 
                 # The package lists may be stale or absent: update only when needed.
                 ok = apt(install) == 0 or (
-                    apt(["apt-get", "update", "-qq"]) == 0 and apt(install) == 0
+                    apt(["apt-get", *wait, "update", "-qq"]) == 0 and apt(install) == 0
                 )
         finally:
             if own_policy:
