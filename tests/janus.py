@@ -157,7 +157,9 @@ def janus_config(server: JanusServer) -> None:
 @contextlib.contextmanager
 def janus_server(folder: Path) -> Iterator[JanusServer]:
     """A private Janus in ``folder`` (its configuration, log and recordings), stopped at
-    the end."""
+    the end. Janus is installed first when missing (its plugins are configured before
+    the server starts)."""
+    janus_ensure()
     server = JanusServer(
         folder=folder,
         http_port=free_port(),
