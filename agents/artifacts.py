@@ -29,13 +29,13 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Final, Self
 
+from agents.outbox import UplinkPort
 from agents.protocol.messages import (
     ARTIFACT_CHUNK_BYTES,
     ARTIFACT_MAX_BYTES,
     Ack,
     Artifact,
 )
-from agents.recording import UplinkPort
 
 log = logging.getLogger(__name__)
 

@@ -40,8 +40,9 @@ from typing import Any, Final, Literal, Protocol, Self
 import msgspec
 
 from agents.config import RECORD_MAX_BYTES
+from agents.outbox import UplinkPort
 from agents.protocol import MAX_MESSAGE_BYTES
-from agents.protocol.messages import Ack, Message, Record, RecordSample
+from agents.protocol.messages import Ack, Record, RecordSample
 from agents.vehicles.base import VehicleState
 
 log = logging.getLogger(__name__)
@@ -122,15 +123,6 @@ class NullRecorder:
 
     def raw(self, at: float, frame: bytes) -> None:
         return None
-
-
-class UplinkPort(Protocol):
-    """The part of :class:`agents.uplink.Uplink` the recorder uses."""
-
-    connected: asyncio.Event
-    connections: int
-
-    def send(self, message: Message) -> None: ...
 
 
 def batch_id(session_id: str, first: int) -> str:
