@@ -3,11 +3,12 @@ them (docs/protocol.md, "Mission files").
 
 One :class:`ArtifactStore` per agent. :meth:`ArtifactStore.put` writes the file and what
 it is (``<directory>/<session>/<name>`` and ``<name>.json``) before anything is sent, so
-an uplink outage or an agent restart loses nothing. Its upload loop sends each file as
-``artifact`` chunks under the protocol's frame limit, a few at a time, again on every new
-uplink and after RESEND_S without an answer, and deletes the file once the platform has
-acknowledged every chunk. Photos never travel in events or the flight record: a batch of
-telemetry is no place for 200 kB of JPEG, and the session's log keeps only their digest.
+an uplink outage or an agent restart loses nothing. It sends each file as ``artifact``
+chunks under the protocol's frame limit through an :class:`agents.outbox.AckedOutbox` (a
+few at a time, again on every new uplink and after RESEND_S without an answer), and
+deletes the file once the platform has acknowledged every chunk. Photos never travel in
+events or the flight record: a batch of telemetry is no place for 200 kB of JPEG, and the
+session's log keeps only their digest.
 
 The disk is bounded: a file that would take the waiting files over ``max_bytes`` is
 refused (``put`` returns False and the caller goes on without it).
@@ -15,27 +16,26 @@ refused (``put`` returns False and the caller goes on without it).
 
 from __future__ import annotations
 
-import asyncio
 import base64
 import contextlib
+import functools
 import hashlib
 import json
 import logging
 import os
-import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Final, Self
 
+from agents.outbox import AckedOutbox, Build, UplinkPort
 from agents.protocol.messages import (
     ARTIFACT_CHUNK_BYTES,
     ARTIFACT_MAX_BYTES,
     Ack,
     Artifact,
 )
-from agents.recording import UplinkPort
 
 log = logging.getLogger(__name__)
 
@@ -64,8 +64,6 @@ class _File:
     sha256: str
     meta: dict[str, Any]
     acked: set[int] = field(default_factory=set)
-    # chunk index -> (uplink connection it was last sent on, when)
-    sent: dict[int, tuple[int, float]] = field(default_factory=dict)
 
     @property
     def count(self) -> int:
@@ -74,6 +72,9 @@ class _File:
     @property
     def key(self) -> tuple[str, str]:
         return (self.session_id, self.name)
+
+    def chunk_ids(self) -> list[str]:
+        return [chunk_id(self.session_id, self.name, index) for index in range(self.count)]
 
 
 class ArtifactStore:
@@ -84,16 +85,30 @@ class ArtifactStore:
     def __init__(self, *, directory: Path, max_bytes: int = ARTIFACTS_MAX_BYTES) -> None:
         self.directory = directory
         self.max_bytes = max_bytes
-        self.uplink: UplinkPort | None = None
         #: Files waiting for the platform, oldest first.
         self.files: dict[tuple[str, str], _File] = {}
-        self._wake = asyncio.Event()
-        self._task: asyncio.Task[None] | None = None
+        #: Sends their chunks (one unit each, by :func:`chunk_id`).
+        self.outbox = AckedOutbox(
+            self._chunks,
+            in_flight=IN_FLIGHT,
+            resend_s=RESEND_S,
+            name="artifact-upload",
+            what="mission file upload",
+        )
+
+    @property
+    def uplink(self) -> UplinkPort | None:
+        """The uplink the chunks go through (the outbox's)."""
+        return self.outbox.uplink
+
+    @uplink.setter
+    def uplink(self, uplink: UplinkPort | None) -> None:
+        self.outbox.uplink = uplink
 
     async def __aenter__(self) -> Self:
         self.directory.mkdir(parents=True, exist_ok=True)
         self._load()
-        self._task = asyncio.create_task(self._upload_loop(), name="artifact-upload")
+        self.outbox.start()
         return self
 
     async def __aexit__(
@@ -102,10 +117,7 @@ class ArtifactStore:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._task
+        await self.outbox.stop()
 
     def _load(self) -> None:
         """Files a previous run left unacknowledged are sent again (all their chunks:
@@ -174,8 +186,13 @@ class ArtifactStore:
         except (OSError, TypeError, ValueError) as exc:
             log.error("could not keep mission file %s: %s", path, exc)
             return False
+        replaced = self.files.get(item.key)
+        if replaced is not None:
+            # Its chunks have the same ids: the new file's go now, not after RESEND_S.
+            for unit_id in replaced.chunk_ids():
+                self.outbox.forget(unit_id)
         self.files[item.key] = item
-        self._wake.set()
+        self.outbox.wake()
         return True
 
     def pending(self, session_id: str) -> list[str]:
@@ -199,71 +216,53 @@ class ArtifactStore:
             self._drop(item)
         else:
             item.acked.add(int(index))
-            item.sent.pop(int(index), None)
             if len(item.acked) >= item.count:
                 self._drop(item)
-        self._wake.set()
+        self.outbox.acked(ack.id)
         return True
 
     def _drop(self, item: _File) -> None:
         self.files.pop(item.key, None)
+        for unit_id in item.chunk_ids():
+            self.outbox.forget(unit_id)
         for path in (item.path, item.path.with_name(f"{item.name}.json")):
             with contextlib.suppress(OSError):
                 path.unlink()
 
-    async def _upload_loop(self) -> None:
-        while True:
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(1.0):
-                    await self._wake.wait()
-            self._wake.clear()
-            try:
-                self._upload()
-            except Exception:
-                log.exception("mission file upload failed")
-
-    def _upload(self) -> None:
-        uplink = self.uplink
-        if uplink is None or not uplink.connected.is_set():
-            return
-        now = time.monotonic()
-        in_flight = sum(
-            1
-            for item in self.files.values()
-            for conn, at in item.sent.values()
-            if conn == uplink.connections and now - at < RESEND_S
-        )
+    def _chunks(self) -> Iterator[tuple[str, Build]]:
+        """The chunks not acknowledged yet, oldest file first (the outbox's units)."""
         for item in list(self.files.values()):
-            body: bytes | None = None
-            for index in range(item.count):
-                if in_flight >= IN_FLIGHT:
-                    return
-                sent = item.sent.get(index)
-                if index in item.acked or (
-                    sent is not None and sent[0] == uplink.connections and now - sent[1] < RESEND_S
-                ):
-                    continue
-                if body is None:
-                    try:
-                        body = item.path.read_bytes()
-                    except OSError as exc:
-                        log.error("dropped unreadable mission file %s: %s", item.path, exc)
-                        self._drop(item)
-                        break
-                start = index * ARTIFACT_CHUNK_BYTES
-                uplink.send(
-                    Artifact(
-                        id=chunk_id(item.session_id, item.name, index),
-                        session_id=item.session_id,
-                        name=item.name,
-                        media_type=item.media_type,
-                        size=item.size,
-                        sha256=item.sha256,
-                        index=index,
-                        count=item.count,
-                        meta=item.meta,
-                        b64=base64.b64encode(body[start : start + ARTIFACT_CHUNK_BYTES]).decode(),
-                    )
-                )
-                item.sent[index] = (uplink.connections, now)
-                in_flight += 1
+            yield from self._file_chunks(item)
+
+    def _file_chunks(self, item: _File) -> Iterator[tuple[str, Build]]:
+        # The body is read once a pass, for the first of its chunks the outbox sends.
+        body: bytes | None = None
+
+        def build(index: int) -> Artifact | None:
+            nonlocal body
+            if body is None:
+                try:
+                    body = item.path.read_bytes()
+                except OSError as exc:
+                    log.error("dropped unreadable mission file %s: %s", item.path, exc)
+                    self._drop(item)
+                    return None
+            start = index * ARTIFACT_CHUNK_BYTES
+            return Artifact(
+                id=chunk_id(item.session_id, item.name, index),
+                session_id=item.session_id,
+                name=item.name,
+                media_type=item.media_type,
+                size=item.size,
+                sha256=item.sha256,
+                index=index,
+                count=item.count,
+                meta=item.meta,
+                b64=base64.b64encode(body[start : start + ARTIFACT_CHUNK_BYTES]).decode(),
+            )
+
+        for index in range(item.count):
+            if self.files.get(item.key) is not item:
+                return  # dropped as unreadable: none of its chunks can go
+            if index not in item.acked:
+                yield chunk_id(item.session_id, item.name, index), functools.partial(build, index)

@@ -9,8 +9,9 @@ MAVLink vehicle the raw stream in the ``.tlog`` format (each message behind its 
 big-endian microsecond Unix timestamp), carried in ``tlog`` samples.
 
 Samples are gathered into ``record`` batches that are written to disk (one file each,
-under ``<directory>/<session>/``) before they are sent, and deleted only when the
-platform acknowledges them, so an uplink outage or an agent restart loses nothing.
+under ``<directory>/<session>/``) before they are sent (through an
+:class:`agents.outbox.AckedOutbox`), and deleted only when the platform acknowledges
+them, so an uplink outage or an agent restart loses nothing.
 The disk is bounded: when the batches waiting reach ``max_bytes`` the recorder stops
 writing telemetry and ``tlog`` samples (commands and events, which are small and what an
 investigation needs first, go on until twice the bound) and, once there is room again,
@@ -26,12 +27,13 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
+import functools
 import json
 import logging
 import os
 import struct
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -40,8 +42,9 @@ from typing import Any, Final, Literal, Protocol, Self
 import msgspec
 
 from agents.config import RECORD_MAX_BYTES
+from agents.outbox import AckedOutbox, Build, UplinkPort
 from agents.protocol import MAX_MESSAGE_BYTES
-from agents.protocol.messages import Ack, Message, Record, RecordSample
+from agents.protocol.messages import Ack, Record, RecordSample
 from agents.vehicles.base import VehicleState
 
 log = logging.getLogger(__name__)
@@ -124,15 +127,6 @@ class NullRecorder:
         return None
 
 
-class UplinkPort(Protocol):
-    """The part of :class:`agents.uplink.Uplink` the recorder uses."""
-
-    connected: asyncio.Event
-    connections: int
-
-    def send(self, message: Message) -> None: ...
-
-
 def batch_id(session_id: str, first: int) -> str:
     """The id of a session's batch starting at sample ``first`` (what ``ack`` names)."""
     return f"{_ID_PREFIX}{session_id}:{first}"
@@ -152,8 +146,6 @@ class _Session:
 class _Pending:
     path: Path
     size: int
-    sent_on: int = -1  # the uplink connection it was last sent on
-    sent_at: float = 0.0
 
 
 @dataclass
@@ -188,24 +180,37 @@ class FlightRecorder:
         self.telemetry = telemetry
         self.max_bytes = max_bytes
         self.clock = clock
-        self.uplink: UplinkPort | None = None
         self.session: _Session | None = None
         #: Batches on disk waiting for the platform's ack, oldest first, by id.
         self.pending: dict[str, _Pending] = {}
+        #: Sends them (one unit each, by :func:`batch_id`).
+        self.outbox = AckedOutbox(
+            self._batches,
+            in_flight=IN_FLIGHT,
+            resend_s=RESEND_S,
+            name="record-upload",
+            what="flight record upload",
+        )
         self.dropped = _Dropped()
-        self._wake = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
         self._last_sample = 0.0
         self._pending_bytes = 0
+
+    @property
+    def uplink(self) -> UplinkPort | None:
+        """The uplink the batches go through (the outbox's)."""
+        return self.outbox.uplink
+
+    @uplink.setter
+    def uplink(self, uplink: UplinkPort | None) -> None:
+        self.outbox.uplink = uplink
 
     # --- lifecycle -----------------------------------------------------------------------
     async def __aenter__(self) -> Self:
         self.directory.mkdir(parents=True, exist_ok=True)
         self._load_pending()
-        self._tasks = [
-            asyncio.create_task(self._sample_loop(), name="record-sample"),
-            asyncio.create_task(self._upload_loop(), name="record-upload"),
-        ]
+        self._tasks = [asyncio.create_task(self._sample_loop(), name="record-sample")]
+        self.outbox.start()
         return self
 
     async def __aexit__(
@@ -219,6 +224,7 @@ class FlightRecorder:
         for task in self._tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+        await self.outbox.stop()
         self.flush()
 
     def _load_pending(self) -> None:
@@ -242,6 +248,7 @@ class FlightRecorder:
         pending = self.pending.pop(mid, None)
         if pending is not None:
             self._pending_bytes -= pending.size
+        self.outbox.forget(mid)
         return pending
 
     # --- sessions ------------------------------------------------------------------------
@@ -384,7 +391,7 @@ class FlightRecorder:
             log.exception("could not write flight-record batch %s", path)
             return
         self._pending_add(message.id, _Pending(path, len(body)))
-        self._wake.set()
+        self.outbox.wake()
 
     def _sample_telemetry(self, at: float) -> None:
         state = self.state()
@@ -441,40 +448,19 @@ class FlightRecorder:
                 log.error("the platform refused flight-record batch %s: %s", ack.id, ack.detail)
             with contextlib.suppress(OSError):
                 pending.path.unlink()
-        self._wake.set()
+        self.outbox.acked(ack.id)
         return True
 
-    async def _upload_loop(self) -> None:
-        while True:
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(1.0):
-                    await self._wake.wait()
-            self._wake.clear()
-            try:
-                self._upload()
-            except Exception:
-                log.exception("flight record upload failed")
-
-    def _upload(self) -> None:
-        uplink = self.uplink
-        if uplink is None or not uplink.connected.is_set():
-            return
-        now = time.monotonic()
-        in_flight = 0
+    def _batches(self) -> Iterator[tuple[str, Build]]:
+        """The batches waiting, oldest first (the outbox's units)."""
         for mid, pending in list(self.pending.items()):
-            fresh = pending.sent_on == uplink.connections and now - pending.sent_at < RESEND_S
-            if fresh:
-                in_flight += 1
-                continue
-            if in_flight >= IN_FLIGHT:
-                break
-            try:
-                body = pending.path.read_bytes()
-                message = msgspec.json.decode(body, type=Record)
-            except (OSError, msgspec.DecodeError, msgspec.ValidationError) as exc:
-                log.error("dropped unreadable flight-record batch %s: %s", pending.path, exc)
-                self._pending_drop(mid)
-                continue
-            uplink.send(message)
-            pending.sent_on, pending.sent_at = uplink.connections, now
-            in_flight += 1
+            yield mid, functools.partial(self._batch, mid, pending)
+
+    def _batch(self, mid: str, pending: _Pending) -> Record | None:
+        """The batch ``mid`` as it was written; None, dropped, if it cannot be read."""
+        try:
+            return msgspec.json.decode(pending.path.read_bytes(), type=Record)
+        except (OSError, msgspec.DecodeError, msgspec.ValidationError) as exc:
+            log.error("dropped unreadable flight-record batch %s: %s", pending.path, exc)
+            self._pending_drop(mid)
+            return None

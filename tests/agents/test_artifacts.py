@@ -49,11 +49,11 @@ async def test_a_photo_is_sent_in_chunks_and_deleted_once_all_are_acknowledged(
         store.uplink = port
         assert store.put("s-1", "photo-0001.jpg", BODY, media_type="image/jpeg", meta={"lat": 1})
         assert (tmp_path / "s-1" / "photo-0001.jpg").read_bytes() == BODY  # on disk first
-        store._upload()
+        store.outbox.upload()
         assert port.sent == []  # no uplink yet
         port.connect()
         await wait_until(lambda: len(port.sent) == IN_FLIGHT, within=5)
-        store._upload()
+        store.outbox.upload()
         assert len(port.sent) == IN_FLIGHT  # no more until some are acknowledged
         for message in list(port.sent):
             assert store.acked(ack(message))

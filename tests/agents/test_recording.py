@@ -72,7 +72,7 @@ async def test_a_session_is_numbered_without_gaps_and_kept_until_acknowledged(
         assert uplink.sent == []
         uplink.connections = 1
         uplink.connected.set()
-        rec._wake.set()
+        rec.outbox.wake()
         await asyncio.sleep(0.2)
         sent = {m.id for m in uplink.sent}
         assert sent == set(rec.pending)
