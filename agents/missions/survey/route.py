@@ -8,11 +8,12 @@ places from the first of this flight on, joined in flight order (along each line
 across to the next). A place is
 
 - ``NOW`` when the vehicle is within the photo radius of it;
-- ``LATE`` when the vehicle is past it on the path but still within ``late_m`` of it
-  (the picture, tagged where it was taken, still covers most of the place);
-- ``MISSED`` when the vehicle is past it and further than that (a picture now would
-  be of somewhere else: the place is reported missed, and the survey's coverage shows
-  the gap);
+- ``LATE`` when the vehicle is past it on the path but still on its line, or has left
+  the line but is still within ``late_m`` of it (the picture, tagged where it was
+  taken, still covers the line the place is on: the mosaic puts it where it was taken);
+- ``MISSED`` when the vehicle has left the place's line and is further than that (a
+  picture now would be of another line: the place is reported missed, and the survey's
+  coverage shows the gap);
 - ``WAIT`` otherwise: the vehicle has not reached it, or is off the path (on its way
   to the area, or home).
 
@@ -76,19 +77,26 @@ class PhotoRoute:
         gap = _length(p, self.xy[index])
         if gap <= self.radius_m:
             return Due.NOW
-        if over or self._past(p, index, joined=joined):
-            return Due.LATE if gap <= self.late_m else Due.MISSED
-        return Due.WAIT
+        past = True if over else self._past(p, index, joined=joined)
+        if past is None:
+            return Due.WAIT
+        if past == "line" or gap <= self.late_m:
+            return Due.LATE
+        return Due.MISSED
 
-    def _past(self, p: tuple[float, float], index: int, *, joined: bool) -> bool:
-        """The vehicle at ``p`` is on the path beyond place ``index``."""
+    def _past(self, p: tuple[float, float], index: int, *, joined: bool) -> str | None:
+        """Where the vehicle at ``p`` is beyond place ``index`` on the path: ``"line"``,
+        further along the place's own line; ``"beyond"``, past its line; None, not past
+        it (or off the path)."""
         last = len(self.xy) - 1
         if index >= last:
-            return False  # nothing beyond the last place but the way home (``over``)
+            return None  # nothing beyond the last place but the way home (``over``)
         if not joined:
             # Only along the first place's own segment, past the place.
             along, off = _on_segment(p, self.xy[index], self.xy[index + 1])
-            return off <= self.track_m and along > self.radius_m
+            if off > self.track_m or along <= self.radius_m:
+                return None
+            return self._along(index, index)
         # The nearest segment from the one before the place to the end of the next
         # line: the path there, never a later line the vehicle may fly near.
         end = index
@@ -100,9 +108,16 @@ class PhotoRoute:
             if best is None or off < best[0]:
                 best = (off, k, along)
         if best is None or best[0] > self.track_m:
-            return False
+            return None
         _, k, along = best
-        return k > index or (k == index and along > self.radius_m)
+        if k < index or (k == index and along <= self.radius_m):
+            return None
+        return self._along(index, k)
+
+    def _along(self, index: int, k: int) -> str:
+        """Segment ``k`` (place ``k`` to the next) against place ``index``'s line."""
+        line = self.lines[index]
+        return "line" if self.lines[k] == line and self.lines[k + 1] == line else "beyond"
 
 
 def _length(a: tuple[float, float], b: tuple[float, float]) -> float:

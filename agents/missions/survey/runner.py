@@ -10,9 +10,10 @@ flies each line's photo places step by step. Either way the pictures are taken b
 agent's photographer, which watches where the vehicle is on the survey's path
 (agents.missions.survey.route): a place is photographed when the vehicle is within
 :func:`photo_radius_m` of it at the survey's altitude, or, if it went past without
-coming that close, as soon as it is seen past it (``late``), unless it is a whole
-photo spacing past by then: that place is reported missed (``photo_missed``) and the
-photographer goes on with the next, so a slow camera never leaves it behind.
+coming that close, as soon as it is seen past it (``late``), unless the vehicle has
+left the place's line and is a whole photo spacing away by then: that place is
+reported missed (``photo_missed``) and the photographer goes on with the next, so a
+slow camera never leaves it behind.
 """
 
 from __future__ import annotations

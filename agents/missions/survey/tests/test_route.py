@@ -37,11 +37,14 @@ def test_a_place_is_due_when_the_drone_is_there_and_not_before() -> None:
     assert r.due(at(30, 38), 2, joined=True) is Due.NOW
 
 
-def test_a_place_passed_is_photographed_late_within_a_spacing_then_missed() -> None:
+def test_a_place_passed_is_photographed_late_on_its_line_and_missed_beyond_a_spacing() -> None:
     r = route()
     assert r.due(at(30, 46), 2, joined=True) is Due.LATE
+    # However late, along its own line: the picture still covers the line.
+    assert r.due(at(30, 58), 2, joined=True) is Due.LATE
     # Line 0's end, the drone rounding it to line 1, then along line 1.
     assert r.due(at(36, 60), 4, joined=True) is Due.LATE
+    assert r.due(at(36, 60), 3, joined=True) is Due.MISSED  # off its line, 11.7 m away
     assert r.due(at(42, 55), 4, joined=True) is Due.MISSED
     # Line 1's start, 4 m along it: late; its next place is not reached yet.
     assert r.due(at(42, 56), 5, joined=True) is Due.LATE
