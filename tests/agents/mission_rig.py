@@ -13,12 +13,14 @@ import json
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import jwt
 import pytest
 from websockets.asyncio.server import ServerConnection, serve
 
+from agents.artifacts import ArtifactStore
 from agents.config import AgentConfig, ControlConfig
 from agents.control import ControlHub, ControlServer
 from agents.geo import distance_m, offset
@@ -99,9 +101,17 @@ class Rig:
     drone: MavlinkAdapter
     hub: ControlHub
     missions: MissionControl
-    feed: ThermalFeed
+    #: The synthetic thermal camera (None when the test gave the rig other sensors).
+    feed: ThermalFeed | None
     reports: list[tuple[str, str | None, dict[str, Any]]] = field(default_factory=list)
     server: ControlServer | None = None
+    #: Where the missions' files are kept (a rig built with ``artifacts``).
+    store: ArtifactStore | None = None
+
+    def kept(self, pattern: str = "*/*") -> list[Path]:
+        """The files the missions keep waiting on disk (nobody uploads them), sorted."""
+        assert self.store is not None, "a rig built without artifacts keeps no files"
+        return sorted(p for p in self.store.directory.glob(pattern) if p.suffix != ".json")
 
     def accept(self, task: VehicleTask) -> None:
         """What Agent._task does with a verified task."""
@@ -130,15 +140,23 @@ RigFactory = Callable[..., Awaitable[Rig]]
 
 @contextlib.asynccontextmanager
 async def rigs() -> AsyncIterator[RigFactory]:
-    """Build rigs: ``await build(persons=None, *, control=False, **options)`` starts a
-    simulator (:func:`drone_options`), the drone on it, a hub, missions and a synthetic
-    thermal feed seeing ``persons`` (and a control server with ``control``); everything
-    is closed at the end, the simulators last."""
+    """Build rigs: ``await build(persons=None, *, control=False, sensors=None,
+    artifacts=None, **options)`` starts a simulator (:func:`drone_options`), the drone on
+    it, a hub, missions and a synthetic thermal feed seeing ``persons`` (or, with
+    ``sensors``, the agent's sensors that ``sensors(drone)`` returns instead), a control
+    server with ``control``, the missions' files kept in the folder ``artifacts`` (an
+    ArtifactStore with nobody to upload to); everything is closed at the end, the
+    simulators last."""
     opened: list[Rig] = []
     simulators = contextlib.AsyncExitStack()
 
     async def build(
-        persons: list[Any] | None = None, *, control: bool = False, **options: Any
+        persons: list[Any] | None = None,
+        *,
+        control: bool = False,
+        sensors: Callable[[MavlinkAdapter], dict[str, Any]] | None = None,
+        artifacts: Path | None = None,
+        **options: Any,
     ) -> Rig:
         simulation = await simulators.enter_async_context(
             simulator_running("mavlink", drone_options(**options))
@@ -146,7 +164,12 @@ async def rigs() -> AsyncIterator[RigFactory]:
         drone = adapter_create("mavlink", simulation.options)
         assert isinstance(drone, MavlinkAdapter)
         await drone.start()
-        feed = ThermalFeed(SyntheticSeaThermal(drone.state, persons=persons or [], seed=3))
+        feed: ThermalFeed | None = None
+        if sensors is None:
+            feed = ThermalFeed(SyntheticSeaThermal(drone.state, persons=persons or [], seed=3))
+        store = None
+        if artifacts is not None:
+            store = await simulators.enter_async_context(ArtifactStore(directory=artifacts))
         reports: list[tuple[str, str | None, dict[str, Any]]] = []
         holder: list[MissionControl] = []
         hub = ControlHub(
@@ -162,10 +185,11 @@ async def rigs() -> AsyncIterator[RigFactory]:
             hub=hub,
             adapter=drone,
             report=lambda e, s, d: reports.append((e, s, d)),
-            sensors={"thermal": feed},
+            sensors={"thermal": feed} if sensors is None else sensors(drone),
+            artifacts=store,
         )
         holder.append(missions)
-        rig = Rig(drone, hub, missions, feed, reports)
+        rig = Rig(drone, hub, missions, feed, reports, store=store)
         if control:
             rig.server = ControlServer(hub)
             await rig.server.start()
@@ -180,7 +204,8 @@ async def rigs() -> AsyncIterator[RigFactory]:
             if rig.server is not None:
                 await rig.server.close()
             await rig.hub.close()
-            await rig.feed.close()
+            if rig.feed is not None:
+                await rig.feed.close()
             await rig.drone.close()
         await simulators.aclose()
 

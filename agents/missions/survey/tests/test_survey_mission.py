@@ -17,13 +17,14 @@ from agents.missions.registry import mission_decode
 from agents.missions.spec import MissionError
 from agents.missions.survey.runner import photo_name, photo_radius_m, survey_plan
 from agents.missions.survey.spec import SurveySpec
-from agents.missions.survey.tests.conftest import SurveyRig, SurveyRigFactory
+from agents.missions.survey.tests.conftest import SurveyRigFactory, photos
 from agents.stills import NadirSimCamera, Photo, photo_position
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.plan import ReturnHome, Waypoint
 from tests.agents.mission_rig import (
     HOME,
     SIM,
+    Rig,
     agent_dies,
     landed_at_home,
     last_position,
@@ -90,7 +91,7 @@ def test_the_plan_is_the_first_place_then_each_lines_ends_then_home() -> None:
     assert [s.phase for s in plan.steps if s.phase] == ["to_area", "surveying", "returning"]
 
 
-def photos_taken(rig: SurveyRig) -> list[dict[str, Any]]:
+def photos_taken(rig: Rig) -> list[dict[str, Any]]:
     return [d for _, d in rig.events("photo_taken")]
 
 
@@ -113,7 +114,7 @@ async def test_the_autopilot_flies_the_lines_and_each_place_is_photographed_stra
         off = distance_m((photo["lat"], photo["lon"]), place)
         assert off < (10 if photo["late"] else photo_radius_m(10) + 1), photo
         assert photo["alt"] == pytest.approx(20, abs=2.5)
-    files = rig.photos()
+    files = photos(rig)
     assert [p.name for p in files] == [f"photo-{i:04d}.jpg" for i in range(15)]
     for path, photo in zip(files, taken, strict=True):
         tagged = photo_position(path.read_bytes())
@@ -133,7 +134,7 @@ async def test_a_survey_resumes_at_the_photo_it_is_told(
     flown = await rig.event("survey_flown", within=240)
     assert flown["taken"] == 7
     assert [d["index"] for d in photos_taken(rig)] == list(range(8, 15))
-    assert [p.name for p in rig.photos()] == [f"photo-{i:04d}.jpg" for i in range(8, 15)]
+    assert [p.name for p in photos(rig)] == [f"photo-{i:04d}.jpg" for i in range(8, 15)]
 
 
 async def test_without_native_missions_the_agent_flies_each_place(
@@ -207,4 +208,4 @@ async def test_a_place_passed_during_a_slow_picture_is_missed_and_the_rest_are_t
     assert sorted(taken) == [0, 1, 2, 3, *range(5, 15)]
     assert taken[5]["late"] and not any(taken[i]["late"] for i in (6, 7, 8, 9))
     assert distance_m((taken[5]["lat"], taken[5]["lon"]), offset(HOME, 42, 60)) < 10
-    assert [p.name for p in rig.photos()] == [photo_name(i) for i in sorted(taken)]
+    assert [p.name for p in photos(rig)] == [photo_name(i) for i in sorted(taken)]
