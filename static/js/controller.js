@@ -31,6 +31,10 @@
   const STALE_VIDEO_MS = 1500;
   // Commands that make the vehicle safe: never behind other traffic, never paused.
   const SAFE_COMMANDS = new Set(["stop", "land", "return_to_home"]);
+  // Refusals the link caused (the round trip over the vehicle's limit, a command too
+  // old when it arrived): they pass with the link, so a held motion keeps repeating and
+  // moves again once the link allows it. Any other refusal would only come again.
+  const LINK_REFUSALS = new Set(["latency", "stale"]);
   const PATH_WORDS = {
     webrtc_direct: "WebRTC, direct",
     webrtc_turn: "WebRTC through TURN",
@@ -385,10 +389,18 @@
         // Moving with the motors off: the hint says what to press.
         this.readyHint(false, true);
         this.toast(`${sent ? sent.name.replace(/_/g, " ") : "command"}: the motors are off. Press Arm first.`, "bad");
+      } else if (LINK_REFUSALS.has(msg.code)) {
+        // Said once while it lasts, not on every repeat of the held motion.
+        const now = performance.now();
+        if (this.linkRefusedAt === undefined || now - this.linkRefusedAt > 3000) {
+          this.toast(`${sent ? sent.name : "command"} refused: ${msg.error}`, "warn");
+        }
+        this.linkRefusedAt = now;
       } else {
         this.toast(`${sent ? sent.name : "command"} refused: ${msg.error}`, "bad");
       }
-      if (sent) this.held.delete(sent.name); // don't keep hammering a refused command
+      // Don't keep hammering a refused command, unless the link refused it.
+      if (sent && !LINK_REFUSALS.has(msg.code)) this.held.delete(sent.name);
     }
 
     onRtt(ms) {
