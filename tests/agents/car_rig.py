@@ -90,10 +90,10 @@ def make_grant(
 
 
 @contextlib.asynccontextmanager
-async def car_rig(options: dict[str, Any] | None = None) -> AsyncIterator[Rig]:
+async def car_rig(options: dict[str, Any] | None = None, **limits: Any) -> AsyncIterator[Rig]:
     """The simulated car (``options``, :data:`CAR_OPTIONS` by default) behind a
-    ControlHub and its ControlServer on a free port, with ``make_task()`` accepted;
-    everything is closed at the end."""
+    ControlHub and its ControlServer on a free port, with ``make_task(**limits)``
+    accepted; everything is closed at the end."""
     rigs: list[Rig] = []
     async with adapter_simulated("car", CAR_OPTIONS if options is None else options) as (
         car,
@@ -109,5 +109,5 @@ async def car_rig(options: dict[str, Any] | None = None) -> AsyncIterator[Rig]:
         )
         async with hub, ControlServer(hub) as server:
             rigs.append(Rig(hub, server, car, simulation.simulator))
-            hub.task_accept(make_task())
+            hub.task_accept(make_task(**limits))
             yield rigs[0]
