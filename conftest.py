@@ -18,7 +18,7 @@ import pytest
 from django.conf import settings
 
 from tests.browser import chromium_missing_reason
-from tests.scheduling import longest_first
+from tests.scheduling import longest_first, measured_durations
 
 #: Stacks of a test that runs long (tests/hangs.py).
 pytest_plugins = ["tests.hangs", "tests.cpu_report"]
@@ -116,7 +116,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     # Under pytest-xdist (each worker collects, in the same order): the slow modules
     # spread over the workers' first slices, longest first (tests/scheduling.py).
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
-    items[:] = longest_first(items, workers)
+    items[:] = longest_first(items, workers, measured_durations())
 
 
 @pytest.fixture(autouse=True)

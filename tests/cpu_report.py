@@ -7,7 +7,10 @@ its CPU time over the cores, whatever the number of workers. With
 used during the test (set-up, call and teardown) plus what its child processes that
 ended meanwhile used (the servers, agents, simulators and browsers the test started
 and stopped; a module's shared ones count in the test during which they stopped).
-``python -m tests.cpu_report <file>`` prints the sums per file and the costliest tests.
+``python -m tests.cpu_report <file>`` prints the sums per file and the costliest tests;
+``python -m tests.cpu_report --durations <file> > tests/durations.json`` writes the
+measured wall time of each slow module, which the suite's order reads
+(tests/scheduling.py).
 """
 
 from __future__ import annotations
@@ -65,5 +68,19 @@ def main(path: str, top: int = 40) -> None:
         print(f"{row['cpu_s']:8.1f}  wall {row['wall_s']:6.1f}  {row['test']}")
 
 
+def durations(path: str, *, at_least_s: float = 5.0) -> dict[str, float]:
+    """Each module's wall time in the report (the sum of its tests'), for the modules
+    of ``at_least_s`` or more, longest first."""
+    by_file: collections.Counter[str] = collections.Counter()
+    for line in Path(path).read_text().splitlines():
+        if line:
+            row = json.loads(line)
+            by_file[row["test"].split("::")[0]] += row["wall_s"]
+    return {name: round(s, 1) for name, s in by_file.most_common() if s >= at_least_s}
+
+
 if __name__ == "__main__":
-    main(*sys.argv[1:2])
+    if sys.argv[1:2] == ["--durations"]:
+        print(json.dumps(durations(sys.argv[2]), indent=1))
+    else:
+        main(*sys.argv[1:2])

@@ -11,14 +11,20 @@ wait; stealing cannot split a single long test.
 the slow modules, balanced by their estimated cost (longest first onto the least
 loaded slice), and ends with quick tests that the stealing evens out. A module's tests
 stay together, in their own order, so a module-scoped fixture is set up once per
-worker that runs it. The estimate is by tier (:data:`COST_S`, markers set in
-conftest.TIERS or by the module), or a module's own ``pytest.mark.cost(seconds)`` for
-the few whose tests take minutes: only the order changes, never which tests run.
+worker that runs it. A module's cost is its wall time measured in a full run
+(``tests/durations.json``, written by ``python -m tests.cpu_report --durations``), or,
+for a module not measured there, estimated by tier (:data:`COST_S`, markers set in
+conftest.TIERS or by the module) or by its own ``pytest.mark.cost(seconds)``: only the
+order changes, never which tests run. Estimates by tier alone were far off (a module of
+missions on a simulator, out of every tier, counted as quick and ran last, for minutes,
+on one worker while the others had finished).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
 #: Rough seconds a test takes by tier (its most expensive marker): what counts is the
@@ -31,6 +37,21 @@ COST_S: dict[str, float] = {
 
 #: A test in no slow tier.
 QUICK_S = 0.3
+
+#: The measured wall times of the slow modules (see the module docstring).
+DURATIONS = Path(__file__).with_name("durations.json")
+
+
+def measured_durations(path: Path = DURATIONS) -> dict[str, float]:
+    """Module -> measured seconds, from ``path`` (none if it is missing or unreadable:
+    the estimates by tier then order everything)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(data, dict):
+        return {}
+    return {str(k): float(v) for k, v in data.items() if isinstance(v, int | float)}
 
 
 class Keyed(Protocol):
@@ -57,15 +78,21 @@ def cost_s(item: Keyed) -> float:
     )
 
 
-def longest_first(items: Sequence[T], workers: int) -> list[T]:
+def longest_first(
+    items: Sequence[T], workers: int, measured: Mapping[str, float] | None = None
+) -> list[T]:
     """``items`` reordered for ``workers`` worksteal slices of equal length (see the
-    module); the same items, each module's in its own order."""
+    module); the same items, each module's in its own order. ``measured``: modules'
+    measured seconds, which replace their estimates."""
     if workers < 2 or len(items) < 2 * workers:
         return list(items)
     modules: dict[str, list[T]] = {}
     for item in items:
         modules.setdefault(item.nodeid.split("::", 1)[0], []).append(item)
-    costs = {name: sum(cost_s(i) for i in tests) for name, tests in modules.items()}
+    measured = measured or {}
+    costs = {
+        name: measured.get(name, sum(cost_s(i) for i in tests)) for name, tests in modules.items()
+    }
     slow = sorted(
         (name for name, tests in modules.items() if costs[name] > QUICK_S * len(tests)),
         key=lambda name: -costs[name],

@@ -3,11 +3,13 @@ modules spread over the workers' slices, each slice as long as worksteal cuts it
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
-from tests.scheduling import longest_first
+from tests.scheduling import longest_first, measured_durations
 
 
 @dataclass
@@ -83,3 +85,22 @@ def test_one_worker_or_a_tiny_run_keeps_collection_order() -> None:
     assert longest_first(suite, 0) == suite
     assert longest_first(suite, 1) == suite
     assert longest_first(suite[:5], 4) == suite[:5]
+
+
+def test_a_module_measured_slow_goes_first_whatever_its_tier(tmp_path: Path) -> None:
+    """A module in no slow tier (a mission on a simulator, say) that a full run measured
+    at minutes leads a slice instead of being left for the end as quick tests are."""
+    suite = _suite() + [Collected(f"e/test_sim_missions.py::t{i}") for i in range(3)]
+    durations = tmp_path / "durations.json"
+    durations.write_text(json.dumps({"e/test_sim_missions.py": 300.0, "b/test_pages.py": 5}))
+    measured = measured_durations(durations)
+    assert measured == {"e/test_sim_missions.py": 300.0, "b/test_pages.py": 5.0}
+    by_tier = _slices(longest_first(suite, 4), 4)
+    assert not any(t.nodeid.startswith("e/") for s in by_tier for t in s[:3])
+    slices = _slices(longest_first(suite, 4, measured), 4)
+    leading = [[t.nodeid.split("::")[0] for t in s[:3]] for s in slices]
+    assert ["e/test_sim_missions.py"] * 3 in leading, leading
+    # Missing or broken: the estimates alone.
+    assert measured_durations(tmp_path / "none.json") == {}
+    durations.write_text("[1, 2")
+    assert measured_durations(durations) == {}
