@@ -20,7 +20,8 @@ from agents.simulation import simulator_running
 from agents.vehicles.base import AdapterError
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.mavlink.dialect import MAV
-from agents.vehicles.plan import ReturnHome, TakeOff, Waypoint
+from agents.vehicles.mavlink.mission import MissionItem, plan_items
+from agents.vehicles.plan import Hold, Release, ReturnHome, Speed, TakeOff, Waypoint
 from agents.vehicles.registry import adapter_create
 from tests.agents.mavlink_rig import HOME, ground_station, poll, simulator_listening
 
@@ -341,6 +342,26 @@ async def test_a_fence_breach_in_auto_brings_the_copter_home():
 
 
 # --- the agent's side: agents/vehicles/mavlink/mission.py -------------------------------
+
+
+def test_a_hold_is_an_unlimited_loiter_over_the_last_waypoint() -> None:
+    """The plan's hold becomes NAV_LOITER_UNLIM where the last waypoint left the vehicle
+    (a boat: no altitude, as its waypoints); with no waypoint before it, ArduPilot's 0,
+    0 and 0 m: where the vehicle is, as high as it is."""
+    plan = [
+        TakeOff(30), Speed(8), Waypoint(TARGET, 30), Waypoint(TARGET, 5), Release(),
+        Waypoint(TARGET, 30), Hold(),
+    ]  # fmt: skip
+    gripper = {"method": "gripper"}
+    items, indices = plan_items(plan, home=HOME, payload=gripper)
+    unlimited = MAV.MAV_CMD_NAV_LOITER_UNLIM
+    assert items[-1] == MissionItem(unlimited, RELATIVE, lat=TARGET[0], lon=TARGET[1], z=30)
+    assert len(items) == len(plan) + 1 and indices == list(range(len(plan)))
+    items, indices = plan_items(plan, home=HOME, payload=gripper, flies=False)
+    assert items[-1] == MissionItem(unlimited, RELATIVE, lat=TARGET[0], lon=TARGET[1], z=0)
+    assert indices == list(range(1, len(plan)))  # no take-off
+    items, indices = plan_items([Speed(8), Hold()], home=HOME, payload=None)
+    assert items[-1] == MissionItem(unlimited, RELATIVE) and indices == [0, 1]
 
 
 async def test_a_refused_upload_is_named_cleared_and_changes_nothing_the_copter_does():
