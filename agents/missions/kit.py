@@ -21,9 +21,10 @@ only :meth:`MissionRunner.fly` from the steps here:
   to the platform until it has them (agents.stills, agents.artifacts);
 * :meth:`~MissionRunner.fly_natively` hands a mission of plain waypoints and actions
   (a :class:`~agents.missions.plan.FlightPlan`) to the vehicle's own mission engine when
-  it has one (ArduPilot's AUTO): the autopilot flies it, and finishes it or returns
-  home if the agent dies; the runner follows it and reports the same progress and
-  events. A runner calls it first and flies its steps itself when it returns False.
+  it has one (ArduPilot's AUTO): the autopilot flies it, and finishes it (home, or
+  holding at its end) or returns home if the agent dies; the runner follows it and
+  reports the same progress and events. A runner calls it first and flies its steps
+  itself when it returns False.
 
 Whatever ends the mission is handled here once for all: a user command or a fail-safe
 during the mission (``mission_failed``, "interrupted", the vehicle left to whoever
@@ -468,9 +469,11 @@ class MissionRunner(abc.ABC, Generic[_S]):
     async def fly_natively(self, plan: FlightPlan) -> bool:
         """Fly ``plan`` with the vehicle's own mission engine, if it has one: upload it
         (on the ground or in the air), take off if needed (in GUIDED, as a ground
-        station does: ArduCopter arms in no AUTO), start it, and follow it until the
-        return home has begun (as :meth:`return_home` ends a mission flown step by
-        step), reporting each step's ``phase`` and ``event``.
+        station does: ArduCopter arms in no AUTO), start it, and follow it until its
+        last step, the return home or the hold, has begun (as :meth:`return_home`
+        ends a mission flown step by step, or its last leg and a ``hold`` progress),
+        reporting each step's ``phase`` and ``event``. After a hold the vehicle stays
+        there in the engine's own mission (AUTO) until someone sends it elsewhere.
 
         Returns False, having flown nothing, when the vehicle has no engine or refuses
         the upload (the reason is logged: the runner then flies its steps itself).
@@ -504,7 +507,8 @@ class MissionRunner(abc.ABC, Generic[_S]):
 
     async def _follow(self, plan: FlightPlan, engine: NativeMissions, deadline: float) -> None:
         """Report the plan's steps as the engine starts and passes them; return once its
-        last step (the return home) has started."""
+        last step (the return home, or the hold the engine never moves past) has
+        started."""
         steps = plan.steps
         started = finished = -1
         last = len(steps) - 1

@@ -51,7 +51,15 @@ class ReturnHome:
     """Return home (a copter lands there, a boat holds)."""
 
 
-PlanItem: TypeAlias = TakeOff | Waypoint | Speed | Release | ReturnHome
+@dataclass(frozen=True)
+class Hold:
+    """Stay over the last waypoint (where the vehicle is, when there is none) until
+    told otherwise: a plan's last item, which the engine never moves past. The vehicle
+    hovers or keeps station there, still flying the plan, until someone (the agent, a
+    user, a fail-safe) sends it elsewhere."""
+
+
+PlanItem: TypeAlias = TakeOff | Waypoint | Speed | Release | ReturnHome | Hold
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,8 @@ from agents.simulation import simulator_running
 from agents.vehicles.base import AdapterError
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.mavlink.dialect import MAV
-from agents.vehicles.plan import ReturnHome, TakeOff, Waypoint
+from agents.vehicles.mavlink.mission import MissionItem, plan_items
+from agents.vehicles.plan import Hold, Release, ReturnHome, Speed, TakeOff, Waypoint
 from agents.vehicles.registry import adapter_create
 from tests.agents.mavlink_rig import HOME, ground_station, poll, simulator_listening
 
@@ -191,6 +192,83 @@ async def test_in_auto_the_nose_turns_towards_the_next_waypoint() -> None:
         assert distance_m((where.lat / 1e7, where.lon / 1e7), HOME) > 20  # still on the way
 
 
+async def heard_for(gcs: Any, seconds: float) -> list[Any]:
+    """What the autopilot sends while ``seconds`` pass on its own clock (the positions'
+    ``time_boot_ms``: simulated time, whatever the machine's load)."""
+    kinds = ["GLOBAL_POSITION_INT", "HEARTBEAT", "MISSION_CURRENT", "MISSION_ITEM_REACHED"]
+    first = await wait_for(gcs, "GLOBAL_POSITION_INT", 5)
+    heard = [first]
+    deadline = time.monotonic() + seconds + 30
+    while time.monotonic() < deadline:
+        gcs.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        msg = await asyncio.to_thread(gcs.recv_match, type=kinds, blocking=True, timeout=0.3)
+        if msg is None or msg.get_srcSystem() != 1:
+            continue
+        heard.append(msg)
+        if (
+            msg.get_type() == "GLOBAL_POSITION_INT"
+            and msg.time_boot_ms - first.time_boot_ms >= seconds * 1000
+        ):
+            return heard
+    raise AssertionError(f"the autopilot's clock did not pass {seconds:g} s")
+
+
+HOLD_AT = offset(HOME, 30.0, 20.0)
+#: A hold over HOLD_AT at 15 m, after a waypoint there at 10 m.
+HOLD_THERE = [
+    item(0, MAV.MAV_CMD_NAV_WAYPOINT, point=HOME),
+    item(1, MAV.MAV_CMD_NAV_TAKEOFF, alt=10),
+    item(2, MAV.MAV_CMD_NAV_WAYPOINT, point=HOLD_AT, alt=10),
+    item(3, MAV.MAV_CMD_NAV_LOITER_UNLIM, point=HOLD_AT, alt=15),
+]
+#: A hold with no position and no altitude: where the copter is, as high as it is.
+HOLD_HERE = [
+    item(0, MAV.MAV_CMD_NAV_WAYPOINT, point=HOME),
+    item(1, MAV.MAV_CMD_NAV_TAKEOFF, alt=10),
+    item(2, MAV.MAV_CMD_NAV_LOITER_UNLIM),
+]
+
+
+@pytest.mark.parametrize(
+    ("mission", "where", "alt"),
+    [(HOLD_THERE, HOLD_AT, 15.0), (HOLD_HERE, HOME, 10.0)],
+    ids=["at its point", "where it is"],
+)
+async def test_auto_holds_at_an_unlimited_loiter_until_the_mode_changes(
+    mission: list[Item], where: tuple[float, float], alt: float
+) -> None:
+    """NAV_LOITER_UNLIM as ArduCopter flies it (ModeAuto::do_loiter_unlimited): to its
+    point and altitude (latitude and longitude 0: the stopping point; altitude 0: the
+    current one), then hovering there in AUTO; never verified, so the mission stays on
+    it (no MISSION_ITEM_REACHED for it, never complete) until the mode changes."""
+    args = ("--home", f"{HOME[0]},{HOME[1]}", "--speedup", "6", "--stream-rate", "0")
+    with simulator_listening(*args) as (_, address), ground_station(address) as gcs:
+        streaming(gcs)
+        assert (await upload(gcs, mission)).type == MAV.MAV_MISSION_ACCEPTED
+        await take_off(gcs, 5)
+        assert await mode(gcs, AUTO) == MAV.MAV_RESULT_ACCEPTED
+        hold = len(mission) - 1
+        await wait_for(gcs, "MISSION_CURRENT", 30, lambda m: m.seq == hold)
+
+        def there(m: Any) -> bool:
+            off = distance_m((m.lat / 1e7, m.lon / 1e7), where)
+            return off < 2 and abs(m.relative_alt / 1000 - alt) < 1
+
+        await wait_for(gcs, "GLOBAL_POSITION_INT", 30, there)
+        heard = await heard_for(gcs, 20.0)
+        positions = [m for m in heard if m.get_type() == "GLOBAL_POSITION_INT"]
+        assert all(there(m) for m in positions), positions[-1]
+        beats = [m for m in heard if m.get_type() == "HEARTBEAT"]
+        assert beats and all(m.custom_mode == AUTO for m in beats)
+        currents = [m for m in heard if m.get_type() == "MISSION_CURRENT"]
+        assert currents and all(
+            m.seq == hold and m.mission_state == MAV.MISSION_STATE_ACTIVE for m in currents
+        )
+        assert not [m for m in heard if m.get_type() == "MISSION_ITEM_REACHED"]
+        # Only a change of mode ends it.
+        assert await mode(gcs, GUIDED) == MAV.MAV_RESULT_ACCEPTED
+
+
 async def test_an_out_of_sequence_item_is_refused_and_the_upload_waits_for_the_right_one():
     args = (
         "--home",
@@ -264,6 +342,26 @@ async def test_a_fence_breach_in_auto_brings_the_copter_home():
 
 
 # --- the agent's side: agents/vehicles/mavlink/mission.py -------------------------------
+
+
+def test_a_hold_is_an_unlimited_loiter_over_the_last_waypoint() -> None:
+    """The plan's hold becomes NAV_LOITER_UNLIM where the last waypoint left the vehicle
+    (a boat: no altitude, as its waypoints); with no waypoint before it, ArduPilot's 0,
+    0 and 0 m: where the vehicle is, as high as it is."""
+    plan = [
+        TakeOff(30), Speed(8), Waypoint(TARGET, 30), Waypoint(TARGET, 5), Release(),
+        Waypoint(TARGET, 30), Hold(),
+    ]  # fmt: skip
+    gripper = {"method": "gripper"}
+    items, indices = plan_items(plan, home=HOME, payload=gripper)
+    unlimited = MAV.MAV_CMD_NAV_LOITER_UNLIM
+    assert items[-1] == MissionItem(unlimited, RELATIVE, lat=TARGET[0], lon=TARGET[1], z=30)
+    assert len(items) == len(plan) + 1 and indices == list(range(len(plan)))
+    items, indices = plan_items(plan, home=HOME, payload=gripper, flies=False)
+    assert items[-1] == MissionItem(unlimited, RELATIVE, lat=TARGET[0], lon=TARGET[1], z=0)
+    assert indices == list(range(1, len(plan)))  # no take-off
+    items, indices = plan_items([Speed(8), Hold()], home=HOME, payload=None)
+    assert items[-1] == MissionItem(unlimited, RELATIVE) and indices == [0, 1]
 
 
 async def test_a_refused_upload_is_named_cleared_and_changes_nothing_the_copter_does():

@@ -17,7 +17,11 @@ item 0 is home (ArduPilot keeps home there and never flies it), the plan from it
 items come with the plan index of each). Altitudes are relative to home
 (MAV_FRAME_GLOBAL_RELATIVE_ALT_INT); a waypoint's hold time is its param 1; a speed is
 DO_CHANGE_SPEED (ground speed); the release is the payload's own (DO_GRIPPER release,
-or DO_SET_SERVO to its PWM); the return is NAV_RETURN_TO_LAUNCH.
+or DO_SET_SERVO to its PWM); the return is NAV_RETURN_TO_LAUNCH; a hold is
+NAV_LOITER_UNLIM at the last waypoint's position and altitude (none before it: at 0, 0
+and 0 m, which ArduPilot reads as where the vehicle is and its current altitude),
+radius (param 3) 0, which ArduCopter and ArduRover never verify as done: the mission
+stays on it, in AUTO, until the mode changes.
 """
 
 from __future__ import annotations
@@ -31,7 +35,15 @@ from typing import Any
 from agents.vehicles.base import AdapterError
 from agents.vehicles.mavlink.dialect import MAV
 from agents.vehicles.mavlink.link import AutopilotLink
-from agents.vehicles.plan import PlanItem, Release, ReturnHome, Speed, TakeOff, Waypoint
+from agents.vehicles.plan import (
+    Hold,
+    PlanItem,
+    Release,
+    ReturnHome,
+    Speed,
+    TakeOff,
+    Waypoint,
+)
 
 REQUESTS = ("MISSION_REQUEST_INT", "MISSION_REQUEST")
 #: What a refusal means, for the words of the AdapterError (ArduPilot explains some in
@@ -162,16 +174,26 @@ def plan_items(
     lat, lon = home or (0.0, 0.0)
     items = [MissionItem(MAV.MAV_CMD_NAV_WAYPOINT, MAV.MAV_FRAME_GLOBAL, lat=lat, lon=lon)]
     indices: list[int] = []
+    last: Waypoint | None = None
     for index, step in enumerate(plan):
         if isinstance(step, TakeOff):
             if not flies:
                 continue
             items.append(MissionItem(MAV.MAV_CMD_NAV_TAKEOFF, relative, z=step.altitude_m))
         elif isinstance(step, Waypoint):
+            last = step
             items.append(
                 MissionItem(
                     MAV.MAV_CMD_NAV_WAYPOINT, relative, (step.hold_s, 0.0, 0.0, 0.0),
                     step.point[0], step.point[1], step.altitude_m if flies else 0.0,
+                )
+            )  # fmt: skip
+        elif isinstance(step, Hold):
+            point, alt = (last.point, last.altitude_m) if last is not None else ((0.0, 0.0), 0.0)
+            items.append(
+                MissionItem(
+                    MAV.MAV_CMD_NAV_LOITER_UNLIM, relative, lat=point[0], lon=point[1],
+                    z=alt if flies else 0.0,
                 )
             )  # fmt: skip
         elif isinstance(step, Speed):

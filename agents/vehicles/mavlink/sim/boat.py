@@ -18,7 +18,10 @@ What it does, as ArduRover does it for a boat (``docs/vehicles/boat.md``):
   AUTO."); entered, it starts the mission at item 1 or (``MIS_RESTART`` 0) resumes it
   at its current navigation item. NAV_WAYPOINT is reached within ``WP_RADIUS`` ("Reached
   waypoint #n", MISSION_ITEM_REACHED), then held param 1 seconds; NAV_LOITER_TIME the
-  same; NAV_RETURN_TO_LAUNCH drives home; the "do" items after a navigation item
+  same; NAV_LOITER_UNLIM drives to its point (latitude and longitude 0: where the boat
+  is) and keeps station there as LOITER does, "Reached waypoint #n" but never verified
+  (ArduRover's verify_loiter_unlimited: no MISSION_ITEM_REACHED, the mission never
+  goes past it); NAV_RETURN_TO_LAUNCH drives home; the "do" items after a navigation item
   (DO_CHANGE_SPEED, DO_SET_SERVO, DO_GRIPPER) run when it is done. Take-offs and
   landings are skipped ("Skipping invalid cmd"). After the last item it holds where it
   is, as LOITER, still in AUTO ("Mission Complete");
@@ -58,6 +61,7 @@ from agents.vehicles.mavlink.sim.mission import (
     DO_GRIPPER,
     DO_SET_SERVO,
     NAV_LOITER_TIME,
+    NAV_LOITER_UNLIM,
     NAV_RETURN_TO_LAUNCH,
     NAV_WAYPOINT,
 )
@@ -78,6 +82,8 @@ from agents.vehicles.mavlink.sim.vehicle import (
 _NUMBER = {name: number for number, name in ROVER_MODES.items()}
 MANUAL, HOLD, LOITER, AUTO = _NUMBER["MANUAL"], _NUMBER["HOLD"], _NUMBER["LOITER"], _NUMBER["AUTO"]
 RTL, SMART_RTL, GUIDED = _NUMBER["RTL"], _NUMBER["SMART_RTL"], _NUMBER["GUIDED"]
+#: The navigation items ArduRover drives (the others are skipped).
+DRIVEN = frozenset({NAV_WAYPOINT, NAV_LOITER_TIME, NAV_LOITER_UNLIM, NAV_RETURN_TO_LAUNCH})
 #: Modes whose set_desired_speed takes a speed whatever they do (ArduRover's ModeRTL,
 #: ModeSmartRTL, ModeAuto); GUIDED takes one only while it drives to a position.
 SPEED_MODES = frozenset({RTL, SMART_RTL, AUTO})
@@ -209,7 +215,7 @@ class Boat(SimVehicle):
         items = self.mission.items
         while index < len(items):
             item = items[index]
-            if item.command in (NAV_WAYPOINT, NAV_LOITER_TIME, NAV_RETURN_TO_LAUNCH):
+            if item.command in DRIVEN:
                 self._auto_start_nav(index)
                 return
             if item.is_nav:
@@ -244,17 +250,19 @@ class Boat(SimVehicle):
         if index is None:
             return self._loiter()
         item = self.mission.items[index]
+        unlimited = item.command == NAV_LOITER_UNLIM
         if not self.auto_reached and self._arrived():
             self.auto_reached = True
             hold = item.params[0] if item.command != NAV_RETURN_TO_LAUNCH else 0.0
             self.auto_hold_until = self.sim_time + max(0.0, hold)
             if item.command != NAV_RETURN_TO_LAUNCH:
                 self.say(MAV.MAV_SEVERITY_INFO, f"Reached waypoint #{index}")
-                self.mission.reached.append(index)
+                if not unlimited:  # reached, but never verified: no MISSION_ITEM_REACHED
+                    self.mission.reached.append(index)
             else:
                 self.say(MAV.MAV_SEVERITY_INFO, "Reached destination")
         if self.auto_reached:
-            if self.sim_time >= self.auto_hold_until:
+            if not unlimited and self.sim_time >= self.auto_hold_until:
                 self._auto_advance(index + 1)
             return self._loiter()
         return self._navigate(self.nav_speed or self.default_speed())

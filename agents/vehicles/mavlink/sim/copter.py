@@ -22,7 +22,11 @@ Entering it starts the mission at item 1, or, with ``MIS_RESTART`` 0 (the defaul
 resumes an interrupted one at its current navigation item. A navigation item runs
 until verified (NAV_TAKEOFF: the altitude; NAV_WAYPOINT and NAV_LOITER_TIME: within
 ``WPNAV_RADIUS`` of the point, then their hold time, param 1; NAV_LAND: landed;
-NAV_RETURN_TO_LAUNCH: RTL's climb, return, loiter and landing, the mode staying AUTO);
+NAV_RETURN_TO_LAUNCH: RTL's climb, return, loiter and landing, the mode staying AUTO;
+NAV_LOITER_UNLIM: never, as ModeAuto::verify_loiter_unlimited: it flies to its point,
+or with latitude and longitude 0 to its stopping point, at its altitude, or with 0 at
+the one it has, and holds there in AUTO, the mission never going past it, with no
+MISSION_ITEM_REACHED);
 the "do" items after it (DO_CHANGE_SPEED, DO_SET_SERVO, DO_GRIPPER, the camera's) run
 when it is verified, before the next navigation item starts, as AP_Mission runs them.
 Each start says "Mission: <n> <name>"; a waypoint or a loiter verified sends
@@ -51,6 +55,7 @@ from agents.vehicles.mavlink.sim.mission import (
     DO_SET_SERVO,
     NAV_LAND,
     NAV_LOITER_TIME,
+    NAV_LOITER_UNLIM,
     NAV_RETURN_TO_LAUNCH,
     NAV_TAKEOFF,
     NAV_WAYPOINT,
@@ -96,7 +101,8 @@ TAKEOFF_DONE_M = 0.2
 WP_ALT_TOLERANCE_M = 1.0
 #: What AP_Mission calls each command in its "Mission: <n> <name>" text.
 COMMAND_NAMES = {
-    NAV_WAYPOINT: "WP", NAV_LOITER_TIME: "LoitTime", NAV_RETURN_TO_LAUNCH: "RTL",
+    NAV_WAYPOINT: "WP", NAV_LOITER_TIME: "LoitTime", NAV_LOITER_UNLIM: "LoitUnlim",
+    NAV_RETURN_TO_LAUNCH: "RTL",
     NAV_LAND: "Land", NAV_TAKEOFF: "Takeoff", DO_CHANGE_SPEED: "ChangeSpeed",
     DO_SET_SERVO: "SetServo", DO_GRIPPER: "Gripper",
 }  # fmt: skip
@@ -244,6 +250,13 @@ class Copter(SimVehicle):
             self.hold = self.auto_target
         elif item.command == NAV_RETURN_TO_LAUNCH:
             self.rtl_stage = "climb"
+        elif item.command == NAV_LOITER_UNLIM:
+            # ModeAuto::do_loiter_unlimited: no position, the stopping point; no
+            # altitude, the current one.
+            if not item.has_position:
+                self._hold_here()
+                north, east = self.hold[0], self.hold[1]
+            self.auto_target = (north, east, self.up if item.alt == 0 else max(alt, 0.0))
         else:
             self.auto_target = (north, east, max(alt, 0.0))
 
@@ -281,6 +294,8 @@ class Copter(SimVehicle):
                     self.hold = (north, east, self.up)
                 return self._towards(self.auto_target, self.target_speed)
             return self._land()
+        if item.command == NAV_LOITER_UNLIM:
+            return self._towards(self.auto_target, self.target_speed)  # never verified
         target = self.auto_target
         if not self.auto_reached and self._auto_arrived(item, target):
             self.auto_reached = True
@@ -731,7 +746,7 @@ class Copter(SimVehicle):
         if (
             self.mode != AUTO
             or item is None
-            or item.command != NAV_WAYPOINT
+            or item.command not in (NAV_WAYPOINT, NAV_LOITER_UNLIM)
             or self.auto_reached
             or self.p("WP_YAW_BEHAVIOR") == 0
         ):
