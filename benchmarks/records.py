@@ -1,8 +1,8 @@
 """The flight record's size per hour, and what recording it costs the agent's CPU
 (docs/records.md).
 
-    python -m benchmarks.records                        # 30 minutes of flight, ~32 min
-    python -m benchmarks.records --minutes 0.2 --altitude 5 --out /tmp/records  # smoke
+    python -m benchmarks.records                  # 30 minutes of flight, about 32 min
+    python -m benchmarks.records --quick --out /tmp/records  # 12 s at 5 m, under a minute
 
 Two quadcopters on the project's MAVLink simulator (``agents.simulation``, speedup 1: the
 autopilot's streams, the GCS heartbeats and the recorder's 5 Hz sampling run at the
@@ -45,6 +45,7 @@ import argparse
 import asyncio
 import base64
 import contextlib
+import csv
 import dataclasses
 import datetime
 import functools
@@ -580,37 +581,62 @@ def _stop(agent: AgentRun) -> None:
             agent.process.wait()
 
 
-async def measure(params: Params, tmp: Path) -> dict[str, Any]:
-    """Fly both drones (module docstring); returns the raw measurements."""
-    from agents.protocol import (
-        Limits,
-        UserGrant,
-        VehicleTask,
-        generate_keypair,
-        load_private_key,
-        new_nonce,
-    )
+@dataclasses.dataclass(frozen=True)
+class Documents:
+    """The platform's key, and each drone's session, as the platform would sign them."""
 
-    private_pem, public_pem = generate_keypair()
-    key = load_private_key(private_pem)
-    now = time.time()
-    life = params.seconds + 3600
-    sessions = {role: f"records-{role}" for role in ROLES}
-    tasks = {
-        f"{role}-drone": VehicleTask(
-            session_id=sessions[role],
-            vehicle_id=f"{role}-drone",
+    public_pem: str
+    key: Any
+    sessions: dict[str, str]
+
+    @classmethod
+    def make(cls) -> Documents:
+        from agents.protocol import generate_keypair, load_private_key
+
+        private_pem, public_pem = generate_keypair()
+        sessions = {f"{role}-drone": f"records-{role}" for role in ROLES}
+        return cls(public_pem, load_private_key(private_pem), sessions)
+
+    def task(self, vehicle: str, seconds: float) -> str:
+        """The drone's task: the pilot's commands, a 60 m ceiling, RTL on link loss."""
+        from agents.protocol import Limits, VehicleTask, new_nonce
+
+        now = time.time()
+        return VehicleTask(
+            session_id=self.sessions[vehicle],
+            vehicle_id=vehicle,
             user="pilot",
             allowed_commands=COMMANDS,
             limits=Limits(
                 max_altitude_m=60, failsafe_action="return_to_home", link_loss_timeout_ms=2000
             ),
             issued_at=now,
-            expires_at=now + life,
+            expires_at=now + seconds + 3600,
             nonce=new_nonce(),
-        ).sign(key)
-        for role in ROLES
-    }
+        ).sign(self.key)
+
+    def grant(self, vehicle: str) -> str:
+        """The pilot's controller grant on the drone (checked when the pilot connects)."""
+        from agents.protocol import UserGrant, new_nonce
+
+        now = time.time()
+        return UserGrant(
+            session_id=self.sessions[vehicle],
+            vehicle_id=vehicle,
+            user="pilot",
+            role="controller",
+            allowed_commands=COMMANDS,
+            issued_at=now - 1,
+            expires_at=now + 600,
+            nonce=new_nonce(),
+        ).sign(self.key)
+
+
+async def measure(params: Params, tmp: Path) -> dict[str, Any]:
+    """Fly both drones (module docstring); returns the raw measurements."""
+    documents = Documents.make()
+    public_pem = documents.public_pem
+    tasks = {vehicle: documents.task(vehicle, params.seconds) for vehicle in documents.sessions}
     platform_side = LocalPlatform(tasks)
     agents: dict[str, AgentRun] = {}
     samples: list[dict[str, float]] = []
@@ -645,27 +671,13 @@ async def measure(params: Params, tmp: Path) -> dict[str, Any]:
             sampling = asyncio.create_task(sampler())
             deadline = time.monotonic() + params.seconds
             pilots = {
-                role: Pilot(
-                    role,
-                    agents[role].control_url,
-                    UserGrant(
-                        session_id=sessions[role],
-                        vehicle_id=f"{role}-drone",
-                        user="pilot",
-                        role="controller",
-                        allowed_commands=COMMANDS,
-                        issued_at=time.time() - 1,
-                        expires_at=time.time() + 600,
-                        nonce=new_nonce(),
-                    ).sign(key),
-                    params,
-                )
-                for role in ROLES
+                role: Pilot(role, agent.control_url, documents.grant(f"{role}-drone"), params)
+                for role, agent in agents.items()
             }
             await asyncio.gather(*(p.fly(deadline) for p in pilots.values()))
             flown_s = time.monotonic() - t0
-            for role in ROLES:
-                await platform_side.end(f"{role}-drone", sessions[role])
+            for vehicle, session in documents.sessions.items():
+                await platform_side.end(vehicle, session)
             async with asyncio.timeout(60):
                 for side in got.values():
                     await side.ended.wait()
@@ -770,6 +782,7 @@ def figures(params: Params, m: dict[str, Any]) -> dict[str, Any]:
     return {
         "params": dataclasses.asdict(params),
         "session_s": session_s,
+        "flown_s": m["flown_s"],
         "window_s": window_s,
         "record": {
             "bytes": rec.frame_bytes,
@@ -988,10 +1001,11 @@ def write(out: Path, result: dict[str, Any]) -> None:
     )
     samples = result["cpu_samples"]
     columns = list(samples[0])
-    rows = [",".join(columns)]
-    for row in samples:
-        rows.append(",".join(f"{row.get(c, float('nan')):.2f}" for c in columns))
-    (out / "cpu.csv").write_text("\n".join(rows) + "\n")
+    with (out / "cpu.csv").open("w", newline="") as f:
+        writer = csv.writer(f, lineterminator="\n")
+        writer.writerow(columns)
+        for row in samples:
+            writer.writerow(f"{row.get(c, float('nan')):.2f}" for c in columns)
     (out / "README.md").write_text(report(result))
 
 
@@ -1016,10 +1030,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--minutes", type=float, default=Params.minutes, help="flight time")
     parser.add_argument("--altitude", type=float, default=Params.altitude_m, help="metres")
     parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument(
+        "--quick", action="store_true", help="the smoke: 12 s of flight at 5 m (--minutes 0.2)"
+    )
     parser.add_argument("--agent-spec", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.agent_spec:
         return _agent_main(args.agent_spec)
+    if args.quick:
+        args.minutes, args.altitude = 0.2, 5.0
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     argv_used = list(sys.argv[1:] if argv is None else argv)
     command = shlex.join(["python", "-m", "benchmarks.records", *argv_used])

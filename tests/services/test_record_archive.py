@@ -205,7 +205,6 @@ def test_a_video_goes_out_a_piece_at_a_time_under_wsgi_and_asgi(
     # Under ASGI Django would read a synchronous iterator whole before sending it: the
     # answer's content is asynchronous there, taken a piece at a time.
     request = AsyncRequestFactory().get(f"/sessions/{session.pk}/record/zip")
-    request.user = session.user
     answer = record_file(request, session, "zip")
     assert answer.streaming and answer.is_async
 
