@@ -4,6 +4,7 @@
     python -m benchmarks --quick    # the smoke-test sizes, in a few minutes
     python -m benchmarks --paper-args "--interval-s 0.2" --scale-args "--agents 1000"
     python -m benchmarks video      # one report alone: the pilot's video through a cut link
+    python -m benchmarks records    # one report alone: the flight record's size and CPU cost
 
 Runs, one after the other so neither disturbs the other's timings:
 
@@ -73,8 +74,9 @@ def main() -> None:
     parser.add_argument(
         "only",
         nargs="?",
-        choices=["video"],
-        help="run this benchmark alone (needs root and Chromium: benchmarks/video.py)",
+        choices=["video", "records"],
+        help="run this benchmark alone (video: needs root and Chromium, benchmarks/video.py;"
+        " records: 30 minutes of simulated flight, benchmarks/records.py)",
     )
     parser.add_argument("--quick", action="store_true", help="smoke-test sizes")
     parser.add_argument("--paper-args", default="", help="more options for benchmarks.paper")
@@ -101,6 +103,8 @@ def main() -> None:
         f"(scale/report.md) ({took['scale'] / 60:.1f} min)",
         "- [The pilot's video through a link cut from 4 to 0.5 Mbit/s and back](video/report.md)"
         " (run alone: `python -m benchmarks video`, needs root and Chromium)",
+        "- [The flight record's size per hour and the agent's CPU cost of recording]"
+        "(records/README.md) (run alone: `python -m benchmarks records`, about 32 min)",
         "",
         "Timings come from one run on a shared machine: compare the columns of one report",
         "(they were measured together) rather than figures across reports or machines.",

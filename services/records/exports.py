@@ -1,7 +1,8 @@
 """A session's flight record in the formats pilots, tools and authorities read
 (docs/records.md): GPX 1.1 and KML 2.2 tracks with altitude and time, CSV of the track,
 the commands and the events, the MAVLink ``.tlog``, and one zip archive of everything
-with the session's hash-chained log and its verification.
+with the session's hash-chained log, its verification and the session's recorded video,
+streamed as it is made.
 
 Altitude is what the vehicle reports: metres above its home point (GPX ``ele``, KML
 ``relativeToGround``). Times are UTC, from the vehicle's clock.
@@ -10,12 +11,13 @@ Altitude is what the vehicle reports: metres above its home point (GPX ``ele``, 
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import json
 import zipfile
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, Final
 from xml.etree import ElementTree as ET
 
 from django.core.serializers.json import DjangoJSONEncoder
@@ -23,6 +25,7 @@ from django.core.serializers.json import DjangoJSONEncoder
 from services.models import RecordSample, Session
 from services.records.keeping import record_samples, record_tlog, record_verify
 from services.sessions.log import session_log
+from services.sfu import Recording, sfu_recordings
 
 GPX_NS = "http://www.topografix.com/GPX/1/1"
 KML_NS = "http://www.opengis.net/kml/2.2"
@@ -160,10 +163,50 @@ def record_events_csv(session: Session) -> bytes:
     return _csv(EVENT_COLUMNS, _sample_rows(session, ["event", "dropped"], _event_fields))
 
 
-def record_archive(session: Session) -> bytes:
-    """One zip: every export above, the samples as uploaded (``samples.jsonl``), the
-    session's log with its hash chain (``log.json``) and the check of the record
-    against it (``verification.json``)."""
+#: What the archive says when the session has no converted video.
+NO_VIDEO: Final = (
+    "No video was recorded for this session (the platform runs no SFU, the vehicle "
+    "published no camera, or the recording is not converted yet)."
+)
+#: Bytes read from a video file at a time: what the archive holds in memory of it.
+VIDEO_CHUNK: Final = 1 << 20
+
+
+class _Spool:
+    """Where the streamed zip is written: an unseekable sink (so :mod:`zipfile` writes
+    each entry's sizes and CRC after its data) whose bytes are taken out as they come."""
+
+    def __init__(self) -> None:
+        self._parts: list[bytes] = []
+
+    def write(self, data: bytes, /) -> int:
+        self._parts.append(bytes(data))
+        return len(data)
+
+    def flush(self) -> None:
+        return None
+
+    def close(self) -> None:
+        return None
+
+    def take(self) -> bytes:
+        data, self._parts = b"".join(self._parts), []
+        return data
+
+
+def _listed(name: str, body: bytes) -> dict[str, Any]:
+    return {"name": name, "size": len(body), "sha256": hashlib.sha256(body).hexdigest()}
+
+
+def record_archive(session: Session) -> Iterator[bytes]:
+    """One zip, in pieces as it is made: every export above, the samples as uploaded
+    (``samples.jsonl``), the session's log with its hash chain (``log.json``), the
+    check of the record against it (``verification.json``), the session's recorded
+    video (``video/<n>.webm``, the stretches the replay plays, oldest first, stored as
+    they are) and ``manifest.json``: every other file's name, size and SHA-256, and
+    whether there is video (``video.recorded``; its stretches' start times, or why
+    there is none). A video is read a megabyte at a time, so a long one never sits in
+    memory whole."""
     log = [
         {
             "seq": e.seq,
@@ -184,19 +227,63 @@ def record_archive(session: Session) -> bytes:
         + "\n"
         for s in record_samples(session=session)
     )
-    out = io.BytesIO()
-    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED) as archive:
-        archive.writestr("track.gpx", record_gpx(session))
-        archive.writestr("track.kml", record_kml(session))
-        archive.writestr("track.csv", record_track_csv(session))
-        archive.writestr("commands.csv", record_commands_csv(session))
-        archive.writestr("events.csv", record_events_csv(session))
-        tlog = record_tlog(session=session)
-        if tlog:
-            archive.writestr("flight.tlog", tlog)
-        archive.writestr("samples.jsonl", samples)
-        archive.writestr("log.json", json.dumps(log, cls=DjangoJSONEncoder, indent=1))
-        archive.writestr(
-            "verification.json", json.dumps(record_verify(session=session).as_dict(), indent=1)
-        )
-    return out.getvalue()
+    files: list[tuple[str, bytes]] = [
+        ("track.gpx", record_gpx(session)),
+        ("track.kml", record_kml(session)),
+        ("track.csv", record_track_csv(session)),
+        ("commands.csv", record_commands_csv(session)),
+        ("events.csv", record_events_csv(session)),
+    ]
+    tlog = record_tlog(session=session)
+    if tlog:
+        files.append(("flight.tlog", tlog))
+    files += [
+        ("samples.jsonl", samples.encode()),
+        ("log.json", json.dumps(log, cls=DjangoJSONEncoder, indent=1).encode()),
+        (
+            "verification.json",
+            json.dumps(record_verify(session=session).as_dict(), indent=1).encode(),
+        ),
+    ]
+    # Everything that reads the database is done here, in the request; what the
+    # iterator does as the answer goes out is reading the video files and zipping.
+    return _archive_stream(str(session.pk), files, sfu_recordings(session_id=session.pk))
+
+
+def _archive_stream(
+    session_id: str, files: list[tuple[str, bytes]], recordings: list[Recording]
+) -> Iterator[bytes]:
+    """The zip of ``files`` and the video ``recordings`` and the manifest (see
+    :func:`record_archive`), a piece at a time."""
+    listed = [_listed(name, body) for name, body in files]
+    stretches: list[dict[str, Any]] = []
+    spool = _Spool()
+    with zipfile.ZipFile(spool, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        for name, body in files:
+            archive.writestr(name, body)
+            yield spool.take()
+        for index, recording in enumerate(recordings):
+            name = f"video/{index}.webm"
+            info = zipfile.ZipInfo.from_file(recording.path, name)
+            info.compress_type = zipfile.ZIP_STORED  # WebM is compressed already
+            digest, size = hashlib.sha256(), 0
+            with recording.path.open("rb") as source, archive.open(info, "w") as entry:
+                while chunk := source.read(VIDEO_CHUNK):
+                    entry.write(chunk)
+                    digest.update(chunk)
+                    size += len(chunk)
+                    yield spool.take()
+            listed.append({"name": name, "size": size, "sha256": digest.hexdigest()})
+            stretches.append(
+                {
+                    "name": name,
+                    "started_at": recording.started_at,
+                    "started_utc": _utc(recording.started_at),
+                }
+            )
+        video: dict[str, Any] = {"recorded": bool(stretches), "stretches": stretches}
+        if not stretches:
+            video["detail"] = NO_VIDEO
+        manifest = {"session": session_id, "files": listed, "video": video}
+        archive.writestr("manifest.json", json.dumps(manifest, indent=1))
+    yield spool.take()

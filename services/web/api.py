@@ -19,6 +19,7 @@ from uuid import UUID
 
 from django.db import transaction
 from django.http import Http404, HttpResponse
+from django.http.response import HttpResponseBase
 from ninja import Status, Swagger
 
 from accounts.users import AuthenticatedHttpRequest
@@ -368,11 +369,11 @@ def session_record(request: AuthenticatedHttpRequest, session_id: UUID) -> dict[
 @query()
 def session_record_export(
     request: AuthenticatedHttpRequest, session_id: UUID, name: schema.RecordExport
-) -> HttpResponse:
+) -> HttpResponseBase:
     """For the session's owner, monitors and admins; 404 for anyone else, and for a
     ``tlog`` the record does not have."""
     session = _visible_session(request, session_id)
     try:
-        return record_file(session, name)
+        return record_file(request, session, name)
     except Http404 as exc:
         raise ApiError(404, "not_found", str(exc)) from None

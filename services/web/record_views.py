@@ -6,15 +6,18 @@ such session (404)."""
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
 from typing import Final
 
+from asgiref.sync import sync_to_async
 from django.conf import settings
 from django.contrib.auth.decorators import login_required
+from django.core.handlers.asgi import ASGIRequest
 from django.http import (
     FileResponse,
     Http404,
+    HttpRequest,
     HttpResponse,
     JsonResponse,
     StreamingHttpResponse,
@@ -31,8 +34,9 @@ from services.records import exports
 from services.records.keeping import record_tlog, record_verify, record_visible
 from services.sfu import sfu_recordings
 
-#: Export name -> (builder, content type, file name suffix).
-EXPORTS: Final[dict[str, tuple[Callable[[Session], bytes], str, str]]] = {
+#: Export name -> (builder, content type, file name suffix). A builder returns the
+#: whole file, or (the zip, which holds the session's video) an iterator of its pieces.
+EXPORTS: Final[dict[str, tuple[Callable[[Session], bytes | Iterator[bytes]], str, str]]] = {
     "gpx": (exports.record_gpx, "application/gpx+xml", "track.gpx"),
     "kml": (exports.record_kml, "application/vnd.google-earth.kml+xml", "track.kml"),
     "track.csv": (exports.record_track_csv, "text/csv; charset=utf-8", "track.csv"),
@@ -52,18 +56,51 @@ def record_session(*, user: object, session_id: object) -> Session:
     return session
 
 
-def record_file(session: Session, name: str) -> HttpResponse:
+def record_file(request: HttpRequest, session: Session, name: str) -> HttpResponseBase:
     """The export ``name`` of ``session``'s record as a download; Http404 for an
-    unknown name, or a ``.tlog`` the record does not have."""
+    unknown name, or a ``.tlog`` the record does not have. The zip is streamed as it is
+    made (:func:`streamed`)."""
     if name not in EXPORTS:
         raise Http404("no such export")
     build, content_type, suffix = EXPORTS[name]
     body = build(session)
     if name == "tlog" and not body:
         raise Http404("this record has no MAVLink log")
-    response = HttpResponse(body, content_type=content_type)
+    response: HttpResponseBase
+    if isinstance(body, bytes):
+        response = HttpResponse(body, content_type=content_type)
+    else:
+        response = StreamingHttpResponse(streamed(request, body), content_type=content_type)
     response["Content-Disposition"] = f'attachment; filename="session-{session.pk}-{suffix}"'
     return response
+
+
+def streamed(
+    request: HttpRequest, pieces: Iterator[bytes]
+) -> Iterator[bytes] | AsyncIterator[bytes]:
+    """``pieces`` as a streaming answer's content. Under WSGI (production's gunicorn)
+    as they are. Under ASGI (``iouv.serve``) an asynchronous iterator that takes them
+    one at a time in a worker thread: Django reads a synchronous iterator whole before
+    sending any of it there, which for a zip holding hours of video means all of it in
+    memory. ``pieces`` must not touch the database (the thread is any)."""
+    if isinstance(request, ASGIRequest):
+        return _pulled(pieces)
+    return pieces
+
+
+def _next(pieces: Iterator[bytes]) -> bytes | None:
+    return next(pieces, None)
+
+
+async def _pulled(pieces: Iterator[bytes]) -> AsyncIterator[bytes]:
+    take = sync_to_async(_next, thread_sensitive=False)
+    try:
+        while (piece := await take(pieces)) is not None:
+            yield piece
+    finally:
+        close = getattr(pieces, "close", None)
+        if close is not None:  # a generator: its files are closed (a client gone)
+            await sync_to_async(close, thread_sensitive=False)()
 
 
 def record_summary(session: Session, *, url_for: Callable[[str], str]) -> dict[str, object]:
@@ -99,9 +136,9 @@ def session_record(request: AuthenticatedHttpRequest, session_id: str) -> HttpRe
 @require_GET
 def session_record_export(
     request: AuthenticatedHttpRequest, session_id: str, name: str
-) -> HttpResponse:
+) -> HttpResponseBase:
     """One export of the record (GPX, KML, CSV, tlog, zip)."""
-    return record_file(record_session(user=request.user, session_id=session_id), name)
+    return record_file(request, record_session(user=request.user, session_id=session_id), name)
 
 
 #: Samples one replay answer holds at most; the page asks again from the last one.

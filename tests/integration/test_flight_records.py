@@ -246,7 +246,8 @@ async def test_a_flight_through_a_platform_outage_is_recorded_whole_and_exported
     agent_system = agent.adapter.link.config.source_system
     assert {("COMMAND_LONG", agent_system), ("SET_POSITION_TARGET_LOCAL_NED", agent_system)} <= sent
 
-    archive = zipfile.ZipFile(io.BytesIO((await db(_get, owner, base + "zip")).content))
+    # Streamed (it may hold hours of video): read to its end.
+    archive = zipfile.ZipFile(io.BytesIO((await db(_get, owner, base + "zip")).getvalue()))
     assert {"track.gpx", "track.kml", "track.csv", "commands.csv", "flight.tlog"} <= set(
         archive.namelist()
     )
@@ -255,6 +256,9 @@ async def test_a_flight_through_a_platform_outage_is_recorded_whole_and_exported
     batches = await db(RecordBatch.objects.filter(session_id=session.pk).count)
     assert sum(e["kind"] == "record_batch" for e in chain) == batches
     assert archive.read("commands.csv").decode().count("\n") == len(commands) + 1
+    manifest = json.loads(archive.read("manifest.json"))
+    assert {e["name"] for e in manifest["files"]} == set(archive.namelist()) - {"manifest.json"}
+    assert manifest["video"]["recorded"] is False  # this platform runs no SFU
 
     # Who may open it: the user and monitors; another client is told nothing exists.
     stranger = await db(f.user, "mallory")

@@ -1,8 +1,10 @@
-"""Fixtures of the services tests: on-commit work that runs, and a live session."""
+"""Fixtures of the services tests: on-commit work that runs, a live session, an SFU
+configured (its recordings in a folder of the test's own)."""
 
 from __future__ import annotations
 
 import uuid
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -39,3 +41,15 @@ def rate_counters(settings: Any) -> str:
         "default": {**settings.CACHES["default"], "KEY_PREFIX": prefix},
     }
     return prefix
+
+
+@pytest.fixture
+def janus_settings(settings: Any, tmp_path: Path) -> Any:
+    """The platform set up with an SFU (nothing listens at its address) that records
+    into ``tmp_path``/recordings."""
+    settings.IOUV_JANUS_URL = "http://127.0.0.1:9/janus"
+    settings.IOUV_JANUS_PUBLIC_URL = "wss://platform.example/janus-ws/"
+    settings.IOUV_JANUS_TOKEN_SECRET = "token-secret"
+    settings.IOUV_JANUS_ADMIN_KEY = "admin-key"
+    settings.IOUV_JANUS_REC_DIR = str(tmp_path / "recordings")
+    return settings

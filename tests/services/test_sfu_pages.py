@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import time
 from datetime import timedelta
-from pathlib import Path
 from typing import Any
 
 import pytest
@@ -22,16 +21,6 @@ from services.sessions.deployment import _user_task, _vehicle_task_sign
 from tests import factories as f
 
 pytestmark = pytest.mark.django_db
-
-
-@pytest.fixture
-def janus_settings(settings: Any, tmp_path: Path) -> Any:
-    settings.IOUV_JANUS_URL = "http://127.0.0.1:9/janus"
-    settings.IOUV_JANUS_PUBLIC_URL = "wss://platform.example/janus-ws/"
-    settings.IOUV_JANUS_TOKEN_SECRET = "token-secret"
-    settings.IOUV_JANUS_ADMIN_KEY = "admin-key"
-    settings.IOUV_JANUS_REC_DIR = str(tmp_path / "recordings")
-    return settings
 
 
 def _publishing(session: Session) -> Any:
