@@ -406,6 +406,68 @@ async def _fly_a_hop(agent: Agent, url: str, grant: str) -> None:
 
 
 @needs_chromium
+async def test_a_live_sessions_replay_follows_the_drone_and_scrubs_back_while_it_flies(flight):
+    """The replay of a session still flying: left at its end, the slider follows the
+    drone as its samples arrive; moved back, it stays where it was put while more
+    arrive, the marker on that earlier position."""
+    platform, agent, quad, service = flight
+    await agent_registered(quad, within=20, positioned=True)
+    session, user_task = await session_deployed(agent, service)
+    owner = await db(lambda: Session.objects.get(pk=session.pk).user)
+    seq = itertools.count(1)
+    async with (
+        connect(user_task.control_url, proxy=None, compression=None) as ws,
+        chromium_browser() as browser,
+    ):
+        await ws.send(json.dumps({"type": "auth", "grant": user_task.grant}))
+        assert (await recv(ws, "welcome"))["role"] == "controller"
+        assert (await command(ws, next(seq), "take_off", altitude_m=5))["ok"]
+        page = await browser.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+
+        async def flying_until(condition: str, what: str) -> None:
+            """Fly forward (each command answered: the link stays alive) until the
+            page's ``condition`` holds."""
+            deadline = time.monotonic() + 60
+            while not await page.evaluate(condition):
+                assert time.monotonic() < deadline, f"not seen in 60 s: {what}"
+                await command(ws, next(seq), "front", speed_mps=2)
+                await asyncio.sleep(0.2)
+
+        await sign_in(page, platform.base, owner.username, password="pw-for-tests")
+        await page.goto(f"{platform.base}/sessions/{session.pk}/replay/")
+        await expect(page.locator("#replay")).to_have_attribute("data-loaded", "true")
+        await expect(page.locator("[data-replay-status]")).to_contain_text("Live")
+        await flying_until("() => window.IoUVReplay.times().length >= 5", "five positions")
+        # Left at its end, the slider follows the drone.
+        slider = page.locator("[data-replay-slider]")
+        await slider.fill(await slider.get_attribute("max") or "0")
+        seen = await page.evaluate("() => window.IoUVReplay.times().length")
+        await flying_until(
+            f"() => window.IoUVReplay.times().length > {seen} + 5", "more positions, live"
+        )
+        latest = "() => { const t = window.IoUVReplay.times();"
+        latest += " return window.IoUVReplay.current().t === t[t.length - 1]; }"
+        assert await page.evaluate(latest), "the slider stayed behind at the end"
+        # Scrubbed back, it stays on that position while the drone flies on.
+        await slider.fill("2")
+        seen = await page.evaluate("() => window.IoUVReplay.times().length")
+        await flying_until(
+            f"() => window.IoUVReplay.times().length > {seen} + 5", "more positions, live"
+        )
+        current = await page.evaluate("() => window.IoUVReplay.current()")
+        assert current["t"] == (await page.evaluate("() => window.IoUVReplay.times()"))[2]
+        assert await page.evaluate("() => window.IoUVReplay.markerLatLng()") == [
+            current["data"]["lat"],
+            current["data"]["lon"],
+        ]
+        assert await slider.input_value() == "2"
+        assert not errors, errors
+        assert (await command(ws, next(seq), "land"))["ok"]
+
+
+@needs_chromium
 async def test_the_replay_page_moves_the_marker_and_gauges_with_its_slider(flight):
     platform, agent, quad, service = flight
     await agent_registered(quad, within=20, positioned=True)
