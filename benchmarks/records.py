@@ -70,6 +70,8 @@ import msgspec
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.asyncio.server import ServerConnection, serve
 
+from agents.recording import NullRecorder
+
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "benchmarks" / "records"
 CLK_TCK = os.sysconf("SC_CLK_TCK")
@@ -178,8 +180,10 @@ class CpuLedger:
         return max(0.0, (runs[1] - runs[0]) / n)
 
 
-class _NoRecord:
-    """The baseline agent's recorder: keeps nothing, samples nothing, uploads nothing."""
+class _NoRecord(NullRecorder):
+    """The baseline agent's recorder: keeps nothing, samples nothing, uploads nothing
+    (agents.recording.NullRecorder, with what the agent's runtime also asks of the
+    recorder it holds: the uplink slot, the context and the acks)."""
 
     uplink: Any = None
 
@@ -187,21 +191,6 @@ class _NoRecord:
         return self
 
     async def __aexit__(self, *exc: object) -> None:
-        return None
-
-    def command(self, **_: Any) -> None:
-        return None
-
-    def session_start(self, session_id: str) -> None:
-        return None
-
-    def session_end(self) -> None:
-        return None
-
-    def event(self, name: str, session_id: str | None, data: Any) -> None:
-        return None
-
-    def raw(self, at: float, frame: bytes) -> None:
         return None
 
     def acked(self, ack: Any) -> bool:
