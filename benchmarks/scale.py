@@ -789,7 +789,8 @@ class ApiClient:
         return http.client.HTTPConnection(self.host, self.port, timeout=60, source_address=source)
 
     def call(self, method: str, path: str, body: dict[str, Any] | None = None) -> tuple[int, Any]:
-        """(status, parsed JSON body); status 0 when the connection failed."""
+        """(status, parsed JSON body); status 0 when the connection failed, body None
+        when the response was not JSON (a proxy's error page)."""
         payload = json.dumps(body or {}).encode()
         headers = {
             "Authorization": f"Bearer {self.token}",
@@ -808,13 +809,18 @@ class ApiClient:
                 if response.getheader("Connection", "").lower() == "close":
                     self.conn.close()
                     self.conn = None
-                return response.status, json.loads(raw) if raw else None
-            except (OSError, http.client.HTTPException, ValueError):
+            except (OSError, http.client.HTTPException):
                 if self.conn is not None:
                     self.conn.close()
                 self.conn = None
                 if attempt:
                     return 0, None
+                continue
+            try:
+                return response.status, json.loads(raw) if raw else None
+            except ValueError:
+                # nginx's own 502 page when no upstream answered: the status says so.
+                return response.status, None
         return 0, None
 
 

@@ -396,6 +396,15 @@ def test_addresses_and_rules_are_parsed_strictly() -> None:
 # --------------------------------------------------------------------------------------
 
 
+def _logs_tail() -> str:
+    """The end of the run's front proxy and platform logs: why requests failed."""
+    runs = Path(settings.VAR_DIR) / "bench-scale"
+    tails = []
+    for log in sorted(runs.glob("*/proxy-*.log")) + sorted(runs.glob("*/platform-*.log")):
+        tails.append(f"--- {log.name}\n{log.read_text(errors='replace')[-1500:]}")
+    return "\n".join(tails)
+
+
 def _database_url() -> str:
     """The test database, for the daphne processes the benchmark starts."""
     db = settings.DATABASES["default"]
@@ -450,7 +459,7 @@ def test_quick_mode_writes_every_output(nginx: Path, tmp_path: Path) -> None:
     for topology in ("one", "two"):
         mine = [r for r in api if r["topology"] == topology]
         statuses = Counter((r["endpoint"], r["status"]) for r in mine)
-        assert statuses[("request", "201")], (topology, statuses)
+        assert statuses[("request", "201")], (topology, statuses, _logs_tail())
         for r in mine:
             _number(r["latency_ms"])
 
