@@ -1084,7 +1084,7 @@ class ControlHub:
 
     def _video_status_changed(self, status: Any) -> None:
         """The camera's encoder changed size, frame rate or bitrate (a
-        :class:`agents.video.VideoStatus`): tell every user who watches it directly."""
+        :class:`agents.video.encoder.VideoStatus`): tell every user who watches it directly."""
         message = _video_status_message(status)
         for client in list(self.clients.values()):
             if client.video:

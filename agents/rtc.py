@@ -46,7 +46,8 @@ from aiortc import (
 
 from agents.protocol import MAX_MESSAGE_BYTES, encode_message
 from agents.protocol.messages import Message
-from agents.video import VideoError, ice_server, restrict_ice_host_addresses
+from agents.video import VideoError
+from agents.video.ice import ice_server, restrict_ice_host_addresses
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +139,7 @@ class RtcPeers:
     """The agent's WebRTC connections, one per user link (see the module docstring).
 
     * ``events``: the owner told about channels, messages, paths and ends.
-    * ``video``: a :class:`~agents.video.VideoService` whose camera each connection
+    * ``video``: a :class:`~agents.video.service.VideoService` whose camera each connection
       carries when the offer asks for video; None for a vehicle without one.
     * ``ice_servers``: the agent's own STUN/TURN servers, used beside the ones each
       offer brings; ``ice_host_addresses``: restrict host candidates (loopback tests).

@@ -181,7 +181,7 @@ class Agent:
 
     def _video_service(self) -> Any:
         # Imported here: aiortc and av are only loaded by agents with a camera.
-        from agents.video import video_service_create
+        from agents.video.service import video_service_create
 
         # A sensor that shows as video (the thermal camera) is a source by its section.
         sources = {

@@ -6,7 +6,7 @@ watch through the SFU, which forwards the one stream to any number of them and r
 it. The agent is behind NAT and never listens: it dials out to Janus's WebSocket API
 (``janus-protocol``), joins the session's room as its only publisher with the token the
 platform put in the signed vehicle task (:class:`~agents.protocol.documents.SfuPublish`),
-and offers the camera from the shared encoder (:meth:`agents.video.VideoService.attach`):
+and offers the camera from the shared encoder (:meth:`agents.video.service.VideoService.attach`):
 one more packetiser, no second encode. When Janus goes away the publisher tries again
 with backoff until the task ends; the pilot's connection is never touched.
 
@@ -29,7 +29,7 @@ from aiortc import RTCConfiguration, RTCIceServer, RTCPeerConnection, RTCSession
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
-from agents.video import ice_server, restrict_ice_host_addresses
+from agents.video.ice import ice_server, restrict_ice_host_addresses
 
 log = logging.getLogger(__name__)
 
@@ -247,7 +247,7 @@ class JanusSession:
 class SfuPublisher:
     """Publishes the vehicle's camera to one VideoRoom room until stopped.
 
-    * ``video``: the :class:`~agents.video.VideoService` (its shared encoder);
+    * ``video``: the :class:`~agents.video.service.VideoService` (its shared encoder);
     * ``url``: Janus's WebSocket API; ``token``: a Janus core token (``token_auth``);
       ``room``, ``feed``: the room and the publisher id spectators subscribe to;
       ``publish_token``: the room's ``allowed`` token for its one publisher; ``pin``:

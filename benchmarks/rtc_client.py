@@ -25,7 +25,7 @@ from aiortc import (
 from aiortc.rtcconfiguration import RTCIceTransportPolicy
 from websockets.asyncio.client import ClientConnection, connect
 
-from agents.video import ice_server, restrict_ice_host_addresses
+from agents.video.ice import ice_server, restrict_ice_host_addresses
 
 #: ``listener(message, arrived_at, via)``: ``arrived_at`` is ``time.perf_counter()`` taken
 #: before the message was parsed, ``via`` is ``"socket"`` or ``"control"`` (the data

@@ -63,7 +63,8 @@ def median_latency(latency_at: Sequence[Sequence[float]], start: float, end: flo
 
 async def run(cut_s: float, restore_s: float, warm_s: float) -> dict[str, Any]:
     from agents.rtc import RtcPeers
-    from agents.video import SyntheticCamera, VideoService
+    from agents.video.service import VideoService
+    from agents.video.sources import SyntheticCamera
     from tests.agents.video_page import (
         VideoOnly,
         largest_gap_ms,

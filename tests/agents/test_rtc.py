@@ -16,7 +16,7 @@ import pytest
 from aiortc import RTCPeerConnection
 
 from agents import control
-from agents.video import restrict_ice_host_addresses
+from agents.video.ice import restrict_ice_host_addresses
 from benchmarks.rtc_client import RtcClientError, RtcControlClient
 from tests.agents.car_rig import Rig, car_rig, make_grant
 from tests.agents.waiting import until

@@ -23,19 +23,16 @@ from aiortc import RTCConfiguration, RTCPeerConnection, RTCRtpReceiver, RTCSessi
 from aiortc.codecs import vpx
 
 from agents.rtc import RtcPeers
-from agents.video import (
+from agents.video import VideoError
+from agents.video.framecode import FrameCode, read_frame_code, stamp_frame_code
+from agents.video.ice import restrict_ice_host_addresses
+from agents.video.service import VideoService, video_service_create
+from agents.video.sources import (
     CameraPose,
-    FrameCode,
     MjpegCamera,
     SyntheticCamera,
     V4L2Camera,
-    VideoError,
-    VideoService,
     VideoSource,
-    read_frame_code,
-    restrict_ice_host_addresses,
-    stamp_frame_code,
-    video_service_create,
     video_source_create,
 )
 from tests.agents.video_page import signalling_server

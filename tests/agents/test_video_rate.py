@@ -1,4 +1,4 @@
-"""Bitrate adaptation of the shared encoder (agents.video_rate, agents.video): the
+"""Bitrate adaptation of the shared encoder (agents.video.rate, agents.video): the
 ladder's rules on a clock of the test's own, then the agent's real VideoService sending
 to Chromium behind an emulated link (tests/netlab.py, a ``tc tbf`` rate limit on the
 pilot's veth) that is cut and restored.
@@ -20,8 +20,7 @@ from typing import Any
 import pytest
 
 from agents.rtc import RtcPeers
-from agents.video import SyntheticCamera, VideoService
-from agents.video_rate import (
+from agents.video.rate import (
     LADDER,
     MIN_BITRATE,
     RateController,
@@ -29,6 +28,8 @@ from agents.video_rate import (
     Rung,
     fit_size,
 )
+from agents.video.service import VideoService
+from agents.video.sources import SyntheticCamera
 from tests.agents.video_page import (
     VideoOnly,
     largest_gap_ms,

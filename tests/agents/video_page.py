@@ -76,7 +76,7 @@ ws.onmessage = async (ev) => {
   } catch (e) { result.error = String(e); }
 };
 
-// The frame code (agents.video.stamp_frame_code): two rows of 48 blocks at the top.
+// The frame code (agents.video.framecode.stamp_frame_code): two rows of 48 blocks at the top.
 const CRC = new Uint32Array(256).map((_, n) => {
   let c = n;
   for (let k = 0; k < 8; k++) c = c & 1 ? 0xEDB88320 ^ (c >>> 1) : c >>> 1;
@@ -88,7 +88,7 @@ function crc32(bytes) {
   return (c ^ 0xFFFFFFFF) >>> 0;
 }
 function readCode(data, width) {
-  // As agents.video.read_frame_code: the middle half of each block, where the scaling
+  // As agents.video.framecode.read_frame_code: the middle half of each block, where the scaling
   // from the source's width put it.
   const source = sourceWidth || width, scale = width / source;
   const block = Math.floor(source / 48), x0 = Math.floor((source - block * 48) / 2);

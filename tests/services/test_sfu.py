@@ -26,7 +26,9 @@ from aiortc import RTCConfiguration, RTCPeerConnection, RTCSessionDescription
 from agents import sfu as agents_sfu
 from agents.rtc import RtcPeers
 from agents.sfu import JanusError, JanusSession, SfuPublisher
-from agents.video import SyntheticCamera, VideoService, restrict_ice_host_addresses
+from agents.video.ice import restrict_ice_host_addresses
+from agents.video.service import VideoService
+from agents.video.sources import SyntheticCamera
 from services import sfu
 from tests.janus import JanusServer, janus_server
 

@@ -14,7 +14,7 @@ import numpy as np
 import numpy.typing as npt
 
 from agents.missions.search.thermal import Blob, ThermalFeed, colour_range, false_colour
-from agents.video import draw_text
+from agents.video.framecode import draw_text
 
 RGB: TypeAlias = npt.NDArray[np.uint8]
 

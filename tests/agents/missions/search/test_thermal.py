@@ -32,7 +32,8 @@ from agents.missions.search.thermal import (
 )
 from agents.missions.search.video import ThermalVideo
 from agents.protocol import generate_keypair
-from agents.video import VideoError, video_source_create
+from agents.video import VideoError
+from agents.video.sources import video_source_create
 
 SEA = (40.6406, -8.6788)
 W, H, HFOV = 160, 120, 57.0
