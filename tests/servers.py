@@ -163,8 +163,11 @@ class PlatformServer:
         self.proc: subprocess.Popen[bytes] | None = None
         self.starts = 0
 
-    def start(self, within: float = 30.0) -> None:
-        """Start the process and return once it answers ``/healthz``."""
+    def start(self, within: float = 90.0) -> None:
+        """Start the process and return once it answers ``/healthz``; RuntimeError if it
+        exits first or has not answered ``within`` seconds. The bound is generous: a
+        start is mostly imports, which take a minute of wall time on a machine whose
+        cores are shared by a dozen busy processes (a loaded CI runner)."""
         self.starts += 1
         with open(self.log_path, "a") as log:  # the child keeps its own descriptor
             self.proc = subprocess.Popen(

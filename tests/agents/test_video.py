@@ -134,12 +134,14 @@ async def viewer(rtc: RtcPeers, peer_id: str) -> AsyncIterator[Viewer]:
 
 @contextlib.asynccontextmanager
 async def camera(
-    source: VideoSource | None = None, **peers: Any
+    source: VideoSource | None = None, *, keyframe_interval_s: float = 3.0, **peers: Any
 ) -> AsyncIterator[tuple[VideoService, RtcPeers]]:
     """A loopback VideoService (over a small, fast synthetic camera unless ``source``)
     and the agent's WebRTC connections carrying it (``peers``: RtcPeers options)."""
     source = source or SyntheticCamera(320, 240, fps=30)
-    async with VideoService(source, ice_host_addresses=LOOPBACK) as svc:
+    async with VideoService(
+        source, ice_host_addresses=LOOPBACK, keyframe_interval_s=keyframe_interval_s
+    ) as svc:
         rtc = RtcPeers(_Events(), video=svc, **peers)
         try:
             yield svc, rtc
@@ -304,14 +306,17 @@ async def test_two_viewers_share_one_encoder(monkeypatch: pytest.MonkeyPatch) ->
 
 
 async def test_picture_loss_from_a_viewer_forces_a_shared_keyframe() -> None:
-    async with camera() as (svc, rtc), viewer(rtc, "a") as a:
+    # No keyframe falls due on its own in the test: only a request makes one.
+    async with camera(keyframe_interval_s=3600) as (svc, rtc), viewer(rtc, "a") as a:
         await a.codes(3)
         before = svc.encoder.keyframes
         # What RTCRtpSender does on an RTCP PLI or FIR from this viewer:
         (sender,) = rtc._peers["a"].pc.getSenders()
         sender._send_keyframe()
         await a.codes(12)  # keyframes are at least 0.25 s apart; 12 frames is 0.4 s
-        assert svc.encoder.keyframes == before + 1
+        # At least: on a busy machine the viewer may fall behind its queue, which asks
+        # for one more (the encoder cannot tell the two apart, nor need it).
+        assert svc.encoder.keyframes >= before + 1
 
 
 async def test_no_viewer_means_no_capture() -> None:
