@@ -29,7 +29,8 @@ from django.views.decorators.cache import never_cache
 from django.views.decorators.http import require_GET
 
 from accounts.users import AuthenticatedHttpRequest
-from services.models import RecordSample, Session
+from fleet.models import Vehicle
+from services.models import Assignment, RecordBatch, RecordSample, Session
 from services.records import exports
 from services.records.keeping import record_tlog, record_verify, record_visible
 from services.sfu import sfu_recordings
@@ -147,10 +148,38 @@ REPLAY_PAGE: Final = 2000
 REPLAY_KINDS: Final = ("telemetry", "command", "event", "dropped")
 
 
+def replay_vehicles(session: Session) -> list[dict[str, str]]:
+    """The vehicles the replay of ``session`` shows, each ``{"id", "name"}``: those
+    given a role in it, in the order they were given one (released ones too: a
+    session's assignments are kept), then any other that uploaded samples to it, by
+    name. The order is the page's: the first vehicle keeps the one-vehicle page's
+    colours."""
+    named: dict[str, str] = {}
+    assigned = (
+        Assignment.objects.filter(session=session)
+        .order_by("created_at", "pk")
+        .values_list("vehicle_id", "vehicle__name")
+    )
+    # A record is only stored from a vehicle holding an assignment, but its samples
+    # are what the page draws: a vehicle that recorded is named whatever became of it.
+    recorded = (
+        Vehicle.objects.filter(
+            pk__in=RecordBatch.objects.filter(session=session).values("vehicle_id")
+        )
+        .order_by("name")
+        .values_list("pk", "name")
+    )
+    for vehicle_id, name in [*assigned, *recorded]:
+        named.setdefault(str(vehicle_id), name)
+    return [{"id": vehicle_id, "name": name} for vehicle_id, name in named.items()]
+
+
 def replay_samples(session: Session, *, after: int) -> dict[str, object]:
     """The record's samples the replay page shows that were stored after the sample
     whose ``id`` is ``after`` (0: from the start), at most :data:`REPLAY_PAGE`, in the
-    order they were stored; ``more`` says whether the page should ask again at once.
+    order they were stored; ``more`` says whether the page should ask again at once,
+    ``vehicles`` names the vehicles of these samples (id -> name: one may have been
+    given a role after the page was opened).
     The cursor is the stored row's id rather than the vehicle's sequence number, so a
     session with several vehicles (each numbering its own) still has one cursor."""
     rows = list(
@@ -160,6 +189,7 @@ def replay_samples(session: Session, *, after: int) -> dict[str, object]:
     )
     more = len(rows) > REPLAY_PAGE
     rows = rows[:REPLAY_PAGE]
+    names = Vehicle.objects.filter(pk__in={r["vehicle_id"] for r in rows}).values_list("pk", "name")
     return {
         "samples": [
             {
@@ -172,6 +202,7 @@ def replay_samples(session: Session, *, after: int) -> dict[str, object]:
             }
             for r in rows
         ],
+        "vehicles": {str(pk): name for pk, name in names},
         "next": rows[-1]["pk"] if rows else after,
         "more": more,
         # Still recording: the page keeps asking for what comes next.
@@ -184,9 +215,10 @@ def replay_samples(session: Session, *, after: int) -> dict[str, object]:
 @login_required
 @require_GET
 def session_replay(request: AuthenticatedHttpRequest, session_id: str) -> HttpResponse:
-    """The replay page: the track on the map, a time slider, the gauges at that instant,
-    the commands and events on a timeline (static/js/replay.js draws it from
-    :func:`session_replay_samples`)."""
+    """The replay page: each vehicle's track on the map, a time slider, the gauges of
+    each vehicle at that instant, the commands and events on a timeline
+    (static/js/replay.js draws it from :func:`session_replay_samples`; the vehicles it
+    names are :func:`replay_vehicles`)."""
     session = record_session(user=request.user, session_id=session_id)
     return render(
         request,
@@ -195,6 +227,7 @@ def session_replay(request: AuthenticatedHttpRequest, session_id: str) -> HttpRe
             "session": session,
             "replay": {
                 "samples_url": reverse("session_replay_samples", args=[session.pk]),
+                "vehicles": replay_vehicles(session),
                 "tiles": settings.IOUV_MAP_TILES_URL,
                 "poll_ms": 2000,
                 # What the SFU recorded, converted once the session ended: each stretch

@@ -1,10 +1,21 @@
 /*
- * A flight record's replay (services/templates/services/replay.html): the track on the
- * map, a time slider over the telemetry samples, the gauges at that instant, and the
- * commands and events on a timeline. The record comes from the page's samples URL
- * (services.record_views.session_replay_samples) in pages after a cursor; while the
- * session is live it asks again every poll_ms, and a slider left at the end follows it.
- * Exposes window.IoUVReplay for tests: markerLatLng(), current(), times().
+ * A flight record's replay (services/templates/services/replay.html): each vehicle's
+ * track on the map with its marker, one time slider over every vehicle's telemetry,
+ * each vehicle's gauges at that instant, and the commands and events on a timeline.
+ * The record comes from the page's samples URL
+ * (services.web.record_views.session_replay_samples) in pages after a cursor; while
+ * the session is live it asks again every poll_ms, and a slider left at the end
+ * follows it.
+ *
+ * The slider's steps are the telemetry samples with a position of every vehicle, in
+ * time order; at a step's instant t each vehicle is shown at its last position at or
+ * before t. A vehicle with no position yet at t has no marker (its gauges say so):
+ * a marker at its first position would claim it was there before its record says
+ * anything of it (a boat still in harbour while the drone searches).
+ *
+ * Exposes window.IoUVReplay for tests: markerLatLng() (the first vehicle's marker),
+ * current() (the sample at the slider's step), times() (the steps' instants),
+ * markers() ({vehicle name: [lat, lon]} of the markers shown).
  */
 (function () {
   "use strict";
@@ -15,16 +26,22 @@
   const timeOut = root.querySelector("[data-replay-time]");
   const status = root.querySelector("[data-replay-status]");
   const timeline = root.querySelector("[data-replay-timeline]");
+  const gauges = root.querySelector("[data-replay-gauges]");
   const video = root.querySelector("[data-replay-video-file]");
   const map = M.makeMap(root.querySelector("[data-replay-map]"), config.tiles);
   map.setView([0, 0], 2);
 
-  const telemetry = []; // samples with a position, by time
-  const entries = []; // commands, events and what was dropped, by time
-  const line = L.polyline([], { color: "#f5a623", weight: 3 }).addTo(map);
-  let marker = null;
+  // A colour per vehicle, in the page's order; the first is the one-vehicle page's.
+  const PALETTE = ["#f5a623", "#2f81f7", "#e0245e", "#3fb950", "#a371f7", "#00bcd4"];
+  const GAUGES = ["at", "alt", "speed", "battery", "mode", "heading"];
+
+  const positions = []; // every vehicle's samples with a position, by time: the slider's steps
+  const entries = []; // commands, events and what was dropped, by time: { sample, item }
+  const vehicles = new Map(); // id -> vehicle (see vehicleOf), in the page's order
+  const names = new Map((config.vehicles || []).map((v) => [v.id, v.name]));
   let cursor = 0;
-  let framed = false;
+  let started = false;
+  let framedVehicles = 0;
 
   function fmt(value, digits, unit) {
     return value === null || value === undefined ? "–" : `${Number(value).toFixed(digits)} ${unit}`;
@@ -34,28 +51,124 @@
     return new Date(t * 1000).toISOString().slice(11, 23) + " UTC";
   }
 
-  function show(index) {
-    const sample = telemetry[index];
-    if (!sample) return;
+  function hasPosition(sample) {
+    return sample.data.lat !== null && sample.data.lat !== undefined;
+  }
+
+  // The index in ``list`` (sorted by .t) after the last item at or before t.
+  function upperBound(list, t, key = (item) => item.t) {
+    let lo = 0;
+    let hi = list.length;
+    while (lo < hi) {
+      const mid = (lo + hi) >> 1;
+      if (key(list[mid]) <= t) lo = mid + 1;
+      else hi = mid;
+    }
+    return lo;
+  }
+
+  // Put ``item`` into ``list`` after every item of its time or earlier (a vehicle's
+  // samples and the timeline arrive in order, so this appends, unless another
+  // vehicle's batch arrives late); returns where it went.
+  function insertByTime(list, item, key) {
+    const at = upperBound(list, key ? key(item) : item.t, key);
+    list.splice(at, 0, item);
+    return at;
+  }
+
+  // A vehicle of the page: its track, its marker and label once it has a position at
+  // the slider's instant, its column of gauges. Made for the vehicles the page was
+  // given, in their order, and for any other one the record holds as it turns up.
+  function vehicleOf(id) {
+    let v = vehicles.get(id);
+    if (v) return v;
+    const color = PALETTE[vehicles.size % PALETTE.length];
+    v = {
+      id,
+      name: names.get(id) || `vehicle ${id}`,
+      color,
+      samples: [], // its positions, by time
+      line: L.polyline([], { color, weight: 3, className: "replay-track" }).addTo(map),
+      dot: null,
+      tag: null,
+      cells: {},
+    };
+    const head = document.createElement("th");
+    head.scope = "col";
+    head.dataset.gaugeVehicle = id;
+    const swatch = document.createElement("span");
+    swatch.className = "swatch";
+    swatch.style.background = color;
+    head.append(swatch, v.name);
+    gauges.tHead.rows[0].append(head);
+    for (const gauge of GAUGES) {
+      const cell = document.createElement("td");
+      cell.dataset.gauge = gauge;
+      cell.dataset.gaugeVehicle = id;
+      cell.textContent = "–";
+      gauges.querySelector(`[data-gauge-row="${gauge}"]`).append(cell);
+      v.cells[gauge] = cell;
+    }
+    vehicles.set(id, v);
+    nameEntries();
+    return v;
+  }
+
+  // The vehicle at instant t, ``sample`` being its position then (null: none yet).
+  function place(v, sample) {
+    if (!sample) {
+      if (v.dot) {
+        v.dot.remove();
+        v.tag.remove();
+        v.dot = v.tag = null;
+      }
+      for (const gauge of GAUGES) v.cells[gauge].textContent = "–";
+      v.cells.at.textContent = "no position yet";
+      return;
+    }
     const d = sample.data;
     const at = [d.lat, d.lon];
-    if (!marker) marker = L.circleMarker(at, { radius: 7, color: "#fff", fillColor: "#e0245e", fillOpacity: 1 }).addTo(map);
-    else marker.setLatLng(at);
-    const gauges = {
+    if (!v.dot) {
+      v.dot = L.circleMarker(at, {
+        radius: 7, color: "#fff", fillColor: v.color, fillOpacity: 1, className: "replay-marker",
+      }).addTo(map);
+      v.dot.getElement().dataset.replayVehicle = v.id;
+      v.tag = M.labels(map).add(at, M.escapeHtml(v.name), { group: "vehicle", radius: 7 });
+      v.tag.element.style.borderColor = v.color;
+      v.tag.element.dataset.replayVehicle = v.id;
+    } else {
+      v.dot.setLatLng(at);
+      v.tag.setLatLng(at);
+    }
+    const text = {
+      at: clock(sample.t),
       alt: fmt(d.alt, 1, "m"),
       speed: fmt(d.speed, 1, "m/s"),
       battery: fmt(d.battery, 0, "%"),
       mode: d.mode || "–",
       heading: fmt(d.heading, 0, "°"),
     };
-    for (const [name, text] of Object.entries(gauges)) {
-      root.querySelector(`[data-gauge="${name}"]`).textContent = text;
+    for (const gauge of GAUGES) v.cells[gauge].textContent = text[gauge];
+  }
+
+  // Every vehicle at the slider's step ``index``: the step's own sample for its
+  // vehicle (two samples of one vehicle may share an instant), the last position at or
+  // before that instant for the others.
+  function placeAll(index) {
+    const step = positions[index];
+    for (const v of vehicles.values()) {
+      if (step.vehicle === v.id) place(v, step);
+      else place(v, v.samples[upperBound(v.samples, step.t) - 1] || null);
     }
-    timeOut.textContent = clock(sample.t);
-    for (const item of timeline.children) {
-      item.classList.toggle("past", Number(item.dataset.t) <= sample.t);
-    }
-    if (video) showVideo(sample.t);
+  }
+
+  function show(index) {
+    const step = positions[index];
+    if (!step) return;
+    placeAll(index);
+    timeOut.textContent = clock(step.t);
+    for (const entry of entries) entry.item.classList.toggle("past", entry.sample.t <= step.t);
+    if (video) showVideo(step.t);
   }
 
   // The recorded video at instant t (Unix seconds): the stretch that started last before
@@ -94,13 +207,18 @@
     return `event · ${d.event}`;
   }
 
-  function nearest(t) {
-    let best = 0;
-    for (let i = 0; i < telemetry.length && telemetry[i].t <= t; i++) best = i;
-    return best;
+  // The timeline names each entry's vehicle once the page shows more than one.
+  function nameEntries() {
+    const several = vehicles.size > 1;
+    for (const { sample, item } of entries) {
+      item.querySelector("[data-replay-vehicle]").textContent = several
+        ? `${vehicles.get(sample.vehicle).name} · `
+        : "";
+    }
   }
 
   function addEntry(sample) {
+    const v = vehicleOf(sample.vehicle);
     const item = document.createElement("li");
     item.dataset.t = String(sample.t);
     item.dataset.kind = sample.kind;
@@ -109,36 +227,66 @@
     button.className = "link";
     button.textContent = clock(sample.t);
     button.addEventListener("click", () => {
-      slider.value = String(nearest(sample.t));
+      slider.value = String(Math.max(0, upperBound(positions, sample.t) - 1));
       show(Number(slider.value));
     });
-    item.append(button, " ", describe(sample));
-    timeline.append(item);
+    const who = document.createElement("span");
+    who.dataset.replayVehicle = sample.vehicle;
+    who.textContent = vehicles.size > 1 ? `${v.name} · ` : "";
+    item.append(button, " ", who, describe(sample));
+    const entry = { sample, item };
+    const at = insertByTime(entries, entry, (e) => e.sample.t);
+    const next = entries[at + 1];
+    timeline.insertBefore(item, next ? next.item : null);
   }
 
-  function take(samples) {
-    const following = Number(slider.value) >= telemetry.length - 1;
-    for (const sample of samples) {
-      if (sample.kind === "telemetry") {
-        if (sample.data.lat === null || sample.data.lat === undefined) continue;
-        telemetry.push(sample);
-        line.addLatLng([sample.data.lat, sample.data.lon]);
-      } else {
-        entries.push(sample);
+  // Frame every track: on the first positions, and again when a vehicle's first
+  // positions arrive (a second vehicle's may be far from the first's).
+  function frame() {
+    const drawn = [...vehicles.values()].filter((v) => v.samples.length);
+    if (drawn.length <= framedVehicles) return;
+    framedVehicles = drawn.length;
+    const bounds = L.latLngBounds([]);
+    for (const v of drawn) bounds.extend(v.line.getBounds());
+    map.fitBounds(bounds.pad(0.3), { maxZoom: 18 });
+  }
+
+  function take(answer) {
+    for (const [id, name] of Object.entries(answer.vehicles || {})) {
+      if (!names.has(id)) names.set(id, name);
+    }
+    const following = Number(slider.value) >= positions.length - 1;
+    const held = positions[Number(slider.value)] || null;
+    for (const sample of answer.samples) {
+      if (sample.kind !== "telemetry") {
         addEntry(sample);
+        continue;
+      }
+      if (!hasPosition(sample)) continue;
+      const v = vehicleOf(sample.vehicle);
+      insertByTime(positions, sample);
+      if (insertByTime(v.samples, sample) === v.samples.length - 1) {
+        v.line.addLatLng([sample.data.lat, sample.data.lon]);
+      } else {
+        v.line.setLatLngs(v.samples.map((s) => [s.data.lat, s.data.lon]));
       }
     }
-    if (!telemetry.length) return;
-    slider.max = String(telemetry.length - 1);
+    if (!positions.length) return;
+    slider.max = String(positions.length - 1);
     slider.disabled = false;
-    if (!framed) {
-      framed = true;
-      map.fitBounds(line.getBounds().pad(0.3), { maxZoom: 18 });
+    frame();
+    if (!started) {
+      started = true;
       slider.value = "0";
       show(0);
     } else if (following) {
       slider.value = slider.max;
-      show(telemetry.length - 1);
+      show(positions.length - 1);
+    } else if (held) {
+      // Scrubbed back: the slider stays on the instant it was put on, though another
+      // vehicle's earlier positions may have come in before it, which then show.
+      slider.value = String(positions.indexOf(held));
+      placeAll(Number(slider.value));
     }
   }
 
@@ -149,9 +297,14 @@
       if (!response.ok) throw new Error(`the record could not be read (${response.status})`);
       answer = await response.json();
       cursor = answer.next;
-      take(answer.samples);
+      take(answer);
     } while (answer.more);
     return answer.live;
+  }
+
+  function counted() {
+    const drawn = [...vehicles.values()].filter((v) => v.samples.length).length;
+    return drawn > 1 ? `${positions.length} positions of ${drawn} vehicles` : `${positions.length} positions`;
   }
 
   async function run() {
@@ -160,8 +313,8 @@
       try {
         live = await load();
         status.textContent = live
-          ? `Live: ${telemetry.length} positions so far, more every ${config.poll_ms / 1000} s`
-          : `${telemetry.length} positions, ${entries.length} commands and events`;
+          ? `Live: ${counted()} so far, more every ${config.poll_ms / 1000} s`
+          : `${counted()}, ${entries.length} commands and events`;
         root.dataset.loaded = "true";
       } catch (error) {
         status.textContent = `${error.message}; trying again`;
@@ -170,11 +323,19 @@
     }
   }
 
+  for (const v of config.vehicles || []) vehicleOf(v.id);
   slider.addEventListener("input", () => show(Number(slider.value)));
   window.IoUVReplay = {
-    markerLatLng: () => (marker ? [marker.getLatLng().lat, marker.getLatLng().lng] : null),
-    current: () => telemetry[Number(slider.value)] || null,
-    times: () => telemetry.map((sample) => sample.t),
+    markerLatLng: () => {
+      const first = [...vehicles.values()].find((v) => v.samples.length);
+      const dot = first && first.dot;
+      return dot ? [dot.getLatLng().lat, dot.getLatLng().lng] : null;
+    },
+    current: () => positions[Number(slider.value)] || null,
+    times: () => positions.map((sample) => sample.t),
+    markers: () => Object.fromEntries(
+      [...vehicles.values()].filter((v) => v.dot).map((v) => [v.name, [v.dot.getLatLng().lat, v.dot.getLatLng().lng]]),
+    ),
   };
   run();
 })();

@@ -37,11 +37,13 @@ from agents.vehicles.mavlink.dialect import mavutil
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
 from services.models import RecordBatch, RecordSample, Service, Session
-from services.records.keeping import record_verify
+from services.records.keeping import record_batch_store, record_verify
+from services.sessions.ending import session_end
 from services.sessions.signing import platform_public_key_pem
 from tests import factories as f
 from tests.browser import chromium_browser, needs_chromium
 from tests.control import command, recv
+from tests.deployment import TARGET, limited_service, registered_vehicle, session_requested
 from tests.portal import sign_in
 from tests.servers import PlatformServer, agent_configured, db, platform_server, until
 from tests.vehicles import QUADCOPTER, agent_registered, session_deployed, vehicle_served
@@ -527,6 +529,135 @@ async def test_the_replay_page_moves_the_marker_and_gauges_with_its_slider(fligh
         await sign_in(other, platform.base, stranger.username, password="pw-for-tests")
         answer = await other.goto(f"{platform.base}/sessions/{session.pk}/replay/")
         assert answer is not None and answer.status == 404
+
+
+#: The rescue replayed below: when its record starts, and each vehicle's positions
+#: (lat, lon, alt) at its own instants from then (s): the drone searches northward
+#: from the start, the boat sets out eastward once the drone has found the person.
+RESCUE_T0 = 1.8e9
+RESCUE = {
+    "rescue-drone": [(float(i), (40.6310 + i * 0.0005, -8.6590, 20.0 + i)) for i in range(10)],
+    "rescue-boat": [(4.5 + i, (40.6290, -8.6560 + i * 0.0005, 0.0)) for i in range(6)],
+}
+
+
+def _rescue_recorded() -> Session:
+    """An ended rescue session whose two vehicles each uploaded their record: their
+    positions (:data:`RESCUE`), the drone's take-off and its finding, the boat's order
+    to go. The boat's batch is stored first, though its samples are the later."""
+    vehicles = {name: registered_vehicle(name=name) for name in RESCUE}
+    service = limited_service(roles=[{"name": "search"}, {"name": "delivery"}])
+    user = f.user(username="rita")
+    session = session_requested(user=user, service=service, target=TARGET).session
+    others = {
+        "rescue-drone": [
+            (0.5, "command", {"source": "user", "name": "take_off", "ok": True}),
+            (5.2, "event", {"event": "person_found"}),
+        ],
+        "rescue-boat": [(6.2, "command", {"source": "user", "name": "go_to", "ok": True})],
+    }
+    for name in ("rescue-boat", "rescue-drone"):
+        telemetry = [
+            (t, "telemetry", {"lat": lat, "lon": lon, "alt": alt, "mode": "GUIDED"})
+            for t, (lat, lon, alt) in RESCUE[name]
+        ]
+        rows = sorted(telemetry + others[name], key=lambda row: row[0])
+        outcome = record_batch_store(
+            vehicle_id=vehicles[name].pk,
+            message=Record(
+                id=f"record:{session.pk}:1",
+                session_id=str(session.pk),
+                first=1,
+                samples=[
+                    Sample(seq=n, t=RESCUE_T0 + t, kind=kind, data=data)
+                    for n, (t, kind, data) in enumerate(rows, start=1)
+                ],
+            ),
+        )
+        assert outcome.ok, outcome
+    session_end(session=session, reason="the person was brought ashore", by_user=True)
+    return session
+
+
+def _at(name: str, t: float) -> list[float]:
+    """Where :data:`RESCUE` has vehicle ``name`` at ``t`` s: its last position then."""
+    lat, lon, _ = [p for s, p in RESCUE[name] if s <= t][-1]
+    return [lat, lon]
+
+
+@needs_chromium
+async def test_the_replay_of_a_two_vehicle_rescue_shows_each_vehicle_on_its_own_track():
+    """A search drone and a rescue boat, replayed: a track and a named marker each, in
+    its own colour; at the slider's instant each vehicle is at its last position then
+    (the boat not yet shown before it set out), with its own gauges; the timeline names
+    the vehicle of each entry, in time order."""
+    session = await db(_rescue_recorded)
+    steps = sorted(t for track in RESCUE.values() for t, _ in track)
+    with platform_server() as platform:
+        async with chromium_browser() as browser:
+            page = await browser.new_page()
+            errors: list[str] = []
+            page.on("pageerror", lambda exc: errors.append(str(exc)))
+            await sign_in(page, platform.base, "rita", password="pw-for-tests")
+            await page.goto(f"{platform.base}/sessions/{session.pk}/replay/")
+            await expect(page.locator("#replay")).to_have_attribute("data-loaded", "true")
+            await expect(page.locator("[data-replay-status]")).to_have_text(
+                "16 positions of 2 vehicles, 3 commands and events"
+            )
+            assert await page.evaluate("() => window.IoUVReplay.times()") == [
+                RESCUE_T0 + t for t in steps
+            ]
+
+            # Two tracks, in two colours, each with all of its vehicle's positions.
+            tracks = page.locator("path.replay-track")
+            await expect(tracks).to_have_count(2)
+            colours = {await track.get_attribute("stroke") for track in await tracks.all()}
+            assert len(colours) == 2, colours
+
+            async def shows(at: float) -> None:
+                """The slider on the step at ``at`` s: each vehicle that has set out by
+                then is at its last position, its marker labelled with its name, and
+                its gauges say its altitude."""
+                await page.locator("[data-replay-slider]").fill(str(steps.index(at)))
+                expected = {name: _at(name, at) for name in RESCUE if RESCUE[name][0][0] <= at}
+                assert await page.evaluate("() => window.IoUVReplay.markers()") == expected
+                await expect(page.locator("path.replay-marker")).to_have_count(len(expected))
+                labels = page.locator(".map-label[data-replay-vehicle]")
+                await expect(labels).to_have_count(len(expected))
+                for name in expected:
+                    await expect(labels.filter(has_text=name)).to_be_visible()
+                for name, track in RESCUE.items():
+                    column = await page.locator(
+                        f'[data-replay-gauges] thead th:has-text("{name}")'
+                    ).get_attribute("data-gauge-vehicle")
+                    alt = page.locator(f'[data-gauge="alt"][data-gauge-vehicle="{column}"]')
+                    if name in expected:
+                        _, (_, _, metres) = [p for p in track if p[0] <= at][-1]
+                        await expect(alt).to_have_text(f"{metres:.1f} m")
+                    else:
+                        await expect(alt).to_have_text("\N{EN DASH}")
+                        position = page.locator(f'[data-gauge="at"][data-gauge-vehicle="{column}"]')
+                        await expect(position).to_have_text("no position yet")
+
+            await shows(0.0)  # only the drone has set out
+            await shows(6.0)  # a drone step: the boat where it was half a second before
+            await shows(8.5)  # a boat step: the drone where it was at 8 s
+
+            # The timeline: in time order (the boat's record was stored first), each
+            # entry naming its vehicle; a click moves the slider to that instant.
+            items = page.locator("[data-replay-timeline] li")
+            await expect(items).to_have_count(3)
+            texts = [" ".join(t.split()) for t in await items.all_text_contents()]
+            assert "rescue-drone · user · take_off · ok" in texts[0], texts
+            assert "rescue-drone · event · person_found" in texts[1], texts
+            assert "rescue-boat · user · go_to · ok" in texts[2], texts
+            await items.nth(2).get_by_role("button").click()
+            assert await page.evaluate("() => window.IoUVReplay.markers()") == {
+                "rescue-drone": _at("rescue-drone", 6.2),
+                "rescue-boat": _at("rescue-boat", 6.2),
+            }
+            assert await page.locator("[data-replay-slider]").input_value() == str(steps.index(6.0))
+            assert not errors, errors
 
 
 @pytest.mark.realtime

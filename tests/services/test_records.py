@@ -3,6 +3,7 @@ check, deletion by an admin and by the retention sweep (services.records.keeping
 
 from __future__ import annotations
 
+import json
 from datetime import timedelta
 from typing import Any
 
@@ -18,8 +19,10 @@ from agents.protocol.messages import Record, RecordSample
 from services.admin import SessionAdmin
 from services.models import RecordBatch, Session
 from services.records.keeping import record_batch_store, record_verify, records_expire
+from services.sessions.ending import session_end
 from services.web import record_views
 from tests import factories as f
+from tests.deployment import TARGET, limited_service, registered_vehicle, session_requested
 
 pytestmark = pytest.mark.django_db
 
@@ -168,3 +171,27 @@ def test_the_replay_reads_the_samples_after_its_cursor_and_refuses_bad_input(
     stranger.force_login(f.user("mallory"))
     assert stranger.get(url).status_code == 404
     assert stranger.get(f"/sessions/{session.pk}/replay/").status_code == 404
+
+
+def test_the_replay_names_every_vehicle_of_the_session_once_their_roles_are_released() -> None:
+    drone, boat = registered_vehicle(name="searcher"), registered_vehicle(name="carrier")
+    service = limited_service(roles=[{"name": "search"}, {"name": "delivery"}])
+    session = session_requested(user=f.user(), service=service, target=TARGET).session
+    for vehicle in (boat, drone):
+        record_batch_store(vehicle_id=vehicle.pk, message=_batch(session, 1, n=2))
+    session_end(session=session, reason="the person was brought back", by_user=True)
+    assert not session.assignments.filter(active=True).exists()
+
+    client = Client()
+    client.force_login(session.user)
+    page = client.get(f"/sessions/{session.pk}/replay/").content.decode()
+    start = page.index('<script id="replay-config" type="application/json">')
+    config = json.loads(page[page.index(">", start) + 1 : page.index("</script>", start)])
+    # In the order they were given their roles, whichever recorded first.
+    assigned = [str(a.vehicle_id) for a in session.assignments.order_by("created_at", "pk")]
+    names = {str(drone.pk): "searcher", str(boat.pk): "carrier"}
+    assert config["vehicles"] == [{"id": v, "name": names[v]} for v in assigned]
+
+    answer = client.get(f"/sessions/{session.pk}/replay/samples").json()
+    assert {s["vehicle"] for s in answer["samples"]} == set(names)
+    assert answer["vehicles"] == names and not answer["live"]
