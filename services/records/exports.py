@@ -22,7 +22,8 @@ from xml.etree import ElementTree as ET
 
 from django.core.serializers.json import DjangoJSONEncoder
 
-from services.models import RecordSample, Session
+from fleet.models import Vehicle
+from services.models import Assignment, RecordBatch, RecordSample, Session
 from services.records.keeping import record_samples, record_tlog, record_verify
 from services.sessions.log import session_log
 from services.sfu import Recording, sfu_recordings
@@ -47,6 +48,39 @@ def _utc(t: float) -> str:
     return datetime.fromtimestamp(t, tz=UTC).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
 
 
+def record_vehicles(session: Session) -> list[dict[str, str]]:
+    """The vehicles of ``session``'s record, as the replay shows them and the exports
+    name their tracks, each ``{"id", "name"}``: those
+    given a role in it, in the order they were given one (released ones too: a
+    session's assignments are kept), then any other that uploaded samples to it, by
+    name. The order is the page's: the first vehicle keeps the one-vehicle page's
+    colours."""
+    named: dict[str, str] = {}
+    assigned = (
+        Assignment.objects.filter(session=session)
+        .order_by("created_at", "pk")
+        .values_list("vehicle_id", "vehicle__name")
+    )
+    # A record is only stored from a vehicle holding an assignment, but its samples
+    # are what the page draws: a vehicle that recorded is named whatever became of it.
+    recorded = (
+        Vehicle.objects.filter(
+            pk__in=RecordBatch.objects.filter(session=session).values("vehicle_id")
+        )
+        .order_by("name")
+        .values_list("pk", "name")
+    )
+    for vehicle_id, name in [*assigned, *recorded]:
+        named.setdefault(str(vehicle_id), name)
+    return [{"id": vehicle_id, "name": name} for vehicle_id, name in named.items()]
+
+
+def _track_names(session: Session) -> dict[str, str]:
+    """Vehicle id -> a track's name: the vehicle's name as the replay shows it, and its
+    id, which the CSV exports' ``vehicle`` column holds."""
+    return {v["id"]: f"{v['name']} (vehicle {v['id']})" for v in record_vehicles(session)}
+
+
 def track_points(session: Session) -> dict[str, list[RecordSample]]:
     """Each vehicle's telemetry samples that have a position, in order."""
     tracks: dict[str, list[RecordSample]] = {}
@@ -63,9 +97,10 @@ def record_gpx(session: Session) -> bytes:
     root = ET.Element(f"{{{GPX_NS}}}gpx", {"version": "1.1", "creator": "IoUV"})
     meta = ET.SubElement(root, f"{{{GPX_NS}}}metadata")
     ET.SubElement(meta, f"{{{GPX_NS}}}name").text = f"IoUV session {session.pk}"
+    names = _track_names(session)
     for vehicle, points in track_points(session).items():
         trk = ET.SubElement(root, f"{{{GPX_NS}}}trk")
-        ET.SubElement(trk, f"{{{GPX_NS}}}name").text = f"vehicle {vehicle}"
+        ET.SubElement(trk, f"{{{GPX_NS}}}name").text = names.get(vehicle, f"vehicle {vehicle}")
         seg = ET.SubElement(trk, f"{{{GPX_NS}}}trkseg")
         for sample in points:
             d = sample.data
@@ -87,9 +122,11 @@ def record_kml(session: Session) -> bytes:
     root = ET.Element(f"{{{KML_NS}}}kml")
     doc = ET.SubElement(root, f"{{{KML_NS}}}Document")
     ET.SubElement(doc, f"{{{KML_NS}}}name").text = f"IoUV session {session.pk}"
+    names = _track_names(session)
     for vehicle, points in track_points(session).items():
         placemark = ET.SubElement(doc, f"{{{KML_NS}}}Placemark")
-        ET.SubElement(placemark, f"{{{KML_NS}}}name").text = f"vehicle {vehicle}"
+        name = names.get(vehicle, f"vehicle {vehicle}")
+        ET.SubElement(placemark, f"{{{KML_NS}}}name").text = name
         track = ET.SubElement(placemark, f"{{{GX_NS}}}Track")
         ET.SubElement(track, f"{{{KML_NS}}}altitudeMode").text = "relativeToGround"
         for sample in points:

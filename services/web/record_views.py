@@ -30,7 +30,7 @@ from django.views.decorators.http import require_GET
 
 from accounts.users import AuthenticatedHttpRequest
 from fleet.models import Vehicle
-from services.models import Assignment, RecordBatch, RecordSample, Session
+from services.models import RecordSample, Session
 from services.records import exports
 from services.records.keeping import record_tlog, record_verify, record_visible
 from services.sfu import sfu_recordings
@@ -148,32 +148,6 @@ REPLAY_PAGE: Final = 2000
 REPLAY_KINDS: Final = ("telemetry", "command", "event", "dropped")
 
 
-def replay_vehicles(session: Session) -> list[dict[str, str]]:
-    """The vehicles the replay of ``session`` shows, each ``{"id", "name"}``: those
-    given a role in it, in the order they were given one (released ones too: a
-    session's assignments are kept), then any other that uploaded samples to it, by
-    name. The order is the page's: the first vehicle keeps the one-vehicle page's
-    colours."""
-    named: dict[str, str] = {}
-    assigned = (
-        Assignment.objects.filter(session=session)
-        .order_by("created_at", "pk")
-        .values_list("vehicle_id", "vehicle__name")
-    )
-    # A record is only stored from a vehicle holding an assignment, but its samples
-    # are what the page draws: a vehicle that recorded is named whatever became of it.
-    recorded = (
-        Vehicle.objects.filter(
-            pk__in=RecordBatch.objects.filter(session=session).values("vehicle_id")
-        )
-        .order_by("name")
-        .values_list("pk", "name")
-    )
-    for vehicle_id, name in [*assigned, *recorded]:
-        named.setdefault(str(vehicle_id), name)
-    return [{"id": vehicle_id, "name": name} for vehicle_id, name in named.items()]
-
-
 def replay_samples(session: Session, *, after: int) -> dict[str, object]:
     """The record's samples the replay page shows that were stored after the sample
     whose ``id`` is ``after`` (0: from the start), at most :data:`REPLAY_PAGE`, in the
@@ -227,7 +201,7 @@ def session_replay(request: AuthenticatedHttpRequest, session_id: str) -> HttpRe
             "session": session,
             "replay": {
                 "samples_url": reverse("session_replay_samples", args=[session.pk]),
-                "vehicles": replay_vehicles(session),
+                "vehicles": exports.record_vehicles(session),
                 "tiles": settings.IOUV_MAP_TILES_URL,
                 "poll_ms": 2000,
                 # What the SFU recorded, converted once the session ended: each stretch

@@ -210,6 +210,8 @@ async def test_a_flight_through_a_platform_outage_is_recorded_whole_and_exported
     gpx_answer = await db(_get, owner, base + "gpx")
     assert gpx_answer.status_code == 200
     gpx = gpxpy.parse(gpx_answer.content.decode())
+    # Named as the replay names the vehicle, with the id the CSVs' column holds.
+    assert [t.name for t in gpx.tracks] == [f"{quad.name} (vehicle {quad.pk})"]
     points = [p for t in gpx.tracks for seg in t.segments for p in seg.points]
     assert [(p.latitude, p.longitude, p.elevation) for p in points] == [
         (s.data["lat"], s.data["lon"], s.data["alt"]) for s in track
@@ -217,6 +219,9 @@ async def test_a_flight_through_a_platform_outage_is_recorded_whole_and_exported
     assert [p.time for p in points] == [_utc(s.t) for s in track]
 
     kml = ET.fromstring((await db(_get, owner, base + "kml")).content)
+    assert [p.findtext(f"{KML}name") for p in kml.iter(f"{KML}Placemark")] == [
+        f"{quad.name} (vehicle {quad.pk})"
+    ]
     coords = [c.text.split() for c in kml.iter(f"{GX}coord")]
     assert [(float(lon), float(lat), float(alt)) for lon, lat, alt in coords] == [
         (s.data["lon"], s.data["lat"], s.data["alt"]) for s in track
