@@ -41,6 +41,7 @@ and ping every 10 s themselves, so a live agent never reaches it.
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import sys
 from typing import Any
 
@@ -80,6 +81,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on")
     parser.add_argument("--port", type=int, default=8000, help="port to listen on")
     args = parser.parse_args(argv)
+    # A crash in an extension's C code (seen once: a segfault in msgspec under the test
+    # suite's load) then leaves every thread's Python stack in the log.
+    faulthandler.enable()
 
     import uvicorn
 
