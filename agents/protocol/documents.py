@@ -653,3 +653,11 @@ class ReplayGuard:
             # The entry may be stale (evicted by the cap); only drop a matching one.
             if self._forget_at.get(nonce) == forget_at:
                 del self._forget_at[nonce]
+
+
+# msgspec works out how to convert to a struct type on the type's first use and keeps
+# that on the class. Done here, under the import lock, it never happens on two request
+# threads at once (a platform process under load once died of a segfault in msgspec's
+# extension on its first requests; this takes one candidate cause away).
+for _type in (Limits, SfuPublish, VehicleTask, UserGrant):
+    msgspec.json.Decoder(_type)

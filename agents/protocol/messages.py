@@ -587,6 +587,9 @@ MESSAGE_TYPES: Final[dict[str, frozenset[str]]] = {
 _DECODERS: Final[dict[str, msgspec.json.Decoder[Any]]] = {
     channel: msgspec.json.Decoder(union) for channel, union in CHANNEL_TYPES.items()
 }
+# CommandSpec's check converts to ArgSpec: prepared at import, as the decoders are
+# (agents.protocol.documents says why).
+msgspec.json.Decoder(ArgSpec)
 _ENCODER: Final = msgspec.json.Encoder()
 
 # --------------------------------------------------------------------------------------
