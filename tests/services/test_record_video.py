@@ -1,18 +1,21 @@
 """The session's recorded video under the record's hash chain (services.sessions.video,
-services.records.keeping.record_verify): each stretch janus-pp-rec converts is chained
-into the session's log once, however often the conversion runs; the record's check
-names a stretch whose bytes changed, one missing, one the log does not hold."""
+services.records.keeping.record_verify), and served a piece at a time: each stretch
+janus-pp-rec converts is chained into the session's log once, however often the
+conversion runs; the record's check names a stretch whose bytes changed, one missing,
+one the log does not hold; the replay's video goes out a piece at a time under ASGI."""
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import json
+import math
 import zipfile
 from io import BytesIO
 from typing import Any
 
 import pytest
-from django.test import Client
+from django.test import AsyncRequestFactory, Client
 from django.urls import reverse
 
 from services import sfu
@@ -21,6 +24,8 @@ from services.records.keeping import record_delete, record_verify
 from services.sessions.log import session_log_verify
 from services.sessions.video import RECORD_VIDEO, session_video_chain, session_video_convert
 from services.sessions.words import event_text
+from services.web import record_views
+from services.web.record_views import session_replay_video
 from tests.netlab import ensure_packages
 from tests.recordings import (
     STARTS_US,
@@ -194,3 +199,44 @@ def test_a_missing_video_is_reported_until_the_record_is_deleted(
     check = record_verify(session=session)
     assert check.ok, check.problems
     assert check.videos == 2
+
+
+def test_the_replay_video_goes_out_a_piece_at_a_time_under_asgi(
+    live_session: tuple[Session, str], janus_settings: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    session, _ = live_session
+    video = webm(30, 90)
+    recorded(session, [video])
+    monkeypatch.setattr(record_views, "VIDEO_PIECE", 256)
+    url = reverse("session_replay_video", args=[session.pk, 0])
+
+    def answered(**headers: str) -> tuple[Any, list[bytes]]:
+        request = AsyncRequestFactory().get(url, headers=headers)
+        request.user = session.user
+        answer = session_replay_video(request, str(session.pk), 0)
+        # Under ASGI Django reads a synchronous iterator whole before sending any of
+        # it: the answer's content is asynchronous, taken a piece at a time.
+        assert answer.streaming and answer.is_async
+
+        async def taken() -> list[bytes]:
+            return [bytes(piece) async for piece in answer]
+
+        return answer, asyncio.run(taken())
+
+    assert len(video) > 4 * 256
+    whole, pieces = answered()
+    assert whole.status_code == 200 and b"".join(pieces) == video
+    assert whole["Content-Length"] == str(len(video)) and whole["Accept-Ranges"] == "bytes"
+    assert whole["Content-Type"] == "video/webm"
+    assert len(pieces) == math.ceil(len(video) / 256)
+    assert max(len(piece) for piece in pieces) == 256
+
+    part, pieces = answered(Range="bytes=300-1299")
+    assert part.status_code == 206 and part["Accept-Ranges"] == "bytes"
+    assert part["Content-Range"] == f"bytes 300-1299/{len(video)}"
+    assert part["Content-Length"] == "1000"
+    assert b"".join(pieces) == video[300:1300] and len(pieces) == 4
+
+    tail, pieces = answered(Range="bytes=-10")
+    assert tail["Content-Range"] == f"bytes {len(video) - 10}-{len(video) - 1}/{len(video)}"
+    assert b"".join(pieces) == video[-10:]
