@@ -20,7 +20,8 @@ admin key (HMAC), so nothing is stored and a room lost with a Janus restart is m
 the same (:func:`sfu_room_open` is idempotent). Each room records what the vehicle
 publishes into ``IOUV_JANUS_REC_DIR/<session hex>/`` (Janus's ``.mjr`` files);
 :func:`sfu_recording_convert` turns them into WebM with ``janus-pp-rec`` once the
-session has ended.
+session has ended (services.sessions.video, which also chains each converted stretch
+into the session's log).
 """
 
 from __future__ import annotations
@@ -227,22 +228,6 @@ def sfu_room_schedule(*, session_id: Any) -> None:
     transaction.on_commit(lambda: services_sfu_room_open.delay(str(session_id)), robust=True)
 
 
-def sfu_session_end_schedule(*, session_id: Any) -> None:
-    """Once the current transaction commits, close the ended session's room and convert
-    its recording, from a Celery task (nothing without an SFU)."""
-    if not sfu_configured():
-        return
-    transaction.on_commit(lambda: services_sfu_session_ended.delay(str(session_id)), robust=True)
-
-
-def sfu_session_ended(*, session_id: Any) -> list[Recording]:
-    """Close the session's room (its recording ends) and convert what was recorded.
-    Idempotent. Returns the session's recordings. Raises SfuError (Janus away,
-    janus-pp-rec failing): the caller tries again later."""
-    sfu_room_close(session_id=session_id)
-    return sfu_recording_convert(session_id=session_id)
-
-
 def sfu_rooms_ensure() -> int:
     """Make the room of every live session whose vehicle publishes, where Janus lost it
     (a restart): the vehicle, which keeps trying, then publishes and is recorded again
@@ -356,9 +341,10 @@ def sfu_recording_convert(*, session_id: Any) -> list[Recording]:
 
 
 # --- Celery tasks (services.tasks lists and schedules them) ---------------------------
-# Here, not in services.tasks: the sessions deploying and ending a task schedule them,
-# and services.tasks imports the sessions' code, so importing it from here would close
-# a cycle.
+# Here, not in services.tasks: the sessions deploying a task schedule them, and
+# services.tasks imports the sessions' code, so importing it from here would close a
+# cycle. The task that closes an ended session's room and converts its recording is
+# services.sessions.video's: it also chains the video into the session's log.
 
 
 @shared_task(
@@ -378,21 +364,6 @@ def services_sfu_room_open(session_id: str) -> bool:
     if not Session.objects.filter(pk=session_id, ended_at__isnull=True).exists():
         return False
     return sfu_room_open(session_id=session_id)
-
-
-@shared_task(
-    name="services.sfu_session_ended",
-    acks_late=True,
-    autoretry_for=(SfuError,),
-    max_retries=10,
-    retry_backoff=5,
-    retry_backoff_max=300,
-    retry_jitter=True,
-)
-def services_sfu_session_ended(session_id: str) -> int:
-    """Close an ended session's SFU room and convert its recording to WebM; retried
-    while Janus or janus-pp-rec fails. Returns how many recordings it has."""
-    return len(sfu_session_ended(session_id=session_id))
 
 
 @shared_task(name="services.sfu_rooms_ensure")

@@ -18,10 +18,13 @@ from services.records.keeping import records_expire
 # The notices' own sending task lives with them (services.sessions.notices), which
 # schedules it; it is named here too so that this module lists every task of the app.
 from services.sessions.notices import notices_pending, notices_send, services_notices_send
+
+# Likewise the task that closes an ended session's SFU room and converts and chains its
+# recording lives with the session's video (services.sessions.video).
+from services.sessions.video import services_sfu_session_ended
 from services.sfu import (
     services_sfu_room_open,
     services_sfu_rooms_ensure,
-    services_sfu_session_ended,
     sfu_configured,
 )
 from services.supervision.timers import (

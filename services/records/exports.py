@@ -26,6 +26,7 @@ from fleet.models import Vehicle
 from services.models import Assignment, RecordBatch, RecordSample, Session
 from services.records.keeping import record_samples, record_tlog, record_verify
 from services.sessions.log import session_log
+from services.sessions.video import RECORD_VIDEO
 from services.sfu import Recording, sfu_recordings
 
 GPX_NS = "http://www.topografix.com/GPX/1/1"
@@ -241,9 +242,10 @@ def record_archive(session: Session) -> Iterator[bytes]:
     check of the record against it (``verification.json``), the session's recorded
     video (``video/<n>.webm``, the stretches the replay plays, oldest first, stored as
     they are) and ``manifest.json``: every other file's name, size and SHA-256, and
-    whether there is video (``video.recorded``; its stretches' start times, or why
-    there is none). A video is read a megabyte at a time, so a long one never sits in
-    memory whole."""
+    whether there is video (``video.recorded``; its stretches' start times and the
+    ``log_seq`` of the log's event that chains each, or why there is none). A video is
+    read a megabyte at a time, so a long one never sits in memory whole."""
+    events = session_log(session=session)
     log = [
         {
             "seq": e.seq,
@@ -254,8 +256,9 @@ def record_archive(session: Session) -> Iterator[bytes]:
             "prev_hash": e.prev_hash,
             "hash": e.hash,
         }
-        for e in session_log(session=session)
+        for e in events
     ]
+    chained = {str(e.data.get("name")): e.seq for e in events if e.kind == RECORD_VIDEO}
     samples = "".join(
         json.dumps(
             {"vehicle": str(s.vehicle_id), "seq": s.seq, "t": s.t, "kind": s.kind, "data": s.data},
@@ -277,21 +280,29 @@ def record_archive(session: Session) -> Iterator[bytes]:
     files += [
         ("samples.jsonl", samples.encode()),
         ("log.json", json.dumps(log, cls=DjangoJSONEncoder, indent=1).encode()),
+        # Every byte of the video hashed against the chain (the record's page checks
+        # sizes only): the archive is what goes to an investigator, and it reads every
+        # byte of the video anyway to send it.
         (
             "verification.json",
-            json.dumps(record_verify(session=session).as_dict(), indent=1).encode(),
+            json.dumps(record_verify(session=session, video="sha256").as_dict(), indent=1).encode(),
         ),
     ]
     # Everything that reads the database is done here, in the request; what the
     # iterator does as the answer goes out is reading the video files and zipping.
-    return _archive_stream(str(session.pk), files, sfu_recordings(session_id=session.pk))
+    recordings = sfu_recordings(session_id=session.pk)
+    return _archive_stream(str(session.pk), files, recordings, chained)
 
 
 def _archive_stream(
-    session_id: str, files: list[tuple[str, bytes]], recordings: list[Recording]
+    session_id: str,
+    files: list[tuple[str, bytes]],
+    recordings: list[Recording],
+    chained: dict[str, int],
 ) -> Iterator[bytes]:
     """The zip of ``files`` and the video ``recordings`` and the manifest (see
-    :func:`record_archive`), a piece at a time."""
+    :func:`record_archive`), a piece at a time. ``chained``: the file name of each
+    stretch the session's log chains -> that event's ``seq``."""
     listed = [_listed(name, body) for name, body in files]
     stretches: list[dict[str, Any]] = []
     spool = _Spool()
@@ -316,6 +327,9 @@ def _archive_stream(
                     "name": name,
                     "started_at": recording.started_at,
                     "started_utc": _utc(recording.started_at),
+                    # Where log.json holds its size and SHA-256 (null: not chained,
+                    # which verification.json reports).
+                    "log_seq": chained.get(recording.path.name),
                 }
             )
         video: dict[str, Any] = {"recorded": bool(stretches), "stretches": stretches}

@@ -3,11 +3,13 @@ session's log, read back, checked, kept for a while (docs/records.md).
 
 A batch (``record`` on the uplink, agents.recording) is stored once per (session,
 vehicle, first sample) with the SHA-256 of its samples; that digest goes into the
-session's hash-chained log as a ``record_batch`` event in the same transaction. So a
-record is checked in two steps (:func:`record_verify`): the log's chain holds, and every
-stored batch's samples still hash to the digest the chain holds for it. A sample
-changed, added or removed in the database breaks the second; rewriting the digest in
-the log breaks the first.
+session's hash-chained log as a ``record_batch`` event in the same transaction. The
+session's recorded video is chained the same way once converted, a ``record_video``
+event per stretch (services.sessions.video). So a record is checked in two steps
+(:func:`record_verify`): the log's chain holds, and every stored batch's samples and
+every stretch of video still hash to the digest the chain holds for them. A sample
+changed, added or removed in the database, or a video file replaced on disk, breaks the
+second; rewriting the digest in the log breaks the first.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import uuid
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from datetime import timedelta
-from typing import Any
+from typing import Any, Literal
 
 from django.conf import settings
 from django.db import IntegrityError, transaction
@@ -31,6 +33,7 @@ from agents.protocol.messages import Record
 from fleet.records import RecordOutcome
 from services.models import Assignment, RecordBatch, RecordSample, Session
 from services.sessions.log import event_append, session_log, session_log_verify
+from services.sessions.video import video_chained, video_digest
 from services.sfu import sfu_recorded_sessions, sfu_recording_delete, sfu_recordings
 
 log = logging.getLogger(__name__)
@@ -124,28 +127,40 @@ def record_tlog(*, session: Session) -> bytes:
     )
 
 
+#: How far :func:`record_verify` checks the video: each file's size (a ``stat``), or its
+#: size and SHA-256 (every byte read).
+VideoCheck = Literal["size", "sha256"]
+
+
 @dataclass(frozen=True)
 class RecordCheck:
-    """The result of :func:`record_verify`: ``ok``, else ``problems`` in words."""
+    """The result of :func:`record_verify`: ``ok``, else ``problems`` in words;
+    ``videos``: the stretches of video the log chains, checked by ``video_check``."""
 
     ok: bool
     batches: int
     samples: int
     problems: list[str] = field(default_factory=list)
+    videos: int = 0
+    video_check: VideoCheck = "sha256"
 
     def as_dict(self) -> dict[str, Any]:
         return {
             "ok": self.ok,
             "batches": self.batches,
             "samples": self.samples,
+            "videos": self.videos,
+            "video_check": self.video_check,
             "problems": self.problems,
         }
 
 
-def record_verify(*, session: Session) -> RecordCheck:
+def record_verify(*, session: Session, video: VideoCheck = "sha256") -> RecordCheck:
     """Check ``session``'s record against its log (module docstring): the chain holds,
     every batch the log names is stored and hashes to its digest, every stored batch is
-    named, and each vehicle's samples are numbered without a gap."""
+    named, each vehicle's samples are numbered without a gap, and the same for the
+    video's stretches (:func:`_video_problems`), each checked by ``video``: its size
+    only, or its SHA-256 too (which reads all of it)."""
     problems: list[str] = []
     events = session_log(session=session)
     chain = session_log_verify(session=session, events=events)
@@ -184,7 +199,43 @@ def record_verify(*, session: Session) -> RecordCheck:
         if sample.seq != previous + 1:
             problems.append(f"samples {previous + 1}-{sample.seq - 1} were never received")
         last_by_vehicle[sample.vehicle_id] = sample.seq
-    return RecordCheck(not problems, len(batches), len(samples), problems)
+    videos = video_chained(events)
+    problems += _video_problems(session=session, chained=videos, deleted=deleted, check=video)
+    return RecordCheck(not problems, len(batches), len(samples), problems, len(videos), video)
+
+
+def _video_problems(
+    *, session: Session, chained: dict[str, dict[str, Any]], deleted: bool, check: VideoCheck
+) -> list[str]:
+    """What does not hold between the session's converted video and the stretches its
+    log chains (``chained``): a chained stretch missing (unless the record was deleted),
+    one whose size, digest (``check`` "sha256") or start no longer match, a converted
+    one the log does not hold."""
+    problems: list[str] = []
+    converted = {r.path.name: r for r in sfu_recordings(session_id=session.pk)}
+    for name, entry in chained.items():
+        recording = converted.get(name)
+        if recording is None:
+            if not deleted:  # deleting the record deletes its video (record_delete)
+                problems.append(f"video {name} is missing")
+            continue
+        try:
+            if check == "sha256":
+                size, digest = video_digest(recording.path)
+            else:
+                size, digest = recording.path.stat().st_size, None
+        except OSError as exc:
+            problems.append(f"video {name} cannot be read: {exc.strerror}")
+            continue
+        if size != entry.get("size") or digest not in (None, entry.get("sha256")):
+            problems.append(f"video {name} does not match its digest")
+        elif recording.started_at != entry.get("started_at"):
+            # Its start comes from the .mjr's header: changed, the replay and the zip
+            # would place the video at another time of the flight.
+            problems.append(f"video {name} no longer starts when the log says")
+    for name in sorted(set(converted) - set(chained)):
+        problems.append(f"video {name} is not in the session log")
+    return problems
 
 
 def record_visible(*, session: Session, user: Any) -> bool:

@@ -22,7 +22,7 @@ from fleet.feed import fleet_notify
 from fleet.models import Vehicle
 from services.models import Assignment, Session, SessionEvent
 from services.sessions.log import event_append
-from services.sfu import sfu_session_end_schedule
+from services.sessions.video import session_video_end_schedule
 
 S = Session.State
 TRANSITIONS: dict[str, set[str]] = {
@@ -98,8 +98,9 @@ def session_transition_locked(
         session.ended_at = now
         fields.append("ended_at")
         released = assignments_release(session=session, free_vehicles=free_vehicles)
-        # The SFU's room closes and its recording is converted (nothing without one).
-        sfu_session_end_schedule(session_id=session.pk)
+        # The SFU's room closes and its recording is converted and chained into the
+        # log (nothing without an SFU).
+        session_video_end_schedule(session_id=session.pk)
     # A session not written yet (services.sessions.matching.session_record's ``write``) is
     # written with its changes.
     if not session._state.adding:

@@ -68,6 +68,7 @@ _TEXT: dict[str, Callable[[Mapping[str, Any]], str]] = {
     "task_accepted": lambda d: "the vehicle accepted its task",
     "record_batch": lambda d: f"flight record received: samples {d['first']} to {d['last']}",
     "record_deleted": lambda d: f"flight record deleted by {d['by']}",
+    "record_video": lambda d: f"recorded video added to the flight record ({d['size']:,} bytes)",
     "task_refused": lambda d: f"the vehicle refused its task: {d.get('reason', 'no reason given')}",
     "task_ended": lambda d: f"the vehicle ended its task: {d.get('reason', '')}".rstrip(": "),
     "grant_issued": lambda d: (

@@ -518,6 +518,11 @@ class RecordCheck(Schema):
     ok: bool
     batches: int
     samples: int
+    videos: int = Field(description="The stretches of recorded video the session's log chains.")
+    video_check: Literal["size", "sha256"] = Field(
+        description="How far the video was checked against the log: its files' sizes (the "
+        "record's summary), or their SHA-256 too (the zip's verification.json)."
+    )
     problems: list[str] = Field(description="What does not hold, in words; empty when ok.")
 
 

@@ -15,7 +15,6 @@ from django.conf import settings
 from django.contrib.auth.decorators import login_required
 from django.core.handlers.asgi import ASGIRequest
 from django.http import (
-    FileResponse,
     Http404,
     HttpRequest,
     HttpResponse,
@@ -114,7 +113,12 @@ def record_summary(session: Session, *, url_for: Callable[[str], str]) -> dict[s
     return {
         "session": str(session.pk),
         "samples": counts,
-        "verification": record_verify(session=session).as_dict(),
+        # The video checked by size only: this answers every view of the record (portal
+        # and API), and hashing reads every byte of every stretch (an hour of video is
+        # hundreds of megabytes: seconds of disk and CPU a view). A stat still catches a
+        # video gone, cut short or replaced by one of another size; the zip's
+        # verification.json (exports.record_archive) checks every byte.
+        "verification": record_verify(session=session, video="size").as_dict(),
         "exports": exports_urls,
     }
 
@@ -246,17 +250,22 @@ def session_replay_video(
     path = recordings[index].path
     size = path.stat().st_size
     wanted = _byte_range(request.headers.get("Range", ""), size)
-    if wanted is None:
-        response: HttpResponseBase = FileResponse(path.open("rb"), content_type="video/webm")
-    else:
+    start, end = wanted if wanted is not None else (0, size - 1)
+    # Streamed as the zip is (:func:`streamed`), the whole file as a range: a
+    # FileResponse, or any synchronous iterator, is read whole by Django under ASGI
+    # before any of it is sent, which for an hour of video means all of it in memory.
+    # (Under WSGI a whole file thus gives up the server's file wrapper, gunicorn's
+    # sendfile, as a range always did: one code path and a bounded memory instead.)
+    response = StreamingHttpResponse(
+        streamed(request, _file_slice(path, start, end - start + 1)),
+        status=200 if wanted is None else 206,
+        content_type="video/webm",
+    )
+    if wanted is not None:
         # A player seeks by asking for bytes from where it wants to be: without ranges a
         # browser cannot seek at all (the replay's slider moves the video).
-        start, end = wanted
-        response = StreamingHttpResponse(
-            _file_slice(path, start, end - start + 1), status=206, content_type="video/webm"
-        )
         response["Content-Range"] = f"bytes {start}-{end}/{size}"
-        response["Content-Length"] = str(end - start + 1)
+    response["Content-Length"] = str(end - start + 1)
     response["Accept-Ranges"] = "bytes"
     return response
 
@@ -278,11 +287,17 @@ def _byte_range(header: str, size: int) -> tuple[int, int] | None:
     return (start, end) if start <= end < size else None
 
 
+#: Bytes of a video sent at a time: what an answer holds of it in memory.
+VIDEO_PIECE: Final = 1 << 16
+
+
 def _file_slice(path: Path, start: int, length: int) -> Iterator[bytes]:
+    """``length`` bytes of the file at ``path`` from ``start``, :data:`VIDEO_PIECE` at a
+    time (fewer if the file is shorter). Opened when the first piece is asked for."""
     with path.open("rb") as f:
         f.seek(start)
         while length > 0:
-            chunk = f.read(min(length, 1 << 16))
+            chunk = f.read(min(length, VIDEO_PIECE))
             if not chunk:
                 return
             length -= len(chunk)

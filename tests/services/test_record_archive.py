@@ -1,7 +1,8 @@
 """The record's zip (services.records.exports.record_archive) with the session's video:
 real WebM files where the SFU's conversion leaves them go into ``video/<n>.webm``,
-``manifest.json`` lists every file with its size and SHA-256 and says whether there is
-video; the archive is streamed, a video a piece at a time, under WSGI and ASGI alike."""
+``manifest.json`` lists every file with its size and SHA-256, says whether there is
+video and where the log chains each stretch; the archive is streamed, a video a piece at
+a time, under WSGI and ASGI alike."""
 
 from __future__ import annotations
 
@@ -14,58 +15,20 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
-import av
-import numpy as np
 import pytest
 from django.test import AsyncRequestFactory, Client
 
 from accounts.tokens import token_issue
 from agents.protocol.messages import Record, RecordSample
-from services import sfu
 from services.models import Session
 from services.records import exports
 from services.records.keeping import record_batch_store
+from services.sessions.video import session_video_chain
 from services.web.record_views import record_file
 from tests import factories as f
+from tests.recordings import decoded_frames, recorded, webm
 
 pytestmark = pytest.mark.django_db
-
-#: When each stretch's first packet was written (Janus's ``.mjr`` header, µs).
-STARTS_US = (1795856400000000, 1795856460500000)
-
-
-def webm(frames: int, shade: int) -> bytes:
-    """A real WebM: ``frames`` VP8 frames of 64x48 at 10 fps, of one grey."""
-    out = io.BytesIO()
-    with av.open(out, "w", format="webm") as container:
-        stream = container.add_stream("libvpx", rate=10)
-        stream.width, stream.height, stream.pix_fmt = 64, 48, "yuv420p"
-        for i in range(frames):
-            picture = np.full((48, 64, 3), (shade + 7 * i) % 256, np.uint8)
-            for packet in stream.encode(av.VideoFrame.from_ndarray(picture, format="rgb24")):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
-    return out.getvalue()
-
-
-def decoded_frames(body: bytes) -> int:
-    with av.open(io.BytesIO(body)) as container:
-        return sum(1 for _ in container.decode(video=0))
-
-
-def recorded(session: Session, videos: list[bytes]) -> Path:
-    """The session's video as the SFU leaves it once converted: each stretch's ``.mjr``
-    (its header) and ``.webm`` in the session's recording folder."""
-    folder = sfu.sfu_recording_dir(session.pk)
-    assert folder is not None
-    folder.mkdir(parents=True)
-    for start_us, body in zip(STARTS_US, videos, strict=False):
-        name = f"videoroom-{sfu.sfu_room(session.pk)}-user-1-{start_us - 1000}-video-0"
-        header = json.dumps({"t": "v", "c": "vp8", "u": start_us}).encode()
-        (folder / f"{name}.mjr").write_bytes(b"MJR00002" + len(header).to_bytes(2, "big") + header)
-        (folder / f"{name}.webm").write_bytes(body)
-    return folder
 
 
 def with_a_track(session: Session, vehicle: str) -> None:
@@ -111,6 +74,8 @@ def test_the_zip_holds_the_sessions_video_and_its_manifest_lists_every_file(
     with_a_track(session, vehicle)
     first, second = webm(12, 40), webm(8, 200)
     recorded(session, [first, second])
+    assert session_video_chain(session_id=session.pk) == 2  # as the conversion does
+    chained = {e.data["started_at"]: e.seq for e in session.events.filter(kind="record_video")}
 
     answer = client.get(f"/sessions/{session.pk}/record/zip")
     assert answer.status_code == 200 and answer.streaming
@@ -135,16 +100,27 @@ def test_the_zip_holds_the_sessions_video_and_its_manifest_lists_every_file(
                 "name": "video/0.webm",
                 "started_at": 1795856400.0,
                 "started_utc": "2026-11-28T09:00:00.000Z",
+                "log_seq": chained[1795856400.0],
             },
             {
                 "name": "video/1.webm",
                 "started_at": 1795856460.5,
                 "started_utc": "2026-11-28T09:01:00.500Z",
+                "log_seq": chained[1795856460.5],
             },
         ],
     }
-    # The record itself is there as before, its check included.
-    assert json.loads(archive.read("verification.json"))["ok"] is True
+    # Each stretch's digest in the log (log.json, the event the manifest names) is the
+    # one of the file in the archive.
+    log = {event["seq"]: event for event in json.loads(archive.read("log.json"))}
+    for stretch in manifest["video"]["stretches"]:
+        entry = log[stretch["log_seq"]]
+        assert entry["kind"] == "record_video"
+        assert entry["data"]["sha256"] == hashlib.sha256(archive.read(stretch["name"])).hexdigest()
+    # The record's check, the video's every byte included.
+    verification = json.loads(archive.read("verification.json"))
+    assert verification["ok"] is True, verification
+    assert (verification["videos"], verification["video_check"]) == (2, "sha256")
     assert archive.read("samples.jsonl").decode().count("\n") == 2
 
     # The API's zip is the same archive.
