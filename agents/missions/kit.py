@@ -24,7 +24,8 @@ only :meth:`MissionRunner.fly` from the steps here:
   it has one (ArduPilot's AUTO): the autopilot flies it, and finishes it (home, or
   holding at its end) or returns home if the agent dies; the runner follows it and
   reports the same progress and events. A runner calls it first and flies its steps
-  itself when it returns False.
+  itself when it returns False; an upload the engine refused is reported
+  (``native_mission_refused``), so that nobody believes the autopilot has the mission.
 
 Whatever ends the mission is handled here once for all: a user command or a fail-safe
 during the mission (``mission_failed``, "interrupted", the vehicle left to whoever
@@ -476,7 +477,10 @@ class MissionRunner(abc.ABC, Generic[_S]):
         there in the engine's own mission (AUTO) until someone sends it elsewhere.
 
         Returns False, having flown nothing, when the vehicle has no engine or refuses
-        the upload (the reason is logged: the runner then flies its steps itself).
+        the upload: the runner then flies its steps itself. A refusal is reported to the
+        platform (``native_mission_refused``, with the autopilot's reason), since it
+        changes what the vehicle does if the agent dies: its fail-safe then acts on a
+        vehicle the agent flies (GUIDED), with no mission of its own to finish.
         Raises as the steps do: Interrupted when someone else acts on the vehicle
         (the autopilot's own fence or fail-safe included), StepFailed when the plan
         takes too long or its payload release was attempted already."""
@@ -490,6 +494,7 @@ class MissionRunner(abc.ABC, Generic[_S]):
             await self.hub.mission_native_upload(self.session_id, plan.items, epoch=self._epoch)
         except AdapterError as exc:
             log.warning("mission %s: flown step by step: %s", self.mission.id, exc)
+            self.report("native_mission_refused", reason=str(exc))
             return False
         first = next((s.item for s in plan.steps if isinstance(s.item, TakeOff)), None)
         if first is not None:

@@ -14,8 +14,16 @@ from services.kit import event_append, session_task_accepted
 from services.models import Assignment
 
 #: The carrier's mission events (agents/missions/parcel/, kind ``parcel``).
+#: ``native_mission_refused``: the autopilot refused the plan, the agent flies it step
+#: by step (logged: what the carrier would do without its agent changes).
 PARCEL_EVENTS = frozenset(
-    {"mission_progress", "parcel_loaded", "payload_released", "mission_failed"}
+    {
+        "mission_progress",
+        "native_mission_refused",
+        "parcel_loaded",
+        "payload_released",
+        "mission_failed",
+    }
 )
 
 

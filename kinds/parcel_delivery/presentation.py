@@ -20,6 +20,7 @@ SHOWN = (
     "delivery_planned",
     "assigned",
     "delivery_state",
+    "native_mission_refused",
     "parcel_loaded",
     "payload_released",
     "notice_sent",

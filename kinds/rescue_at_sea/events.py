@@ -18,8 +18,17 @@ from kinds.rescue_at_sea.tasks import mission_schedule
 from services.kit import event_append, session_task_accepted
 from services.models import Assignment
 
+#: ``native_mission_refused``: the autopilot refused the delivery's plan, the agent
+#: flies it step by step (logged: what the drone would do without its agent changes).
 MISSION_EVENTS = frozenset(
-    {"mission_progress", "person_detected", "search_complete", "payload_released", "mission_failed"}
+    {
+        "mission_progress",
+        "native_mission_refused",
+        "person_detected",
+        "search_complete",
+        "payload_released",
+        "mission_failed",
+    }
 )
 
 

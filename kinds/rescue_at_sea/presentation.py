@@ -160,6 +160,7 @@ def mission_json(mission: Mission) -> dict[str, Any]:
         "mission_state",
         "person_detected",
         "notice_sent",
+        "native_mission_refused",
         "payload_released",
         "vehicle_released",
         "state",

@@ -15,8 +15,17 @@ from services.kit import event_append, session_task_accepted
 from services.models import Assignment, SessionArtifact
 
 #: The surveyor's mission events (agents/missions/survey/, kind ``survey``).
+#: ``native_mission_refused``: the autopilot refused the lines, the agent flies them place
+#: to place (logged: what the drone would do without its agent changes).
 SURVEY_EVENTS = frozenset(
-    {"mission_progress", "photo_taken", "photo_missed", "survey_flown", "mission_failed"}
+    {
+        "mission_progress",
+        "native_mission_refused",
+        "photo_taken",
+        "photo_missed",
+        "survey_flown",
+        "mission_failed",
+    }
 )
 #: The file name of a survey photo (agents/missions/survey/runner.py, photo_name).
 PHOTO_NAME = re.compile(r"^photo-(\d{4,})\.jpg$")

@@ -20,6 +20,7 @@ SHOWN = (
     "survey_planned",
     "assigned",
     "survey_state",
+    "native_mission_refused",
     "survey_flown",
     "photo_missed",
     "mission_failed",

@@ -357,7 +357,7 @@ async def test_failsafe_parameters_are_checked_against_the_task(make_quad_rig: R
     drone = rig.drone
     assert await drone.check_failsafe_params("return_to_home") == []
     [problem] = await drone.check_failsafe_params("land")
-    assert "does RTL (FS_GCS_ENABLE=1) but the task expects land" in problem
+    assert "does RTL (else LAND) (FS_GCS_ENABLE=1) but the task expects land" in problem
     [problem] = await drone.check_failsafe_params("return_to_home", max_altitude_m=4)
     assert "RTL climbs to 6 m (RTL_ALT=600 cm), above the task's 4 m ceiling" in problem
 

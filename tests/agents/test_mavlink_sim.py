@@ -38,7 +38,9 @@ def simulator(*args: str) -> Iterator[Any]:
             gcs.close()
 
 
-def first(gcs: Any, kind: str, within: float, where: Callable[[Any], bool] = lambda m: True) -> Any:
+def first(
+    gcs: Any, kind: str | list[str], within: float, where: Callable[[Any], bool] = lambda m: True
+) -> Any:
     """The first ``kind`` message for which ``where`` holds, within ``within`` s."""
     deadline = time.monotonic() + within
     while (left := deadline - time.monotonic()) > 0:
@@ -247,6 +249,40 @@ def test_the_gcs_failsafe_follows_the_range_of_gcs_ids():
         assert failsafe_texts == 0
         beat = first(gcs, "HEARTBEAT", 5)
         assert beat.base_mode & MAV.MAV_MODE_FLAG_SAFETY_ARMED
+
+
+def test_fs_gcs_enable_2_is_named_at_arming_and_its_failsafe_is_rtl_as_arducopter_4():
+    """Over the wire: ArduCopter 4.x arms with FS_GCS_ENABLE 2 but names it (its pre-arm
+    check), and once the GCS falls silent in flight does RTL (failsafe_gcs_on_event:
+    the same case as 1), the heartbeat then saying CRITICAL."""
+    args = ["--speedup", "4", "--param", "FS_GCS_ENABLE=2", "--param", "FS_GCS_TIMEOUT=1"]
+    with simulator(*args) as gcs:
+        assert command(gcs, MAV.MAV_CMD_DO_SET_MODE, 1, 4) == MAV.MAV_RESULT_ACCEPTED
+        gcs.mav.command_long_send(1, 1, MAV.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        heard = {}  # the ACK and the pre-arm words, in whichever order they come
+        while len(heard) < 2:
+            msg = first(gcs, ["STATUSTEXT", "COMMAND_ACK"], 5)
+            if msg.get_type() == "COMMAND_ACK" and msg.command == MAV.MAV_CMD_COMPONENT_ARM_DISARM:
+                heard["ack"] = msg
+            elif msg.get_type() == "STATUSTEXT" and msg.text.startswith("PreArm"):
+                heard["prearm"] = msg
+        assert heard["ack"].result == MAV.MAV_RESULT_ACCEPTED  # named, not refused
+        assert heard["prearm"].text == "PreArm: FS_GCS_ENABLE=2 removed, see FS_OPTIONS"
+        assert heard["prearm"].severity == MAV.MAV_SEVERITY_CRITICAL
+        gcs.mav.command_long_send(1, 1, MAV.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 6)
+        # Heard until it is well up (on the ground the fail-safe would disarm it) ...
+        deadline = time.monotonic() + 30
+        while True:
+            gcs.mav.heartbeat_send(MAV.MAV_TYPE_GCS, MAV.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            position = first(gcs, "GLOBAL_POSITION_INT", 5)
+            if position.relative_alt > 4000:
+                break
+            assert time.monotonic() < deadline, "the take-off did not climb"
+        # ... then silent.
+        said = first(gcs, "STATUSTEXT", 10, lambda m: m.text.startswith("GCS Failsafe"))
+        assert said.text == "GCS Failsafe" and said.severity == MAV.MAV_SEVERITY_WARNING
+        beat = first(gcs, "HEARTBEAT", 5, lambda m: m.custom_mode == 6)
+        assert beat.system_status == MAV.MAV_STATE_CRITICAL
 
 
 # --- ArduRover's speed rules -------------------------------------------------------------

@@ -1,12 +1,21 @@
 """Does the autopilot's own fail-safe agree with a task? (its GCS fail-safe: what the
 autopilot does when the agent's heartbeats stop).
 
-Read with PARAM_REQUEST_READ at task start (:func:`failsafe_problems`), per vehicle class:
+Read with PARAM_REQUEST_READ at task start (:func:`failsafe_problems`), per vehicle class,
+and judged as the firmware reads them:
 
-* ArduCopter: FS_GCS_ENABLE says what it does (RTL, LAND, BRAKE...), FS_GCS_TIMEOUT
-  after how long; RTL_ALT must not climb above the task's ceiling;
-* ArduRover (rovers, boats): FS_GCS_ENABLE switches it on, FS_ACTION says what it does
-  (RTL, Hold, SmartRTL...), FS_TIMEOUT after how long;
+* ArduCopter (4.x, ``ArduCopter/events.cpp``: ``Copter::failsafe_gcs_on_event``, then
+  ``do_failsafe_action``): FS_GCS_ENABLE says what it does (:data:`COPTER_FS_GCS_WORDS`),
+  FS_GCS_TIMEOUT after how long; RTL_ALT must not climb above the task's ceiling.
+  FS_OPTIONS (``Copter::FailsafeOption``) makes exceptions the task does not see: bit 1
+  lets a mission the autopilot flies (AUTO) go on, bit 3 a landing, bit 4 (the
+  default, 16) a mode the pilot flies; none of them reaches GUIDED, where the agent
+  flies, nor is a mismatch (docs/missions.md chooses bit 1 for deliveries). Bit 5 is:
+  the gripper lets go wherever the fail-safe acts;
+* ArduRover (rovers, boats; ``Rover/failsafe.cpp``: ``Rover::failsafe_trigger``):
+  FS_GCS_ENABLE switches it on (2, "continue with mission in Auto", lets a mission in
+  AUTO go on, as ArduCopter's FS_OPTIONS bit 1), FS_ACTION says what it does (RTL,
+  Hold, SmartRTL...), FS_TIMEOUT after how long;
 * both: the GCS system id it listens to, ``MAV_GCS_SYSID`` (with ``MAV_GCS_SYSID_HI``,
   ArduPilot 4.7 and later) or else ``SYSID_MYGCS``, must be the agent's.
 """
@@ -23,23 +32,34 @@ from agents.vehicles.mavlink.link import AutopilotLink
 
 logger = logging.getLogger(__name__)
 
-#: FS_GCS_ENABLE values (ArduCopter 4.x) -> what the autopilot does on GCS loss.
+#: FS_GCS_ENABLE -> what ArduCopter 4.x does when the GCS falls silent (its
+#: failsafe_gcs_on_event's FailsafeAction, carried out by do_failsafe_action, each
+#: set_mode_* helper falling back as written). 2 was "RTL, or continue a mission in
+#: AUTO" until 3.6; since 4.0 it is the same case as 1 (the continuing is FS_OPTIONS
+#: bit 1's), converted into 1 plus that bit at boot from 4.0 to 4.3 only, and named
+#: at every arming since 4.1 ("PreArm: FS_GCS_ENABLE=2 removed, see FS_OPTIONS").
 COPTER_FS_GCS_WORDS = {
     0: "disabled",
-    1: "RTL",
-    2: "RTL (or continue a mission)",
-    3: "SmartRTL or RTL",
-    4: "SmartRTL or LAND",
+    1: "RTL (else LAND)",
+    2: "RTL (else LAND; 2 no longer continues a mission: FS_OPTIONS bit 1 does)",
+    3: "SmartRTL (else RTL, else LAND)",
+    4: "SmartRTL (else LAND)",
     5: "LAND",
-    6: "DO_LAND_START or RTL",
-    7: "BRAKE or LAND",
+    6: "the mission's DO_LAND_START or DO_RETURN_PATH_START in AUTO (else RTL, else LAND)",
+    7: "BRAKE (else LAND)",
 }
-#: Which of them agree with a task's fail-safe action.
+#: What any other value does: the switch's default.
+COPTER_FS_GCS_DEFAULT = "RTL (else LAND: FS_GCS_ENABLE={code} is no value of its own)"
+#: Which of them agree with a task's fail-safe action; any value not named does RTL
+#: and agrees with ``return_to_home``.
 COPTER_FS_GCS_AGREES = {
     "return_to_home": frozenset({1, 2, 3, 4, 6}),
     "land": frozenset({5}),
     "stop": frozenset({7}),
 }
+#: FS_OPTIONS bit 5 (Copter::FailsafeOption::RELEASE_GRIPPER): do_failsafe_action
+#: releases the gripper after any action.
+COPTER_FS_OPTION_RELEASE_GRIPPER = 32
 #: FS_ACTION values (ArduRover 4.x, Rover/Parameters.cpp) -> what it does on a fail-safe.
 ROVER_FS_ACTION_WORDS = {
     0: "nothing",
@@ -51,11 +71,13 @@ ROVER_FS_ACTION_WORDS = {
     6: "Loiter or Hold",
 }
 #: Which of them agree with a task's fail-safe action (a rover or boat cannot land: its
-#: adapter holds, so a holding fail-safe agrees with "land" too).
+#: adapter holds, so a holding fail-safe agrees with "land" too). 4 goes home (SmartRTL
+#: retraces the way out) and holds only where SmartRTL cannot start; 5 disarms, which
+#: the autopilot cannot undo by itself, so it agrees with nothing.
 ROVER_FS_ACTION_AGREES = {
-    "return_to_home": frozenset({1, 3}),
-    "land": frozenset({2, 4, 6}),
-    "stop": frozenset({2, 4, 6}),
+    "return_to_home": frozenset({1, 3, 4}),
+    "land": frozenset({2, 6}),
+    "stop": frozenset({2, 6}),
 }
 
 #: The autopilot parameter naming the GCS its fail-safe follows, newest name first:
@@ -86,11 +108,16 @@ async def failsafe_problems(
         names.append("FS_ACTION")
     if copter and max_altitude_m is not None and expected_action == "return_to_home":
         names.append("RTL_ALT")
+    # FS_OPTIONS is read alongside but optional: ArduCopter before 4.0 has none (and
+    # then no bit of it can act), so its silence is no problem of its own.
+    options_read = asyncio.ensure_future(_read_or_problem(link, "FS_OPTIONS")) if copter else None
     gcs_read = asyncio.ensure_future(_read_gcs_sysid(link))
     answers = await asyncio.gather(*(_read_or_problem(link, name) for name in names))
     values = dict(zip(names, answers, strict=True))
+    if options_read is not None:
+        values["FS_OPTIONS"] = await options_read
     gcs = await gcs_read
-    problems = [value for value in values.values() if isinstance(value, str)]
+    problems = [value for name in names if isinstance(value := values[name], str)]
     if copter:
         problems += _copter_action(values, expected_action)
     else:
@@ -127,6 +154,8 @@ async def failsafe_problems(
 
 
 def _copter_action(values: Mapping[str, float | str], expected: str) -> list[str]:
+    """FS_GCS_ENABLE against the task (:data:`COPTER_FS_GCS_WORDS`), and FS_OPTIONS bit
+    5 whatever the task: a payload on board drops where the agent went silent."""
     enable = values.get("FS_GCS_ENABLE")
     if not isinstance(enable, float):
         return []
@@ -136,13 +165,22 @@ def _copter_action(values: Mapping[str, float | str], expected: str) -> list[str
             f"the autopilot's GCS fail-safe is disabled (FS_GCS_ENABLE=0) but the task "
             f"expects {expected}: if the agent stops, the drone keeps its last command"
         ]
-    if code not in COPTER_FS_GCS_AGREES.get(expected, frozenset()):
-        words = COPTER_FS_GCS_WORDS.get(code, f"action {code}")
-        return [
+    problems: list[str] = []
+    words = COPTER_FS_GCS_WORDS.get(code, COPTER_FS_GCS_DEFAULT.format(code=code))
+    # A value of no action of its own does RTL, the switch's default.
+    action = code if code in COPTER_FS_GCS_WORDS else 1
+    if action not in COPTER_FS_GCS_AGREES.get(expected, frozenset()):
+        problems.append(
             f"the autopilot's GCS fail-safe does {words} (FS_GCS_ENABLE={code}) but "
             f"the task expects {expected}"
-        ]
-    return []
+        )
+    options = values.get("FS_OPTIONS")
+    if isinstance(options, float) and int(options) & COPTER_FS_OPTION_RELEASE_GRIPPER:
+        problems.append(
+            f"the autopilot's GCS fail-safe also releases the gripper (FS_OPTIONS={int(options)}, "
+            "bit 5): a payload on board drops wherever the agent goes silent"
+        )
+    return problems
 
 
 def _rover_action(values: Mapping[str, float | str], expected: str, vehicle: str) -> list[str]:

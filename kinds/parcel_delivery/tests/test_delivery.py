@@ -24,6 +24,7 @@ from fleet.models import Vehicle
 from fleet.vehicle_events import vehicle_events
 from kinds.parcel_delivery.missions import vehicle_mission
 from kinds.parcel_delivery.models import Delivery
+from kinds.parcel_delivery.presentation import delivery_json
 from kinds.parcel_delivery.workflow import delivery_advance
 from services.kinds import Request, RequestError
 from services.models import Assignment, Service, Session
@@ -255,6 +256,25 @@ def test_from_pickup_to_drop_off_with_the_recipient_told(world) -> None:
     report(drone.vehicle, session, "payload_released", mission=doc["id"])
     step(session)
     assert len(mail.outbox) == 2
+
+
+def test_a_mission_the_autopilot_refused_is_logged_and_shown_as_flown_step_by_step(
+    world,
+) -> None:
+    """The carrier's autopilot refused the plan (agents/missions/kit.py: fly_natively):
+    the log and the user's timeline say so, nothing else changes."""
+    session = request(world, params(LAND_A, LAND_B))
+    step(session)
+    drone = carrier(session)
+    reason = "the autopilot refused the mission: MAV_MISSION_NO_SPACE (more items than it stores)"
+    report(drone.vehicle, session, "native_mission_refused", mission="m", reason=reason)
+    entry = session.events.get(kind="native_mission_refused").data
+    assert entry["reason"] == reason and entry["vehicle"] == str(drone.vehicle_id)
+    assert step(session) == Delivery.State.TO_PICKUP
+    timeline = delivery_json(delivery(session))["timeline"]
+    assert [e["data"]["reason"] for e in timeline if e["kind"] == "native_mission_refused"] == [
+        reason
+    ]
 
 
 def test_a_carrier_lost_with_the_parcel_hands_it_over_where_it_is(world, settings) -> None:

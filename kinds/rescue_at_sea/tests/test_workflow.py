@@ -279,6 +279,20 @@ def _delivering(world, client_user) -> tuple[Session, Assignment]:
     return session, Assignment.objects.get(session=session, role="delivery", active=True)
 
 
+def test_a_delivery_the_autopilot_refused_is_logged_and_shown_as_flown_step_by_step(
+    world, client_user
+) -> None:
+    """The delivery drone's autopilot refused its plan (agents/missions/kit.py): the log
+    and the timeline say so; the delivery goes on."""
+    session, delivery = _delivering(world, client_user)
+    reason = "the autopilot refused the mission: MAV_MISSION_DENIED (another ground station)"
+    report(session, delivery.vehicle, "native_mission_refused", mission="d", reason=reason)
+    assert session.events.get(kind="native_mission_refused").data["reason"] == reason
+    assert step(session) == Mission.State.DELIVERING
+    shown = mission_json(mission(session))["timeline"]
+    assert [e["data"]["reason"] for e in shown if e["kind"] == "native_mission_refused"] == [reason]
+
+
 def test_late_heartbeats_on_a_loaded_platform_do_not_call_the_delivery_back(
     world, client_user, settings
 ) -> None:

@@ -28,6 +28,7 @@ from kinds.survey.geometry import coverage
 from kinds.survey.kind import AerialSurvey
 from kinds.survey.missions import vehicle_mission
 from kinds.survey.models import Survey
+from kinds.survey.presentation import survey_json
 from kinds.survey.tests.conftest import fly, report, spare_drone, surveyor
 from kinds.survey.workflow import footprints, survey_advance
 from services.kinds import Request, RequestError
@@ -198,6 +199,20 @@ def test_the_mosaic_downloads_as_a_kmz_for_its_user_only(demo, client: Client) -
     other.force_login(f.user(username="mallory"))
     assert other.get(reverse("survey_kmz", args=[session.pk])).status_code in (403, 404)
     assert other.get(reverse("survey_state", args=[session.pk])).status_code in (403, 404)
+
+
+def test_lines_the_autopilot_refused_are_logged_and_shown_as_flown_place_to_place(demo) -> None:
+    """The drone's autopilot refused the lines (agents/missions/kit.py): the log and the
+    timeline say so; the survey goes on."""
+    session = ask(demo)
+    survey_advance(session.pk)
+    drone = surveyor(session)
+    reason = "the autopilot refused the mission: MAV_MISSION_NO_SPACE (more items than it stores)"
+    report(drone.vehicle_id, session, "native_mission_refused", mission="s", reason=reason)
+    assert session.events.get(kind="native_mission_refused").data["reason"] == reason
+    assert survey_advance(session.pk) == Survey.State.FLYING
+    shown = survey_json(survey(session))["timeline"]
+    assert [e["data"]["reason"] for e in shown if e["kind"] == "native_mission_refused"] == [reason]
 
 
 def test_a_drone_lost_mid_way_is_replaced_from_the_first_photo_not_taken(demo, settings) -> None:

@@ -402,8 +402,12 @@ class Boat(SimVehicle):
         return silence + self.p("FS_TIMEOUT")
 
     def gcs_failsafe(self) -> bool:
-        """FS_ACTION, as ArduRover's failsafe_trigger: not in RTL, nor in HOLD unless
-        FS_OPTIONS bit 0; each action falls back to the next mode it names."""
+        """FS_ACTION, as ArduRover's Rover::failsafe_trigger (Rover/failsafe.cpp): not in
+        RTL, nor in HOLD unless FS_OPTIONS bit 0; in AUTO with FS_GCS_ENABLE 2 ("Enabled
+        Continue with Mission in Auto", which ArduRover, unlike ArduCopter, still has)
+        nothing; else 0 nothing, 1 RTL, 2 Hold, 3 SmartRTL, 4 SmartRTL or Hold,
+        5 Terminate (disarm), 6 Loiter or Hold, each falling back to the next mode it
+        names (RTL to Hold), and any other value nothing (the switch has no default)."""
         if self.mode == RTL or (self.mode == HOLD and not int(self.p("FS_OPTIONS")) & 1):
             return False
         self.say(MAV.MAV_SEVERITY_WARNING, "GCS Failsafe")

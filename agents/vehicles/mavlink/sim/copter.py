@@ -12,9 +12,10 @@ on the ground, battery drain (faster when flying). As in ArduCopter a velocity
 setpoint lapses after ``GUID_TIMEOUT`` s, and one that ignores both yaw and yaw rate
 hands yaw to ``WP_YAW_BEHAVIOR`` (by default the nose turns into the direction of
 travel; in AUTO, towards the next waypoint). The GCS fail-safe acts after
-``FS_GCS_TIMEOUT`` s as ``FS_GCS_ENABLE`` says, in AUTO
-too unless ``FS_OPTIONS`` bit 1 (2, "continue if in auto") is set
-(``ArduCopter/events.cpp``, failsafe_gcs_on_event).
+``FS_GCS_TIMEOUT`` s as ArduCopter 4.x's ``Copter::failsafe_gcs_on_event`` and
+``do_failsafe_action`` (``ArduCopter/events.cpp``) do (:meth:`Copter.gcs_failsafe`):
+``FS_GCS_ENABLE`` picks the action, ``FS_OPTIONS`` the exceptions (continue a landing,
+a mission in AUTO, a pilot-controlled mode) and whether the gripper lets go too.
 
 AUTO: refused without a mission beyond home, and armed on the ground unless the
 mission starts with a take-off ("Auto: Missing Takeoff Cmd"); it is not armable.
@@ -85,16 +86,39 @@ from agents.vehicles.mavlink.sim.vehicle import (
 )
 
 STABILIZE, ALT_HOLD, AUTO, GUIDED, LOITER, RTL, LAND = 0, 2, 3, 4, 5, 6, 9
-POSHOLD, BRAKE, SMART_RTL = 16, 17, 21
-#: FS_GCS_ENABLE (Copter 4.x) -> the mode its GCS fail-safe switches to.
-FS_GCS_MODES = {1: RTL, 2: RTL, 3: RTL, 4: LAND, 5: LAND, 6: RTL, 7: BRAKE}
+POSHOLD, BRAKE, SMART_RTL, AUTO_RTL = 16, 17, 21, 27
+#: FS_GCS_ENABLE -> the FailsafeAction ArduCopter's failsafe_gcs_on_event picks
+#: (ArduCopter/events.cpp, 4.x). 2 was "RTL, or continue a mission in AUTO" until 3.6:
+#: since 4.0 it is one case with 1 (RTL), the continuing being FS_OPTIONS bit 1's; the
+#: boot-time conversion of 2 into 1 plus that bit (convert_fs_options_params, 4.0 to
+#: 4.3) is gone since 4.4 (ArduPilot PR 22637), and a pre-arm check says "FS_GCS_ENABLE=2
+#: removed, see FS_OPTIONS" without refusing to arm (AP_Arming_Copter::parameter_checks).
+#: Any other value: RTL (the switch's default).
+FS_GCS_ACTIONS = {
+    1: "RTL", 2: "RTL", 3: "SMARTRTL", 4: "SMARTRTL_LAND", 5: "LAND",
+    6: "AUTO_DO_LAND_START", 7: "BRAKE_LAND",
+}  # fmt: skip
+#: FS_OPTIONS bits (Copter::FailsafeOption, ArduCopter/Copter.h) the GCS fail-safe reads:
+#: go on landing (any fail-safe), go on with a mission in AUTO, go on in a mode the
+#: pilot flies (the default, 16, since ArduCopter 4.1), release the gripper with the
+#: action. Bits 0 and 2 (continue in AUTO, in GUIDED) are the radio fail-safe's only:
+#: no bit keeps the GCS fail-safe from acting in GUIDED.
+FS_OPTION_CONTINUE_IF_LANDING = 8
+FS_OPTION_GCS_CONTINUE_IF_AUTO = 2
+FS_OPTION_GCS_CONTINUE_IF_PILOT_CONTROL = 16
+FS_OPTION_RELEASE_GRIPPER = 32
+#: The modes whose Mode::is_autopilot() is true (ArduCopter/mode.h): AUTO, GUIDED, RTL,
+#: CIRCLE, LAND, AVOID_ADSB, GUIDED_NOGPS, SMART_RTL, FOLLOW, ZIGZAG, AUTOROTATE,
+#: AUTO_RTL. The rest (LOITER, BRAKE, POSHOLD, ALT_HOLD...) are the pilot's.
+AUTOPILOT_MODES = frozenset({AUTO, GUIDED, RTL, 7, LAND, 19, 20, SMART_RTL, 23, 24, 26, AUTO_RTL})
+#: set_mode_land_with_pause: a fail-safe's LAND holds this long before descending
+#: (ArduCopter's LAND_WITH_DELAY_MS).
+LAND_PAUSE_S = 4.0
 DEFAULT_YAW_RATE_DEG_S = 60.0
 #: The physics' longest step (s): ArduCopter's shaping runs at 400 Hz, this at 200 Hz.
 STEP_S = 0.005
 #: BRAKE mode stops harder than WPNAV_ACCEL (ArduCopter's BRAKE_MODE_DECEL_RATE).
 BRAKE_ACCEL_FACTOR = 3.0
-#: FS_OPTIONS bit: the GCS fail-safe lets a mission in AUTO go on (FailsafeOption).
-FS_OPTION_GCS_CONTINUE_IF_AUTO = 2
 #: An AUTO take-off is done this close (m) under its altitude.
 TAKEOFF_DONE_M = 0.2
 #: A waypoint's altitude counts as reached within this much (m).
@@ -138,6 +162,9 @@ class Copter(SimVehicle):
     rtl_stage: str = ""
     rtl_loiter_until: float = 0.0
     landed_since: float = 0.0
+    #: LAND: when it was entered, and whether a fail-safe's pause holds the descent.
+    land_started: float = 0.0
+    land_pause: bool = False
     #: The shaped acceleration (m/s² north, east, up): ArduCopter's is jerk-limited.
     an: float = 0.0
     ae: float = 0.0
@@ -179,11 +206,21 @@ class Copter(SimVehicle):
         self.look_ahead = False
         if mode in ("RTL", "SMART_RTL"):
             self.rtl_stage = "climb"
+        if mode == "LAND":
+            self.land_started, self.land_pause = self.sim_time, False
         if mode == "AUTO":
             self._auto_enter()
         elif self.mission.state == "running":
             self.mission.state = "stopped"  # left: resumed from here next time
             self.auto_item = None
+
+    def set_mode(self, mode: int) -> str | None:
+        """As :meth:`SimVehicle.set_mode`; AUTO_RTL (ModeAuto's DO_LAND_START or
+        DO_RETURN_PATH_START sequence) is always refused: this simulator stores neither
+        item (an upload with one is refused UNSUPPORTED), so it never finds one."""
+        if mode == AUTO_RTL:
+            return "Mode change to AUTO RTL failed: No landing sequence found"
+        return super().set_mode(mode)
 
     # --- AUTO -------------------------------------------------------------------------
     def _auto_refusal(self) -> str | None:
@@ -322,6 +359,13 @@ class Copter(SimVehicle):
         self.landed = True
         self.landed_since = self.sim_time
         self._hold_here()
+
+    def _arming_refusal(self) -> str | None:
+        """AP_Arming_Copter::parameter_checks: FS_GCS_ENABLE 2 is named, as check_failed
+        says it, but that check returns nothing: it never keeps the copter from arming."""
+        if int(self.p("FS_GCS_ENABLE")) == 2:
+            self.say(MAV.MAV_SEVERITY_CRITICAL, "PreArm: FS_GCS_ENABLE=2 removed, see FS_OPTIONS")
+        return None
 
     def _disarm_refusal(self) -> str | None:
         return "Disarm: vehicle is flying" if self.flying else None
@@ -513,19 +557,86 @@ class Copter(SimVehicle):
         return None if self.p("FS_GCS_ENABLE") == 0 else self.p("FS_GCS_TIMEOUT")
 
     def gcs_failsafe(self) -> bool:
-        """On the ground: disarm; flying: the mode FS_GCS_ENABLE names, else LAND."""
+        """ArduCopter 4.x's Copter::failsafe_gcs_on_event (ArduCopter/events.cpp), armed:
+        on the ground (should_disarm_on_failsafe), disarm; landing with FS_OPTIONS bit 3,
+        go on landing (LAND); in AUTO with bit 1, or in a mode the pilot flies
+        (is_autopilot false) with bit 4, nothing; else the action FS_GCS_ENABLE names
+        (:data:`FS_GCS_ACTIONS`). Every text is a warning, as announce_failsafe sends it."""
+        options = int(self.p("FS_OPTIONS"))
+        action = FS_GCS_ACTIONS.get(int(self.p("FS_GCS_ENABLE")), "RTL")
+        warn = MAV.MAV_SEVERITY_WARNING
         if self.landed:
-            self.say(MAV.MAV_SEVERITY_CRITICAL, "GCS Failsafe - Disarming")
+            self.say(warn, "GCS Failsafe - Disarming")
             self.disarm(force=True)
             return True
-        if self.mode == AUTO and int(self.p("FS_OPTIONS")) & FS_OPTION_GCS_CONTINUE_IF_AUTO:
-            self.say(MAV.MAV_SEVERITY_WARNING, "GCS Failsafe - Continuing Auto Mode")
+        if self._is_landing() and options & FS_OPTION_CONTINUE_IF_LANDING:
+            self.say(warn, "GCS Failsafe - Continuing Landing")
+            action = "LAND"
+        elif self.mode == AUTO and options & FS_OPTION_GCS_CONTINUE_IF_AUTO:
+            self.say(warn, "GCS Failsafe - Continuing Auto Mode")
             return True
-        self.say(MAV.MAV_SEVERITY_CRITICAL, "GCS Failsafe")
-        mode = FS_GCS_MODES.get(int(self.p("FS_GCS_ENABLE")), LAND)
-        if self.set_mode(mode) is not None:
-            self.set_mode(LAND)
+        elif options & FS_OPTION_GCS_CONTINUE_IF_PILOT_CONTROL and self.mode not in AUTOPILOT_MODES:
+            self.say(warn, "GCS Failsafe - Continuing Pilot Control")
+            return True
+        else:
+            self.say(warn, "GCS Failsafe")
+        self._failsafe_action(action)
+        if options & FS_OPTION_RELEASE_GRIPPER:
+            # do_failsafe_action releases it after any action but none.
+            self.payload_released = True
+            self.say(MAV.MAV_SEVERITY_INFO, "Gripper load released")
         return True
+
+    def _failsafe_action(self, action: str) -> None:
+        """Copter::do_failsafe_action, each action falling back as its set_mode_*
+        helper does (the texts are theirs)."""
+        warn = MAV.MAV_SEVERITY_WARNING
+        if action == "SMARTRTL":
+            if self.set_mode(SMART_RTL) is None:
+                return
+            self.say(warn, "SmartRTL Unavailable, Trying RTL Mode")
+            action = "RTL"
+        elif action == "SMARTRTL_LAND":
+            if self.set_mode(SMART_RTL) is None:
+                return
+            self.say(warn, "SmartRTL Unavailable, Using Land Mode")
+            action = "LAND"
+        elif action == "AUTO_DO_LAND_START":
+            refusal = self.set_mode(AUTO_RTL)
+            if refusal is None:
+                return
+            self.say(warn, refusal)
+            self.say(warn, "Trying RTL Mode")
+            action = "RTL"
+        elif action == "BRAKE_LAND":
+            if self.set_mode(BRAKE) is None:
+                return
+            self.say(warn, "Trying Land Mode")
+            action = "LAND"
+        if action == "RTL" and self.set_mode(RTL) is None:
+            return
+        self._land_with_pause()
+
+    def _land_with_pause(self) -> None:
+        """set_mode_land_with_pause: LAND, the descent held until LAND_WITH_DELAY_MS after
+        LAND began (already landing: no new pause)."""
+        self.set_mode(LAND)
+        if self.mode == LAND:
+            self.land_pause = True
+
+    def _is_landing(self) -> bool:
+        """Mode::is_landing: LAND; RTL's and SmartRTL's final landing; AUTO's NAV_LAND
+        (its approach too: ModeAuto's LAND sub-mode) and its RTL's landing."""
+        if self.mode == LAND:
+            return True
+        if self.mode in (RTL, SMART_RTL):
+            return self.rtl_stage == "land"
+        item = self.auto_item
+        if self.mode != AUTO or item is None:
+            return False
+        if item.command == NAV_LAND:
+            return True
+        return item.command == NAV_RETURN_TO_LAUNCH and self.rtl_stage == "land"
 
     # --- the fence -------------------------------------------------------------------
     def _fence_breached(self, action: int, distance: float) -> None:
@@ -704,9 +815,13 @@ class Copter(SimVehicle):
         return self._towards(self.hold)
 
     def _land(self) -> tuple[float, float, float]:
+        vn, ve, vu = self._towards(self.hold)
+        if self.land_pause and self.mode == LAND:
+            if self.sim_time - self.land_started < LAND_PAUSE_S:
+                return vn, ve, vu  # ModeLand's pause: it holds where LAND began
+            self.land_pause = False
         high = self.p("LAND_SPEED_HIGH") or self.p("WPNAV_SPEED_DN")
         speed = high if self.up > self.p("LAND_ALT_LOW") / 100.0 else self.p("LAND_SPEED")
-        vn, ve, _ = self._towards(self.hold)
         return vn, ve, -speed / 100.0
 
     def _rtl(self) -> tuple[float, float, float]:

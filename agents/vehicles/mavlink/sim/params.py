@@ -11,13 +11,14 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-#: ArduCopter 4.5.
+#: ArduCopter 4.5. FS_OPTIONS ships 16, "continue if in pilot controlled modes on GCS
+#: failsafe" (ArduCopter/Parameters.cpp since 4.1).
 COPTER_PARAMS: Mapping[str, tuple[float, bool]] = {
     "SYSID_THISMAV": (1, True),
     "SYSID_MYGCS": (255, True),
     "FS_GCS_ENABLE": (0, True),
     "FS_GCS_TIMEOUT": (5.0, False),
-    "FS_OPTIONS": (0, True),
+    "FS_OPTIONS": (16, True),
     "RTL_ALT": (1500, True),
     "RTL_ALT_FINAL": (0, True),
     "RTL_CLIMB_MIN": (0, True),

@@ -174,6 +174,7 @@
         case "delivery_planned": return `${(d.trip_m / 1000).toFixed(2)} km, ${d.weight_kg} kg${d.over_water ? ", over water" : ""}`;
         case "assigned": return `${d.vehicle_name} reserved`;
         case "delivery_state": return d.text || d.to;
+        case "native_mission_refused": return `the autopilot refused the mission (${d.reason}): the agent flies it step by step`;
         case "parcel_loaded": return "parcel on board";
         case "payload_released": return "parcel released at the drop-off";
         case "notice_sent": return `recipient told (${d.channel})`;

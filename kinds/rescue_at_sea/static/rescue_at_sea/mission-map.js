@@ -237,6 +237,7 @@
           const what = String(d.message || d.topic || "").split("\n")[0].replace(/_/g, " ");
           return what ? `${who}: ${what}` : who;
         }
+        case "native_mission_refused": return `the autopilot refused the mission (${d.reason}): the agent flies it step by step`;
         case "payload_released": return "life jacket released";
         case "vehicle_released": return `${d.vehicle_name} released: ${d.reason}`;
         case "state": return `session ${d.to}${d.reason ? ": " + d.reason : ""}`;

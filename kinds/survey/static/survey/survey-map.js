@@ -204,6 +204,7 @@
           const missed = (d.missed || []).length;
           return `the lines flown: ${d.taken} photos taken${missed ? `, ${missed} missed` : ""}`;
         }
+        case "native_mission_refused": return `the autopilot refused the lines (${d.reason}): the agent flies them place to place`;
         case "photo_missed": return `photo ${d.index + 1} missed: ${d.why}`;
         case "vehicle_released": return `${d.vehicle_name} released: ${d.reason}`;
         case "state": return `session ${d.to}${d.reason ? ": " + d.reason : ""}`;

@@ -97,6 +97,7 @@ async def test_the_drone_collects_brings_releases_once_and_goes_home(
         "takeoff", "to_pickup", "loading", "to_dropoff", "delivery", "returning",
     ]  # fmt: skip
     assert rig.drone.state().mode == "AUTO"  # the autopilot's own mission, not a command
+    assert not rig.events("native_mission_refused")
     # The same task again (a resend): nothing is flown or released again.
     rig.accept(make_task(parcel()))
     assert releases(rig.drone) == 1
@@ -254,6 +255,11 @@ async def test_a_mission_the_autopilot_refuses_is_flown_step_by_step(
         )  # fmt: skip
         assert request is not None and request.seq == 0  # its upload is under way
         rig.accept(make_task(parcel("m-denied")))
+        # The platform hears it at once: the autopilot has no mission to finish.
+        refused = await rig.event("native_mission_refused", within=30)
+        assert refused["mission"] == "m-denied"
+        assert refused["reason"].startswith("the autopilot refused the mission: MAV_MISSION_DENIED")
+        assert rig.events()[0][0] == "native_mission_refused"  # before any step
         released = await rig.event("payload_released", within=120)
         assert distance_m((released["lat"], released["lon"]), DROPOFF) < 5
         await until(lambda: "returning" in [p for p, _ in rig.progress()], within=30)
