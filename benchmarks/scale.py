@@ -115,7 +115,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import msgspec
 from websockets.exceptions import ConnectionClosed, InvalidHandshake
@@ -824,6 +824,13 @@ class ApiClient:
         return 0, None
 
 
+def _start_awaited() -> float:
+    """A load worker's half of :func:`_load_go`: say it is ready (imports done, spec
+    read) on stdout, then read when its clients start (Unix time) from stdin."""
+    print(json.dumps({"ready": True}), flush=True)
+    return float(json.loads(sys.stdin.readline())["start_wall"])
+
+
 def api_worker(spec_path: str) -> None:
     """API clients: each thread requests a session of the light service for a random
     target, then ends it, until the duration is over; at once again (closed loop), or,
@@ -835,6 +842,7 @@ def api_worker(spec_path: str) -> None:
         spec = json.load(f)
     from agents.geo import offset
 
+    spec["start_wall"] = _start_awaited()
     deadline_wall = spec["start_wall"] + spec["duration_s"]
     rate, clients = float(spec.get("rate") or 0.0), len(spec["tokens"])
     rows: list[tuple[Any, ...]] = []
@@ -920,6 +928,7 @@ def flood_worker(spec_path: str) -> None:
     limit_req page, else the platform's lockout)."""
     with open(spec_path) as f:
         spec = json.load(f)
+    spec["start_wall"] = _start_awaited()
     deadline = spec["start_wall"] + spec["duration_s"]
     rows: list[tuple[Any, ...]] = []
     lock = threading.Lock()
@@ -1558,8 +1567,6 @@ async def load_phase(
     waiter = asyncio.ensure_future(ready.wait())
     await asyncio.wait([relay, waiter], timeout=90, return_when=asyncio.FIRST_COMPLETED)
     waiter.cancel()
-    # The API worker needs a moment to start: its clients begin together at start_wall.
-    start_wall = time.time() + params.start_delay_s
     spec = logs / f"api-worker-{topology}.json"
     spec.write_text(
         json.dumps(
@@ -1567,7 +1574,6 @@ async def load_phase(
                 "base": base,
                 "tokens": world.client_tokens,
                 "service": LIGHT_SERVICE,
-                "start_wall": start_wall,
                 "duration_s": params.api_duration_s,
                 "rate": params.api_rate,
                 "sources": _api_sources(world),
@@ -1576,6 +1582,9 @@ async def load_phase(
         )
     )
     proc = await _load_start("--api-worker", spec, env=env, log=logs / f"api-worker-{topology}.log")
+    # Its clients begin together once it is ready (a busy machine takes seconds to start
+    # a Python process).
+    start_wall = await _load_go([proc], delay_s=params.start_delay_s)
     await asyncio.sleep(max(0.0, start_wall - time.time()))
     counting.set()
     await measure(
@@ -1632,15 +1641,43 @@ async def _load_start(
     flag: str, spec: Path, *, env: dict[str, str], log: Path
 ) -> asyncio.subprocess.Process:
     """A load process of this module (``--api-worker`` or ``--flood-worker`` on
-    ``spec``), its errors to ``log``; the caller reads its output to its end."""
+    ``spec``), its errors to ``log``; :func:`_load_go` starts its clients, then the
+    caller reads its output to its end."""
     with open_log(log) as log_file:
         return await asyncio.create_subprocess_exec(
             *(sys.executable, "-m", "benchmarks.scale", flag, str(spec)),
             cwd=ROOT,
             env=env,
+            stdin=asyncio.subprocess.PIPE,
             stdout=asyncio.subprocess.PIPE,
             stderr=log_file,
         )
+
+
+#: How long a load process may take to be ready (imports on a saturated machine).
+LOAD_READY_S: Final = 120.0
+
+
+async def _load_go(procs: Sequence[asyncio.subprocess.Process], *, delay_s: float) -> float:
+    """Wait until every load process of :func:`_load_start` is ready, then tell them all
+    to start their clients ``delay_s`` from now; returns that instant (Unix time). A
+    window set before the processes started would pass by, on a busy machine, while
+    they still import. RuntimeError if one exits or is not ready within LOAD_READY_S."""
+    for proc in procs:
+        assert proc.stdout is not None
+        try:
+            line = await asyncio.wait_for(proc.stdout.readline(), LOAD_READY_S)
+        except TimeoutError:
+            line = b""
+        if not line.strip().startswith(b'{"ready"'):
+            raise RuntimeError(f"a load process was not ready (it said {line[:200]!r})")
+    start_wall = time.time() + delay_s
+    for proc in procs:
+        assert proc.stdin is not None
+        proc.stdin.write(json.dumps({"start_wall": start_wall}).encode() + b"\n")
+        await proc.stdin.drain()
+        proc.stdin.close()
+    return start_wall
 
 
 def _read_flood_rows(path: Path, window: str, start_wall: float) -> list[dict[str, Any]]:
@@ -1682,7 +1719,6 @@ async def flood_phase(
     process in each window."""
     for window in FLOOD_WINDOWS:
         out = logs / f"flood-api-{window}.csv"
-        start_wall = time.time() + params.start_delay_s
         spec = logs / f"flood-api-{window}.json"
         spec.write_text(
             json.dumps(
@@ -1690,7 +1726,6 @@ async def flood_phase(
                     "base": base,
                     "tokens": world.client_tokens,
                     "service": LIGHT_SERVICE,
-                    "start_wall": start_wall,
                     "duration_s": params.flood_duration_s,
                     "rate": params.api_rate,
                     "sources": _api_sources(world),
@@ -1711,7 +1746,6 @@ async def flood_phase(
                 json.dumps(
                     {
                         "base": base,
-                        "start_wall": start_wall,
                         "duration_s": params.flood_duration_s,
                         "sources": [
                             loopback_address(FLOOD_NET, i) for i in range(params.flood_clients)
@@ -1723,6 +1757,7 @@ async def flood_phase(
             procs["login flood clients"] = await _load_start(
                 "--flood-worker", flood_spec, env=env, log=logs / "login-flood.log"
             )
+        start_wall = await _load_go(list(procs.values()), delay_s=params.start_delay_s)
         await asyncio.sleep(max(0.0, start_wall - time.time()))
         await measure(
             results=results,

@@ -17,6 +17,7 @@ import asyncio
 import csv
 import http.client
 import http.server
+import io
 import json
 import math
 import os
@@ -719,7 +720,9 @@ class _SessionsApi(http.server.BaseHTTPRequestHandler):
         pass
 
 
-def test_paced_clients_start_sessions_at_the_rate_asked(tmp_path: Path) -> None:
+def test_paced_clients_start_sessions_at_the_rate_asked(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _SessionsApi)
     threading.Thread(target=server.serve_forever, daemon=True).start()
     try:
@@ -729,13 +732,16 @@ def test_paced_clients_start_sessions_at_the_rate_asked(tmp_path: Path) -> None:
             "base": f"http://127.0.0.1:{server.server_address[1]}",
             "tokens": ["a", "b", "c"],
             "service": "light",
-            "start_wall": start,
             "duration_s": 2.0,
             "rate": 10.0,
             "out": str(out),
         }
         (tmp_path / "spec.json").write_text(json.dumps(spec))
+        # The start as the benchmark sends it, once the worker said it was ready.
+        monkeypatch.setattr("sys.stdin", io.StringIO(json.dumps({"start_wall": start}) + "\n"))
         scale.api_worker(str(tmp_path / "spec.json"))
+        assert capsys.readouterr().out.splitlines()[0] == '{"ready": true}'
+
     finally:
         server.shutdown()
         server.server_close()
