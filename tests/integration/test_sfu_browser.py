@@ -18,6 +18,7 @@ from playwright.async_api import expect
 
 from services import sfu
 from services.models import Session
+from services.records.keeping import RecordCheck, record_verify
 from services.sessions.ending import session_end
 from tests.browser import needs_chromium
 from tests.janus import JanusServer, janus_server
@@ -136,6 +137,17 @@ async def test_a_spectator_watches_through_the_sfu_and_hears_when_it_dies(
             return len(recorded) >= 2 and all(m.with_suffix(".webm").exists() for m in recorded)
 
         await until(converted, within=120, what="the recordings to be converted")
+
+        # ... and chained each into the session's log: the record's check holds them
+        # to their digests.
+        def video_checked() -> RecordCheck:
+            return record_verify(session=Session.objects.get(pk=session_id))
+
+        deadline = time.monotonic() + 60
+        while (check := await db(video_checked)).videos < 2:
+            assert time.monotonic() < deadline, f"the videos were not chained: {check}"
+            await asyncio.sleep(0.2)
+        assert check.ok and check.video_check == "sha256", check.problems
         stretches = []
         for recording in sfu.sfu_recordings(session_id=session_id):
             with av.open(str(recording.path)) as container:
