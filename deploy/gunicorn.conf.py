@@ -41,6 +41,11 @@ accesslog = None
 errorlog = "-"
 loglevel = "info"
 proc_name = "iouv-web"
+# gunicorn 25.1+ opens a control socket for gunicornc at one path per user
+# (~/.gunicorn/gunicorn.ctl): the machine's several HTTP processes (iouv-web@1, @2...)
+# would take it from one another, and the first to stop would remove it under the
+# others. Nothing here uses gunicornc; systemd's signals do what it would.
+control_socket_disable = True
 
 
 def child_exit(server: object, worker: object) -> None:

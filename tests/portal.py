@@ -111,8 +111,11 @@ async def controller(page: Page, expression: str) -> Any:
     return await page.evaluate(f"() => {{ const c = window.iouvController; return {expression}; }}")
 
 
-async def wait_for(page: Page, expression: str, timeout_ms: int = 15000) -> None:
-    """Wait until the page has a controller ``c`` and ``expression`` holds."""
+async def wait_for(page: Page, expression: str, timeout_ms: int = 45000) -> None:
+    """Wait until the page has a controller ``c`` and ``expression`` holds.
+
+    45 s by default: with the suite's other workers on a saturated machine, WebRTC's
+    first frames have taken over 15 s; a state is waited on, never timed."""
     await page.wait_for_function(
         f"() => {{ const c = window.iouvController; return c && ({expression}); }}",
         timeout=timeout_ms,

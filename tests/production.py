@@ -135,11 +135,13 @@ def nginx_prepared(prefix: Path, site: str) -> Path:
     return conf
 
 
-def _wait_http(url: str, *, context: ssl.SSLContext | None = None, within: float = 30.0) -> None:
+def _wait_http(url: str, *, context: ssl.SSLContext | None = None, within: float = 90.0) -> None:
+    # 90 s, as tests.servers.PlatformServer: a saturated machine with the suite's other
+    # workers takes tens of seconds to import Django in a process's workers.
     deadline = time.monotonic() + within
     while True:
         try:
-            with urllib.request.urlopen(url, timeout=1, context=context) as response:
+            with urllib.request.urlopen(url, timeout=5, context=context) as response:
                 if response.status == 200:
                     return
         except OSError:

@@ -422,9 +422,11 @@ async def test_a_live_sessions_replay_follows_the_drone_and_scrubs_back_while_it
     session, user_task = await session_deployed(agent, service)
     owner = await db(lambda: Session.objects.get(pk=session.pk).user)
     seq = itertools.count(1)
+    # The browser starts first: the agent closes a channel not authenticated within
+    # 5 s, and a loaded machine takes longer than that to start Chromium.
     async with (
-        connect(user_task.control_url, proxy=None, compression=None) as ws,
         chromium_browser() as browser,
+        connect(user_task.control_url, proxy=None, compression=None) as ws,
     ):
         await ws.send(json.dumps({"type": "auth", "grant": user_task.grant}))
         assert (await recv(ws, "welcome"))["role"] == "controller"
