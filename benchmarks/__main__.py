@@ -74,8 +74,9 @@ def main() -> None:
     parser.add_argument(
         "only",
         nargs="?",
-        choices=["video", "records"],
+        choices=["video", "video_spectators", "records"],
         help="run this benchmark alone (video: needs root and Chromium, benchmarks/video.py;"
+        " video_spectators: also Janus, benchmarks/video_spectators.py;"
         " records: 30 minutes of simulated flight, benchmarks/records.py)",
     )
     parser.add_argument("--quick", action="store_true", help="smoke-test sizes")
@@ -103,6 +104,9 @@ def main() -> None:
         f"(scale/report.md) ({took['scale'] / 60:.1f} min)",
         "- [The pilot's video through a link cut from 4 to 0.5 Mbit/s and back](video/report.md)"
         " (run alone: `python -m benchmarks video`, needs root and Chromium)",
+        "- [The pilot's video with 10 and 50 spectators watching through the SFU]"
+        "(video_spectators/report.md) (run alone: `python -m benchmarks video_spectators`,"
+        " needs root, Chromium and Janus)",
         "- [The flight record's size per hour and the agent's CPU cost of recording]"
         "(records/README.md) (run alone: `python -m benchmarks records`, about 32 min)",
         "",

@@ -52,6 +52,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import BinaryIO, Self
 
+from tests.ports import free_port as tests_free_port
+
 log = logging.getLogger(__name__)
 
 #: Where Debian's package puts the binary; ``IOUV_NGINX`` names another one.
@@ -184,9 +186,12 @@ class AccessEntry:
 
 
 def free_port(host: str = "127.0.0.1") -> int:
-    """A port nothing listens on right now."""
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    with socket.socket(family) as s:
+    """A port nothing listens on right now: under the tests, from the worker's own range
+    (tests.ports), since the kernel's pick is in the range its outgoing connections also
+    draw from and another process may take it before nginx binds it."""
+    if ":" not in host:
+        return tests_free_port(host)
+    with socket.socket(socket.AF_INET6) as s:
         s.bind((host, 0))
         return int(s.getsockname()[1])
 

@@ -104,6 +104,7 @@ from websockets.exceptions import ConnectionClosed
 from agents.protocol import MAX_MESSAGE_BYTES
 from benchmarks.delay_proxy import DelayProxy, Link, UdpDelayProxy
 from benchmarks.turn_server import TurnServer, TurnServerError, turn_server, turnserver_missing
+from tests.ports import free_port
 
 if TYPE_CHECKING:
     from benchmarks.rtc_client import RtcControlClient
@@ -1000,12 +1001,6 @@ class PlatformApi:
 # --------------------------------------------------------------------------------------
 # Processes: echo server, agents, platform
 # --------------------------------------------------------------------------------------
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 async def _echo_serve(port: int) -> None:

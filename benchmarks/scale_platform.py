@@ -18,7 +18,6 @@ import contextlib
 import json
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -32,6 +31,7 @@ from typing import Any
 from urllib.parse import unquote, urlsplit
 
 from iouv.serve import command as serve_command
+from tests.ports import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBE = Path(__file__).resolve().with_name("scale_probe.py")
@@ -39,12 +39,6 @@ PROBE = Path(__file__).resolve().with_name("scale_probe.py")
 #: production's (iouv.serve).
 SERVERS = ("uvicorn", "daphne")
 START_TIMEOUT_S = 60.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def open_log(path: Path) -> Any:

@@ -9,6 +9,7 @@ lab installs coturn (tests.netlab.ensure_packages: needs root).
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 import os
@@ -21,7 +22,11 @@ import urllib.request
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+from aiortc import MediaStreamTrack, RTCConfiguration, RTCPeerConnection, RTCSessionDescription
+
+from agents.sfu import JanusSession
 from tests.netlab import ensure_packages
 from tests.servers import free_port
 
@@ -173,3 +178,73 @@ def janus_server(folder: Path) -> Iterator[JanusServer]:
         yield server
     finally:
         server.stop()
+
+
+class Spectator:
+    """A headless spectator: subscribes to the vehicle's feed at Janus as a browser
+    would (token, room, pin) and counts the RTP packets it receives. aiortc decodes
+    every frame it receives; they are taken from the track and dropped, so that a
+    spectator's memory stays flat however long it watches."""
+
+    def __init__(self, url: str, *, token: str | None, room: int, pin: str, feed: int) -> None:
+        self.url, self.token, self.room, self.pin, self.feed = url, token, room, pin, feed
+        self.janus: JanusSession | None = None
+        self.pc: RTCPeerConnection | None = None
+        self._draining: set[asyncio.Task[None]] = set()
+
+    async def watch(self) -> None:
+        """Join and start; raises JanusError when Janus refuses."""
+        self.janus = janus = JanusSession(self.url, token=self.token)
+        await janus.__aenter__()
+        handle = await janus.attach()
+        _, jsep = await handle.request(
+            {
+                "request": "join",
+                "ptype": "subscriber",
+                "room": self.room,
+                "pin": self.pin,
+                "streams": [{"feed": self.feed}],
+            }
+        )
+        assert jsep is not None and jsep["type"] == "offer"
+        self.pc = pc = RTCPeerConnection(RTCConfiguration(iceServers=[]))
+
+        @pc.on("track")
+        def on_track(track: MediaStreamTrack) -> None:
+            task = asyncio.ensure_future(self._drain(track))
+            self._draining.add(task)
+            task.add_done_callback(self._draining.discard)
+
+        await pc.setRemoteDescription(RTCSessionDescription(jsep["sdp"], "offer"))
+        await pc.setLocalDescription(await pc.createAnswer())
+        await handle.request(
+            {"request": "start"}, jsep={"type": "answer", "sdp": pc.localDescription.sdp}
+        )
+
+    @staticmethod
+    async def _drain(track: MediaStreamTrack) -> None:
+        with contextlib.suppress(Exception):  # the track ended (MediaStreamError)
+            while True:
+                await track.recv()
+
+    async def packets(self) -> int:
+        """RTP packets received so far."""
+        return sum(s.packetsReceived for s in await self._inbound())
+
+    async def received_bytes(self) -> int:
+        """RTP payload bytes received so far."""
+        return sum(s.bytesReceived for s in await self._inbound())
+
+    async def _inbound(self) -> list[Any]:
+        if self.pc is None:
+            return []
+        stats = await self.pc.getStats()
+        return [s for s in stats.values() if s.type == "inbound-rtp"]
+
+    async def close(self) -> None:
+        if self.pc is not None:
+            await self.pc.close()
+        if self.janus is not None:
+            await self.janus.close()
+        for task in list(self._draining):
+            task.cancel()

@@ -30,7 +30,7 @@ from agents.video.ice import restrict_ice_host_addresses
 from agents.video.service import VideoService
 from agents.video.sources import SyntheticCamera
 from services import sfu
-from tests.janus import JanusServer, janus_server
+from tests.janus import JanusServer, Spectator, janus_server
 
 pytestmark = pytest.mark.realtime
 
@@ -84,50 +84,6 @@ class Pilot:
             await self.pc.setLocalDescription(await self.pc.createOffer())
         answer = await self.rtc.accept(self.peer_id, self.pc.localDescription.sdp, controller=True)
         await self.pc.setRemoteDescription(RTCSessionDescription(answer, "answer"))
-
-
-class Spectator:
-    """A headless spectator: subscribes to the vehicle's feed at Janus as a browser
-    would (token, room, pin) and counts the RTP packets it receives."""
-
-    def __init__(self, url: str, *, token: str | None, room: int, pin: str) -> None:
-        self.url, self.token, self.room, self.pin = url, token, room, pin
-        self.janus: JanusSession | None = None
-        self.pc: RTCPeerConnection | None = None
-
-    async def watch(self) -> None:
-        """Join and start; raises JanusError when Janus refuses."""
-        self.janus = janus = JanusSession(self.url, token=self.token)
-        await janus.__aenter__()
-        handle = await janus.attach()
-        _, jsep = await handle.request(
-            {
-                "request": "join",
-                "ptype": "subscriber",
-                "room": self.room,
-                "pin": self.pin,
-                "streams": [{"feed": sfu.FEED}],
-            }
-        )
-        assert jsep is not None and jsep["type"] == "offer"
-        self.pc = pc = RTCPeerConnection(RTCConfiguration(iceServers=[]))
-        await pc.setRemoteDescription(RTCSessionDescription(jsep["sdp"], "offer"))
-        await pc.setLocalDescription(await pc.createAnswer())
-        await handle.request(
-            {"request": "start"}, jsep={"type": "answer", "sdp": pc.localDescription.sdp}
-        )
-
-    async def packets(self) -> int:
-        if self.pc is None:
-            return 0
-        stats = await self.pc.getStats()
-        return sum(s.packetsReceived for s in stats.values() if s.type == "inbound-rtp")
-
-    async def close(self) -> None:
-        if self.pc is not None:
-            await self.pc.close()
-        if self.janus is not None:
-            await self.janus.close()
 
 
 async def sent_bytes(pc: RTCPeerConnection | None) -> int:
@@ -195,6 +151,7 @@ def spectator_for(session_id: uuid.UUID, **override: Any) -> Spectator:
     assert viewer is not None
     return Spectator(
         viewer["url"],
+        feed=viewer["feed"],
         token=override.get("token", viewer["token"]),
         room=override.get("room", viewer["room"]),
         pin=override.get("pin", viewer["pin"]),

@@ -10,6 +10,9 @@ together (adapter, ControlHub, MissionControl, ThermalFeed) so they can look ins
 from __future__ import annotations
 
 import asyncio
+import logging
+
+import pytest
 
 from agents.geo import distance_m
 from agents.missions.registry import mission_decode
@@ -130,3 +133,20 @@ async def test_start_index_skips_waypoints_and_a_new_mission_replaces_the_old(
     # It took off and set off, then stopped without a word when replaced.
     assert first == [("mission_progress", "takeoff"), ("mission_progress", "transit")]
     assert rig.events("search_complete")[0][1] == {"mission": "m-second", "waypoint": 5}
+
+
+async def test_a_camera_too_slow_for_the_speed_slows_the_search_and_the_person_is_found(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # One thermal frame a second while the simulator flies 10 m/s at 6x: 60 m of sea
+    # between two frames whose footprint is 33 m along the track. At full speed most of
+    # the sea would go unseen; the search slows down until the frames overlap.
+    thermal = {"source": "synthetic", "persons": [list(PERSON)], "seed": 2, "fps": 1}
+    caplog.set_level(logging.INFO, logger="agents.missions.search.runner")
+    async with agent_with_platform(thermal, None) as (_agent, platform):
+        await platform.task(search())
+        found = await platform.wait(lambda: platform.events("person_detected"), 120, "detection")
+        assert distance_m((found[0]["lat"], found[0]["lon"]), PERSON) < 5.0, found
+        assert not platform.events("search_complete") and not platform.events("mission_failed")
+    slowed = [r.getMessage() for r in caplog.records if "slowing to" in r.getMessage()]
+    assert slowed, "the search never slowed down"
