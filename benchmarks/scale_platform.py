@@ -31,7 +31,7 @@ from typing import Any
 from urllib.parse import unquote, urlsplit
 
 from iouv.serve import command as serve_command
-from tests.ports import free_port
+from tests.ports import free_port as free_port  # what the tests import from here
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBE = Path(__file__).resolve().with_name("scale_probe.py")

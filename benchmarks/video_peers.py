@@ -7,7 +7,7 @@
 many spectators' browsers would be: their receiving and decoding runs here, not on the
 vehicle's event loop. Once every one has received packets, prints
 ``{"watching": count}``; then answers each ``stats`` line on stdin with
-``{"packets": n, "bytes": n}`` (totals over the spectators); leaves the room and exits
+``{"packets": n}`` (RTP packets received, over the spectators); leaves the room and exits
 when stdin closes. Errors go out as ``{"error": "..."}`` and exit status 1.
 """
 
@@ -60,9 +60,7 @@ async def _run(config: dict[str, object]) -> int:
         _say(watching=count)
         while line := await asyncio.to_thread(sys.stdin.readline):
             if line.strip() == "stats":
-                packets = sum([await s.packets() for s in spectators])
-                received = sum([await s.received_bytes() for s in spectators])
-                _say(packets=packets, bytes=received)
+                _say(packets=sum([await s.packets() for s in spectators]))
         return 0
     finally:
         await asyncio.gather(*(s.close() for s in spectators), return_exceptions=True)

@@ -13,9 +13,10 @@ peers (the pilot's direct path) and its SfuPublisher, publishing to a private Ja
 platform's code opens (services.sfu). The pilot is Chromium in a network namespace
 (tests/netlab.py) decoding each frame's code, so it knows each frame's capture time
 (one clock). The spectators are headless subscribers (tests.janus.Spectator: aiortc,
-receiving and decoding) with the platform's viewer tokens, in processes of their own at
-the lowest CPU priority (``nice 19``): on a real deployment they are other people's
-machines, and here they must not take the pilot's share of the two cores.
+receiving and decoding) with the platform's viewer tokens, in processes of their own.
+Janus and the spectators run at the lowest CPU priority (nice 19, their autogroups
+too): on a real deployment they are other machines, and here they must not take the
+vehicle's or the pilot's share of the two cores.
 
 The floor is measured in the same run, before anything else starts: drawing one frame,
 encoding it with the agent's encoder settings, decoding it (libavcodec) and converting
@@ -43,11 +44,12 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "benchmarks" / "video_spectators"
 WIDTH, HEIGHT, FPS, BITRATE = 640, 480, 30, 2_500_000
-#: The links between the vehicle and the pilot: a name and the ``tc netem`` options on
-#: the pilot's side of the bridge (None: not shaped).
+#: The links between the vehicle and the pilot: a name and the ``tc tbf`` options on the
+#: pilot's side of the bridge (None: not shaped). This machine's kernel has no netem,
+#: so a link's delay is not emulated, only its rate and queue (as benchmarks.video).
 PROFILES: dict[str, str | None] = {
     "unshaped veth": None,
-    "4 Mbit/s, 40 ms to the pilot": "delay 40ms rate 4mbit limit 400",
+    "4 Mbit/s (tbf, 150 ms of queue)": "rate 4mbit burst 30kb latency 150ms",
 }
 #: Spectator counts measured, in this order (the crowd grows; each count its window).
 COUNTS = (0, 10, 50)
@@ -85,8 +87,9 @@ def floor_ms(frames: int = 150) -> dict[str, float]:
     return out
 
 
-def cpu_s(pid: int) -> float:
-    """CPU seconds (user + system) of ``pid`` and every process below it."""
+def cpu_s(pid: int, *, tree: bool = True) -> float:
+    """CPU seconds (user + system) of ``pid`` and, with ``tree``, every process below
+    it (the spectators' processes, Janus and Chromium are this one's children)."""
     tick = os.sysconf("SC_CLK_TCK")
     children: dict[int, list[int]] = {}
     times: dict[int, float] = {}
@@ -104,12 +107,25 @@ def cpu_s(pid: int) -> float:
     while todo:
         current = todo.pop()
         total += times.get(current, 0.0)
-        todo.extend(children.get(current, []))
+        if tree:
+            todo.extend(children.get(current, []))
     return total
 
 
+def background(pid: int) -> None:
+    """Give ``pid`` (its every thread, and its autogroup when the kernel groups
+    sessions, as this one's does) the lowest CPU priority: it stands in for other
+    machines (the platform's server, the spectators' computers), and must not take the
+    vehicle's or the pilot's share of the cores."""
+    with contextlib.suppress(OSError):  # no autogroups: the threads' nice is enough
+        Path(f"/proc/{pid}/autogroup").write_text("19")
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError):  # a thread that ended meanwhile
+            os.setpriority(os.PRIO_PROCESS, int(task.name), 19)
+
+
 class Crowd:
-    """Spectator processes (benchmarks.video_peers), each ``nice 19``."""
+    """Spectator processes (benchmarks.video_peers), each in the background."""
 
     def __init__(self, viewer: dict[str, Any]) -> None:
         self.viewer = viewer
@@ -131,7 +147,9 @@ class Crowd:
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
                 text=True,
+                start_new_session=True,  # an autogroup of its own, put in the background
             )
+            background(proc.pid)
             self.procs.append((proc, n))
             reply = self._reply(proc)
             if reply.get("watching") != n:
@@ -145,18 +163,18 @@ class Crowd:
         if not line:
             raise RuntimeError(f"a spectator process exited ({proc.wait()})")
         reply: dict[str, Any] = json.loads(line)
+        if "error" in reply:
+            raise RuntimeError(f"spectators: {reply['error']}")
         return reply
 
-    def stats(self) -> dict[str, int]:
-        """Packets and bytes received so far, over every spectator."""
-        total = {"packets": 0, "bytes": 0}
+    def packets(self) -> int:
+        """RTP packets received so far, over every spectator."""
+        total = 0
         for proc, _ in self.procs:
             assert proc.stdin is not None
             proc.stdin.write("stats\n")
             proc.stdin.flush()
-            reply = self._reply(proc)
-            for key in total:
-                total[key] += reply[key]
+            total += int(self._reply(proc)["packets"])
         return total
 
     def cpu_s(self) -> float:
@@ -190,6 +208,8 @@ def janus_settings() -> Iterator[Any]:
     with tempfile.TemporaryDirectory() as tmp, janus_server(Path(tmp)) as server:
         for name, value in server.settings().items():
             setattr(settings, name, value)
+        assert server.proc is not None
+        background(server.proc.pid)
         yield server
 
 
@@ -200,21 +220,24 @@ def percentile(values: Sequence[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))]
 
 
-def shape(veth: str, netem: str | None) -> None:
-    """Put ``netem``'s options on ``veth`` (None: take any shaping off)."""
-    if netem:
-        command = ["tc", "qdisc", "replace", "dev", veth, "root", "netem", *netem.split()]
+def shape(veth: str, tbf: str | None) -> None:
+    """Put ``tbf``'s options on ``veth`` (None: take any shaping off)."""
+    if tbf:
+        command = ["tc", "qdisc", "replace", "dev", veth, "root", "tbf", *tbf.split()]
         subprocess.run(command, check=True)
     else:
-        subprocess.run(["tc", "qdisc", "del", "dev", veth, "root"], check=False)
+        subprocess.run(
+            ["tc", "qdisc", "del", "dev", veth, "root"], check=False, stderr=subprocess.DEVNULL
+        )
 
 
-async def sent_bytes(pc: Any) -> int:
-    """Video bytes ``pc`` has sent (RTP payload and headers, as WebRTC counts them)."""
+async def sent(pc: Any) -> tuple[int, int]:
+    """Video bytes (RTP payload and headers, as WebRTC counts them) and RTP packets
+    ``pc`` has sent."""
     if pc is None:
-        return 0
-    stats = await pc.getStats()
-    return sum(s.bytesSent for s in stats.values() if s.type == "outbound-rtp")
+        return 0, 0
+    stats = [s for s in (await pc.getStats()).values() if s.type == "outbound-rtp"]
+    return sum(s.bytesSent for s in stats), sum(s.packetsSent for s in stats)
 
 
 class Vehicle:
@@ -225,12 +248,13 @@ class Vehicle:
         self.video, self.rtc, self.janus_pid = video, rtc, janus_pid
         self.publisher: Any = None
 
-    async def bytes_out(self) -> tuple[int, int]:
-        """Bytes sent so far to the pilot and to the SFU."""
+    async def sent(self) -> tuple[int, int, int]:
+        """Bytes sent so far to the pilot and to the SFU, and packets to the SFU."""
         # The peers' only connection is the pilot's (the controller's place).
         peers = list(self.rtc._peers.values())
-        to_pilot = sum([await sent_bytes(peer.pc) for peer in peers])
-        return to_pilot, await sent_bytes(self.publisher.pc if self.publisher else None)
+        to_pilot = sum([(await sent(peer.pc))[0] for peer in peers])
+        to_sfu = await sent(self.publisher.pc if self.publisher else None)
+        return to_pilot, *to_sfu
 
 
 async def run(window_s: float, counts: Sequence[int], profiles: Sequence[str]) -> dict[str, Any]:
@@ -324,15 +348,17 @@ async def measure(
     await asyncio.sleep(2.0)  # the joins' CPU burst passes before the window opens
     me = os.getpid()
     start_ms = time.time() * 1000
-    pilot0, sfu0 = await vehicle.bytes_out()
-    cpu0 = (cpu_s(me), cpu_s(vehicle.janus_pid), await asyncio.to_thread(crowd.cpu_s))
-    seen0 = await asyncio.to_thread(crowd.stats)
+    pilot0, sfu0, packets0 = await vehicle.sent()
+    cpu0 = (cpu_s(me, tree=False), cpu_s(vehicle.janus_pid), await asyncio.to_thread(crowd.cpu_s))
+    seen0 = await asyncio.to_thread(crowd.packets)
+    keys0 = vehicle.video.encoder.keyframes
     t0 = time.monotonic()
     await asyncio.sleep(window_s)
     elapsed = time.monotonic() - t0
-    pilot1, sfu1 = await vehicle.bytes_out()
-    cpu1 = (cpu_s(me), cpu_s(vehicle.janus_pid), await asyncio.to_thread(crowd.cpu_s))
-    seen1 = await asyncio.to_thread(crowd.stats)
+    pilot1, sfu1, packets1 = await vehicle.sent()
+    cpu1 = (cpu_s(me, tree=False), cpu_s(vehicle.janus_pid), await asyncio.to_thread(crowd.cpu_s))
+    seen1 = await asyncio.to_thread(crowd.packets)
+    keys1 = vehicle.video.encoder.keyframes
     end_ms = time.time() * 1000
     result = await asyncio.to_thread(browser.eval, "window.result")
     latencies = [lat for t, lat in result["latencyAt"] if start_ms <= t < end_ms]
@@ -346,11 +372,16 @@ async def measure(
         "pilot_largest_gap_ms": largest_gap_ms(result["times"], start_ms, end_ms),
         "vehicle_to_pilot_kbit_s": (pilot1 - pilot0) * kbit,
         "vehicle_to_sfu_kbit_s": (sfu1 - sfu0) * kbit,
+        # Keyframes cost the pilot's link several frames' worth each: the spectators'
+        # requests must not multiply them.
+        "vehicle_keyframes_per_s": (keys1 - keys0) / elapsed,
         "vehicle_cpu_pct": (cpu1[0] - cpu0[0]) / elapsed * 100,
         "janus_cpu_pct": (cpu1[1] - cpu0[1]) / elapsed * 100,
         "spectators_cpu_pct": (cpu1[2] - cpu0[2]) / elapsed * 100,
-        "spectators_kbit_s_each": (
-            (seen1["bytes"] - seen0["bytes"]) * kbit / count if count else None
+        # Of the packets the vehicle sent Janus, the share each spectator received
+        # (Janus forwards every one; less means a spectator fell behind or Janus did).
+        "spectators_received_share": (
+            (seen1 - seen0) / count / max(1, packets1 - packets0) if count else None
         ),
     }
 
@@ -365,8 +396,9 @@ def report(run_json: dict[str, Any]) -> str:
         "moving synthetic scene, 2.5 Mbit/s configured), its WebRTC peers and SFU publisher",
         "in one process; the pilot's Chromium in a network namespace, reading each frame's",
         "capture time from its pixels; a private Janus; headless spectators (aiortc,",
-        "decoding) in processes at `nice 19`. One run on the shared 2-core machine, every",
-        f"figure over a {run_json['window_s']:.0f} s window.",
+        "decoding) in processes of their own; Janus and the spectators at nice 19 (they",
+        "stand in for other machines). One run on the shared 2-core machine, every figure",
+        f"over a {run_json['window_s']:.0f} s window.",
         "",
         f"Render-encode-decode floor of one frame (same run, median of 150): "
         f"**{floor['total']:.1f} ms** (draw {floor['render']:.1f}, encode "
@@ -384,7 +416,7 @@ def report(run_json: dict[str, Any]) -> str:
             "|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for row in rows:
-            each = row["spectators_kbit_s_each"]
+            share = row["spectators_received_share"]
             lines.append(
                 f"| {row['spectators']} | {row['pilot_p50_ms']:.0f} ms"
                 f" | {row['pilot_p50_ms'] - alone['pilot_p50_ms']:+.0f} ms"
@@ -395,13 +427,15 @@ def report(run_json: dict[str, Any]) -> str:
                 " kbit/s"
                 f" | {row['vehicle_cpu_pct']:.0f} % | {row['janus_cpu_pct']:.0f} %"
                 f" | {row['spectators_cpu_pct']:.0f} %"
-                f" | {'-' if each is None else f'{each:.0f} kbit/s'} |"
+                f" | {'-' if share is None else f'{share:.0%}'} |"
             )
         lines.append("")
     lines += [
         "CPU is per cent of one core over the window (200 % is both cores). The vehicle's",
-        "process also runs the pilot's signalling; the spectators' figure is all of them",
-        "together. Every row's figures are in `run.json`.",
+        "process also draws the synthetic scene and runs the pilot's signalling; the",
+        "spectators' figure is all of them together. Each spectator receives: the share of",
+        "the packets the vehicle sent Janus that reached each spectator, on average. Every",
+        "row's figures are in `run.json`.",
         "",
     ]
     return "\n".join(lines)

@@ -231,10 +231,6 @@ class Spectator:
         """RTP packets received so far."""
         return sum(s.packetsReceived for s in await self._inbound())
 
-    async def received_bytes(self) -> int:
-        """RTP payload bytes received so far."""
-        return sum(s.bytesReceived for s in await self._inbound())
-
     async def _inbound(self) -> list[Any]:
         if self.pc is None:
             return []

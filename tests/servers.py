@@ -35,7 +35,7 @@ from agents.vehicles.base import Simulation
 from iouv.serve import APPLICATION
 from iouv.serve import command as iouv_serve_command
 from services.sessions.signing import platform_public_key_pem
-from tests.ports import free_port
+from tests.ports import free_port as free_port  # what the tests import from here
 
 ROOT = Path(__file__).resolve().parents[1]
 

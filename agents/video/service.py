@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Mapping, Sequence
 from types import TracebackType
 from typing import Any, Self
@@ -22,6 +23,15 @@ from agents.video import VideoError
 from agents.video.encoder import EncodedTrack, SharedVp8Encoder, vp8_codecs
 from agents.video.rate import RetransmitBudget, Role
 from agents.video.sources import SERVICE_OPTIONS, VideoSource, video_source_create
+
+#: Picture-loss requests from anyone but the pilot (spectators on the vehicle, the SFU
+#: on behalf of all of its spectators) bring a keyframe at most this often. Each
+#: keyframe is several frames' worth on the pilot's link too, and the shared encoder
+#: sends it to everyone: with 50 spectators behind Janus, their requests took the
+#: vehicle from 0.3 to 5 keyframes a second and the pilot's latency from 52 to 126 ms
+#: (benchmarks/video_spectators.py). A spectator waits a little longer for a clean
+#: picture; the pilot's own requests are never held back.
+SPECTATOR_KEYFRAME_GAP_S = 2.0
 
 
 def video_service_create(
@@ -73,6 +83,7 @@ class VideoService:
             ice_host_addresses = [ice_host_addresses]
         self._ice_hosts = list(ice_host_addresses) if ice_host_addresses is not None else None
         self._closed = False
+        self._spectator_keyframe_at = -SPECTATOR_KEYFRAME_GAP_S
 
     async def __aenter__(self) -> Self:
         return self
@@ -103,12 +114,23 @@ class VideoService:
         transceiver.setCodecPreferences(vp8_codecs())
         sender = transceiver.sender
         # PLI/FIR from this viewer: aiortc would force a keyframe in the sender's own
-        # encoder, which this sender does not use; ask the shared encoder instead.
-        sender._send_keyframe = self.encoder.request_keyframe  # type: ignore[method-assign]
+        # encoder, which this sender does not use; ask the shared encoder instead (for
+        # a spectator, or the SFU, within SPECTATOR_KEYFRAME_GAP_S).
+        sender._send_keyframe = (  # type: ignore[method-assign]
+            self.encoder.request_keyframe if role == "pilot" else self._spectator_keyframe
+        )
         self._handle_feedback(sender, role)
         rate = self.encoder.rate
         track.on_stop = lambda: rate.forget(sender)
         return track
+
+    def _spectator_keyframe(self) -> None:
+        """A spectator's (or the SFU's) picture-loss request: a keyframe, unless one
+        was asked for by a spectator within SPECTATOR_KEYFRAME_GAP_S."""
+        now = time.monotonic()
+        if now - self._spectator_keyframe_at >= SPECTATOR_KEYFRAME_GAP_S:
+            self._spectator_keyframe_at = now
+            self.encoder.request_keyframe()
 
     def _handle_feedback(self, sender: RTCRtpSender, role: Role) -> None:
         """Hand the shared encoder's rate controller every REMB and loss report this

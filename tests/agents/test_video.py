@@ -26,7 +26,7 @@ from agents.rtc import RtcPeers
 from agents.video import VideoError
 from agents.video.framecode import FrameCode, read_frame_code, stamp_frame_code
 from agents.video.ice import restrict_ice_host_addresses
-from agents.video.service import VideoService, video_service_create
+from agents.video.service import SPECTATOR_KEYFRAME_GAP_S, VideoService, video_service_create
 from agents.video.sources import (
     CameraPose,
     MjpegCamera,
@@ -317,6 +317,35 @@ async def test_picture_loss_from_a_viewer_forces_a_shared_keyframe() -> None:
         # At least: on a busy machine the viewer may fall behind its queue, which asks
         # for one more (the encoder cannot tell the two apart, nor need it).
         assert svc.encoder.keyframes >= before + 1
+
+
+async def test_spectators_picture_loss_brings_a_keyframe_at_most_every_two_seconds() -> None:
+    # Janus passes on its spectators' picture-loss requests: 50 spectators took the
+    # vehicle to 5 keyframes a second, each one on the pilot's link too. Theirs (and a
+    # spectator's on the vehicle) are held to one per SPECTATOR_KEYFRAME_GAP_S; the
+    # pilot's go straight to the encoder.
+    async with VideoService(SyntheticCamera(320, 240, fps=30)) as svc:
+        asked: list[float] = []
+        svc.encoder.request_keyframe = lambda: asked.append(time.monotonic())  # type: ignore[method-assign]
+        senders, pcs = {}, []
+        for role in ("pilot", "sfu", "viewer"):
+            pcs.append(pc := RTCPeerConnection(RTCConfiguration(iceServers=[])))
+            svc.attach(pc, role=role)
+            (senders[role],) = pc.getSenders()
+        try:
+            for _ in range(5):
+                senders["sfu"]._send_keyframe()
+                senders["viewer"]._send_keyframe()
+            assert len(asked) == 1  # one for all of the spectators' ten
+            for _ in range(3):
+                senders["pilot"]._send_keyframe()
+            assert len(asked) == 4  # each of the pilot's
+            svc._spectator_keyframe_at -= SPECTATOR_KEYFRAME_GAP_S  # two seconds later
+            senders["sfu"]._send_keyframe()
+            assert len(asked) == 5
+        finally:
+            for pc in pcs:
+                await pc.close()
 
 
 async def test_no_viewer_means_no_capture() -> None:
