@@ -412,14 +412,9 @@ class Agent:
         # Imported here: aiortc is only loaded by agents with a camera.
         from agents.sfu import SfuPublisher
 
-        self.sfu = SfuPublisher(
+        self.sfu = SfuPublisher.for_room(
             self.video,
-            url=sfu.url,
-            room=sfu.room,
-            feed=sfu.feed,
-            token=sfu.token,
-            publish_token=sfu.publish_token,
-            pin=sfu.pin,
+            sfu,
             display=self.config.name or self.config.vehicle_id,
             ice_servers=self.config.webrtc.get("ice_servers", ()),
         )

@@ -23,13 +23,16 @@ import logging
 import random
 import secrets
 from collections.abc import Mapping, Sequence
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
 
 from aiortc import RTCConfiguration, RTCIceServer, RTCPeerConnection, RTCSessionDescription
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 
 from agents.video.ice import ice_server, restrict_ice_host_addresses
+
+if TYPE_CHECKING:
+    from agents.protocol import SfuPublish
 
 log = logging.getLogger(__name__)
 
@@ -293,6 +296,28 @@ class SfuPublisher:
         self.pc: RTCPeerConnection | None = None
         self.attempts = 0
         self.last_error = ""
+
+    @classmethod
+    def for_room(
+        cls,
+        video: Any,
+        publish: SfuPublish,
+        *,
+        display: str = "",
+        ice_servers: Sequence[RTCIceServer | Mapping[str, Any] | str] = (),
+    ) -> SfuPublisher:
+        """The publisher a task's ``sfu`` section (what the platform minted) asks for."""
+        return cls(
+            video,
+            url=publish.url,
+            room=publish.room,
+            feed=publish.feed,
+            token=publish.token,
+            publish_token=publish.publish_token,
+            pin=publish.pin,
+            display=display,
+            ice_servers=ice_servers,
+        )
 
     async def run(self) -> None:
         """Publish until cancelled; never raises anything but CancelledError."""

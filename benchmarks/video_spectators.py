@@ -304,15 +304,7 @@ async def one_profile(
     task = sfu.sfu_publish_for(session_id=session_id)
     viewer = sfu.sfu_viewer_for(session_id=session_id)
     assert task is not None and viewer is not None
-    vehicle.publisher = publisher = SfuPublisher(
-        vehicle.video,
-        url=task.url,
-        token=task.token,
-        room=task.room,
-        feed=task.feed,
-        publish_token=task.publish_token,
-        pin=task.pin,
-    )
+    vehicle.publisher = publisher = SfuPublisher.for_room(vehicle.video, task)
     publishing = asyncio.create_task(publisher.run())
     crowd = Crowd(viewer)
     rows: list[dict[str, Any]] = []

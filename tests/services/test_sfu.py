@@ -127,15 +127,7 @@ async def vehicle(
         SyntheticCamera(320, 240, fps=fps), ice_host_addresses=LOOPBACK, bitrate=300_000
     ) as video:
         rtc = RtcPeers(_Events(), video=video)
-        publisher = SfuPublisher(
-            video,
-            url=task.url,
-            token=task.token,
-            room=task.room,
-            feed=task.feed,
-            publish_token=task.publish_token,
-            pin=task.pin,
-        )
+        publisher = SfuPublisher.for_room(video, task)
         job = asyncio.create_task(publisher.run())
         try:
             yield rtc, publisher
