@@ -182,6 +182,15 @@ def report(run_json: dict[str, Any]) -> str:
     )
 
 
+def report_write(out: Path, result: dict[str, Any], text: str) -> None:
+    """Write a video benchmark's ``run.json`` (``result``) and ``report.md`` (``text``)
+    into ``out``, and print the report."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "run.json").write_text(json.dumps(result, indent=1) + "\n")
+    (out / "report.md").write_text(text)
+    print(text)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.video", description=__doc__)
     parser.add_argument("--out", type=Path, default=OUT)
@@ -193,10 +202,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.quick:
         args.warm_s, args.cut_s, args.restore_s = 4.0, 10.0, 30.0
     result = asyncio.run(run(args.cut_s, args.restore_s, args.warm_s))
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "run.json").write_text(json.dumps(result, indent=1) + "\n")
-    (args.out / "report.md").write_text(report(result))
-    print(report(result))
+    report_write(args.out, result, report(result))
     return 0
 
 

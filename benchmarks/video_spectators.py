@@ -447,11 +447,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.window_s, args.counts = 5.0, [0, 10]
     if sorted(args.counts) != args.counts or args.counts[0] != 0:
         parser.error("--counts must start at 0 (the pilot alone) and grow")
+    from benchmarks.video import report_write
+
     result = asyncio.run(run(args.window_s, args.counts, args.profiles))
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "run.json").write_text(json.dumps(result, indent=1) + "\n")
-    (args.out / "report.md").write_text(report(result))
-    print(report(result))
+    report_write(args.out, result, report(result))
     return 0
 
 
