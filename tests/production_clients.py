@@ -5,6 +5,7 @@ over the platform's relay, counting what was acknowledged and when."""
 from __future__ import annotations
 
 import asyncio
+import collections
 import http.client
 import itertools
 import json
@@ -105,6 +106,8 @@ class Driver:
         #: What happened to the connection, with when (monotonic): a failure says it.
         self.log: list[tuple[float, str]] = []
         self.acked_at: list[float] = []
+        #: How many commands the vehicle refused, by code (a failure says it).
+        self.refusals: collections.Counter[str] = collections.Counter()
         self.ws: ClientConnection | None = None
         self._runner = asyncio.create_task(self._run())
 
@@ -134,9 +137,12 @@ class Driver:
                     # answer took longer than the usual 3 s. Over the relay, 3 s without
                     # an answer is a path gone silent (a machine cut off): connect again.
                     within = 20 if self.direct else 3
-                    if (await recv(self.ws, "ack", within=within))["ok"]:
+                    ack = await recv(self.ws, "ack", within=within)
+                    if ack["ok"]:
                         self.acked += 1
                         self.acked_at.append(time.monotonic())
+                    else:
+                        self.refusals[str(ack.get("code"))] += 1
                     await asyncio.sleep(0.1)
             except Exception as exc:
                 if self.direct:
@@ -170,8 +176,13 @@ class Driver:
                 self._runner.result()
             return self.acked >= target
 
-        what = f"{more} more commands acknowledged (last grant refusal: {self.refused})"
-        await until(done, within=30, what=what)
+        try:
+            await until(done, within=30, what=f"{more} more commands acknowledged")
+        except AssertionError as exc:
+            raise AssertionError(
+                f"{exc} (refused by the vehicle: {dict(self.refusals)}; "
+                f"last grant refusal: {self.refused})"
+            ) from None
 
     async def stop(self) -> None:
         await cancelled(self._runner)

@@ -58,7 +58,11 @@ from services.supervision.situation import REASON_MAX, service_kind
 log = logging.getLogger(__name__)
 
 #: command_refused codes that mean the user tried something unsafe (agents/safety.py).
-UNSAFE_REFUSALS = frozenset({"altitude_limit", "geofence", "latency", "obstacle", "unsafe"})
+#: Not ``latency``: a movement refused because the round trip is over the service's
+#: limit is the link's doing, not the user's. The vehicle already holds still then, and
+#: a session revoked for it would end a user's session for a slow network, or for the
+#: moments a platform restart slows the relay.
+UNSAFE_REFUSALS = frozenset({"altitude_limit", "geofence", "obstacle", "unsafe"})
 
 #: At most one link_quality event per session in this many seconds reaches the log.
 LINK_QUALITY_EVERY_S = 10.0

@@ -183,9 +183,10 @@ def test_a_viewer_connecting_does_not_activate(live):
 def test_repeated_unsafe_refusals_revoke(live, committing):
     session, vehicle, take = live
     say(vehicle, event(session, "user_connected", role="controller"))
-    for code in ["not_allowed", "bad_args"] * 3:  # refused, but not unsafe
+    # Refused, but not unsafe: a round trip over the limit is the link's doing.
+    for code in ["not_allowed", "bad_args", "latency"] * 3:
         say(vehicle, event(session, "command_refused", name="up", code=code))
-    for code in ["altitude_limit", "geofence", "latency", "obstacle", "geofence"]:
+    for code in ["altitude_limit", "geofence", "unsafe", "obstacle", "geofence"]:
         say(vehicle, event(session, "command_refused", name="up", code=code))
     assert state(session) == Session.State.ACTIVE  # five is the most tolerated
     with committing():
