@@ -591,6 +591,35 @@ class ControlHub:
                 source="mission", name="mission_upload", args={"items": len(items)}, ok=True
             )
 
+    async def mission_native_adopt(
+        self, session_id: str, items: Sequence[PlanItem], *, epoch: int
+    ) -> bool:
+        """Whether the vehicle's own engine flies the current task's mission already
+        (this agent restarted while it flew): :meth:`mission_native_upload`'s plan, as
+        it would have handed it over, is compared with what the engine flies; when they
+        agree, the engine's mission is followed from where it is and nothing is handed
+        over again (see :meth:`NativeMissions.mission_adopt`). Same checks and lock as
+        :meth:`mission_native_upload`. False when the engine flies nothing or something
+        else, or cannot say (logged): the mission is then handed over as usual."""
+        async with self._exec:
+            task = self._mission_task(session_id, epoch)
+            engine = self.adapter.native_missions()
+            if engine is None:
+                return False
+            checked = plan_within(items, task.limits)
+            try:
+                # Reading the mission back is one round trip per item, as an upload.
+                async with asyncio.timeout(COMMAND_TIMEOUT_S + len(items)):
+                    adopted = await engine.mission_adopt(checked)
+            except (TimeoutError, AdapterError) as exc:
+                log.warning("the vehicle's mission could not be read back: %s", exc)
+                return False
+            if adopted:
+                self.recorder.command(
+                    source="mission", name="mission_adopt", args={"items": len(items)}, ok=True
+                )
+            return adopted
+
     async def mission_native_start(self, session_id: str, *, epoch: int) -> None:
         """Start the mission :meth:`mission_native_upload` handed over (same checks and
         lock). Raises Refusal or AdapterError as it does."""

@@ -25,7 +25,11 @@ only :meth:`MissionRunner.fly` from the steps here:
   holding at its end) or returns home if the agent dies; the runner follows it and
   reports the same progress and events. A runner calls it first and flies its steps
   itself when it returns False; an upload the engine refused is reported
-  (``native_mission_refused``), so that nobody believes the autopilot has the mission.
+  (``native_mission_refused``), so that nobody believes the autopilot has the mission,
+  and a mission the engine flies is too (``native_mission_started``, with ``within_s``,
+  how long it may take at most), so that the platform waits for a vehicle gone silent
+  that flies on by itself. An agent restarted mid-mission finds the engine flying the
+  same plan (read back from the autopilot) and follows it, flying nothing again.
 
 Whatever ends the mission is handled here once for all: a user command or a fail-safe
 during the mission (``mission_failed``, "interrupted", the vehicle left to whoever
@@ -71,6 +75,10 @@ LEG_TIME_FACTOR: Final = 3.0
 VERTICAL_RATE_MPS: Final = 1.0
 #: How often the position is checked when no sensor paces the loop.
 POLL_S: Final = 0.1
+#: An armed vehicle whose altitude is not known yet (an agent just started, its
+#: telemetry a moment behind the autopilot's heartbeat) is waited for this long before
+#: a take-off is judged needed: one sent to a vehicle flying is refused.
+STATE_WAIT_S: Final = 5.0
 
 _S = TypeVar("_S", bound=MissionSpec)
 
@@ -89,6 +97,10 @@ class MissionHub(Protocol):
     async def mission_native_upload(
         self, session_id: str, items: Sequence[PlanItem], *, epoch: int
     ) -> None: ...
+
+    async def mission_native_adopt(
+        self, session_id: str, items: Sequence[PlanItem], *, epoch: int
+    ) -> bool: ...
 
     async def mission_native_start(self, session_id: str, *, epoch: int) -> None: ...
 
@@ -325,6 +337,10 @@ class MissionRunner(abc.ABC, Generic[_S]):
             await self.arm_if_needed()
             return
         st = self.adapter.state()
+        waited = time.monotonic() + STATE_WAIT_S
+        while st.armed and st.alt is None and time.monotonic() < waited:
+            await asyncio.sleep(POLL_S)
+            st = self.adapter.state()
         in_air = self.adapter.telemetry().get("in_air")
         if in_air is None:  # an adapter without the topic: judge by the altitude
             in_air = bool(st.armed) and st.alt is not None and st.alt >= MIN_FLYING_M
@@ -476,6 +492,11 @@ class MissionRunner(abc.ABC, Generic[_S]):
         reporting each step's ``phase`` and ``event``. After a hold the vehicle stays
         there in the engine's own mission (AUTO) until someone sends it elsewhere.
 
+        An engine that flies ``plan`` already (this agent restarted mid-mission: see
+        :meth:`agents.control.ControlHub.mission_native_adopt`) is followed from where
+        it is, nothing uploaded or flown again; the steps it passed meanwhile are
+        reported then.
+
         Returns False, having flown nothing, when the vehicle has no engine or refuses
         the upload: the runner then flies its steps itself. A refusal is reported to the
         platform (``native_mission_refused``, with the autopilot's reason), since it
@@ -487,6 +508,20 @@ class MissionRunner(abc.ABC, Generic[_S]):
         engine = self.adapter.native_missions()
         if engine is None:
             return False
+        self._check_interference()
+        if await self.hub.mission_native_adopt(self.session_id, plan.items, epoch=self._epoch):
+            # This agent restarted while the autopilot flew the plan: followed from
+            # where it is; what it did meanwhile (a release too) is reported as done.
+            log.info("mission %s: the autopilot flies it already: followed", self.mission.id)
+            if plan.releases:
+                self.release_attempted.add(self.mission.id)
+            st = self.adapter.state()
+            limit = plan.time_limit_s(st.position, st.alt or 0.0)
+            deadline = time.monotonic() + limit
+            self._mode = st.mode
+            self.report("native_mission_started", within_s=round(limit), adopted=True)
+            await self._follow(plan, engine, deadline, adopted=True)
+            return True
         if plan.releases and self.mission.id in self.release_attempted:
             raise StepFailed("this mission's payload release was already attempted")
         self._check_interference()
@@ -500,20 +535,28 @@ class MissionRunner(abc.ABC, Generic[_S]):
         if first is not None:
             await self.take_off_if_needed(first.altitude_m)
         st = self.adapter.state()
-        deadline = time.monotonic() + plan.time_limit_s(st.position, st.alt or 0.0)
+        limit = plan.time_limit_s(st.position, st.alt or 0.0)
+        deadline = time.monotonic() + limit
         if plan.releases:
             # Recorded before the autopilot may release it: never sent twice.
             self.release_attempted.add(self.mission.id)
         self._check_interference()
         await self.hub.mission_native_start(self.session_id, epoch=self._epoch)
         self._mode = self.adapter.state().mode
+        # The platform then knows the vehicle flies on if its agent goes silent, and
+        # for how long at most: it sends no other vehicle there meanwhile.
+        self.report("native_mission_started", within_s=round(limit), adopted=False)
         await self._follow(plan, engine, deadline)
         return True
 
-    async def _follow(self, plan: FlightPlan, engine: NativeMissions, deadline: float) -> None:
+    async def _follow(
+        self, plan: FlightPlan, engine: NativeMissions, deadline: float, *, adopted: bool = False
+    ) -> None:
         """Report the plan's steps as the engine starts and passes them; return once its
         last step (the return home, or the hold the engine never moves past) has
-        started."""
+        started. ``adopted``: the engine was found flying the plan; of the phases it
+        went through before, only the one it is in is reported (the events, facts the
+        platform may not have heard, all are)."""
         steps = plan.steps
         started = finished = -1
         last = len(steps) - 1
@@ -523,10 +566,12 @@ class MissionRunner(abc.ABC, Generic[_S]):
             current = len(steps) if where.finished else where.current
             if current is not None:
                 # Steps the engine moved past (a "do" step is never current) in order.
-                for index in range(started + 1, min(current, last) + 1):
-                    started = index
-                    if steps[index].phase is not None:
-                        self.progress(steps[index].phase or "")
+                passed = range(started + 1, min(current, last) + 1)
+                phases = [p for p in (steps[i].phase for i in passed) if p is not None]
+                started = max(started, min(current, last))
+                for phase in phases[-1:] if adopted else phases:
+                    self.progress(phase)
+                adopted = False
                 for index in range(finished + 1, min(current, len(steps))):
                     finished = index
                     self._step_done(steps[index])

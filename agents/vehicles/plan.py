@@ -90,5 +90,13 @@ class NativeMissions(abc.ABC):
         already (a copter flying: take off first). Raises AdapterError when refused."""
 
     @abc.abstractmethod
+    async def mission_adopt(self, items: Sequence[PlanItem]) -> bool:
+        """Whether the engine flies ``items`` already (the agent started them before it
+        restarted): then :meth:`mission_progress` follows that mission from where it is,
+        as if :meth:`mission_start` had just started it, and nothing is flown again.
+        False, with nothing changed, when it flies nothing or something else. Raises
+        AdapterError when the engine cannot be asked."""
+
+    @abc.abstractmethod
     def mission_progress(self) -> MissionProgress:
         """Where the engine is in the uploaded plan. Must not block."""

@@ -141,12 +141,13 @@ RigFactory = Callable[..., Awaitable[Rig]]
 @contextlib.asynccontextmanager
 async def rigs() -> AsyncIterator[RigFactory]:
     """Build rigs: ``await build(persons=None, *, control=False, sensors=None,
-    artifacts=None, **options)`` starts a simulator (:func:`drone_options`), the drone on
-    it, a hub, missions and a synthetic thermal feed seeing ``persons`` (or, with
-    ``sensors``, the agent's sensors that ``sensors(drone)`` returns instead), a control
-    server with ``control``, the missions' files kept in the folder ``artifacts`` (an
-    ArtifactStore with nobody to upload to); everything is closed at the end, the
-    simulators last."""
+    artifacts=None, autopilot=None, **options)`` starts a simulator
+    (:func:`drone_options`; given ``autopilot``, the options of a drone on a simulator
+    running already, none is started: a restarted agent's), the drone on it, a hub,
+    missions and a synthetic thermal feed seeing ``persons`` (or, with ``sensors``, the
+    agent's sensors that ``sensors(drone)`` returns instead), a control server with
+    ``control``, the missions' files kept in the folder ``artifacts`` (an ArtifactStore
+    with nobody to upload to); everything is closed at the end, the simulators last."""
     opened: list[Rig] = []
     simulators = contextlib.AsyncExitStack()
 
@@ -156,12 +157,15 @@ async def rigs() -> AsyncIterator[RigFactory]:
         control: bool = False,
         sensors: Callable[[MavlinkAdapter], dict[str, Any]] | None = None,
         artifacts: Path | None = None,
+        autopilot: dict[str, Any] | None = None,
         **options: Any,
     ) -> Rig:
-        simulation = await simulators.enter_async_context(
-            simulator_running("mavlink", drone_options(**options))
-        )
-        drone = adapter_create("mavlink", simulation.options)
+        if autopilot is None:
+            simulation = await simulators.enter_async_context(
+                simulator_running("mavlink", drone_options(**options))
+            )
+            autopilot = simulation.options
+        drone = adapter_create("mavlink", autopilot)
         assert isinstance(drone, MavlinkAdapter)
         await drone.start()
         feed: ThermalFeed | None = None

@@ -59,7 +59,7 @@ from agents.vehicles.mavlink.dialect import (
 from agents.vehicles.mavlink.failsafe import failsafe_problems
 from agents.vehicles.mavlink.fence import FenceState, fence_clear, fence_set, fence_words
 from agents.vehicles.mavlink.link import AutopilotLink
-from agents.vehicles.mavlink.mission import items_upload, plan_items
+from agents.vehicles.mavlink.mission import items_download, items_match, items_upload, plan_items
 from agents.vehicles.mavlink.vocabulary import mavlink_vocabulary, telemetry_topics
 from agents.vehicles.plan import MissionProgress, NativeMissions, PlanItem
 
@@ -71,6 +71,9 @@ WATCH_PERIOD_S = 0.05
 MAX_POSITION_AGE_S = 1.0
 #: From the agent's decision to the autopilot acting on it (s): a local link.
 LINK_S = 0.05
+#: How long :meth:`MavlinkAdapter.mission_adopt` waits for the autopilot to say which
+#: mission item it flies (MISSION_CURRENT streams at 2 Hz or more).
+ADOPT_WAIT_S = 3.0
 
 
 @dataclass
@@ -850,6 +853,46 @@ class MavlinkAdapter(Adapter, NativeMissions, abc.ABC):
         # done): only what comes after it counts. The link keeps the order.
         self.t.mission_seq = self.t.mission_reached = None
         self.t.mission_state = 0
+
+    async def mission_adopt(self, items: Sequence[PlanItem]) -> bool:
+        """Whether the autopilot flies ``items`` already, as a mission under way in AUTO:
+        one this vehicle's agent uploaded and started before it restarted (a companion
+        computer that rebooted mid-flight). The mission is read back item by item
+        (:func:`.mission.items_download`) and compared with what :meth:`mission_upload`
+        would make of ``items``; when they agree, :meth:`mission_progress` follows it from
+        where the autopilot is, and nothing is uploaded or restarted.
+
+        False, with nothing changed, when the vehicle is not flying a mission in AUTO
+        (a finished mission is never adopted: the same plan may be another task's), the
+        mission read back is another one, or the autopilot does not say where it is in
+        it within :data:`ADOPT_WAIT_S`."""
+        self._require_link("reading the mission back")
+        t = self.t
+        if self.mode_name(t.mode) != "AUTO":
+            return False
+        # An agent just started hears the streams a moment after the first heartbeat:
+        # where the mission is (MISSION_CURRENT) and whether the vehicle is under way.
+        deadline = time.monotonic() + ADOPT_WAIT_S
+        while time.monotonic() < deadline:
+            if t.mission_seq is not None and (t.landed_state is not None or t.alt is not None):
+                break
+            await asyncio.sleep(0.05)
+        if t.mission_seq is None or t.mission_state == MAV.MISSION_STATE_COMPLETE:
+            return False
+        if not self._busy():
+            return False
+        planned, plan_index = plan_items(
+            items, home=t.home, payload=self.config.payload, flies=self.vehicle_class.flies
+        )
+        stored = await items_download(self.link, MAV.MAV_MISSION_TYPE_MISSION, what="mission")
+        if not items_match(stored, planned):
+            logger.info("mavlink: the autopilot flies another mission: not adopted")
+            return False
+        if self.mode_name(t.mode) != "AUTO":
+            return False  # left meanwhile (a fail-safe, another ground station)
+        self._plan_size, self._plan_index = len(items), plan_index
+        self._mode_owner = "mission"
+        return True
 
     def mission_progress(self) -> MissionProgress:
         """Where the autopilot is in the uploaded plan (mission item ``s`` is the plan

@@ -11,6 +11,11 @@ it, but for MAV_MISSION_INVALID_SEQUENCE: that is the answer to a resent item th
 autopilot had already taken (its request for the next one was lost), and it asks for
 the next one again by itself.
 
+:func:`items_download` reads the autopilot's mission back (MISSION_REQUEST_LIST, its
+MISSION_COUNT, then MISSION_REQUEST_INT for each item and a MISSION_ACK at the end), as
+a ground station does when it connects to a vehicle already flying; :func:`items_match`
+says whether what it read is what :func:`plan_items` makes of a plan.
+
 :func:`plan_items` turns a plan (:mod:`agents.vehicles.plan`) into ArduPilot's items:
 item 0 is home (ArduPilot keeps home there and never flies it), the plan from item 1
 (a vehicle that does not fly has no take-off, so the indices of the two differ: the
@@ -139,6 +144,85 @@ async def items_upload(
     if answer.get_type() != "MISSION_ACK":
         raise AdapterError(f"the autopilot asked for more {what} items than sent", code="timeout")
     _check_ack(link, answer, what, started)
+
+
+async def items_download(link: AutopilotLink, mission_type: int, *, what: str) -> list[MissionItem]:
+    """The autopilot's ``mission_type`` items, home first for the mission. Raises
+    AdapterError ``autopilot_refused`` (a MISSION_ACK instead of the list: another
+    ground station is uploading), ``timeout`` or ``autopilot_lost``."""
+    target = link.target_or_default()
+    me = link.config.source_system
+
+    def ours(m: Any) -> bool:
+        return bool(
+            getattr(m, "mission_type", 0) == mission_type
+            and getattr(m, "target_system", 0) in (0, me)
+        )
+
+    started = time.monotonic()
+    answer = await link.request(
+        lambda: MAV.MAVLink_mission_request_list_message(target[0], target[1], mission_type),
+        ("MISSION_COUNT", "MISSION_ACK"),
+        ours,
+        what=f"reading the {what} back",
+    )
+    if answer.get_type() == "MISSION_ACK":
+        _check_ack(link, answer, what, started)
+        raise AdapterError(f"the autopilot sent no {what} to read", code="timeout")
+
+    def request(seq: int) -> Any:
+        return MAV.MAVLink_mission_request_int_message(target[0], target[1], seq, mission_type)
+
+    def item_or_ack(seq: int) -> Callable[[Any], bool]:
+        def match(m: Any) -> bool:
+            return ours(m) and (m.get_type() == "MISSION_ACK" or int(m.seq) == seq)
+
+        return match
+
+    items: list[MissionItem] = []
+    for seq in range(int(answer.count)):
+        got = await link.request(
+            functools.partial(request, seq),
+            ("MISSION_ITEM_INT", "MISSION_ACK"),
+            item_or_ack(seq),
+            what=f"reading {what} item {seq}",
+        )
+        if got.get_type() == "MISSION_ACK":
+            _check_ack(link, got, what, started)
+            raise AdapterError(f"the autopilot ended the {what} download early", code="timeout")
+        params = (float(got.param1), float(got.param2), float(got.param3), float(got.param4))
+        items.append(
+            MissionItem(int(got.command), int(got.frame), params, got.x / 1e7, got.y / 1e7,
+                        float(got.z))
+        )  # fmt: skip
+    # The ground station's last word: the autopilot may stop offering the items.
+    link.send(
+        MAV.MAVLink_mission_ack_message(
+            target[0], target[1], MAV.MAV_MISSION_ACCEPTED, mission_type
+        )
+    )
+    return items
+
+
+def items_match(stored: Sequence[MissionItem], planned: Sequence[MissionItem]) -> bool:
+    """Whether the items read back are the ones planned, home aside (item 0: the
+    autopilot writes its own home there). Positions to MISSION_ITEM_INT's 1e-7 degree,
+    altitudes and parameters to what a float32 keeps."""
+    if len(stored) != len(planned):
+        return False
+
+    def close(a: float, b: float) -> bool:
+        return abs(a - b) <= 1e-3 * max(1.0, abs(a), abs(b))
+
+    return all(
+        a.command == b.command
+        and a.frame == b.frame
+        and all(close(x, y) for x, y in zip(a.params, b.params, strict=True))
+        and abs(a.lat - b.lat) < 2e-7
+        and abs(a.lon - b.lon) < 2e-7
+        and close(a.z, b.z)
+        for a, b in zip(stored[1:], planned[1:], strict=True)
+    )
 
 
 def _check_ack(link: AutopilotLink, answer: Any, what: str, since: float) -> None:

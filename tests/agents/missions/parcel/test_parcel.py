@@ -20,6 +20,7 @@ from agents.vehicles.plan import MissionProgress
 from tests.agents.mission_rig import (
     HOME,
     SIM,
+    Rig,
     RigFactory,
     agent_dies,
     landed_at_home,
@@ -296,3 +297,54 @@ async def test_when_a_boats_agent_dies_its_autopilot_delivers_and_holds_at_home(
     assert distance_m(last_position(heard), BOAT_HOME) < 5
     beats = [m for m in heard if m.get_type() == "HEARTBEAT"]
     assert beats[-1].custom_mode == 10 and beats[-1].base_mode & MAV.MAV_MODE_FLAG_SAFETY_ARMED
+
+
+async def agent_restarted(make_mission_rig: RigFactory, first_mission_id: str, phase: str) -> Rig:
+    """An agent flies parcel ``first_mission_id`` natively and dies once the autopilot is
+    at ``phase`` (FS_OPTIONS "continue if in auto": the mission goes on); returns the
+    restarted agent's rig on the same autopilot, given no task yet."""
+    params = {**SIM["params"], "FS_GCS_TIMEOUT": 2, "FS_OPTIONS": 2}
+    rig = await make_mission_rig(simulator={**SIM, "params": params})
+    rig.accept(make_task(parcel(first_mission_id)))
+    await until(lambda: phase in [p for p, _ in rig.progress()], within=90)
+    autopilot = dict(rig.drone.options)
+    await agent_dies(rig)
+    return await make_mission_rig(autopilot=autopilot)
+
+
+async def test_an_agent_restarted_mid_mission_follows_the_autopilots_mission(
+    make_mission_rig: RigFactory,
+) -> None:
+    """The companion computer reboots while the autopilot flies the parcel to the
+    drop-off (FS_OPTIONS "continue if in auto"). The restarted agent gets the same task
+    again (the platform resends it), reads the autopilot's mission back, finds it the one
+    it would upload, and follows it from where it is: nothing is uploaded again, so the
+    copter does not go back to the pickup, and the parcel is released once."""
+    again = await agent_restarted(make_mission_rig, "m-reboot", "to_dropoff")
+    again.accept(make_task(parcel("m-reboot")))
+    released = await again.event("payload_released", within=90)
+    assert distance_m((released["lat"], released["lon"]), DROPOFF) < 5
+    await until(lambda: "returning" in [p for p, _ in again.progress()], within=30)
+    # Followed from the leg it was on: no upload ("Flight plan received"), no restart.
+    assert "Flight plan received" not in [text for _, _, text in again.drone.texts]
+    phases = [phase for phase, _ in again.progress()]
+    assert phases[0] in ("to_dropoff", "delivery") and "to_pickup" not in phases
+    names = [e for e, _ in again.events()]
+    assert names.count("parcel_loaded") == 1  # done before: told once
+    assert names.count("payload_released") == 1 and releases(again.drone) <= 1
+    assert again.drone.state().mode == "AUTO" and not again.events("mission_failed")
+    await until(lambda: again.drone.state().armed is False, within=60)
+    assert distance_m(again.drone.state().position or (0, 0), HOME) < 3
+
+
+async def test_a_restarted_agent_uploads_its_mission_when_the_autopilot_flies_another(
+    make_mission_rig: RigFactory,
+) -> None:
+    """The autopilot flies a mission in AUTO that is not the task's (another parcel's):
+    read back, it differs, so the agent uploads and flies its own."""
+    again = await agent_restarted(make_mission_rig, "m-first", "to_pickup")
+    again.accept(make_task(parcel("m-other", dropoff=list(offset(HOME, 30, 40)))))
+    await again.event("parcel_loaded", within=90)
+    assert "Flight plan received" in [text for _, _, text in again.drone.texts]
+    # Flying already: no take-off, its own plan from the start.
+    assert [phase for phase, _ in again.progress()][:2] == ["to_pickup", "loading"]
