@@ -428,6 +428,10 @@ IOUV_LAYER_RELAY = env_bool("IOUV_LAYER_RELAY", True)
 # silent before another takes over, the battery level at which it is replaced, and how
 # often the workflows' timers run. A kind's own settings are read by the kind.
 IOUV_MISSION_OFFLINE_GRACE_S = env_float("IOUV_MISSION_OFFLINE_GRACE_S", 10.0)
+# A silent vehicle whose autopilot flies the mission by itself (its agent said so) is
+# waited for as long as its agent said the mission may take, at most this (0: never
+# waited for: a silent vehicle is taken for lost).
+IOUV_MISSION_FLYING_ALONE_MAX_S = env_float("IOUV_MISSION_FLYING_ALONE_MAX_S", 900.0)
 IOUV_MISSION_LOW_BATTERY_PCT = env_float("IOUV_MISSION_LOW_BATTERY_PCT", 25.0)
 IOUV_MISSION_TICK_S = env_float("IOUV_MISSION_TICK_S", 2.0)
 # Map tiles for the maps, e.g. "https://tile.openstreetmap.org/{z}/{x}/{y}.png"

@@ -205,12 +205,14 @@ def missions_running(
 ) -> contextlib.AbstractAsyncContextManager[Demo]:
     """:func:`demo_running` for a kind's missions: with the worker, the platform and
     the worker running a mission's loop every second, replacing a vehicle offline for
-    3 s, handing a task a killed worker held to another after 5 s, and writing e-mail to
-    files (``env`` adds to or overrides these); the agents online once idle, wherever
-    they are."""
+    3 s (its autopilot's own mission or not: the tests' vehicles go silent by being
+    switched off, autopilot and all), handing a task a killed worker held to another
+    after 5 s, and writing e-mail to files (``env`` adds to or overrides these); the
+    agents online once idle, wherever they are."""
     mission_env = {
         "IOUV_MISSION_TICK_S": "1",
         "IOUV_MISSION_OFFLINE_GRACE_S": "3",
+        "IOUV_MISSION_FLYING_ALONE_MAX_S": "0",
         "CELERY_VISIBILITY_TIMEOUT_S": "5",
         "EMAIL_BACKEND": "django.core.mail.backends.filebased.EmailBackend",
         "EMAIL_FILE_PATH": str(directory / "mail"),

@@ -16,10 +16,13 @@ from services.models import Assignment
 #: The carrier's mission events (agents/missions/parcel/, kind ``parcel``).
 #: ``native_mission_refused``: the autopilot refused the plan, the agent flies it step
 #: by step (logged: what the carrier would do without its agent changes).
+#: ``native_mission_started``: the autopilot flies the plan itself (``within_s`` at most):
+#: a vehicle gone silent meanwhile flies on, and is not replaced before that time.
 PARCEL_EVENTS = frozenset(
     {
         "mission_progress",
         "native_mission_refused",
+        "native_mission_started",
         "parcel_loaded",
         "payload_released",
         "mission_failed",

@@ -21,6 +21,7 @@ SHOWN = (
     "assigned",
     "delivery_state",
     "native_mission_refused",
+    "native_mission_started",
     "parcel_loaded",
     "payload_released",
     "notice_sent",

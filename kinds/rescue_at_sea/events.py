@@ -20,10 +20,13 @@ from services.models import Assignment
 
 #: ``native_mission_refused``: the autopilot refused the delivery's plan, the agent
 #: flies it step by step (logged: what the drone would do without its agent changes).
+#: ``native_mission_started``: the autopilot flies the plan itself (``within_s`` at most):
+#: a vehicle gone silent meanwhile flies on, and is not replaced before that time.
 MISSION_EVENTS = frozenset(
     {
         "mission_progress",
         "native_mission_refused",
+        "native_mission_started",
         "person_detected",
         "search_complete",
         "payload_released",

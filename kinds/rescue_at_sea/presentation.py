@@ -161,6 +161,7 @@ def mission_json(mission: Mission) -> dict[str, Any]:
         "person_detected",
         "notice_sent",
         "native_mission_refused",
+        "native_mission_started",
         "payload_released",
         "vehicle_released",
         "state",

@@ -17,10 +17,13 @@ from services.models import Assignment, SessionArtifact
 #: The surveyor's mission events (agents/missions/survey/, kind ``survey``).
 #: ``native_mission_refused``: the autopilot refused the lines, the agent flies them place
 #: to place (logged: what the drone would do without its agent changes).
+#: ``native_mission_started``: the autopilot flies the plan itself (``within_s`` at most):
+#: a vehicle gone silent meanwhile flies on, and is not replaced before that time.
 SURVEY_EVENTS = frozenset(
     {
         "mission_progress",
         "native_mission_refused",
+        "native_mission_started",
         "photo_taken",
         "photo_missed",
         "survey_flown",

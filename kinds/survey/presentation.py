@@ -21,6 +21,7 @@ SHOWN = (
     "assigned",
     "survey_state",
     "native_mission_refused",
+    "native_mission_started",
     "survey_flown",
     "photo_missed",
     "mission_failed",

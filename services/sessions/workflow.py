@@ -11,7 +11,7 @@ import contextlib
 import logging
 from collections.abc import Iterable
 from dataclasses import dataclass
-from datetime import timedelta
+from datetime import datetime, timedelta
 from typing import Any
 
 from django.conf import settings
@@ -74,7 +74,9 @@ def vehicle_trouble(assignment: Assignment, *, watch_battery: bool = True) -> Tr
 
     * offline: the platform lost it (its uplink closed, or the sweep found it silent)
       for longer than ``IOUV_MISSION_OFFLINE_GRACE_S``; late heartbeats alone, on a
-      loaded platform, are no reason to call a vehicle back;
+      loaded platform, are no reason to call a vehicle back. Not while its autopilot
+      flies the mission by itself (:func:`flying_by_itself_until`): a vehicle whose
+      agent died flies on, and another sent to the same place would meet it there;
     * low battery: under ``IOUV_MISSION_LOW_BATTERY_PCT`` (when ``watch_battery``);
     * failed: its agent reported ``mission_failed``, or refused its task.
     """
@@ -83,7 +85,8 @@ def vehicle_trouble(assignment: Assignment, *, watch_battery: bool = True) -> Tr
     grace = timedelta(seconds=settings.IOUV_MISSION_OFFLINE_GRACE_S)
     if vehicle.status == Vehicle.Status.OFFLINE:
         seen = vehicle.last_seen or assignment.created_at
-        if now - seen > grace:
+        flying = flying_by_itself_until(assignment, silent_since=seen)
+        if now - seen > grace and (flying is None or now >= flying):
             return Trouble(OFFLINE, f"{vehicle.name} went offline")
     if (
         watch_battery
@@ -104,6 +107,35 @@ def vehicle_trouble(assignment: Assignment, *, watch_battery: bool = True) -> Tr
         reason = failed.data.get("reason", "no reason given")
         return Trouble(FAILED, f"{vehicle.name} could not go on: {reason}")
     return None
+
+
+def flying_by_itself_until(assignment: Assignment, *, silent_since: datetime) -> datetime | None:
+    """Until when ``assignment``'s vehicle, silent since ``silent_since``, may still be
+    flying its mission on its own autopilot: its agent said it handed the plan over
+    (``native_mission_started``, which it may take ``within_s`` to fly) and has reported
+    no end of it since (``mission_failed``). Never more than
+    ``IOUV_MISSION_FLYING_ALONE_MAX_S`` after it went silent (agents are authenticated,
+    not trusted; a vehicle lost for good is replaced after that). None when it flies
+    none, or that setting is 0."""
+    cap = settings.IOUV_MISSION_FLYING_ALONE_MAX_S
+    if cap <= 0:
+        return None
+    vehicle = str(assignment.vehicle_id)
+    events = assignment.session.events.filter(
+        data__vehicle=vehicle, created_at__gte=assignment.created_at
+    )
+    started = events.filter(kind="native_mission_started").order_by("-seq").first()
+    if started is None:
+        return None
+    within = started.data.get("within_s") if isinstance(started.data, dict) else None
+    if not isinstance(within, int | float) or isinstance(within, bool) or within <= 0:
+        return None
+    if events.filter(kind="mission_failed", seq__gt=started.seq).exists():
+        return None
+    return min(
+        started.created_at + timedelta(seconds=float(within)),
+        silent_since + timedelta(seconds=cap),
+    )
 
 
 def vehicles_unfit(session: Session, *, role: str | None = None) -> list[Any]:

@@ -277,8 +277,9 @@ def test_a_mission_the_autopilot_refused_is_logged_and_shown_as_flown_step_by_st
     ]
 
 
-def test_a_carrier_lost_with_the_parcel_hands_it_over_where_it_is(world, settings) -> None:
-    spare = f.vehicle(
+def spare_drone(world: dict[str, Any]) -> Vehicle:
+    """A second payload drone at the station, 300 m south of home."""
+    return f.vehicle(
         station=world["drone"].station,
         vtype=world["drone"].vehicle_type,
         name="drone-2",
@@ -286,6 +287,10 @@ def test_a_carrier_lost_with_the_parcel_hands_it_over_where_it_is(world, setting
         features=["payload_release"],
         at=offset(f.HOME, -300, 0),
     )
+
+
+def test_a_carrier_lost_with_the_parcel_hands_it_over_where_it_is(world, settings) -> None:
+    spare = spare_drone(world)
     session = request(world, params(LAND_A, LAND_B))
     step(session)
     first = carrier(session)
@@ -305,6 +310,59 @@ def test_a_carrier_lost_with_the_parcel_hands_it_over_where_it_is(world, setting
     assert wire(vehicle_mission(assignment=second))["pickup"] == list(d.pickup)
     released = session.events.get(kind="vehicle_released").data
     assert released["cause"] == "offline" and released["vehicle_name"] == "drone-1"
+
+
+def test_a_carrier_whose_autopilot_flies_on_alone_is_waited_for_then_replaced(
+    world, settings
+) -> None:
+    """The carrier's autopilot flies the delivery itself (native_mission_started, at most
+    300 s) and its agent goes silent: the autopilot delivers without it, so nobody else
+    is sent to collect the parcel until those 300 s are past."""
+    spare = spare_drone(world)
+    session = request(world, params(LAND_A, LAND_B))
+    step(session)
+    first = carrier(session)
+    report(first.vehicle, session, "native_mission_started", mission="m", within_s=300)
+    report(first.vehicle, session, "parcel_loaded")
+    step(session)
+    lost = timezone.now() - timedelta(seconds=settings.IOUV_MISSION_OFFLINE_GRACE_S + 1)
+    Vehicle.objects.filter(pk=first.vehicle_id).update(
+        status=Vehicle.Status.OFFLINE, last_seen=lost
+    )
+    assert step(session) == Delivery.State.TO_DROPOFF
+    assert carrier(session).pk == first.pk
+    assert not session.events.filter(kind="vehicle_released").exists()
+    timeline = delivery_json(delivery(session))["timeline"]
+    assert [e["data"]["within_s"] for e in timeline if e["kind"] == "native_mission_started"] == [
+        300
+    ]
+    # Past the time the autopilot may take: the parcel is looked for where it was.
+    session.events.filter(kind="native_mission_started").update(
+        created_at=timezone.now() - timedelta(seconds=301)
+    )
+    assert step(session) == Delivery.State.TO_PICKUP
+    assert carrier(session).vehicle_id == spare.pk
+    assert session.events.get(kind="vehicle_released").data["cause"] == "offline"
+
+
+@pytest.mark.parametrize(
+    ("within_s", "failed"), [(300, True), ("300", False), (True, False), (-5, False)]
+)
+def test_a_mission_the_carrier_gave_up_or_a_word_without_a_time_is_not_waited_for(
+    world, settings, within_s, failed
+) -> None:
+    session = request(world, params(LAND_A, LAND_B))
+    step(session)
+    first = carrier(session)
+    report(first.vehicle, session, "native_mission_started", mission="m", within_s=within_s)
+    if failed:
+        report(first.vehicle, session, "mission_failed", mission="m", reason="fence breached")
+    lost = timezone.now() - timedelta(seconds=settings.IOUV_MISSION_OFFLINE_GRACE_S + 1)
+    Vehicle.objects.filter(pk=first.vehicle_id).update(
+        status=Vehicle.Status.OFFLINE, last_seen=lost
+    )
+    step(session)
+    assert not Assignment.objects.get(pk=first.pk).active
 
 
 def test_the_user_cancels_and_the_carrier_is_called_back(world) -> None:

@@ -175,6 +175,7 @@
         case "assigned": return `${d.vehicle_name} reserved`;
         case "delivery_state": return d.text || d.to;
         case "native_mission_refused": return `the autopilot refused the mission (${d.reason}): the agent flies it step by step`;
+        case "native_mission_started": return d.adopted ? "the agent is back and follows the mission the autopilot flies" : "the autopilot flies the mission itself: it finishes, or comes home, even without its agent";
         case "parcel_loaded": return "parcel on board";
         case "payload_released": return "parcel released at the drop-off";
         case "notice_sent": return `recipient told (${d.channel})`;

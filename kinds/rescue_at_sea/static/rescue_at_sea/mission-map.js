@@ -238,6 +238,7 @@
           return what ? `${who}: ${what}` : who;
         }
         case "native_mission_refused": return `the autopilot refused the mission (${d.reason}): the agent flies it step by step`;
+        case "native_mission_started": return d.adopted ? "the agent is back and follows the mission the autopilot flies" : "the autopilot flies the mission itself: it finishes, or comes home, even without its agent";
         case "payload_released": return "life jacket released";
         case "vehicle_released": return `${d.vehicle_name} released: ${d.reason}`;
         case "state": return `session ${d.to}${d.reason ? ": " + d.reason : ""}`;

@@ -205,6 +205,7 @@
           return `the lines flown: ${d.taken} photos taken${missed ? `, ${missed} missed` : ""}`;
         }
         case "native_mission_refused": return `the autopilot refused the lines (${d.reason}): the agent flies them place to place`;
+        case "native_mission_started": return d.adopted ? "the agent is back and follows the lines the autopilot flies" : "the autopilot flies the lines itself: it finishes, or comes home, even without its agent";
         case "photo_missed": return `photo ${d.index + 1} missed: ${d.why}`;
         case "vehicle_released": return `${d.vehicle_name} released: ${d.reason}`;
         case "state": return `session ${d.to}${d.reason ? ": " + d.reason : ""}`;
