@@ -26,7 +26,7 @@ import pytest
 
 from accounts.tokens import token_issue
 from agents.config import AgentConfig
-from benchmarks.rtc_client import RtcControlClient
+from benchmarks.rtc_client import RtcClientError, RtcControlClient
 from fleet.models import Vehicle
 from kinds.rescue_at_sea.models import Mission
 from kinds.rescue_at_sea.tests.sea import client_requests_rescue, search_area
@@ -99,13 +99,28 @@ class RtcDriver:
     async def _run(self) -> None:
         for seq in itertools.count(1):
             self.sent += 1
-            ack = await self.user.command(seq, "forward", speed=0.3)
+            try:
+                ack = await self.user.command(seq, "forward", speed=0.3)
+            except RtcClientError as exc:
+                raise RtcClientError(f"command {seq}: {exc} ({self._connection()})") from None
             self.answered += 1
             if ack["ok"]:
                 self.acked += 1
             else:
                 self.refusals.append((seq, ack.get("code"), ack.get("error")))
             await asyncio.sleep(0.1)
+
+    def _connection(self) -> str:
+        """The state of the user's side of the connection, for a failure to say."""
+        pc = self.user.pc
+        if pc is None:
+            return "no peer connection"
+        sctp = pc.sctp
+        return (
+            f"connection {pc.connectionState}, ICE {pc.iceConnectionState}, "
+            f"SCTP {getattr(sctp, 'state', None)}, path {self.user.ice_path}, "
+            f"{self.answered} of {self.sent} commands answered"
+        )
 
     async def until_acked(self, more: int) -> None:
         target = self.acked + more
