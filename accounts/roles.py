@@ -120,10 +120,3 @@ def user_roles(user: User | AnonymousUser) -> set[str]:
     if not user.is_authenticated:
         return set()
     return set(user.groups.filter(name__in=ROLES).values_list("name", flat=True))
-
-
-def user_has_role(user: User | AnonymousUser, role: str) -> bool:
-    """True when ``user`` holds ``role``; superusers hold every role."""
-    if getattr(user, "is_superuser", False):
-        return True
-    return role in user_roles(user)

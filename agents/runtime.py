@@ -502,11 +502,6 @@ def _server_authenticated(url: str) -> bool:
     return is_loopback_host(parts.hostname or "")
 
 
-async def agent_run(config: AgentConfig) -> None:
-    """Run one agent until cancelled (Ctrl-C, SIGTERM)."""
-    await Agent(config).run()
-
-
 def run_until_stopped(main: Callable[[], Coroutine[Any, Any, None]]) -> None:
     """Run ``main()`` until it returns or the process is told to stop: SIGINT (Ctrl-C)
     and SIGTERM (what systemd and container runtimes send) alike cancel it, so that

@@ -261,23 +261,6 @@ def photo_jpeg(rgb: RGB, meta: Mapping[str, Any], *, quality: int = 85) -> bytes
     return out.getvalue()
 
 
-def photo_position(jpeg: bytes) -> tuple[float, float] | None:
-    """The (lat, lon) a JPEG's EXIF GPS tags give, or None."""
-    from PIL import ExifTags, Image
-
-    gps = Image.open(io.BytesIO(jpeg)).getexif().get_ifd(ExifTags.IFD.GPSInfo)
-    try:
-        lat = sum(float(x) / 60**i for i, x in enumerate(gps[ExifTags.GPS.GPSLatitude]))
-        lon = sum(float(x) / 60**i for i, x in enumerate(gps[ExifTags.GPS.GPSLongitude]))
-    except (KeyError, TypeError, ValueError):
-        return None
-    if gps.get(ExifTags.GPS.GPSLatitudeRef) == "S":
-        lat = -lat
-    if gps.get(ExifTags.GPS.GPSLongitudeRef) == "W":
-        lon = -lon
-    return lat, lon
-
-
 def _meta(pose: Mapping[str, Any], camera: StillCamera, t: float) -> dict[str, Any]:
     def number(key: str, digits: int) -> float | None:
         value = pose.get(key)

@@ -262,14 +262,6 @@ def nginx_binary(*, install: bool = True) -> Path:
     return NGINX
 
 
-def nginx_version(binary: Path | None = None) -> str:
-    """``1.22.1``: the version ``nginx -v`` reports."""
-    done = subprocess.run(
-        [str(binary or nginx_binary()), "-v"], capture_output=True, text=True, check=True
-    )
-    return (done.stdout + done.stderr).strip().rpartition("/")[2]
-
-
 # --------------------------------------------------------------------------------------
 # The configuration
 # --------------------------------------------------------------------------------------

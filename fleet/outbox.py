@@ -162,14 +162,6 @@ def agent_messages_cancel_each(*, vehicle_id: Any, withdrawn: Sequence[Q]) -> in
     )
 
 
-def agent_message_was_sent(*, vehicle_id: Any, session_id: Any, kind: str) -> bool:
-    """True if a message of ``kind`` about ``session_id`` was ever put on the vehicle's
-    uplink (acknowledged or not)."""
-    return AgentMessage.objects.filter(
-        vehicle_id=vehicle_id, session_id=session_id, kind=kind, attempts__gt=0
-    ).exists()
-
-
 def vehicle_disconnect_older_uplinks(*, vehicle_id: Any, generation: int) -> AgentMessage:
     """Close, wherever it is, the vehicle's uplink authenticated under a credential
     older than ``generation`` (called when a new credential is issued)."""

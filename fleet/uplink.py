@@ -459,13 +459,6 @@ def _store_reports_postgresql(reports: Sequence[HeartbeatReport]) -> None:
         cursor.execute(sql, params)
 
 
-def vehicle_record_heartbeat(
-    *, vehicle_id: Any, heartbeat: HeartbeatMessage, now: datetime, registered: bool
-) -> None:
-    """Store one validated ``heartbeat`` (see :func:`vehicle_record_heartbeats`)."""
-    vehicle_record_heartbeats([HeartbeatReport(str(vehicle_id), heartbeat, now, registered)])
-
-
 class HeartbeatWriter:
     """Writes the heartbeats of every uplink in this process, many per transaction.
 

@@ -97,11 +97,6 @@ def mission_spec_path(name: str, directory: Path = MISSIONS_DIR) -> Path:
     return directory / name / "spec.schema.json"
 
 
-def mission_spec_paths() -> dict[str, Path]:
-    """Every installed mission's published spec schema, by ``kind``."""
-    return {kind: mission_spec_path(m.name) for kind, m in missions().items()}
-
-
 #: The published files besides the channels': name -> schema.
 DOCUMENTS: dict[str, Any] = {"mission": mission_schema}
 

@@ -19,9 +19,9 @@ from agents.stills import (
     NadirSimCamera,
     ground_rgb,
     nadir_lat_lon,
-    photo_position,
     still_camera_create,
 )
+from tests.agents.geotags import photo_position
 
 HOME = (40.6306, -8.6588)
 

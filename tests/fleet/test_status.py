@@ -49,18 +49,18 @@ def test_maintenance_refused_for_a_vehicle_in_a_session():
 
 
 def test_a_vehicle_still_flying_home_is_not_assignable_until_it_says_idle():
-    from fleet.uplink import vehicle_record_heartbeat
+    from fleet.uplink import HeartbeatReport, vehicle_record_heartbeats
 
     v = f.vehicle(station=f.station(), vtype=f.vehicle_type())
     beat = Heartbeat(seq=1, status="returning")
-    vehicle_record_heartbeat(vehicle_id=v.pk, heartbeat=beat, now=timezone.now(), registered=True)
+    vehicle_record_heartbeats([HeartbeatReport(str(v.pk), beat, timezone.now(), True)])
     v.refresh_from_db()
     assert v.status == Vehicle.Status.RETURNING
     assert not vehicles_online().filter(status=Vehicle.Status.IDLE).exists()
 
     beat = Heartbeat(seq=2, status="idle")
     later = timezone.now() + timedelta(seconds=5)  # past the heartbeat write throttle
-    vehicle_record_heartbeat(vehicle_id=v.pk, heartbeat=beat, now=later, registered=True)
+    vehicle_record_heartbeats([HeartbeatReport(str(v.pk), beat, later, True)])
     v.refresh_from_db()
     assert v.status == Vehicle.Status.IDLE
 

@@ -23,7 +23,7 @@ from agents.protocol import VehicleTask, parse_message
 from agents.protocol.messages import Heartbeat
 from fleet.models import Vehicle
 from fleet.status import vehicles_mark_stale_offline
-from fleet.uplink import vehicle_record_heartbeat
+from fleet.uplink import HeartbeatReport, vehicle_record_heartbeats
 from fleet.vehicle_events import vehicle_events
 from services.models import Session, SessionEvent
 from services.sessions.ending import session_end
@@ -595,12 +595,8 @@ def test_a_vehicle_found_silent_and_heard_again_keeps_its_session(live):
     say(vehicle, event(session, "user_connected", role="controller"))
     assert vehicles_mark_stale_offline(now=timezone.now() + timedelta(seconds=60)) == [vehicle.pk]
     assert status(vehicle) == Vehicle.Status.OFFLINE
-    vehicle_record_heartbeat(
-        vehicle_id=vehicle.pk,
-        heartbeat=Heartbeat(seq=9, status="in_service"),
-        now=timezone.now(),
-        registered=True,
-    )
+    beat = Heartbeat(seq=9, status="in_service")
+    vehicle_record_heartbeats([HeartbeatReport(str(vehicle.pk), beat, timezone.now(), True)])
     assert status(vehicle) == Vehicle.Status.IN_SERVICE
     assert kinds(session)[-1] == "vehicle_online"
 

@@ -33,7 +33,7 @@ from agents.missions.return_home.spec import ReturnSpec
 from agents.missions.search.spec import SearchSpec
 from agents.missions.spec import MissionError
 from agents.protocol import ProtocolError, VehicleTask, generate_keypair, load_private_key
-from agents.protocol.schema import mission_spec_paths, schema_path
+from agents.protocol.schema import mission_spec_path, schema_path
 from tests.agents.documents import task_for
 from tests.agents.mission_rig import HOME, MALFORMED, delivery, search
 
@@ -44,7 +44,7 @@ SCHEMA = jsonschema.Draft202012Validator(
 #: Each mission's published spec schema, by kind.
 SPECS = {
     kind: jsonschema.Draft202012Validator(json.loads(path.read_text(encoding="utf-8")))
-    for kind, path in mission_spec_paths().items()
+    for kind, path in ((k, mission_spec_path(m.name)) for k, m in missions().items())
 }
 
 
@@ -159,7 +159,7 @@ def test_every_mission_publishes_its_spec_in_its_own_folder() -> None:
     assert not any(f'"{kind}"' in text for kind in missions())
     assert set(SPECS) == set(missions())
     for kind, declared in missions().items():
-        assert mission_spec_paths()[kind] == MISSIONS_DIR / declared.name / "spec.schema.json"
+        assert mission_spec_path(declared.name) == MISSIONS_DIR / declared.name / "spec.schema.json"
         jsonschema.Draft202012Validator.check_schema(SPECS[kind].schema)
         assert SPECS[kind].is_valid({"kind": kind}) is False  # its own fields are required
 

@@ -18,9 +18,10 @@ from agents.missions.spec import MissionError
 from agents.missions.survey.runner import photo_name, photo_radius_m, survey_plan
 from agents.missions.survey.spec import SurveySpec
 from agents.missions.survey.tests.conftest import SurveyRigFactory, photos
-from agents.stills import NadirSimCamera, Photo, photo_position
+from agents.stills import NadirSimCamera, Photo
 from agents.vehicles.mavlink.adapter import MavlinkAdapter
 from agents.vehicles.plan import ReturnHome, Waypoint
+from tests.agents.geotags import photo_position
 from tests.agents.mission_rig import (
     HOME,
     SIM,
