@@ -470,7 +470,18 @@ def test_quick_mode_writes_every_output(nginx: Path, tmp_path: Path) -> None:
     assert any(d["request_to_agent_ms"] for d in deliveries)
 
     relay = _rows(tmp_path / "relay_rtt.csv", ["topology", "n", "rtt_ms"])
-    assert {r["topology"] for r in relay} == {"one", "two"}
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    for topology in ("one", "two"):
+        # Round trips measured, or the run says why none were: on a saturated machine
+        # every command of a short window may outlast LOST_AFTER_S (counted lost), or the
+        # relayed session may fail to start (a note names the error).
+        measured = any(r["topology"] == topology for r in relay)
+        lost = summary["figures"]["relay"][topology]["lost"] > 0
+        failed = any(
+            n.startswith(f"{topology}: the relayed control session failed")
+            for n in summary["notes"]
+        )
+        assert measured or lost or failed, (topology, summary["notes"], _logs_tail())
 
     trials = _rows(
         tmp_path / "reaction_trials.csv",
