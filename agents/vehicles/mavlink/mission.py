@@ -83,6 +83,20 @@ def result_name(result: int | None) -> str:
     return entry.name if entry is not None else f"result {result}"
 
 
+def _ours(link: AutopilotLink, mission_type: int) -> Callable[[Any], bool]:
+    """Whether a message of the mission protocol is about ``mission_type`` and for this
+    ground station (or for any)."""
+    me = link.config.source_system
+
+    def ours(m: Any) -> bool:
+        return bool(
+            getattr(m, "mission_type", 0) == mission_type
+            and getattr(m, "target_system", 0) in (0, me)
+        )
+
+    return ours
+
+
 async def items_upload(
     link: AutopilotLink, mission_type: int, items: Sequence[MissionItem], *, what: str
 ) -> None:
@@ -90,14 +104,8 @@ async def items_upload(
     Raises AdapterError ``autopilot_refused`` (a MISSION_ACK other than ACCEPTED),
     ``timeout`` or ``autopilot_lost``. See the module docstring."""
     target = link.target_or_default()
-    me = link.config.source_system
     started = time.monotonic()
-
-    def ours(m: Any) -> bool:
-        return bool(
-            getattr(m, "mission_type", 0) == mission_type
-            and getattr(m, "target_system", 0) in (0, me)
-        )
+    ours = _ours(link, mission_type)
 
     def ack(m: Any) -> bool:
         return bool(m.get_type() == "MISSION_ACK" and m.type != MAV.MAV_MISSION_INVALID_SEQUENCE)
@@ -151,13 +159,7 @@ async def items_download(link: AutopilotLink, mission_type: int, *, what: str) -
     AdapterError ``autopilot_refused`` (a MISSION_ACK instead of the list: another
     ground station is uploading), ``timeout`` or ``autopilot_lost``."""
     target = link.target_or_default()
-    me = link.config.source_system
-
-    def ours(m: Any) -> bool:
-        return bool(
-            getattr(m, "mission_type", 0) == mission_type
-            and getattr(m, "target_system", 0) in (0, me)
-        )
+    ours = _ours(link, mission_type)
 
     started = time.monotonic()
     answer = await link.request(
