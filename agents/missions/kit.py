@@ -515,12 +515,7 @@ class MissionRunner(abc.ABC, Generic[_S]):
             log.info("mission %s: the autopilot flies it already: followed", self.mission.id)
             if plan.releases:
                 self.release_attempted.add(self.mission.id)
-            st = self.adapter.state()
-            limit = plan.time_limit_s(st.position, st.alt or 0.0)
-            deadline = time.monotonic() + limit
-            self._mode = st.mode
-            self.report("native_mission_started", within_s=round(limit), adopted=True)
-            await self._follow(plan, engine, deadline, adopted=True)
+            await self._follow(plan, engine, self._plan_deadline(plan), adopted=True)
             return True
         if plan.releases and self.mission.id in self.release_attempted:
             raise StepFailed("this mission's payload release was already attempted")
@@ -534,29 +529,34 @@ class MissionRunner(abc.ABC, Generic[_S]):
         first = next((s.item for s in plan.steps if isinstance(s.item, TakeOff)), None)
         if first is not None:
             await self.take_off_if_needed(first.altitude_m)
-        st = self.adapter.state()
-        limit = plan.time_limit_s(st.position, st.alt or 0.0)
-        deadline = time.monotonic() + limit
+        deadline = self._plan_deadline(plan)
         if plan.releases:
             # Recorded before the autopilot may release it: never sent twice.
             self.release_attempted.add(self.mission.id)
         self._check_interference()
         await self.hub.mission_native_start(self.session_id, epoch=self._epoch)
-        self._mode = self.adapter.state().mode
-        # The platform then knows the vehicle flies on if its agent goes silent, and
-        # for how long at most: it sends no other vehicle there meanwhile.
-        self.report("native_mission_started", within_s=round(limit), adopted=False)
         await self._follow(plan, engine, deadline)
         return True
+
+    def _plan_deadline(self, plan: FlightPlan) -> float:
+        """When (monotonic) the engine must be done with ``plan``, flown from here."""
+        st = self.adapter.state()
+        return time.monotonic() + plan.time_limit_s(st.position, st.alt or 0.0)
 
     async def _follow(
         self, plan: FlightPlan, engine: NativeMissions, deadline: float, *, adopted: bool = False
     ) -> None:
-        """Report the plan's steps as the engine starts and passes them; return once its
+        """Tell the platform the engine flies the plan (``native_mission_started``), then
+        report the plan's steps as the engine starts and passes them; return once its
         last step (the return home, or the hold the engine never moves past) has
         started. ``adopted``: the engine was found flying the plan; of the phases it
         went through before, only the one it is in is reported (the events, facts the
         platform may not have heard, all are)."""
+        self._mode = self.adapter.state().mode
+        # The platform then knows the vehicle flies on if its agent goes silent, and
+        # for how long at most: it sends no other vehicle there meanwhile.
+        within = round(deadline - time.monotonic())
+        self.report("native_mission_started", within_s=within, adopted=adopted)
         steps = plan.steps
         started = finished = -1
         last = len(steps) - 1
