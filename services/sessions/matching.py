@@ -8,9 +8,10 @@ through them again, so that the first requirement that leaves no vehicle is the 
 named in the refusal. The survivors are ranked (nearest, or first to arrive, then
 fullest battery) and the best is locked (``SELECT ... FOR UPDATE SKIP LOCKED`` of that
 one row, still idle and holding no active assignment) and reserved: of two requests
-racing for one vehicle, one locks it and the other moves on to its next candidate; a
-partial unique index on active assignments backs that up. No table lock is held, so
-requests for different vehicles do not wait on each other. A vehicle whose agent has
+racing for one vehicle, one locks it and the other moves on to its next candidate,
+and waits for the row only when no candidate is left (its own agent may have been
+writing it); a partial unique index on active assignments backs that up. No table lock
+is held, so requests for different vehicles do not wait on each other. A vehicle whose agent has
 gone quiet since (fleet.liveness) is left and the next one tried.
 
 Which requests need a vehicle's position: those with a target. Their ranking, time to
@@ -27,6 +28,7 @@ import contextlib
 import copy
 import math
 import operator
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -395,6 +397,14 @@ TAKEN = "every matching vehicle was just taken by other requests"
 QUIET = "no vehicle is online and idle"
 
 
+#: How long a request waits for a vehicle that is free by its last committed state but
+#: whose row another transaction holds: its agent's uplink writing it (a profile, a
+#: disconnect) or a competing request reserving it. Either is over in milliseconds; after
+#: it the row says whether the vehicle is still free. Bounded, so that nothing a request
+#: cannot see keeps it waiting.
+LOCKED_WAIT_S = 2.0
+
+
 def _reserve_first(
     *, session: Session, match: Match, now: datetime | None = None
 ) -> tuple[Assignment, Facts] | str:
@@ -402,40 +412,73 @@ def _reserve_first(
     be: :data:`TAKEN` by other requests, or :data:`QUIET` when every one's agent has
     gone quiet. Call it in a transaction: the chosen vehicle's row stays locked until
     it ends. The assignment's ``vehicle`` is its row as reserved (what its task needs;
-    its type and station are read if asked for)."""
+    its type and station are read if asked for).
+
+    Candidates whose rows are locked are skipped, not waited for, so that requests
+    racing for a fleet spread over it. Only when none could be reserved does the
+    request wait (:data:`LOCKED_WAIT_S` at most) for those that were skipped while
+    their rows still said free: a vehicle whose own agent was writing its row at that
+    moment is reserved, not refused as taken."""
     why = QUIET if match.candidates else TAKEN
-    for candidate in match.candidates:
-        facts = candidate.vehicle
-        if str(facts.pk) not in vehicles_fresh([facts.pk], now):
-            # Its agent is not heard from (the sweep has not marked it offline yet):
-            # not this one.
-            continue
-        # Reserved if it is still idle: the row is locked in a subquery that skips a
-        # row another request holds (it is being reserved: skipped, not waited for).
-        # Not one still holding an active assignment (found silent, then heard from
-        # again): the unique index would refuse the assignment, and checking here needs
-        # no savepoint to go on. The update's own condition holds on SQLite too, which
-        # has no row locks (its writers take turns).
-        free = (
-            Vehicle.objects.select_for_update(skip_locked=True, of=("self",))
-            .filter(pk=facts.pk, status=Vehicle.Status.IDLE, maintenance=False)
-            .filter(~Exists(Assignment.objects.filter(vehicle_id=OuterRef("pk"), active=True)))
-            .order_by()
-            .values("pk")
-        )
-        if not Vehicle.objects.filter(pk__in=free).update(status=Vehicle.Status.RESERVED):
-            why = TAKEN  # another request got it first
-            continue
-        vehicle = Vehicle.objects.get(pk=facts.pk)  # its row as reserved, locked by now
-        assignment = Assignment.objects.create(
-            session=session,
-            role=match.role.name,
-            vehicle=vehicle,
-            distance_m=round(candidate.distance_m, 1),
-        )
-        fleet_notify([vehicle.pk])
-        return assignment, facts
-    return why
+    # Its agent not heard from (the sweep has not marked it offline yet): not this one.
+    # Lazily, so the best candidate reserved at once costs one freshness read.
+    tries: Iterable[Candidate] = (
+        c for c in match.candidates if str(c.vehicle.pk) in vehicles_fresh([c.vehicle.pk], now)
+    )
+    deadline = time.monotonic() + LOCKED_WAIT_S
+    pause = 0.005
+    while True:
+        held: list[Candidate] = []
+        for candidate in tries:
+            if _reserve(candidate.vehicle.pk):
+                assignment = _assigned(session=session, match=match, candidate=candidate)
+                return assignment, candidate.vehicle
+            why = TAKEN  # another transaction holds it, or got it first
+            if _reads_free(candidate.vehicle.pk):
+                held.append(candidate)
+        if not held or time.monotonic() >= deadline:
+            return why
+        time.sleep(pause)
+        pause = min(2 * pause, 0.1)
+        tries = held
+
+
+def _free(pk: Any) -> QuerySet[Vehicle]:
+    """The vehicle ``pk`` if it is idle, in service and holds no active assignment (not
+    one found silent and heard from again: the unique index would refuse the
+    assignment, and checking here needs no savepoint to go on)."""
+    return (
+        Vehicle.objects.filter(pk=pk, status=Vehicle.Status.IDLE, maintenance=False)
+        .filter(~Exists(Assignment.objects.filter(vehicle_id=OuterRef("pk"), active=True)))
+        .order_by()
+    )
+
+
+def _reserve(pk: Any) -> bool:
+    """Mark the vehicle ``pk`` reserved if it is free and no other transaction holds its
+    row: the row is locked in a subquery that skips a row held elsewhere. The update's
+    own condition holds on SQLite too, which has no row locks (its writers take turns)."""
+    held_here = _free(pk).select_for_update(skip_locked=True, of=("self",)).values("pk")
+    return bool(Vehicle.objects.filter(pk__in=held_here).update(status=Vehicle.Status.RESERVED))
+
+
+def _reads_free(pk: Any) -> bool:
+    """Whether the vehicle ``pk`` is free by its last committed state: when
+    :func:`_reserve` failed, its row is held by a transaction not yet over."""
+    return _free(pk).exists()
+
+
+def _assigned(*, session: Session, match: Match, candidate: Candidate) -> Assignment:
+    """The assignment of the vehicle just reserved for ``candidate``."""
+    vehicle = Vehicle.objects.get(pk=candidate.vehicle.pk)  # its row as reserved, locked
+    assignment = Assignment.objects.create(
+        session=session,
+        role=match.role.name,
+        vehicle=vehicle,
+        distance_m=round(candidate.distance_m, 1),
+    )
+    fleet_notify([vehicle.pk])
+    return assignment
 
 
 def _role_reserve(

@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import contextlib
+import os
+import subprocess
+import sys
 import threading
 from collections import Counter
 from collections.abc import Iterator
+from typing import Any
 
 import pytest
 from django.conf import settings
@@ -13,10 +17,12 @@ from django.db import connection, transaction
 
 from fleet.models import Vehicle
 from services.models import Assignment, Session, SessionEvent
+from services.sessions.deployment import grant_issue
 from services.sessions.log import event_append, session_log, session_log_verify
 from services.sessions.matching import AssignmentError
 from tests import factories as f
 from tests.deployment import session_requested
+from tests.servers import ROOT, _test_database_url
 
 REQUESTS = 40
 VEHICLES = 5
@@ -107,6 +113,50 @@ def test_forty_concurrent_requests_for_five_vehicles():
     assert Vehicle.objects.filter(status=Vehicle.Status.RESERVED).count() == VEHICLES
     assert Session.objects.filter(state=Session.State.ASSIGNED).count() == VEHICLES
     assert Session.objects.filter(state=Session.State.FAILED).count() == REQUESTS - VEHICLES
+
+
+@pytest.mark.postgres
+@pytest.mark.django_db(transaction=True)
+def test_a_free_vehicle_whose_agent_is_writing_its_row_is_reserved_not_refused():
+    """The only matching vehicle is free, but its row is held for a moment by its own
+    agent's uplink writing it (a profile, a battery reading): the request waits for the
+    write and reserves it, instead of telling the user every vehicle was just taken."""
+    car = f.vehicle(station=f.station(), vtype=f.vehicle_type(), name="only")
+    svc = f.service()
+    written = threading.Event()
+    tried = threading.Event()
+    crashes: list[BaseException] = []
+
+    def agent_writes() -> None:  # as fleet.uplink stores a profile: lock, write, commit
+        try:
+            with transaction.atomic():
+                Vehicle.objects.select_for_update().get(pk=car.pk)
+                Vehicle.objects.filter(pk=car.pk).update(battery=80.0)
+                written.set()
+                assert tried.wait(60), "the request never tried the vehicle"
+        except BaseException as exc:
+            crashes.append(exc)
+        finally:
+            connection.close()
+
+    def spot(execute, sql, params, many, context):  # type: ignore[no-untyped-def]
+        result = execute(sql, params, many, context)
+        if sql.startswith("UPDATE") and "SKIP LOCKED" in sql:
+            tried.set()  # the request found the row held: now the write commits
+        return result
+
+    writer = threading.Thread(target=agent_writes)
+    writer.start()
+    assert written.wait(60)
+    with connection.execute_wrapper(spot):
+        session = session_requested(user=f.user(), service=svc, target=f.HOME).session
+    writer.join(60)
+
+    assert not crashes, crashes
+    assert tried.is_set()  # the row was held when the request first tried it
+    assert session.state == Session.State.ASSIGNED
+    car.refresh_from_db()
+    assert car.status == Vehicle.Status.RESERVED and car.battery == 80.0
 
 
 @pytest.mark.postgres
@@ -222,3 +272,76 @@ def test_writers_racing_on_one_log_keep_one_chain():
     assert set(written.values()) == {1}  # each once: none lost, none written twice
     session.refresh_from_db()
     assert session.reason == "writer 11, note 2"  # the writer's last transaction committed
+
+
+#: A platform process that locks a session's row and then goes silent inside its
+#: transaction (a machine cut off from the network): it says "held", and waits on its
+#: stdin without another statement; given a line, it tries to commit.
+SILENT_HOLDER = """
+import sys
+import django
+django.setup()
+from django.db import transaction
+from services.models import Session
+with transaction.atomic():
+    Session.objects.select_for_update(no_key=True).get(pk=sys.argv[1])
+    print("held", flush=True)
+    sys.stdin.readline()
+print("committed", flush=True)
+"""
+
+
+@pytest.mark.postgres
+@pytest.mark.django_db(transaction=True)
+def test_a_process_gone_silent_in_a_transaction_holds_a_grant_back_only_briefly():
+    """A platform process cut off from the network mid-transaction (its machine's link
+    cut, as in the two-machine test) never sends another word, and its connection stays
+    open. PostgreSQL ends it after ``DB_IDLE_IN_TRANSACTION_S`` and its row lock goes:
+    the user's fresh grant, which locks the same session, is answered instead of
+    waiting until TCP gives the dead connection up, hours later. The holder is a
+    process of its own with the platform's settings."""
+    assert settings.DB_IDLE_IN_TRANSACTION_S > 0
+    f.vehicle(station=f.station(), vtype=f.vehicle_type(), name="car")
+    user = f.user()
+    session = session_requested(user=user, service=f.service(), target=f.HOME).session
+    env = {
+        **{k: v for k, v in os.environ.items() if k != "DB_IDLE_IN_TRANSACTION_S"},
+        "DATABASE_URL": _test_database_url(),
+        "DJANGO_SETTINGS_MODULE": "iouv.settings",
+    }
+    holder = subprocess.Popen(
+        [sys.executable, "-c", SILENT_HOLDER, str(session.pk)],
+        cwd=ROOT,
+        env=env,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout is not None and holder.stdin is not None
+        assert holder.stdout.readline().strip() == "held", holder.communicate(timeout=60)
+        tasks: list[Any] = []
+
+        def grant() -> None:  # waits for the lock, then is answered
+            try:
+                tasks.append(grant_issue(session=session, user=user))
+            finally:
+                connection.close()
+
+        granting = threading.Thread(target=grant)
+        granting.start()
+        granting.join(settings.DB_IDLE_IN_TRANSACTION_S * 6)
+        # The holder wakes (at the latest far past the bound, when the grant still
+        # waits: then it commits, and the test fails below) and tries to commit.
+        out, err = holder.communicate("\n", timeout=60)
+        granting.join(60)
+    finally:
+        if holder.poll() is None:
+            holder.kill()
+            holder.wait()
+    assert len(tasks) == 1 and tasks[0].grant
+    # The grant came while the silent transaction still held on: its commit found its
+    # connection ended by PostgreSQL.
+    assert holder.returncode != 0 and "committed" not in out, out
+    assert "idle-in-transaction timeout" in err, err[-2000:]
