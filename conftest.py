@@ -18,7 +18,7 @@ import pytest
 from django.conf import settings
 
 from tests.browser import chromium_missing_reason
-from tests.scheduling import longest_first, measured_durations
+from tests.scheduling import longest_first, measured_density, measured_durations
 
 #: Stacks of a test that runs long (tests/hangs.py).
 pytest_plugins = ["tests.hangs", "tests.cpu_report"]
@@ -43,6 +43,22 @@ def pytest_report_header(config: pytest.Config) -> list[str]:
 #: no outgoing connection holds one); see tests.servers.free_port.
 FIRST_WORKER_PORT = 20000
 PORTS_PER_WORKER = 500
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The test process's own connections without the platform's bound on a silent
+    transaction (``DB_IDLE_IN_TRANSACTION_S``): pytest-django runs each test inside one
+    transaction that it rolls back at the end, and a test waits on its servers inside
+    it for longer than the bound. The platform's processes the tests start keep it
+    (tests/services/test_concurrency.py checks it on one)."""
+    option = getattr(settings, "DB_IDLE_IN_TRANSACTION_OPTION", "")
+    options = settings.DATABASES["default"].get("OPTIONS", {})
+    if option and option in options.get("options", ""):
+        startup = options["options"].replace(option, "").strip()
+        if startup:
+            options["options"] = startup
+        else:
+            del options["options"]
 
 
 def pytest_xdist_setupnodes(config: pytest.Config, specs: list[Any]) -> None:
@@ -114,9 +130,10 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         if "redis" in item.keywords and not on_redis():
             item.add_marker(skip_redis)
     # Under pytest-xdist (each worker collects, in the same order): the slow modules
-    # spread over the workers' first slices, longest first (tests/scheduling.py).
+    # spread over the workers' first slices, longest first, the CPU's busiest apart
+    # (tests/scheduling.py).
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
-    items[:] = longest_first(items, workers, measured_durations())
+    items[:] = longest_first(items, workers, measured_durations(), measured_density())
 
 
 @pytest.fixture(autouse=True)

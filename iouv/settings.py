@@ -80,7 +80,6 @@ SERVICE_KINDS = env_list("IOUV_SERVICE_KINDS", []) or sorted(
 SERVICE_KIND_APPS = [f"kinds.{name}" for name in SERVICE_KINDS]
 
 INSTALLED_APPS = [
-    "daphne",
     "django.contrib.admin",
     "django.contrib.auth",
     "django.contrib.contenttypes",
@@ -140,7 +139,7 @@ if EMBEDDED:
         "default": {
             "ENGINE": "django.db.backends.sqlite3",
             "NAME": env_str("SQLITE_PATH", str(VAR_DIR / "iouv.sqlite3")),
-            # The worker and daphne write the same file: wait for the lock
+            # The worker and the platform write the same file: wait for the lock
             # instead of failing with "database is locked".
             "OPTIONS": {"timeout": 20, "transaction_mode": "IMMEDIATE"},
         }
@@ -184,6 +183,25 @@ else:
     DATABASES["default"]["OPTIONS"].setdefault(
         "connect_timeout", env_int("DB_CONNECT_TIMEOUT_S", 2)
     )
+    # A process that goes silent inside a transaction (its machine cut off from the
+    # network, a frozen process) would keep its row locks until TCP gave its connection
+    # up, hours later: every request writing the same session or vehicle (a grant, a
+    # report, a registration) waited behind it. PostgreSQL ends such a connection after
+    # this long and its locks go. The platform's transactions are short (no network
+    # call inside one), so this is far past any live one. 0 turns it off (a pooler in
+    # transaction mode refuses startup options: PgBouncer's idle_transaction_timeout
+    # does the same there).
+    DB_IDLE_IN_TRANSACTION_S = env_float("DB_IDLE_IN_TRANSACTION_S", 10.0)
+    #: libpq's startup option that sets it (the test harness takes it off its own
+    #: connections: pytest-django holds a test in one transaction however long it runs).
+    DB_IDLE_IN_TRANSACTION_OPTION = (
+        f"-c idle_in_transaction_session_timeout={round(DB_IDLE_IN_TRANSACTION_S * 1000)}"
+    )
+    if DB_IDLE_IN_TRANSACTION_S > 0:
+        _startup = DATABASES["default"]["OPTIONS"].get("options", "")
+        DATABASES["default"]["OPTIONS"]["options"] = (
+            f"{_startup} {DB_IDLE_IN_TRANSACTION_OPTION}".strip()
+        )
     # Statements bound and prepared by PostgreSQL: psycopg sends the values apart from
     # the SQL instead of quoting them into it in Python, and a statement a connection
     # has run DB_PREPARE_THRESHOLD times is prepared there, parsed and planned once.
@@ -295,7 +313,7 @@ STATICFILES_FINDERS = [
     "operations.static_finders.AppDirectoriesFinder",
 ]
 STATIC_ROOT = Path(env_str("STATIC_ROOT", str(VAR_DIR / "static")))
-# daphne serves /static/ itself in embedded mode; in production a proxy may do it.
+# The platform serves /static/ itself (iouv.asgi) unless a proxy in front does it.
 SERVE_STATIC = env_bool("SERVE_STATIC", True)
 
 # --- Security: strict unless embedded -------------------------------------------------

@@ -63,6 +63,11 @@ TIMERS = {
     "IOUV_AGENT_RECONNECT_S": str(RECONNECT_WITHIN_S),
     "IOUV_RECONNECT_GRACE_S": "10",
     "IOUV_SUPERVISION_TICK_S": "0.5",
+    # A transaction the cut machine had open keeps its row locks (the relayed
+    # session's log, a car's row) until PostgreSQL ends it: a registration or a grant
+    # through the other machine waits that long. Shorter than the default 10 s, so
+    # the agents' 10 s bound holds wherever the cut falls.
+    "DB_IDLE_IN_TRANSACTION_S": "3",
 }
 #: nginx's upstream servers on other machines, as docs/operations.md recommends: a
 #: server that did not answer is skipped for 10 s, and the HTTP upstream keeps no idle
