@@ -15,17 +15,18 @@ second; rewriting the digest in the log breaks the first.
 from __future__ import annotations
 
 import base64
+import contextlib
 import hashlib
 import json
 import logging
 import uuid
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import timedelta
 from typing import Any, Literal
 
 from django.conf import settings
-from django.db import IntegrityError, transaction
+from django.db import IntegrityError, connection, transaction
 from django.db.models import Q
 from django.utils import timezone
 
@@ -155,12 +156,36 @@ class RecordCheck:
         }
 
 
+@contextlib.contextmanager
+def _one_snapshot() -> Iterator[None]:
+    """A transaction whose reads all see the database as of its first one (PostgreSQL's
+    REPEATABLE READ; SQLite's transactions read one snapshot anyway). Inside a caller's
+    transaction, that transaction as it is."""
+    if connection.in_atomic_block:
+        yield
+        return
+    with transaction.atomic():
+        if connection.vendor == "postgresql":
+            with connection.cursor() as cursor:
+                cursor.execute("SET TRANSACTION ISOLATION LEVEL REPEATABLE READ, READ ONLY")
+        yield
+
+
 def record_verify(*, session: Session, video: VideoCheck = "sha256") -> RecordCheck:
     """Check ``session``'s record against its log (module docstring): the chain holds,
     every batch the log names is stored and hashes to its digest, every stored batch is
     named, each vehicle's samples are numbered without a gap, and the same for the
     video's stretches (:func:`_video_problems`), each checked by ``video``: its size
-    only, or its SHA-256 too (which reads all of it)."""
+    only, or its SHA-256 too (which reads all of it).
+
+    The log and the record are read as they were at one moment: an agent's batch stored
+    meanwhile (with its log event, in one transaction) is in both or in neither, never
+    found stored but not logged."""
+    with _one_snapshot():
+        return _record_verified(session=session, video=video)
+
+
+def _record_verified(*, session: Session, video: VideoCheck) -> RecordCheck:
     problems: list[str] = []
     events = session_log(session=session)
     chain = session_log_verify(session=session, events=events)

@@ -4,12 +4,14 @@ check, deletion by an admin and by the retention sweep (services.records.keeping
 from __future__ import annotations
 
 import json
+import threading
 from datetime import timedelta
 from typing import Any
 
 import pytest
 from django.contrib import admin
 from django.contrib.messages.storage.fallback import FallbackStorage
+from django.db import connection
 from django.test import Client
 from django.utils import timezone
 
@@ -62,6 +64,40 @@ def test_a_gap_between_batches_fails_the_check(live_session) -> None:
     record_batch_store(vehicle_id=vehicle, message=_batch(session, 7))
     check = record_verify(session=session)
     assert not check.ok and check.problems == ["samples 4-6 were never received"]
+
+
+@pytest.mark.postgres
+@pytest.mark.django_db(transaction=True)
+def test_a_batch_stored_while_the_record_is_checked_is_in_both_reads_or_neither(
+    live_session,
+) -> None:
+    """The check reads the log, then the batches: a batch an agent stores between the
+    two (its row and its log event in one transaction) is not found stored but unlogged,
+    which a monitor would read as a record tampered with."""
+    session, vehicle = live_session
+    assert record_batch_store(vehicle_id=vehicle, message=_batch(session, 1)).ok
+    stored: list[bool] = []
+
+    def agent_stores() -> None:  # as the uplink does, on its own connection
+        try:
+            stored.append(record_batch_store(vehicle_id=vehicle, message=_batch(session, 4)).ok)
+        finally:
+            connection.close()
+
+    def meanwhile(execute, sql, params, many, context):  # type: ignore[no-untyped-def]
+        result = execute(sql, params, many, context)
+        if not stored and '"services_sessionevent"' in sql:  # the log, just read
+            writer = threading.Thread(target=agent_stores)
+            writer.start()
+            writer.join(30)
+        return result
+
+    with connection.execute_wrapper(meanwhile):
+        check = record_verify(session=session)
+    assert stored == [True]
+    assert check.ok and check.batches == 1, check.problems  # the record as it was
+    now = record_verify(session=session)
+    assert now.ok and now.batches == 2, now.problems
 
 
 def test_a_batch_for_another_vehicles_session_is_refused(live_session) -> None:
