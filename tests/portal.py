@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from playwright.async_api import Browser, Page, expect
+from playwright.async_api import TimeoutError as PlaywrightTimeout
 
 from agents.config import AgentConfig
 from agents.runtime import Agent
@@ -115,11 +116,36 @@ async def wait_for(page: Page, expression: str, timeout_ms: int = 45000) -> None
     """Wait until the page has a controller ``c`` and ``expression`` holds.
 
     45 s by default: with the suite's other workers on a saturated machine, WebRTC's
-    first frames have taken over 15 s; a state is waited on, never timed."""
-    await page.wait_for_function(
-        f"() => {{ const c = window.iouvController; return c && ({expression}); }}",
-        timeout=timeout_ms,
-    )
+    first frames have taken over 15 s; a state is waited on, never timed. On time out,
+    the failure says where the page's controller stood (:data:`PAGE_STATE`)."""
+    try:
+        await page.wait_for_function(
+            f"() => {{ const c = window.iouvController; return c && ({expression}); }}",
+            timeout=timeout_ms,
+        )
+    except PlaywrightTimeout:
+        state = await page.evaluate(PAGE_STATE)
+        raise AssertionError(f"{expression!r} not within {timeout_ms} ms; {state}") from None
+
+
+#: What a page's controller was doing, for a failure to say: its role, path, sockets and
+#: round trip, its WebRTC connection's states, the video's frozen flag, its counters,
+#: the commands awaiting an answer (how long each has waited, ms), its last banner.
+PAGE_STATE = """() => {
+  const c = window.iouvController;
+  if (!c) return "no controller on " + location.pathname;
+  const pc = c.pc;
+  const banner = document.querySelector("[data-banner]");
+  return JSON.stringify({
+    role: c.role, path: c.path, ws: c.ws ? c.ws.readyState : null,
+    rttMs: c.rtt === null ? null : Math.round(c.rtt), intervalMs: Math.round(c.interval()),
+    pc: pc ? [pc.connectionState, pc.iceConnectionState, pc.signalingState] : null,
+    videoFrozen: c.videoFrozen, stats: c.stats,
+    awaiting: [...c.pending.values()].map(
+      (p) => [p.name, Math.round(performance.now() - p.sentAt)]),
+    banner: banner && !banner.hidden ? banner.innerText : null,
+  });
+}"""
 
 
 async def assert_nothing_refused(page: Page) -> None:
@@ -174,10 +200,11 @@ async def hold_until(
     try:
         await until(reached, within=within, what=what)
     except AssertionError as exc:
-        # What the page saw of its commands (sent, answered, refused and why) says
-        # whether they were lost, refused or carried out without effect.
-        stats = await controller(page, "JSON.stringify(c && c.stats)")
-        raise AssertionError(f"{exc}; the page's stats: {stats}") from None
+        # What the page saw of its commands (sent, answered, refused, awaited) and of
+        # its connection says whether they were lost, refused or carried out without
+        # effect.
+        state = await page.evaluate(PAGE_STATE)
+        raise AssertionError(f"{exc}; the page: {state}") from None
     finally:
         await page.keyboard.up(key)
 
@@ -265,6 +292,20 @@ for (const proto of [WebSocket.prototype, RTCDataChannel.prototype]) {
   };
 }
 """
+
+#: A gamepad in the Standard Gamepad layout that the test moves (navigator.getGamepads).
+FAKE_GAMEPAD = (
+    """
+window.testPad = {
+  id: "test pad", index: 0, connected: true, mapping: "standard",
+  axes: [0, 0, 0, 0],
+  buttons: Array.from({ length: 17 }, () => ({ pressed: false, value: 0 })),
+};
+navigator.getGamepads = () => [window.testPad];
+"""
+    + RECORD_COMMANDS
+)
+
 
 #: Records the page's Content-Security-Policy violations (window.__cspViolations) before
 #: any of its own scripts runs.

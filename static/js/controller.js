@@ -14,7 +14,8 @@
  *     open, control and video ride it, directly or through TURN; until then, or if it
  *     fails, the relay carries control; on a LAN the vehicle's own socket is the last
  *     resort. The page shows the path and its round trip;
- *   - driving pauses while the video is frozen (stop, land and return home still work).
+ *   - driving pauses while the video is frozen (stop, land and return home still work);
+ *     a key, button or stick still held when the picture moves again drives on.
  * No build step: plain ES2017 in one file.
  */
 (function () {
@@ -173,6 +174,8 @@
       this.commandList = [];
       this.stickAxes = [0, 0, 0, 0]; // the on-screen sticks, as gamepad axes
       this.stickHeld = new Map(); // command name -> deflection, from sticks of any kind
+      this.stickPaused = new Set(); // motions a stick asks for while the video is frozen
+      this.keyPaused = new Set(); // motions a key or button holds while the video is frozen
       // What the person steers with, for the layout and the hints: "touch", "keys" or
       // "gamepad"; a touch screen starts with touch, and the last input used wins.
       const coarse = window.matchMedia && window.matchMedia("(pointer: coarse)").matches;
@@ -737,7 +740,9 @@
       const spec = this.commands.get(name);
       if (!spec || this.role !== "controller") return;
       if (this.videoFrozen && spec.motion) {
-        this.toast("Driving is paused while the video is frozen.", "warn");
+        // It waits while held: the picture moving again presses it (setVideoFrozen).
+        if (!this.keyPaused.has(name)) this.toast("Driving is paused while the video is frozen.", "warn");
+        this.keyPaused.add(name);
         return;
       }
       this.highlight(name, true);
@@ -747,6 +752,7 @@
 
     release(name) {
       this.highlight(name, false);
+      this.keyPaused.delete(name);
       if (!this.held.delete(name)) return;
       const stillMoving = [...this.held.keys()].some((n) => (this.commands.get(n) || {}).motion);
       if (!stillMoving && this.commands.has("stop")) this.command("stop");
@@ -755,6 +761,7 @@
     releaseAll(sendStop) {
       const wasHeld = this.held.size > 0;
       this.held.clear();
+      this.keyPaused.clear();
       // A stick still pushed presses its motion again on the next tick; a button held
       // for a one-off command (return home, land) is not sent again until pressed anew.
       for (const name of [...this.stickHeld.keys()]) {
@@ -851,13 +858,24 @@
         if (name && b[index] && b[index].pressed) want.set(name, 1);
       }
       if (padUsed) this.setInputMode("gamepad");
+      const paused = new Set();
       for (const [name, amount] of want) {
+        // While the picture is frozen a stick's motion waits (said once, when pushed),
+        // and the first tick after the picture moves again presses it: the stick still
+        // pushed drives on, as a key still held does.
+        if (this.videoFrozen && (this.commands.get(name) || {}).motion) {
+          if (!this.stickPaused.has(name)) this.toast("Driving is paused while the video is frozen.", "warn");
+          paused.add(name);
+          want.delete(name);
+          continue;
+        }
         if (!this.stickHeld.has(name)) this.press(name);
         const hold = this.held.get(name);
         if (hold) hold.amount = amount;
       }
       for (const name of this.stickHeld.keys()) if (!want.has(name)) this.release(name);
       this.stickHeld = want;
+      this.stickPaused = paused;
     }
 
     // A held command's arguments at ``amount`` (0..1) of each number's default, never
@@ -960,15 +978,23 @@
       if (this.ui.video.requestVideoFrameCallback) this.ui.video.requestVideoFrameCallback(count);
     }
 
-    // The picture stopped moving (or moves again): motions are let go and refused while
-    // it is frozen, since the user would steer blind.
+    // The picture stopped moving (or moves again): motions stop while it is frozen,
+    // since the user would steer blind. A key or button still held waits (its key-up
+    // forgets it) and drives once the picture moves: the browser repeats no press for
+    // a held key, so the user would otherwise have to let go and press again.
     setVideoFrozen(frozen) {
       this.videoFrozen = frozen;
       this.root.classList.toggle("video-frozen", frozen);
       if (frozen) {
+        const waiting = [...this.held.keys()].filter(
+          (n) => (this.commands.get(n) || {}).motion && !this.stickHeld.has(n));
         this.releaseAll(true);
+        for (const name of waiting) this.keyPaused.add(name);
         this.showBanner("The video is frozen: driving is paused until the picture moves again. Stop, land and return home still work.", "warn");
       } else {
+        const waiting = [...this.keyPaused];
+        this.keyPaused.clear();
+        for (const name of waiting) this.press(name);
         this.showBanner("The video moves again: you can drive.", "info");
         setTimeout(() => { if (!this.videoFrozen) this.hideBanner(); }, 2000);
       }

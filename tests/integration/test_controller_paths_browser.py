@@ -16,7 +16,14 @@ import pytest
 
 from services.models import Session
 from tests.browser import needs_chromium
-from tests.portal import RECORD_COMMANDS, World, drive_forward, request_car, wait_for
+from tests.portal import (
+    FAKE_GAMEPAD,
+    RECORD_COMMANDS,
+    World,
+    drive_forward,
+    request_car,
+    wait_for,
+)
 from tests.servers import db, until
 
 pytestmark = [
@@ -95,7 +102,11 @@ async def test_without_webrtc_the_page_stays_on_the_relay_and_says_so(world: Wor
 
 
 async def test_a_frozen_picture_pauses_driving_until_it_moves_again(world: World) -> None:
-    page = await world.login("client", init_script=RECORD_COMMANDS)
+    """While the picture is frozen nothing moves the car. A key held through the freeze
+    and a stick pushed meanwhile wait, and drive once the picture moves again, still
+    held (the browser repeats no press for a held key, the stick none either); a key
+    pressed and let go meanwhile is forgotten. Stop goes all along."""
+    page = await world.login("client", init_script=FAKE_GAMEPAD)
     await request_car(world, page)
     await wait_for(page, "c.channels !== null && c.stats.framesDecoded > 5", 30000)
     source: Any = world.agents["car-1"].video.encoder.source
@@ -105,24 +116,41 @@ async def test_a_frozen_picture_pauses_driving_until_it_moves_again(world: World
         await thawed.wait()  # the camera hangs: no new frame reaches the page
         return await frame()
 
+    async def sent(name: str) -> int:
+        return int(await page.evaluate(f"() => {_sent(name)}"))
+
     source.frame = frozen
     try:
         await wait_for(page, "c.videoFrozen === true", 15000)
         banner = page.locator("[data-banner]")
         assert "video is frozen" in await banner.inner_text()
-        before = await page.evaluate(f"() => {_sent('forward')}")
-        await page.keyboard.down("ArrowUp")
+        before = {name: await sent(name) for name in ("forward", "back", "right")}
+        # Back: pressed and let go while frozen, forgotten.
+        await page.keyboard.down("ArrowDown")
         await page.wait_for_function("() => !document.querySelector('[data-toast]').hidden")
-        await page.keyboard.up("ArrowUp")
-        assert await page.evaluate(f"() => {_sent('forward')}") == before
+        await page.keyboard.up("ArrowDown")
+        await page.keyboard.down("ArrowUp")  # forward: held through the freeze
+        await wait_for(page, "c.keyPaused.has('forward') && !c.keyPaused.has('back')")
         # The safe commands still go.
-        stops = await page.evaluate(f"() => {_sent('stop')}")
+        stops = await sent("stop")
         await page.click("[data-command=stop]")
         await page.wait_for_function(f"() => {_sent('stop')} > {stops}")
+        # The right stick pushed right all the way: it waits too.
+        await page.evaluate("() => { window.testPad.axes[2] = 1; }")
+        await wait_for(page, "c.stickPaused.has('right')")
+        assert {name: await sent(name) for name in before} == before
     finally:
         source.frame = frame
         thawed.set()
     await wait_for(page, "c.videoFrozen === false", 15000)
+    # The picture moves: the key and the stick, never let go, drive; back does not.
+    await page.wait_for_function(
+        f"() => {_sent('forward')} > {before['forward']} && {_sent('right')} > {before['right']}"
+    )
+    assert await sent("back") == before["back"]
+    await page.keyboard.up("ArrowUp")
+    await page.evaluate("() => { window.testPad.axes[2] = 0; }")
+    await page.wait_for_function(f"() => {_sent('stop')} > {stops + 1}")
     assert await drive_forward(world, page) > 0.05
 
 

@@ -21,8 +21,9 @@ from fleet.models import Vehicle
 from services.models import Service, Session
 from tests import factories as f
 from tests.browser import needs_chromium
+from tests.demo import TEST_CAMERA
 from tests.portal import (
-    RECORD_COMMANDS,
+    FAKE_GAMEPAD,
     World,
     assert_nothing_refused,
     controller,
@@ -119,7 +120,8 @@ async def test_client_requests_drives_sees_video_and_ends(world: World):
     session_id = await request_car(world, page)
 
     await wait_for(page, "c.stats.framesDecoded > 5")
-    assert await page.locator("video").evaluate("v => v.videoWidth") == 640
+    # The picture is the camera's, at its size.
+    assert await page.locator("video").evaluate("v => v.videoWidth") == TEST_CAMERA["width"]
 
     assert await drive_forward(world, page) > 0.1
     agent = world.agents["car-1"]
@@ -164,20 +166,6 @@ async def test_client_requests_drives_sees_video_and_ends(world: World):
 
     # Free once its agent has confirmed the end, a moment later.
     await until(car_free, what="the car to be free again")
-
-
-#: A gamepad in the Standard Gamepad layout that the test moves (navigator.getGamepads).
-FAKE_GAMEPAD = (
-    """
-window.testPad = {
-  id: "test pad", index: 0, connected: true, mapping: "standard",
-  axes: [0, 0, 0, 0],
-  buttons: Array.from({ length: 17 }, () => ({ pressed: false, value: 0 })),
-};
-navigator.getGamepads = () => [window.testPad];
-"""
-    + RECORD_COMMANDS
-)
 
 
 async def test_a_gamepad_flies_the_drone_in_proportion_and_its_buttons_act(world: World):

@@ -20,7 +20,15 @@ from playwright.async_api import expect
 from services.models import Service, Session
 from services.supervision.timers import sessions_expire_grace
 from tests.browser import needs_chromium
-from tests.portal import World, controller, hold_until, request_car, request_drone, wait_for
+from tests.portal import (
+    WORLD_LINK_LOSS_MS,
+    World,
+    controller,
+    hold_until,
+    request_car,
+    request_drone,
+    wait_for,
+)
 from tests.servers import db, until
 
 pytestmark = [
@@ -69,16 +77,18 @@ async def test_a_reload_within_the_link_loss_timeout_keeps_flying_without_the_fa
 
 
 async def test_a_page_back_after_the_failsafe_says_what_the_vehicle_did(world: World) -> None:
-    # The fail-safe is under test here: the demo's own timeout, not the world's.
-    await db(lambda: Service.objects.filter(slug="fly-drone").update(link_loss_timeout_ms=500))
+    # The world's link-loss timeout (3 s), not the demo's 500 ms: the page must keep the
+    # drone through its climb first, which a saturated machine's late keepalives did not
+    # always do within 500 ms; the page then stays away until the fail-safe, whatever
+    # its timeout.
     page = await world.login("client")
     drone = await request_drone(world, page)
     session_url = page.url
     hub = world.agents["quad-1"].hub
     assert hub is not None
 
-    # Away longer than the 500 ms link-loss timeout (a slow reload, a network that
-    # dropped): the drone goes home on its own.
+    # Away longer than the link-loss timeout (a slow reload, a network that dropped):
+    # the drone goes home on its own.
     await page.goto(f"{world.base}/")
 
     async def failsafe() -> bool:
@@ -91,8 +101,8 @@ async def test_a_page_back_after_the_failsafe_says_what_the_vehicle_did(world: W
     await expect(banner).to_be_visible()
     text = await banner.inner_text()
     assert text.startswith(
-        "While this page was away, nothing reached quad-1 from you for 0.5 s, so it "
-        "performed its fail-safe"
+        "While this page was away, nothing reached quad-1 from you for "
+        f"{WORLD_LINK_LOSS_MS / 1000:.1f} s, so it performed its fail-safe"
     ), text
     assert (
         "quad-1 will climb to its return altitude, fly back to its home point and land. "
