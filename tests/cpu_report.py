@@ -9,7 +9,7 @@ ended meanwhile used (the servers, agents, simulators and browsers the test star
 and stopped; a module's shared ones count in the test during which they stopped).
 ``python -m tests.cpu_report <file>`` prints the sums per file and the costliest tests;
 ``python -m tests.cpu_report --durations <file> > tests/durations.json`` writes the
-measured wall time of each slow module, which the suite's order reads
+measured wall and CPU time of each slow module, which the suite's order reads
 (tests/scheduling.py).
 """
 
@@ -68,15 +68,22 @@ def main(path: str, top: int = 40) -> None:
         print(f"{row['cpu_s']:8.1f}  wall {row['wall_s']:6.1f}  {row['test']}")
 
 
-def durations(path: str, *, at_least_s: float = 5.0) -> dict[str, float]:
-    """Each module's wall time in the report (the sum of its tests'), for the modules
-    of ``at_least_s`` or more, longest first."""
-    by_file: collections.Counter[str] = collections.Counter()
+def durations(path: str, *, at_least_s: float = 5.0) -> dict[str, dict[str, float]]:
+    """Each module's wall time and CPU time in the report (the sums of its tests'), for
+    the modules of ``at_least_s`` or more of wall time, longest first."""
+    wall: collections.Counter[str] = collections.Counter()
+    cpu: collections.Counter[str] = collections.Counter()
     for line in Path(path).read_text().splitlines():
         if line:
             row = json.loads(line)
-            by_file[row["test"].split("::")[0]] += row["wall_s"]
-    return {name: round(s, 1) for name, s in by_file.most_common() if s >= at_least_s}
+            name = row["test"].split("::")[0]
+            wall[name] += row["wall_s"]
+            cpu[name] += row["cpu_s"]
+    return {
+        name: {"wall_s": round(s, 1), "cpu_s": round(cpu[name], 1)}
+        for name, s in wall.most_common()
+        if s >= at_least_s
+    }
 
 
 if __name__ == "__main__":

@@ -4,12 +4,13 @@ modules spread over the workers' slices, each slice as long as worksteal cuts it
 from __future__ import annotations
 
 import json
+import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
-from tests.scheduling import longest_first, measured_durations
+from tests.scheduling import longest_first, measured_density, measured_durations
 
 
 @dataclass
@@ -104,3 +105,42 @@ def test_a_module_measured_slow_goes_first_whatever_its_tier(tmp_path: Path) -> 
     assert measured_durations(tmp_path / "none.json") == {}
     durations.write_text("[1, 2")
     assert measured_durations(durations) == {}
+
+
+def test_the_slices_run_their_busiest_modules_at_different_times(tmp_path: Path) -> None:
+    """Even slices start with the modules that work the CPU hardest, odd slices end
+    with them: the workers do not all fight for the cores at once and then all wait on
+    real time together. Which tests each slice holds does not change."""
+    suite = _suite()
+    durations = tmp_path / "durations.json"
+    # b/test_rescue.py and c/test_missions.py busy; b/test_limits.py a simulator
+    # flying in real time; b/test_pages.py measured in an older file's form, wall alone.
+    durations.write_text(
+        json.dumps(
+            {
+                "b/test_rescue.py": {"wall_s": 48, "cpu_s": 30},
+                "c/test_missions.py": {"wall_s": 120, "cpu_s": 70},
+                "b/test_limits.py": {"wall_s": 36, "cpu_s": 2},
+                "b/test_bench.py": {"wall_s": 30, "cpu_s": 12},
+                "b/test_pages.py": 36,
+            }
+        )
+    )
+    measured, density = measured_durations(durations), measured_density(durations)
+    assert measured["b/test_pages.py"] == 36.0 and "b/test_pages.py" not in density
+    plain = _slices(longest_first(suite, 2, measured), 2)
+    alternated = _slices(longest_first(suite, 2, measured, density), 2)
+    for before, after in zip(plain, alternated, strict=True):
+        assert sorted(t.nodeid for t in before) == sorted(t.nodeid for t in after)
+
+    def modules(tests: list[Collected]) -> list[str]:
+        names = [t.nodeid.split("::")[0] for t in tests if t.nodeid[0] in "bc"]
+        return list(dict.fromkeys(names))
+
+    def rate(name: str) -> float:
+        return density.get(name, statistics.median_high(density.values()))
+
+    first, second = (modules(s) for s in alternated)
+    assert [rate(m) for m in first] == sorted((rate(m) for m in first), reverse=True), first
+    assert [rate(m) for m in second] == sorted(rate(m) for m in second), second
+    assert len(first) > 1 and len(second) > 1, (first, second)

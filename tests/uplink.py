@@ -15,13 +15,42 @@ from collections.abc import Callable
 from typing import Any
 
 from channels.db import database_sync_to_async
+from channels.layers import get_channel_layer
 from channels.testing import WebsocketCommunicator
+from django.db import connections
 
 from agents.protocol import PROTOCOL_VERSION
 from fleet.credentials import vehicle_issue_credential
 from fleet.models import Vehicle
 from iouv.asgi import application
 from tests import factories as f
+
+#: How long closing the channel layer's pools may take at a test's end.
+LAYER_CLOSE_S = 15.0
+
+
+async def connections_closed() -> None:
+    """At the end of a test that played clients on the ASGI application: close the ORM's
+    connections of asgiref's worker thread (which would outlive the test and block
+    dropping its database), and the Redis channel layer's pools of this event loop (so
+    closing the loop does not wait on their blocking reads).
+
+    Closing the pools first waits for the layer's clean-ups of cancelled receives (one
+    started on an earlier test's loop, now closed, would never end): bounded, a wait
+    that does not end is this test's error, not a worker held until pytest-timeout ends
+    it without a word."""
+    await database_sync_to_async(connections.close_all)()
+    layer = get_channel_layer()
+    if hasattr(layer, "close_pools"):
+        try:
+            async with asyncio.timeout(LAYER_CLOSE_S):
+                await layer.close_pools()
+        except TimeoutError:
+            raise AssertionError(
+                f"the channel layer's pools did not close within {LAYER_CLOSE_S:g} s: its "
+                "clean-ups of cancelled receives did not end (a consumer left running on an "
+                "earlier test's loop?)"
+            ) from None
 
 
 @database_sync_to_async

@@ -4,29 +4,21 @@ from __future__ import annotations
 
 import pytest
 from channels.db import database_sync_to_async
-from channels.layers import get_channel_layer
 from channels.testing import WebsocketCommunicator
-from django.db import connections
 
 from accounts.roles import CLIENT, MONITOR
 from fleet.status import vehicle_set_maintenance
 from iouv.asgi import application
 from tests import factories as f
+from tests.uplink import connections_closed
 
 pytestmark = pytest.mark.django_db(transaction=True)
 
 
 @pytest.fixture(autouse=True)
 async def _close_worker_connections():
-    # Sync ORM calls run on asgiref's shared worker thread, whose connection would
-    # otherwise outlive the test and block dropping the test database.
     yield
-    await database_sync_to_async(connections.close_all)()
-    # The Redis layer keeps a blocking read per consumer; close its pools on this
-    # loop so closing the loop does not wait on them.
-    layer = get_channel_layer()
-    if hasattr(layer, "close_pools"):
-        await layer.close_pools()
+    await connections_closed()
 
 
 def _connect() -> WebsocketCommunicator:
@@ -73,6 +65,7 @@ async def test_client_is_refused(monkeypatch):
     comm = _connect()
     connected, code = await comm.connect()
     assert not connected and code == 4403
+    await comm.disconnect()  # the consumer ends on this test's loop, its reads with it
 
 
 async def test_foreign_origin_is_refused():
@@ -81,3 +74,4 @@ async def test_foreign_origin_is_refused():
     )
     connected, _ = await comm.connect()
     assert not connected
+    await comm.disconnect()

@@ -13,9 +13,7 @@ from typing import Any
 import pytest
 from asgiref.sync import async_to_sync
 from channels.db import database_sync_to_async
-from channels.layers import get_channel_layer
 from channels.testing import WebsocketCommunicator
-from django.db import connections
 from django.utils import timezone
 
 from accounts.roles import MONITOR
@@ -24,7 +22,7 @@ from fleet.models import UplinkServer, Vehicle
 from fleet.status import vehicles_mark_stale_offline
 from iouv.asgi import application
 from tests import factories as f
-from tests.uplink import agent_idle, eventually
+from tests.uplink import agent_idle, connections_closed, eventually
 from tests.vehicle_events import hearing
 
 pytestmark = [pytest.mark.django_db(transaction=True), pytest.mark.redis]
@@ -49,10 +47,7 @@ async def _tidy(settings):
     # tests' heartbeats are each handled.
     settings.IOUV_HEARTBEAT_INTERVAL_S = 0.02
     yield
-    await database_sync_to_async(connections.close_all)()
-    layer = get_channel_layer()
-    if hasattr(layer, "close_pools"):
-        await layer.close_pools()
+    await connections_closed()
 
 
 async def _beat(comm: WebsocketCommunicator, seq: int, **fields: Any) -> None:
