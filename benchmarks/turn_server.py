@@ -20,13 +20,10 @@ from a thread that lives as long as it should (the main thread, not ``asyncio.to
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import ctypes.util
 import os
 import re
 import secrets
 import shutil
-import signal
 import socket
 import subprocess
 import sys
@@ -35,9 +32,6 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-
-#: prctl(PR_SET_PDEATHSIG): the kernel signals the child when its parent thread dies.
-_PR_SET_PDEATHSIG = 1
 
 
 class TurnServerError(Exception):
@@ -125,13 +119,14 @@ def free_udp_tcp_port(host: str = "127.0.0.1") -> int:
     raise TurnServerError(f"no free UDP+TCP port on {host}")
 
 
-def _die_with_parent() -> None:
-    """preexec_fn: SIGKILL the child when the thread that forked it dies."""
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(name, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+#: Put before a child's command line: the child is SIGKILLed when the thread that started
+#: it dies (PR_SET_PDEATHSIG, kept across exec). Set by util-linux's setpriv, not by a
+#: preexec_fn: Python code between fork and exec in a threaded process can wait for
+#: ever on a lock another thread held at the fork (seen: a network lab's child parked
+#: on a futex, and its test with it, under Python 3.12).
+DIE_WITH_PARENT: tuple[str, ...] = (
+    ("setpriv", "--pdeathsig", "KILL", "--") if shutil.which("setpriv") else ()
+)
 
 
 def stun_answers(host: str, port: int, *, timeout_s: float = 0.2) -> bool:
@@ -216,11 +211,10 @@ def turn_server(
         "--verbose",
     ]  # fmt: skip
     proc = subprocess.Popen(
-        argv,
+        [*DIE_WITH_PARENT, *argv],
         stdin=subprocess.DEVNULL,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
-        preexec_fn=_die_with_parent,  # only prctl: safe between fork and exec
     )
     turn = TurnServer(
         host=host, port=port, secret=secret, realm=realm, log_path=log_path, process=proc

@@ -14,6 +14,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import email
+import email.policy
 from collections.abc import AsyncIterator, Callable, Iterable
 from pathlib import Path
 from typing import Any
@@ -35,16 +37,30 @@ from tests.servers import (
 PASSWORD = "demo-pass-for-tests"
 
 
+#: The test worlds' cameras: a quarter of the demo's 640x480. The pages, the agents and
+#: the platform do the same with a picture of any size, and on the suite's two cores
+#: each stream then costs its agent (drawing, VP8) and Chromium (decoding) about a
+#: third as much. The video tests (tests/agents/test_video*.py, the benchmarks) size
+#: their own.
+TEST_CAMERA: dict[str, int] = {"width": 320, "height": 240}
+
+
 def demo_agent_config(path: Path, base: str) -> AgentConfig:
     """The agent of a demo config file against the platform at ``base``, with synthetic
-    video (of its scene: the boat's is the sea) offered on loopback only (aioice would
-    otherwise offer this machine's other addresses), reconnecting quickly."""
+    video (of its scene: the boat's is the sea; :data:`TEST_CAMERA`'s size) offered on
+    loopback only (aioice would otherwise offer this machine's other addresses),
+    reconnecting quickly."""
     config = AgentConfig.load(path)
     scene = (config.video or {}).get("scene", "land")
     return dataclasses.replace(
         config,
         platform_url=base.replace("http://", "ws://"),
-        video={"source": "synthetic", "scene": scene, "ice_host_addresses": ["127.0.0.1"]},
+        video={
+            "source": "synthetic",
+            "scene": scene,
+            **TEST_CAMERA,
+            "ice_host_addresses": ["127.0.0.1"],
+        },
         reconnect_min_s=0.2,
     )
 
@@ -146,15 +162,29 @@ class Demo(Agents):
     mail_dir: Path
 
     def emails(self) -> list[str]:
-        """The e-mails sent so far, each as the file the backend wrote. A file the
-        backend had not finished (its writer killed while sending, as some tests do: the
-        file is opened first, written and closed after) is no e-mail sent, as a message
-        cut off mid-way never reaches a mail server; Django's file backend ends every
-        message it finished with a line of 79 dashes."""
+        """The e-mails sent so far, as their reader sees them: each one's headers (one
+        line each), a blank line, and its text decoded (Django 6 sends long lines
+        quoted-printable, folded at 76 characters, which a mail client undoes). A file
+        the backend had not finished (its writer killed while sending, as some tests do:
+        the file is opened first, written and closed after) holds no e-mail sent, as a
+        message cut off mid-way never reaches a mail server; Django's file backend ends
+        every message it finished with a line of 79 dashes."""
         if not self.mail_dir.exists():
             return []
-        written = (p.read_text() for p in sorted(self.mail_dir.glob("*.log")))
-        return [text for text in written if text.endswith("-" * 79 + "\n")]
+        end = "\n" + "-" * 79 + "\n"
+        sent: list[str] = []
+        for path in sorted(self.mail_dir.glob("*.log")):
+            text = path.read_text()
+            if text.endswith(end):
+                sent += [_readable(raw) for raw in text.split(end) if raw.strip()]
+        return sent
+
+
+def _readable(raw: str) -> str:
+    message = email.message_from_string(raw, policy=email.policy.default)
+    headers = "".join(f"{name}: {value}\n" for name, value in message.items())
+    body = message.get_body(preferencelist=("plain", "html"))
+    return f"{headers}\n{body.get_content() if body is not None else ''}"
 
 
 @contextlib.asynccontextmanager

@@ -61,7 +61,8 @@ Use::
             proc = lab.popen("vehicle", [sys.executable, "-m", "tests.netlab_peer", ...])
 
 Processes the lab starts (``popen``, ``coturn``) are killed when it closes, and also when
-the process that started them dies (``PR_SET_PDEATHSIG``): start them from the thread that
+the process that started them dies (``PR_SET_PDEATHSIG``, set by setpriv: see
+``benchmarks.turn_server.DIE_WITH_PARENT``): start them from the thread that
 owns the lab, since the signal follows the *thread* that forked them.
 
 Everything here needs root (namespaces, iptables); ``netlab_available()`` says whether it
@@ -72,7 +73,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ctypes
 import dataclasses
 import fcntl
 import functools
@@ -94,7 +94,7 @@ from typing import Any, Literal
 import pytest
 
 from benchmarks.delay_proxy import DelayProxy
-from benchmarks.turn_server import TurnServer, TurnServerError, turn_server
+from benchmarks.turn_server import DIE_WITH_PARENT, TurnServer, TurnServerError, turn_server
 
 NatMode = Literal["eim", "symmetric"]
 NAT_MODES: tuple[NatMode, ...] = ("eim", "symmetric")
@@ -158,19 +158,6 @@ def _pid_alive(pid: int) -> bool:
 def _tag_alive(tag: str) -> bool:
     match = _TAG_RE.fullmatch(tag)
     return bool(match) and _pid_alive(int(match.group(1)))
-
-
-_PR_SET_PDEATHSIG = 1
-# Resolved here, in the parent: the child of a fork in a threaded process should do as
-# little as possible before exec (no dlopen, whose lock another thread may have held).
-_prctl = ctypes.CDLL(None, use_errno=True).prctl if sys.platform.startswith("linux") else None
-
-
-def _die_with_parent() -> None:
-    """preexec_fn: SIGKILL this child when the thread that forked it dies, so a test
-    process killed by a timeout leaves no coturn or peer behind."""
-    if _prctl is not None:
-        _prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
 
 
 def _stop_process(proc: subprocess.Popen[Any], timeout: float = 5.0) -> None:
@@ -781,7 +768,7 @@ COMMIT
         """``subprocess.Popen(argv, **kwargs)`` inside the site's host (or router)
         namespace; stopped when the lab closes, or killed when this thread dies."""
         proc: subprocess.Popen[Any] = subprocess.Popen(
-            self.command(site, argv, router=router), preexec_fn=_die_with_parent, **kwargs
+            [*DIE_WITH_PARENT, *self.command(site, argv, router=router)], **kwargs
         )
         self._processes.append(proc)
         return proc

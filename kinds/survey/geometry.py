@@ -260,4 +260,4 @@ def coverage(
     covered = np.zeros_like(area)
     for footprint in footprints:
         covered |= _inside(to_local(origin, footprint.corners), north, east)
-    return float((covered & area).sum() / area.sum())
+    return int(np.count_nonzero(covered & area)) / int(np.count_nonzero(area))

@@ -374,8 +374,8 @@ def _blob(
 ) -> Blob | None:
     """Measure one component; None when it cannot be a person."""
     h, w = frame.shape
-    r0, r1 = int(rows.min()), int(rows.max()) + 1
-    c0, c1 = int(cols.min()), int(cols.max()) + 1
+    r0, r1 = int(np.min(rows)), int(np.max(rows)) + 1
+    c0, c1 = int(np.min(cols)), int(np.max(cols)) + 1
     # The water right round the blob: robust to a gradient across the frame (a glint
     # nearby, a temperature front) that the global median would miss.
     R0, R1, C0, C1 = max(0, r0 - 3), min(h, r1 + 3), max(0, c0 - 3), min(w, c1 + 3)
@@ -386,7 +386,7 @@ def _blob(
     temps = frame[rows, cols].astype(np.float64)
     excess = np.maximum(temps - background, 0.0)
     heat = float(excess.sum())
-    peak = float(temps.max())
+    peak = float(np.max(temps))
     contrast = peak - background
     if heat <= 0 or contrast <= 0:
         return None
@@ -1048,7 +1048,7 @@ def colour_range(frame_c: Celsius) -> tuple[float, float]:
     coldest percent of the frame to its warmest pixel, at least 8 degC wide so that
     open water shows its texture without the noise filling the palette."""
     low = float(np.percentile(frame_c, 1)) - 0.5
-    return low, max(float(frame_c.max()), low + 8.0)
+    return low, max(float(np.max(frame_c)), low + 8.0)
 
 
 def false_colour(
