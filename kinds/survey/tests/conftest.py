@@ -40,6 +40,12 @@ def drones_online(*names: str) -> None:
         vehicle.save()
 
 
+def heard_from(*vehicles: Vehicle) -> None:
+    """``vehicles``' agents reported just now, as their heartbeats do all along (a
+    vehicle not heard from for IOUV_OFFLINE_AFTER_S is not offered to a mission)."""
+    Vehicle.objects.filter(pk__in=[v.pk for v in vehicles]).update(last_seen=timezone.now())
+
+
 def spare_drone(name: str, *, like: str = "quad-1") -> Vehicle:
     """Another drone like ``like``, online at its station."""
     spare = Vehicle.objects.get(name=like)

@@ -29,7 +29,7 @@ from kinds.survey.kind import AerialSurvey
 from kinds.survey.missions import vehicle_mission
 from kinds.survey.models import Survey
 from kinds.survey.presentation import survey_json
-from kinds.survey.tests.conftest import fly, report, spare_drone, surveyor
+from kinds.survey.tests.conftest import fly, heard_from, report, spare_drone, surveyor
 from kinds.survey.workflow import footprints, survey_advance
 from services.kinds import Request, RequestError
 from services.models import Service, Session, SessionArtifact
@@ -226,6 +226,7 @@ def test_a_drone_lost_mid_way_is_replaced_from_the_first_photo_not_taken(demo, s
     Vehicle.objects.filter(pk=first.vehicle_id).update(
         status=Vehicle.Status.OFFLINE, last_seen=lost
     )
+    heard_from(spare)  # while the first drone flew (longer than 6 s on a loaded machine)
     assert survey_advance(session.pk) == Survey.State.FLYING
     second = surveyor(session)
     assert second.vehicle_id == spare.pk
@@ -253,6 +254,7 @@ def test_a_drone_low_on_battery_hands_over_and_the_next_resumes(demo, settings) 
     Vehicle.objects.filter(pk=first.vehicle_id).update(
         battery=settings.IOUV_MISSION_LOW_BATTERY_PCT - 1
     )
+    heard_from(first.vehicle, spare)  # while the first drone flew
     assert survey_advance(session.pk) == Survey.State.FLYING
     second = surveyor(session)
     assert second.vehicle_id == spare.pk

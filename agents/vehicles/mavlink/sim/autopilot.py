@@ -184,7 +184,9 @@ class Autopilot:
         self.next_due: dict[str, float] = {}
         #: What SET_MESSAGE_INTERVAL's "default rate" (0) restores: the stream rates.
         self.default_intervals: dict[str, float] = {}
-        self.running = False
+        #: Set by :meth:`stop`, never cleared: a SIGTERM that comes between READY and
+        #: :meth:`run`'s first turn stops it all the same.
+        self.stopping = False
         self.bad_frames = 0
         self.unknown_messages = 0
         self.gcs_last: float | None = None  # wall time of the last heartbeat of the GCS
@@ -227,18 +229,18 @@ class Autopilot:
             self.conn = None
 
     def stop(self, *_: Any) -> None:
-        self.running = False
+        """Make :meth:`run` return (at once if it has not started); a signal handler."""
+        self.stopping = True
 
     def run(self) -> None:
         """Serve until :meth:`stop` (or the parent process, if given, goes away)."""
         if self.conn is None:
             self.open()
-        self.running = True
         period = 1.0 / PHYSICS_HZ
         last = self.clock()
         next_heartbeat = last
         next_parent_check = last + 1.0
-        while self.running:
+        while not self.stopping:
             now = self.clock()
             # A paused process (SIGSTOP) or a slow machine: never step more than 0.2 s.
             dt = min(0.2, max(0.0, now - last)) * self.options.speedup
