@@ -19,6 +19,7 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
+import django
 import django_stubs_ext
 from csp.constants import NONE, SELF
 from django.core.exceptions import ImproperlyConfigured
@@ -542,8 +543,32 @@ CONTENT_SECURITY_POLICY = {
     }
 }
 
-EMAIL_BACKEND = env_str("EMAIL_BACKEND", "django.core.mail.backends.console.EmailBackend")
-EMAIL_FILE_PATH = env_str("EMAIL_FILE_PATH", str(VAR_DIR / "mail"))
+# Where e-mail goes (the rescue team's notices): EMAIL_BACKEND, with the file backend's
+# folder or the SMTP server's address and account. Django 6.1 takes these as MAILERS and
+# deprecates its EMAIL_* settings (gone in Django 7); 5.2 knows only those.
+_MAIL_BACKEND = env_str("EMAIL_BACKEND", "django.core.mail.backends.console.EmailBackend")
+_MAIL_FILE_PATH = env_str("EMAIL_FILE_PATH", str(VAR_DIR / "mail"))
+_SMTP: dict[str, Any] = {
+    "host": env_str("EMAIL_HOST", "localhost"),
+    "port": env_int("EMAIL_PORT", 25),
+    "username": env_str("EMAIL_HOST_USER"),
+    "password": env_secret("EMAIL_HOST_PASSWORD"),
+    "use_tls": env_bool("EMAIL_USE_TLS", False),
+    "timeout": env_float("EMAIL_TIMEOUT_S", 10.0),
+}
+if django.VERSION >= (6, 1):
+    _MAIL_OPTIONS: dict[str, Any] = {}
+    if _MAIL_BACKEND.endswith(".filebased.EmailBackend"):
+        _MAIL_OPTIONS = {"file_path": _MAIL_FILE_PATH}
+    elif _MAIL_BACKEND.endswith(".smtp.EmailBackend"):
+        _MAIL_OPTIONS = _SMTP
+    MAILERS = {"default": {"BACKEND": _MAIL_BACKEND, "OPTIONS": _MAIL_OPTIONS}}
+else:
+    EMAIL_BACKEND = _MAIL_BACKEND
+    EMAIL_FILE_PATH = _MAIL_FILE_PATH
+    EMAIL_HOST, EMAIL_PORT = _SMTP["host"], _SMTP["port"]
+    EMAIL_HOST_USER, EMAIL_HOST_PASSWORD = _SMTP["username"], _SMTP["password"]
+    EMAIL_USE_TLS, EMAIL_TIMEOUT = _SMTP["use_tls"], _SMTP["timeout"]
 DEFAULT_FROM_EMAIL = env_str("DEFAULT_FROM_EMAIL", "iouv@localhost")
 
 LOGGING = {

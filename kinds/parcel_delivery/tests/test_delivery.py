@@ -52,8 +52,7 @@ def wire(spec: MissionSpec | None) -> dict[str, Any]:
 
 
 @pytest.fixture
-def world(settings) -> dict[str, Any]:
-    settings.EMAIL_BACKEND = "django.core.mail.backends.locmem.EmailBackend"
+def world() -> dict[str, Any]:
     campus = f.station(name="Campus")
     beach = f.station(name="Beach", lat_lon=f.COAST, environments=["land", "sea", "air"])
     drone = f.vehicle(

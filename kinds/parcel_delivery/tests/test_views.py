@@ -166,7 +166,6 @@ def test_the_demo_on_another_port_e_mails_links_to_that_port(
     ).stdout
     given = dict(line.split("=", 1) for line in shown.splitlines())
     settings.IOUV_PUBLIC_URL = given["IOUV_PUBLIC_URL"]
-    settings.EMAIL_BACKEND = "django.core.mail.backends.locmem.EmailBackend"
     client.post(URL, form(PICKUP, DROPOFF))
     delivery = Delivery.objects.get()
     parcel_notices(delivery, moment="dispatched")  # as the carrier loads it

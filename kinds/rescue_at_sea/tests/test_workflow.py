@@ -83,8 +83,7 @@ def vehicle(name: str) -> Vehicle:
     return Vehicle.objects.get(name=name)
 
 
-def test_whole_rescue_from_area_to_completed(world, client_user, settings) -> None:
-    settings.EMAIL_BACKEND = "django.core.mail.backends.locmem.EmailBackend"
+def test_whole_rescue_from_area_to_completed(world, client_user) -> None:
     session = rescue_request(user=client_user, service=world, area=area())
     m = mission(session)
     assert m.state == Mission.State.WAITING_SEARCH
@@ -417,8 +416,7 @@ class _Hook(http.server.BaseHTTPRequestHandler):
         pass
 
 
-def test_webhook_is_retried_until_it_succeeds_and_sent_once(world, client_user, settings) -> None:
-    settings.EMAIL_BACKEND = "django.core.mail.backends.locmem.EmailBackend"
+def test_webhook_is_retried_until_it_succeeds_and_sent_once(world, client_user) -> None:
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Hook)
     threading.Thread(target=server.serve_forever, daemon=True).start()
     _Hook.seen, _Hook.status = [], 503
@@ -450,8 +448,7 @@ def test_webhook_is_retried_until_it_succeeds_and_sent_once(world, client_user, 
         server.shutdown()
 
 
-def test_a_notice_being_sent_by_another_worker_is_not_sent_again(world, client_user, settings):
-    settings.EMAIL_BACKEND = "django.core.mail.backends.locmem.EmailBackend"
+def test_a_notice_being_sent_by_another_worker_is_not_sent_again(world, client_user):
     session = rescue_request(user=client_user, service=world, area=area())
     step(session)
     search = Assignment.objects.get(session=session, role="search")
