@@ -30,6 +30,11 @@
   const RTC_RETRY_MS = 30000;
   // Driving pauses when the picture has not moved for this long.
   const STALE_VIDEO_MS = 1500;
+  // A socket carrying control hears the vehicle at least once a second (its telemetry,
+  // the answers to our pings): silent this long, it is given up and another opened.
+  // A platform machine cut off from the network, or a proxy still holding a connection
+  // to it, would otherwise keep it open, and the browser would wait on TCP for minutes.
+  const SILENT_SOCKET_MS = 5000;
   // Commands that make the vehicle safe: never behind other traffic, never paused.
   const SAFE_COMMANDS = new Set(["stop", "land", "return_to_home"]);
   // Refusals the link caused (the round trip over the vehicle's limit, a command too
@@ -208,7 +213,7 @@
       this.connect();
       this.watchSession();
       this.timers.push(setInterval(() => this.tick(), 20));
-      this.timers.push(setInterval(() => this.ping(), 1000));
+      this.timers.push(setInterval(() => { this.checkSocket(); this.ping(); }, 1000));
       this.timers.push(setInterval(() => this.readVideoStats(), 1000));
       this.timers.push(setInterval(() => this.keepalive(), this.keepaliveMs()));
     }
@@ -245,37 +250,56 @@
       let opened = false;
       ws.onopen = () => {
         opened = true;
+        this.lastHeard = performance.now();
         this.sendSignal({ type: "auth", grant: this.task.grant });
       };
       ws.onmessage = (event) => {
+        this.lastHeard = performance.now();
         let msg;
         try { msg = JSON.parse(event.data); } catch (e) { return; }
         this.handle(msg);
       };
-      ws.onclose = (event) => {
-        if (this.ws !== ws) return;
-        this.ws = null;
-        if (this.channels && !this.over) {
-          // The platform's socket is gone but the WebRTC connection carries on.
-          this.toast("The platform's relay dropped; the direct connection carries on.", "warn");
-          return;
-        }
-        if (!opened && !this.direct && !this.over && this.directUsable()) {
-          // The relay never opened and the grant was not used: try the vehicle's socket.
-          this.direct = true;
-          this.connect();
-          return;
-        }
-        this.role = "pending";
-        this.releaseAll(false);
-        this.closeVideo();
-        this.setPath(null);
-        if (this.over) { this.setState("ended"); return; }
-        this.setState("disconnected");
-        const why = event.reason ? ` (${event.reason})` : "";
-        this.showBanner(`Connection to the vehicle lost${why}. Reconnecting…`, "warn");
-        this.reconnect();
-      };
+      ws.onclose = (event) => this.socketLost(ws, opened, event.reason);
+    }
+
+    // The control socket ``ws`` closed, or was given up as silent: carry on over WebRTC
+    // if it is up, else connect again (the vehicle's own socket, if the relay never
+    // opened; else the relay with a fresh grant).
+    socketLost(ws, opened, reason) {
+      if (this.ws !== ws) return;
+      this.ws = null;
+      if (this.channels && !this.over) {
+        // The platform's socket is gone but the WebRTC connection carries on.
+        this.toast("The platform's relay dropped; the direct connection carries on.", "warn");
+        return;
+      }
+      if (!opened && !this.direct && !this.over && this.directUsable()) {
+        // The relay never opened and the grant was not used: try the vehicle's socket.
+        this.direct = true;
+        this.connect();
+        return;
+      }
+      this.role = "pending";
+      this.releaseAll(false);
+      this.closeVideo();
+      this.setPath(null);
+      if (this.over) { this.setState("ended"); return; }
+      this.setState("disconnected");
+      const why = reason ? ` (${reason})` : "";
+      this.showBanner(`Connection to the vehicle lost${why}. Reconnecting…`, "warn");
+      this.reconnect();
+    }
+
+    // Called every second: a control socket silent for SILENT_SOCKET_MS is let go (its
+    // close handshake could not finish either) and treated as closed.
+    checkSocket() {
+      const ws = this.ws;
+      if (!ws || ws.readyState !== WebSocket.OPEN || this.channels) return;
+      if (performance.now() - this.lastHeard < SILENT_SOCKET_MS) return;
+      ws.onclose = null;
+      ws.onmessage = null;
+      ws.close();
+      this.socketLost(ws, true, `no answer for ${SILENT_SOCKET_MS / 1000} s`);
     }
 
     async reconnect() {

@@ -1,6 +1,6 @@
 """The session page's paths to the vehicle, in Chromium: WebRTC signalled through the
-platform, the relay when WebRTC cannot be had, and driving paused while the video is
-frozen.
+platform, the relay when WebRTC cannot be had (and another relay socket when one goes
+silent), and driving paused while the video is frozen.
 
 Same world as ``test_portal`` (the ``world`` fixture): the seeded demo on the platform,
 the simulated car and drone's agents (in this process, so a test can switch a vehicle's
@@ -10,12 +10,15 @@ WebRTC off or freeze its camera), Debian's Chromium.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 from typing import Any
+from urllib.parse import urlsplit
 
 import pytest
 
 from services.models import Session
 from tests.browser import needs_chromium
+from tests.freezing_proxy import FreezingProxy
 from tests.portal import (
     FAKE_GAMEPAD,
     RECORD_COMMANDS,
@@ -99,6 +102,30 @@ async def test_without_webrtc_the_page_stays_on_the_relay_and_says_so(world: Wor
     toast = page.locator("[data-toast]")
     assert "No direct connection" in await toast.inner_text()
     assert await drive_forward(world, page) > 0.05
+
+
+async def test_a_relay_socket_gone_silent_is_given_up_and_driving_resumes(world: World) -> None:
+    """The platform process holding the page's relay socket drops off the network while
+    the proxy in front stays up: the socket neither answers nor closes. The page gives
+    it up after 5 s of silence, says so, and drives on over a new relay socket (through
+    the same proxy, to a platform that answers) without the user doing anything."""
+    hub: Any = world.agents["car-1"].hub
+    hub.webrtc_options = {"enabled": False}  # control on the relay socket all along
+    target = urlsplit(world.base)
+    async with FreezingProxy(target_port=target.port or 80) as proxy:
+        proxied = dataclasses.replace(world, base=f"http://127.0.0.1:{proxy.port}")
+        page = await proxied.login("client")
+        await request_car(proxied, page)
+        await wait_for(page, "c.path === 'relay' && c.pc === null")
+        assert await drive_forward(world, page) > 0.05
+        assert proxy.freeze(lambda first_line: "/ws/relay/" in first_line) == 1
+        said = "Connection to the vehicle lost (no answer for 5 s)"
+        banner = "document.querySelector('[data-banner]').innerText"
+        await wait_for(page, f"{banner}.includes({said!r})")
+        await wait_for(page, "c.role === 'controller' && c.path === 'relay'", 30000)
+        # A second relay socket, on a connection the proxy still passes.
+        assert sum("/ws/relay/" in c.first_line for c in proxy.connections) == 2
+        assert await drive_forward(world, page) > 0.05
 
 
 async def test_a_frozen_picture_pauses_driving_until_it_moves_again(world: World) -> None:
