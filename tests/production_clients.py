@@ -96,9 +96,9 @@ class Driver:
     """A user holding ``forward``, a command every 100 ms once the last is answered.
     ``direct``: on the car's own socket (the platform is not on that path); else over
     the relay, as the controller page does: a command unanswered for 3 s is forgotten
-    and the next sent, and a closed socket connects again with a fresh grant (so do two
-    commands unanswered in a row, a path gone silent, which the page leaves to the
-    socket's closing)."""
+    and the next sent, and a closed socket connects again with a fresh grant, as does a
+    path gone silent: two commands unanswered in a row here, 6 s (the page gives a
+    socket up after 5 s without a word)."""
 
     def __init__(
         self, shape: ProductionShape, token: str, task: dict[str, Any], *, direct: bool
