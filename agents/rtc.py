@@ -209,8 +209,12 @@ class RtcPeers:
         wants_video = bool(_VIDEO.search(sdp))
         if wants_video and self.video is None:
             raise VideoError("this vehicle has no camera: offer data channels only")
-        if wants_video and "VP8/90000" not in sdp:
-            raise VideoError("bad SDP offer: the video must offer VP8 (every WebRTC browser does)")
+        codec = self.video.encoder.codec if self.video is not None else None
+        if wants_video and codec is not None and f"{codec.rtp_name}/90000" not in sdp:
+            raise VideoError(
+                f"bad SDP offer: the video must offer {codec.rtp_name} (this vehicle sends it; "
+                "every WebRTC browser decodes VP8 and H.264)"
+            )
         try:
             servers = [*self.ice_servers, *(ice_server(s) for s in ice_servers)]
         except (TypeError, ValueError) as exc:

@@ -59,14 +59,14 @@ def floor_ms(frames: int = 150) -> dict[str, float]:
     """The render-encode-decode floor of one frame (ms, medians over ``frames``)."""
     import av
 
-    from agents.video.encoder import SharedVp8Encoder
+    from agents.video.encoder import SharedEncoder
     from agents.video.sources import CameraPose, SyntheticCamera
     from tests.agents.video_page import moving_pose
 
     camera = SyntheticCamera(WIDTH, HEIGHT, fps=FPS, pose=moving_pose)
     # The agent's own encoder and settings (one call of its per-frame step): the floor is
     # what this encoder costs, not a codec configured otherwise.
-    encoder = SharedVp8Encoder(camera, bitrate=BITRATE)
+    encoder = SharedEncoder(camera, bitrate=BITRATE)
     decoder = av.CodecContext.create("vp8", "r")
     parts: dict[str, list[float]] = {"render": [], "encode": [], "decode": []}
     for n in range(frames):

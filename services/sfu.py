@@ -187,7 +187,8 @@ def sfu_room_open(*, session_id: Any) -> bool:
         "pin": _derived("pin", session_id),
         "allowed": [_derived("publish", session_id)],
         "publishers": 1,
-        "videocodec": "vp8",
+        # The vehicle sends one of them (its video.codec); spectators get that one.
+        "videocodec": "vp8,h264",
         "audiocodec": "opus",
         "bitrate": 0,
         "notify_joining": False,
@@ -272,13 +273,30 @@ def sfu_recorded_sessions() -> list[uuid.UUID]:
     return found
 
 
+#: The container a recording is converted to, by the codec the vehicle sent, and the
+#: MIME type a browser plays it as.
+CONTAINERS: dict[str, tuple[str, str]] = {
+    "vp8": (".webm", "video/webm"),
+    "h264": (".mp4", "video/mp4"),
+}
+
+
 @dataclasses.dataclass(frozen=True)
 class Recording:
     """One stretch of a session's video (a new one each time the vehicle published
-    again): the WebM file, and when its first frame was received (Unix seconds)."""
+    again): the playable file (WebM for VP8, MP4 for H.264), and when its first frame
+    was received (Unix seconds)."""
 
     path: Path
     started_at: float
+
+    @property
+    def content_type(self) -> str:
+        """The file's MIME type, as a browser plays it."""
+        for suffix, content_type in CONTAINERS.values():
+            if self.path.suffix == suffix:
+                return content_type
+        return "application/octet-stream"
 
 
 def sfu_recordings(*, session_id: Any) -> list[Recording]:
@@ -287,20 +305,21 @@ def sfu_recordings(*, session_id: Any) -> list[Recording]:
     if directory is None or not directory.is_dir():
         return []
     found = []
-    for webm in directory.glob("*.webm"):
-        if webm.name.endswith(".part.webm"):
-            continue
-        mjr = webm.with_suffix(".mjr")
-        match = _RECORDING.search(mjr.name)
-        if match:
-            started = _first_packet_at(mjr) or int(match["start_us"]) / 1e6
-            found.append(Recording(webm, started))
+    for suffix, _ in CONTAINERS.values():
+        for converted in directory.glob(f"*{suffix}"):
+            if converted.name.endswith(f".part{suffix}"):
+                continue
+            mjr = converted.with_suffix(".mjr")
+            match = _RECORDING.search(mjr.name)
+            if match:
+                started = _first_packet_at(mjr) or int(match["start_us"]) / 1e6
+                found.append(Recording(converted, started))
     return sorted(found, key=lambda r: r.started_at)
 
 
-def _first_packet_at(mjr: Path) -> float | None:
-    """When Janus wrote the recording's first packet (Unix seconds), from the ``.mjr``
-    header (``MJR00002``, a 2-byte length, JSON with ``u`` in µs); the WebM's time 0."""
+def _mjr_header(mjr: Path) -> dict[str, Any] | None:
+    """The ``.mjr`` file's header (``MJR00002``, a 2-byte length, then JSON: ``c`` the
+    codec, ``u`` when the first packet was written, µs), or None when unreadable."""
     try:
         with mjr.open("rb") as f:
             head = f.read(8 + 2)
@@ -309,14 +328,21 @@ def _first_packet_at(mjr: Path) -> float | None:
             info = json.loads(f.read(int.from_bytes(head[8:10], "big")))
     except (OSError, ValueError):
         return None
-    first = info.get("u") if isinstance(info, dict) else None
+    return info if isinstance(info, dict) else None
+
+
+def _first_packet_at(mjr: Path) -> float | None:
+    """When Janus wrote the recording's first packet (Unix seconds): the converted
+    file's time 0."""
+    first = (_mjr_header(mjr) or {}).get("u")
     return first / 1e6 if isinstance(first, int) and first > 0 else None
 
 
 def sfu_recording_convert(*, session_id: Any) -> list[Recording]:
-    """Convert the session's ``.mjr`` recordings that have no WebM yet (``janus-pp-rec``,
-    package janus-tools); idempotent. Returns all its recordings. Raises SfuError when
-    janus-pp-rec is missing or fails on a file."""
+    """Convert the session's ``.mjr`` recordings not yet converted (``janus-pp-rec``,
+    package janus-tools, to WebM or MP4 by the codec: :data:`CONTAINERS`); idempotent.
+    Returns all its recordings. Raises SfuError when janus-pp-rec is missing or fails on
+    a file."""
     directory = sfu_recording_dir(session_id)
     if directory is None or not directory.is_dir():
         return []
@@ -324,10 +350,12 @@ def sfu_recording_convert(*, session_id: Any) -> list[Recording]:
     if tool is None:
         raise SfuError("janus-pp-rec is not installed (Debian package janus-tools)")
     for mjr in sorted(directory.glob("*-video-*.mjr")):
-        webm = mjr.with_suffix(".webm")
-        if webm.exists():
+        codec = (_mjr_header(mjr) or {}).get("c", "vp8")
+        suffix = CONTAINERS.get(codec, CONTAINERS["vp8"])[0]
+        converted = mjr.with_suffix(suffix)
+        if converted.exists():
             continue
-        partial = mjr.with_suffix(".part.webm")
+        partial = mjr.with_suffix(f".part{suffix}")
         done = subprocess.run(
             [tool, str(mjr), str(partial)], capture_output=True, text=True, timeout=600
         )
@@ -336,7 +364,7 @@ def sfu_recording_convert(*, session_id: Any) -> list[Recording]:
             if mjr.stat().st_size <= 8:  # a header only: the publisher never sent a frame
                 continue
             raise SfuError(f"janus-pp-rec failed on {mjr.name}: {done.stderr[-300:]}")
-        partial.rename(webm)  # whole or not at all, for a reader of the folder
+        partial.rename(converted)  # whole or not at all, for a reader of the folder
     return sfu_recordings(session_id=session_id)
 
 

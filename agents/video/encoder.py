@@ -1,6 +1,7 @@
-"""One VP8 encoder shared by every viewer (:class:`SharedVp8Encoder`) and each viewer's
-track of its packets (:class:`EncodedTrack`); the bitrate and the picture's size follow
-the pilot's link (:mod:`agents.video.rate`).
+"""One encoder shared by every viewer (:class:`SharedEncoder`: VP8, or H.264 in software
+or on a hardware encoder, :class:`VideoCodec`) and each viewer's track of its packets
+(:class:`EncodedTrack`); the bitrate and the picture's size follow the pilot's link
+(:mod:`agents.video.rate`).
 """
 
 from __future__ import annotations
@@ -13,13 +14,14 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
-from typing import Any, Final, TypeAlias
+from typing import Any, Final, Literal, TypeAlias
 
 import av
 import av.video.frame
 from aiortc import MediaStreamTrack, RTCRtpCodecCapability, RTCRtpSender
 from aiortc.mediastreams import MediaStreamError
 
+from agents.video import VideoError
 from agents.video.rate import RateController, fit_size
 from agents.video.sources import VideoSource
 
@@ -29,6 +31,72 @@ logger = logging.getLogger(__name__)
 
 #: RTP video clock (90 kHz); packet timestamps are expressed in it.
 VIDEO_TIME_BASE: Final = Fraction(1, 90_000)
+
+
+#: The codecs a vehicle can send, by the name its ``video.codec`` gives, with the FFmpeg
+#: encoder used when ``video.encoder`` names none.
+DEFAULT_ENCODERS: Final = {"vp8": "libvpx", "h264": "libx264"}
+
+
+@dataclass(frozen=True)
+class VideoCodec:
+    """What the shared encoder sends: ``name`` (``vp8`` or ``h264``, the RTP codec every
+    viewer receives), the FFmpeg ``encoder`` that makes it (``libvpx``; ``libx264`` in
+    software, ``h264_v4l2m2m`` on a Raspberry Pi's hardware encoder) and FFmpeg
+    ``options`` of that encoder, added to (or replacing) the encoder's own settings."""
+
+    name: Literal["vp8", "h264"] = "vp8"
+    encoder: str = "libvpx"
+    options: tuple[tuple[str, str], ...] = ()
+
+    @classmethod
+    def create(
+        cls, name: str = "vp8", encoder: str | None = None, options: Any = None
+    ) -> VideoCodec:
+        """The codec an agent's configuration describes; VideoError names what is wrong
+        (an unknown codec, an encoder this machine's FFmpeg lacks or that makes another
+        codec, options that are not strings)."""
+        if name not in DEFAULT_ENCODERS:
+            raise VideoError(f"video.codec {name!r} is not one of: {', '.join(DEFAULT_ENCODERS)}")
+        encoder = encoder or DEFAULT_ENCODERS[name]
+        if not isinstance(encoder, str) or encoder not in av.codecs_available:
+            raise VideoError(f"video.encoder {encoder!r} is not in this machine's FFmpeg")
+        try:
+            makes = av.Codec(encoder, "w").canonical_name
+        except (ValueError, av.FFmpegError):
+            raise VideoError(f"video.encoder {encoder!r} is not an encoder") from None
+        if makes != name:
+            raise VideoError(f"video.encoder {encoder!r} makes {makes}, not {name}")
+        options = dict(options or {})
+        if not all(isinstance(k, str) and isinstance(v, str) for k, v in options.items()):
+            raise VideoError("video.encoder_options must map names to strings")
+        return cls(name, encoder, tuple(sorted(options.items())))  # type: ignore[arg-type]
+
+    @property
+    def rtp_name(self) -> str:
+        """Its name in SDP (``VP8``, ``H264``)."""
+        return {"vp8": "VP8", "h264": "H264"}[self.name]
+
+    @property
+    def mime_type(self) -> str:
+        """Its RTP MIME type (``video/VP8``, ``video/H264``)."""
+        return f"video/{self.rtp_name}"
+
+
+#: H.264's start code, before each NAL unit of an Annex B stream.
+_START_CODE: Final = b"\x00\x00\x01"
+#: The NAL unit type of a sequence parameter set (SPS).
+_NAL_SPS: Final = 7
+
+
+def _has_sps(annex_b: bytes) -> bool:
+    """Whether an Annex B access unit holds a sequence parameter set."""
+    at = annex_b.find(_START_CODE)
+    while at >= 0 and at + 3 < len(annex_b):
+        if annex_b[at + 3] & 0x1F == _NAL_SPS:
+            return True
+        at = annex_b.find(_START_CODE, at + 3)
+    return False
 
 
 @dataclass(frozen=True)
@@ -68,8 +136,9 @@ class _Subscriber:
         return True
 
 
-class SharedVp8Encoder:
-    """Encodes the source's frames once (VP8) for every subscribed viewer.
+class SharedEncoder:
+    """Encodes the source's frames once (``codec``: VP8 unless told) for every
+    subscribed viewer.
 
     Runs a capture task only while there are subscribers. Keyframes are produced on
     request (a viewer joining, PLI/FIR from any viewer, a viewer's queue overflowing;
@@ -83,9 +152,13 @@ class SharedVp8Encoder:
     are scaled down and skipped here, after capture. :attr:`status` is what is sent
     now; the functions given to :meth:`add_listener` are called when it changes.
 
-    Why VP8: every WebRTC browser must decode it (RFC 7742), PyAV's wheels ship libvpx,
-    and aiortc's ``Vp8Encoder.pack`` turns a whole VP8 frame into RTP payloads with no
-    codec state per viewer (its picture id is per sender, which is what RTP wants).
+    Why VP8 by default: every WebRTC browser must decode it (RFC 7742), PyAV's wheels
+    ship libvpx, and aiortc's ``Vp8Encoder.pack`` turns a whole VP8 frame into RTP
+    payloads with no codec state per viewer (its picture id is per sender, which is
+    what RTP wants). H.264 (constrained baseline, what WebRTC browsers decode) goes the
+    same way through aiortc's ``H264Encoder.pack``; each keyframe carries the stream's
+    parameter sets (an encoder that gives them apart, as a hardware one does, has them
+    put in front), so that a viewer can start on any keyframe.
     """
 
     def __init__(
@@ -95,8 +168,10 @@ class SharedVp8Encoder:
         bitrate: int = 1_000_000,
         keyframe_interval_s: float = 3.0,
         min_keyframe_gap_s: float = 0.25,
+        codec: VideoCodec | None = None,
     ) -> None:
         self.source = source
+        self.codec = codec or VideoCodec()
         self.bitrate = bitrate
         self.rate = RateController(max_bitrate=bitrate)
         #: What is sent now (None before the first frame).
@@ -197,8 +272,13 @@ class SharedVp8Encoder:
                     pts = int((now - t0) * 90_000)
                     size = fit_size(frame.width, frame.height, rung)
                     bitrate = self.rate.target_bitrate
+                    # The frame rate sent: the camera's (measured), or the ladder's
+                    # step when slower; 30 until measured.
+                    fps = self._source_fps or 30.0
+                    if rung.fps is not None:
+                        fps = min(fps, rung.fps)
                     packets = await asyncio.to_thread(
-                        self._encode, frame, pts, force, size, bitrate
+                        self._encode, frame, pts, force, size, bitrate, fps
                     )
                 except Exception as exc:
                     # A camera or codec hiccup must not end the viewers' connections:
@@ -259,46 +339,42 @@ class SharedVp8Encoder:
         force_keyframe: bool,
         size: tuple[int, int],
         bitrate: int,
+        fps: float = 30.0,
     ) -> list[_Packet]:
         """Encode one frame at ``size`` and ``bitrate`` (worker thread; the codec is only
-        touched from here, one call at a time). Settings follow aiortc's Vp8Encoder:
-        real-time, no lag, CBR."""
+        touched from here, one call at a time). Settings follow aiortc's encoders:
+        real-time, no lag, no reordering, a steady rate. ``fps``, the frame rate sent,
+        is what an encoder that budgets its bits per frame (x264) shares the bitrate
+        by; it is read when the encoder opens (a new size or bitrate)."""
         if (frame.width, frame.height) != size or frame.format.name != "yuv420p":
             frame = frame.reformat(width=size[0], height=size[1], format="yuv420p")
         codec = self._codec
         # A new size or bitrate starts a new stream with a keyframe, as aiortc's own
-        # Vp8Encoder does: FFmpeg's libvpx wrapper takes neither once it is open.
+        # encoders do: FFmpeg's libvpx wrapper takes neither once it is open.
         if codec is not None and (
             (frame.width, frame.height) != (codec.width, codec.height) or codec.bit_rate != bitrate
         ):
             codec = None
         if codec is None:
-            codec = av.CodecContext.create("libvpx", "w")
+            created = av.CodecContext.create(self.codec.encoder, "w")
+            assert isinstance(created, av.VideoCodecContext)  # VideoCodec checked it
+            codec = created
             codec.width, codec.height = frame.width, frame.height
             codec.pix_fmt = "yuv420p"
             codec.time_base = VIDEO_TIME_BASE
+            if self.codec.name == "h264":
+                # Whole frames a second: x264 would otherwise take the 90 kHz time base
+                # for the frame rate and give each frame 1/90,000 of a second's bits.
+                codec.framerate = Fraction(max(1, round(fps)), 1)
             codec.bit_rate = bitrate
             codec.gop_size = 100_000  # keyframes are placed by us (request/interval)
-            codec.qmin, codec.qmax = 2, 56
-            rate = str(bitrate)
-            codec.options = {
-                "bufsize": rate,
-                # A keyframe at most three average frames (libwebrtc's floor for this
-                # libvpx setting): one that overflows a slow link's queue is lost, and
-                # asked for again.
-                "max-intra-rate": "300",
-                "cpu-used": "-6",
-                "deadline": "realtime",
-                "lag-in-frames": "0",  # one packet out per frame in, no reordering
-                "minrate": rate,
-                "maxrate": rate,
-                "noise-sensitivity": "4",
-                "overshoot-pct": "15",
-                "partitions": "0",
-                "static-thresh": "1",
-                "undershoot-pct": "100",
-                "error-resilient": "1",  # decodable after a lost packet's frame is skipped
-            }
+            options: dict[str, str] = {}
+            if self.codec.encoder == "libvpx":
+                codec.qmin, codec.qmax = 2, 56
+                options = _vp8_options(bitrate)
+            elif self.codec.encoder == "libx264":
+                options = _x264_options(bitrate)
+            codec.options = {**options, **dict(self.codec.options)}
             self._codec = codec
         frame.pts, frame.time_base = pts, VIDEO_TIME_BASE
         frame.pict_type = (
@@ -306,10 +382,66 @@ class SharedVp8Encoder:
         )
         packets = list(codec.encode(frame))
         self.frames_encoded += 1
+        if self.codec.name == "h264":
+            packets = [self._with_parameter_sets(codec, packet) for packet in packets]
         for packet in packets:
-            # Vp8Encoder.pack reads pts in time_base to make the RTP timestamp.
+            # The encoders' pack() read pts in time_base to make the RTP timestamp.
             packet.pts, packet.time_base = pts, VIDEO_TIME_BASE
         return packets
+
+    @staticmethod
+    def _with_parameter_sets(codec: av.VideoCodecContext, packet: _Packet) -> _Packet:
+        """``packet``, a keyframe with the stream's SPS and PPS in front when it came
+        without (an encoder that gives them once, in its extradata: a viewer joining
+        later could not decode a thing)."""
+        if not packet.is_keyframe or not codec.extradata:
+            return packet
+        data = bytes(packet)
+        if _has_sps(data):
+            return packet
+        whole = av.Packet(codec.extradata + data)
+        whole.is_keyframe = True
+        return whole
+
+
+def _vp8_options(bitrate: int) -> dict[str, str]:
+    """libvpx's settings at ``bitrate`` (aiortc's Vp8Encoder's, CBR)."""
+    rate = str(bitrate)
+    return {
+        "bufsize": rate,
+        # A keyframe at most three average frames (libwebrtc's floor for this libvpx
+        # setting): one that overflows a slow link's queue is lost, and asked for again.
+        "max-intra-rate": "300",
+        "cpu-used": "-6",
+        "deadline": "realtime",
+        "lag-in-frames": "0",  # one packet out per frame in, no reordering
+        "minrate": rate,
+        "maxrate": rate,
+        "noise-sensitivity": "4",
+        "overshoot-pct": "15",
+        "partitions": "0",
+        "static-thresh": "1",
+        "undershoot-pct": "100",
+        "error-resilient": "1",  # decodable after a lost packet's frame is skipped
+    }
+
+
+def _x264_options(bitrate: int) -> dict[str, str]:
+    """libx264's settings at ``bitrate``: aiortc's H264Encoder's (zero latency: no
+    lookahead, no B-frames, one slice a frame out at once), a fast preset for a small
+    computer, and a rate held to ``bitrate`` over a second (its VBV)."""
+    rate = str(bitrate)
+    return {
+        # Baseline as x264 makes it is constrained baseline (no FMO, ASO or redundant
+        # slices), which every WebRTC browser decodes.
+        "profile": "baseline",
+        "preset": "veryfast",
+        "tune": "zerolatency",
+        "level": "31",
+        "maxrate": rate,
+        "bufsize": rate,
+        "sc_threshold": "0",  # keyframes where we place them, not at every scene cut
+    }
 
 
 class EncodedTrack(MediaStreamTrack):
@@ -319,7 +451,7 @@ class EncodedTrack(MediaStreamTrack):
 
     kind = "video"
 
-    def __init__(self, encoder: SharedVp8Encoder) -> None:
+    def __init__(self, encoder: SharedEncoder) -> None:
         super().__init__()
         self._encoder = encoder
         self._sub: _Subscriber | None = None
@@ -343,9 +475,12 @@ class EncodedTrack(MediaStreamTrack):
             self.on_stop = None
 
 
-def vp8_codecs() -> list[RTCRtpCodecCapability]:
-    """VP8 (and its RTX) only: the shared encoder's packets are VP8."""
+def codec_preferences(codec: VideoCodec) -> list[RTCRtpCodecCapability]:
+    """``codec`` (and its RTX) only: the shared encoder's packets are of that codec. For
+    H.264, constrained baseline (``42e01f``) first, then baseline, both in
+    packetization mode 1 (what aiortc's packetizer sends)."""
     caps = RTCRtpSender.getCapabilities("video").codecs
-    vp8 = [c for c in caps if c.mimeType.lower() == "video/vp8"]
+    ours = [c for c in caps if c.mimeType.lower() == codec.mime_type.lower()]
+    ours.sort(key=lambda c: c.parameters.get("profile-level-id") != "42e01f")
     rtx = [c for c in caps if c.mimeType.lower() == "video/rtx"]
-    return vp8 + rtx
+    return ours + rtx

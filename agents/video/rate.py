@@ -1,7 +1,7 @@
 """Bitrate adaptation for the shared video encoder: whose estimate counts, the target
 bitrate it gives, and the resolution and frame rate that target can carry.
 
-The vehicle encodes once for every viewer (:class:`agents.video.encoder.SharedVp8Encoder`), so
+The vehicle encodes once for every viewer (:class:`agents.video.encoder.SharedEncoder`), so
 there is one target for all of them. It follows the **pilot's** receiver estimate: the
 pilot flies by this picture, and spectators (directly, or through the SFU's one copy)
 get what the pilot gets. Without a pilot the SFU's estimate applies; without either,

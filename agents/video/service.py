@@ -20,7 +20,7 @@ from aiortc.rtp import (
 )
 
 from agents.video import VideoError
-from agents.video.encoder import EncodedTrack, SharedVp8Encoder, vp8_codecs
+from agents.video.encoder import EncodedTrack, SharedEncoder, VideoCodec, codec_preferences
 from agents.video.rate import RetransmitBudget, Role
 from agents.video.sources import SERVICE_OPTIONS, VideoSource, video_source_create
 
@@ -65,6 +65,10 @@ class VideoService:
     * ``bitrate``: the shared encoder's target (bit/s); one bitrate for every viewer,
       since they share the stream.
     * ``keyframe_interval_s``: a keyframe at least this often.
+    * ``codec``: ``vp8`` (the default) or ``h264``; ``encoder``: the FFmpeg encoder
+      that makes it (``libvpx``, ``libx264``, or ``h264_v4l2m2m`` for a Raspberry Pi's
+      hardware encoder); ``encoder_options``: FFmpeg options of that encoder
+      (:class:`~agents.video.encoder.VideoCodec`).
     """
 
     def __init__(
@@ -74,9 +78,15 @@ class VideoService:
         ice_host_addresses: Sequence[str] | None = None,
         bitrate: int = 1_000_000,
         keyframe_interval_s: float = 3.0,
+        codec: str = "vp8",
+        encoder: str | None = None,
+        encoder_options: Mapping[str, str] | None = None,
     ) -> None:
-        self.encoder = SharedVp8Encoder(
-            source, bitrate=bitrate, keyframe_interval_s=keyframe_interval_s
+        self.encoder = SharedEncoder(
+            source,
+            bitrate=bitrate,
+            keyframe_interval_s=keyframe_interval_s,
+            codec=VideoCodec.create(codec, encoder, encoder_options),
         )
         # A lone address (a common configuration slip) means a list of one.
         if isinstance(ice_host_addresses, str):
@@ -104,14 +114,15 @@ class VideoService:
 
     def attach(self, pc: RTCPeerConnection, *, role: Role = "viewer") -> MediaStreamTrack:
         """Add the camera to ``pc`` (a connection another part of the agent negotiates,
-        see :mod:`agents.rtc`): a sendonly VP8 transceiver fed by the shared encoder.
+        see :mod:`agents.rtc`): a sendonly transceiver of the shared encoder's codec,
+        fed by it.
         ``role``: whom it serves (``pilot``, ``sfu`` or ``viewer``), which says whether
         its receiver's bandwidth estimate sets the shared bitrate (the pilot's does;
         without a pilot, the SFU's). Returns its track; stop it when the connection ends
         (the last viewer's stop ends capture)."""
         track = EncodedTrack(self.encoder)
         transceiver = pc.addTransceiver(track, direction="sendonly")
-        transceiver.setCodecPreferences(vp8_codecs())
+        transceiver.setCodecPreferences(codec_preferences(self.encoder.codec))
         sender = transceiver.sender
         # PLI/FIR from this viewer: aiortc would force a keyframe in the sender's own
         # encoder, which this sender does not use; ask the shared encoder instead (for

@@ -627,7 +627,16 @@ async def _multipart_jpegs(body: AsyncIterator[bytes], boundary: bytes) -> Async
 #: Keys of the agent's ``video`` configuration that configure :class:`VideoService`
 #: rather than the source; :func:`video_source_create` ignores them, so one mapping can
 #: hold both (see :func:`video_service_create`).
-SERVICE_OPTIONS: Final = frozenset({"ice_host_addresses", "bitrate", "keyframe_interval_s"})
+SERVICE_OPTIONS: Final = frozenset(
+    {
+        "ice_host_addresses",
+        "bitrate",
+        "keyframe_interval_s",
+        "codec",
+        "encoder",
+        "encoder_options",
+    }
+)
 #: Options a ``video`` section held when the camera kept connections of its own; where
 #: each went, for the message that refuses an old configuration.
 MOVED_OPTIONS: Final = {

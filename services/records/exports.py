@@ -240,11 +240,12 @@ def record_archive(session: Session) -> Iterator[bytes]:
     """One zip, in pieces as it is made: every export above, the samples as uploaded
     (``samples.jsonl``), the session's log with its hash chain (``log.json``), the
     check of the record against it (``verification.json``), the session's recorded
-    video (``video/<n>.webm``, the stretches the replay plays, oldest first, stored as
-    they are) and ``manifest.json``: every other file's name, size and SHA-256, and
-    whether there is video (``video.recorded``; its stretches' start times and the
-    ``log_seq`` of the log's event that chains each, or why there is none). A video is
-    read a megabyte at a time, so a long one never sits in memory whole."""
+    video (``video/<n>.webm``, or ``.mp4`` for H.264: the stretches the replay plays,
+    oldest first, stored as they are) and ``manifest.json``: every other file's name,
+    size and SHA-256, and whether there is video (``video.recorded``; its stretches'
+    start times and the ``log_seq`` of the log's event that chains each, or why there
+    is none). A video is read a megabyte at a time, so a long one never sits in memory
+    whole."""
     events = session_log(session=session)
     log = [
         {
@@ -311,7 +312,7 @@ def _archive_stream(
             archive.writestr(name, body)
             yield spool.take()
         for index, recording in enumerate(recordings):
-            name = f"video/{index}.webm"
+            name = f"video/{index}{recording.path.suffix}"
             info = zipfile.ZipInfo.from_file(recording.path, name)
             info.compress_type = zipfile.ZIP_STORED  # WebM is compressed already
             digest, size = hashlib.sha256(), 0

@@ -241,13 +241,14 @@ def session_replay_samples(request: AuthenticatedHttpRequest, session_id: str) -
 def session_replay_video(
     request: AuthenticatedHttpRequest, session_id: str, index: int
 ) -> HttpResponseBase:
-    """The ``index``-th stretch of the session's recorded video (WebM); 404 when there is
-    none (no SFU, nothing recorded, not converted yet)."""
+    """The ``index``-th stretch of the session's recorded video (WebM, or MP4 for H.264);
+    404 when there is none (no SFU, nothing recorded, not converted yet)."""
     session = record_session(user=request.user, session_id=session_id)
     recordings = sfu_recordings(session_id=session.pk)
     if not 0 <= index < len(recordings):
         raise Http404("no such recording")
-    path = recordings[index].path
+    recording = recordings[index]
+    path = recording.path
     size = path.stat().st_size
     wanted = _byte_range(request.headers.get("Range", ""), size)
     start, end = wanted if wanted is not None else (0, size - 1)
@@ -259,7 +260,7 @@ def session_replay_video(
     response = StreamingHttpResponse(
         streamed(request, _file_slice(path, start, end - start + 1)),
         status=200 if wanted is None else 206,
-        content_type="video/webm",
+        content_type=recording.content_type,
     )
     if wanted is not None:
         # A player seeks by asking for bytes from where it wants to be: without ranges a

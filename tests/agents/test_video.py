@@ -24,6 +24,7 @@ from aiortc.codecs import vpx
 
 from agents.rtc import RtcPeers
 from agents.video import VideoError
+from agents.video.encoder import EncodedTrack, SharedEncoder, VideoCodec, _has_sps
 from agents.video.framecode import FrameCode, read_frame_code, stamp_frame_code
 from agents.video.ice import restrict_ice_host_addresses
 from agents.video.service import SPECTATOR_KEYFRAME_GAP_S, VideoService, video_service_create
@@ -114,7 +115,7 @@ class Viewer:
         for _ in range(n):
             frame = await asyncio.wait_for(track.recv(), limit_s)
             code = read_frame_code(frame.to_ndarray(format="rgb24"))
-            assert code is not None, "frame code unreadable after VP8 round trip"
+            assert code is not None, "frame code unreadable after the codec's round trip"
             out.append(code)
         return out
 
@@ -134,13 +135,18 @@ async def viewer(rtc: RtcPeers, peer_id: str) -> AsyncIterator[Viewer]:
 
 @contextlib.asynccontextmanager
 async def camera(
-    source: VideoSource | None = None, *, keyframe_interval_s: float = 3.0, **peers: Any
+    source: VideoSource | None = None,
+    *,
+    keyframe_interval_s: float = 3.0,
+    codec: str = "vp8",
+    **peers: Any,
 ) -> AsyncIterator[tuple[VideoService, RtcPeers]]:
-    """A loopback VideoService (over a small, fast synthetic camera unless ``source``)
-    and the agent's WebRTC connections carrying it (``peers``: RtcPeers options)."""
+    """A loopback VideoService (over a small, fast synthetic camera unless ``source``,
+    sending ``codec``) and the agent's WebRTC connections carrying it (``peers``:
+    RtcPeers options)."""
     source = source or SyntheticCamera(320, 240, fps=30)
     async with VideoService(
-        source, ice_host_addresses=LOOPBACK, keyframe_interval_s=keyframe_interval_s
+        source, ice_host_addresses=LOOPBACK, keyframe_interval_s=keyframe_interval_s, codec=codec
     ) as svc:
         rtc = RtcPeers(_Events(), video=svc, **peers)
         try:
@@ -257,6 +263,101 @@ async def test_video_service_create_splits_source_and_service_options() -> None:
         video_service_create({"source": "synthetic", "max_peers": 3})
     with pytest.raises(VideoError, match=r"video\.ice_servers has moved"):
         video_source_create({"ice_servers": ["stun:stun.example.org:3478"]})
+
+
+async def test_a_codec_the_vehicle_cannot_send_is_refused_by_name() -> None:
+    """``video.codec`` and ``video.encoder`` are checked as the agent starts: an unknown
+    codec, an encoder this machine's FFmpeg lacks, one that makes another codec, and
+    options that are not strings each say what is wrong."""
+    for config, said in [
+        ({"codec": "h265"}, r"video\.codec 'h265' is not one of: vp8, h264"),
+        ({"codec": "h264", "encoder": "h264_nowhere"}, "not in this machine's FFmpeg"),
+        ({"codec": "h264", "encoder": "libvpx"}, "'libvpx' makes vp8, not h264"),
+        ({"codec": "h264", "encoder_options": {"bf": 0}}, "must map names to strings"),
+    ]:
+        with pytest.raises(VideoError, match=said):
+            video_service_create({"source": "synthetic", **config})
+    async with video_service_create(
+        {"source": "synthetic", "codec": "h264", "encoder_options": {"preset": "ultrafast"}}
+    ) as svc:
+        codec = svc.encoder.codec
+        assert (codec.name, codec.encoder, codec.options) == (
+            "h264",
+            "libx264",
+            (("preset", "ultrafast"),),
+        )
+
+
+@pytest.mark.parametrize("apart", [False, True], ids=["inline", "extradata"])
+async def test_every_h264_keyframe_carries_its_parameter_sets(apart: bool) -> None:
+    """A viewer joining late starts on the next keyframe, so each one carries the SPS
+    and PPS, also from an encoder that gives them once, apart (a hardware encoder does;
+    libx264 with FFmpeg's ``global_header`` flag stands in for it). A fresh decoder
+    then decodes every frame from any keyframe on, frame codes intact."""
+    options = {"flags": "+global_header"} if apart else {}
+    encoder = SharedEncoder(
+        SyntheticCamera(320, 240, fps=30), codec=VideoCodec.create("h264", options=options)
+    )
+    track = EncodedTrack(encoder)
+    packets = []
+    try:
+        for i in range(40):
+            packets.append(await asyncio.wait_for(track.recv(), 10))
+            if i == 20:
+                encoder.request_keyframe()  # a viewer's picture-loss request
+        # Given apart, the parameter sets are the encoder's extradata, not in its frames.
+        assert encoder._codec is not None
+        assert bool(encoder._codec.extradata) == apart
+    finally:
+        track.stop()
+        await encoder.close()
+    keys = [i for i, packet in enumerate(packets) if packet.is_keyframe]
+    assert keys[0] == 0 and len(keys) >= 2, keys
+    for start in keys:
+        assert _has_sps(bytes(packets[start])), start
+        decoder = av.CodecContext.create("h264", "r")
+        codes = [
+            read_frame_code(frame.to_ndarray(format="rgb24"))
+            for packet in packets[start:]
+            for frame in decoder.decode(av.Packet(bytes(packet)))
+        ]
+        assert len(codes) == len(packets) - start and None not in codes
+        assert increasing([c.counter for c in codes if c is not None])
+
+
+async def test_an_h264_vehicle_answers_with_h264_alone_and_its_viewer_decodes_it() -> None:
+    """A vehicle configured for H.264 answers a browser's usual offer (VP8 and H.264)
+    with constrained baseline H.264 alone; the viewer decodes every frame (codes
+    intact). An offer without H.264 is refused, saying why."""
+    source = SyntheticCamera(320, 240, fps=30)
+    async with VideoService(source, ice_host_addresses=LOOPBACK, codec="h264") as svc:
+        rtc = RtcPeers(_Events(), video=svc)
+        try:
+            watcher = Viewer(rtc, "pilot")
+            try:
+                answer = await rtc.accept("pilot", await offered(watcher.pc))
+                await watcher.pc.setRemoteDescription(RTCSessionDescription(answer, "answer"))
+                rtpmap = [line for line in answer.splitlines() if line.startswith("a=rtpmap")]
+                assert any("H264/90000" in line for line in rtpmap), rtpmap
+                assert not any("VP8" in line for line in rtpmap), rtpmap
+                assert "profile-level-id=42e01f" in answer
+                codes = await watcher.codes(10)
+                assert increasing([c.counter for c in codes])
+            finally:
+                await watcher.close()
+            vp8_only = RTCPeerConnection(RTCConfiguration(iceServers=[]))
+            try:
+                t = vp8_only.addTransceiver("video", direction="recvonly")
+                caps = RTCRtpReceiver.getCapabilities("video").codecs
+                t.setCodecPreferences([c for c in caps if c.mimeType == "video/VP8"])
+                with restrict_ice_host_addresses(LOOPBACK):
+                    await vp8_only.setLocalDescription(await vp8_only.createOffer())
+                with pytest.raises(VideoError, match="must offer H264"):
+                    await rtc.accept("vp8-only", vp8_only.localDescription.sdp)
+            finally:
+                await vp8_only.close()
+        finally:
+            await rtc.close()
 
 
 async def test_v4l2_camera_without_device_raises_video_error() -> None:
@@ -458,9 +559,12 @@ async def test_answer_sdp_is_complete_vp8_and_loopback_only() -> None:
 
 
 @needs_chromium
-async def test_headless_chromium_decodes_the_video(capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize("codec", ["vp8", "h264"])
+async def test_headless_chromium_decodes_the_video(
+    codec: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     async with (
-        camera(SyntheticCamera(640, 480, fps=15)) as (svc, rtc),
+        camera(SyntheticCamera(640, 480, fps=15), codec=codec) as (svc, rtc),
         signalling_server(rtc) as url,
         chromium_browser(webrtc_loopback=True) as browser,
     ):
@@ -484,7 +588,7 @@ async def test_headless_chromium_decodes_the_video(capsys: pytest.CaptureFixture
         latency = statistics.median(result["latencies"])
         with capsys.disabled():
             print(
-                f"\n[chromium] first frame {first_ms:.0f} ms after page load "
+                f"\n[chromium, {codec}] first frame {first_ms:.0f} ms after page load "
                 f"started; capture-to-display latency median {latency:.0f} ms"
             )
         assert first_ms < 10_000

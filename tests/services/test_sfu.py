@@ -117,14 +117,17 @@ def janus(tmp_path: Path, settings: Any) -> Iterator[JanusServer]:
 
 @contextlib.asynccontextmanager
 async def vehicle(
-    session_id: uuid.UUID, *, fps: int = 10
+    session_id: uuid.UUID, *, fps: int = 10, codec: str = "vp8"
 ) -> AsyncIterator[tuple[RtcPeers, SfuPublisher]]:
-    """The vehicle's camera (a small synthetic one), its WebRTC peers for the pilot, and
-    its SFU publisher for the session's room, publishing."""
+    """The vehicle's camera (a small synthetic one, sending ``codec``), its WebRTC peers
+    for the pilot, and its SFU publisher for the session's room, publishing."""
     task = sfu.sfu_publish_for(session_id=session_id)
     assert task is not None
     async with VideoService(
-        SyntheticCamera(320, 240, fps=fps), ice_host_addresses=LOOPBACK, bitrate=300_000
+        SyntheticCamera(320, 240, fps=fps),
+        ice_host_addresses=LOOPBACK,
+        bitrate=300_000,
+        codec=codec,
     ) as video:
         rtc = RtcPeers(_Events(), video=video)
         publisher = SfuPublisher.for_room(video, task)
@@ -311,13 +314,27 @@ async def test_when_the_sfu_dies_spectators_are_told_and_the_pilot_flies_on(
             await asyncio.gather(*(s.close() for s in spectators))
 
 
+@pytest.mark.parametrize("codec", ["vp8", "h264"])
 async def test_a_sessions_recording_plays_back_as_long_as_it_was_published(
-    janus: JanusServer,
+    janus: JanusServer, codec: str
 ) -> None:
+    """The vehicle publishes its codec (VP8, or H.264: the room takes either); a
+    spectator watches it, and the recording converts to a file a browser plays (WebM,
+    or MP4 for H.264) that spans what was published."""
     session_id = uuid.uuid4()
     await asyncio.to_thread(sfu.sfu_room_open, session_id=session_id)
-    async with vehicle(session_id, fps=15) as (_, publisher):
+    async with vehicle(session_id, fps=15, codec=codec) as (_, publisher):
         await asyncio.wait_for(publisher.publishing.wait(), 60)
+        spectator = spectator_for(session_id)
+        try:
+            await spectator.watch()
+
+            async def watching() -> bool:
+                return await spectator.packets() > 20
+
+            await until(watching, within=60, what="the spectator's packets")
+        finally:
+            await spectator.close()
         # Published while the encoder makes 90 frames (6 s at 15 fps).
         encoder = publisher.video.encoder
         first, started = encoder.frames_encoded, time.monotonic()
@@ -327,6 +344,10 @@ async def test_a_sessions_recording_plays_back_as_long_as_it_was_published(
     recordings = await asyncio.to_thread(sfu.sfu_recording_convert, session_id=session_id)
     assert len(recordings) == 1
     recording = recordings[0]
+    assert (recording.path.suffix, recording.content_type) == {
+        "vp8": (".webm", "video/webm"),
+        "h264": (".mp4", "video/mp4"),
+    }[codec]
     assert abs(recording.started_at - time.time()) < 120  # when it was, by the wall clock
     with av.open(str(recording.path)) as container:
         stream = container.streams.video[0]
