@@ -87,7 +87,9 @@ def durations(path: str, *, at_least_s: float = 5.0) -> dict[str, dict[str, floa
 
 
 if __name__ == "__main__":
-    if sys.argv[1:2] == ["--durations"]:
+    if len(sys.argv) == 3 and sys.argv[1] == "--durations":
         print(json.dumps(durations(sys.argv[2]), indent=1))
+    elif len(sys.argv) == 2:
+        main(sys.argv[1])
     else:
-        main(*sys.argv[1:2])
+        sys.exit("usage: python -m tests.cpu_report FILE | --durations FILE")
