@@ -23,6 +23,13 @@ import pytest
 from tests.agents.mavlink_rig import HOME, ROOT
 
 mavsdk = pytest.importorskip("mavsdk_grpc", reason="needs mavsdk-grpc (MAVSDK with mavsdk_server)")
+# Importing mavsdk_grpc makes uvloop the event loop policy of the whole process, and
+# every xdist worker imports it while collecting: every later test then ran on uvloop,
+# which the agents do not use. On Python 3.12 that hung a worker: uvloop's fork for a
+# subprocess runs Python's after-fork clean-up in the child, which freed another
+# thread's PyAV scaler there and waited for ever on that thread's lock. Back to
+# asyncio's own policy, for this module too (MAVSDK runs on any loop).
+asyncio.set_event_loop_policy(None)
 
 
 def _free_port(kind: socket.SocketKind) -> int:
