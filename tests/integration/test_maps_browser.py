@@ -23,6 +23,7 @@ from typing import Any
 
 import pytest
 from playwright.async_api import Browser, Page, expect
+from playwright.async_api import TimeoutError as PlaywrightTimeout
 
 from agents.geo import distance_m
 from agents.geography import land_at
@@ -226,25 +227,35 @@ async def assert_sea_and_land_differ(page: Page, sel: str) -> None:
 async def assert_labels_apart(page: Page, sel: str, *, expected: set[str]) -> None:
     """No two visible labels of the map intersect, each of ``expected`` is shown (alone
     or counted on a neighbour's "+N"), and no grid label hides under the zoom control."""
-    # Placed after the last change (the placement runs once the page's script is done),
-    # and no zoom under way (the map frames the vehicles with an animated zoom when they
-    # show, which hides the labels until they are placed again at its end).
-    await page.wait_for_function(
-        """(sel) => {
-          const node = document.querySelector(sel);
-          return Number(node.dataset.labelsPlaced || 0) > 0
-            && !node.classList.contains("labels-zooming");
-        }""",
-        arg=sel,
-    )
-    found = await page.evaluate(OVERLAPS, sel)
-    assert not found["bad"], found
-    named = await page.evaluate(
+    shown = (
         "(sel) => [...document.querySelectorAll(`${sel} .map-label`)].map((e) =>"
         " e.checkVisibility({ visibilityProperty: true }) ? `${e.textContent} ${e.title}` : '')"
-        ".join(' | ')",
-        sel,
+        ".join(' | ')"
     )
+    # Placed after the last change (the placement runs once the page's script is done),
+    # no zoom under way (the map frames the vehicles with an animated zoom when they
+    # show, which hides the labels until they are placed again at its end), and the
+    # expected labels shown: a placement made before the map framed the vehicles (a pan,
+    # which hides nothing while it moves) found them off the map and hid them, until
+    # the next one.
+    try:
+        await page.wait_for_function(
+            f"""([sel, expected]) => {{
+              const node = document.querySelector(sel);
+              const shown = ({shown})(sel);
+              return Number(node.dataset.labelsPlaced || 0) > 0
+                && !node.classList.contains("labels-zooming")
+                && expected.every((text) => shown.includes(text));
+            }}""",
+            arg=[sel, sorted(expected)],
+            timeout=15000,
+        )
+    except PlaywrightTimeout:
+        named = await page.evaluate(shown, sel)
+        raise AssertionError(f"{sorted(expected)} not all shown within 15 s: {named!r}") from None
+    found = await page.evaluate(OVERLAPS, sel)
+    assert not found["bad"], found
+    named = await page.evaluate(shown, sel)
     for text in expected:
         assert text in named, (text, named)
     under = await page.evaluate(UNDER_ZOOM, sel)
