@@ -83,6 +83,7 @@ import re
 import shlex
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -415,13 +416,41 @@ def _tag_of(name: str) -> str | None:
     return match.group(0) if match else None
 
 
+#: Hosts the machine must still reach while a lab is open: the package registries that
+#: tests install from (Debian's, PyPI). A lab's bridge takes the route to its subnet, so
+#: a subnet holding one of their addresses would cut the machine off from it: on a
+#: sandbox whose registries sit behind a proxy at a documentation address (203.0.113.80
+#: here), another test's apt-get would fail while the lab is open.
+NEEDED_HOSTS = ("deb.debian.org", "security.debian.org", "pypi.org", "files.pythonhosted.org")
+
+
+@functools.cache
+def _needed_addresses() -> tuple[ipaddress.IPv4Network, ...]:
+    """The IPv4 addresses of :data:`NEEDED_HOSTS`, of the hosts apt's sources name and
+    of the resolver's name servers, each as a /32 (a name that does not resolve: none)."""
+    hosts = set(NEEDED_HOSTS)
+    for sources in [Path("/etc/apt/sources.list"), *Path("/etc/apt/sources.list.d").glob("*")]:
+        with contextlib.suppress(OSError, UnicodeDecodeError):
+            hosts.update(re.findall(r"https?://([^/\s:]+)", sources.read_text()))
+    addresses = set()
+    for host in hosts:
+        with contextlib.suppress(OSError):
+            for *_, address in socket.getaddrinfo(host, None, socket.AF_INET):
+                addresses.add(str(address[0]))
+    with contextlib.suppress(OSError):
+        resolver = Path("/etc/resolv.conf").read_text()
+        addresses.update(re.findall(r"^nameserver\s+([0-9.]+)\s*$", resolver, re.M))
+    return tuple(ipaddress.IPv4Network(a) for a in sorted(addresses))
+
+
 def _free_public_subnet() -> ipaddress.IPv4Network:
     """The first of PUBLIC_SUBNETS that no IPv4 address or route of the root namespace
-    overlaps (call under _global_lock, until the bridge has its address)."""
+    overlaps, nor any address the machine must still reach (:func:`_needed_addresses`)
+    (call under _global_lock, until the bridge has its address)."""
     listing = _run(["ip", "-4", "-o", "addr", "show"]) + _run(
         ["ip", "-4", "route", "show", "table", "all"]
     )
-    used = []
+    used = list(_needed_addresses())
     for token in listing.split():
         with contextlib.suppress(ValueError):
             used.append(ipaddress.IPv4Network(token, strict=False))

@@ -20,6 +20,7 @@ behind (namespaces, interfaces, firewall rules, coturn, peer processes).
 
 from __future__ import annotations
 
+import ipaddress
 import os
 import subprocess
 from collections.abc import Callable, Iterator
@@ -29,6 +30,7 @@ from typing import Any
 import pytest
 
 from services.sessions.ice import turn_credentials
+from tests import netlab
 from tests.netlab import NetLab, Turn, ensure_packages, leftovers, nat, netlab_available
 from tests.netlab_peer import PeerProcess, connect_peers
 
@@ -193,3 +195,17 @@ def test_link_cut_is_noticed_and_link_up_restores(lab, turn, start_peer):
     assert "srflx" in cand_v  # coturn is reachable again
     assert vehicle.state("connected", "failed", timeout=CONNECT_S) == "connected"
     assert vehicle.echo()["ok"]
+
+
+def test_a_lab_leaves_alone_the_addresses_the_machine_must_reach(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A lab's bridge takes the route to its subnet: one holding the package registries'
+    address (here a proxy at a documentation address) would cut off every apt-get and
+    pip install while the lab is open, so the lab takes another."""
+    first = netlab.PUBLIC_SUBNETS[0]
+    monkeypatch.setattr(
+        netlab, "_needed_addresses", lambda: (ipaddress.IPv4Network(f"{first[80 % 64]}/32"),)
+    )
+    taken = netlab._free_public_subnet()
+    assert taken != first and not taken.overlaps(first)
