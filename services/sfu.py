@@ -350,11 +350,11 @@ def sfu_recording_convert(*, session_id: Any) -> list[Recording]:
     if tool is None:
         raise SfuError("janus-pp-rec is not installed (Debian package janus-tools)")
     for mjr in sorted(directory.glob("*-video-*.mjr")):
+        if any(mjr.with_suffix(suffix).exists() for suffix, _ in CONTAINERS.values()):
+            continue  # converted already: its header need not be read again
         codec = (_mjr_header(mjr) or {}).get("c", "vp8")
         suffix = CONTAINERS.get(codec, CONTAINERS["vp8"])[0]
         converted = mjr.with_suffix(suffix)
-        if converted.exists():
-            continue
         partial = mjr.with_suffix(f".part{suffix}")
         done = subprocess.run(
             [tool, str(mjr), str(partial)], capture_output=True, text=True, timeout=600
