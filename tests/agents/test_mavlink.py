@@ -264,6 +264,28 @@ async def test_unanswered_command_is_a_timeout(make_quad_rig: RigFactory):
         os.kill(process.pid, signal.SIGCONT)
 
 
+async def test_a_closed_link_refuses_commands_at_once(rig: Rig):
+    """Once the agent has closed its link (shutting down, or killed mid-mission), what
+    is still asked of the drone, a shutdown's safe action above all, is refused for the
+    closed link instead of waiting for answers nothing could carry."""
+    await rig.drone.execute("arm", {})
+    await rig.drone.close()
+    with pytest.raises(AdapterError) as refused:
+        await rig.drone.execute("disarm", {})
+    assert refused.value.code == "not_ready" and "link is not open" in str(refused.value)
+    with pytest.raises(AdapterError) as refused:  # as a mission's runner sends them
+        await rig.drone.link.command_long(MAV.MAV_CMD_COMPONENT_ARM_DISARM, (0,))
+    assert refused.value.code == "autopilot_lost"
+    assert "the link to the autopilot is closed" in str(refused.value)
+    await rig.drone.safe_action("return_to_home")
+    failed = (
+        "safe_action_failed",
+        {"action": "return_to_home", "reason": "no link to the autopilot"},
+    )
+    assert failed in rig.events
+    assert rig.drone.link.stats["timeouts"] == 0  # nothing was sent to wait for
+
+
 # --- bad input and silence --------------------------------------------------------------
 
 

@@ -122,7 +122,9 @@ class AutopilotLink:
         return conn
 
     async def close(self) -> None:
-        """Stop the threads, close the port, cancel what waits for an answer."""
+        """Stop the threads, close the port, cancel what waits for an answer. From now on
+        commands are refused at once: nothing would carry them or their answers."""
+        self.ok = False
         self._stop.set()
         with contextlib.suppress(queue.Full):
             self._out.put_nowait(None)
@@ -224,6 +226,8 @@ class AutopilotLink:
     # --- receiving (event loop) ----------------------------------------------------------
     def _deliver(self, msg: Any) -> None:
         """Answers the link waits for, then the owner's turn. Never raises."""
+        if self._stop.is_set():
+            return  # read before the link closed: the autopilot is no longer ours to hear
         try:
             kind = msg.get_type()
             if (msg.get_srcSystem(), msg.get_srcComponent()) == self.target:
@@ -262,6 +266,10 @@ class AutopilotLink:
 
     # --- commands ----------------------------------------------------------------------
     def lost_error(self, what: str) -> AdapterError:
+        if self.conn is None:
+            return AdapterError(
+                f"the link to the autopilot is closed: {what} is refused", code="autopilot_lost"
+            )
         return AdapterError(
             f"no heartbeat from the autopilot for over {self.config.heartbeat_timeout_s:g} s: "
             f"{what} is refused",
