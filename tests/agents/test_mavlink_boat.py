@@ -705,7 +705,8 @@ async def test_a_waypoint_at_the_autopilots_own_speed_keeps_the_boat_to_the_limi
     rig = await make_rig(make_task(max_speed_mps=2.0), simulator={"speedup": 1})
     ws = await join(rig)
     await arm(ws)
-    target = offset(ORIGIN, -60, 0)
+    # 25 m: at 1 m/s/s either way, far enough to reach 5 m/s were the limit not sent.
+    target = offset(ORIGIN, -25, 0)
     async with Fastest(rig.boat) as fastest:
         ack = await command(ws, 2, "go_to_waypoint", lat=target[0], lon=target[1], speed_mps=0)
         assert ack["ok"], ack
