@@ -2,8 +2,10 @@
 COMMAND_ACK results in words, the position-target masks, the telemetry streams and a
 few conversions.
 
-pymavlink picks MAVLink 1 or 2 from the environment when it is first imported: this
-module sets MAVLink 2 before importing it, so import pymavlink through here.
+pymavlink picks MAVLink 1 or 2, and the dialect it loads first, from the environment
+when it is first imported: this module sets MAVLink 2 and the ArduPilot dialect before
+importing it (else pymavlink first loads its "all" dialect, only to be told another: a
+tenth of a second in every process), so import pymavlink through here.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import os
 from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
+os.environ.setdefault("MAVLINK_DIALECT", "ardupilotmega")
 
 from pymavlink import mavutil  # type: ignore[import-untyped, unused-ignore]
 
