@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import fnmatch
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit, urlunsplit
 
 import pytest
 from django.conf import settings
+from django.core.management import call_command
+from django.test import override_settings
 
 from tests.browser import chromium_missing_reason
 from tests.scheduling import longest_first, measured_density, measured_durations
@@ -134,6 +137,26 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     # (tests/scheduling.py).
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
     items[:] = longest_first(items, workers, measured_durations(), measured_density())
+
+
+@pytest.fixture(scope="module")
+def module_database(django_db_setup: Any, django_db_blocker: Any) -> Iterator[None]:
+    """The test database, open to the module for its whole run: what its tests write is
+    committed, as ``transaction=True`` would (the servers and consumer threads they
+    start see it), and the database is emptied once, after the module, as a
+    transactional test's teardown does after each test (some 2 s of it: TRUNCATE of
+    every table, then post_migrate's permissions and roles). For a world the tests
+    share (started once: the slow part; it depends on this, so it stops first), or
+    for tests that each write rows of their own and look only at those.
+
+    A module using it marks its tests ``django_db`` (a world's), or not at all; not
+    ``transaction=True``, which would empty the database after each test."""
+    with django_db_blocker.unblock():
+        # The demo users' passwords hashed the fast way (the platform the tests start
+        # accepts it), as the root conftest's per-test fixture does.
+        with override_settings(PASSWORD_HASHERS=["django.contrib.auth.hashers.MD5PasswordHasher"]):
+            yield
+        call_command("flush", interactive=False, verbosity=0)
 
 
 @pytest.fixture(autouse=True)

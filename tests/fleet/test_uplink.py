@@ -49,7 +49,10 @@ from tests.uplink import (
 )
 from tests.vehicle_events import hearing
 
-pytestmark = pytest.mark.django_db(transaction=True)
+#: One database for the module (conftest's ``module_database``): every test enrols
+#: vehicles of its own and looks only at those, so the database is emptied once, after
+#: the module, not after each test (2 s apiece).
+pytestmark = pytest.mark.usefixtures("module_database")
 
 PROFILE: dict[str, Any] = {
     "type": "profile",

@@ -22,7 +22,9 @@ from tests import factories as f
 from tests.servers import db
 from tests.uplink import uplink_welcomed, vehicle_enrolled
 
-pytestmark = pytest.mark.django_db(transaction=True)
+#: One database for the module (conftest's ``module_database``): each test writes rows
+#: of its own, so the database is emptied after the module only.
+pytestmark = pytest.mark.usefixtures("module_database")
 
 #: The slow view below: it has started, and the test lets it finish.
 slow_started = threading.Event()

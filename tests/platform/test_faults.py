@@ -20,12 +20,13 @@ import websockets
 
 from tests.servers import platform_log, platform_process
 
-pytestmark = pytest.mark.django_db(transaction=True)
+#: One database for the module and its platform (conftest's ``module_database``).
+pytestmark = pytest.mark.usefixtures("module_database")
 
 
 @pytest.fixture(scope="module")
-def platform(django_db_setup: None, django_db_blocker: Any) -> Any:
-    with django_db_blocker.unblock(), platform_process() as base:
+def platform(module_database: None) -> Any:
+    with platform_process() as base:
         yield base
 
 
