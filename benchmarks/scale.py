@@ -2102,6 +2102,13 @@ def run(
         # A few API clients request sessions and grants far faster than any user may
         # (services.web.throttle): the benchmark measures the platform, not its limits.
         "IOUV_RATE_LIMITS": "0",
+        # The two car sessions are opened once and driven phase after phase, with nobody
+        # connected in between (the agents' reconnection, a measurement window): on a
+        # busy machine that outlasts the 30 s a driver has to come back, and the 120 s
+        # to connect at all, and supervision ended them before the second topology used
+        # them (409 on their grant). The benchmark keeps them for the whole run.
+        "IOUV_RECONNECT_GRACE_S": "3600",
+        "IOUV_CONNECT_TIMEOUT_S": "3600",
         # The settings' default is inside the tree: every tree must share the signing
         # key and the logs.
         "IOUV_VAR_DIR": os.environ.get("IOUV_VAR_DIR", str(ROOT / "var")),

@@ -7,6 +7,7 @@ from the same facts.
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from datetime import timedelta
 from typing import Any
 
@@ -41,6 +42,22 @@ CONTROLLER_BACK = frozenset(
 CONTROLLER_GONE = frozenset({"unintentional_end", "user_disconnected", "control_released"})
 
 
+def _controller_facts(session: Session, before_seq: int | None = None) -> Iterator[SessionEvent]:
+    """The session's facts about its controller, newest first (older than ``before_seq``
+    if given): a viewer coming or going, or the vehicle back online without a
+    controller, says nothing about who controls it and is left out."""
+    events = session.events.filter(kind__in=sorted(CONTROLLER_BACK | CONTROLLER_GONE))
+    if before_seq is not None:
+        events = events.filter(seq__lt=before_seq)
+    for event in events.order_by("-seq").iterator():
+        data = event.data if isinstance(event.data, dict) else {}
+        if event.kind in ("user_connected", "user_disconnected") and data.get("role") == "viewer":
+            continue
+        if event.kind == "vehicle_online" and not data.get("controller"):
+            continue  # the agent is back; whether its user is, it says separately
+        yield event
+
+
 def controller_gone(session: Session) -> SessionEvent | None:
     """The event since which nobody controls the session's vehicle, or None while
     someone does (or nobody ever did: see :func:`sessions_expire_unconnected`).
@@ -50,15 +67,26 @@ def controller_gone(session: Session) -> SessionEvent | None:
     controller still connected to it; against a fail-safe or the controller leaving.
     Viewers come and go without changing anything.
     """
-    watched = sorted(CONTROLLER_BACK | CONTROLLER_GONE)
-    events = session.events.filter(kind__in=watched).order_by("-seq")
-    for event in events.iterator():
-        data = event.data if isinstance(event.data, dict) else {}
-        if event.kind in ("user_connected", "user_disconnected") and data.get("role") == "viewer":
-            continue
-        if event.kind == "vehicle_online" and not data.get("controller"):
-            continue  # the agent is back; whether its user is, it says separately
+    for event in _controller_facts(session):
         return event if event.kind in CONTROLLER_GONE else None
+    return None
+
+
+def failsafe_since(session: Session, gone: SessionEvent) -> SessionEvent | None:
+    """The fail-safe (``unintentional_end``) the vehicle performed since its controller
+    was last there, when ``gone`` is a later word of the same absence (the driver's tab
+    closed: the agent reports the link lost, with what the vehicle did, and the socket
+    gone, in either order); None when there was none, or when the driver released
+    control since (a choice, which then says more)."""
+    if gone.kind == "unintentional_end":
+        return gone
+    if gone.kind == "control_released":
+        return None
+    for event in _controller_facts(session, before_seq=gone.seq):
+        if event.kind in CONTROLLER_BACK:
+            return None
+        if event.kind == "unintentional_end":
+            return event
     return None
 
 
@@ -93,10 +121,11 @@ def session_situation(session: Session) -> dict[str, Any]:
             return {"live": True, "text": "Waiting for the driver to connect.", "ends_at": None}
         driver = session.user.get_username()
         return {"live": True, "text": f"{driver} is in control.", "ends_at": None}
-    data = gone.data if isinstance(gone.data, dict) else {}
     ends_at = gone.created_at + timedelta(seconds=settings.IOUV_RECONNECT_GRACE_S)
-    if gone.kind == "unintentional_end":
-        words = failsafe_words(data)
+    # What the vehicle did on its own says more than that the driver's socket closed.
+    failsafe = failsafe_since(session, gone)
+    if failsafe is not None:
+        words = failsafe_words(failsafe.data if isinstance(failsafe.data, dict) else {})
         text = f"Nobody is in control: {words}. The session ends unless the driver reconnects."
         text = text[0].upper() + text[1:]
     elif gone.kind == "control_released":

@@ -76,6 +76,33 @@ def test_the_list_says_when_nobody_controls_the_vehicle_and_when_the_session_end
     assert ">live<" in card and "nobody in control" not in card
 
 
+@pytest.mark.parametrize("failsafe_first", [True, False])
+def test_a_closed_tab_reads_as_what_the_vehicle_did_whichever_report_came_first(
+    client, watched, failsafe_first: bool
+) -> None:
+    """The driver closes the tab: the agent reports the link lost (with the car's
+    fail-safe) and the driver's socket gone, in either order. The list says what the car
+    did, not that the driver left; after a release of control, that the driver did."""
+    session, _ = watched
+    Session.objects.filter(pk=session.pk).update(state=Session.State.ACTIVE)
+    event_append(session=session, kind="user_connected", data={"role": "controller"})
+    reports = [
+        ("unintentional_end", {"cause": "link_lost", "action": "stop"}),
+        ("user_disconnected", {"role": "controller"}),
+    ]
+    for kind, data in reports if failsafe_first else reversed(reports):
+        event_append(session=session, kind=kind, data=data)
+    card = html.unescape(_card(client.get(reverse("spectate")).content.decode(), session))
+    assert "Nobody is in control: the driver's link to the vehicle was lost" in card
+    assert "The driver left." not in card
+
+    # Back, then gone without a fail-safe: the words are the driver's leaving again.
+    event_append(session=session, kind="user_connected", data={"role": "controller"})
+    event_append(session=session, kind="user_disconnected", data={"role": "controller"})
+    card = html.unescape(_card(client.get(reverse("spectate")).content.decode(), session))
+    assert "The driver left." in card and "link to the vehicle was lost" not in card
+
+
 def test_the_list_follows_the_server_without_a_reload(client, watched) -> None:
     page = client.get(reverse("spectate")).content.decode()
     assert 'id="spectatable" data-refresh-s=' in page and "js/refresh.js" in page
