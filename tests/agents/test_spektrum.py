@@ -281,6 +281,18 @@ def test_frame_checker_counts_framing_errors_and_measures_timing() -> None:
     # Two whole frames in one late read: decoded, but not timed.
     checker.feed(b + a, t + 0.011)
     assert checker.close_frames == 1 and checker.bad_frames == 5
+    # A late reader handed a backlog in two pieces, the first ending inside a frame, the
+    # second read 5 ms later: one stream, three good frames, not a frame too long.
+    frames = checker.frames
+    checker.feed(b + a + b[:8], t + 0.1)
+    checker.feed(b[8:], t + 0.105)
+    assert checker.frames == frames + 3 and checker.bad_frames == 5
+    # After a lone frame, the same bytes a while later are a frame cut short, then a
+    # piece of one: the line was quiet between them.
+    checker.feed(a, t + 0.2)
+    checker.feed(b[:8], t + 0.211)
+    checker.feed(b[8:], t + 0.222)
+    assert checker.bad["short"] == 2 and checker.frames == frames + 4
 
 
 # --------------------------------------------------------------------------------------

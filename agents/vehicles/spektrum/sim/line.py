@@ -181,6 +181,7 @@ class FrameChecker:
         self._burst_at = 0.0
         self._burst_frames = 0
         self._burst_timed = False
+        self._backlog = False
         self._last_phase: bool | None = None
         self._phase_a_ids: frozenset[int] | None = None
         self._last_frame_at: float | None = None
@@ -195,6 +196,15 @@ class FrameChecker:
         if not data:
             return
         gap = self._last_byte_at is None or now - self._last_byte_at >= FRAME_GAP_S
+        if gap and self._backlog and (len(self._buffer) + len(data)) % FRAME_SIZE == 0:
+            # The last read brought more than a frame: this reader was behind the line,
+            # and the kernel hands a backlog over in pieces that need not end on a frame
+            # (a pty's buffers). These bytes complete the frame it cut, so the "gap" is
+            # this reader's own delay, not a quiet line (the FC's UART times each byte
+            # as it arrives and never sees one). Bytes that do not complete it are a
+            # frame too long, as before.
+            gap = False
+        self._backlog = len(data) > FRAME_SIZE
         self._last_byte_at = now
         if gap:
             if self._buffer:
