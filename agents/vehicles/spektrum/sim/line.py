@@ -196,7 +196,12 @@ class FrameChecker:
         if not data:
             return
         gap = self._last_byte_at is None or now - self._last_byte_at >= FRAME_GAP_S
-        if gap and self._backlog and (len(self._buffer) + len(data)) % FRAME_SIZE == 0:
+        if (
+            gap
+            and self._backlog
+            and self._buffer
+            and (len(self._buffer) + len(data)) % FRAME_SIZE == 0
+        ):
             # The last read brought more than a frame: this reader was behind the line,
             # and the kernel hands a backlog over in pieces that need not end on a frame
             # (a pty's buffers). These bytes complete the frame it cut, so the "gap" is
