@@ -153,7 +153,7 @@ def module_database(django_db_setup: Any, django_db_blocker: Any) -> Iterator[No
     ``transaction=True``, which would empty the database after each test."""
     with django_db_blocker.unblock():
         # The demo users' passwords hashed the fast way (the platform the tests start
-        # accepts it), as the root conftest's per-test fixture does.
+        # accepts it), as _fast_passwords does for each test.
         with override_settings(PASSWORD_HASHERS=["django.contrib.auth.hashers.MD5PasswordHasher"]):
             yield
         call_command("flush", interactive=False, verbosity=0)

@@ -42,52 +42,30 @@ CONTROLLER_BACK = frozenset(
 CONTROLLER_GONE = frozenset({"unintentional_end", "user_disconnected", "control_released"})
 
 
-def _controller_facts(session: Session, before_seq: int | None = None) -> Iterator[SessionEvent]:
-    """The session's facts about its controller, newest first (older than ``before_seq``
-    if given): a viewer coming or going, or the vehicle back online without a
-    controller, says nothing about who controls it and is left out."""
+def _absence(session: Session) -> Iterator[SessionEvent]:
+    """What the session's log says of the present absence of its controller, newest
+    first: the fail-safes and the controller leaving or letting go since a controller
+    was last there; nothing while one is. Facts the agent reported count: a controller
+    connecting, its link recovering on the socket it kept open, the vehicle coming back
+    online with a controller still connected to it, against a fail-safe or the
+    controller leaving. Viewers come and go without changing anything."""
     events = session.events.filter(kind__in=sorted(CONTROLLER_BACK | CONTROLLER_GONE))
-    if before_seq is not None:
-        events = events.filter(seq__lt=before_seq)
     for event in events.order_by("-seq").iterator():
         data = event.data if isinstance(event.data, dict) else {}
         if event.kind in ("user_connected", "user_disconnected") and data.get("role") == "viewer":
             continue
         if event.kind == "vehicle_online" and not data.get("controller"):
             continue  # the agent is back; whether its user is, it says separately
+        if event.kind in CONTROLLER_BACK:
+            return
         yield event
 
 
 def controller_gone(session: Session) -> SessionEvent | None:
-    """The event since which nobody controls the session's vehicle, or None while
-    someone does (or nobody ever did: see :func:`sessions_expire_unconnected`).
-
-    Facts the agent reported count, newest first: a controller connecting, its link
-    recovering on the socket it kept open, the vehicle coming back online with a
-    controller still connected to it; against a fail-safe or the controller leaving.
-    Viewers come and go without changing anything.
-    """
-    for event in _controller_facts(session):
-        return event if event.kind in CONTROLLER_GONE else None
-    return None
-
-
-def failsafe_since(session: Session, gone: SessionEvent) -> SessionEvent | None:
-    """The fail-safe (``unintentional_end``) the vehicle performed since its controller
-    was last there, when ``gone`` is a later word of the same absence (the driver's tab
-    closed: the agent reports the link lost, with what the vehicle did, and the socket
-    gone, in either order); None when there was none, or when the driver released
-    control since (a choice, which then says more)."""
-    if gone.kind == "unintentional_end":
-        return gone
-    if gone.kind == "control_released":
-        return None
-    for event in _controller_facts(session, before_seq=gone.seq):
-        if event.kind in CONTROLLER_BACK:
-            return None
-        if event.kind == "unintentional_end":
-            return event
-    return None
+    """The event since which nobody controls the session's vehicle (the newest word of
+    its :func:`_absence`), or None while someone does (or nobody ever did: see
+    :func:`sessions_expire_unconnected`)."""
+    return next(_absence(session), None)
 
 
 def failsafe_words(data: dict[str, Any]) -> str:
@@ -115,15 +93,20 @@ def session_situation(session: Session) -> dict[str, Any]:
         # Nobody drives an autonomous session: the platform runs it.
         words = kind.situation(session) or "It runs by itself: nobody drives it."
         return {"live": True, "text": words, "ends_at": None}
-    gone = controller_gone(session)
-    if gone is None:
+    absence = list(_absence(session))
+    if not absence:
         if session.state == Session.State.ASSIGNED:
             return {"live": True, "text": "Waiting for the driver to connect.", "ends_at": None}
         driver = session.user.get_username()
         return {"live": True, "text": f"{driver} is in control.", "ends_at": None}
+    gone = absence[0]
     ends_at = gone.created_at + timedelta(seconds=settings.IOUV_RECONNECT_GRACE_S)
-    # What the vehicle did on its own says more than that the driver's socket closed.
-    failsafe = failsafe_since(session, gone)
+    # What the vehicle did on its own says more than that the driver's socket closed,
+    # whichever the agent reported last (a closed tab: the link lost, with the
+    # fail-safe, and the socket gone); a release of control, a choice, says more still.
+    failsafe = None
+    if gone.kind != "control_released":
+        failsafe = next((e for e in absence if e.kind == "unintentional_end"), None)
     if failsafe is not None:
         words = failsafe_words(failsafe.data if isinstance(failsafe.data, dict) else {})
         text = f"Nobody is in control: {words}. The session ends unless the driver reconnects."
