@@ -162,7 +162,8 @@ class FrameChecker:
     two frames of the same phase in a row, ``pair`` an A+B pair missing a channel),
     :attr:`out_of_travel` (good frames with a position outside 342..1706),
     :attr:`close_frames` (frames received right behind the previous one, without the
-    quiet gap: decoded, but their timing is not measured).
+    quiet gap: decoded, but their timing is not measured; so are the bytes that, read
+    after a read that brought more than a frame, complete the frame it cut).
     """
 
     def __init__(
