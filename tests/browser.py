@@ -7,7 +7,9 @@ first). It is the headless shell, as Playwright's own headless runs are: Chromiu
 rendering, media and WebRTC without the desktop browser around them. The full
 ``chromium`` in headless mode passes the same tests, but the shell costs the machine
 about a fifth less CPU over the browser tests (78 against 100 CPU-s for test_portal and
-test_controller_paths_browser), and a saturated suite is bound by CPU. Test modules import from here; this is not a conftest::
+test_controller_paths_browser), and a saturated suite is bound by CPU.
+
+Test modules import from here; this is not a conftest::
 
     from tests.browser import chromium_browser, needs_chromium
 
