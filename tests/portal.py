@@ -18,15 +18,20 @@ from collections.abc import AsyncIterator, Callable, Iterable
 from pathlib import Path
 from typing import Any
 
+import pytest
 from playwright.async_api import Browser, Page, expect
 from playwright.async_api import TimeoutError as PlaywrightTimeout
 
 from agents.config import AgentConfig
 from agents.runtime import Agent
-from services.models import Service
-from tests.browser import chromium_browser
-from tests.demo import PASSWORD, demo_agent_config, demo_running
-from tests.servers import db, until
+from fleet.models import AgentMessage
+from services.demo import demo_seed
+from services.models import Service, Session
+from services.sessions.ending import session_end_by_user
+from services.sessions.states import FINAL, SessionStateError
+from tests.browser import chromium_browser, needs_chromium
+from tests.demo import PASSWORD, agents_online, demo_agent_config, demo_running
+from tests.servers import db, platform_process, until
 
 
 @dataclasses.dataclass
@@ -73,6 +78,13 @@ async def sign_in(page: Page, base: str, username: str, password: str = PASSWORD
 WORLD_LINK_LOSS_MS = 3000
 
 
+def _link_loss_raised(floor_ms: int) -> dict[str, int]:
+    """Every service's link-loss timeout raised to at least ``floor_ms``; returns them
+    all by slug, as they are now."""
+    Service.objects.filter(link_loss_timeout_ms__lt=floor_ms).update(link_loss_timeout_ms=floor_ms)
+    return dict(Service.objects.values_list("slug", "link_loss_timeout_ms"))
+
+
 @contextlib.asynccontextmanager
 async def demo_world(
     directory: Path,
@@ -96,12 +108,108 @@ async def demo_world(
     )
     # The agents stop (cancelled, then their simulators) after the browser.
     async with running as demo, chromium_browser(webrtc_loopback=webrtc_loopback) as browser:
-        await db(
-            lambda: Service.objects.filter(link_loss_timeout_ms__lt=link_loss_timeout_ms).update(
-                link_loss_timeout_ms=link_loss_timeout_ms
-            )
-        )
+        await db(_link_loss_raised, link_loss_timeout_ms)
         yield World(demo.base, browser, demo.agents)
+
+
+#: The marks of a module whose tests use tests/integration's ``world`` (on the module's
+#: :class:`Portal`): the shared database, not emptied between its tests, and the
+#: module's event loop, the portal's.
+PORTAL_MARKS = [
+    pytest.mark.postgres,
+    pytest.mark.redis,
+    pytest.mark.django_db,
+    needs_chromium,
+    pytest.mark.asyncio(loop_scope="module"),
+]
+
+
+@dataclasses.dataclass
+class Portal:
+    """The seeded demo on the platform at ``base``, and Chromium: what a module's
+    browser tests share, each with a fleet of its own (:func:`fleet_world`). The
+    agents' configs are in ``directory``; ``link_loss_ms`` is each service's link-loss
+    timeout (by slug) as every test starts with it."""
+
+    directory: Path
+    base: str
+    browser: Browser
+    link_loss_ms: dict[str, int]
+
+
+@contextlib.asynccontextmanager
+async def portal_running(
+    directory: Path, *, link_loss_timeout_ms: int = WORLD_LINK_LOSS_MS
+) -> AsyncIterator[Portal]:
+    """The seeded demo (its agents' configs in ``directory``) on the platform, with
+    Chromium able to take the vehicles' video, and every service's link-loss timeout
+    at least ``link_loss_timeout_ms``. For a module's tests together: starting the
+    platform and Chromium, seeding and emptying the database cost a world about 3 s
+    of CPU, more than most of its tests. Needs the module's database (the root
+    conftest's ``module_database``): a transactional test's teardown would empty it."""
+    await db(demo_seed, password=PASSWORD, credentials_dir=directory)
+    link_loss = await db(_link_loss_raised, link_loss_timeout_ms)
+    with platform_process() as base:
+        async with chromium_browser(webrtc_loopback=True) as browser:
+            yield Portal(directory, base, browser, link_loss)
+
+
+def _link_loss_set(timeouts: dict[str, int]) -> None:
+    for slug, ms in timeouts.items():
+        Service.objects.filter(slug=slug).exclude(link_loss_timeout_ms=ms).update(
+            link_loss_timeout_ms=ms
+        )
+
+
+def _sessions_left_end() -> None:
+    """End every session a test left open, as its user would (one still waiting is
+    withdrawn): its vehicles get ``end_task``."""
+    for session in Session.objects.exclude(state__in=FINAL):
+        with contextlib.suppress(SessionStateError):  # it ended meanwhile
+            session_end_by_user(session=session)
+
+
+def _owed(names: list[str]) -> int:
+    """How many messages the platform still owes the agents of ``names``."""
+    return AgentMessage.objects.filter(
+        vehicle__name__in=names, state=AgentMessage.State.PENDING
+    ).count()
+
+
+@contextlib.asynccontextmanager
+async def fleet_world(
+    portal: Portal,
+    names: Iterable[str] = ("car-1", "quad-1"),
+    *,
+    within: float = 30,
+) -> AsyncIterator[World]:
+    """The agents of ``names`` (by default car-1's and quad-1's) online against
+    ``portal``'s platform on fresh simulators, idle with a position, for one test: what
+    it changes in an agent or a simulator goes with them. It starts with the portal's
+    link-loss timeouts, whatever an earlier test set. On exit the browser contexts it
+    opened close, the sessions it left open end, and the agents stop once they have
+    acknowledged those ends, so the next test finds every vehicle free."""
+    await db(_link_loss_set, portal.link_loss_ms)
+    configs = {
+        name: demo_agent_config(portal.directory / f"{name}.json", portal.base) for name in names
+    }
+    before = set(portal.browser.contexts)
+    async with agents_online(configs, within=within) as running:
+        try:
+            yield World(portal.base, portal.browser, running.agents)
+        finally:
+            for context in portal.browser.contexts:
+                if context not in before:
+                    await context.close()
+            await db(_sessions_left_end)
+            alive = [name for name, task in running.tasks.items() if not task.done()]
+
+            async def acknowledged() -> bool:
+                return await db(_owed, alive) == 0
+
+            await until(
+                acknowledged, within=30, what="the agents to take the ends of their sessions"
+            )
 
 
 # --- on a session page --------------------------------------------------------------------

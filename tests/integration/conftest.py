@@ -7,16 +7,29 @@ from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
 import pytest
+import pytest_asyncio
 
 from tests.netlab import NetLab, leftovers
-from tests.portal import World, demo_world
+from tests.portal import Portal, World, fleet_world, portal_running
 
 
-@pytest.fixture
-async def world(tmp_path: Path) -> AsyncIterator[World]:
-    """The seeded demo on the platform, car-1's and quad-1's agents online with a
-    position, and Chromium able to take their video (tests.portal.demo_world)."""
-    async with demo_world(tmp_path) as running:
+@pytest_asyncio.fixture(scope="module", loop_scope="module")
+async def module_portal(
+    module_database: None, tmp_path_factory: pytest.TempPathFactory
+) -> AsyncIterator[Portal]:
+    """The seeded demo on the platform, and Chromium, for the module's tests
+    (tests.portal.portal_running)."""
+    async with portal_running(tmp_path_factory.mktemp("portal")) as portal:
+        yield portal
+
+
+@pytest_asyncio.fixture(loop_scope="module")
+async def world(module_portal: Portal) -> AsyncIterator[World]:
+    """The module's portal with car-1's and quad-1's agents online with a position, on
+    fresh simulators, for one test (tests.portal.fleet_world). A module using it marks
+    its tests ``django_db`` (not ``transaction=True``, which would empty the shared
+    database after each) and ``asyncio(loop_scope="module")``, the portal's loop."""
+    async with fleet_world(module_portal) as running:
         yield running
 
 

@@ -7,18 +7,10 @@ from __future__ import annotations
 import time
 from typing import Any
 
-import pytest
-
-from tests.browser import needs_chromium
-from tests.portal import World, request_car, wait_for
+from tests.portal import PORTAL_MARKS, World, request_car, wait_for
 from tests.servers import until
 
-pytestmark = [
-    pytest.mark.postgres,
-    pytest.mark.redis,
-    pytest.mark.django_db(transaction=True),
-    needs_chromium,
-]
+pytestmark = PORTAL_MARKS
 
 
 async def test_a_held_arrow_turns_the_car_slowly_enough_to_aim(world: World) -> None:

@@ -16,13 +16,12 @@ import math
 import os
 from typing import Any
 
-import pytest
 from playwright.async_api import FloatRect, Page
 
-from tests.browser import needs_chromium
 from tests.portal import (
     LAPTOP,
     PHONE,
+    PORTAL_MARKS,
     World,
     login,
     no_wider_than_the_screen,
@@ -31,12 +30,7 @@ from tests.portal import (
     wait_for,
 )
 
-pytestmark = [
-    pytest.mark.postgres,
-    pytest.mark.redis,
-    pytest.mark.django_db(transaction=True),
-    needs_chromium,
-]
+pytestmark = PORTAL_MARKS
 
 
 async def rect(page: Page, selector: str) -> FloatRect:

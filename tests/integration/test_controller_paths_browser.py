@@ -14,13 +14,11 @@ import dataclasses
 from typing import Any
 from urllib.parse import urlsplit
 
-import pytest
-
 from services.models import Session
-from tests.browser import needs_chromium
 from tests.freezing_proxy import FreezingProxy
 from tests.portal import (
     FAKE_GAMEPAD,
+    PORTAL_MARKS,
     RECORD_COMMANDS,
     World,
     drive_forward,
@@ -29,12 +27,7 @@ from tests.portal import (
 )
 from tests.servers import db, until
 
-pytestmark = [
-    pytest.mark.postgres,
-    pytest.mark.redis,
-    pytest.mark.django_db(transaction=True),
-    needs_chromium,
-]
+pytestmark = PORTAL_MARKS
 
 
 #: The sign between a picture's width and height on the page (a multiplication sign).

@@ -10,20 +10,13 @@ its ArduCopter-like simulator, at a laptop's size:
 
 from __future__ import annotations
 
-import pytest
 from playwright.async_api import expect
 
 from agents.geo import offset
-from tests.browser import needs_chromium
-from tests.portal import LAPTOP, RECORD_COMMANDS, World, end_session, request_drone
+from tests.portal import LAPTOP, PORTAL_MARKS, RECORD_COMMANDS, World, end_session, request_drone
 from tests.servers import until
 
-pytestmark = [
-    pytest.mark.postgres,
-    pytest.mark.redis,
-    pytest.mark.django_db(transaction=True),
-    needs_chromium,
-]
+pytestmark = PORTAL_MARKS
 
 
 async def test_ending_the_session_while_the_drone_lands_lets_it_land(world: World) -> None:

@@ -5,18 +5,11 @@ and the catalog calls them an operator.
 
 from __future__ import annotations
 
-import pytest
 from playwright.async_api import expect
 
-from tests.browser import needs_chromium
-from tests.portal import World, request_car
+from tests.portal import PORTAL_MARKS, World, request_car
 
-pytestmark = [
-    pytest.mark.postgres,
-    pytest.mark.redis,
-    pytest.mark.django_db(transaction=True),
-    needs_chromium,
-]
+pytestmark = PORTAL_MARKS
 
 
 async def test_the_operator_watches_the_fleet_and_its_sessions_live(world: World) -> None:

@@ -6,19 +6,12 @@ from __future__ import annotations
 
 import re
 
-import pytest
 from playwright.async_api import expect
 
-from tests.browser import needs_chromium
-from tests.portal import PHONE, World, login, wait_for
+from tests.portal import PHONE, PORTAL_MARKS, World, login, wait_for
 from tests.servers import until
 
-pytestmark = [
-    pytest.mark.postgres,
-    pytest.mark.redis,
-    pytest.mark.django_db(transaction=True),
-    needs_chromium,
-]
+pytestmark = PORTAL_MARKS
 
 
 async def test_on_a_phone_altitude_and_battery_are_on_the_picture(world: World) -> None:

@@ -12,7 +12,6 @@ import re
 from datetime import datetime
 from typing import Any
 
-import pytest
 from playwright.async_api import Page, expect
 
 from accounts.roles import CLIENT
@@ -20,10 +19,10 @@ from agents.geo import distance_m
 from fleet.models import Vehicle
 from services.models import Service, Session
 from tests import factories as f
-from tests.browser import needs_chromium
 from tests.demo import TEST_CAMERA
 from tests.portal import (
     FAKE_GAMEPAD,
+    PORTAL_MARKS,
     World,
     assert_nothing_refused,
     controller,
@@ -36,12 +35,7 @@ from tests.portal import (
 )
 from tests.servers import db, until
 
-pytestmark = [
-    pytest.mark.postgres,
-    pytest.mark.redis,
-    pytest.mark.django_db(transaction=True),
-    needs_chromium,
-]
+pytestmark = PORTAL_MARKS
 
 
 async def hold(page: Page, key: str, seconds: float) -> None:

@@ -13,14 +13,13 @@ from __future__ import annotations
 from datetime import timedelta
 from typing import Any
 
-import pytest
 from django.conf import settings
 from playwright.async_api import expect
 
 from services.models import Service, Session
 from services.supervision.timers import sessions_expire_grace
-from tests.browser import needs_chromium
 from tests.portal import (
+    PORTAL_MARKS,
     WORLD_LINK_LOSS_MS,
     World,
     controller,
@@ -31,12 +30,7 @@ from tests.portal import (
 )
 from tests.servers import db, until
 
-pytestmark = [
-    pytest.mark.postgres,
-    pytest.mark.redis,
-    pytest.mark.django_db(transaction=True),
-    needs_chromium,
-]
+pytestmark = PORTAL_MARKS
 
 
 def _log(session_id: str) -> list[str]:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import pytest
 from django.contrib.auth import get_user_model
 from django.utils import timezone
 from playwright.async_api import Request, WebSocket, expect
@@ -18,16 +17,10 @@ from kinds.rescue_at_sea.workflow import mission_advance
 from services.demo import CASTAWAY
 from services.models import Service, Session
 from services.sessions.ending import session_revoke
-from tests.browser import needs_chromium
-from tests.portal import World, request_car, wait_for
+from tests.portal import PORTAL_MARKS, World, request_car, wait_for
 from tests.servers import db
 
-pytestmark = [
-    pytest.mark.postgres,
-    pytest.mark.redis,
-    pytest.mark.django_db(transaction=True),
-    needs_chromium,
-]
+pytestmark = PORTAL_MARKS
 
 
 def _monitor_stops(session_id: str) -> None:
