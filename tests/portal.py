@@ -112,9 +112,11 @@ async def demo_world(
         yield World(demo.base, browser, demo.agents)
 
 
-#: The marks of a module whose tests use tests/integration's ``world`` (on the module's
-#: :class:`Portal`): the shared database, not emptied between its tests, and the
-#: module's event loop, the portal's.
+#: The marks of a browser module whose tests share a world started once for the module
+#: (tests/integration's ``world`` on its :class:`Portal`, or a module's own): the test
+#: database, not ``transaction=True``, which would empty it after each test while the
+#: world lives on (the root conftest's ``module_database``), and the module's event
+#: loop, which the world lives in.
 PORTAL_MARKS = [
     pytest.mark.postgres,
     pytest.mark.redis,

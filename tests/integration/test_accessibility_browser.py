@@ -18,20 +18,10 @@ import pytest
 import pytest_asyncio
 
 from tests.accessibility import axe_violations, violations_report
-from tests.browser import needs_chromium
+from tests.portal import PORTAL_MARKS
 from tests.tour import VIEWPORTS, Tour, open_page, tour_world
 
-pytestmark = [
-    pytest.mark.postgres,
-    pytest.mark.redis,
-    # Asks pytest-django for the test database. Not ``transaction=True``: the module's
-    # world lives across the tests (the module_database fixture, tests/integration's
-    # conftest.py). The tests write nothing themselves.
-    pytest.mark.django_db,
-    needs_chromium,
-    # The tests share the module's world, which lives in the module's event loop.
-    pytest.mark.asyncio(loop_scope="module"),
-]
+pytestmark = PORTAL_MARKS
 
 
 @pytest_asyncio.fixture(scope="module", loop_scope="module")

@@ -25,21 +25,11 @@ from playwright.async_api import Browser, Page, Response, expect
 
 from fleet.models import Station
 from services.models import Service, Session
-from tests.browser import needs_chromium
 from tests.deployment import session_requested
-from tests.portal import LISTEN_FOR_VIOLATIONS, World, demo_world, sign_in, wait_for
+from tests.portal import LISTEN_FOR_VIOLATIONS, PORTAL_MARKS, World, demo_world, sign_in, wait_for
 from tests.servers import db
 
-pytestmark = [
-    pytest.mark.postgres,
-    pytest.mark.redis,
-    # Not ``transaction=True``: the module's world lives across its tests (the
-    # module_database fixture, tests/integration's conftest.py).
-    pytest.mark.django_db,
-    needs_chromium,
-    # The world lives in the module's event loop.
-    pytest.mark.asyncio(loop_scope="module"),
-]
+pytestmark = PORTAL_MARKS
 
 #: A 1x1 PNG: every tile the map asks for.
 TILE = base64.b64decode(

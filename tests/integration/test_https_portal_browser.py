@@ -31,9 +31,10 @@ from agents.config import AgentConfig
 from benchmarks.nginx_proxy import Backend, NginxProxy, NginxUnavailable, Routes, Tls, nginx_binary
 from services.demo import demo_seed
 from services.models import Service, Session
-from tests.browser import chromium_browser, needs_chromium
+from tests.browser import chromium_browser
 from tests.demo import PASSWORD, agents_online
 from tests.portal import (
+    PORTAL_MARKS,
     WORLD_LINK_LOSS_MS,
     World,
     assert_nothing_refused,
@@ -45,16 +46,7 @@ from tests.portal import (
 from tests.servers import db, platform_process, until
 from tests.tls import Certificates, certificates_make
 
-pytestmark = [
-    pytest.mark.postgres,
-    pytest.mark.redis,
-    # Not ``transaction=True``: the module's world lives across its tests (the
-    # module_database fixture, tests/integration's conftest.py).
-    pytest.mark.django_db,
-    needs_chromium,
-    # The world lives in the module's event loop.
-    pytest.mark.asyncio(loop_scope="module"),
-]
+pytestmark = PORTAL_MARKS
 
 #: The platform's environment in production behind a TLS proxy (the test process's own
 #: environment turns the redirect and secure cookies off: these override it).
